@@ -1,0 +1,53 @@
+"""Named conventions of the wire contract. Every other module refers to these; none redefines them.
+
+A twist declares the frame of its linear part and the meaning of its angular part (ARCHITECTURE.md):
+
+* ``Frame.MIXED`` is seed 000's frame: linear velocity in the robot base frame, rotation of the end effector.
+* ``AngularConvention.OMEGA``: the angular velocity vector (in the end-effector frame when the frame is mixed).
+* ``AngularConvention.EULER_XYZ_RATES``: true time derivatives of the XYZ Euler angles GetCartesianPosition
+  reports, i.e. B(Γ)⁻¹·ω with ω expressed in the base frame.
+* ``AngularConvention.SEED000``: what seed 000 eq. 11, 24-25 compute: B(Γ)⁻¹ applied to ω expressed in the
+  end-effector frame. It equals EULER_XYZ_RATES only where the end-effector and base frames share the rotation
+  axis in question (e.g. at the identity orientation).
+"""
+from __future__ import annotations
+
+import enum
+
+
+class Frame(str, enum.Enum):
+    BASE = "base"
+    END_EFFECTOR = "end_effector"
+    CAMERA = "camera"
+    MIXED = "mixed"
+
+
+class AngularConvention(str, enum.Enum):
+    OMEGA = "omega"
+    EULER_XYZ_RATES = "euler_xyz_rates"
+    SEED000 = "seed000"
+
+
+#: The convention the robot's DSP interprets by default (ARCHITECTURE.md: the seed's controller meets the arm the
+#: seed assumes).
+DEFAULT_ROBOT_ANGULAR_CONVENTION = AngularConvention.SEED000
+
+
+class ClockMode(str, enum.Enum):
+    """``realtime``: wall clock, robot loops at 100/500 Hz. ``lockstep``: the simulator advances one camera
+    period only when the pipeline has answered the last frame (or after a timeout)."""
+
+    REALTIME = "realtime"
+    LOCKSTEP = "lockstep"
+
+
+class DepthSource(str, enum.Enum):
+    """Which depth the interaction matrix uses (seed 000; ViSP's CURRENT/DESIRED/MEAN)."""
+
+    CURRENT = "current"
+    GOAL = "goal"
+    MEAN = "mean"
+
+
+#: Euler angles in files and at the Kinova boundary are XYZ: R = Rx(r)·Ry(p)·Rz(y).
+EULER_SEQUENCE = "xyz"

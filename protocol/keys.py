@@ -1,0 +1,162 @@
+"""Every zenoh key expression of mfvs, under ``mfvs/<robot_id>/...``. No other module spells a key.
+
+Use ``Keys("jaco")`` for one robot's keys; all services of one stack share the robot id.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+ROOT = "mfvs"
+
+# A robot id is one key chunk: no '/', no wildcards or zenoh's reserved characters.
+_ROBOT_ID = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
+_CHUNK = _ROBOT_ID
+
+#: Names of the Kinova high-level functions exposed as queryables under ``robot/api/<Function>``.
+KINOVA_API_FUNCTIONS = (
+    "InitAPI",
+    "CloseAPI",
+    "MoveHome",
+    "SendBasicTrajectory",
+    "EraseAllTrajectories",
+    "GetGlobalTrajectoryInfo",
+    "SetAngularControl",
+    "SetCartesianControl",
+    "GetAngularPosition",
+    "GetAngularVelocity",
+    "GetAngularForce",
+    "GetAngularCommand",
+    "GetCartesianPosition",
+    "GetCartesianCommand",
+    "GetQuickStatus",
+    "SetProtectionZone",
+    "GetProtectionZone",
+    "EraseAllProtectionZones",
+    "SetCartesianInertiaDamping",
+    "SetMaxTranslationVelocity",
+    "SetMaxOrientationVelocity",
+    "GetClientConfigurations",
+    "SwitchTrajectoryTorque",
+    "SendAngularTorqueCommand",
+)
+
+
+class InvalidKeyChunk(ValueError):
+    """A robot id, service name or function name that cannot be a key chunk."""
+
+
+def _check_chunk(kind: str, value: str) -> str:
+    if not isinstance(value, str) or not _CHUNK.match(value):
+        raise InvalidKeyChunk(
+            f"invalid {kind} {value!r}: use 1-64 characters from [A-Za-z0-9_-.], no '/', '*', '$', '#' or '?'"
+        )
+    return value
+
+
+@dataclass(frozen=True)
+class Keys:
+    """The key expressions of one robot's stack."""
+
+    robot_id: str = "jaco"
+
+    def __post_init__(self) -> None:
+        _check_chunk("robot id", self.robot_id)
+
+    @property
+    def prefix(self) -> str:
+        return f"{ROOT}/{self.robot_id}"
+
+    def _k(self, suffix: str) -> str:
+        return f"{self.prefix}/{suffix}"
+
+    # camera (robot_sim renders; a camera driver on hardware)
+    @property
+    def camera_image(self) -> str:
+        return self._k("camera/image")
+
+    @property
+    def camera_info(self) -> str:
+        return self._k("camera/info")
+
+    # vision
+    @property
+    def features(self) -> str:
+        return self._k("vision/features")
+
+    @property
+    def vision_goal(self) -> str:
+        """Publishing a goal message here changes the vision goal at run time."""
+        return self._k("vision/goal")
+
+    def vision_api(self, function: str) -> str:
+        return self._k(f"vision/api/{_check_chunk('function name', function)}")
+
+    # controller
+    @property
+    def desired_twist(self) -> str:
+        return self._k("controller/twist")
+
+    @property
+    def desired_joint_velocity(self) -> str:
+        return self._k("controller/joint_velocity")
+
+    @property
+    def controller_status(self) -> str:
+        return self._k("controller/status")
+
+    # safety
+    @property
+    def robot_command(self) -> str:
+        """Only the safety service may publish here (deploy ACLs enforce it)."""
+        return self._k("robot/command")
+
+    @property
+    def safety_status(self) -> str:
+        return self._k("safety/status")
+
+    @property
+    def estop(self) -> str:
+        """Any operator tool may publish an e-stop request here; only an explicit reset releases it."""
+        return self._k("safety/estop")
+
+    # robot (robot_sim or robot_gateway)
+    @property
+    def robot_state(self) -> str:
+        return self._k("robot/state")
+
+    def robot_api(self, function: str) -> str:
+        return self._k(f"robot/api/{_check_chunk('function name', function)}")
+
+    @property
+    def robot_api_all(self) -> str:
+        return self._k("robot/api/*")
+
+    @property
+    def lowlevel_command(self) -> str:
+        return self._k("robot/lowlevel/command")
+
+    @property
+    def lowlevel_state(self) -> str:
+        return self._k("robot/lowlevel/state")
+
+    # time
+    @property
+    def clock(self) -> str:
+        """The simulator's clock (simulated time) in both clock modes."""
+        return self._k("sim/clock")
+
+    # service runtime
+    def health(self, service: str) -> str:
+        return self._k(f"health/{_check_chunk('service name', service)}")
+
+    @property
+    def health_all(self) -> str:
+        return self._k("health/*")
+
+    def liveliness(self, service: str) -> str:
+        return self._k(f"alive/{_check_chunk('service name', service)}")
+
+    @property
+    def liveliness_all(self) -> str:
+        return self._k("alive/*")

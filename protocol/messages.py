@@ -1,0 +1,409 @@
+"""Message types of the wire contract, encoded as MessagePack maps (field name → value).
+
+Every message carries a :class:`Header`. Decoding validates types, lengths, ranges, enum values (conventions),
+the schema version and finiteness of every float; any failure raises :class:`ProtocolError`, whose ``field`` names
+the offending field as a path (``header.schema``, ``linear[2]``, ...). A plain ``msgpack`` client in any language
+reads and writes these messages as maps with the field names below.
+
+Units are SI (m, rad, s, N·m); Kinova units (degrees, XYZ Euler) appear only in :mod:`protocol.kinova`.
+"""
+from __future__ import annotations
+
+import enum
+import math
+import re
+from typing import Annotated, Any, Optional, TypeVar
+
+import msgspec
+
+from protocol.conventions import AngularConvention, Frame
+
+#: Bumped on any incompatible change; a message with another version is refused, never guessed at.
+SCHEMA_VERSION = 1
+
+#: The JACO-2 j2s7s300 has seven actuators; the wire carries exactly that many joint values.
+N_JOINTS = 7
+
+MAX_IMAGE_SIDE = 8192
+
+
+class ProtocolError(ValueError):
+    """A payload that is not a valid message. ``field`` is the path of the bad field ('' for the whole payload)."""
+
+    def __init__(self, message_type: str, reason: str, field: str = "") -> None:
+        self.message_type = message_type
+        self.reason = reason
+        self.field = field
+        where = f" at field '{field}'" if field else ""
+        super().__init__(f"invalid {message_type}{where}: {reason}")
+
+
+def _non_finite_path(value: Any, path: str) -> Optional[str]:
+    if isinstance(value, float):
+        return None if math.isfinite(value) else path
+    if isinstance(value, (list, tuple)):
+        for i, item in enumerate(value):
+            bad = _non_finite_path(item, f"{path}[{i}]")
+            if bad is not None:
+                return bad
+    elif isinstance(value, dict):
+        for k, item in value.items():
+            bad = _non_finite_path(item, f"{path}.{k}")
+            if bad is not None:
+                return bad
+    return None
+
+
+class Message(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """Base of every wire type: refuses unknown fields and non-finite floats."""
+
+    def __post_init__(self) -> None:
+        for name in self.__struct_fields__:
+            bad = _non_finite_path(getattr(self, name), name)
+            if bad is not None:
+                raise ValueError(f"non-finite number (NaN or Inf) at field '{bad}'")
+
+
+Float = float
+NonNegInt = Annotated[int, msgspec.Meta(ge=0)]
+Vec3 = tuple[float, float, float]
+JointVector = Annotated[list[float], msgspec.Meta(min_length=N_JOINTS, max_length=N_JOINTS)]
+ServiceName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-.]{1,64}$")]
+
+
+class Hop(Message):
+    """One service's passage: when it received the input and when it published the output (ns, its clock)."""
+
+    service: ServiceName
+    recv_ns: NonNegInt
+    pub_ns: NonNegInt
+
+
+class Header(Message):
+    schema: int = SCHEMA_VERSION
+    seq: NonNegInt = 0
+    #: time this message's content refers to (ns; wall or simulated per the clock mode)
+    stamp_ns: NonNegInt = 0
+    #: capture time of the image this message derives from (0 when it derives from no image)
+    source_stamp_ns: NonNegInt = 0
+    trace: Annotated[list[Hop], msgspec.Meta(max_length=32)] = []
+
+    def __post_init__(self) -> None:
+        if self.schema != SCHEMA_VERSION:
+            raise ValueError(
+                f"unsupported schema version {self.schema} at field 'schema', this build speaks {SCHEMA_VERSION}"
+            )
+
+    def with_hop(self, service: str, recv_ns: int, pub_ns: int) -> "Header":
+        """A copy with this service's hop appended (the trace is never shared between messages)."""
+        return msgspec.structs.replace(self, trace=[*self.trace, Hop(service=service, recv_ns=recv_ns, pub_ns=pub_ns)])
+
+
+class Pose(Message):
+    """A rigid transform: position (m) and unit quaternion (w, x, y, z)."""
+
+    xyz: Vec3 = (0.0, 0.0, 0.0)
+    quat_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        norm = math.sqrt(sum(c * c for c in self.quat_wxyz))
+        if abs(norm - 1.0) > 1e-4:
+            raise ValueError(f"quat_wxyz must be a unit quaternion, its norm is {norm:.6g}")
+
+
+# --------------------------------------------------------------------------------------------------- camera
+
+
+class ImageEncoding(str, enum.Enum):
+    RGB8 = "rgb8"
+    BGR8 = "bgr8"
+    MONO8 = "mono8"
+
+
+CHANNELS = {ImageEncoding.RGB8: 3, ImageEncoding.BGR8: 3, ImageEncoding.MONO8: 1}
+
+ImageSide = Annotated[int, msgspec.Meta(ge=1, le=MAX_IMAGE_SIDE)]
+
+
+class Image(Message):
+    header: Header
+    width: ImageSide
+    height: ImageSide
+    encoding: ImageEncoding
+    data: bytes
+
+    def __post_init__(self) -> None:
+        expected = self.width * self.height * CHANNELS[self.encoding]
+        if len(self.data) != expected:
+            raise ValueError(
+                f"data holds {len(self.data)} bytes, {self.width}x{self.height} {self.encoding.value} needs {expected}"
+            )
+
+
+Positive = Annotated[float, msgspec.Meta(gt=0.0)]
+
+
+class CameraInfo(Message):
+    header: Header
+    width: ImageSide
+    height: ImageSide
+    fx: Positive
+    fy: Positive
+    cx: float
+    cy: float
+    #: OpenCV's (k1, k2, p1, p2, k3); all zero for the simulated pinhole camera
+    distortion: Annotated[list[float], msgspec.Meta(max_length=14)] = msgspec.field(default_factory=lambda: [0.0] * 5)
+    camera_in_ee: Pose = msgspec.field(default_factory=Pose)
+
+
+# --------------------------------------------------------------------------------------------------- vision
+
+
+class FeatureStatus(str, enum.Enum):
+    OK = "ok"
+    TAG_LOST = "tag_lost"
+    PARTIAL = "partial"
+    STALE = "stale"
+
+
+Point2 = tuple[float, float]
+Points = Annotated[list[Point2], msgspec.Meta(max_length=64)]
+
+
+class Features(Message):
+    """Point features in normalized image coordinates (x = X/Z, y = Y/Z), OpenCV optical camera frame."""
+
+    header: Header
+    status: FeatureStatus
+    tag_id: int = -1
+    points: Points = []
+    depths: Annotated[list[Positive], msgspec.Meta(max_length=64)] = []
+    goal_points: Points = []
+    goal_depths: Annotated[list[Positive], msgspec.Meta(max_length=64)] = []
+    #: e = s - s*, stacked (x0, y0, x1, y1, ...)
+    error: Annotated[list[float], msgspec.Meta(max_length=128)] = []
+    error_norm: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    tag_pose_in_camera: Optional[Pose] = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.status is FeatureStatus.OK:
+            n = len(self.points)
+            if n == 0:
+                raise ValueError("status ok needs points")
+            for name, length in (("depths", n), ("goal_points", n), ("error", 2 * n)):
+                if len(getattr(self, name)) != length:
+                    raise ValueError(f"{name} has {len(getattr(self, name))} entries, {length} expected for {n} points")
+
+
+# --------------------------------------------------------------------------------------------------- control
+
+
+class Twist(Message):
+    """A velocity screw with its declared convention. In the mixed frame the linear part is in the base frame and
+    ``angular`` says how ``rotational`` is to be read (see :mod:`protocol.conventions`)."""
+
+    header: Header
+    frame: Frame
+    angular: AngularConvention
+    linear: Vec3
+    rotational: Vec3
+
+
+class JointVelocity(Message):
+    """Desired joint velocities in rad/s, model joint order and sign (see services.common.jaco2)."""
+
+    header: Header
+    velocities: JointVector
+
+
+class CommandMode(str, enum.Enum):
+    #: hold still: the robot decelerates to rest within its limits
+    STOP = "stop"
+    CARTESIAN_VELOCITY = "cartesian_velocity"
+    JOINT_VELOCITY = "joint_velocity"
+
+
+class RobotCommand(Message):
+    """What the robot applies for one control cycle. Only the safety service publishes it."""
+
+    header: Header
+    mode: CommandMode
+    twist: Optional[Twist] = None
+    joint_velocities: Optional[JointVector] = None
+    #: why the command is what it is (e.g. the refusal that turned it into a stop)
+    reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.mode is CommandMode.CARTESIAN_VELOCITY and self.twist is None:
+            raise ValueError("mode cartesian_velocity needs twist")
+        if self.mode is CommandMode.JOINT_VELOCITY and self.joint_velocities is None:
+            raise ValueError("mode joint_velocity needs joint_velocities")
+
+
+# --------------------------------------------------------------------------------------------------- robot
+
+
+class ControlMode(str, enum.Enum):
+    CARTESIAN_VELOCITY = "cartesian_velocity"
+    ANGULAR_VELOCITY = "angular_velocity"
+    CARTESIAN_POSITION = "cartesian_position"
+    ANGULAR_POSITION = "angular_position"
+    TORQUE = "torque"
+    IDLE = "idle"
+
+
+class KinovaPose(Message):
+    """The end-effector pose as GetCartesianPosition reports it: metres and XYZ Euler angles in radians."""
+
+    X: float
+    Y: float
+    Z: float
+    ThetaX: float
+    ThetaY: float
+    ThetaZ: float
+
+
+class RobotState(Message):
+    header: Header
+    #: model joint angles (rad), velocities (rad/s), torques (N·m)
+    q: JointVector
+    dq: JointVector
+    tau: JointVector
+    pose: KinovaPose
+    control_mode: ControlMode
+    fifo_count: NonNegInt = 0
+    faults: Annotated[list[str], msgspec.Meta(max_length=32)] = []
+    watchdog_tripped: bool = False
+    #: the angular convention the robot's DSP interprets for Cartesian velocity commands
+    angular_convention: AngularConvention = AngularConvention.SEED000
+    #: header (with trace) of the command applied in this cycle, the robot's hop appended
+    applied_command: Optional[Header] = None
+
+
+class TorqueCommand(Message):
+    """Low-level (500 Hz) joint torque command, N·m. With gravity compensation on, the robot adds g(q)."""
+
+    header: Header
+    torques: JointVector
+    gravity_compensation: bool = True
+
+
+class ActuatorMode(str, enum.Enum):
+    POSITION = "position"
+    TORQUE = "torque"
+
+
+class LowLevelState(Message):
+    header: Header
+    mode: ActuatorMode
+    q: JointVector
+    dq: JointVector
+    tau: JointVector
+    current_a: JointVector
+    temperature_c: JointVector
+    faults: Annotated[list[str], msgspec.Meta(max_length=32)] = []
+
+
+class SimClock(Message):
+    header: Header
+    sim_time_ns: NonNegInt
+    mode: Annotated[str, msgspec.Meta(pattern="^(realtime|lockstep)$")]
+
+
+# --------------------------------------------------------------------------------------------------- safety
+
+
+class SafetyState(str, enum.Enum):
+    OK = "ok"
+    LIMITING = "limiting"
+    REFUSING = "refusing"
+    ESTOP = "estop"
+
+
+class SafetyStatus(Message):
+    header: Header
+    state: SafetyState
+    active_limits: Annotated[list[str], msgspec.Meta(max_length=32)] = []
+    last_refusal: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    counters: dict[str, NonNegInt] = {}
+
+
+class EStop(Message):
+    """Engage (reset=False) or release (reset=True) the latched emergency stop."""
+
+    header: Header
+    reset: bool = False
+    operator: Annotated[str, msgspec.Meta(max_length=64)] = ""
+    reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
+
+
+# --------------------------------------------------------------------------------------------------- runtime
+
+
+class ServiceHealth(Message):
+    header: Header
+    service: ServiceName
+    pid: NonNegInt
+    healthy: bool
+    state: Annotated[str, msgspec.Meta(max_length=64)]
+    uptime_s: Annotated[float, msgspec.Meta(ge=0.0)]
+    rates_hz: dict[str, Annotated[float, msgspec.Meta(ge=0.0)]] = {}
+    errors: dict[str, NonNegInt] = {}
+    detail: Annotated[str, msgspec.Meta(max_length=512)] = ""
+
+
+# --------------------------------------------------------------------------------------------------- codec
+
+M = TypeVar("M", bound=msgspec.Struct)
+
+_encoder = msgspec.msgpack.Encoder()
+_decoders: dict[type, msgspec.msgpack.Decoder] = {}
+_AT_PATH = re.compile(r" - at `\$(?P<path>[^`]*)`$")
+_INNER_FIELD = re.compile(r"at field '(?P<field>[^']+)'|(?:unknown|missing required) field `(?P<unknown>[^`]+)`")
+
+
+def encode(message: msgspec.Struct) -> bytes:
+    """MessagePack bytes of a message (a map of field names)."""
+    return _encoder.encode(message)
+
+
+def decode(payload: bytes | bytearray | memoryview, message_type: type[M]) -> M:
+    """Decode and validate; raises :class:`ProtocolError` naming the bad field."""
+    decoder = _decoders.get(message_type)
+    if decoder is None:
+        decoder = _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
+    try:
+        return decoder.decode(payload)
+    except msgspec.ValidationError as exc:
+        raise _protocol_error(message_type, exc) from None
+    except msgspec.DecodeError as exc:
+        raise ProtocolError(message_type.__name__, f"malformed MessagePack ({exc})") from None
+
+
+def to_builtins(message: msgspec.Struct) -> dict:
+    """The plain dict/list/bytes form of a message: exactly what a generic msgpack client decodes."""
+    return msgspec.msgpack.decode(_encoder.encode(message))
+
+
+def convert(obj: Any, message_type: type[M]) -> M:
+    """Validate a plain dict (e.g. from YAML or JSON) as a message; raises :class:`ProtocolError`."""
+    try:
+        return msgspec.convert(obj, message_type)
+    except msgspec.ValidationError as exc:
+        raise _protocol_error(message_type, exc) from None
+
+
+def _protocol_error(message_type: type, exc: msgspec.ValidationError) -> ProtocolError:
+    """Turn msgspec's message into a field path: msgspec's ``$.a.b`` plus the inner field our checks name."""
+    text = str(exc)
+    match = _AT_PATH.search(text)
+    path = match.group("path").lstrip(".") if match else ""
+    reason = text[: match.start()] if match else text
+    inner = _INNER_FIELD.search(reason)
+    if inner:
+        leaf = inner.group("field") or inner.group("unknown")
+        path = f"{path}.{leaf}" if path else leaf
+    return ProtocolError(message_type.__name__, reason, path)

@@ -1,0 +1,302 @@
+"""The JACO-2 low-level RS-485 message: 20 bytes, little-endian, as the SDK's ``RS485_Message`` lays it out.
+
+    int16 Command; uint8 SourceAddress; uint8 DestinationAddress; 16 data bytes
+    (viewed as uint8[16], float32[4] or uint32[4])
+
+Command IDs and payload layouts follow ``shared/reference/kinova.md`` (SDK header and a third-party torque
+driver). Decoding is strict: a frame of the wrong length or with an unknown command ID raises
+:class:`RS485Error`, so a garbled frame never reaches an actuator model or the arm.
+"""
+from __future__ import annotations
+
+import enum
+import math
+import struct
+from dataclasses import dataclass
+
+MESSAGE_SIZE = 20
+DATA_SIZE = 16
+#: Up to this many messages travel in one 64-byte USB packet; batches hold up to 50.
+MESSAGES_PER_USB_PACKET = 3
+MAX_BATCH = 50
+#: The low-level loop period of the SDK example (500 Hz).
+CYCLE_S = 0.002
+
+_HEADER = struct.Struct("<hBB")
+_FRAME = struct.Struct("<hBB16s")
+_FLOATS = struct.Struct("<4f")
+_UINTS = struct.Struct("<4I")
+_TORQUE_CMD = struct.Struct("<3fI")
+
+
+class RS485Error(ValueError):
+    """A frame or payload that is not a valid RS-485 message."""
+
+
+class Command(enum.IntEnum):
+    SET_ADDRESS = 0x00
+    GET_ACTUAL_POSITION = 0x01
+    SEND_ACTUAL_POSITION = 0x02
+    START_SERVO = 0x03
+    STOP_SERVO = 0x04
+    GET_POSITION_COMMAND = 0x10
+    SEND_POSITION_CURRENT = 0x11
+    #: host → actuator: position and torque command; the actuator answers 0x15, 0x16 and 0x17
+    POSITION_AND_TORQUE_COMMAND = 0x14
+    SEND_ALL_VALUES_1 = 0x15
+    SEND_ALL_VALUES_2 = 0x16
+    SEND_ALL_VALUES_3 = 0x17
+    POSITION_MAX_MIN = 0x21
+    KP_GAIN = 0x24
+    KI_KD_GAIN = 0x25
+    PROGRAM_JOINT_ZERO = 0x26
+    GET_CODE_VERSION = 0x27
+    SEND_CODE_VERSION = 0x28
+    GET_DEVICE_INFO = 0x29
+    SEND_DEVICE_INFO = 0x2A
+    GET_TEMPERATURE = 0x2E
+    SEND_TEMPERATURE = 0x2F
+    REPORT_ERROR = 0x30
+    CLEAR_FAULT_FLAG = 0x33
+    NACK = 0x3E
+    ACK = 0x3F
+    #: a variant of 0x14 with fewer replies
+    POSITION_AND_TORQUE_COMMAND_REDUCED = 0x200
+    GET_TORQUE_VALIDATION_REQUEST = 0x201
+    SEND_TORQUE_VALIDATION = 0x202
+    SWITCH_CONTROL_MODE_REQUEST = 0x203
+    SWITCH_CONTROL_MODE_REPLY = 0x204
+    TORQUE_CONFIG_SAFETY = 0x208
+    TORQUE_CONFIG_FILTERS = 0x209
+    TORQUE_CONFIG_CONTROL_LIMITS = 0x212
+    TORQUE_CONFIG_FEEDFORWARD = 0x213
+    TORQUE_CONFIG_CONTROL_PARAMS_1 = 0x214
+    TORQUE_CONFIG_CONTROL_PARAMS_2 = 0x215
+
+
+HOST_ADDRESS = 0x00
+#: Joints 1-6 answer at 0x10-0x15. The 7-DoF arm's seventh actuator address is not documented publicly; one
+#: driver addresses 0x19, which mfvs follows (configurable where the bus is configured).
+ACTUATOR_ADDRESSES = (0x10, 0x11, 0x12, 0x13, 0x14, 0x15, 0x19)
+
+
+class ControlModeRequest(enum.IntEnum):
+    POSITION = 0
+    TORQUE = 1
+
+
+class ControlModeReply(enum.IntEnum):
+    REFUSED = 0
+    POSITION_OK = 1
+    TORQUE_OK = 257
+
+
+class ActuatorError(enum.IntEnum):
+    """REPORT_ERROR uint32[1]."""
+
+    NONE = 0
+    TEMPERATURE_1 = 1
+    TEMPERATURE_2 = 2
+    VELOCITY = 3
+    POSITION_LIMIT = 4
+    ABSOLUTE_POSITION = 5
+    RELATIVE_POSITION = 6
+    COMMAND = 7
+    CURRENT = 8
+    TORQUE = 9
+
+
+@dataclass(frozen=True)
+class RS485Message:
+    command: Command
+    source: int
+    destination: int
+    data: bytes = bytes(DATA_SIZE)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.command, Command):
+            try:
+                object.__setattr__(self, "command", Command(self.command))
+            except ValueError:
+                raise RS485Error(f"unknown command id {self.command!r}") from None
+        for name in ("source", "destination"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or not 0 <= value <= 0xFF:
+                raise RS485Error(f"{name} address must be 0..255, got {value!r}")
+        if len(self.data) != DATA_SIZE:
+            raise RS485Error(f"data must be {DATA_SIZE} bytes, got {len(self.data)}")
+
+    # ---- the three views of the data union
+    @property
+    def floats(self) -> tuple[float, float, float, float]:
+        return _FLOATS.unpack(self.data)
+
+    @property
+    def uints(self) -> tuple[int, int, int, int]:
+        return _UINTS.unpack(self.data)
+
+    @classmethod
+    def with_floats(cls, command: Command, source: int, destination: int, values) -> "RS485Message":
+        values = [float(v) for v in values] + [0.0] * (4 - len(values))
+        if len(values) != 4:
+            raise RS485Error("at most 4 float32 values fit in one message")
+        return cls(command, source, destination, _FLOATS.pack(*values))
+
+    @classmethod
+    def with_uints(cls, command: Command, source: int, destination: int, values) -> "RS485Message":
+        values = [int(v) for v in values] + [0] * (4 - len(values))
+        if len(values) != 4 or any(not 0 <= v <= 0xFFFFFFFF for v in values):
+            raise RS485Error("at most 4 uint32 values (0..2^32-1) fit in one message")
+        return cls(command, source, destination, _UINTS.pack(*values))
+
+    # ---- codec
+    def encode(self) -> bytes:
+        return _FRAME.pack(int(self.command), self.source, self.destination, self.data)
+
+    @classmethod
+    def decode(cls, frame: bytes | bytearray | memoryview) -> "RS485Message":
+        frame = bytes(frame)
+        if len(frame) != MESSAGE_SIZE:
+            raise RS485Error(f"an RS-485 message is {MESSAGE_SIZE} bytes, got {len(frame)}")
+        command, source, destination, data = _FRAME.unpack(frame)
+        try:
+            command = Command(command)
+        except ValueError:
+            raise RS485Error(f"unknown command id 0x{command & 0xFFFF:X}") from None
+        return cls(command, source, destination, data)
+
+
+def encode_batch(messages) -> bytes:
+    messages = list(messages)
+    if len(messages) > MAX_BATCH:
+        raise RS485Error(f"a batch holds at most {MAX_BATCH} messages, got {len(messages)}")
+    return b"".join(m.encode() for m in messages)
+
+
+def decode_batch(payload: bytes) -> list[RS485Message]:
+    if len(payload) % MESSAGE_SIZE:
+        raise RS485Error(f"a batch is a multiple of {MESSAGE_SIZE} bytes, got {len(payload)}")
+    count = len(payload) // MESSAGE_SIZE
+    if count > MAX_BATCH:
+        raise RS485Error(f"a batch holds at most {MAX_BATCH} messages, got {count}")
+    return [RS485Message.decode(payload[i : i + MESSAGE_SIZE]) for i in range(0, len(payload), MESSAGE_SIZE)]
+
+
+# --------------------------------------------------------------------------------------------------- payloads
+
+
+def _finite(*values: float) -> None:
+    if not all(math.isfinite(v) for v in values):
+        raise RS485Error(f"non-finite value in {values}")
+
+
+@dataclass(frozen=True)
+class PositionTorqueCommand:
+    """0x14: float[0] current position (deg, the actuator's safety reference), float[2] torque (N·m),
+    uint32[3] = (Kp:u16 << 16) | (mode:u8 << 8) | damping:u8."""
+
+    position_deg: float
+    torque_nm: float
+    kp: int = 0
+    mode: int = 0
+    damping: int = 0
+
+    def to_message(self, destination: int, source: int = HOST_ADDRESS) -> RS485Message:
+        _finite(self.position_deg, self.torque_nm)
+        if not (0 <= self.kp <= 0xFFFF and 0 <= self.mode <= 0xFF and 0 <= self.damping <= 0xFF):
+            raise RS485Error("kp must fit u16, mode and damping u8")
+        word = (self.kp << 16) | (self.mode << 8) | self.damping
+        data = _TORQUE_CMD.pack(self.position_deg, 0.0, self.torque_nm, word)
+        return RS485Message(Command.POSITION_AND_TORQUE_COMMAND, source, destination, data)
+
+    @classmethod
+    def from_message(cls, message: RS485Message) -> "PositionTorqueCommand":
+        if message.command not in (Command.POSITION_AND_TORQUE_COMMAND, Command.POSITION_AND_TORQUE_COMMAND_REDUCED):
+            raise RS485Error(f"not a position-and-torque command: {message.command.name}")
+        position, _, torque, word = _TORQUE_CMD.unpack(message.data)
+        _finite(position, torque)
+        return cls(position, torque, word >> 16, (word >> 8) & 0xFF, word & 0xFF)
+
+
+@dataclass(frozen=True)
+class AllValues1:
+    """0x15 reply: current (A), position (deg), velocity (deg/s), torque (N·m)."""
+
+    current_a: float
+    position_deg: float
+    velocity_dps: float
+    torque_nm: float
+
+    def to_message(self, source: int, destination: int = HOST_ADDRESS) -> RS485Message:
+        _finite(self.current_a, self.position_deg, self.velocity_dps, self.torque_nm)
+        return RS485Message.with_floats(
+            Command.SEND_ALL_VALUES_1, source, destination,
+            (self.current_a, self.position_deg, self.velocity_dps, self.torque_nm),
+        )
+
+    @classmethod
+    def from_message(cls, message: RS485Message) -> "AllValues1":
+        if message.command is not Command.SEND_ALL_VALUES_1:
+            raise RS485Error(f"not an all-values-1 reply: {message.command.name}")
+        values = message.floats
+        _finite(*values)
+        return cls(*values)
+
+
+_ALL_VALUES_2 = struct.Struct("<3hh8x")
+
+
+@dataclass(frozen=True)
+class AllValues2:
+    """0x16 reply: accelerations (int16 × 0.001, in g) and temperature (int16 × 0.01 °C).
+
+    The public sources give the scalings, not the byte positions; mfvs packs int16 [ax, ay, az, temperature]
+    in the first 8 bytes and zero-fills the rest. The gateway decodes the same layout.
+    """
+
+    accel_g: tuple[float, float, float]
+    temperature_c: float
+
+    def to_message(self, source: int, destination: int = HOST_ADDRESS) -> RS485Message:
+        _finite(*self.accel_g, self.temperature_c)
+        ints = [round(a / 0.001) for a in self.accel_g] + [round(self.temperature_c / 0.01)]
+        if any(not -32768 <= v <= 32767 for v in ints):
+            raise RS485Error(f"value out of int16 range after scaling: {ints}")
+        return RS485Message(Command.SEND_ALL_VALUES_2, source, destination, _ALL_VALUES_2.pack(*ints))
+
+    @classmethod
+    def from_message(cls, message: RS485Message) -> "AllValues2":
+        if message.command is not Command.SEND_ALL_VALUES_2:
+            raise RS485Error(f"not an all-values-2 reply: {message.command.name}")
+        ax, ay, az, temp = _ALL_VALUES_2.unpack(message.data)
+        return cls((ax * 0.001, ay * 0.001, az * 0.001), temp * 0.01)
+
+
+def switch_mode_request(mode: ControlModeRequest, destination: int, source: int = HOST_ADDRESS) -> RS485Message:
+    return RS485Message.with_uints(Command.SWITCH_CONTROL_MODE_REQUEST, source, destination, [int(mode)])
+
+
+def switch_mode_reply(reply: ControlModeReply, source: int, destination: int = HOST_ADDRESS) -> RS485Message:
+    return RS485Message.with_uints(Command.SWITCH_CONTROL_MODE_REPLY, source, destination, [int(reply)])
+
+
+def parse_switch_mode_reply(message: RS485Message) -> ControlModeReply:
+    if message.command is not Command.SWITCH_CONTROL_MODE_REPLY:
+        raise RS485Error(f"not a switch-mode reply: {message.command.name}")
+    try:
+        return ControlModeReply(message.uints[0])
+    except ValueError:
+        raise RS485Error(f"unknown switch-mode reply value {message.uints[0]}") from None
+
+
+def report_error(error: ActuatorError, source: int, destination: int = HOST_ADDRESS) -> RS485Message:
+    return RS485Message.with_uints(Command.REPORT_ERROR, source, destination, [0, int(error)])
+
+
+def parse_report_error(message: RS485Message) -> ActuatorError:
+    if message.command is not Command.REPORT_ERROR:
+        raise RS485Error(f"not an error report: {message.command.name}")
+    try:
+        return ActuatorError(message.uints[1])
+    except ValueError:
+        raise RS485Error(f"unknown actuator error code {message.uints[1]}") from None

@@ -1,0 +1,97 @@
+import math
+
+import msgpack
+import pytest
+
+from protocol import kinova as k
+from protocol import messages as m
+
+
+def test_position_type_values_are_kinovas():
+    expected = {
+        "NOMOVEMENT_POSITION": 0, "CARTESIAN_POSITION": 1, "ANGULAR_POSITION": 2, "RETRACTED": 3,
+        "PREDEFINED1": 4, "PREDEFINED2": 5, "PREDEFINED3": 6, "CARTESIAN_VELOCITY": 7, "ANGULAR_VELOCITY": 8,
+        "PREDEFINED4": 9, "PREDEFINED5": 10, "ANY_TRAJECTORY": 11, "TIME_DELAY": 12,
+    }
+    assert {e.name: e.value for e in k.POSITION_TYPE} == expected
+
+
+def test_error_codes_and_ranges():
+    assert k.ErrorCode.NO_ERROR_KINOVA == 1
+    assert k.ErrorCode.UNKNOWN_ERROR == 666
+    assert k.ErrorCode.ERROR_RS485_TIMEOUT == 1020
+    assert k.ErrorCode.ERROR_COMMUNICATION_TIMEOUT == 1022
+    assert k.ErrorCode.ERROR_INVALID_PARAM == 2100
+    assert k.ErrorCode.ERROR_API_NOT_INITIALIZED == 2101
+    assert k.ErrorCode.ERROR_NACK_RECEIVED == 9999
+    assert all(k.is_known_error_code(c) for c in (1, 666, 1001, 1015, 2001, 2015, 2100, 9999))
+    assert not any(k.is_known_error_code(c) for c in (0, 2, 1000, 1023, 2016, 2102, 10000))
+
+
+def test_zone_shapes_and_torque_switch_values():
+    assert [s.value for s in k.ShapeType] == list(range(7))
+    assert k.ShapeType.PrismSquareBase_Z == 2 and k.ShapeType.Pyramid == 6
+    assert (k.GENERALCONTROL_TYPE.POSITION, k.GENERALCONTROL_TYPE.TORQUE) == (0, 1)
+    assert (k.MAX_ZONES, k.ZONE_SHAPE_POINTS, k.TRAJECTORY_FIFO_SIZE, k.TORQUE_COMMAND_SIZE) == (10, 8, 2000, 70)
+
+
+def velocity_point():
+    return k.TrajectoryPoint(
+        Position=k.UserPosition(
+            Type=k.POSITION_TYPE.CARTESIAN_VELOCITY,
+            CartesianPosition=k.CartesianInfo(X=0.05, Y=0.0, Z=-0.02, ThetaX=0.1, ThetaY=0.0, ThetaZ=0.0),
+        ),
+        LimitationsActive=1,
+        Limitations=k.Limitation(speedParameter1=0.1, speedParameter2=0.6),
+    )
+
+
+def test_trajectory_point_round_trip_and_kinova_field_names():
+    point = velocity_point()
+    assert m.decode(m.encode(point), k.TrajectoryPoint) == point
+    plain = msgpack.unpackb(m.encode(point))
+    assert plain["Position"]["Type"] == 7
+    assert set(plain["Position"]["CartesianPosition"]) == {"X", "Y", "Z", "ThetaX", "ThetaY", "ThetaZ"}
+    assert plain["Limitations"]["speedParameter1"] == pytest.approx(0.1)
+
+
+def test_trajectory_point_refuses_unknown_type_and_nan():
+    plain = msgpack.unpackb(m.encode(velocity_point()))
+    plain["Position"]["Type"] = 13
+    with pytest.raises(m.ProtocolError) as err:
+        m.decode(msgpack.packb(plain), k.TrajectoryPoint)
+    assert err.value.field == "Position.Type"
+    plain["Position"]["Type"] = 7
+    plain["Position"]["CartesianPosition"]["ThetaZ"] = math.nan
+    with pytest.raises(m.ProtocolError) as err:
+        m.decode(msgpack.packb(plain), k.TrajectoryPoint)
+    assert err.value.field == "Position.CartesianPosition.ThetaZ"
+
+
+def test_zone_list_round_trip_and_consistency():
+    corners = [k.CartesianInfo(X=x, Y=y, Z=0.0) for x, y in ((-0.2, -0.2), (0.2, -0.2), (0.2, 0.2), (-0.2, 0.2))]
+    top = [k.CartesianInfo(X=c.X, Y=c.Y, Z=0.3) for c in corners]
+    zone = k.Zone(ID=1, zoneShape=k.ZoneShape(shapeType=k.ShapeType.PrismSquareBase_Z, Points=corners + top))
+    zones = k.ZoneList(NbZones=1, Zones=[zone])
+    assert m.decode(m.encode(zones), k.ZoneList) == zones
+    plain = msgpack.unpackb(m.encode(zones))
+    plain["NbZones"] = 2
+    with pytest.raises(m.ProtocolError, match="NbZones is 2"):
+        m.decode(msgpack.packb(plain), k.ZoneList)
+    plain["NbZones"] = 1
+    plain["Zones"][0]["zoneShape"]["Points"].pop()
+    with pytest.raises(m.ProtocolError, match="length"):
+        m.decode(msgpack.packb(plain), k.ZoneList)
+
+
+def test_zone_list_holds_at_most_ten():
+    plain = {"NbZones": 11, "Zones": [m.to_builtins(k.Zone(ID=i)) for i in range(11)]}
+    with pytest.raises(m.ProtocolError):
+        m.decode(msgpack.packb(plain), k.ZoneList)
+
+
+def test_angular_info_list_helpers():
+    info = k.AngularInfo.from_list([270, 170, 0, 80, 0, 220, 0])
+    assert info.Actuator6 == 220.0 and info.as_list()[1] == 170.0
+    with pytest.raises(ValueError):
+        k.AngularInfo.from_list([0.0] * 6)
