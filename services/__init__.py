@@ -1,0 +1,1 @@
+"""mfvs services: thin zenoh adapters around plain, importable algorithms."""

@@ -1,0 +1,84 @@
+"""YAML configuration files loaded into typed structs: documented defaults, and errors that name the bad key.
+
+A service declares its config as a ``msgspec.Struct`` (with ``forbid_unknown_fields=True``) and reads YAML with
+:func:`load_config` (a file), :func:`config_from_text` or :func:`config_from_mapping`: missing keys take their
+defaults; unknown keys, wrong types and out-of-range values raise a :class:`ConfigError` naming the key path.
+"""
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Any, TypeVar
+
+import msgspec
+import yaml
+
+T = TypeVar("T")
+
+_AT_PATH = re.compile(r" - at `\$(?P<path>[^`]*)`$")
+_FIELD = re.compile(r"(?:unknown|missing required) field `(?P<f>[^`]+)`")
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used. ``key`` is the dotted path of the offending key."""
+
+    def __init__(self, source: str, reason: str, key: str = "") -> None:
+        self.source = source
+        self.reason = reason
+        self.key = key
+        where = f", key '{key}'" if key else ""
+        super().__init__(f"{source}{where}: {reason}")
+
+
+class ConfigStruct(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    """Base for config sections."""
+
+
+def _parse_yaml(text: str, name: str) -> Any:
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(name, f"not valid YAML ({exc})") from None
+    return {} if data is None else data
+
+
+def load_config(path: str | os.PathLike | None, config_type: type[T], section: str | None = None) -> T:
+    """Load ``config_type`` from a YAML file (None: all defaults). With ``section``, only that top-level key of
+    the document is used (a missing section means defaults)."""
+    if path is None:
+        return config_from_mapping({}, config_type, "<defaults>")
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise ConfigError(str(path), f"cannot read ({exc.strerror or exc})") from None
+    return config_from_mapping(_parse_yaml(text, str(path)), config_type, str(path), section)
+
+
+def config_from_text(text: str, config_type: type[T], section: str | None = None, name: str = "<text>") -> T:
+    return config_from_mapping(_parse_yaml(text, name), config_type, name, section)
+
+
+def config_from_mapping(data: Any, config_type: type[T], name: str = "<mapping>", section: str | None = None) -> T:
+    if not isinstance(data, dict):
+        raise ConfigError(name, f"expected a mapping at the top level, got {type(data).__name__}")
+    if section is not None:
+        data = data.get(section) or {}
+    try:
+        return msgspec.convert(data, config_type, strict=False)
+    except msgspec.ValidationError as exc:
+        text = str(exc)
+        match = _AT_PATH.search(text)
+        path = match.group("path").lstrip(".") if match else ""
+        reason = text[: match.start()] if match else text
+        field = _FIELD.search(reason)
+        if field:
+            path = f"{path}.{field.group('f')}" if path else field.group("f")
+        if section:
+            path = f"{section}.{path}" if path else section
+        raise ConfigError(name, reason, path) from None
+
+
+def dump_defaults(config_type: type) -> str:
+    """YAML text of a config type's defaults (for documentation and `--print-config`)."""
+    return yaml.safe_dump(msgspec.to_builtins(config_type()), sort_keys=False)

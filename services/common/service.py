@@ -1,0 +1,269 @@
+"""The service runtime every mfvs service stands on.
+
+:class:`Service` owns one zenoh session and gives a service:
+
+* lifecycle: ``start()`` (session, liveliness token ``…/alive/<name>``, health), ``stop()``, and ``run()`` which
+  starts, waits for SIGTERM/SIGINT or :meth:`request_stop`, and stops cleanly;
+* periodic health on ``…/health/<name>`` (also answered on query) with state, rates and error counters;
+* validated input: :meth:`subscribe` decodes every sample with the protocol codec; bad payloads are dropped,
+  counted (``rejected.<stream>``) and logged rate-limited, and handler failures are counted, never fatal;
+* typed output: :meth:`publisher` encodes messages; :meth:`header` stamps them and extends the per-hop trace.
+
+Subclasses implement ``on_start``/``on_stop`` and optionally ``check_health``. Algorithms stay outside.
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import signal
+import threading
+import time
+from typing import Callable, TypeVar
+
+import msgspec
+import zenoh
+
+from protocol.conventions import ClockMode
+from protocol.keys import Keys
+from protocol.messages import Header, Hop, ProtocolError, ServiceHealth, decode, encode
+from services.common.clock import SimulatedClock, WallClock, make_clock
+from services.common.config import ConfigStruct
+from services.common.logs import RateLimitedLogger
+from services.common.metrics import Counters, Rates
+from services.common.transport import ZenohConfig, open_session
+
+M = TypeVar("M", bound=msgspec.Struct)
+
+
+class ServiceConfig(ConfigStruct):
+    robot_id: str = "jaco"
+    clock: ClockMode = ClockMode.REALTIME
+    zenoh: ZenohConfig = msgspec.field(default_factory=ZenohConfig)
+    health_period_s: float = 1.0
+    log_level: str = "info"
+
+
+class TypedPublisher:
+    """A zenoh publisher that takes messages, encodes them, and counts what it sends."""
+
+    def __init__(self, publisher: zenoh.Publisher, rates: Rates, name: str) -> None:
+        self._publisher = publisher
+        self._rates = rates
+        self._name = name
+
+    def put(self, message: msgspec.Struct) -> None:
+        self._publisher.put(encode(message))
+        self._rates.tick(self._name)
+
+    def undeclare(self) -> None:
+        self._publisher.undeclare()
+
+
+class Service:
+    #: service name: key chunk for liveliness/health, and the name in trace hops
+    name = "service"
+
+    def __init__(self, config: ServiceConfig | None = None, *, name: str | None = None, clock=None) -> None:
+        self.config = config or ServiceConfig()
+        if name is not None:
+            self.name = name
+        self.keys = Keys(self.config.robot_id)
+        self.keys.health(self.name)  # validates the name as a key chunk now, not at start
+        self.clock: WallClock | SimulatedClock = clock or make_clock(self.config.clock)
+        self.log = logging.getLogger(f"mfvs.{self.name}")
+        self.limited_log = RateLimitedLogger(self.log)
+        self.counters = Counters()
+        self.rates = Rates()
+        self.state = "created"
+        self.session: zenoh.Session | None = None
+        self._declared: list = []
+        self._token = None
+        self._stop_event = threading.Event()
+        self._health_thread: threading.Thread | None = None
+        self._started_monotonic = time.monotonic()
+        self._seq: dict[str, itertools.count] = {}
+        self._seq_lock = threading.Lock()
+        self._lifecycle_lock = threading.Lock()
+
+    # ------------------------------------------------------------------ hooks
+    def on_start(self) -> None:
+        """Declare subscribers, publishers and queryables."""
+
+    def on_stop(self) -> None:
+        """Release what on_start acquired beyond zenoh declarations (threads, files)."""
+
+    def check_health(self) -> tuple[bool, str]:
+        """(healthy, detail) beyond the lifecycle state."""
+        return True, ""
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> "Service":
+        with self._lifecycle_lock:
+            if self.state != "created":
+                raise RuntimeError(f"{self.name}: start() in state {self.state}")
+            self.state = "starting"
+            self._started_monotonic = time.monotonic()
+            self.session = open_session(self.config.zenoh)
+            try:
+                self.on_start()
+                self._token = self.session.liveliness().declare_token(self.keys.liveliness(self.name))
+                self._declared.append(
+                    self.session.declare_queryable(self.keys.health(self.name), self._answer_health)
+                )
+                self._health_publisher = self.session.declare_publisher(self.keys.health(self.name))
+                self._declared.append(self._health_publisher)
+                self._health_thread = threading.Thread(
+                    target=self._health_loop, name=f"{self.name}-health", daemon=True
+                )
+                self.state = "running"
+                self._health_thread.start()
+            except BaseException:
+                self._teardown()
+                self.state = "failed"
+                raise
+        self.log.info("%s started (robot %s, clock %s)", self.name, self.config.robot_id, self.clock.mode.value)
+        return self
+
+    def request_stop(self) -> None:
+        self._stop_event.set()
+
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop_event.is_set()
+
+    def stop(self) -> None:
+        with self._lifecycle_lock:
+            if self.state in ("stopped", "created"):
+                self.state = "stopped"
+                return
+            self.state = "stopping"
+            self._stop_event.set()
+            try:
+                self.on_stop()
+            finally:
+                self._teardown()
+                self.state = "stopped"
+        self.log.info("%s stopped", self.name)
+
+    def _teardown(self) -> None:
+        if self._health_thread is not None and self._health_thread is not threading.current_thread():
+            self._health_thread.join(timeout=2.0)
+        for entity in reversed(self._declared):
+            try:
+                entity.undeclare()
+            except Exception:  # already gone with a closed session
+                pass
+        self._declared.clear()
+        if self._token is not None:
+            try:
+                self._token.undeclare()
+            except Exception:
+                pass
+            self._token = None
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def run(self) -> int:
+        """Start, serve until SIGTERM/SIGINT or request_stop(), stop. Returns a process exit code."""
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                signal.signal(sig, lambda *_: self.request_stop())
+        self.start()
+        try:
+            while not self._stop_event.wait(0.2):
+                pass
+        finally:
+            self.stop()
+        return 0
+
+    def __enter__(self) -> "Service":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ I/O helpers
+    def subscribe(self, key: str, message_type: type[M], handler: Callable[[M, int], None], stream: str) -> None:
+        """Deliver decoded, validated messages of ``message_type`` on ``key`` to ``handler(message, recv_ns)``."""
+        assert self.session is not None, "subscribe() belongs in on_start()"
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            recv_ns = self.clock.now_ns()
+            self.rates.tick(stream)
+            try:
+                message = decode(sample.payload.to_bytes(), message_type)
+            except ProtocolError as exc:
+                self.refuse(stream, str(exc))
+                return
+            try:
+                handler(message, recv_ns)
+            except Exception:
+                self.counters.inc("errors.handler")
+                self.limited_log.error(f"handler:{stream}", "%s: handler for %s failed", self.name, stream)
+                self.log.debug("handler failure", exc_info=True)
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+
+    def publisher(self, key: str, stream: str, **options) -> TypedPublisher:
+        assert self.session is not None, "publisher() belongs in on_start()"
+        publisher = self.session.declare_publisher(key, **options)
+        self._declared.append(publisher)
+        return TypedPublisher(publisher, self.rates, f"pub.{stream}")
+
+    def queryable(self, key: str, handler: Callable[[zenoh.Query], None]) -> None:
+        assert self.session is not None, "queryable() belongs in on_start()"
+        self._declared.append(self.session.declare_queryable(key, handler))
+
+    def refuse(self, stream: str, reason: str) -> None:
+        """Count and log (rate-limited) an input that was dropped."""
+        self.counters.inc(f"rejected.{stream}")
+        self.limited_log.warning(f"refuse:{stream}", "%s: refused %s: %s", self.name, stream, reason)
+
+    def header(self, stream: str, *, stamp_ns: int | None = None, source: Header | None = None,
+               recv_ns: int | None = None) -> Header:
+        """A header for the next message on ``stream``: its own sequence number; the source stamp and trace of
+        the input it derives from (if any) with this service's hop appended."""
+        with self._seq_lock:
+            counter = self._seq.setdefault(stream, itertools.count())
+            seq = next(counter)
+        now = self.clock.now_ns()
+        trace = list(source.trace) if source is not None else []
+        if source is not None or recv_ns is not None:
+            trace.append(Hop(service=self.name, recv_ns=recv_ns if recv_ns is not None else now, pub_ns=now))
+        return Header(
+            seq=seq,
+            stamp_ns=now if stamp_ns is None else stamp_ns,
+            source_stamp_ns=source.source_stamp_ns if source is not None else 0,
+            trace=trace,
+        )
+
+    # ------------------------------------------------------------------ health
+    def health(self) -> ServiceHealth:
+        ok, detail = (False, "") if self.state != "running" else self.check_health()
+        return ServiceHealth(
+            header=self.header("health"),
+            service=self.name,
+            pid=os.getpid(),
+            healthy=bool(ok),
+            state=self.state,
+            uptime_s=max(0.0, time.monotonic() - self._started_monotonic),
+            rates_hz=self.rates.snapshot(),
+            errors=self.counters.snapshot(),
+            detail=detail,
+        )
+
+    def _health_loop(self) -> None:
+        while not self._stop_event.is_set():
+            try:
+                self._health_publisher.put(encode(self.health()))
+            except Exception:
+                self.limited_log.error("health", "%s: could not publish health", self.name)
+            self._stop_event.wait(self.config.health_period_s)
+
+    def _answer_health(self, query: zenoh.Query) -> None:
+        try:
+            query.reply(self.keys.health(self.name), encode(self.health()))
+        except Exception:
+            self.limited_log.error("health-query", "%s: could not answer a health query", self.name)

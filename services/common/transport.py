@@ -1,0 +1,115 @@
+"""Zenoh sessions from config, and a zenoh router that runs in-process on a chosen loopback port.
+
+Multicast scouting is off by default: a stack finds its router through configured endpoints, so two stacks on
+one network never join by accident. Extra zenoh settings (access control, TLS) come from a zenoh JSON5 file
+named by ``config_file``; the fields here are applied on top of it.
+"""
+from __future__ import annotations
+
+import json
+import socket
+import threading
+from pathlib import Path
+from typing import Literal
+
+import msgspec
+import zenoh
+
+from services.common.config import ConfigError, ConfigStruct
+
+DEFAULT_ROUTER_PORT = 7447
+
+
+def loopback_endpoint(port: int, host: str = "127.0.0.1") -> str:
+    return f"tcp/{host}:{port}"
+
+
+class ZenohConfig(ConfigStruct):
+    #: client: talk through the router (the deployment default, where access control lives); peer; router
+    mode: Literal["client", "peer", "router"] = "client"
+    connect: list[str] = msgspec.field(default_factory=lambda: [loopback_endpoint(DEFAULT_ROUTER_PORT)])
+    listen: list[str] = []
+    multicast_scouting: bool = False
+    #: a zenoh JSON5 config file merged underneath (access control, TLS certificates)
+    config_file: str | None = None
+
+
+def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+    if cfg.config_file:
+        path = Path(cfg.config_file)
+        if not path.is_file():
+            raise ConfigError(str(path), "zenoh config file not found", "zenoh.config_file")
+        try:
+            conf = zenoh.Config.from_file(str(path))
+        except Exception as exc:  # zenoh raises its own error type with the parser's message
+            raise ConfigError(str(path), f"invalid zenoh config ({exc})", "zenoh.config_file") from None
+    else:
+        conf = zenoh.Config()
+    try:
+        conf.insert_json5("mode", json.dumps(cfg.mode))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+        if cfg.connect:
+            conf.insert_json5("connect/endpoints", json.dumps(cfg.connect))
+        if cfg.listen:
+            conf.insert_json5("listen/endpoints", json.dumps(cfg.listen))
+    except Exception as exc:
+        raise ConfigError("zenoh", f"rejected by zenoh ({exc})", "zenoh") from None
+    return conf
+
+
+def open_session(cfg: ZenohConfig) -> zenoh.Session:
+    return zenoh.open(to_zenoh_config(cfg))
+
+
+def free_loopback_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that is free on the loopback interface right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+class Router:
+    """A zenoh router in this process (eclipse-zenoh in router mode), listening on a loopback port.
+
+    Use as a context manager, or ``start()``/``close()``. ``port=0`` picks a free port.
+    """
+
+    def __init__(self, port: int = 0, host: str = "127.0.0.1", config_file: str | None = None) -> None:
+        self.host = host
+        self.port = port or free_loopback_port(host)
+        self.config_file = config_file
+        self._session: zenoh.Session | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def endpoint(self) -> str:
+        return loopback_endpoint(self.port, self.host)
+
+    def client_config(self, **overrides) -> ZenohConfig:
+        """A client config that connects to this router."""
+        return ZenohConfig(mode="client", connect=[self.endpoint], **overrides)
+
+    def start(self) -> "Router":
+        with self._lock:
+            if self._session is None:
+                cfg = ZenohConfig(mode="router", connect=[], listen=[self.endpoint], config_file=self.config_file)
+                self._session = open_session(cfg)
+        return self
+
+    @property
+    def zid(self) -> str:
+        if self._session is None:
+            raise RuntimeError("router not started")
+        return str(self._session.info.zid())
+
+    def close(self) -> None:
+        with self._lock:
+            if self._session is not None:
+                self._session.close()
+                self._session = None
+
+    def __enter__(self) -> "Router":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()

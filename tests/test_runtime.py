@@ -1,0 +1,267 @@
+"""The service runtime against a real zenoh router on a loopback port."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import msgpack
+import pytest
+
+from protocol import messages as m
+from protocol.conventions import AngularConvention, ClockMode, Frame
+from protocol.keys import Keys
+from services.common.clock import SimulatedClock, WallClock, make_clock
+from services.common.config import ConfigError, config_from_text, load_config
+from services.common.logs import RateLimitedLogger
+from services.common.metrics import Counters, RateMeter
+from services.common.service import Service, ServiceConfig
+from services.common.transport import Router, ZenohConfig, open_session, to_zenoh_config
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def wait_for(predicate, timeout=5.0, period=0.02):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(period)
+    return predicate()
+
+
+def twist(seq=0, x=0.1):
+    return m.Twist(header=m.Header(seq=seq), frame=Frame.MIXED, angular=AngularConvention.SEED000,
+                   linear=(x, 0.0, 0.0), rotational=(0.0, 0.0, 0.0))
+
+
+class EchoService(Service):
+    """Receives twists and republishes them with its hop in the trace."""
+
+    name = "echo"
+
+    def on_start(self):
+        self.received = []
+        self.out = self.publisher(self.keys.safety_status, "echo")
+        self.subscribe(self.keys.desired_twist, m.Twist, self.on_twist, "twist")
+
+    def on_twist(self, msg, recv_ns):
+        if msg.linear[0] < 0:
+            raise RuntimeError("handler bug")
+        self.received.append(msg)
+        self.out.put(m.SafetyStatus(header=self.header("echo", source=msg.header, recv_ns=recv_ns),
+                                    state=m.SafetyState.OK))
+
+
+@pytest.fixture
+def client(router):
+    session = open_session(router.client_config())
+    yield session
+    session.close()
+
+
+def test_default_zenoh_config_has_multicast_scouting_off():
+    conf = to_zenoh_config(ZenohConfig())
+    assert conf.get_json("scouting/multicast/enabled") == "false"
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+
+
+def test_router_routes_between_two_clients(router, client):
+    got = []
+    other = open_session(router.client_config())
+    try:
+        sub = other.declare_subscriber("mfvs/test/**", lambda s: got.append(s.payload.to_bytes()))
+        time.sleep(0.2)
+        client.put("mfvs/test/a", b"hello")
+        assert wait_for(lambda: got == [b"hello"])
+        sub.undeclare()
+    finally:
+        other.close()
+
+
+def test_router_on_a_chosen_port():
+    with Router(port=0) as a:
+        port = a.port
+    with Router(port=port) as b:
+        assert b.endpoint == f"tcp/127.0.0.1:{port}" and len(b.zid) > 0
+
+
+def test_service_lifecycle_liveliness_health_and_bad_input(router, client):
+    keys = Keys()
+    service = EchoService(ServiceConfig(zenoh=router.client_config(), health_period_s=0.1))
+    statuses, healths = [], []
+    client.declare_subscriber(
+        keys.safety_status, lambda s: statuses.append(m.decode(s.payload.to_bytes(), m.SafetyStatus)))
+    client.declare_subscriber(
+        keys.health("echo"), lambda s: healths.append(m.decode(s.payload.to_bytes(), m.ServiceHealth)))
+    service.start()
+    try:
+        assert wait_for(lambda: any(True for _ in client.liveliness().get(keys.liveliness_all)))
+        alive = [str(r.ok.key_expr) for r in client.liveliness().get(keys.liveliness_all)]
+        assert alive == [keys.liveliness("echo")]
+        time.sleep(0.2)
+        pub = client.declare_publisher(keys.desired_twist)
+        pub.put(m.encode(twist(seq=1)))
+        assert wait_for(lambda: len(service.received) == 1)
+        # bad input: garbage, truncated, NaN, wrong schema, unknown convention, handler failure
+        plain = m.to_builtins(twist(seq=2))
+        bad = [b"\x00\xff garbage", m.encode(twist())[:10]]
+        for mutate in (lambda d: d["linear"].__setitem__(0, float("nan")),
+                       lambda d: d["header"].__setitem__("schema", 99),
+                       lambda d: d.__setitem__("angular", "rpy_rates")):
+            d = msgpack.unpackb(msgpack.packb(plain))
+            mutate(d)
+            bad.append(msgpack.packb(d))
+        for payload in bad:
+            pub.put(payload)
+        pub.put(m.encode(twist(seq=3, x=-1.0)))  # the handler raises
+        pub.put(m.encode(twist(seq=4)))
+        assert wait_for(lambda: len(service.received) == 2)
+        assert [t.header.seq for t in service.received] == [1, 4]
+        assert service.counters.get("rejected.twist") == 5
+        assert service.counters.get("errors.handler") == 1
+        assert service.state == "running"
+        # the republished status carries the trace with this service's hop
+        assert wait_for(lambda: len(statuses) == 2)
+        assert statuses[-1].header.trace[-1].service == "echo"
+        # periodic health with counters and rates; and a health query
+        assert wait_for(lambda: any(h.errors.get("rejected.twist") == 5 for h in healths))
+        latest = healths[-1]
+        assert latest.healthy and latest.state == "running" and latest.pid == os.getpid()
+        assert latest.rates_hz["twist"] > 0
+        replies = list(client.get(keys.health("echo")))
+        answer = m.decode(replies[0].ok.payload.to_bytes(), m.ServiceHealth)
+        assert answer.service == "echo" and answer.errors["errors.handler"] == 1
+    finally:
+        service.stop()
+    assert service.state == "stopped"
+    assert wait_for(lambda: not list(client.liveliness().get(keys.liveliness_all)))
+
+
+SERVICE_SCRIPT = textwrap.dedent(
+    """
+    import sys
+    from services.common.service import Service, ServiceConfig
+    from services.common.transport import ZenohConfig
+    cfg = ServiceConfig(zenoh=ZenohConfig(connect=[sys.argv[1]]), health_period_s=0.1)
+    class Idle(Service):
+        name = "idle"
+        def on_stop(self):
+            print("on_stop ran", flush=True)
+    sys.exit(Idle(cfg).run())
+    """
+)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_service_process_stops_cleanly_on_signal(router, client, sig):
+    keys = Keys()
+    proc = subprocess.Popen([sys.executable, "-c", SERVICE_SCRIPT, router.endpoint], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert wait_for(lambda: any(True for _ in client.liveliness().get(keys.liveliness("idle"))), timeout=20)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "on_stop ran" in out
+    assert wait_for(lambda: not list(client.liveliness().get(keys.liveliness("idle"))))
+
+
+def test_service_name_must_be_a_key_chunk():
+    with pytest.raises(ValueError):
+        Service(name="bad/name")
+
+
+def test_start_twice_is_an_error(router):
+    service = Service(ServiceConfig(zenoh=router.client_config()), name="twice")
+    with service:
+        with pytest.raises(RuntimeError):
+            service.start()
+
+
+# ------------------------------------------------------------------------------------------ config
+
+
+def test_config_defaults_unknown_keys_and_types(tmp_path):
+    cfg = config_from_text("robot_id: arm2\nzenoh: {mode: peer}\n", ServiceConfig)
+    assert cfg.robot_id == "arm2" and cfg.zenoh.mode == "peer" and cfg.health_period_s == 1.0
+    assert cfg.clock is ClockMode.REALTIME
+    with pytest.raises(ConfigError) as err:
+        config_from_text("zenoh: {mdoe: peer}", ServiceConfig)
+    assert err.value.key == "zenoh.mdoe" and "unknown field" in str(err.value)
+    with pytest.raises(ConfigError) as err:
+        config_from_text("clock: sometimes", ServiceConfig)
+    assert err.value.key == "clock"
+    with pytest.raises(ConfigError) as err:
+        config_from_text("zenoh: {mode: satellite}", ServiceConfig)
+    assert err.value.key == "zenoh.mode"
+    path = tmp_path / "svc.yaml"
+    path.write_text("service:\n  robot_id: arm3\n  health_period_s: 0.5\n")
+    assert load_config(path, ServiceConfig, section="service").robot_id == "arm3"
+    path.write_text("service: {health_period_s: soon}\n")
+    with pytest.raises(ConfigError) as err:
+        load_config(path, ServiceConfig, section="service")
+    assert err.value.key == "service.health_period_s" and str(path) in str(err.value)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.yaml", ServiceConfig)
+    path.write_text("a: [1,\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(path, ServiceConfig)
+    assert load_config(None, ServiceConfig) == ServiceConfig()
+
+
+def test_zenoh_config_file_must_exist():
+    with pytest.raises(ConfigError, match="not found"):
+        to_zenoh_config(ZenohConfig(config_file="/nonexistent/router.json5"))
+
+
+# ------------------------------------------------------------------------------------------ clock, metrics, logs
+
+
+def test_simulated_clock_is_monotonic_and_waitable():
+    clock = SimulatedClock()
+    assert clock.now_ns() == 0
+    clock.advance_ns(10)
+    with pytest.raises(ValueError):
+        clock.set_ns(5)
+    assert not clock.wait_until_ns(100, timeout_s=0.01)
+    threading.Timer(0.05, clock.set_ns, args=(100,)).start()
+    assert clock.wait_until_ns(100, timeout_s=5)
+    assert make_clock("lockstep").mode is ClockMode.LOCKSTEP
+    assert isinstance(make_clock(ClockMode.REALTIME), WallClock)
+
+
+def test_counters_and_rate_meter():
+    c = Counters()
+    c.inc("a")
+    c.inc("a", 2)
+    assert c.snapshot() == {"a": 3} and c.get("b") == 0
+    now = [0.0]
+    meter = RateMeter(window_s=1.0, clock=lambda: now[0])
+    for _ in range(100):
+        now[0] += 0.01
+        meter.tick()
+    assert meter.rate_hz() == pytest.approx(100, rel=0.02)
+    now[0] += 2.0
+    assert meter.rate_hz() == 0.0
+
+
+def test_rate_limited_logger(caplog):
+    import logging
+
+    now = [0.0]
+    log = RateLimitedLogger(logging.getLogger("t"), interval_s=1.0, clock=lambda: now[0])
+    with caplog.at_level(logging.WARNING):
+        assert log.warning("k", "bad input")
+        assert not log.warning("k", "bad input")
+        assert not log.warning("k", "bad input")
+        assert log.warning("other", "other key")
+        now[0] = 1.5
+        assert log.warning("k", "bad input")
+    assert [r.getMessage() for r in caplog.records][-1] == "bad input (2 similar suppressed in the last 1 s)"
