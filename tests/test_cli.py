@@ -1,0 +1,73 @@
+"""The installed `mfvs` console script."""
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+from services.common import jaco2
+from services.common.transport import ZenohConfig, open_session
+
+
+def mfvs_executable() -> str:
+    beside_python = Path(sys.executable).parent / "mfvs"
+    found = str(beside_python) if beside_python.exists() else shutil.which("mfvs")
+    assert found, "the mfvs console script is not installed (run the install command in README.md)"
+    return found
+
+
+def run(*args, timeout=60):
+    return subprocess.run([mfvs_executable(), *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_help_lists_commands():
+    out = run("--help")
+    assert out.returncode == 0
+    assert "router" in out.stdout and "model" in out.stdout
+
+
+def test_no_command_prints_help_and_fails():
+    out = run()
+    assert out.returncode == 2 and "usage: mfvs" in out.stdout
+
+
+def test_unknown_command_is_refused():
+    out = run("fly")
+    assert out.returncode == 2 and "invalid choice" in out.stderr
+
+
+def test_model_info_and_urdf():
+    info = json.loads(run("model", "info").stdout)
+    assert info["home_physical_deg"] == jaco2.HOME_DEG.tolist()
+    assert [j["limits_physical_deg"] for j in info["joints"]][1] == [47.0, 313.0]
+    urdf = run("model", "urdf").stdout
+    assert urdf.strip() == jaco2.urdf().strip()
+
+
+def test_router_command_serves_and_stops_on_sigterm():
+    proc = subprocess.Popen([mfvs_executable(), "router", "--port", "0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        endpoint = json.loads(line)["router"]
+        assert endpoint.startswith("tcp/127.0.0.1:")
+        a = open_session(ZenohConfig(connect=[endpoint]))
+        b = open_session(ZenohConfig(connect=[endpoint]))
+        got = []
+        b.declare_subscriber("mfvs/cli/test", lambda s: got.append(s.payload.to_bytes()))
+        time.sleep(0.3)
+        a.put("mfvs/cli/test", b"x")
+        deadline = time.monotonic() + 5
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.02)
+        a.close()
+        b.close()
+        assert got == [b"x"]
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
