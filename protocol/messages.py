@@ -396,8 +396,9 @@ def convert(obj: Any, message_type: type[M]) -> M:
         raise _protocol_error(message_type, exc) from None
 
 
-def _protocol_error(message_type: type, exc: msgspec.ValidationError) -> ProtocolError:
-    """Turn msgspec's message into a field path: msgspec's ``$.a.b`` plus the inner field our checks name."""
+def validation_error_path(exc: msgspec.ValidationError) -> tuple[str, str]:
+    """(field path, reason) of a msgspec validation error: msgspec's ``$.a.b`` plus the inner field that our own
+    checks, or msgspec's unknown/missing-field messages, name."""
     text = str(exc)
     match = _AT_PATH.search(text)
     path = match.group("path").lstrip(".") if match else ""
@@ -406,4 +407,9 @@ def _protocol_error(message_type: type, exc: msgspec.ValidationError) -> Protoco
     if inner:
         leaf = inner.group("field") or inner.group("unknown")
         path = f"{path}.{leaf}" if path else leaf
+    return path, reason
+
+
+def _protocol_error(message_type: type, exc: msgspec.ValidationError) -> ProtocolError:
+    path, reason = validation_error_path(exc)
     return ProtocolError(message_type.__name__, reason, path)

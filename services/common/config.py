@@ -7,17 +7,15 @@ defaults; unknown keys, wrong types and out-of-range values raise a :class:`Conf
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 from typing import Any, TypeVar
 
 import msgspec
 import yaml
 
-T = TypeVar("T")
+from protocol.messages import validation_error_path
 
-_AT_PATH = re.compile(r" - at `\$(?P<path>[^`]*)`$")
-_FIELD = re.compile(r"(?:unknown|missing required) field `(?P<f>[^`]+)`")
+T = TypeVar("T")
 
 
 class ConfigError(ValueError):
@@ -67,13 +65,7 @@ def config_from_mapping(data: Any, config_type: type[T], name: str = "<mapping>"
     try:
         return msgspec.convert(data, config_type, strict=False)
     except msgspec.ValidationError as exc:
-        text = str(exc)
-        match = _AT_PATH.search(text)
-        path = match.group("path").lstrip(".") if match else ""
-        reason = text[: match.start()] if match else text
-        field = _FIELD.search(reason)
-        if field:
-            path = f"{path}.{field.group('f')}" if path else field.group("f")
+        path, reason = validation_error_path(exc)
         if section:
             path = f"{section}.{path}" if path else section
         raise ConfigError(name, reason, path) from None
