@@ -1,8 +1,8 @@
 """Shared test helpers: random configurations and reference kinematics through Pinocchio."""
 import numpy as np
-import pinocchio as pin
 
 from services.common import jaco2
+from services.common.kinematics import ArmKinematics
 
 
 def random_q(rng, margin_deg: float = 2.0) -> np.ndarray:
@@ -15,21 +15,6 @@ def random_q(rng, margin_deg: float = 2.0) -> np.ndarray:
     return q
 
 
-class PinArm:
-    """Forward kinematics and Jacobians of the end effector through Pinocchio."""
-
-    def __init__(self):
-        arm = jaco2.load_pinocchio()
-        self.model, self.fid = arm.model, arm.ee_frame_id
-        self.data = self.model.createData()
-
-    def pose(self, q) -> tuple[np.ndarray, np.ndarray]:
-        pin.framesForwardKinematics(self.model, self.data, np.asarray(q, float))
-        M = self.data.oMf[self.fid]
-        return M.rotation.copy(), M.translation.copy()
-
-    def jacobian_base(self, q) -> np.ndarray:
-        """[v; ω] of the end-effector origin, both in base coordinates."""
-        pin.computeJointJacobians(self.model, self.data, np.asarray(q, float))
-        pin.updateFramePlacements(self.model, self.data)
-        return pin.getFrameJacobian(self.model, self.data, self.fid, pin.LOCAL_WORLD_ALIGNED).copy()
+class PinArm(ArmKinematics):
+    """Reference kinematics for tests: the product's Pinocchio wrapper (checked against MuJoCo and the DH table
+    in test_jaco2_model)."""

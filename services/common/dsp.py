@@ -1,0 +1,440 @@
+"""The emulated Kinova DSP high-level controller: what the JACO-2's own firmware does at 100 Hz.
+
+It turns high-level commands (mixed-frame Cartesian velocity, joint velocity, angular and Cartesian position
+trajectories, MoveHome) into joint velocity references for a joint-level actuator interface (see
+:mod:`services.common.actuators`), reproducing the DSP's behaviour that the rest of mfvs relies on:
+
+* a velocity command lasts one 10 ms cycle and must be resent; with no command for ``watchdog_cycles`` cycles
+  the arm decelerates to rest within the acceleration limits;
+* speed limits (0.2 m/s, 1.07 rad/s by default, configurable within Kinova's client ranges), acceleration
+  limits (0.64 m/s², 2.75 rad/s², 200 deg/s²) and the actuators' joint speeds (36/48 deg/s);
+* Cartesian velocity resolved by damped least squares, with null-space motion away from joint limits and
+  singularities while the arm moves;
+* protection zones: the component of end-effector motion into a zone is removed, so it glides along the zone;
+* joint limits are never crossed: the speed toward a limit is capped so the joint can always stop before it;
+* the angular part of a Cartesian velocity is read in one configured convention; a command that declares
+  another convention (or frame) is refused, never reinterpreted.
+
+Two command paths: :meth:`KinovaDSP.send_basic_trajectory` follows the Kinova API (a 2000-point FIFO; each
+velocity point is consumed by one cycle, so sending faster than 100 Hz queues motion, as on the real arm);
+:meth:`KinovaDSP.submit` takes mfvs robot commands from the safety service: the latest one is applied in the
+next cycle (no queue), and it erases the FIFO.
+
+The class is pure: no zenoh, no MuJoCo. A simulator or a gateway calls :meth:`cycle` every 10 ms with the
+measured joint state and writes the returned references to its actuators.
+"""
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import msgspec
+import numpy as np
+
+from protocol import kinova
+from protocol.conventions import AngularConvention, Frame
+from protocol.messages import CommandMode, ControlMode, Header, RobotCommand
+from services.common import frames, jaco2
+from services.common.config import ConfigStruct
+from services.common.kinematics import ArmKinematics
+from services.common.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
+
+# Kinova's client configuration ranges (shared/reference/kinova.md).
+LINEAR_SPEED_RANGE = (0.04, 0.2)
+ANGULAR_SPEED_RANGE = (0.16, 1.07)
+
+
+class DSPConfig(ConfigStruct):
+    cycle_s: float = 0.01
+    #: how the angular part of a Cartesian velocity is read (ARCHITECTURE.md)
+    angular_convention: AngularConvention = AngularConvention.SEED000
+    max_linear_speed_mps: float = 0.2
+    max_angular_speed_rps: float = 1.07
+    linear_accel_mps2: float = 0.64
+    angular_accel_rps2: float = 2.75
+    joint_accel_dps2: float = 200.0
+    #: fraction of the actuators' rated speeds (36/48 deg/s) the DSP may use
+    joint_speed_scale: float = 1.0
+    watchdog_cycles: int = 2
+    #: joints stop this far inside their limits
+    joint_limit_margin_deg: float = 2.0
+    #: damped least squares: the damping reaches this value as the smallest singular value of J goes to 0 ...
+    max_damping: float = 0.04
+    #: ... and is zero above this smallest singular value
+    singular_threshold: float = 0.06
+    #: null-space gains (while moving): away from joint limits, toward higher manipulability
+    joint_limit_gain: float = 0.6
+    manipulability_gain: float = 0.6
+    #: position trajectories: proportional gain (1/s) before the speed and acceleration profile
+    position_gain: float = 3.0
+    zones: list[Zone] = msgspec.field(default_factory=lambda: [default_base_zone()])
+    zone_filter: ZoneFilterConfig = msgspec.field(default_factory=ZoneFilterConfig)
+
+    def __post_init__(self) -> None:
+        if not LINEAR_SPEED_RANGE[0] <= self.max_linear_speed_mps <= LINEAR_SPEED_RANGE[1]:
+            raise ValueError(f"max_linear_speed_mps must be within Kinova's range {LINEAR_SPEED_RANGE} m/s")
+        if not ANGULAR_SPEED_RANGE[0] <= self.max_angular_speed_rps <= ANGULAR_SPEED_RANGE[1]:
+            raise ValueError(f"max_angular_speed_rps must be within Kinova's range {ANGULAR_SPEED_RANGE} rad/s")
+        for name in ("cycle_s", "linear_accel_mps2", "angular_accel_rps2", "joint_accel_dps2"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be positive")
+        if not 0 < self.joint_speed_scale <= 1:
+            raise ValueError("joint_speed_scale must be within (0, 1]")
+        if self.watchdog_cycles < 1:
+            raise ValueError("watchdog_cycles must be at least 1")
+
+
+@dataclass
+class JointState:
+    """Measured joint state in model units (rad, rad/s, N·m)."""
+
+    q: np.ndarray
+    dq: np.ndarray
+    tau: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS))
+    stamp_ns: int = 0
+
+
+class CommandRefused(ValueError):
+    """A command the DSP will not execute (the reason is the message)."""
+
+
+# ------------------------------------------------------------------------------------------ segments
+
+
+@dataclass
+class _CartesianVelocity:
+    #: (linear m/s base, angular in ``convention``)
+    twist: np.ndarray
+    convention: AngularConvention
+    source: Optional[Header] = None
+
+
+@dataclass
+class _JointVelocity:
+    dq: np.ndarray
+    source: Optional[Header] = None
+
+
+@dataclass
+class _AngularPosition:
+    q: np.ndarray
+    max_speed: Optional[np.ndarray] = None
+
+
+@dataclass
+class _CartesianPosition:
+    R: np.ndarray
+    p: np.ndarray
+    max_linear: Optional[float] = None
+    max_angular: Optional[float] = None
+
+
+_VELOCITY = (_CartesianVelocity, _JointVelocity)
+
+
+@dataclass
+class DSPStatus:
+    mode: ControlMode = ControlMode.IDLE
+    watchdog_tripped: bool = False
+    #: limits that shaped this cycle's motion: zone:<name>, joint_limit, singularity, speed, acceleration
+    active_limits: list[str] = field(default_factory=list)
+    applied: Optional[Header] = None
+    cycles: int = 0
+
+
+class KinovaDSP:
+    def __init__(self, config: DSPConfig | None = None, kinematics: ArmKinematics | None = None) -> None:
+        self.config = config or DSPConfig()
+        self.kin = kinematics or ArmKinematics()
+        self.fifo: collections.deque = collections.deque()
+        self.zones: list[Zone] = list(self.config.zones)
+        self.max_linear = self.config.max_linear_speed_mps
+        self.max_angular = self.config.max_angular_speed_rps
+        self.status = DSPStatus()
+        self._direct: Optional[object] = None
+        self._last_velocity: Optional[object] = None
+        self._missed = 0
+        self._dq_prev = np.zeros(jaco2.N_JOINTS)
+        self._twist_prev = np.zeros(6)
+        self._lower, self._upper = jaco2.model_limits()
+        margin = math.radians(self.config.joint_limit_margin_deg)
+        self._lower_soft, self._upper_soft = self._lower + margin, self._upper - margin
+        self._limited = np.isfinite(self._lower)
+        lower = np.where(self._limited, self._lower, -1.0)
+        upper = np.where(self._limited, self._upper, 1.0)
+        self._mid, self._half_range = (lower + upper) / 2.0, (upper - lower) / 2.0
+        self._joint_max_speed = jaco2.MAX_SPEED * self.config.joint_speed_scale
+        self._joint_accel = math.radians(self.config.joint_accel_dps2)
+        self._moving_mode = ControlMode.IDLE
+
+    # ------------------------------------------------------------------------------ commands (mfvs path)
+    def submit(self, command: RobotCommand) -> None:
+        """Apply an mfvs robot command in the next cycle. Raises :class:`CommandRefused` (the arm then behaves
+        as if no command had come: it keeps the last one for the watchdog's grace and then stops)."""
+        if command.mode is CommandMode.STOP:
+            self._direct = None
+            self._last_velocity = None
+            self._missed = self.config.watchdog_cycles  # stop now, without the watchdog's grace
+            self.fifo.clear()
+            return
+        if command.mode is CommandMode.CARTESIAN_VELOCITY:
+            twist = command.twist
+            if twist.frame is not Frame.MIXED:
+                raise CommandRefused(f"Cartesian velocity must be in the mixed frame, got frame '{twist.frame.value}'")
+            if twist.angular is not self.config.angular_convention:
+                raise CommandRefused(
+                    f"this arm reads angular velocity as '{self.config.angular_convention.value}', the command "
+                    f"declares '{twist.angular.value}'"
+                )
+            segment = _CartesianVelocity(np.array([*twist.linear, *twist.rotational]), twist.angular, command.header)
+        else:
+            segment = _JointVelocity(np.asarray(command.joint_velocities, dtype=float), command.header)
+        self.fifo.clear()
+        self._direct = segment
+
+    # ------------------------------------------------------------------------------ commands (Kinova API)
+    def send_basic_trajectory(self, point: kinova.TrajectoryPoint) -> kinova.ErrorCode:
+        if len(self.fifo) >= kinova.TRAJECTORY_FIFO_SIZE:
+            return kinova.ErrorCode.ERROR_INVALID_PARAM
+        position = point.Position
+        kind = position.Type
+        limits = point.Limitations if point.LimitationsActive else None
+        if kind == kinova.POSITION_TYPE.CARTESIAN_VELOCITY:
+            c = position.CartesianPosition
+            segment = _CartesianVelocity(np.array([c.X, c.Y, c.Z, c.ThetaX, c.ThetaY, c.ThetaZ]),
+                                         self.config.angular_convention)
+        elif kind == kinova.POSITION_TYPE.ANGULAR_VELOCITY:
+            segment = _JointVelocity(jaco2.physical_rate_to_model(position.Actuators.as_list()))
+        elif kind == kinova.POSITION_TYPE.ANGULAR_POSITION:
+            q = jaco2.physical_deg_to_model(position.Actuators.as_list())
+            if np.any(q < self._lower) or np.any(q > self._upper):
+                return kinova.ErrorCode.ERROR_INVALID_PARAM
+            speed = None
+            if limits is not None and limits.speedParameter1 > 0 and limits.speedParameter2 > 0:
+                speed = np.radians([limits.speedParameter1] * 3 + [limits.speedParameter2] * 4)
+            segment = _AngularPosition(q, speed)
+        elif kind == kinova.POSITION_TYPE.CARTESIAN_POSITION:
+            c = position.CartesianPosition
+            segment = _CartesianPosition(
+                frames.euler_xyz_to_matrix((c.ThetaX, c.ThetaY, c.ThetaZ)), np.array([c.X, c.Y, c.Z]),
+                limits.speedParameter1 if limits is not None and limits.speedParameter1 > 0 else None,
+                limits.speedParameter2 if limits is not None and limits.speedParameter2 > 0 else None,
+            )
+        else:
+            return kinova.ErrorCode.ERROR_INVALID_PARAM
+        self._direct = None
+        self.fifo.append(segment)
+        return kinova.ErrorCode.NO_ERROR_KINOVA
+
+    def move_home(self) -> None:
+        self.erase_all_trajectories()
+        self.fifo.append(_AngularPosition(jaco2.HOME.copy()))
+
+    def erase_all_trajectories(self) -> None:
+        self.fifo.clear()
+        self._direct = None
+        self._last_velocity = None
+        self._missed = self.config.watchdog_cycles
+
+    def set_max_velocities(self, linear_mps: float | None = None, angular_rps: float | None = None) -> None:
+        if linear_mps is not None:
+            if not LINEAR_SPEED_RANGE[0] <= linear_mps <= LINEAR_SPEED_RANGE[1]:
+                raise CommandRefused(f"max translation velocity must be within {LINEAR_SPEED_RANGE} m/s")
+            self.max_linear = min(linear_mps, self.config.max_linear_speed_mps)
+        if angular_rps is not None:
+            if not ANGULAR_SPEED_RANGE[0] <= angular_rps <= ANGULAR_SPEED_RANGE[1]:
+                raise CommandRefused(f"max orientation velocity must be within {ANGULAR_SPEED_RANGE} rad/s")
+            self.max_angular = min(angular_rps, self.config.max_angular_speed_rps)
+
+    @property
+    def fifo_count(self) -> int:
+        return len(self.fifo)
+
+    # ------------------------------------------------------------------------------ the 100 Hz cycle
+    def cycle(self, joints: JointState) -> np.ndarray:
+        """One DSP cycle: returns joint velocity references (model rad/s) for the next cycle_s."""
+        cfg = self.config
+        dt = cfg.cycle_s
+        q = np.asarray(joints.q, dtype=float)
+        R, p, J = self.kin.pose_and_jacobian(q)
+        self.status.cycles += 1
+        self.status.active_limits = []
+        segment = self._next_segment(q, R, p)
+
+        if isinstance(segment, _CartesianVelocity):
+            self.status.applied = segment.source
+            twist_base = frames.base_twist_from_mixed(segment.twist, R, segment.convention)
+            dq = self._cartesian(q, p, J, twist_base, dt, self.max_linear, self.max_angular)
+            self._moving_mode = ControlMode.CARTESIAN_VELOCITY
+        elif isinstance(segment, _JointVelocity):
+            self.status.applied = segment.source
+            dq = self._joint(q, segment.dq, dt, self._joint_max_speed)
+            self._moving_mode = ControlMode.ANGULAR_VELOCITY
+        elif isinstance(segment, _AngularPosition):
+            speed = self._joint_max_speed if segment.max_speed is None else np.minimum(segment.max_speed,
+                                                                                      self._joint_max_speed)
+            error = segment.q - q
+            desired = np.sign(error) * np.minimum(speed, np.minimum(
+                cfg.position_gain * np.abs(error), np.sqrt(2.0 * self._joint_accel * np.abs(error))))
+            dq = self._joint(q, desired, dt, speed)
+            self._moving_mode = ControlMode.ANGULAR_POSITION
+            if np.max(np.abs(error)) < math.radians(0.05) and np.max(np.abs(joints.dq)) < math.radians(0.5):
+                self.fifo.popleft()
+        elif isinstance(segment, _CartesianPosition):
+            max_lin = self.max_linear if segment.max_linear is None else min(segment.max_linear, self.max_linear)
+            max_ang = self.max_angular if segment.max_angular is None else min(segment.max_angular, self.max_angular)
+            e_p = segment.p - p
+            e_r = frames.rotation_log(segment.R @ R.T)
+            twist_base = np.concatenate([
+                self._profile(e_p, max_lin, cfg.linear_accel_mps2), self._profile(e_r, max_ang, cfg.angular_accel_rps2)
+            ])
+            dq = self._cartesian(q, p, J, twist_base, dt, max_lin, max_ang)
+            self._moving_mode = ControlMode.CARTESIAN_POSITION
+            if np.linalg.norm(e_p) < 5e-4 and np.linalg.norm(e_r) < math.radians(0.2):
+                self.fifo.popleft()
+        else:
+            dq = self._stop(q, p, J, dt)
+
+        self._dq_prev = dq
+        self._twist_prev = J @ dq
+        self.status.mode = self._moving_mode if np.any(dq != 0.0) or self.fifo else ControlMode.IDLE
+        return dq
+
+    def _next_segment(self, q, R, p):
+        """This cycle's segment; runs the watchdog for velocity commands."""
+        cfg = self.config
+        if self._direct is not None:
+            segment, self._direct = self._direct, None
+            self._last_velocity, self._missed = segment, 0
+            self.status.watchdog_tripped = False
+            return segment
+        if self.fifo:
+            head = self.fifo[0]
+            if isinstance(head, _VELOCITY):
+                self.fifo.popleft()
+                self._last_velocity, self._missed = head, 0
+                self.status.watchdog_tripped = False
+                return head
+            self._last_velocity = None
+            self.status.watchdog_tripped = False
+            return head
+        # no command this cycle: keep the last velocity through the grace cycles, then stop
+        self._missed += 1
+        if self._last_velocity is not None and self._missed < cfg.watchdog_cycles:
+            return self._last_velocity
+        if self._last_velocity is not None:
+            self.status.watchdog_tripped = True
+        self._last_velocity = None
+        return None
+
+    # ------------------------------------------------------------------------------ motion resolution
+    @staticmethod
+    def _profile(error: np.ndarray, max_speed: float, accel: float, gain: float = 3.0) -> np.ndarray:
+        """Velocity toward a target: proportional near it, at most what can still stop, at most max_speed."""
+        distance = float(np.linalg.norm(error))
+        if distance < 1e-12:
+            return np.zeros(3)
+        speed = min(max_speed, gain * distance, math.sqrt(2.0 * accel * distance))
+        return error / distance * speed
+
+    def _limit_twist(self, twist: np.ndarray, dt: float, max_lin: float, max_ang: float) -> np.ndarray:
+        cfg = self.config
+        out = np.array(twist, dtype=float, copy=True)
+        for part, vmax, amax in ((slice(0, 3), max_lin, cfg.linear_accel_mps2),
+                                 (slice(3, 6), max_ang, cfg.angular_accel_rps2)):
+            speed = np.linalg.norm(out[part])
+            if speed > vmax:
+                out[part] *= vmax / speed
+                self._flag("speed")
+            step = out[part] - self._twist_prev[part]
+            size = np.linalg.norm(step)
+            if size > amax * dt:
+                out[part] = self._twist_prev[part] + step * (amax * dt / size)
+                self._flag("acceleration")
+        return out
+
+    def _cartesian(self, q, p, J, twist_base, dt, max_lin, max_ang) -> np.ndarray:
+        cfg = self.config
+        twist = self._limit_twist(twist_base, dt, max_lin, max_ang)
+        twist[:3], zones = filter_velocity(self.zones, p, twist[:3], cfg.zone_filter, dt)
+        for name in zones:
+            self._flag(f"zone:{name}")
+        U, s, Vt = np.linalg.svd(J)
+        sigma_min = s[-1]
+        damping2 = 0.0
+        if sigma_min < cfg.singular_threshold:
+            damping2 = (1.0 - (sigma_min / cfg.singular_threshold) ** 2) * cfg.max_damping**2
+            self._flag("singularity")
+        dq = J.T @ np.linalg.solve(J @ J.T + damping2 * np.eye(6), twist)
+        # self-motion away from joint limits and singularities, only while the end effector moves
+        moving = min(1.0, np.linalg.norm(twist[:3]) / 0.02 + np.linalg.norm(twist[3:]) / 0.1)
+        if moving > 0.0:
+            s_inv = np.where(s > 1e-6, 1.0 / np.maximum(s, 1e-12), 0.0)
+            J_pinv = Vt.T[:, :6] @ np.diag(s_inv) @ U.T
+            null = np.eye(jaco2.N_JOINTS) - J_pinv @ J
+            dq += moving * (null @ self._secondary_task(q, s))
+        return self._joint(q, dq, dt, self._joint_max_speed, uniform=True)
+
+    def _secondary_task(self, q, s) -> np.ndarray:
+        cfg = self.config
+        xi = np.zeros(jaco2.N_JOINTS)
+        limited = self._limited
+        xi[limited] = -cfg.joint_limit_gain * (q[limited] - self._mid[limited]) / self._half_range[limited]
+        if cfg.manipulability_gain > 0.0:
+            w0 = float(np.prod(s))
+            grad = np.zeros(jaco2.N_JOINTS)
+            h = 1e-5
+            for i in range(jaco2.N_JOINTS):
+                dq = np.zeros(jaco2.N_JOINTS)
+                dq[i] = h
+                grad[i] = (float(np.prod(np.linalg.svd(self.kin.jacobian_base(q + dq), compute_uv=False))) - w0) / h
+            norm = np.linalg.norm(grad)
+            if norm > 1e-9:
+                xi += cfg.manipulability_gain * grad / norm * min(1.0, 0.02 / max(w0, 1e-6))
+        return xi
+
+    def _joint(self, q, dq_desired, dt, max_speed, uniform: bool = False) -> np.ndarray:
+        """Joint speed (uniform scaling keeps a Cartesian direction), joint acceleration, joint limits."""
+        dq = np.array(dq_desired, dtype=float, copy=True)
+        ratio = np.max(np.abs(dq) / max_speed)
+        if ratio > 1.0:
+            dq = dq / ratio if uniform else np.clip(dq, -max_speed, max_speed)
+            self._flag("speed")
+        step = dq - self._dq_prev
+        step_ratio = np.max(np.abs(step) / (self._joint_accel * dt))
+        if step_ratio > 1.0:
+            dq = self._dq_prev + step / step_ratio
+            self._flag("acceleration")
+        return self._joint_limits(q, dq, dt)
+
+    def _joint_limits(self, q, dq, dt) -> np.ndarray:
+        """Cap the speed toward each limit so the joint can stop at the soft limit with the joint deceleration."""
+        limited = self._limited
+        room_up = np.maximum(self._upper_soft - q, 0.0)
+        room_down = np.maximum(q - self._lower_soft, 0.0)
+        cap_up = np.minimum(np.sqrt(2.0 * self._joint_accel * room_up), room_up / dt)
+        cap_down = np.minimum(np.sqrt(2.0 * self._joint_accel * room_down), room_down / dt)
+        capped = dq.copy()
+        capped[limited] = np.clip(dq[limited], -cap_down[limited], cap_up[limited])
+        if np.any(capped != dq):
+            self._flag("joint_limit")
+        return capped
+
+    def _stop(self, q, p, J, dt) -> np.ndarray:
+        """Decelerate to rest within the acceleration limits of the mode the arm was moving in."""
+        if not np.any(self._dq_prev):
+            return np.zeros(jaco2.N_JOINTS)
+        if self._moving_mode in (ControlMode.CARTESIAN_VELOCITY, ControlMode.CARTESIAN_POSITION):
+            dq = self._cartesian(q, p, J, np.zeros(6), dt, self.max_linear, self.max_angular)
+        else:
+            dq = self._joint(q, np.zeros(jaco2.N_JOINTS), dt, self._joint_max_speed)
+        if np.max(np.abs(dq)) < 1e-4:
+            dq = np.zeros(jaco2.N_JOINTS)
+        return dq
+
+    def _flag(self, name: str) -> None:
+        if name not in self.status.active_limits:
+            self.status.active_limits.append(name)

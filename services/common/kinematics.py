@@ -1,0 +1,45 @@
+"""Arm kinematics through Pinocchio: an immutable model shared by all, a mutable workspace per user."""
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from services.common import jaco2
+
+
+class ArmKinematics:
+    """End-effector pose and base Jacobian of the JACO-2 at a configuration (model angles, rad).
+
+    Not thread-safe: each thread or loop owns its own instance (the Pinocchio model itself is shared).
+    """
+
+    def __init__(self) -> None:
+        arm = jaco2.load_pinocchio()
+        self.model = arm.model
+        self.ee_frame_id = arm.ee_frame_id
+        self.data = self.model.createData()
+
+    def pose(self, q) -> tuple[np.ndarray, np.ndarray]:
+        """(R_be, p) of the end effector in the base frame."""
+        pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
+        M = self.data.oMf[self.ee_frame_id]
+        return M.rotation.copy(), M.translation.copy()
+
+    def jacobian_base(self, q) -> np.ndarray:
+        """6×7 [v; ω] of the end-effector origin, both in base coordinates."""
+        pin.computeJointJacobians(self.model, self.data, np.asarray(q, dtype=float))
+        pin.updateFramePlacements(self.model, self.data)
+        return pin.getFrameJacobian(self.model, self.data, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED).copy()
+
+    def pose_and_jacobian(self, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(R_be, p, J_base) in one pass."""
+        q = np.asarray(q, dtype=float)
+        pin.computeJointJacobians(self.model, self.data, q)
+        pin.updateFramePlacements(self.model, self.data)
+        M = self.data.oMf[self.ee_frame_id]
+        J = pin.getFrameJacobian(self.model, self.data, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
+        return M.rotation.copy(), M.translation.copy(), J.copy()
+
+    def gravity(self, q) -> np.ndarray:
+        """Joint torques that hold the arm still against gravity (N·m)."""
+        return pin.computeGeneralizedGravity(self.model, self.data, np.asarray(q, dtype=float)).copy()

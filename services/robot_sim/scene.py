@@ -1,0 +1,204 @@
+"""The simulated world: the JACO-2 from the shared description, torque actuators, floor, lights, an AprilTag
+target at its true size, and an eye-in-hand camera with exact pinhole intrinsics.
+
+:func:`build_model` returns an immutable MjModel; the mutable state lives in MjData owned by the simulation.
+"""
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import msgspec
+import mujoco
+import numpy as np
+
+from services.common import frames, jaco2
+from services.common import tag as tags
+from services.common.config import ConfigStruct
+
+Vec3 = tuple[float, float, float]
+
+#: MuJoCo cameras look along −z with +y up; OpenCV's optical frame looks along +z with +y down.
+MUJOCO_FROM_OPTICAL = frames.rot_x(math.pi)
+
+CAMERA_NAME = "eye_in_hand"
+TAG_BODY = "target"
+
+
+class PoseConfig(ConfigStruct):
+    """A pose as files write it: position (m) and XYZ Euler angles in degrees (R = Rx·Ry·Rz)."""
+
+    xyz: Vec3 = (0.0, 0.0, 0.0)
+    rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> np.ndarray:
+        return frames.pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
+
+
+def _default_camera_in_ee() -> PoseConfig:
+    # On top of the gripper, 6.5 cm off the approach axis, looking along it (optical z = end-effector z), image
+    # upright (optical x horizontal) at the home pose.
+    return PoseConfig(xyz=(0.065, 0.0, -0.02), rpy_deg=(0.0, 0.0, 90.0))
+
+
+class CameraConfig(ConfigStruct):
+    """Pinhole camera like a RealSense D415 colour stream. cx/cy default to the image centre in OpenCV pixel
+    coordinates ((width−1)/2, (height−1)/2)."""
+
+    width: int = 640
+    height: int = 480
+    fx: float = 615.0
+    fy: float = 615.0
+    cx: Optional[float] = None
+    cy: Optional[float] = None
+    rate_hz: float = 30.0
+    camera_in_ee: PoseConfig = msgspec.field(default_factory=_default_camera_in_ee)
+
+    def __post_init__(self) -> None:
+        if not (8 <= self.width <= 4096 and 8 <= self.height <= 4096):
+            raise ValueError("camera width and height must be within 8..4096 pixels")
+        if not (self.fx > 0 and self.fy > 0 and math.isfinite(self.fx) and math.isfinite(self.fy)):
+            raise ValueError("camera fx and fy must be positive")
+        if not (0 < self.rate_hz <= 120):
+            raise ValueError("camera rate_hz must be within (0, 120]")
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        cx = (self.width - 1) / 2.0 if self.cx is None else self.cx
+        cy = (self.height - 1) / 2.0 if self.cy is None else self.cy
+        return cx, cy
+
+    def matrix(self) -> np.ndarray:
+        cx, cy = self.principal_point
+        return np.array([[self.fx, 0.0, cx], [0.0, self.fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _default_target_in_camera() -> PoseConfig:
+    return PoseConfig(xyz=(0.0, 0.0, 0.5), rpy_deg=(180.0, 0.0, 0.0))
+
+
+class TargetConfig(ConfigStruct):
+    family: str = "tag36h11"
+    id: int = 0
+    size_m: float = 0.0962
+    #: one of the two: in the robot base frame, or in the camera frame at the initial configuration
+    pose_in_base: Optional[PoseConfig] = None
+    pose_in_camera: Optional[PoseConfig] = None
+    #: constant velocity of the target in the base frame (seed 004's moving target)
+    velocity_mps: Vec3 = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if self.family not in tags.FAMILIES:
+            raise ValueError(f"unknown tag family {self.family!r}")
+        if not 0.005 <= self.size_m <= 1.0:
+            raise ValueError("target size_m must be within 0.005..1 m")
+        if self.pose_in_base is not None and self.pose_in_camera is not None:
+            raise ValueError("give the target pose_in_base or pose_in_camera, not both")
+
+
+class SceneConfig(ConfigStruct):
+    #: physical joint angles (deg) as GetAngularPosition reports them
+    initial_joints_deg: list[float] = msgspec.field(default_factory=lambda: jaco2.HOME_DEG.tolist())
+    camera: CameraConfig = msgspec.field(default_factory=CameraConfig)
+    target: TargetConfig = msgspec.field(default_factory=TargetConfig)
+    timestep_s: float = 0.001
+    floor: bool = True
+
+    def __post_init__(self) -> None:
+        if len(self.initial_joints_deg) != jaco2.N_JOINTS:
+            raise ValueError(f"initial_joints_deg needs {jaco2.N_JOINTS} angles")
+        if not 1e-4 <= self.timestep_s <= 0.001:
+            raise ValueError("timestep_s must be within 0.1..1 ms (physics at 1 kHz or faster)")
+        q = jaco2.physical_deg_to_model(self.initial_joints_deg)
+        lower, upper = jaco2.model_limits()
+        if np.any(q < lower) or np.any(q > upper):
+            raise ValueError("initial_joints_deg are outside the joint limits")
+
+
+# Rotor inertia reflected through the gears (K-75+ and K-58 at 160:1 and 110:1) and joint friction: they make
+# the simulated joints behave like geared actuators and keep the 1 kHz integration well conditioned.
+ARMATURE = (0.10, 0.10, 0.10, 0.10, 0.04, 0.04, 0.04)
+DAMPING = (0.4, 0.4, 0.4, 0.4, 0.15, 0.15, 0.15)
+
+
+def camera_in_ee(cfg: SceneConfig) -> np.ndarray:
+    return cfg.camera.camera_in_ee.matrix()
+
+
+def target_in_base(cfg: SceneConfig) -> np.ndarray:
+    """The target's initial pose in the base frame (resolving pose_in_camera at the initial configuration)."""
+    if cfg.target.pose_in_base is not None:
+        return cfg.target.pose_in_base.matrix()
+    pose_in_camera = (cfg.target.pose_in_camera or _default_target_in_camera()).matrix()
+    T_be = jaco2.dh_forward_kinematics(jaco2.physical_deg_to_model(cfg.initial_joints_deg))
+    return T_be @ camera_in_ee(cfg) @ pose_in_camera
+
+
+def build_model(cfg: SceneConfig) -> mujoco.MjModel:
+    spec = jaco2.mujoco_spec()
+    spec.option.timestep = cfg.timestep_s
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    cam = cfg.camera
+    spec.visual.global_.offwidth = max(cam.width, 640)
+    spec.visual.global_.offheight = max(cam.height, 480)
+    spec.visual.quality.offsamples = 4
+    spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
+    spec.visual.headlight.diffuse = [0.4, 0.4, 0.4]
+
+    for i, joint_spec in enumerate(jaco2.JOINTS):
+        joint = spec.joint(joint_spec.name)
+        joint.armature = ARMATURE[i]
+        joint.damping = [DAMPING[i], 0.0, 0.0]  # MuJoCo 4: polynomial damping coefficients
+        motor = spec.add_actuator(name=f"motor_{i + 1}", target=joint_spec.name)
+        motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
+        motor.gainprm[0] = 1.0
+        motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        motor.ctrlrange = [-joint_spec.max_torque_nm, joint_spec.max_torque_nm]
+
+    # The arm does not collide with itself or the floor in this model: protection zones and joint limits keep it
+    # clear, as on the real arm; contacts would only add stiffness to the integration.
+    for geom in spec.geoms:
+        geom.contype = 0
+        geom.conaffinity = 0
+        geom.rgba = [0.15, 0.15, 0.17, 1.0]
+
+    world = spec.worldbody
+    world.add_light(name="sun", pos=[0.0, -0.5, 2.5], dir=[0.0, 0.2, -1.0], diffuse=[0.6, 0.6, 0.6],
+                    type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
+    if cfg.floor:
+        spec.add_texture(name="floor", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+                         rgb1=[0.55, 0.55, 0.5], rgb2=[0.5, 0.5, 0.45], width=256, height=256)
+        spec.add_material(name="floor", textures=["", "floor"], texrepeat=[8, 8], reflectance=0.0)
+        world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.05], material="floor",
+                       contype=0, conaffinity=0)
+
+    # AprilTag target: a thin box whose +z face carries the tag upright (texture top = tag +y).
+    image = tags.tag_image(cfg.target.id, cfg.target.family)
+    rgb = np.repeat(image[:, :, None], 3, axis=2)
+    texture = spec.add_texture(name="tag", type=mujoco.mjtTexture.mjTEXTURE_2D, width=rgb.shape[1],
+                               height=rgb.shape[0], nchannel=3)
+    texture.data = rgb.tobytes()
+    spec.add_material(name="tag", textures=["", "tag"], texrepeat=[1, 1], texuniform=False, specular=0.0,
+                      shininess=0.0, reflectance=0.0)
+    T_bt = target_in_base(cfg)
+    if cfg.floor and T_bt[2, 3] < 0.0:
+        raise ValueError(f"the target's centre is {-T_bt[2, 3]:.3f} m below the floor; move it or disable the floor")
+    target = world.add_body(name=TAG_BODY, mocap=True, pos=T_bt[:3, 3].tolist(),
+                            quat=frames.matrix_to_quat_wxyz(T_bt[:3, :3]).tolist())
+    half = tags.printed_edge(cfg.target.size_m) / 2.0
+    thickness = 0.002
+    target.add_geom(name="tag", type=mujoco.mjtGeom.mjGEOM_BOX, size=[half, half, thickness / 2],
+                    pos=[0.0, 0.0, -thickness / 2], material="tag", contype=0, conaffinity=0)
+
+    # Eye-in-hand camera with exact intrinsics: MuJoCo's principal_pixel is the offset of the image centre from
+    # the principal point, in pixels (verified by rendering).
+    T_ec = camera_in_ee(cfg)
+    ee = spec.body(jaco2.EE_LINK)
+    camera = ee.add_camera(name=CAMERA_NAME, pos=T_ec[:3, 3].tolist(),
+                           quat=frames.matrix_to_quat_wxyz(T_ec[:3, :3] @ MUJOCO_FROM_OPTICAL).tolist())
+    cx, cy = cam.principal_point
+    camera.resolution = [cam.width, cam.height]
+    camera.sensor_size = [cam.width * 1e-5, cam.height * 1e-5]  # any pixel pitch: intrinsics are in pixels
+    camera.focal_pixel = [cam.fx, cam.fy]
+    camera.principal_pixel = [(cam.width - 1) / 2.0 - cx, (cam.height - 1) / 2.0 - cy]
+    return spec.compile()

@@ -1,0 +1,121 @@
+"""The simulated scene: MuJoCo rendering (EGL) of the AprilTag seen by the eye-in-hand camera."""
+import cv2
+import numpy as np
+import pytest
+
+from services.common import jaco2
+from services.common import tag as tags
+from services.robot_sim.scene import CameraConfig, PoseConfig, SceneConfig, TargetConfig, build_model
+from services.robot_sim.sim import Simulation
+
+
+def detect(image, family="tag36h11"):
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    detector = cv2.aruco.ArucoDetector(tags.dictionary(family), params)
+    corners, ids, _ = detector.detectMarkers(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY))
+    return corners, ids
+
+
+def projected_corners(sim, cfg):
+    T_cb = np.linalg.inv(sim.camera_pose())
+    T_ct = T_cb @ sim.target_pose()
+    corners = (T_ct[:3, :3] @ tags.corners_in_tag(cfg.target.size_m).T).T + T_ct[:3, 3]
+    K = cfg.camera.matrix()
+    uv = (K @ (corners / corners[:, 2:3]).T).T
+    return uv[:, :2]
+
+
+CASES = [
+    # (camera, target pose in the camera frame)
+    (CameraConfig(), PoseConfig(xyz=(0.0, 0.0, 0.5), rpy_deg=(180.0, 0.0, 0.0))),
+    (CameraConfig(), PoseConfig(xyz=(0.05, -0.03, 0.35), rpy_deg=(160.0, 15.0, 30.0))),
+    (CameraConfig(), PoseConfig(xyz=(-0.08, 0.06, 0.65), rpy_deg=(200.0, -20.0, -60.0))),
+    (CameraConfig(width=1280, height=720, fx=920.0, fy=925.0, cx=650.0, cy=350.0),
+     PoseConfig(xyz=(0.02, 0.01, 0.6), rpy_deg=(170.0, 10.0, 100.0))),
+]
+
+
+@pytest.mark.parametrize("camera, pose", CASES)
+def test_rendered_tag_is_detected_at_its_pinhole_projection(camera, pose):
+    cfg = SceneConfig(camera=camera, target=TargetConfig(id=3, pose_in_camera=pose))
+    sim = Simulation(cfg)
+    try:
+        image = sim.render()
+    finally:
+        sim.close()
+    assert image.shape == (camera.height, camera.width, 3) and image.dtype == np.uint8
+    corners, ids = detect(image)
+    assert ids is not None and ids.ravel().tolist() == [3]
+    expected = projected_corners(sim, cfg)
+    error = np.linalg.norm(corners[0][0] - expected, axis=1)
+    assert error.max() < 1.0, error
+
+
+def test_target_pose_in_camera_resolves_at_the_initial_configuration():
+    pose = PoseConfig(xyz=(0.01, 0.02, 0.4), rpy_deg=(180.0, 0.0, 10.0))
+    cfg = SceneConfig(target=TargetConfig(pose_in_camera=pose))
+    sim = Simulation(cfg, render=False)
+    T_ct = np.linalg.inv(sim.camera_pose()) @ sim.target_pose()
+    assert np.allclose(T_ct, pose.matrix(), atol=1e-9)
+
+
+def test_camera_is_mounted_as_configured():
+    cfg = SceneConfig()
+    sim = Simulation(cfg, render=False)
+    T_ec = np.linalg.inv(sim.ee_pose()) @ sim.camera_pose()
+    assert np.allclose(T_ec, cfg.camera.camera_in_ee.matrix(), atol=1e-9)
+    # the default mount looks along the approach axis with the image upright at home
+    R_bc = sim.camera_pose()[:3, :3]
+    assert abs(R_bc[2, 0]) < 1e-6 and R_bc[2, 1] < -0.5
+
+
+def test_moving_target_moves_at_its_velocity():
+    cfg = SceneConfig(target=TargetConfig(velocity_mps=(0.02, 0.0, -0.01)))
+    sim = Simulation(cfg, render=False)
+    p0 = sim.target_pose()[:3, 3]
+    for _ in range(100):
+        sim.step_cycle()
+    assert sim.target_pose()[:3, 3] - p0 == pytest.approx([0.02, 0.0, -0.01], abs=1e-9)
+
+
+def test_torque_limits_are_the_actuators():
+    model = build_model(SceneConfig())
+    assert model.actuator_ctrlrange[:, 1].tolist() == jaco2.MAX_TORQUE.tolist()
+    assert model.opt.timestep <= 0.001
+
+
+def test_scene_config_validation():
+    with pytest.raises(ValueError):
+        SceneConfig(initial_joints_deg=[0.0] * 6)
+    with pytest.raises(ValueError):
+        SceneConfig(initial_joints_deg=[0, 20, 0, 180, 0, 180, 0])  # joint 2 below 47°
+    with pytest.raises(ValueError):
+        TargetConfig(pose_in_base=PoseConfig(), pose_in_camera=PoseConfig())
+    with pytest.raises(ValueError):
+        CameraConfig(fx=-1.0)
+    with pytest.raises(ValueError):
+        SceneConfig(timestep_s=0.01)
+
+
+def test_physics_model_matches_pinocchio_gravity(rng):
+    """The inertial description is the same for MuJoCo's physics and Pinocchio's dynamics."""
+    import mujoco
+
+    from services.common.kinematics import ArmKinematics
+    from tests.helpers import random_q
+
+    sim = Simulation(render=False)
+    kin = ArmKinematics()
+    for _ in range(20):
+        q = random_q(rng)
+        sim.data.qpos[:7] = q
+        sim.data.qvel[:] = 0
+        mujoco.mj_forward(sim.model, sim.data)
+        assert np.allclose(sim.data.qfrc_bias[:7], kin.gravity(q), atol=1e-6)
+
+
+def test_target_below_the_floor_is_refused():
+    cfg = SceneConfig(target=TargetConfig(pose_in_base=PoseConfig(xyz=(0.0, -0.6, -0.1))))
+    with pytest.raises(ValueError, match="below the floor"):
+        build_model(cfg)
