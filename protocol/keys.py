@@ -13,35 +13,6 @@ ROOT = "mfvs"
 _ROBOT_ID = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
 _CHUNK = _ROBOT_ID
 
-#: Names of the Kinova high-level functions exposed as queryables under ``robot/api/<Function>``.
-KINOVA_API_FUNCTIONS = (
-    "InitAPI",
-    "CloseAPI",
-    "MoveHome",
-    "SendBasicTrajectory",
-    "EraseAllTrajectories",
-    "GetGlobalTrajectoryInfo",
-    "SetAngularControl",
-    "SetCartesianControl",
-    "GetAngularPosition",
-    "GetAngularVelocity",
-    "GetAngularForce",
-    "GetAngularCommand",
-    "GetCartesianPosition",
-    "GetCartesianCommand",
-    "GetQuickStatus",
-    "SetProtectionZone",
-    "GetProtectionZone",
-    "EraseAllProtectionZones",
-    "SetCartesianInertiaDamping",
-    "SetMaxTranslationVelocity",
-    "SetMaxOrientationVelocity",
-    "GetClientConfigurations",
-    "SwitchTrajectoryTorque",
-    "SendAngularTorqueCommand",
-)
-
-
 class InvalidKeyChunk(ValueError):
     """A robot id, service name or function name that cannot be a key chunk."""
 
@@ -126,6 +97,7 @@ class Keys:
         return self._k("robot/state")
 
     def robot_api(self, function: str) -> str:
+        """The queryable of a Kinova API function (protocol.kinova.API_FUNCTIONS lists them)."""
         return self._k(f"robot/api/{_check_chunk('function name', function)}")
 
     @property

@@ -194,3 +194,69 @@ class ZoneList(Message):
         super().__post_init__()
         if self.NbZones != len(self.Zones):
             raise ValueError(f"NbZones is {self.NbZones} but {len(self.Zones)} zones are given at field 'NbZones'")
+
+
+class ClientConfigurations(Message):
+    """The subset of Kinova's ClientConfigurations the emulator honours (m/s, rad/s, m/s², rad/s²)."""
+
+    MaxTranslationVelocity: float = 0.2
+    MaxOrientationVelocity: float = 1.07
+    MaxTranslationAcceleration: float = 0.64
+    MaxOrientationAcceleration: float = 2.75
+
+
+# ----------------------------------------------------------------------------------------------- the zenoh API
+#
+# Each Kinova function is a zenoh queryable at ``…/robot/api/<Function>``. The query payload is the function's
+# argument (MessagePack of the type below; empty for functions without one); the reply is the function's
+# return code and, for getters, the value it fills in.
+
+
+class ApiReply(Message):
+    code: int = ErrorCode.NO_ERROR_KINOVA
+    #: why a call failed (empty on success); the SDK has only the code, this is for people
+    message: Annotated[str, msgspec.Meta(max_length=512)] = ""
+
+
+class AngularPositionReply(ApiReply):
+    result: AngularPosition = msgspec.field(default_factory=AngularPosition)
+
+
+class CartesianPositionReply(ApiReply):
+    result: CartesianPosition = msgspec.field(default_factory=CartesianPosition)
+
+
+class TrajectoryFIFOReply(ApiReply):
+    result: TrajectoryFIFO = msgspec.field(default_factory=TrajectoryFIFO)
+
+
+class ZoneListReply(ApiReply):
+    result: ZoneList = msgspec.field(default_factory=ZoneList)
+
+
+class ClientConfigurationsReply(ApiReply):
+    result: ClientConfigurations = msgspec.field(default_factory=ClientConfigurations)
+
+
+#: function name → (argument type or None, reply type)
+API_FUNCTIONS: dict[str, tuple[type | None, type]] = {
+    "InitAPI": (None, ApiReply),
+    "CloseAPI": (None, ApiReply),
+    "MoveHome": (None, ApiReply),
+    "SetCartesianControl": (None, ApiReply),
+    "SetAngularControl": (None, ApiReply),
+    "SendBasicTrajectory": (TrajectoryPoint, ApiReply),
+    "EraseAllTrajectories": (None, ApiReply),
+    "GetGlobalTrajectoryInfo": (None, TrajectoryFIFOReply),
+    "GetAngularPosition": (None, AngularPositionReply),
+    "GetAngularVelocity": (None, AngularPositionReply),
+    "GetAngularForce": (None, AngularPositionReply),
+    "GetAngularCommand": (None, AngularPositionReply),
+    "GetCartesianPosition": (None, CartesianPositionReply),
+    "GetCartesianCommand": (None, CartesianPositionReply),
+    "SetProtectionZone": (ZoneList, ApiReply),
+    "GetProtectionZone": (None, ZoneListReply),
+    "EraseAllProtectionZones": (None, ApiReply),
+    "GetClientConfigurations": (None, ClientConfigurationsReply),
+    "SetClientConfigurations": (ClientConfigurations, ApiReply),
+}

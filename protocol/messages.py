@@ -359,7 +359,15 @@ class ServiceHealth(Message):
 
 M = TypeVar("M", bound=msgspec.Struct)
 
-_encoder = msgspec.msgpack.Encoder()
+def _encode_hook(obj: Any) -> Any:
+    """NumPy scalars and arrays (anything with ``tolist``) encode as the plain numbers and lists they hold."""
+    tolist = getattr(obj, "tolist", None)
+    if tolist is not None:
+        return tolist()
+    raise NotImplementedError(f"cannot encode objects of type {type(obj).__name__}")
+
+
+_encoder = msgspec.msgpack.Encoder(enc_hook=_encode_hook)
 _decoders: dict[type, msgspec.msgpack.Decoder] = {}
 _AT_PATH = re.compile(r" - at `\$(?P<path>[^`]*)`$")
 _INNER_FIELD = re.compile(r"at field '(?P<field>[^']+)'|(?:unknown|missing required) field `(?P<unknown>[^`]+)`")

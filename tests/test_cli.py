@@ -7,7 +7,6 @@ import sys
 import time
 from pathlib import Path
 
-
 from services.common import jaco2
 from services.common.transport import ZenohConfig, open_session
 

@@ -1,13 +1,14 @@
 import pytest
 
-from protocol.keys import KINOVA_API_FUNCTIONS, InvalidKeyChunk, Keys
+from protocol.keys import InvalidKeyChunk, Keys
+from protocol.kinova import API_FUNCTIONS
 
 
 def test_every_key_is_under_the_robot_prefix():
     keys = Keys("jaco-1")
     names = [n for n in dir(Keys) if isinstance(getattr(Keys, n), property) and n != "prefix"]
     values = [getattr(keys, n) for n in names]
-    values += [keys.robot_api(f) for f in KINOVA_API_FUNCTIONS]
+    values += [keys.robot_api(f) for f in API_FUNCTIONS]
     values += [keys.health("vision"), keys.liveliness("safety"), keys.vision_api("teach")]
     assert all(v.startswith("mfvs/jaco-1/") for v in values)
     assert len(set(values)) == len(values)

@@ -174,3 +174,10 @@ def test_header_with_hop_appends_without_sharing():
     h2 = h.with_hop("controller", 11, 12)
     assert h.trace == [] and [hop.service for hop in h2.trace] == ["controller"]
     assert h2.source_stamp_ns == 10
+
+
+def test_numpy_values_encode_as_plain_numbers():
+    import numpy as np
+
+    pose = m.Pose(xyz=tuple(np.array([0.1, 0.2, 0.3])), quat_wxyz=(np.float64(1.0), 0.0, 0.0, 0.0))
+    assert msgpack.unpackb(m.encode(pose)) == {"xyz": [0.1, 0.2, 0.3], "quat_wxyz": [1.0, 0.0, 0.0, 0.0]}

@@ -41,16 +41,21 @@ def _parse_yaml(text: str, name: str) -> Any:
     return {} if data is None else data
 
 
+def read_yaml(path: str | os.PathLike) -> Any:
+    """The parsed YAML document of a file (an empty document is an empty mapping)."""
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise ConfigError(str(path), f"cannot read ({exc.strerror or exc})") from None
+    return _parse_yaml(text, str(path))
+
+
 def load_config(path: str | os.PathLike | None, config_type: type[T], section: str | None = None) -> T:
     """Load ``config_type`` from a YAML file (None: all defaults). With ``section``, only that top-level key of
     the document is used (a missing section means defaults)."""
     if path is None:
         return config_from_mapping({}, config_type, "<defaults>")
-    try:
-        text = Path(path).read_text()
-    except OSError as exc:
-        raise ConfigError(str(path), f"cannot read ({exc.strerror or exc})") from None
-    return config_from_mapping(_parse_yaml(text, str(path)), config_type, str(path), section)
+    return config_from_mapping(read_yaml(path), config_type, str(path), section)
 
 
 def config_from_text(text: str, config_type: type[T], section: str | None = None, name: str = "<text>") -> T:

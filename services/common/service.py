@@ -56,6 +56,11 @@ class TypedPublisher:
         self._publisher.put(encode(message))
         self._rates.tick(self._name)
 
+    @property
+    def matching(self) -> bool:
+        """Whether any subscriber currently matches this publisher's key."""
+        return self._publisher.matching_status.matching
+
     def undeclare(self) -> None:
         self._publisher.undeclare()
 
@@ -222,9 +227,10 @@ class Service:
         self.limited_log.warning(f"refuse:{stream}", "%s: refused %s: %s", self.name, stream, reason)
 
     def header(self, stream: str, *, stamp_ns: int | None = None, source: Header | None = None,
-               recv_ns: int | None = None) -> Header:
+               recv_ns: int | None = None, source_stamp_ns: int | None = None) -> Header:
         """A header for the next message on ``stream``: its own sequence number; the source stamp and trace of
-        the input it derives from (if any) with this service's hop appended."""
+        the input it derives from (if any) with this service's hop appended. A message that originates data (an
+        image) gives its own ``source_stamp_ns``."""
         with self._seq_lock:
             counter = self._seq.setdefault(stream, itertools.count())
             seq = next(counter)
@@ -235,7 +241,8 @@ class Service:
         return Header(
             seq=seq,
             stamp_ns=now if stamp_ns is None else stamp_ns,
-            source_stamp_ns=source.source_stamp_ns if source is not None else 0,
+            source_stamp_ns=(source_stamp_ns if source_stamp_ns is not None
+                             else source.source_stamp_ns if source is not None else 0),
             trace=trace,
         )
 
@@ -267,3 +274,41 @@ class Service:
             query.reply(self.keys.health(self.name), encode(self.health()))
         except Exception:
             self.limited_log.error("health-query", "%s: could not answer a health query", self.name)
+
+
+def service_main(service_type: type[Service], config_type: type[ServiceConfig], argv: list[str] | None = None,
+                 description: str = "") -> int:
+    """The command line every service's ``python -m`` entry shares: ``--config FILE``, ``--clock``,
+    ``--connect ENDPOINT``, ``--robot-id``. Overrides are applied before validation, so they are checked too."""
+    import argparse
+    import sys
+
+    from services.common.config import ConfigError, config_from_mapping, read_yaml
+    from services.common.logs import setup_logging
+
+    parser = argparse.ArgumentParser(prog=f"python -m services.{service_type.name}", description=description)
+    parser.add_argument("--config", help="YAML config file (missing keys take their documented defaults)")
+    parser.add_argument("--clock", choices=[m.value for m in ClockMode], help="override the clock mode")
+    parser.add_argument("--connect", action="append", help="zenoh endpoint of the router (repeatable)")
+    parser.add_argument("--robot-id", help="override the robot id (key prefix mfvs/<robot_id>/)")
+    args = parser.parse_args(argv)
+    try:
+        data = read_yaml(args.config) if args.config else {}
+        if not isinstance(data, dict):
+            raise ConfigError(args.config, "expected a mapping at the top level")
+        if args.clock:
+            data["clock"] = args.clock
+        if args.robot_id:
+            data["robot_id"] = args.robot_id
+        if args.connect:
+            data.setdefault("zenoh", {})
+            if not isinstance(data["zenoh"], dict):
+                raise ConfigError(args.config, "zenoh must be a mapping", "zenoh")
+            data["zenoh"]["connect"] = args.connect
+        config = config_from_mapping(data, config_type, args.config or "<command line>")
+        Keys(config.robot_id)
+    except (ConfigError, ValueError) as exc:
+        print(f"{service_type.name}: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(config.log_level)
+    return service_type(config).run()

@@ -6,8 +6,8 @@ the physics step at or after their nominal times.
 """
 from __future__ import annotations
 
-import numpy as np
 import mujoco
+import numpy as np
 
 from services.common import frames, jaco2
 from services.common.actuators import SimActuators
@@ -111,6 +111,16 @@ class Simulation:
     def frame_due(self) -> bool:
         return self.time_ns >= self.next_frame_ns
 
+    def mark_frame(self) -> None:
+        """Record that the frame due now was captured (by :meth:`render` or by a renderer of a snapshot)."""
+        self.frame_count += 1
+        while self.next_frame_ns <= self.time_ns:
+            self.next_frame_ns += self.frame_period_ns
+
+    @property
+    def camera_id(self) -> int:
+        return self._camera_id
+
     def render(self) -> np.ndarray:
         """An RGB image (H×W×3 uint8) from the eye-in-hand camera at the current state; advances the frame
         schedule. Must be called from the thread that owns this simulation (the EGL context is per thread)."""
@@ -122,9 +132,7 @@ class Simulation:
         mujoco.mj_forward(self.model, self.data)
         self._renderer.update_scene(self.data, camera=self._camera_id)
         image = self._renderer.render().copy()
-        self.frame_count += 1
-        while self.next_frame_ns <= self.time_ns:
-            self.next_frame_ns += self.frame_period_ns
+        self.mark_frame()
         return image
 
     def close(self) -> None:

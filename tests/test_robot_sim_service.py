@@ -1,0 +1,229 @@
+"""robot_sim as a service over a real zenoh router, in lockstep: the test process plays the safety service."""
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from protocol import kinova
+from protocol import messages as m
+from protocol.conventions import AngularConvention, ClockMode, Frame
+from protocol.keys import Keys
+from services.common import jaco2
+from services.common.transport import open_session
+from services.robot_sim.service import RobotSimConfig, RobotSimService
+
+KEYS = Keys()
+
+
+def wait_for(predicate, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+class FakeSafety:
+    """Answers every clock tick with a robot command stamped at the tick and derived from the latest frame (what
+    the safety service does with the pipeline's output)."""
+
+    def __init__(self, session, make_command, watch_frames=False):
+        self.session = session
+        self.make_command = make_command
+        self.publisher = session.declare_publisher(KEYS.robot_command)
+        self.ticks = 0
+        self.frame_stamp = 0
+        self.lock = threading.Lock()
+        self.subscribers = [session.declare_subscriber(KEYS.clock, self._on_tick)]
+        if watch_frames:
+            self.subscribers.append(session.declare_subscriber(KEYS.camera_image, self._on_image))
+
+    def _on_image(self, sample):
+        with self.lock:
+            self.frame_stamp = m.decode(sample.payload.to_bytes(), m.Image).header.source_stamp_ns
+        self._answer(self.frame_stamp)
+
+    def _on_tick(self, sample):
+        tick = m.decode(sample.payload.to_bytes(), m.SimClock)
+        with self.lock:
+            self.ticks += 1
+        self._answer(tick.sim_time_ns)
+
+    def _answer(self, stamp):
+        payloads = self.make_command(stamp, self.frame_stamp)
+        for payload in payloads if isinstance(payloads, list) else [payloads]:
+            self.publisher.put(payload)
+
+    def close(self):
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
+        self.publisher.undeclare()
+
+
+def twist_payload(stamp, source_stamp=0, linear=(0.05, 0.0, 0.0), convention=AngularConvention.SEED000):
+    header = m.Header(stamp_ns=stamp, source_stamp_ns=source_stamp)
+    twist = m.Twist(header=header, frame=Frame.MIXED, angular=convention, linear=linear, rotational=(0.0, 0.0, 0.0))
+    return m.encode(m.RobotCommand(header=header, mode=m.CommandMode.CARTESIAN_VELOCITY, twist=twist))
+
+
+@pytest.fixture
+def client(router):
+    session = open_session(router.client_config())
+    yield session
+    session.close()
+
+
+@pytest.fixture
+def start_robot(router):
+    """Starts robot_sim in lockstep when called (so a test can subscribe first)."""
+    started = []
+
+    def start():
+        config = RobotSimConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config(), health_period_s=0.2)
+        service = RobotSimService(config)
+        service.start()
+        started.append(service)
+        return service
+
+    yield start
+    for service in started:
+        service.stop()
+
+
+@pytest.fixture
+def robot(start_robot):
+    return start_robot()
+
+
+def collect(session, key, message_type):
+    out = []
+    session.declare_subscriber(key, lambda s: out.append(m.decode(s.payload.to_bytes(), message_type)))
+    return out
+
+
+def test_lockstep_velocity_command_moves_as_declared(robot, client):
+    states = collect(client, KEYS.robot_state, m.RobotState)
+    safety = FakeSafety(client, lambda t, f: twist_payload(t, f))
+    try:
+        assert wait_for(lambda: len(states) >= 150, timeout=60)
+    finally:
+        safety.close()
+    window = states[80:150]
+    stamps = np.array([s.header.stamp_ns for s in window])
+    assert np.all(np.diff(stamps) == 10_000_000)  # exactly one 10 ms cycle per state in lockstep
+    xyz = np.array([[s.pose.X, s.pose.Y, s.pose.Z] for s in window])
+    velocity = np.diff(xyz, axis=0) / 0.01
+    assert np.allclose(velocity.mean(axis=0), [0.05, 0.0, 0.0], atol=0.001)
+    applied = [s.applied_command for s in window]
+    assert all(a is not None and a.trace[-1].service == "robot_sim" for a in applied)
+    assert all(s.angular_convention is AngularConvention.SEED000 for s in window)
+
+
+def test_lockstep_publishes_frames_with_capture_stamps(start_robot, client):
+    images = collect(client, KEYS.camera_image, m.Image)
+    safety = FakeSafety(client, lambda t, f: twist_payload(t, f, linear=(0.0, 0.0, 0.0)), watch_frames=True)
+    time.sleep(0.3)  # let the subscriptions reach the router before the first frame
+    robot = start_robot()
+    try:
+        assert wait_for(lambda: len(images) >= 4, timeout=60)
+        frame_timeouts = robot.counters.get("lockstep.timeouts.frame")  # before the fake safety goes away
+    finally:
+        safety.close()
+    stamps = [i.header.source_stamp_ns for i in images[:4]]
+    assert all(i.header.stamp_ns == i.header.source_stamp_ns for i in images[:4])
+    periods = np.diff(stamps)
+    assert np.all(np.abs(periods - 1e9 / 30) <= 10_000_000)  # frames fall on the cycle at or after 1/30 s
+    assert frame_timeouts == 0
+    assert images[0].width == 640 and images[0].height == 480 and images[0].encoding is m.ImageEncoding.RGB8
+    replies = list(client.get(KEYS.camera_info))
+    info = m.decode(replies[0].ok.payload.to_bytes(), m.CameraInfo)
+    assert (info.fx, info.fy, info.cx, info.cy) == (615.0, 615.0, 319.5, 239.5)
+
+
+def test_bad_and_refused_commands_leave_the_arm_at_rest(robot, client):
+    states = collect(client, KEYS.robot_state, m.RobotState)
+    plain = msgpack.unpackb(twist_payload(0))
+    plain["twist"]["linear"][0] = float("nan")
+    nan_payload = msgpack.packb(plain)
+    bad = [b"\x93garbage", twist_payload(0)[:-4], nan_payload]
+    counter = {"n": 0}
+
+    def make(t, _frame):
+        counter["n"] += 1
+        # garbage first, then a valid command in a convention this arm does not read (it answers the tick)
+        return [bad[counter["n"] % 3], twist_payload(t, convention=AngularConvention.OMEGA)]
+
+    safety = FakeSafety(client, make)
+    try:
+        assert wait_for(lambda: len(states) >= 100, timeout=60)
+    finally:
+        safety.close()
+    q = np.array([s.q for s in states])
+    assert np.abs(q - q[0]).max() < 1e-6
+    errors = robot.counters.snapshot()
+    assert errors.get("rejected.command", 0) >= 60
+    assert errors.get("refused.convention", 0) >= 60
+    assert any(f.startswith("refused: this arm reads angular velocity as 'seed000'") for f in states[-1].faults)
+    assert robot.state == "running"
+
+
+def api(client, function, argument=None, reply_type=kinova.ApiReply):
+    payload = m.encode(argument) if argument is not None else None
+    replies = list(client.get(KEYS.robot_api(function), payload=payload, timeout=10.0))
+    assert len(replies) == 1
+    return m.decode(replies[0].ok.payload.to_bytes(), reply_type)
+
+
+def test_kinova_api_queryables(robot, client):
+    position = api(client, "GetAngularPosition", reply_type=kinova.AngularPositionReply)
+    assert position.code == kinova.ErrorCode.NO_ERROR_KINOVA
+    assert position.result.Actuators.as_list() == pytest.approx(jaco2.HOME_DEG.tolist(), abs=1e-6)
+    cartesian = api(client, "GetCartesianPosition", reply_type=kinova.CartesianPositionReply)
+    T = jaco2.dh_forward_kinematics(jaco2.HOME)
+    assert [cartesian.result.Coordinates.X, cartesian.result.Coordinates.Y, cartesian.result.Coordinates.Z] == \
+        pytest.approx(T[:3, 3].tolist(), abs=1e-6)
+
+    target = jaco2.HOME_DEG + np.array([5.0, -5.0, 0.0, 5.0, 0.0, -5.0, 10.0])
+    point = kinova.TrajectoryPoint(Position=kinova.UserPosition(
+        Type=kinova.POSITION_TYPE.ANGULAR_POSITION, Actuators=kinova.AngularInfo.from_list(target)))
+    assert api(client, "SendBasicTrajectory", point).code == kinova.ErrorCode.NO_ERROR_KINOVA
+    info = api(client, "GetGlobalTrajectoryInfo", reply_type=kinova.TrajectoryFIFOReply)
+    assert info.result.MaxSize == 2000
+
+    def reached():
+        now = api(client, "GetAngularPosition", reply_type=kinova.AngularPositionReply).result.Actuators.as_list()
+        return np.abs(np.array(now) - target).max() < 0.1
+
+    assert wait_for(reached, timeout=60)
+    assert wait_for(lambda: api(client, "GetGlobalTrajectoryInfo",
+                                reply_type=kinova.TrajectoryFIFOReply).result.TrajectoryCount == 0)
+
+    corners = [kinova.CartesianInfo(X=x, Y=y, Z=0.0) for x, y in ((0.3, -0.3), (0.6, -0.3), (0.6, 0.3), (0.3, 0.3))]
+    top = [kinova.CartesianInfo(X=c.X, Y=c.Y, Z=0.8) for c in corners]
+    zone = kinova.Zone(ID=1, zoneShape=kinova.ZoneShape(Points=corners + top))
+    assert api(client, "SetProtectionZone", kinova.ZoneList(NbZones=1, Zones=[zone])).code == 1
+    zones = api(client, "GetProtectionZone", reply_type=kinova.ZoneListReply).result
+    assert zones.NbZones == 1 and zones.Zones[0].zoneShape.Points[2].X == pytest.approx(0.6)
+    assert api(client, "EraseAllProtectionZones").code == 1
+    assert api(client, "GetProtectionZone", reply_type=kinova.ZoneListReply).result.NbZones == 0
+
+    conf = api(client, "GetClientConfigurations", reply_type=kinova.ClientConfigurationsReply).result
+    assert conf.MaxTranslationVelocity == pytest.approx(0.2)
+    bad_conf = kinova.ClientConfigurations(MaxTranslationVelocity=0.5)
+    assert api(client, "SetClientConfigurations", bad_conf).code == kinova.ErrorCode.ERROR_INVALID_PARAM
+
+
+def test_kinova_api_refuses_unknown_functions_and_bad_arguments(robot, client):
+    replies = list(client.get(KEYS.robot_api("SelfDestruct"), timeout=5.0))
+    reply = m.decode(replies[0].ok.payload.to_bytes(), kinova.ApiReply)
+    assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM and "unknown function" in reply.message
+    replies = list(client.get(KEYS.robot_api("SendBasicTrajectory"), payload=b"\x01\x02", timeout=5.0))
+    reply = m.decode(replies[0].ok.payload.to_bytes(), kinova.ApiReply)
+    assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM and "TrajectoryPoint" in reply.message
+    zone = kinova.Zone(ID=2, zoneShape=kinova.ZoneShape(shapeType=kinova.ShapeType.Pyramid))
+    reply = api(client, "SetProtectionZone", kinova.ZoneList(NbZones=1, Zones=[zone]))
+    assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM and "PrismSquareBase_Z" in reply.message
+    assert robot.counters.get("rejected.api") == 2
