@@ -59,6 +59,16 @@ def _cmd_model(args: argparse.Namespace) -> int:
     return 0
 
 
+BENCHMARKS = {"loops": "bench.loops"}
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import importlib
+
+    module = importlib.import_module(BENCHMARKS[args.name])
+    return module.main((["--json"] if args.json else []) + args.options)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mfvs",
@@ -76,6 +86,12 @@ def build_parser() -> argparse.ArgumentParser:
     model = sub.add_parser("model", help="the JACO-2 j2s7s300 description")
     model.add_argument("what", choices=["urdf", "info"], help="urdf: print the URDF; info: limits, home pose")
     model.set_defaults(func=_cmd_model)
+
+    bench = sub.add_parser("bench", help="run a benchmark and print its figures")
+    bench.add_argument("name", choices=sorted(BENCHMARKS), help="loops: robot_sim's 100 Hz loop and lockstep speed")
+    bench.add_argument("--json", action="store_true", help="print one JSON object")
+    bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
+    bench.set_defaults(func=_cmd_bench)
     return parser
 
 

@@ -227,3 +227,24 @@ def test_kinova_api_refuses_unknown_functions_and_bad_arguments(robot, client):
     reply = api(client, "SetProtectionZone", kinova.ZoneList(NbZones=1, Zones=[zone]))
     assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM and "PrismSquareBase_Z" in reply.message
     assert robot.counters.get("rejected.api") == 2
+
+
+def test_lockstep_retries_a_tick_whose_answer_was_lost(robot, client):
+    seen = set()
+
+    def make(t, _frame):
+        if t not in seen:  # the first time each tick arrives, the answer is "lost"
+            seen.add(t)
+            return []
+        return twist_payload(t)
+
+    states = collect(client, KEYS.robot_state, m.RobotState)
+    safety = FakeSafety(client, make)
+    try:
+        assert wait_for(lambda: len(states) >= 30, timeout=60)
+        counters = robot.counters.snapshot()
+    finally:
+        safety.close()
+    assert counters.get("lockstep.retries", 0) >= 5
+    assert counters.get("lockstep.timeouts.cycle", 0) == 0
+    assert states[-1].applied_command is not None

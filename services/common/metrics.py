@@ -79,3 +79,35 @@ class Rates:
         with self._lock:
             meters = dict(self._meters)
         return {name: round(m.rate_hz(), 3) for name, m in meters.items()}
+
+
+class LoopTimer:
+    """Periods of a periodic loop (wall, monotonic): achieved rate and period jitter over the last ``window``."""
+
+    def __init__(self, nominal_s: float, window: int = 6000, clock=time.monotonic) -> None:
+        self.nominal_s = nominal_s
+        self._clock = clock
+        self._last: float | None = None
+        self._periods: collections.deque[float] = collections.deque(maxlen=window)
+        self._lock = threading.Lock()
+
+    def tick(self) -> None:
+        now = self._clock()
+        with self._lock:
+            if self._last is not None:
+                self._periods.append(now - self._last)
+            self._last = now
+
+    def stats(self) -> dict[str, float]:
+        """rate_hz, and the period error |period − nominal| in ms: p50, p99, max; n periods."""
+        with self._lock:
+            periods = list(self._periods)
+        if not periods:
+            return {"rate_hz": 0.0, "jitter_ms_p50": 0.0, "jitter_ms_p99": 0.0, "jitter_ms_max": 0.0, "n": 0}
+        errors = sorted(abs(p - self.nominal_s) * 1e3 for p in periods)
+
+        def pct(q: float) -> float:
+            return errors[min(len(errors) - 1, int(round(q * (len(errors) - 1))))]
+
+        return {"rate_hz": len(periods) / sum(periods), "jitter_ms_p50": pct(0.5), "jitter_ms_p99": pct(0.99),
+                "jitter_ms_max": errors[-1], "n": len(periods)}

@@ -46,6 +46,7 @@ from protocol.messages import (
 from services.common import frames, jaco2
 from services.common.config import ConfigStruct
 from services.common.dsp import CommandRefused, DSPConfig
+from services.common.metrics import LoopTimer
 from services.common.service import Service, ServiceConfig
 from services.common.zones import zone_from_kinova, zone_to_kinova
 from services.robot_sim.scene import SceneConfig
@@ -57,6 +58,8 @@ class LockstepConfig(ConfigStruct):
     cycle_timeout_s: float = 0.5
     #: wall time to wait for the pipeline's answer to a frame
     frame_timeout_s: float = 2.0
+    #: publish the tick (and the frame) again after this long without an answer
+    retry_s: float = 0.25
 
 
 class RobotSimConfig(ServiceConfig):
@@ -172,7 +175,7 @@ class RobotSimService(Service):
         config = config or RobotSimConfig()
         super().__init__(config, **kw)
         self.config: RobotSimConfig = config
-        self.lockstep = config.clock is ClockMode.LOCKSTEP
+        self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
         self.sim = Simulation(config.scene, config.dsp, render=True)
         self.api = _Api(self.sim)
         self._command: Optional[tuple[RobotCommand, int]] = None
@@ -185,7 +188,10 @@ class RobotSimService(Service):
         self._render_queue: queue.Queue = queue.Queue(maxsize=1)
         self._render_thread: Optional[threading.Thread] = None
         self._render_data = mujoco.MjData(self.sim.model)
+        self._last_image: Optional[Image] = None
         self.finished = threading.Event()
+        #: wall-clock periods of the DSP cycle loop (realtime: the 100 Hz loop's rate and jitter)
+        self.loop_timer = LoopTimer(self.sim.cycle_ns * 1e-9)
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -214,7 +220,11 @@ class RobotSimService(Service):
 
     def check_health(self) -> tuple[bool, str]:
         alive = self._thread is not None and self._thread.is_alive()
-        return alive, "" if alive else "simulation loop stopped"
+        if not alive:
+            return False, "simulation loop stopped"
+        stats = self.loop_timer.stats()
+        return True, (f"sim_time_s={self.sim.time_ns * 1e-9:.3f} cycle_rate_hz={stats['rate_hz']:.1f} "
+                      f"jitter_ms_p99={stats['jitter_ms_p99']:.2f}")
 
     # ------------------------------------------------------------------ inputs (zenoh threads)
     def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
@@ -289,6 +299,7 @@ class RobotSimService(Service):
                 self.counters.inc("overruns")
                 cycle = int((time.monotonic() - start) / period)
             self.rates.tick("cycle")
+            self.loop_timer.tick()
             self._run_api_calls()
             if self.sim.frame_due():
                 self._capture_frame(wait=False)
@@ -315,8 +326,7 @@ class RobotSimService(Service):
                 if frames_since_info * self.sim.frame_period_ns >= self.config.camera_info_period_s * 1e9:
                     self.info_pub.put(self._camera_info())
                     frames_since_info = 0
-            self.clock_pub.put(SimClock(header=self.header("clock", stamp_ns=tick), sim_time_ns=tick,
-                                        mode=ClockMode.LOCKSTEP.value))
+            self._publish_tick(tick)
             listening = self.clock_pub.matching or awaiting_frame is not None
             timeout = cfg.frame_timeout_s if awaiting_frame is not None else cfg.cycle_timeout_s
             taken = self._wait_for_answer(tick, awaiting_frame, timeout) if listening else self._take_command()
@@ -330,17 +340,35 @@ class RobotSimService(Service):
             return False
         return frame_stamp is None or header.source_stamp_ns >= frame_stamp
 
+    def _publish_tick(self, tick: int) -> None:
+        self.clock_pub.put(SimClock(header=self.header("clock", stamp_ns=tick), sim_time_ns=tick,
+                                    mode=ClockMode.LOCKSTEP.value))
+
     def _wait_for_answer(self, tick: int, frame_stamp: Optional[int], timeout_s: float):
-        deadline = time.monotonic() + timeout_s
+        """Wait for the answer to this tick (and frame). A message can be lost while routes are still being set
+        up (a service that just joined), so the tick, and the frame, are published again every ``retry_s``."""
+        cfg = self.config.lockstep
+        start = time.monotonic()
+        deadline, next_retry = start + timeout_s, start + cfg.retry_s
         with self._command_cond:
             while not self._answered(tick, frame_stamp) and not self.stop_requested:
                 self._run_api_calls_locked()
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
+                now = time.monotonic()
+                if now >= deadline:
                     self.counters.inc("lockstep.timeouts.frame" if frame_stamp is not None else
                                       "lockstep.timeouts.cycle")
                     break
-                self._command_cond.wait(min(remaining, 0.05))
+                if now >= next_retry:
+                    self.counters.inc("lockstep.retries")
+                    self._command_cond.release()
+                    try:
+                        if frame_stamp is not None and self._last_image is not None:
+                            self.image_pub.put(self._last_image)
+                        self._publish_tick(tick)
+                    finally:
+                        self._command_cond.acquire()
+                    next_retry = now + cfg.retry_s
+                self._command_cond.wait(min(deadline, next_retry) - now)
         return self._take_command()
 
     def _run_api_calls_locked(self) -> None:
@@ -440,6 +468,7 @@ class RobotSimService(Service):
                     header = self.header("image", stamp_ns=stamp, source_stamp_ns=stamp)
                     image = Image(header=header, width=cam.width, height=cam.height, encoding=ImageEncoding.RGB8,
                                   data=pixels.tobytes())
+                    self._last_image = image
                     self.image_pub.put(image)
                 except Exception:
                     self.counters.inc("errors.render")

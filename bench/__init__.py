@@ -1,0 +1,1 @@
+"""Benchmarks that print figures (run through ``mfvs bench NAME`` or ``python -m bench.NAME``)."""
