@@ -131,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         rt = result["realtime"]
         print(f"realtime 100 Hz loop: {rt['cycle_rate_hz']:.2f} Hz, "
-              f"period jitter p50 {rt['cycle_jitter_ms_p50']:.3f} ms, p99 {rt['cycle_jitter_ms_p99']:.3f} ms, max {rt['cycle_jitter_ms_max']:.3f} ms "
+              f"period jitter p50 {rt['cycle_jitter_ms_p50']:.3f} ms, p99 {rt['cycle_jitter_ms_p99']:.3f} ms, "
+              f"max {rt['cycle_jitter_ms_max']:.3f} ms "
               f"({rt['cycles']} cycles, {rt['overruns']} overruns); frames {rt['frame_rate_hz']:.1f} Hz, "
               f"states {rt['state_rate_hz']:.1f} Hz")
         for name in ("lockstep_with_pipeline", "lockstep_free_running"):
