@@ -161,10 +161,20 @@ class CameraInfo(Message):
 
 
 class FeatureStatus(str, enum.Enum):
+    #: the tag was found; points, depths and error are valid
     OK = "ok"
-    TAG_LOST = "tag_lost"
+    #: the tag was found but touches the image border (corners may be clipped); features are given, use with care
     PARTIAL = "partial"
+    #: the configured tag is not in this image
+    TAG_LOST = "tag_lost"
+    #: the image was older than the freshness budget when it was processed: no features
     STALE = "stale"
+    #: the image could not be used (wrong size, all black, no valid camera info): no features
+    INVALID_IMAGE = "invalid_image"
+
+
+#: statuses whose features may drive a controller
+USABLE_FEATURE_STATUSES = frozenset({FeatureStatus.OK, FeatureStatus.PARTIAL})
 
 
 Point2 = tuple[float, float]
@@ -185,16 +195,47 @@ class Features(Message):
     error: Annotated[list[float], msgspec.Meta(max_length=128)] = []
     error_norm: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
     tag_pose_in_camera: Optional[Pose] = None
+    #: detected corners in pixels (detection order), for display and logs
+    corners_px: Points = []
+    #: why the status is what it is (e.g. which check refused the image)
+    detail: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.status is FeatureStatus.OK:
+        if self.status in USABLE_FEATURE_STATUSES:
             n = len(self.points)
             if n == 0:
-                raise ValueError("status ok needs points")
+                raise ValueError(f"status {self.status.value} needs points")
             for name, length in (("depths", n), ("goal_points", n), ("error", 2 * n)):
                 if len(getattr(self, name)) != length:
                     raise ValueError(f"{name} has {len(getattr(self, name))} entries, {length} expected for {n} points")
+
+
+class VisionGoal(Message):
+    """The goal of the visual task: either explicit features with one depth (like seed 000 Table 2), or the
+    desired camera pose in the tag frame, from which vision computes the features. ``teach`` takes the current
+    features as the goal."""
+
+    header: Header
+    features: Optional[Points] = None
+    depth_m: Optional[Positive] = None
+    camera_in_tag: Optional[Pose] = None
+    teach: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        given = sum([self.features is not None, self.camera_in_tag is not None, self.teach])
+        if given != 1:
+            raise ValueError("give exactly one of features (with depth_m), camera_in_tag, or teach")
+        if self.features is not None and (self.depth_m is None or len(self.features) == 0):
+            raise ValueError("explicit goal features need depth_m and at least one point")
+
+
+class VisionGoalReply(Message):
+    ok: bool
+    message: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    goal_points: Points = []
+    goal_depths: Annotated[list[Positive], msgspec.Meta(max_length=64)] = []
 
 
 # --------------------------------------------------------------------------------------------------- control

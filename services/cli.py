@@ -59,7 +59,7 @@ def _cmd_model(args: argparse.Namespace) -> int:
     return 0
 
 
-BENCHMARKS = {"loops": "bench.loops"}
+BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -88,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     model.set_defaults(func=_cmd_model)
 
     bench = sub.add_parser("bench", help="run a benchmark and print its figures")
-    bench.add_argument("name", choices=sorted(BENCHMARKS), help="loops: robot_sim's 100 Hz loop and lockstep speed")
+    bench.add_argument("name", choices=sorted(BENCHMARKS),
+                       help="loops: robot_sim loop rate, jitter, lockstep speed; vision: detection time per frame")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)

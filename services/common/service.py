@@ -26,7 +26,7 @@ import zenoh
 
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
-from protocol.messages import Header, Hop, ProtocolError, ServiceHealth, decode, encode
+from protocol.messages import Header, Hop, ProtocolError, ServiceHealth, SimClock, decode, encode
 from services.common.clock import SimulatedClock, WallClock, make_clock
 from services.common.config import ConfigStruct
 from services.common.logs import RateLimitedLogger
@@ -68,6 +68,8 @@ class TypedPublisher:
 class Service:
     #: service name: key chunk for liveliness/health, and the name in trace hops
     name = "service"
+    #: in lockstep, take simulated time from the simulator's clock messages (the simulator itself does not)
+    follows_sim_clock = True
 
     def __init__(self, config: ServiceConfig | None = None, *, name: str | None = None, clock=None) -> None:
         self.config = config or ServiceConfig()
@@ -111,6 +113,8 @@ class Service:
             self._started_monotonic = time.monotonic()
             self.session = open_session(self.config.zenoh)
             try:
+                if isinstance(self.clock, SimulatedClock) and self.follows_sim_clock:
+                    self.subscribe(self.keys.clock, SimClock, self._on_sim_clock, "sim_clock")
                 self.on_start()
                 self._token = self.session.liveliness().declare_token(self.keys.liveliness(self.name))
                 self._declared.append(
@@ -245,6 +249,10 @@ class Service:
                              else source.source_stamp_ns if source is not None else 0),
             trace=trace,
         )
+
+    def _on_sim_clock(self, tick: SimClock, _recv_ns: int) -> None:
+        if tick.sim_time_ns > self.clock.now_ns():  # ticks are re-sent; time never runs backwards
+            self.clock.set_ns(tick.sim_time_ns)
 
     # ------------------------------------------------------------------ health
     def health(self) -> ServiceHealth:

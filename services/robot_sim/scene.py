@@ -12,9 +12,10 @@ import msgspec
 import mujoco
 import numpy as np
 
+from protocol.messages import CameraInfo, Header, Pose
 from services.common import frames, jaco2
 from services.common import tag as tags
-from services.common.config import ConfigStruct
+from services.common.config import ConfigStruct, PoseConfig
 
 Vec3 = tuple[float, float, float]
 
@@ -23,16 +24,6 @@ MUJOCO_FROM_OPTICAL = frames.rot_x(math.pi)
 
 CAMERA_NAME = "eye_in_hand"
 TAG_BODY = "target"
-
-
-class PoseConfig(ConfigStruct):
-    """A pose as files write it: position (m) and XYZ Euler angles in degrees (R = Rx·Ry·Rz)."""
-
-    xyz: Vec3 = (0.0, 0.0, 0.0)
-    rpy_deg: Vec3 = (0.0, 0.0, 0.0)
-
-    def matrix(self) -> np.ndarray:
-        return frames.pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
 
 
 def _default_camera_in_ee() -> PoseConfig:
@@ -203,3 +194,12 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
     camera.focal_pixel = [cam.fx, cam.fy]
     camera.principal_pixel = [(cam.width - 1) / 2.0 - cx, (cam.height - 1) / 2.0 - cy]
     return spec.compile()
+
+
+def camera_info(camera: CameraConfig, header: Header) -> CameraInfo:
+    """The CameraInfo message that describes this camera (an ideal pinhole: no distortion)."""
+    cx, cy = camera.principal_point
+    T = camera.camera_in_ee.matrix()
+    return CameraInfo(header=header, width=camera.width, height=camera.height, fx=camera.fx, fy=camera.fy, cx=cx,
+                      cy=cy, distortion=[0.0] * 5,
+                      camera_in_ee=Pose(xyz=tuple(T[:3, 3]), quat_wxyz=tuple(frames.matrix_to_quat_wxyz(T[:3, :3]))))

@@ -35,7 +35,6 @@ from protocol.messages import (
     Image,
     ImageEncoding,
     KinovaPose,
-    Pose,
     ProtocolError,
     RobotCommand,
     RobotState,
@@ -49,6 +48,7 @@ from services.common.dsp import CommandRefused, DSPConfig
 from services.common.metrics import LoopTimer
 from services.common.service import Service, ServiceConfig
 from services.common.zones import zone_from_kinova, zone_to_kinova
+from services.robot_sim import scene as scene_mod
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim import Simulation
 
@@ -168,21 +168,38 @@ class _Api:
         return kinova.ApiReply()
 
 
+class _StampClock:
+    """The clock of robot_sim's stamps: wall time in realtime (so latencies across services are measured in one
+    clock), simulated time in lockstep."""
+
+    def __init__(self, service: "RobotSimService") -> None:
+        self._service = service
+        self.mode = ClockMode(service.config.clock)
+
+    def now_ns(self) -> int:
+        return self._service._now_ns() if self.mode is ClockMode.LOCKSTEP else time.time_ns()
+
+    def now_s(self) -> float:
+        return self.now_ns() * 1e-9
+
+
 class RobotSimService(Service):
     name = "robot_sim"
+    follows_sim_clock = False  # it is the clock
 
     def __init__(self, config: RobotSimConfig | None = None, **kw) -> None:
         config = config or RobotSimConfig()
-        super().__init__(config, **kw)
+        self.config = config
+        self._epoch_ns = 0
+        self.sim = Simulation(config.scene, config.dsp, render=True)
+        super().__init__(config, clock=_StampClock(self), **kw)
         self.config: RobotSimConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
-        self.sim = Simulation(config.scene, config.dsp, render=True)
         self.api = _Api(self.sim)
         self._command: Optional[tuple[RobotCommand, int]] = None
         self._command_cond = threading.Condition()
         self._api_calls: queue.Queue = queue.Queue()
         self._thread: Optional[threading.Thread] = None
-        self._epoch_ns = 0
         self._last_refusal = ""
         self._refusal_cycles = 0
         self._render_queue: queue.Queue = queue.Queue(maxsize=1)
@@ -267,6 +284,7 @@ class RobotSimService(Service):
 
     # ------------------------------------------------------------------ the loop (simulation thread)
     def _now_ns(self) -> int:
+        """Simulated time (in realtime offset by the wall-clock epoch at start, so it reads like wall time)."""
         return self._epoch_ns + self.sim.time_ns
 
     def _run(self) -> None:
@@ -306,8 +324,8 @@ class RobotSimService(Service):
             if time.monotonic() >= next_info:
                 self.info_pub.put(self._camera_info())
                 next_info = time.monotonic() + self.config.camera_info_period_s
-            self.clock_pub.put(SimClock(header=self.header("clock", stamp_ns=self._now_ns()),
-                                        sim_time_ns=self._now_ns(), mode=ClockMode.REALTIME.value))
+            self.clock_pub.put(SimClock(header=self.header("clock"), sim_time_ns=self._now_ns(),
+                                        mode=ClockMode.REALTIME.value))
             taken = self._take_command()
             self._cycle(taken)
             cycle += 1
@@ -320,13 +338,13 @@ class RobotSimService(Service):
             self.rates.tick("cycle")
             tick = self._now_ns()
             awaiting_frame = None
+            self._publish_tick(tick)  # before the frame, so services know the time the frame was captured at
             if self.sim.frame_due() and self._capture_frame(wait=True):
                 awaiting_frame = tick
                 frames_since_info += 1
                 if frames_since_info * self.sim.frame_period_ns >= self.config.camera_info_period_s * 1e9:
                     self.info_pub.put(self._camera_info())
                     frames_since_info = 0
-            self._publish_tick(tick)
             listening = self.clock_pub.matching or awaiting_frame is not None
             timeout = cfg.frame_timeout_s if awaiting_frame is not None else cfg.cycle_timeout_s
             taken = self._wait_for_answer(tick, awaiting_frame, timeout) if listening else self._take_command()
@@ -402,7 +420,7 @@ class RobotSimService(Service):
             command, recv_ns = taken
             try:
                 self.sim.dsp.submit(command)
-                applied = command.header.with_hop(self.name, recv_ns, self._now_ns())
+                applied = command.header.with_hop(self.name, recv_ns, self.clock.now_ns())
             except CommandRefused as exc:
                 self.refuse("command", str(exc))
                 self.counters.inc("refused.convention")
@@ -421,7 +439,7 @@ class RobotSimService(Service):
             self._refusal_cycles -= 1
         joint = sim.actuators.read()
         state = RobotState(
-            header=self.header("state", stamp_ns=self._now_ns()),
+            header=self.header("state"),
             q=joint.q.tolist(), dq=joint.dq.tolist(), tau=joint.tau.tolist(),
             pose=KinovaPose(X=T[0, 3], Y=T[1, 3], Z=T[2, 3], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2]),
             control_mode=status.mode, fifo_count=sim.dsp.fifo_count, faults=faults,
@@ -434,7 +452,7 @@ class RobotSimService(Service):
     def _capture_frame(self, wait: bool) -> bool:
         """Snapshot the state at the frame time and render it in the render thread. Returns whether a frame is
         (being) published."""
-        stamp = self._now_ns()
+        stamp = self.clock.now_ns()
         self.sim.mark_frame()
         if not self.image_pub.matching:  # nobody looks: rendering is read-only, so skipping changes nothing else
             self.counters.inc("frames.unobserved")
@@ -481,13 +499,6 @@ class RobotSimService(Service):
                 renderer.close()
 
     def _camera_info(self) -> CameraInfo:
-        cam = self.config.scene.camera
-        cx, cy = cam.principal_point
-        T = cam.camera_in_ee.matrix()
-        return CameraInfo(
-            header=self.header("camera_info", stamp_ns=self._now_ns()), width=cam.width, height=cam.height,
-            fx=cam.fx, fy=cam.fy, cx=cx, cy=cy, distortion=[0.0] * 5,
-            camera_in_ee=Pose(xyz=tuple(T[:3, 3]), quat_wxyz=tuple(frames.matrix_to_quat_wxyz(T[:3, :3]))),
-        )
+        return scene_mod.camera_info(self.config.scene.camera, self.header("camera_info"))
 
 

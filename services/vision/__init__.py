@@ -1,0 +1,1 @@
+"""vision: AprilTag corners → normalized point features, depths and the error against the goal."""

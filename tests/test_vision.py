@@ -1,0 +1,210 @@
+"""vision on frames rendered by robot_sim at known poses (real MuJoCo EGL rendering, real OpenCV detection)."""
+import math
+import time
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from services.common import frames
+from services.common import tag as tags
+from services.common.config import PoseConfig
+from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, camera_info
+from services.robot_sim.sim import Simulation
+from services.vision import features as F
+from services.vision.service import TABLE2_DEPTH, TABLE2_GOAL, VisionConfig, VisionService
+
+
+def render(pose_in_camera: PoseConfig, camera: CameraConfig | None = None, tag_id: int = 0, floor: bool = False):
+    """(rgb image, true corner projections px, true tag-in-camera pose, scene config)."""
+    cfg = SceneConfig(camera=camera or CameraConfig(), floor=floor,
+                      target=TargetConfig(id=tag_id, pose_in_camera=pose_in_camera))
+    sim = Simulation(cfg)
+    try:
+        image = sim.render()
+        T_ct = np.linalg.inv(sim.camera_pose()) @ sim.target_pose()
+    finally:
+        sim.close()
+    corners = F.corners_in_camera(T_ct, cfg.target.size_m)
+    uv = (cfg.camera.matrix() @ (corners / corners[:, 2:3]).T).T[:, :2]
+    return image, uv, T_ct, cfg
+
+
+def image_message(pixels, stamp_ns=None):
+    stamp = time.time_ns() if stamp_ns is None else stamp_ns
+    h, w = pixels.shape[:2]
+    return m.Image(header=m.Header(stamp_ns=stamp, source_stamp_ns=stamp), width=w, height=h,
+                   encoding=m.ImageEncoding.RGB8, data=np.ascontiguousarray(pixels).tobytes())
+
+
+def vision_for(cfg: SceneConfig, **overrides) -> VisionService:
+    service = VisionService(VisionConfig(**overrides))
+    service._on_camera_info(camera_info(cfg.camera, m.Header()), 0)
+    return service
+
+
+POSES = [
+    PoseConfig(xyz=(0.0, 0.0, 0.3), rpy_deg=(180.0, 0.0, 0.0)),
+    PoseConfig(xyz=(0.03, -0.02, 0.45), rpy_deg=(165.0, 15.0, 25.0)),
+    PoseConfig(xyz=(-0.05, 0.04, 0.6), rpy_deg=(195.0, -20.0, -70.0)),
+    PoseConfig(xyz=(0.06, 0.05, 0.8), rpy_deg=(170.0, 10.0, 140.0)),
+    PoseConfig(xyz=(-0.04, -0.06, 1.0), rpy_deg=(185.0, 12.0, 200.0)),
+]
+
+
+@pytest.mark.parametrize("pose", POSES, ids=lambda p: f"z{p.xyz[2]}")
+def test_corners_depth_and_pose_from_rendered_frames(pose):
+    image, expected_px, T_ct, cfg = render(pose)
+    service = vision_for(cfg)
+    features = service.process(image_message(image), time.time_ns())
+    assert features.status is m.FeatureStatus.OK, features.detail
+    corners = np.array(features.corners_px)
+    assert np.linalg.norm(corners - expected_px, axis=1).max() < 0.5
+    true_depths = F.corners_in_camera(T_ct, cfg.target.size_m)[:, 2]
+    assert np.allclose(features.depths, true_depths, rtol=0.01)
+    true_points = F.project(F.corners_in_camera(T_ct, cfg.target.size_m))[0]
+    assert np.abs(np.array(features.points) - true_points).max() < 1.0 / 615.0  # half a pixel, normalized
+    assert np.allclose(features.tag_pose_in_camera.xyz, T_ct[:3, 3], rtol=0.01, atol=2e-3)
+    assert features.header.source_stamp_ns > 0 and features.header.trace[-1].service == "vision"
+
+
+def test_corners_on_a_1280x720_camera_with_an_offset_principal_point():
+    camera = CameraConfig(width=1280, height=720, fx=920.0, fy=925.0, cx=650.0, cy=350.0)
+    image, expected_px, _, cfg = render(POSES[1], camera)
+    features = vision_for(cfg).process(image_message(image), time.time_ns())
+    assert features.status is m.FeatureStatus.OK
+    assert np.linalg.norm(np.array(features.corners_px) - expected_px, axis=1).max() < 0.5
+
+
+@pytest.mark.parametrize("camera_in_tag", [
+    PoseConfig(xyz=(0.0, 0.0, 0.2888), rpy_deg=(180.0, 0.0, 0.0)),
+    PoseConfig(xyz=(0.03, -0.02, 0.4), rpy_deg=(170.0, 8.0, 30.0)),
+    PoseConfig(xyz=(-0.05, 0.03, 0.55), rpy_deg=(175.0, -6.0, -45.0)),
+])
+def test_goal_from_camera_in_tag_equals_what_the_camera_sees_there(camera_in_tag):
+    goal_points, goal_depths = F.goal_from_camera_in_tag(camera_in_tag.matrix(), 0.0962)
+    # place the simulated camera at that pose: the tag is then at the inverse pose in the camera frame
+    T_ct = np.linalg.inv(camera_in_tag.matrix())
+    rpy = np.degrees(frames.matrix_to_euler_xyz(T_ct[:3, :3]))
+    image, _, _, cfg = render(PoseConfig(xyz=tuple(T_ct[:3, 3]), rpy_deg=tuple(rpy)))
+    features = vision_for(cfg).process(image_message(image), time.time_ns())
+    assert features.status is m.FeatureStatus.OK
+    assert np.abs(np.array(features.points) - goal_points).max() < 1e-3
+    assert np.allclose(features.depths, goal_depths, rtol=0.01)
+
+
+def test_table2_goal_is_the_camera_0_2888_m_in_front_of_the_tag():
+    points, depths = F.goal_from_camera_in_tag(PoseConfig(xyz=(0, 0, TABLE2_DEPTH), rpy_deg=(180, 0, 0)).matrix(),
+                                               0.0962)
+    assert np.allclose(points, TABLE2_GOAL, atol=1e-4) and np.allclose(depths, TABLE2_DEPTH)
+
+
+def test_error_is_features_minus_goal():
+    image, _, _, cfg = render(POSES[1])
+    features = vision_for(cfg).process(image_message(image), time.time_ns())
+    e = np.array(features.points) - np.array(TABLE2_GOAL)
+    assert np.allclose(features.error, e.reshape(-1)) and features.error_norm == pytest.approx(np.linalg.norm(e))
+    assert features.goal_depths == [TABLE2_DEPTH] * 4
+
+
+def test_tag_lost_is_reported_immediately_and_teach_needs_a_tag():
+    image, _, _, cfg = render(POSES[0])
+    service = vision_for(cfg)
+    assert service.process(image_message(image), time.time_ns()).status is m.FeatureStatus.OK
+    lost, _, _, _ = render(PoseConfig(xyz=(0.6, -0.2, 0.4), rpy_deg=(180.0, 0.0, 0.0)), floor=True)  # out of view
+    features = service.process(image_message(lost), time.time_ns())
+    assert features.status is m.FeatureStatus.TAG_LOST and features.points == [] and features.error == []
+    reply = service.set_goal(m.VisionGoal(header=m.Header(), teach=True))
+    assert not reply.ok and "tag in view" in reply.message
+
+
+def test_other_tag_ids_are_ignored():
+    image, _, _, cfg = render(POSES[0], tag_id=7)
+    features = vision_for(cfg).process(image_message(image), time.time_ns())
+    assert features.status is m.FeatureStatus.TAG_LOST
+
+
+def test_partial_when_the_tag_comes_within_the_border_margin():
+    image, expected_px, _, cfg = render(PoseConfig(xyz=(0.11, 0.0, 0.35), rpy_deg=(180.0, 0.0, 0.0)))
+    right_gap = cfg.camera.width - 1 - expected_px[:, 0].max()
+    assert 10 < right_gap < 60
+    assert vision_for(cfg).process(image_message(image), time.time_ns()).status is m.FeatureStatus.OK
+    features = vision_for(cfg, border_margin_px=right_gap + 1).process(image_message(image), time.time_ns())
+    assert features.status is m.FeatureStatus.PARTIAL and "border" in features.detail
+    assert len(features.points) == 4 and len(features.error) == 8
+
+
+def test_bad_images_are_refused_and_counted():
+    image, _, _, cfg = render(POSES[0])
+    service = vision_for(cfg)
+    black = service.process(image_message(np.zeros_like(image)), time.time_ns())
+    assert black.status is m.FeatureStatus.INVALID_IMAGE and "all-black" in black.detail
+    small = service.process(image_message(image[:240, :320]), time.time_ns())
+    assert small.status is m.FeatureStatus.INVALID_IMAGE and "320x240" in small.detail
+    no_info = VisionService(VisionConfig()).process(image_message(image), time.time_ns())
+    assert no_info.status is m.FeatureStatus.INVALID_IMAGE and "camera info" in no_info.detail
+    stale = vision_for(cfg).process(image_message(image, stamp_ns=time.time_ns() - 2_000_000_000), time.time_ns())
+    assert stale.status is m.FeatureStatus.STALE and stale.points == [] and "ms old" in stale.detail
+    t = time.time_ns()
+    assert service.process(image_message(image, t), t).status is m.FeatureStatus.OK
+    old = service.process(image_message(image, t - 1000), t)
+    assert old.status is m.FeatureStatus.STALE and "out-of-order" in old.detail
+    assert service.counters.get("rejected.image") == 3  # black, wrong size, out of order
+
+
+def test_goal_changes_at_run_time():
+    image, _, T_ct, cfg = render(POSES[1])
+    service = vision_for(cfg)
+    square = [(-0.1, -0.1), (0.1, -0.1), (0.1, 0.1), (-0.1, 0.1)]
+    assert service.set_goal(m.VisionGoal(header=m.Header(), features=square, depth_m=0.4)).ok
+    features = service.process(image_message(image), time.time_ns())
+    assert features.goal_points == square and features.goal_depths == [0.4] * 4
+    # teach: the current view becomes the goal, so the error vanishes
+    assert service.set_goal(m.VisionGoal(header=m.Header(), teach=True)).ok
+    features = service.process(image_message(image), time.time_ns())
+    assert features.error_norm < 1e-12
+    pose = m.Pose(xyz=(0.0, 0.0, 0.3), quat_wxyz=tuple(frames.matrix_to_quat_wxyz(frames.rot_x(math.pi))))
+    reply = service.set_goal(m.VisionGoal(header=m.Header(), camera_in_tag=pose))
+    assert reply.ok and np.allclose(reply.goal_depths, 0.3)
+    assert not service.set_goal(m.VisionGoal(header=m.Header(), features=square[:3], depth_m=0.3)).ok
+
+
+def test_vision_goal_message_needs_exactly_one_goal():
+    with pytest.raises(m.ProtocolError):
+        m.decode(msgpack.packb({"header": m.to_builtins(m.Header()), "teach": True, "depth_m": 0.3,
+                                "features": [[0, 0]]}), m.VisionGoal)
+    with pytest.raises(m.ProtocolError, match="depth_m"):
+        m.decode(msgpack.packb({"header": m.to_builtins(m.Header()), "features": [[0, 0]]}), m.VisionGoal)
+
+
+def test_normalize_undistorts():
+    K = F.camera_matrix(600.0, 610.0, 320.0, 240.0)
+    dist = np.array([-0.2, 0.05, 0.001, -0.002, 0.0])
+    truth = np.array([[0.1, -0.05], [-0.2, 0.15], [0.25, 0.2], [-0.05, -0.22]])
+    pts3 = np.hstack([truth, np.ones((4, 1))])
+    px, _ = cv2.projectPoints(pts3, np.zeros(3), np.zeros(3), K, dist)
+    assert np.abs(F.normalize(px.reshape(-1, 2), K, dist) - truth).max() < 1e-6
+    assert np.abs(F.normalize(px.reshape(-1, 2), K, None) - truth).max() > 1e-3  # ignoring it would be wrong
+
+
+def test_detector_refinement_options():
+    image, expected_px, _, _ = render(POSES[1])
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    for refinement in F.Refinement:
+        detection = F.TagDetector(refinement=refinement).find(gray, 0)
+        assert detection is not None and np.linalg.norm(detection.corners_px - expected_px, axis=1).max() < 1.5
+    with pytest.raises(ValueError):
+        F.TagDetector(refinement="magic")
+    with pytest.raises(ValueError):
+        tags.dictionary("tag25h9")
+
+
+def test_shipped_config_documents_the_defaults():
+    from pathlib import Path
+
+    from services.common.config import load_config
+
+    shipped = Path(__file__).resolve().parents[1] / "services" / "vision" / "vision.yaml"
+    assert load_config(shipped, VisionConfig) == VisionConfig()
