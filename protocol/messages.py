@@ -262,6 +262,8 @@ class JointVelocity(Message):
 class CommandMode(str, enum.Enum):
     #: hold still: the robot decelerates to rest within its limits
     STOP = "stop"
+    #: stop now: the robot brakes at its emergency decelerations (the safety service's latched e-stop)
+    EMERGENCY_STOP = "emergency_stop"
     CARTESIAN_VELOCITY = "cartesian_velocity"
     JOINT_VELOCITY = "joint_velocity"
 

@@ -272,3 +272,27 @@ def test_config_ranges():
         DSPConfig(max_linear_speed_mps=0.3)
     with pytest.raises(ValueError):
         DSPConfig(max_angular_speed_rps=0.1)
+
+
+def test_emergency_stop_brakes_at_the_emergency_deceleration_along_the_path():
+    sim = make_sim()
+    run(sim, twist_command((0.15, -0.05, 0.02), (0.0, 0.0, 0.1)), 80)
+    v0 = np.linalg.norm(sim.ee_twist_base()[:3])
+    direction = sim.ee_twist_base()[:3] / v0
+    sim.dsp.submit(m.RobotCommand(header=m.Header(), mode=m.CommandMode.EMERGENCY_STOP))
+    speeds, directions = [], []
+    for _ in range(40):
+        sim.step_cycle()
+        v = sim.ee_twist_base()[:3]
+        speeds.append(np.linalg.norm(v))
+        if speeds[-1] > 0.01:
+            directions.append(v / speeds[-1])
+    stopped = next(i for i, s in enumerate(speeds) if s < 1e-3)
+    a_stop = sim.dsp.config.emergency_linear_decel_mps2
+    assert (stopped + 1) * sim.dsp.config.cycle_s <= v0 / a_stop + 0.03
+    assert (stopped + 1) * sim.dsp.config.cycle_s < v0 / 0.64  # faster than a normal stop
+    assert min(float(d @ direction) for d in directions) > 0.98  # it brakes along its path
+    assert sim.dsp.status.emergency_stop
+    # a new motion command after the e-stop moves the arm again
+    run(sim, twist_command((0.05, 0, 0), (0, 0, 0)), 40)
+    assert sim.ee_twist_base()[0] == pytest.approx(0.05, rel=0.02) and not sim.dsp.status.emergency_stop

@@ -69,6 +69,10 @@ class DSPConfig(ConfigStruct):
     manipulability_gain: float = 0.6
     #: position trajectories: proportional gain (1/s) before the speed and acceleration profile
     position_gain: float = 3.0
+    #: emergency stop: the end effector brakes along its path at these decelerations (whichever binds)
+    emergency_linear_decel_mps2: float = 1.5
+    emergency_angular_decel_rps2: float = 6.0
+    emergency_joint_decel_dps2: float = 600.0
     zones: list[Zone] = msgspec.field(default_factory=lambda: [default_base_zone()])
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=ZoneFilterConfig)
 
@@ -143,6 +147,8 @@ class DSPStatus:
     active_limits: list[str] = field(default_factory=list)
     applied: Optional[Header] = None
     cycles: int = 0
+    #: the last command was an emergency stop (cleared by the next motion command)
+    emergency_stop: bool = False
 
 
 class KinovaDSP:
@@ -169,11 +175,16 @@ class KinovaDSP:
         self._joint_max_speed = jaco2.MAX_SPEED * self.config.joint_speed_scale
         self._joint_accel = math.radians(self.config.joint_accel_dps2)
         self._moving_mode = ControlMode.IDLE
+        #: emergency braking in progress: [scale, joint velocities at the trigger, scale rate (1/s)]
+        self._braking: Optional[list] = None
 
     # ------------------------------------------------------------------------------ commands (mfvs path)
     def submit(self, command: RobotCommand) -> None:
         """Apply an mfvs robot command in the next cycle. Raises :class:`CommandRefused` (the arm then behaves
         as if no command had come: it keeps the last one for the watchdog's grace and then stops)."""
+        if command.mode is CommandMode.EMERGENCY_STOP:
+            self._begin_emergency_stop()
+            return
         if command.mode is CommandMode.STOP:
             self._direct = None
             self._last_velocity = None
@@ -194,6 +205,16 @@ class KinovaDSP:
             segment = _JointVelocity(np.asarray(command.joint_velocities, dtype=float), command.header)
         self.fifo.clear()
         self._direct = segment
+        self._braking = None
+
+    def _begin_emergency_stop(self) -> None:
+        self._direct = None
+        self._last_velocity = None
+        self._missed = self.config.watchdog_cycles
+        self.fifo.clear()
+        if self._braking is None and np.any(self._dq_prev):
+            self._braking = [1.0, self._dq_prev.copy(), None]  # scale, joint velocities at the trigger, rate
+        self.status.emergency_stop = True
 
     # ------------------------------------------------------------------------------ commands (Kinova API)
     def send_basic_trajectory(self, point: kinova.TrajectoryPoint) -> kinova.ErrorCode:
@@ -259,12 +280,17 @@ class KinovaDSP:
         cfg = self.config
         dt = cfg.cycle_s
         q = np.asarray(joints.q, dtype=float)
+        self._last_q = q
         R, p, J = self.kin.pose_and_jacobian(q)
         self.status.cycles += 1
         self.status.active_limits = []
         segment = self._next_segment(q, R, p)
+        if segment is not None:
+            self.status.emergency_stop = False
 
-        if isinstance(segment, _CartesianVelocity):
+        if self._braking is not None and segment is None:
+            dq = self._emergency_brake(J, dt)
+        elif isinstance(segment, _CartesianVelocity):
             self.status.applied = segment.source
             twist_base = frames.base_twist_from_mixed(segment.twist, R, segment.convention)
             dq = self._cartesian(q, p, J, twist_base, dt, self.max_linear, self.max_angular)
@@ -422,6 +448,25 @@ class KinovaDSP:
         if np.any(capped != dq):
             self._flag("joint_limit")
         return capped
+
+    def _emergency_brake(self, J, dt) -> np.ndarray:
+        """Scale the joint velocities at the trigger down linearly: the end effector keeps its path and stops in
+        the shortest time the emergency decelerations (linear, angular, joint) allow."""
+        cfg = self.config
+        scale, dq0, rate = self._braking
+        if rate is None:
+            twist0 = J @ dq0
+            times = [np.linalg.norm(twist0[:3]) / cfg.emergency_linear_decel_mps2,
+                     np.linalg.norm(twist0[3:]) / cfg.emergency_angular_decel_rps2,
+                     float(np.max(np.abs(dq0))) / math.radians(cfg.emergency_joint_decel_dps2)]
+            rate = 1.0 / max(max(times), dt)
+            self._braking[2] = rate
+        scale = max(0.0, scale - rate * dt)
+        self._braking[0] = scale
+        self._flag("emergency_stop")
+        if scale == 0.0:
+            self._braking = None
+        return self._joint_limits(self._last_q, scale * dq0, dt)
 
     def _stop(self, q, p, J, dt) -> np.ndarray:
         """Decelerate to rest within the acceleration limits of the mode the arm was moving in."""
