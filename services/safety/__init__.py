@@ -1,0 +1,1 @@
+"""safety: the only path to the robot. Checks every desired command; forwards, clamps or stops."""

@@ -1,0 +1,199 @@
+"""Command checks of the safety service, as a plain class: given a desired twist or joint velocity and the
+robot's latest state, decide what the robot may do (forward, clamp, or refuse with a reason).
+
+All quantities are SI; joint angles are model angles. Twists are mixed-frame in the robot's convention.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal, Optional
+
+import msgspec
+import numpy as np
+
+from protocol.conventions import AngularConvention, Frame
+from services.common import frames, jaco2
+from services.common.config import ConfigStruct
+from services.common.kinematics import ArmKinematics
+from services.common.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
+
+
+class SafetyLimits(ConfigStruct):
+    #: the convention the robot reads (checked against what the robot reports in its state)
+    robot_convention: AngularConvention = AngularConvention.SEED000
+    #: a desired command older than this (its stamp to now) is stale
+    command_budget_s: float = 0.1
+    #: a command derived from an image older than this (capture to now) is stale
+    image_budget_s: float = 0.25
+    #: the robot state used for the joint and zone checks must be this fresh
+    state_budget_s: float = 0.1
+    max_linear_speed_mps: float = 0.15
+    max_angular_speed_rps: float = 0.8
+    max_linear_accel_mps2: float = 0.64
+    max_angular_accel_rps2: float = 2.75
+    #: fraction of the actuators' rated joint speeds a command may ask for
+    joint_speed_scale: float = 0.9
+    max_joint_accel_dps2: float = 200.0
+    #: what to do with a command over a speed limit: scale it down to the limit, or refuse it (stop)
+    over_limit: Literal["clamp", "refuse"] = "clamp"
+    #: joint limits are predicted this far ahead, and kept this far inside
+    joint_horizon_s: float = 0.1
+    joint_limit_margin_deg: float = 3.0
+    #: workspace zones the end effector must not enter (base frame)
+    zones: list[Zone] = msgspec.field(default_factory=lambda: [default_base_zone()])
+    zone_filter: ZoneFilterConfig = msgspec.field(default_factory=lambda: ZoneFilterConfig(margin_m=0.02))
+
+    def __post_init__(self) -> None:
+        for name in ("command_budget_s", "image_budget_s", "state_budget_s", "max_linear_speed_mps",
+                     "max_angular_speed_rps", "max_linear_accel_mps2", "max_angular_accel_rps2",
+                     "max_joint_accel_dps2", "joint_horizon_s"):
+            value = getattr(self, name)
+            if not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be positive")
+        if not 0 < self.joint_speed_scale <= 1:
+            raise ValueError("joint_speed_scale must be within (0, 1]")
+
+
+@dataclass
+class Decision:
+    """What the robot may do: a twist (mixed, robot convention) or joint velocities, or nothing (refusal)."""
+
+    twist: Optional[np.ndarray] = None
+    joint_velocities: Optional[np.ndarray] = None
+    refusal: Optional[str] = None
+    #: limits that changed the command (clamps) or refused it
+    limits: list[str] = field(default_factory=list)
+
+    @property
+    def refused(self) -> bool:
+        return self.refusal is not None
+
+
+class CommandChecker:
+    """Checks desired commands against the limits, the robot's state and the workspace zones."""
+
+    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics | None = None) -> None:
+        self.limits = limits
+        self.kin = kinematics or ArmKinematics()
+        self.lower, self.upper = jaco2.model_limits()
+        margin = math.radians(limits.joint_limit_margin_deg)
+        self.lower_soft, self.upper_soft = self.lower + margin, self.upper - margin
+        self.limited = np.isfinite(self.lower)
+        self.max_joint_speed = jaco2.MAX_SPEED * limits.joint_speed_scale
+        self.max_joint_accel = math.radians(limits.max_joint_accel_dps2)
+        #: the last base-frame twist (or joint velocities) forwarded, for the acceleration limits
+        self.last_twist_base = np.zeros(6)
+        self.last_dq = np.zeros(jaco2.N_JOINTS)
+
+    def reset_motion(self) -> None:
+        """Forget the last forwarded motion (after a stop: the next command starts from rest)."""
+        self.last_twist_base = np.zeros(6)
+        self.last_dq = np.zeros(jaco2.N_JOINTS)
+
+    # ------------------------------------------------------------------ twists
+    def check_twist(self, frame: Frame, angular: AngularConvention, twist, q, dt: float) -> Decision:
+        lim = self.limits
+        if frame is not Frame.MIXED or angular is not lim.robot_convention:
+            return Decision(refusal=f"convention: the robot takes mixed twists with '{lim.robot_convention.value}' "
+                                    f"angular velocity, this one is {frame.value}/{angular.value}",
+                            limits=["convention"])
+        q = np.asarray(q, dtype=float)
+        R, p, J = self.kin.pose_and_jacobian(q)
+        try:
+            base = frames.base_twist_from_mixed(np.asarray(twist, dtype=float), R, angular)
+        except frames.EulerSingularityError as exc:
+            return Decision(refusal=f"orientation: {exc}", limits=["euler_singularity"])
+        decision = Decision()
+
+        # speeds
+        for part, vmax, name in ((slice(0, 3), lim.max_linear_speed_mps, "linear_speed"),
+                                 (slice(3, 6), lim.max_angular_speed_rps, "angular_speed")):
+            speed = float(np.linalg.norm(base[part]))
+            if speed > vmax:
+                if lim.over_limit == "refuse":
+                    return Decision(refusal=f"{name}: {speed:.3f} over the limit {vmax:.3f}", limits=[name])
+                base[part] *= vmax / speed
+                decision.limits.append(name)
+        # accelerations, from the last forwarded twist
+        for part, amax, name in ((slice(0, 3), lim.max_linear_accel_mps2, "linear_accel"),
+                                 (slice(3, 6), lim.max_angular_accel_rps2, "angular_accel")):
+            step = base[part] - self.last_twist_base[part]
+            size = float(np.linalg.norm(step))
+            if size > amax * dt:
+                base[part] = self.last_twist_base[part] + step * (amax * dt / size)
+                decision.limits.append(name)
+        # workspace zones: remove motion into a zone
+        base[:3], zones = filter_velocity(lim.zones, p, base[:3], lim.zone_filter, dt)
+        decision.limits += [f"zone:{z}" for z in zones]
+        # joints: predicted through the Jacobian
+        dq = np.linalg.pinv(J) @ base
+        scale = 1.0
+        ratio = float(np.max(np.abs(dq) / self.max_joint_speed))
+        if ratio > 1.0:
+            if lim.over_limit == "refuse":
+                return Decision(refusal=f"joint_speed: {ratio:.2f}× the joint speed limit", limits=["joint_speed"])
+            scale = 1.0 / ratio
+            decision.limits.append("joint_speed")
+        scale = min(scale, self._joint_limit_scale(q, dq * scale, decision) * scale)
+        base *= scale
+        decision.twist = frames.mixed_from_base_twist(base, R, angular)
+        self.last_twist_base = base
+        self.last_dq = np.linalg.pinv(J) @ base
+        return decision
+
+    def _joint_limit_scale(self, q, dq, decision: Decision) -> float:
+        """The largest factor (≤ 1) for which no joint passes its soft limit within the horizon."""
+        h = self.limits.joint_horizon_s
+        predicted = q + dq * h
+        scale = 1.0
+        for i in np.flatnonzero(self.limited):
+            if predicted[i] > self.upper_soft[i] and dq[i] > 0:
+                scale = min(scale, max(0.0, (self.upper_soft[i] - q[i]) / (dq[i] * h)))
+            elif predicted[i] < self.lower_soft[i] and dq[i] < 0:
+                scale = min(scale, max(0.0, (self.lower_soft[i] - q[i]) / (dq[i] * h)))
+        if scale < 1.0:
+            decision.limits.append("joint_limit")
+        return scale
+
+    # ------------------------------------------------------------------ joint velocities
+    def check_joint_velocity(self, dq, q, dt: float) -> Decision:
+        lim = self.limits
+        q = np.asarray(q, dtype=float)
+        dq = np.array(dq, dtype=float, copy=True)
+        decision = Decision()
+        ratio = float(np.max(np.abs(dq) / self.max_joint_speed))
+        if ratio > 1.0:
+            if lim.over_limit == "refuse":
+                return Decision(refusal=f"joint_speed: {ratio:.2f}× the joint speed limit", limits=["joint_speed"])
+            dq /= ratio
+            decision.limits.append("joint_speed")
+        step = dq - self.last_dq
+        step_ratio = float(np.max(np.abs(step) / (self.max_joint_accel * dt)))
+        if step_ratio > 1.0:
+            dq = self.last_dq + step / step_ratio
+            decision.limits.append("joint_accel")
+        dq *= self._joint_limit_scale(q, dq, decision)
+        R, p, J = self.kin.pose_and_jacobian(q)
+        twist = J @ dq
+        for part, vmax, name in ((slice(0, 3), lim.max_linear_speed_mps, "linear_speed"),
+                                 (slice(3, 6), lim.max_angular_speed_rps, "angular_speed")):
+            speed = float(np.linalg.norm(twist[part]))
+            if speed > vmax:
+                if lim.over_limit == "refuse":
+                    return Decision(refusal=f"{name}: {speed:.3f} over the limit {vmax:.3f}", limits=[name])
+                dq *= vmax / speed
+                twist = J @ dq
+                decision.limits.append(name)
+        _, zones = filter_velocity(lim.zones, p, twist[:3], lim.zone_filter, dt)
+        if zones:
+            # joint motion cannot be bent along a zone's boundary: motion into a zone is refused
+            return Decision(refusal=f"zone: joint motion would enter {', '.join(zones)}",
+                            limits=[f"zone:{z}" for z in zones])
+        decision.joint_velocities = dq
+        self.last_dq = dq
+        self.last_twist_base = J @ dq
+        return decision
+
+    def end_effector_position(self, q) -> np.ndarray:
+        return self.kin.pose(q)[1]

@@ -1,0 +1,158 @@
+"""The safety service with robot_sim over a real zenoh router (lockstep): a stand-in pipeline plays vision and
+controller until the controller lands."""
+import math
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from protocol.conventions import AngularConvention, ClockMode
+from services.common.transport import open_session
+from services.common.zones import BoxZone, SphereZone
+from services.robot_sim.service import LockstepConfig, RobotSimConfig, RobotSimService
+from services.safety.checks import SafetyLimits
+from services.safety.service import SafetyConfig, SafetyService
+from tests.stack import KEYS, FakePipeline, Recorder, ee_speeds, wait_for
+
+
+@pytest.fixture
+def harness(router):
+    """Starts safety (lockstep) with the given limits, then robot_sim; yields helpers; stops everything."""
+    started = {}
+
+    def start(limits: SafetyLimits | None = None, twist_for=lambda t: ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+              frame_timeout_s: float = 2.0, **pipe):
+        client = open_session(router.client_config())
+        safety = SafetyService(SafetyConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config(),
+                                            limits=limits or SafetyLimits()))
+        safety.start()
+        pipeline = FakePipeline(client, twist_for, **pipe)
+        states = Recorder(client, KEYS.robot_state, m.RobotState)
+        status = Recorder(client, KEYS.safety_status, m.SafetyStatus)
+        time.sleep(0.3)
+        robot = RobotSimService(RobotSimConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config(),
+                                               lockstep=LockstepConfig(frame_timeout_s=frame_timeout_s)))
+        robot.start()
+        started.update(client=client, safety=safety, pipeline=pipeline, robot=robot, states=states, status=status)
+        return started
+
+    yield start
+    for name in ("robot", "safety"):
+        if name in started:
+            started[name].stop()
+    if "pipeline" in started:
+        started["pipeline"].close()
+        started["client"].close()
+
+
+def test_commands_within_limits_are_forwarded(harness):
+    h = harness(twist_for=lambda t: ((0.05, 0.0, -0.02), (0.0, 0.0, 0.0)))
+    assert wait_for(lambda: len(h["states"]) >= 150, timeout=60)
+    speeds, _ = ee_speeds(h["states"].snapshot()[100:150])
+    assert np.allclose(speeds, math.hypot(0.05, 0.02), rtol=0.02)
+    state = h["states"].last()
+    hops = [hop.service for hop in state.applied_command.trace]
+    assert hops == ["safety", "robot_sim"]
+    assert h["safety"].safety_state is m.SafetyState.OK
+
+
+def test_over_the_speed_limit_is_clamped(harness):
+    h = harness(SafetyLimits(max_linear_speed_mps=0.08), twist_for=lambda t: ((0.2, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    assert wait_for(lambda: len(h["states"]) >= 150, timeout=60)
+    speeds, _ = ee_speeds(h["states"].snapshot()[100:150])
+    assert np.allclose(speeds, 0.08, rtol=0.02)
+    assert wait_for(lambda: "linear_speed" in h["status"].last().active_limits)
+    assert h["status"].last().state is m.SafetyState.LIMITING
+
+
+def test_over_the_speed_limit_is_refused_when_configured(harness):
+    h = harness(SafetyLimits(max_linear_speed_mps=0.08, over_limit="refuse"),
+                twist_for=lambda t: ((0.2, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    assert wait_for(lambda: len(h["states"]) >= 100, timeout=60)
+    q = np.array([s.q for s in h["states"].snapshot()])
+    assert np.abs(q - q[0]).max() < 1e-6
+    assert h["safety"].counters.get("refused.linear_speed") > 10
+    assert wait_for(lambda: h["status"].last().state is m.SafetyState.REFUSING)
+    assert "linear_speed" in h["status"].last().last_refusal
+
+
+def test_a_workspace_zone_is_never_entered(harness):
+    head = SphereZone(name="head", centre=(0.0, -0.44, 0.72), radius_m=0.12)  # 0.21 m above the start
+    limits = SafetyLimits(zones=[head, BoxZone(name="base", min_xyz=(-0.17, -0.17, -0.05),
+                                               max_xyz=(0.17, 0.17, 0.33))])
+    h = harness(limits, twist_for=lambda t: ((0.0, 0.0, 0.1), (0.0, 0.0, 0.0)))
+    assert wait_for(lambda: len(h["states"]) >= 300, timeout=90)
+    distances = [head.signed_distance(np.array([s.pose.X, s.pose.Y, s.pose.Z]))[0] for s in h["states"].snapshot()]
+    assert min(distances) >= 0.0
+    assert min(distances) < 0.03  # it came up to the zone
+
+
+def test_estop_stops_within_v0_over_a_stop_and_stays_latched(harness):
+    h = harness(twist_for=lambda t: ((0.12, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    assert wait_for(lambda: len(h["states"]) >= 80, timeout=60)
+    trigger_ns = h["states"].last().header.stamp_ns
+    v0 = ee_speeds(h["states"].snapshot()[-5:])[0][-1]
+    h["client"].put(KEYS.estop, m.encode(m.EStop(header=m.Header(), operator="test", reason="hand in the way")))
+    assert wait_for(lambda: h["safety"].estop_latched)
+    n = len(h["states"])
+    assert wait_for(lambda: len(h["states"]) >= n + 100, timeout=60)
+    speeds, t = ee_speeds(h["states"].snapshot())
+    after = t * 1e9 >= trigger_ns
+    a_stop = h["safety"].config.estop_decel_mps2
+    rest = next(ti for ti, s in zip(t[after], speeds[after], strict=True) if s < 1e-3)
+    assert rest - trigger_ns * 1e-9 <= v0 / a_stop + 0.030
+    assert np.all(speeds[t >= rest] < 1e-3)  # and it stays at rest: latched
+    assert h["status"].last().state is m.SafetyState.ESTOP
+    assert h["safety"].counters.get("refused.estop") > 10
+    # only an explicit reset releases it; then the next command moves the arm again
+    h["client"].put(KEYS.estop, m.encode(m.EStop(header=m.Header(), reset=True, operator="test")))
+    n = len(h["states"])
+    assert wait_for(lambda: len(h["states"]) >= n + 80, timeout=60)
+    assert ee_speeds(h["states"].snapshot()[-5:])[0][-1] == pytest.approx(0.12, rel=0.02)
+
+
+def test_stale_commands_stop_the_arm_within_budget_plus_stopping(harness):
+    # the pipeline falls silent: the simulator then moves on after frame_timeout_s (wall) per frame
+    h = harness(twist_for=lambda t: ((0.1, 0.0, 0.0), (0.0, 0.0, 0.0)), frame_timeout_s=0.05)
+    assert wait_for(lambda: len(h["states"]) >= 80, timeout=60)
+    h["pipeline"].enabled = False  # the controller falls silent but stays alive
+    silent_ns = h["states"].last().header.stamp_ns
+    v0 = ee_speeds(h["states"].snapshot()[-5:])[0][-1]
+    n = len(h["states"])
+    assert wait_for(lambda: len(h["states"]) >= n + 100, timeout=90)
+    speeds, t = ee_speeds(h["states"].snapshot())
+    after = t * 1e9 >= silent_ns
+    rest = next(ti for ti, s in zip(t[after], speeds[after], strict=True) if s < 1e-3)
+    budget = h["safety"].config.limits.command_budget_s
+    assert rest - silent_ns * 1e-9 <= budget + v0 / 0.64 + 0.030
+    assert h["safety"].counters.get("refused.freshness") >= 1
+
+
+def test_losing_the_controller_liveliness_stops_at_once(harness):
+    h = harness(twist_for=lambda t: ((0.1, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    assert wait_for(lambda: len(h["states"]) >= 80, timeout=60)
+    h["pipeline"].drop_liveliness("controller")
+    assert wait_for(lambda: "controller" not in h["safety"].alive)
+    assert wait_for(lambda: h["safety"].counters.get("refused.liveliness") >= 1)
+    n = len(h["states"])
+    assert wait_for(lambda: len(h["states"]) >= n + 60, timeout=60)
+    assert ee_speeds(h["states"].snapshot()[-5:])[0][-1] < 1e-3
+
+
+def test_wrong_convention_and_bad_payloads_are_refused(harness):
+    h = harness(twist_for=lambda t: ((0.05, 0.0, 0.0), (0.0, 0.0, 0.1)), convention=AngularConvention.OMEGA)
+    assert wait_for(lambda: len(h["states"]) >= 60, timeout=60)
+    bad = m.to_builtins(m.Twist(header=m.Header(), frame="mixed", angular="seed000", linear=(0.1, 0.0, 0.0),
+                                rotational=(0.0, 0.0, 0.0)))
+    bad["linear"][0] = float("nan")
+    for payload in (msgpack.packb(bad), b"\xff\x00", m.encode(m.Header())):
+        h["client"].put(KEYS.desired_twist, payload)
+    h["client"].put(KEYS.estop, b"\x00")
+    assert wait_for(lambda: h["safety"].counters.get("rejected.twist") >= 3
+                    and h["safety"].counters.get("rejected.estop") >= 1)
+    q = np.array([s.q for s in h["states"].snapshot()])
+    assert np.abs(q - q[0]).max() < 1e-6
+    assert h["safety"].counters.get("refused.convention") > 5
+    assert not h["safety"].estop_latched and h["safety"].state == "running"
