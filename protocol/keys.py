@@ -27,12 +27,18 @@ def _check_chunk(kind: str, value: str) -> str:
 
 @dataclass(frozen=True)
 class Keys:
-    """The key expressions of one robot's stack."""
+    """The key expressions of one robot's stack. ``Keys.all_robots()`` gives the same keys for every robot id
+    (a ``*`` chunk), for access-control rules and monitoring."""
 
     robot_id: str = "jaco"
 
     def __post_init__(self) -> None:
-        _check_chunk("robot id", self.robot_id)
+        if self.robot_id != "*":
+            _check_chunk("robot id", self.robot_id)
+
+    @classmethod
+    def all_robots(cls) -> "Keys":
+        return cls("*")
 
     @property
     def prefix(self) -> str:

@@ -59,6 +59,55 @@ def _cmd_model(args: argparse.Namespace) -> int:
     return 0
 
 
+def _operator_session(args: argparse.Namespace):
+    from services.common.transport import ZenohConfig, open_session
+
+    return open_session(ZenohConfig(connect=[args.connect], config_file=args.zenoh_config))
+
+
+def _cmd_estop(args: argparse.Namespace) -> int:
+    """Engage (or reset) the latched e-stop and report what the safety service says."""
+    import time
+
+    from protocol import messages as m
+    from protocol.keys import Keys
+
+    keys = Keys(args.robot_id)
+    session = _operator_session(args)
+    statuses: list = []
+    session.declare_subscriber(keys.safety_status, lambda s: statuses.append(m.decode(s.payload.to_bytes(),
+                                                                                      m.SafetyStatus)))
+    message = m.EStop(header=m.Header(stamp_ns=time.time_ns()), reset=args.reset, operator=args.operator,
+                      reason=args.reason)
+    publisher = session.declare_publisher(keys.estop)
+    time.sleep(0.2)  # let the declaration reach the router
+    deadline = time.monotonic() + args.timeout
+    confirmed = False
+    while time.monotonic() < deadline and not confirmed:
+        publisher.put(m.encode(message))  # repeated until safety confirms: an e-stop must not be lost
+        time.sleep(0.1)
+        confirmed = any((s.state is m.SafetyState.ESTOP) != args.reset for s in statuses[-3:])
+    session.close()
+    word = "reset" if args.reset else "engaged"
+    if confirmed:
+        print(f"e-stop {word}: safety reports state {statuses[-1].state.value}")
+        return 0
+    print(f"e-stop {'reset' if args.reset else 'request'} sent, but no safety service confirmed it within "
+          f"{args.timeout:g} s", file=sys.stderr)
+    return 1
+
+
+def _cmd_authority(args: argparse.Namespace) -> int:
+    from services.common.authority import DEFAULT_SERVICES, write_deployment
+
+    services = args.services.split(",") if args.services else list(DEFAULT_SERVICES)
+    deployment = write_deployment(args.out, tls=args.tls, host=args.host, port=args.port, services=services)
+    print(json.dumps({"router_config": str(deployment.router_config), "endpoint": deployment.endpoint,
+                      "clients": {k: str(v) for k, v in deployment.client_configs.items()}, "tls": deployment.tls},
+                     indent=2))
+    return 0
+
+
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision"}
 
 
@@ -67,6 +116,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
     module = importlib.import_module(BENCHMARKS[args.name])
     return module.main((["--json"] if args.json else []) + args.options)
+
+
+def _add_connection_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--connect", default="tcp/127.0.0.1:7447", help="zenoh router endpoint")
+    parser.add_argument("--zenoh-config", default=None, help="zenoh client config (credentials, certificates)")
+    parser.add_argument("--robot-id", default="jaco", help="robot id (keys under mfvs/<robot_id>/)")
+    parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for confirmation")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -86,6 +142,22 @@ def build_parser() -> argparse.ArgumentParser:
     model = sub.add_parser("model", help="the JACO-2 j2s7s300 description")
     model.add_argument("what", choices=["urdf", "info"], help="urdf: print the URDF; info: limits, home pose")
     model.set_defaults(func=_cmd_model)
+
+    estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
+    estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")
+    estop.add_argument("--operator", default="mfvs-cli", help="who is asking (logged by safety)")
+    estop.add_argument("--reason", default="", help="why (logged by safety)")
+    _add_connection_options(estop)
+    estop.set_defaults(func=_cmd_estop)
+
+    authority = sub.add_parser("authority", help="write zenoh configs where only safety may command the robot")
+    authority.add_argument("action", choices=["init"])
+    authority.add_argument("--out", required=True, help="directory for the router/client configs and secrets")
+    authority.add_argument("--tls", action="store_true", help="mutual TLS with certificates (else user/password)")
+    authority.add_argument("--host", default="127.0.0.1", help="router address")
+    authority.add_argument("--port", type=int, default=7447, help="router port")
+    authority.add_argument("--services", help="comma-separated service identities (default: all of mfvs)")
+    authority.set_defaults(func=_cmd_authority)
 
     bench = sub.add_parser("bench", help="run a benchmark and print its figures")
     bench.add_argument("name", choices=sorted(BENCHMARKS),

@@ -70,8 +70,9 @@ class FakePipeline:
         capture = m.decode(sample.payload.to_bytes(), m.Image).header.source_stamp_ns
         linear, rotational = self.twist_for(capture)
         header = m.Header(stamp_ns=capture, source_stamp_ns=capture)
-        self.publisher.put(m.encode(m.Twist(header=header, frame=self.frame, angular=self.convention,
-                                            linear=tuple(map(float, linear)), rotational=tuple(map(float, rotational)))))
+        twist = m.Twist(header=header, frame=self.frame, angular=self.convention, linear=tuple(map(float, linear)),
+                        rotational=tuple(map(float, rotational)))
+        self.publisher.put(m.encode(twist))
         self.sent += 1
 
     def drop_liveliness(self, name):

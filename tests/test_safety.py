@@ -156,3 +156,37 @@ def test_wrong_convention_and_bad_payloads_are_refused(harness):
     assert np.abs(q - q[0]).max() < 1e-6
     assert h["safety"].counters.get("refused.convention") > 5
     assert not h["safety"].estop_latched and h["safety"].state == "running"
+
+
+def test_mfvs_estop_command_engages_and_resets(router):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    mfvs = str(Path(sys.executable).parent / "mfvs")
+    safety = SafetyService(SafetyConfig(zenoh=router.client_config()))
+    safety.start()
+    try:
+        out = subprocess.run([mfvs, "estop", "--connect", router.endpoint, "--reason", "test"], capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        assert "e-stop engaged: safety reports state estop" in out.stdout
+        assert safety.estop_latched and "mfvs-cli: test" in safety.estop_reason
+        out = subprocess.run([mfvs, "estop", "--reset", "--connect", router.endpoint], capture_output=True,
+                             text=True, timeout=60)
+        assert out.returncode == 0, out.stderr
+        assert not safety.estop_latched
+    finally:
+        safety.stop()
+    out = subprocess.run([mfvs, "estop", "--connect", router.endpoint, "--timeout", "1"], capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 1 and "no safety service confirmed" in out.stderr
+
+
+def test_shipped_config_documents_the_defaults():
+    from pathlib import Path
+
+    from services.common.config import load_config
+
+    shipped = Path(__file__).resolve().parents[1] / "services" / "safety" / "safety.yaml"
+    assert load_config(shipped, SafetyConfig) == SafetyConfig()

@@ -20,8 +20,8 @@ from services.common.config import ConfigError, ConfigStruct
 DEFAULT_ROUTER_PORT = 7447
 
 
-def loopback_endpoint(port: int, host: str = "127.0.0.1") -> str:
-    return f"tcp/{host}:{port}"
+def loopback_endpoint(port: int, host: str = "127.0.0.1", scheme: str = "tcp") -> str:
+    return f"{scheme}/{host}:{port}"
 
 
 class ZenohConfig(ConfigStruct):
@@ -74,19 +74,21 @@ class Router:
     Use as a context manager, or ``start()``/``close()``. ``port=0`` picks a free port.
     """
 
-    def __init__(self, port: int = 0, host: str = "127.0.0.1", config_file: str | None = None) -> None:
+    def __init__(self, port: int = 0, host: str = "127.0.0.1", config_file: str | None = None,
+                 scheme: str = "tcp") -> None:
         self.host = host
         self.port = port or free_loopback_port(host)
-        self.config_file = config_file
+        self.config_file = None if config_file is None else str(config_file)
+        self.scheme = scheme
         self._session: zenoh.Session | None = None
         self._lock = threading.Lock()
 
     @property
     def endpoint(self) -> str:
-        return loopback_endpoint(self.port, self.host)
+        return loopback_endpoint(self.port, self.host, self.scheme)
 
     def client_config(self, **overrides) -> ZenohConfig:
-        """A client config that connects to this router."""
+        """A client config that connects to this router (``config_file=`` for credentials or certificates)."""
         return ZenohConfig(mode="client", connect=[self.endpoint], **overrides)
 
     def start(self) -> "Router":

@@ -8,9 +8,10 @@ Clock modes (ARCHITECTURE.md):
 
 * ``realtime``: the DSP cycle runs every 10 ms of wall time; stamps are wall time (simulated time is wall time
   since start plus the start epoch); frames render in their own thread so rendering does not delay the cycle.
-* ``lockstep``: deterministic simulated time (from 1 s, so that a stamp of 0 always means "none"). Each cycle the simulator publishes a clock tick and, when
-  someone listens to the clock, waits (at most ``cycle_timeout_s``) for a command stamped at or after the tick:
-  the safety service answers every tick with its held command. When a frame was published, it also waits (at
+* ``lockstep``: deterministic simulated time (from 1 s, so that a stamp of 0 always means "none"). Each cycle
+  the simulator publishes a clock tick and, when someone listens to the clock, waits (at most
+  ``cycle_timeout_s``) for a command stamped at or after the tick: the safety service answers every tick with its
+  held command. When a frame was published, it also waits (at
   most ``frame_timeout_s``) for a command derived from that frame (``source_stamp_ns`` at or after its capture
   stamp): one iteration of the pipeline is one camera frame. With nobody listening it runs free.
 """
@@ -51,7 +52,6 @@ from services.common.zones import zone_from_kinova, zone_to_kinova
 from services.robot_sim import scene as scene_mod
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim import Simulation
-
 
 #: simulated time in lockstep starts here, so that a stamp of 0 always means "none" (no source image)
 LOCKSTEP_EPOCH_NS = 1_000_000_000
