@@ -1,0 +1,96 @@
+"""Stopping the arm with every service in its own process, in realtime: killing the command path mid-motion,
+and the e-stop."""
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from services.common.kinematics import ArmKinematics
+from services.common.transport import open_session
+from tests.stack import KEYS, Recorder, wait_for
+
+REPO = Path(__file__).resolve().parents[1]
+
+PIPELINE = textwrap.dedent("""
+    import sys, time
+    from services.common.transport import ZenohConfig, open_session
+    from tests.stack import FakePipeline
+    session = open_session(ZenohConfig(connect=[sys.argv[1]]))
+    pipeline = FakePipeline(session, lambda capture: ((0.1, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    print("ready", flush=True)
+    while True:
+        time.sleep(1)
+""")
+
+
+def ee_speed(kin, state):
+    return float(np.linalg.norm((kin.jacobian_base(state.q) @ np.asarray(state.dq))[:3]))
+
+
+@pytest.fixture
+def moving_arm(router):
+    """safety and robot_sim processes (realtime) and a stand-in pipeline process commanding 0.1 m/s."""
+    kin = ArmKinematics()
+    client = open_session(router.client_config())
+    states = Recorder(client, KEYS.robot_state, m.RobotState)
+    env = dict(os.environ, MUJOCO_GL="egl")
+    processes = [subprocess.Popen([sys.executable, "-m", f"services.{name}", "--clock", "realtime", "--connect",
+                                   router.endpoint], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.PIPE, text=True) for name in ("safety", "robot_sim")]
+    pipeline = subprocess.Popen([sys.executable, "-c", PIPELINE, router.endpoint], cwd=REPO, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+    try:
+        assert pipeline.stdout.readline().strip() == "ready"
+        assert wait_for(lambda: len(states) > 50 and ee_speed(kin, states.last()) > 0.095, timeout=60)
+        time.sleep(0.3)
+        yield client, states, pipeline, kin
+    finally:
+        for proc in [pipeline, *processes]:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        for proc in processes:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        states.close()
+        client.close()
+
+
+def time_to_rest(states, kin, since_ns: int) -> float:
+    after = [s for s in states.snapshot() if s.header.stamp_ns >= since_ns]
+    rest = next(s.header.stamp_ns for s in after if ee_speed(kin, s) < 1e-3)
+    assert all(ee_speed(kin, s) < 1e-3 for s in after if s.header.stamp_ns >= rest)  # and it stays at rest
+    return (rest - since_ns) * 1e-9
+
+
+def test_killing_the_pipeline_mid_motion_stops_the_arm_in_time(moving_arm):
+    client, states, pipeline, kin = moving_arm
+    v0 = ee_speed(kin, states.last())
+    kill_ns = time.time_ns()
+    pipeline.send_signal(signal.SIGKILL)
+    pipeline.wait(timeout=10)
+    time.sleep(1.5)
+    elapsed = time_to_rest(states, kin, kill_ns)
+    bound = 0.1 + v0 / 0.64 + 0.030  # safety's command_budget_s + the robot's normal stop + 30 ms
+    print(f"v0 {v0:.3f} m/s, at rest {elapsed * 1e3:.0f} ms after the kill (bound {bound * 1e3:.0f} ms)")
+    assert elapsed <= bound
+
+
+def test_estop_in_realtime_stops_within_v0_over_a_stop(moving_arm):
+    client, states, pipeline, kin = moving_arm
+    v0 = ee_speed(kin, states.last())
+    trigger_ns = time.time_ns()
+    client.put(KEYS.estop, m.encode(m.EStop(header=m.Header(stamp_ns=trigger_ns), operator="test")))
+    time.sleep(1.0)
+    elapsed = time_to_rest(states, kin, trigger_ns)
+    bound = v0 / 1.5 + 0.030  # safety's estop_decel_mps2, the robot's emergency deceleration
+    print(f"v0 {v0:.3f} m/s, at rest {elapsed * 1e3:.0f} ms after the e-stop (bound {bound * 1e3:.0f} ms)")
+    assert elapsed <= bound
