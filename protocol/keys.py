@@ -33,12 +33,13 @@ class Keys:
     robot_id: str = "jaco"
 
     def __post_init__(self) -> None:
-        if self.robot_id != "*":
-            _check_chunk("robot id", self.robot_id)
+        _check_chunk("robot id", self.robot_id)
 
     @classmethod
     def all_robots(cls) -> "Keys":
-        return cls("*")
+        keys = object.__new__(cls)  # a wildcard chunk, which a robot id may not be
+        object.__setattr__(keys, "robot_id", "*")
+        return keys
 
     @property
     def prefix(self) -> str:

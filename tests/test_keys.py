@@ -27,3 +27,7 @@ def test_invalid_robot_ids_are_refused(bad):
 def test_invalid_service_name_is_refused():
     with pytest.raises(InvalidKeyChunk):
         Keys().health("vision/**")
+
+
+def test_all_robots_is_a_wildcard_over_robot_ids():
+    assert Keys.all_robots().robot_command == "mfvs/*/robot/command"
