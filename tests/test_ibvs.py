@@ -1,0 +1,169 @@
+"""Seed 000 IBVS formulas and laws against independent computations."""
+import math
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from protocol.conventions import AngularConvention, DepthSource
+from services.common import frames, jaco2
+from services.common.config import PoseConfig
+from services.common.kinematics import ArmKinematics
+from services.controller import ibvs
+from services.controller.laws import Gains, LawConfig, ServoInput, make_law
+
+CAMERA_IN_EE = PoseConfig(xyz=(0.065, 0.0, -0.02), rpy_deg=(0.0, 0.0, 90.0)).matrix()
+
+
+def project(P):
+    return P[:, :2] / P[:, 2:3]
+
+
+def test_interaction_matrix_against_finite_differences(rng):
+    for _ in range(20):
+        P = np.column_stack([rng.uniform(-0.2, 0.2, 4), rng.uniform(-0.2, 0.2, 4), rng.uniform(0.3, 1.0, 4)])
+        Vc = rng.normal(size=6)
+        L = ibvs.interaction_matrix(project(P), P[:, 2])
+        # the camera moves with Vc (its own frame): a static point moves by −v − ω × P in the camera frame
+        h = 1e-6
+        P_dot = -Vc[:3] - np.cross(Vc[3:], P)
+        s_dot = (project(P + h * P_dot) - project(P - h * P_dot)) / (2 * h)
+        assert np.allclose(L @ Vc, s_dot.reshape(-1), atol=1e-6)
+
+
+def test_interaction_matrix_validates_depths():
+    with pytest.raises(ValueError):
+        ibvs.interaction_matrix([[0, 0]], [0.0])
+    with pytest.raises(ValueError):
+        ibvs.interaction_matrix([[0, 0], [1, 1]], [0.5])
+
+
+def test_depth_sources():
+    pts, depths = np.array([[0.1, 0.1], [-0.1, 0.1]]), np.array([0.5, 0.6])
+    goal, goal_depths = np.array([[0.2, 0.2], [-0.2, 0.2]]), np.array([0.3, 0.3])
+    cur = ibvs.interaction_matrix(pts, depths)
+    des = ibvs.interaction_matrix(goal, goal_depths)
+    assert np.allclose(ibvs.approximate_interaction_matrix(pts, depths, goal, goal_depths, "current"), cur)
+    assert np.allclose(ibvs.approximate_interaction_matrix(pts, depths, goal, goal_depths, DepthSource.GOAL), des)
+    assert np.allclose(ibvs.approximate_interaction_matrix(pts, depths, goal, goal_depths, "mean"), (cur + des) / 2)
+
+
+def test_adaptive_gain_at_zero_infinity_and_its_slope():
+    l0, linf, slope = 4.5, 0.5, 30.0
+    assert ibvs.adaptive_gain(0.0, l0, linf, slope) == pytest.approx(l0)
+    assert ibvs.adaptive_gain(1e6, l0, linf, slope) == pytest.approx(linf)
+    h = 1e-7
+    assert (ibvs.adaptive_gain(h, l0, linf, slope) - l0) / h == pytest.approx(-slope, rel=1e-4)
+    values = [ibvs.adaptive_gain(x, l0, linf, slope) for x in np.linspace(0, 1, 50)]
+    assert np.all(np.diff(values) < 0)
+    with pytest.raises(ValueError):
+        ibvs.adaptive_gain(0.1, 0.5, 4.5, 30.0)
+
+
+def test_error_rate_filter():
+    rate = ibvs.ErrorRate(tau_s=0.0)
+    assert np.all(rate.update([0.0, 1.0], 1.0) == 0)
+    assert np.allclose(rate.update([0.1, 0.8], 1.1), [1.0, -2.0])
+    smooth = ibvs.ErrorRate(tau_s=0.05)
+    for k in range(200):
+        value = smooth.update([0.5 * k / 30], k / 30)
+    assert value == pytest.approx([0.5])
+    smooth.update([1.0], 200 / 30 + 5.0)  # a long gap restarts the estimate
+    assert smooth.value == pytest.approx([0.0])
+
+
+def test_pd_law_decays_the_error_exponentially_when_it_can():
+    rng = np.random.default_rng(1)
+    P = np.column_stack([rng.uniform(-0.2, 0.2, 4), rng.uniform(-0.2, 0.2, 4), rng.uniform(0.3, 1.0, 4)])
+    L = ibvs.interaction_matrix(project(P), P[:, 2])
+    e = L @ rng.normal(size=6)  # an error the camera can cancel
+    Vc = ibvs.pd_camera_twist(L, e, 2.0, 0.0)
+    assert np.allclose(L @ Vc, -2.0 * e)
+    e_dot = rng.normal(size=8)
+    Vc_pd = ibvs.pd_camera_twist(L, e, 2.0, 0.5, e_dot)
+    assert np.allclose(Vc_pd, -np.linalg.pinv(L) @ (2.0 * e + 0.5 * e_dot))
+
+
+def servo_input(q, rng):
+    """Features of a tag ~0.5 m in front of the camera at configuration q."""
+    P = np.column_stack([rng.uniform(-0.1, 0.1, 4), rng.uniform(-0.1, 0.1, 4), rng.uniform(0.4, 0.6, 4)])
+    goal = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
+    return ServoInput(t_s=1.0, points=project(P), depths=P[:, 2], goal_points=goal, goal_depths=np.full(4, 0.2888),
+                      q=q, camera_in_ee=CAMERA_IN_EE)
+
+
+def camera_twist_achieved(kin, q, dq):
+    """Camera twist (camera frame) from finite differences of the camera pose when the joints move by dq."""
+    h = 1e-6
+    T = pin.SE3(CAMERA_IN_EE[:3, :3], CAMERA_IN_EE[:3, 3])
+    poses = []
+    for sign in (-1, 1):
+        R, p = kin.pose(q + sign * h * dq)
+        poses.append(pin.SE3(R, p) * T)
+    return pin.log6(poses[0].inverse() * poses[1]).vector / (2 * h)
+
+
+@pytest.mark.parametrize("convention", list(AngularConvention), ids=lambda c: c.value)
+def test_mixed_twist_moves_the_camera_with_the_camera_twist(convention, rng):
+    """The proposed law's output, executed by an arm that reads ``convention``, moves the camera exactly with
+    the camera twist of eq. 21 (through eq. 22-25 and the frame math)."""
+    kin = ArmKinematics()
+    law = make_law("adaptive-pd-mixed", LawConfig(robot_convention=convention), kin)
+    inp = servo_input(jaco2.HOME, rng)
+    out = law.step(inp)
+    R, _, J = kin.pose_and_jacobian(inp.q)
+    # the arm realises the mixed twist: base twist from the declared convention, joint velocities through J⁺
+    dq = np.linalg.pinv(J) @ frames.base_twist_from_mixed(out.twist, R, convention)
+    assert np.allclose(camera_twist_achieved(kin, inp.q, dq), out.camera_twist, atol=1e-5)
+    assert out.gain == pytest.approx(ibvs.adaptive_gain(np.max(np.abs(inp.error)), 4.5, 0.5, 30.0))
+
+
+def test_ee_frame_law_sends_the_end_effector_twist_as_if_mixed(rng):
+    kin = ArmKinematics()
+    inp = servo_input(jaco2.HOME, rng)
+    mixed = make_law("adaptive-pd-mixed", kinematics=kin).step(inp)
+    wrong = make_law("ee-frame", kinematics=kin).step(inp)
+    V_e = frames.ee_twist_from_camera(wrong.camera_twist, CAMERA_IN_EE[:3, :3], CAMERA_IN_EE[:3, 3])
+    assert np.allclose(wrong.twist, V_e)
+    assert not np.allclose(wrong.twist, mixed.twist, atol=1e-3)
+
+
+@pytest.mark.parametrize("name", ["p-joint", "adaptive-p-joint", "adaptive-pd-joint"])
+def test_joint_laws_drive_the_features_as_eq_17_18(name, rng):
+    kin = ArmKinematics()
+    config = LawConfig(gains=Gains(lambda_=1.2, lambda0=2.8, lambda_inf=0.3, slope0=30.0, kd=0.25),
+                       joint_limit_gain=0.0)
+    law = make_law(name, config, kin)
+    inp = servo_input(jaco2.HOME, rng)
+    out = law.step(inp)
+    L = ibvs.interaction_matrix(inp.points, inp.depths)
+    s_dot = L @ camera_twist_achieved(kin, inp.q, out.joint_velocities)
+    Lc = L @ law._camera_jacobian(inp.q, CAMERA_IN_EE)[0]
+    expected = -Lc @ np.linalg.pinv(Lc) @ (out.gain * inp.error)  # first sample: ė = 0
+    assert np.allclose(s_dot, expected, atol=1e-6)
+    assert out.gain == pytest.approx(1.2 if name == "p-joint" else
+                                     ibvs.adaptive_gain(np.max(np.abs(inp.error)), 2.8, 0.3, 30.0))
+
+
+def test_joint_limit_task_stays_in_the_null_space(rng):
+    kin = ArmKinematics()
+    inp = servo_input(jaco2.HOME, rng)
+    with_xi = make_law("p-joint", LawConfig(joint_limit_gain=2.0), kin).step(inp)
+    without = make_law("p-joint", LawConfig(joint_limit_gain=0.0), kin).step(inp)
+    assert not np.allclose(with_xi.joint_velocities, without.joint_velocities)
+    L = ibvs.interaction_matrix(inp.points, inp.depths)
+    J_c = make_law("p-joint", kinematics=kin)._camera_jacobian(inp.q, CAMERA_IN_EE)[0]
+    assert np.allclose(L @ J_c @ with_xi.joint_velocities, L @ J_c @ without.joint_velocities, atol=1e-9)
+
+
+def test_mixed_jacobian_joint_law_realises_the_seed000_twist(rng):
+    kin = ArmKinematics()
+    inp = servo_input(jaco2.HOME, rng)
+    out = make_law("mixed-jacobian-joint", LawConfig(joint_limit_gain=0.0), kin).step(inp)
+    assert np.allclose(camera_twist_achieved(kin, inp.q, out.joint_velocities), out.camera_twist, atol=1e-5)
+
+
+def test_unknown_law_is_refused():
+    with pytest.raises(ValueError, match="unknown law 'pid'"):
+        make_law("pid")
+    assert math.isfinite(Gains().lambda0)
