@@ -286,6 +286,32 @@ class RobotCommand(Message):
             raise ValueError("mode joint_velocity needs joint_velocities")
 
 
+class ControllerState(str, enum.Enum):
+    CONVERGING = "converging"
+    CONVERGED = "converged"
+    TAG_LOST = "tag_lost"
+    STALE_INPUT = "stale_input"
+    ILL_CONDITIONED = "ill_conditioned"
+    CONSTRAINT_ABORT = "constraint_abort"
+
+
+class ControllerStatus(Message):
+    """What the controller did with one features message (one iteration). Every status other than converging
+    comes with a zero output."""
+
+    header: Header
+    law: Annotated[str, msgspec.Meta(max_length=64)]
+    status: ControllerState
+    iteration: NonNegInt
+    error_norm: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    gain: float = 0.0
+    #: the output was scaled down to the configured limits
+    saturated: bool = False
+    #: the camera twist the law asked for (camera frame), when it has one
+    camera_twist: Optional[tuple[float, float, float, float, float, float]] = None
+    detail: Annotated[str, msgspec.Meta(max_length=256)] = ""
+
+
 # --------------------------------------------------------------------------------------------------- robot
 
 

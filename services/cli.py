@@ -108,6 +108,37 @@ def _cmd_authority(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_servo(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from services.common.config import ConfigError
+    from services.servo import load_scenario, run
+
+    try:
+        scenario = load_scenario(args.scenario)
+    except ConfigError as exc:
+        print(f"mfvs servo: {exc}", file=sys.stderr)
+        return 2
+    if args.profile != "sim":
+        print("mfvs servo: only the sim profile exists so far (the gateway profile arrives with robot_gateway)",
+              file=sys.stderr)
+        return 2
+
+    def progress(record) -> None:
+        if not args.json:
+            print(f"iteration {record.iteration:4d}  {record.status:12s}  ‖e‖ = {record.error_norm:.3e}", flush=True)
+
+    result = run(scenario, Path(args.out) if args.out else None, progress)
+    if args.json:
+        print(json.dumps(result.to_json()))
+    else:
+        print(f"{result.status}: {result.iterations} iterations, final ‖e‖ = {result.final_error_norm:.3e}, "
+              f"max speed {result.max_linear_speed_mps:.3f} m/s, min manipulability {result.min_manipulability:.4f}")
+        if result.trajectory_log:
+            print(f"log: {result.trajectory_log}; plots: {', '.join(result.plots)}")
+    return 0 if result.converged else 1
+
+
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision"}
 
 
@@ -142,6 +173,13 @@ def build_parser() -> argparse.ArgumentParser:
     model = sub.add_parser("model", help="the JACO-2 j2s7s300 description")
     model.add_argument("what", choices=["urdf", "info"], help="urdf: print the URDF; info: limits, home pose")
     model.set_defaults(func=_cmd_model)
+
+    servo = sub.add_parser("servo", help="run one servo task described by a scenario file")
+    servo.add_argument("--scenario", required=True, help="scenario YAML (see examples/scenarios)")
+    servo.add_argument("--profile", default="sim", help="sim (the simulator; default)")
+    servo.add_argument("--json", action="store_true", help="print one JSON object with the result")
+    servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
+    servo.set_defaults(func=_cmd_servo)
 
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")

@@ -1,0 +1,351 @@
+"""``mfvs servo``: run one servo task described by a scenario file through the real services and report.
+
+The scenario (YAML; every field has the default shown in :class:`Scenario`) says where the arm starts, where the
+target is (and how it moves), the goal, the law and its gains, when to stop, and the camera. The runner starts a
+router and the services (robot_sim, vision, controller, safety; lockstep by default), watches the controller's
+iterations, stops the services, and returns the result fields of ARCHITECTURE.md. With an output directory it
+writes the trajectory log (one JSON line per iteration) and plots.
+"""
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import msgspec
+import numpy as np
+
+from protocol import messages as m
+from protocol.conventions import AngularConvention, ClockMode, DepthSource
+from protocol.keys import Keys
+from services.common import jaco2
+from services.common.config import ConfigStruct, PoseConfig, load_config
+from services.common.kinematics import ArmKinematics
+from services.common.transport import open_session
+from services.controller.laws import LAW_NAMES, Gains, LawConfig
+from services.controller.service import ControllerConfig
+from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig
+from services.robot_sim.service import RobotSimConfig
+from services.safety.service import SafetyConfig
+from services.stack import LocalStack, StackConfig
+from services.vision.service import TABLE2_DEPTH, TABLE2_GOAL, GoalConfig, TagConfig, VisionConfig
+
+Vec3 = tuple[float, float, float]
+
+
+class ScenarioRobot(ConfigStruct):
+    #: physical angles (deg), as GetAngularPosition reports them
+    initial_joints_deg: list[float] = msgspec.field(default_factory=lambda: jaco2.HOME_DEG.tolist())
+    #: the convention the simulated DSP reads for Cartesian angular velocity
+    angular_convention: AngularConvention = AngularConvention.SEED000
+
+
+class ScenarioMotion(ConfigStruct):
+    velocity_mps: Vec3 = (0.0, 0.0, 0.0)
+
+
+class ScenarioTarget(ConfigStruct):
+    family: str = "tag36h11"
+    id: int = 0
+    size_m: float = 0.0962
+    pose_in_base: Optional[PoseConfig] = None
+    #: default: 0.5 m ahead of the camera, squarely facing it
+    pose_in_camera: Optional[PoseConfig] = None
+    motion: ScenarioMotion = msgspec.field(default_factory=ScenarioMotion)
+
+
+class ScenarioGoal(ConfigStruct):
+    """Default: seed 000 Table 2's square (±0.1666 at 0.2888 m)."""
+
+    features: Optional[list[tuple[float, float]]] = msgspec.field(default_factory=lambda: list(TABLE2_GOAL))
+    depth_m: Optional[float] = TABLE2_DEPTH
+    camera_in_tag: Optional[PoseConfig] = None
+
+
+class ScenarioConvergence(ConfigStruct):
+    error_norm: float = 5.0e-5
+    max_iterations: int = 1000
+
+    def __post_init__(self) -> None:
+        if not (self.error_norm > 0 and self.max_iterations >= 1):
+            raise ValueError("convergence needs error_norm > 0 and max_iterations >= 1")
+
+
+class ScenarioCamera(ConfigStruct):
+    width: int = 640
+    height: int = 480
+    fx: float = 615.0
+    fy: float = 615.0
+    cx: Optional[float] = None
+    cy: Optional[float] = None
+
+
+class Scenario(ConfigStruct):
+    robot: ScenarioRobot = msgspec.field(default_factory=ScenarioRobot)
+    target: ScenarioTarget = msgspec.field(default_factory=ScenarioTarget)
+    goal: ScenarioGoal = msgspec.field(default_factory=ScenarioGoal)
+    law: str = "adaptive-pd-mixed"
+    gains: Gains = msgspec.field(default_factory=Gains)
+    #: depth in the interaction matrix: current, goal or mean
+    depth: DepthSource = DepthSource.CURRENT
+    convergence: ScenarioConvergence = msgspec.field(default_factory=ScenarioConvergence)
+    camera: ScenarioCamera = msgspec.field(default_factory=ScenarioCamera)
+    clock: ClockMode = ClockMode.LOCKSTEP
+    #: law-specific options (smc, manipulability)
+    law_options: dict = msgspec.field(default_factory=dict)
+    #: stop after this much wall time whatever happens (s)
+    timeout_s: float = 600.0
+    #: consecutive iterations without the tag after which the run ends as tag_lost
+    tag_lost_iterations: int = 15
+
+    def __post_init__(self) -> None:
+        if self.law not in LAW_NAMES:
+            raise ValueError(f"unknown law {self.law!r}; known: {', '.join(LAW_NAMES)}")
+
+
+def load_scenario(path) -> Scenario:
+    return load_config(path, Scenario)
+
+
+def stack_config(scenario: Scenario) -> StackConfig:
+    s = scenario
+    camera = CameraConfig(width=s.camera.width, height=s.camera.height, fx=s.camera.fx, fy=s.camera.fy,
+                          cx=s.camera.cx, cy=s.camera.cy, rate_hz=30.0)
+    target = TargetConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m,
+                          pose_in_base=s.target.pose_in_base, pose_in_camera=s.target.pose_in_camera,
+                          velocity_mps=s.target.motion.velocity_mps)
+    robot = RobotSimConfig(scene=SceneConfig(initial_joints_deg=list(s.robot.initial_joints_deg), camera=camera,
+                                             target=target))
+    robot.dsp.angular_convention = s.robot.angular_convention
+    goal = GoalConfig(features=s.goal.features if s.goal.camera_in_tag is None else None,
+                      depth_m=s.goal.depth_m if s.goal.camera_in_tag is None else None,
+                      camera_in_tag=s.goal.camera_in_tag)
+    vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m), goal=goal)
+    control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.motion.velocity_mps),
+                        robot_convention=s.robot.angular_convention)
+    controller = ControllerConfig(law=s.law, control=control, convergence_error_norm=s.convergence.error_norm,
+                                  options=dict(s.law_options))
+    safety = SafetyConfig()
+    safety.limits.robot_convention = s.robot.angular_convention
+    return StackConfig(clock=s.clock, robot=robot, vision=vision, controller=controller, safety=safety)
+
+
+@dataclass
+class Iteration:
+    """One controller iteration as the run log records it."""
+
+    iteration: int
+    t_s: float
+    status: str
+    error_norm: float
+    points: list
+    error: list
+    command: list
+    command_kind: str
+    q: list
+    gain: float
+    saturated: bool
+    camera_twist: Optional[list]
+    manipulability: float
+    ee_speed_mps: float
+
+
+@dataclass
+class ServoResult:
+    converged: bool
+    iterations: int
+    final_error_norm: float
+    status: str
+    min_manipulability: float
+    max_joint_limit_violation_deg: float
+    max_linear_speed_mps: float
+    trajectory_log: Optional[str] = None
+    plots: list = field(default_factory=list)
+    law: str = ""
+    wall_time_s: float = 0.0
+
+    def to_json(self) -> dict:
+        return {
+            "converged": self.converged, "iterations": self.iterations,
+            "final_error_norm": self.final_error_norm, "status": self.status,
+            "min_manipulability": self.min_manipulability,
+            "max_joint_limit_violation_deg": self.max_joint_limit_violation_deg,
+            "max_linear_speed_mps": self.max_linear_speed_mps, "trajectory_log": self.trajectory_log,
+            "plots": self.plots, "law": self.law, "wall_time_s": self.wall_time_s,
+        }
+
+
+class _Watcher:
+    """Collects what the runner needs from the bus: controller statuses, the commands, features, robot states."""
+
+    def __init__(self, session, keys: Keys, joint_output: bool) -> None:
+        self.lock = threading.Condition()
+        self.statuses: list[m.ControllerStatus] = []
+        self.features: dict[int, m.Features] = {}
+        self.commands: dict[int, list] = {}
+        self.state: Optional[m.RobotState] = None
+        self.safety: Optional[m.SafetyStatus] = None
+        self.states: list[m.RobotState] = []
+        output_key = keys.desired_joint_velocity if joint_output else keys.desired_twist
+        output_type = m.JointVelocity if joint_output else m.Twist
+        self._subs = [
+            session.declare_subscriber(keys.controller_status, self._typed(m.ControllerStatus, self._on_status)),
+            session.declare_subscriber(keys.features, self._typed(m.Features, self._on_features)),
+            session.declare_subscriber(output_key, self._typed(output_type, self._on_output)),
+            session.declare_subscriber(keys.robot_state, self._typed(m.RobotState, self._on_state)),
+            session.declare_subscriber(keys.safety_status, self._typed(m.SafetyStatus, self._on_safety)),
+        ]
+
+    @staticmethod
+    def _typed(message_type, handler):
+        return lambda sample: handler(m.decode(sample.payload.to_bytes(), message_type))
+
+    def _on_status(self, status):
+        with self.lock:
+            self.statuses.append(status)
+            self.lock.notify_all()
+
+    def _on_features(self, features):
+        with self.lock:
+            self.features[features.header.source_stamp_ns] = features
+
+    def _on_output(self, output):
+        values = output.velocities if isinstance(output, m.JointVelocity) else [*output.linear, *output.rotational]
+        with self.lock:
+            self.commands[output.header.source_stamp_ns] = list(values)
+
+    def _on_state(self, state):
+        with self.lock:
+            self.state = state
+            self.states.append(state)
+
+    def _on_safety(self, status):
+        with self.lock:
+            self.safety = status
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+
+
+def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None) -> ServoResult:
+    """Run the scenario through a local stack; ``progress(iteration_record)`` is called per iteration."""
+    config = stack_config(scenario)
+    joint_output = config.controller.law in ("p-joint", "adaptive-p-joint", "adaptive-pd-joint",
+                                             "mixed-jacobian-joint", "manipulability", "smc")
+    kin = ArmKinematics()
+    lower, upper = jaco2.model_limits()
+    records: list[Iteration] = []
+    started = time.monotonic()
+    status = "timeout"
+    with LocalStack(config) as stack:
+        session = open_session(stack.router.client_config())
+        watcher = _Watcher(session, Keys(config.robot.robot_id), joint_output)
+        try:
+            seen = 0
+            initial_error = None
+            lost_streak = 0
+            refused_streak = 0
+            while time.monotonic() - started < scenario.timeout_s:
+                with watcher.lock:
+                    watcher.lock.wait_for(lambda n=seen: len(watcher.statuses) > n, timeout=1.0)
+                    new = watcher.statuses[seen:]
+                    seen = len(watcher.statuses)
+                if not new:
+                    if not stack.robot.finished.is_set() and stack.robot.state == "running":
+                        continue
+                    status = "robot_stopped"
+                    break
+                done = False
+                for st in new:
+                    record = _record(st, watcher, kin)
+                    records.append(record)
+                    if progress is not None:
+                        progress(record)
+                    if st.status is m.ControllerState.CONVERGED:
+                        status, done = "converged", True
+                    elif st.status is m.ControllerState.CONSTRAINT_ABORT:
+                        status, done = "constraint_abort", True
+                    lost_streak = lost_streak + 1 if st.status is m.ControllerState.TAG_LOST else 0
+                    if st.status is m.ControllerState.CONVERGING:
+                        initial_error = st.error_norm if initial_error is None else initial_error
+                    safety = watcher.safety
+                    refused_streak = refused_streak + 1 if (safety is not None and safety.state is
+                                                            m.SafetyState.REFUSING) else 0
+                    if lost_streak >= scenario.tag_lost_iterations:
+                        grew = initial_error is not None and max(
+                            r.error_norm for r in records if r.status == "converging") > 2.0 * initial_error
+                        status, done = ("diverged" if grew else "tag_lost"), True
+                    elif refused_streak >= 30:
+                        status, done = "refused", True
+                    elif st.iteration >= scenario.convergence.max_iterations:
+                        status, done = "max_iterations", True
+                    if done:
+                        break
+                if done:
+                    break
+            states = list(watcher.states)
+        finally:
+            watcher.close()
+            session.close()
+    wall = time.monotonic() - started
+    converging = [r for r in records if r.status in ("converging", "converged")]
+    q_all = np.array([s.q for s in states]) if states else np.zeros((0, 7))
+    violation = 0.0
+    if len(q_all):
+        limited = np.isfinite(lower)
+        over = np.maximum(q_all[:, limited] - upper[limited], lower[limited] - q_all[:, limited])
+        violation = max(0.0, float(np.degrees(over.max())))
+    speeds = [float(np.linalg.norm((kin.jacobian_base(s.q) @ np.asarray(s.dq))[:3])) for s in states[::5]]
+    result = ServoResult(
+        converged=status == "converged",
+        iterations=max((r.iteration for r in records), default=0),
+        final_error_norm=converging[-1].error_norm if converging else (records[-1].error_norm if records else 0.0),
+        status=status,
+        min_manipulability=min((r.manipulability for r in records if math.isfinite(r.manipulability)),
+                               default=0.0),
+        max_joint_limit_violation_deg=violation,
+        max_linear_speed_mps=max(speeds, default=0.0),
+        law=scenario.law,
+        wall_time_s=round(wall, 3),
+    )
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        log = out / "trajectory.jsonl"
+        with log.open("w") as f:
+            for r in records:
+                f.write(json.dumps(r.__dict__) + "\n")
+        result.trajectory_log = str(log)
+        from services.plots import servo_plots
+
+        result.plots = [str(p) for p in servo_plots(records, scenario, out)]
+        (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
+    return result
+
+
+def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics) -> Iteration:
+    stamp = status.header.source_stamp_ns
+    with watcher.lock:
+        features = watcher.features.get(stamp)
+        command = watcher.commands.get(stamp, [])
+        state = watcher.state
+    q = list(state.q) if state is not None else []
+    manip, speed = math.nan, 0.0
+    if state is not None:
+        J = kin.jacobian_base(state.q)
+        manip = float(math.sqrt(max(0.0, np.linalg.det(J @ J.T))))
+        speed = float(np.linalg.norm((J @ np.asarray(state.dq))[:3]))
+    return Iteration(
+        iteration=status.iteration, t_s=stamp * 1e-9, status=status.status.value, error_norm=status.error_norm,
+        points=[list(p) for p in features.points] if features is not None else [],
+        error=list(features.error) if features is not None else [],
+        command=command, command_kind="joint_velocity" if len(command) == 7 else "mixed_twist", q=q,
+        gain=status.gain, saturated=status.saturated,
+        camera_twist=list(status.camera_twist) if status.camera_twist is not None else None,
+        manipulability=manip, ee_speed_mps=speed,
+    )
