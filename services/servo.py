@@ -23,7 +23,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, DepthSource
 from protocol.keys import Keys
 from services.common import jaco2
-from services.common.config import ConfigStruct, PoseConfig, load_config
+from services.common.config import ConfigError, ConfigStruct, PoseConfig, load_config
 from services.common.kinematics import ArmKinematics
 from services.common.transport import open_session
 from services.controller.laws import LAW_NAMES, Gains, LawConfig
@@ -83,6 +83,10 @@ class ScenarioCamera(ConfigStruct):
     cx: Optional[float] = None
     cy: Optional[float] = None
 
+    def __post_init__(self) -> None:
+        if not (self.fx > 0 and self.fy > 0):
+            raise ValueError("camera fx and fy must be positive")
+
 
 class Scenario(ConfigStruct):
     robot: ScenarioRobot = msgspec.field(default_factory=ScenarioRobot)
@@ -108,7 +112,14 @@ class Scenario(ConfigStruct):
 
 
 def load_scenario(path) -> Scenario:
-    return load_config(path, Scenario)
+    """Load and validate a scenario, including what the services will check of it (so a bad value is named
+    before anything starts)."""
+    scenario = load_config(path, Scenario)
+    try:
+        stack_config(scenario)
+    except (ValueError, TypeError) as exc:
+        raise ConfigError(str(path), str(exc)) from None
+    return scenario
 
 
 def stack_config(scenario: Scenario) -> StackConfig:

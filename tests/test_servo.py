@@ -1,0 +1,82 @@
+"""Closed-loop servo tasks through `mfvs servo`'s runner: all services over a real router, lockstep."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.common.config import ConfigError, config_from_text
+from services.servo import Scenario, load_scenario, run
+
+REPO = Path(__file__).resolve().parents[1]
+TABLE2 = REPO / "examples" / "scenarios" / "table2.yaml"
+EASY = REPO / "examples" / "scenarios" / "easy.yaml"
+
+
+def with_law(path: Path, law: str, **changes) -> Scenario:
+    scenario = load_scenario(path)
+    scenario.law = law
+    for key, value in changes.items():
+        setattr(scenario, key, value)
+    return scenario
+
+
+def test_proposed_law_converges_from_the_table2_start(tmp_path):
+    result = run(load_scenario(TABLE2), tmp_path)
+    assert result.converged and result.status == "converged"
+    assert result.final_error_norm < 5e-5
+    assert 30 < result.iterations < 400
+    assert result.max_joint_limit_violation_deg == 0.0
+    assert 0 < result.max_linear_speed_mps <= 0.15 * 1.05  # the controller's and safety's limit
+    lines = Path(result.trajectory_log).read_text().splitlines()
+    assert len(lines) >= result.iterations
+    first = json.loads(lines[0])
+    assert {"iteration", "error_norm", "points", "command", "q"} <= set(first)
+    assert all(Path(p).stat().st_size > 1000 for p in result.plots) and len(result.plots) == 3
+
+
+def test_ee_frame_law_fails_on_the_same_start():
+    result = run(with_law(TABLE2, "ee-frame"))
+    assert not result.converged
+    assert result.status in ("diverged", "tag_lost")
+
+
+@pytest.mark.parametrize("law", ["p-joint", "adaptive-p-joint", "adaptive-pd-joint", "adaptive-pd-mixed",
+                                 "mixed-jacobian-joint"])
+def test_every_law_converges_on_an_easy_start(law):
+    result = run(with_law(EASY, law))
+    assert result.converged, (result.status, result.iterations, result.final_error_norm)
+    assert result.max_joint_limit_violation_deg == 0.0
+
+
+def test_scenario_validation_names_the_bad_field(tmp_path):
+    with pytest.raises(ConfigError) as err:
+        config_from_text("law: pid", Scenario)
+    assert err.value.key == "" and "unknown law 'pid'" in str(err.value)
+    with pytest.raises(ConfigError) as err:
+        config_from_text("gains: {lamda: 1.0}", Scenario)
+    assert err.value.key == "gains.lamda"
+    with pytest.raises(ConfigError) as err:
+        config_from_text("target: {pose_in_camera: {xyz: [0, 0, 0.5], rpy: [0, 0, 0]}}", Scenario)
+    assert err.value.key == "target.pose_in_camera.rpy"
+    with pytest.raises(ConfigError) as err:
+        config_from_text("convergence: {max_iterations: 0}", Scenario)
+    assert "max_iterations" in str(err.value)
+    assert config_from_text("{}", Scenario) == Scenario()
+
+
+def test_mfvs_servo_command_prints_the_result_fields(tmp_path):
+    mfvs = str(Path(sys.executable).parent / "mfvs")
+    out = subprocess.run([mfvs, "servo", "--scenario", str(EASY), "--json", "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    expected = {"converged", "iterations", "final_error_norm", "status", "min_manipulability",
+                "max_joint_limit_violation_deg", "max_linear_speed_mps", "trajectory_log", "plots"}
+    assert expected <= set(result) and result["converged"] is True
+    assert (tmp_path / "result.json").exists()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("law: adaptive-pd-mixed\ncamera: {fx: -3}\n")
+    out = subprocess.run([mfvs, "servo", "--scenario", str(bad)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "camera" in out.stderr
