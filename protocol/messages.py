@@ -309,6 +309,8 @@ class ControllerStatus(Message):
     saturated: bool = False
     #: the camera twist the law asked for (camera frame), when it has one
     camera_twist: Optional[tuple[float, float, float, float, float, float]] = None
+    #: law-specific figures of this iteration (e.g. smc's largest constraint value φ and its band)
+    notes: Annotated[dict[str, float], msgspec.Meta(max_length=32)] = {}
     detail: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
 

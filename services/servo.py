@@ -163,6 +163,7 @@ class Iteration:
     camera_twist: Optional[list]
     manipulability: float
     ee_speed_mps: float
+    notes: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -178,6 +179,8 @@ class ServoResult:
     plots: list = field(default_factory=list)
     law: str = ""
     wall_time_s: float = 0.0
+    #: the largest of each law figure over the run (e.g. smc's max_phi.fov, and its band)
+    law_figures: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -186,7 +189,7 @@ class ServoResult:
             "min_manipulability": self.min_manipulability,
             "max_joint_limit_violation_deg": self.max_joint_limit_violation_deg,
             "max_linear_speed_mps": self.max_linear_speed_mps, "trajectory_log": self.trajectory_log,
-            "plots": self.plots, "law": self.law, "wall_time_s": self.wall_time_s,
+            "plots": self.plots, "law": self.law, "wall_time_s": self.wall_time_s, "law_figures": self.law_figures,
         }
 
 
@@ -323,6 +326,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None) -> Se
         max_linear_speed_mps=max(speeds, default=0.0),
         law=scenario.law,
         wall_time_s=round(wall, 3),
+        law_figures=_law_figures(records),
     )
     if out_dir is not None:
         out = Path(out_dir)
@@ -337,6 +341,14 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None) -> Se
         result.plots = [str(p) for p in servo_plots(records, scenario, out)]
         (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
     return result
+
+
+def _law_figures(records: list[Iteration]) -> dict:
+    figures: dict[str, float] = {}
+    for record in records:
+        for key, value in record.notes.items():
+            figures[key] = max(figures.get(key, -math.inf), value)
+    return figures
 
 
 def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics) -> Iteration:
@@ -358,5 +370,5 @@ def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics) -
         command=command, command_kind="joint_velocity" if len(command) == 7 else "mixed_twist", q=q,
         gain=status.gain, saturated=status.saturated,
         camera_twist=list(status.camera_twist) if status.camera_twist is not None else None,
-        manipulability=manip, ee_speed_mps=speed,
+        manipulability=manip, ee_speed_mps=speed, notes=dict(status.notes),
     )

@@ -161,8 +161,9 @@ class ControllerService(Service):
             return status(ControllerState.ILL_CONDITIONED, "the law produced a non-finite output"), None
         saturated = self._saturate(output)
         camera_twist = tuple(output.camera_twist) if output.camera_twist is not None else None
+        notes = {k: float(v) for k, v in output.notes.items() if np.isfinite(v)}
         return status(ControllerState.CONVERGING, gain=output.gain, saturated=saturated,
-                      camera_twist=camera_twist), output
+                      camera_twist=camera_twist, notes=notes), output
 
     def _saturate(self, output: LawOutput) -> bool:
         lim = self.config.limits

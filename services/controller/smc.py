@@ -1,0 +1,295 @@
+"""Seed 002: robust fulfilment of constraints in visual servoing by sliding mode, at the acceleration level.
+
+Two priority levels (eq. 15): level 1 holds the active constraints on their sliding surfaces, level 2 tracks the
+features in what freedom is left:
+
+    q̈_c = A1⁺ b1 + (A2 N1)⁺ (b2 − A2 A1⁺ b1),   N1 = I − A1⁺ A1
+
+Each constraint σ_i(q) ≤ 0 becomes φ_i = σ_i + K_i ∇σ_iᵀ q̇ ≤ 0 (eq. 19); it is active when φ_i ≥ 0 and then
+contributes the row K_i ∇σ_iᵀ (∇φ_iᵀ w.r.t. q̇ for speed constraints) with right-hand side −u⁺_i (eq. 10-11,
+40). Level 2 is the tracking law of eq. 41-42 with the exponential gain K_T,p(‖e‖) = K0·exp(−(K̇0/K0)‖e‖) and
+K_T,v = 3√K_T,p. The acceleration is integrated into the joint velocity command (the arm takes velocities).
+With sampling time T_s, φ chatters within the band T_s·u⁺ around 0 (eq. 43).
+
+Constraints implemented (following the spec of Appendix B): field of view (hyperellipse per point, eq. 20-24, in
+normalized coordinates), joint range (eq. 25-27, exact gradient), joint speed (eq. 28-29, exact gradient),
+forbidden spheres for the end effector (eq. 30-31). Gradient error injection (eq. 49) for robustness runs.
+When the active constraints leave no freedom (more than n, or rank-deficient), the law aborts (ConstraintAbort).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from services.common import jaco2
+from services.controller.laws import Law, LawConfig, LawOutput, ServoInput
+
+
+@dataclass
+class FovConstraint:
+    """Hyperellipse |x/a|^n + |y/b|^n ≤ 1 in normalized coordinates, a = (W/2)(1−margin)/fx, b likewise."""
+
+    width: int = 640
+    height: int = 480
+    fx: float = 615.0
+    fy: float = 615.0
+    margin: float = 0.05
+    exponent: float = 16.0
+    K: float = 0.1
+    u_plus: float = 2.0
+
+    @property
+    def semi_axes(self) -> tuple[float, float]:
+        return (self.width / 2.0) * (1 - self.margin) / self.fx, (self.height / 2.0) * (1 - self.margin) / self.fy
+
+
+@dataclass
+class JointRangeConstraint:
+    """σ = −1 + |q̃| + margin, q̃ = (q − q_mid)/(Δq/2), for the given joints (model rad limits)."""
+
+    joints: dict = field(default_factory=dict)  # index → (lower, upper) in rad
+    margin: float = 0.0
+    K: float = 0.1
+    u_plus: float = 2.0
+
+
+@dataclass
+class JointSpeedConstraint:
+    """φ = −1 + |q̇_i|/q̇_max,i + margin. ``u_plus`` None: 1.25× the largest normalized acceleration the task
+    levels may ask for (max_task_accel / min q̇_max), so the switching gain dominates them."""
+
+    max_speed: np.ndarray = field(default_factory=lambda: jaco2.MAX_SPEED * 0.8)
+    margin: float = 0.0
+    u_plus: Optional[float] = None
+
+
+@dataclass
+class SphereConstraint:
+    """The end effector stays out of a sphere (base frame): σ = r − ‖p − c‖ + margin."""
+
+    centre: tuple = (0.0, 0.0, 0.0)
+    radius: float = 0.05
+    margin: float = 0.0
+    K: float = 0.1
+    u_plus: float = 0.2
+
+
+
+
+@dataclass
+class SmcOptions:
+    fov: Optional[FovConstraint] = field(default_factory=FovConstraint)
+    joint_range: Optional[JointRangeConstraint] = None
+    joint_speed: Optional[JointSpeedConstraint] = field(default_factory=JointSpeedConstraint)
+    spheres: list = field(default_factory=list)
+    #: tracking gain K_T,p(0) and its slope magnitude at 0
+    K0: float = 4.0
+    Kdot0: float = 10.0
+    #: sampling time T_s (s); None: from the features' timestamps
+    Ts: Optional[float] = None
+    #: gradient error injection (eq. 49): relative error c_e on the FOV gradients, 0 to disable
+    gradient_error: float = 0.0
+    #: singular values of A1 below rcond·σ_max count as zero (rank test and pseudo-inverses)
+    rcond: float = 1e-6
+    #: level 2's pseudo-inverse ignores singular values below task_rcond·σ_max: blocking a joint by an active
+    #: constraint can leave A2·N1 with a tiny singular value that would otherwise be amplified into a jump
+    task_rcond: float = 1e-4
+    #: bound on the task levels' joint accelerations (rad/s²; the JACO-2 DSP's 200 deg/s²)
+    max_task_accel: float = math.radians(200.0)
+    #: damping (1/s) of the joint motion left in the null space of both levels: the 7-DoF arm's self-motion,
+    #: which neither level sees (the paper's 6R arm has none)
+    null_damping: float = 3.0
+
+    @classmethod
+    def from_dict(cls, options: dict) -> "SmcOptions":
+        """Options as a scenario writes them; joint ranges are given per joint number (1-7) in physical degrees,
+        like ``joint_range: {joints_deg: {6: [200, 240]}, K: 0.1, u_plus: 2}``."""
+        options = {k: (dict(v) if isinstance(v, dict) else v) for k, v in options.items()}
+        out = cls()
+        if "fov" in options:
+            out.fov = None if options["fov"] is None else FovConstraint(**options.pop("fov"))
+        if "joint_range" in options:
+            spec = options.pop("joint_range")
+            if spec is not None:
+                joints = {}
+                for number, limits in spec.pop("joints_deg", {}).items():
+                    index = int(number) - 1
+                    if not 0 <= index < jaco2.N_JOINTS or len(limits) != 2:
+                        raise ValueError(f"joint_range: joint {number} needs two limits, joints are 1-7")
+                    ends = sorted(jaco2.SIGN[index] * math.radians(v) for v in limits)
+                    joints[index] = (ends[0], ends[1])
+                if not joints:
+                    lower, upper = jaco2.model_limits()
+                    joints = {i: (lower[i], upper[i]) for i in range(jaco2.N_JOINTS) if np.isfinite(lower[i])}
+                out.joint_range = JointRangeConstraint(joints=joints, **spec)
+        else:
+            lower, upper = jaco2.model_limits()
+            out.joint_range = JointRangeConstraint(
+                joints={i: (lower[i], upper[i]) for i in range(jaco2.N_JOINTS) if np.isfinite(lower[i])}, margin=0.05)
+        if "joint_speed" in options:
+            spec = options.pop("joint_speed")
+            if spec is None:
+                out.joint_speed = None
+            else:
+                scale = spec.pop("speed_scale", 0.8)
+                out.joint_speed = JointSpeedConstraint(max_speed=jaco2.MAX_SPEED * scale, **spec)
+        if "spheres" in options:
+            out.spheres = [SphereConstraint(**s) for s in options.pop("spheres")]
+        for key, value in options.items():
+            if not hasattr(out, key):
+                raise ValueError(f"unknown smc option {key!r}")
+            setattr(out, key, value)
+        return out
+
+
+#: eq. 49's sign pattern for a 6R arm, with a seventh sign chosen for the 7-DoF arm
+GRADIENT_ERROR_SIGNS = np.array([-1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+
+
+class SlidingModeLaw(Law):
+    name = "smc"
+
+    def __init__(self, config: LawConfig | None = None, kinematics=None, **options) -> None:
+        super().__init__(config, kinematics)
+        self.options = SmcOptions.from_dict(options)
+        speed = self.options.joint_speed
+        if speed is not None and speed.u_plus is None:
+            speed.u_plus = 1.25 * self.options.max_task_accel / float(np.min(speed.max_speed))
+        self.reset()
+
+    def reset(self) -> None:
+        super().reset()
+        self.dq_c = np.zeros(jaco2.N_JOINTS)
+        self._Js_prev: Optional[np.ndarray] = None
+        self._t_prev: Optional[float] = None
+
+    # ------------------------------------------------------------------ constraints
+    def constraints(self, inp: ServoInput, Js: np.ndarray, J_base: np.ndarray, p: np.ndarray, dq: np.ndarray):
+        """(rows, rhs, phis, names): every constraint's φ, and the level-1 row and right-hand side for it."""
+        opt = self.options
+        rows, rhs, phis, names = [], [], [], []
+        if opt.fov is not None:
+            fov = opt.fov
+            a, b = fov.semi_axes
+            n = fov.exponent
+            for i, (x, y) in enumerate(np.asarray(inp.points)):
+                sigma = abs(x / a) ** n + abs(y / b) ** n - 1.0
+                d_sigma = np.array([n * np.sign(x) * abs(x) ** (n - 1) / a**n,
+                                    n * np.sign(y) * abs(y) ** (n - 1) / b**n])
+                grad = Js[2 * i: 2 * i + 2].T @ d_sigma
+                if opt.gradient_error:
+                    grad = grad + opt.gradient_error * GRADIENT_ERROR_SIGNS * np.abs(grad)
+                rows.append(fov.K * grad)
+                rhs.append(-fov.u_plus)
+                phis.append(sigma + fov.K * grad @ dq)
+                names.append(f"fov:{i}")
+        if opt.joint_range is not None:
+            jr = opt.joint_range
+            for j, (lo, hi) in jr.joints.items():
+                half = (hi - lo) / 2.0
+                q_t = (inp.q[j] - (lo + hi) / 2.0) / half
+                sigma = -1.0 + abs(q_t) + jr.margin
+                grad = np.zeros(jaco2.N_JOINTS)
+                grad[j] = np.sign(q_t) / half
+                rows.append(jr.K * grad)
+                rhs.append(-jr.u_plus)
+                phis.append(sigma + jr.K * grad @ dq)
+                names.append(f"joint_range:{j + 1}")
+        if opt.joint_speed is not None:
+            js = opt.joint_speed
+            for j in range(jaco2.N_JOINTS):
+                row = np.zeros(jaco2.N_JOINTS)
+                row[j] = np.sign(dq[j]) / js.max_speed[j]
+                rows.append(row)
+                rhs.append(-js.u_plus)
+                phis.append(-1.0 + abs(dq[j]) / js.max_speed[j] + js.margin)
+                names.append(f"joint_speed:{j + 1}")
+        for k, sphere in enumerate(opt.spheres):
+            offset = p - np.asarray(sphere.centre)
+            dist = float(np.linalg.norm(offset))
+            sigma = sphere.radius - dist + sphere.margin
+            grad = J_base[:3].T @ (-offset / max(dist, 1e-12))
+            rows.append(sphere.K * grad)
+            rhs.append(-sphere.u_plus)
+            phis.append(sigma + sphere.K * grad @ dq)
+            names.append(f"sphere:{k}")
+        return rows, rhs, np.array(phis), names
+
+    def band(self, name: str) -> float:
+        """The chattering band T_s·u⁺ of the constraint called ``name`` (for the nominal sampling time)."""
+        opt = self.options
+        kind = name.split(":")[0]
+        u_plus = {"fov": opt.fov.u_plus if opt.fov else 0.0,
+                  "joint_range": opt.joint_range.u_plus if opt.joint_range else 0.0,
+                  "joint_speed": opt.joint_speed.u_plus if opt.joint_speed else 0.0}.get(kind)
+        if u_plus is None:
+            u_plus = opt.spheres[int(name.split(":")[1])].u_plus
+        return self._Ts_nominal * u_plus
+
+    # ------------------------------------------------------------------ the step
+    def step(self, inp: ServoInput) -> LawOutput:
+        from services.controller.service import ConstraintAbort
+
+        opt = self.options
+        Ts = opt.Ts
+        if Ts is None:
+            Ts = (inp.t_s - self._t_prev) if self._t_prev is not None and inp.t_s > self._t_prev else 1.0 / 30.0
+        self._Ts_nominal = opt.Ts or 1.0 / 30.0
+        J_c, R_be, J_base = self._camera_jacobian(inp.q, inp.camera_in_ee)
+        _, p = self.kin.pose(inp.q)
+        L = self._L(inp)
+        Js = L @ J_c
+        dq = self.dq_c
+        e = inp.error
+        e_dot = Js @ dq  # ṡ of the noise-free model (static target, static reference)
+        norm = float(np.linalg.norm(e))
+        K_p = opt.K0 * math.exp(-(opt.Kdot0 / opt.K0) * norm)
+        K_v = 3.0 * math.sqrt(K_p)
+        s_ddot = -K_p * e - K_v * e_dot
+        Js_dot = np.zeros_like(Js) if self._Js_prev is None else (Js - self._Js_prev) / Ts
+        rows, rhs, phis, names = self.constraints(inp, Js, J_base, p, dq)
+        active = [i for i, phi in enumerate(phis) if phi >= 0.0]
+        n = jaco2.N_JOINTS
+        A2 = Js
+        b2 = s_ddot - Js_dot @ dq
+        if active:
+            A1 = np.array([rows[i] for i in active])
+            b1 = np.array([rhs[i] for i in active])
+            rank = np.linalg.matrix_rank(A1, tol=opt.rcond * max(np.linalg.norm(A1, 2), 1e-12))
+            if len(active) > n or rank < len(active):
+                raise ConstraintAbort(f"{len(active)} active constraints (rank {rank}) leave no freedom for the "
+                                      f"task: {', '.join(names[i] for i in active)}")
+            A1_pinv = np.linalg.pinv(A1, rcond=opt.rcond)
+            N1 = np.eye(n) - A1_pinv @ A1
+            first = A1_pinv @ b1
+        else:
+            N1, first = np.eye(n), np.zeros(n)
+        A2N1 = A2 @ N1
+        A2N1_pinv = np.linalg.pinv(A2N1, rcond=opt.task_rcond)
+        second = A2N1_pinv @ (b2 - A2 @ first)
+        # level 3: damp the self-motion in the null space of both levels
+        N12 = N1 @ (np.eye(n) - A2N1_pinv @ A2N1)
+        second = second + N12 @ (-opt.null_damping * dq)
+        # the task's acceleration is bounded by what the arm can do; level 1 never is, so the switching gains
+        # u⁺ dominate the task's push on every constraint (the condition behind the chattering band)
+        peak = float(np.max(np.abs(second)))
+        if peak > opt.max_task_accel:
+            second *= opt.max_task_accel / peak
+        ddq = first + second
+        #: the last step's level-1 system and acceleration, for inspection (A1·q̈ = b1 holds when A1 has full rank)
+        self.last_level1 = (np.array([rows[i] for i in active]).reshape(len(active), n),
+                            np.array([rhs[i] for i in active]), ddq, [names[i] for i in active])
+        self.dq_c = dq + Ts * ddq
+        self._Js_prev = Js
+        self._t_prev = inp.t_s
+        notes = {"max_phi": float(np.max(phis)) if len(phis) else -math.inf, "active": len(active),
+                 "gain": K_p}
+        for kind in ("fov", "joint_range", "joint_speed", "sphere"):
+            values = [phis[i] for i, name in enumerate(names) if name.startswith(kind)]
+            if values:
+                notes[f"max_phi.{kind}"] = float(max(values))
+                notes[f"band.{kind}"] = self.band(names[[i for i, nm in enumerate(names) if nm.startswith(kind)][0]])
+        return LawOutput(joint_velocities=self.dq_c.copy(), camera_twist=J_c @ self.dq_c, gain=K_p, notes=notes)
