@@ -43,7 +43,7 @@ def test_ee_frame_law_fails_on_the_same_start():
 
 
 @pytest.mark.parametrize("law", ["p-joint", "adaptive-p-joint", "adaptive-pd-joint", "adaptive-pd-mixed",
-                                 "mixed-jacobian-joint"])
+                                 "mixed-jacobian-joint", "manipulability", "smc"])
 def test_every_law_converges_on_an_easy_start(law):
     result = run(with_law(EASY, law))
     assert result.converged, (result.status, result.iterations, result.final_error_norm)
