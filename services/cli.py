@@ -139,7 +139,7 @@ def _cmd_servo(args: argparse.Namespace) -> int:
     return 0 if result.converged else 1
 
 
-BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision"}
+BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -199,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="run a benchmark and print its figures")
     bench.add_argument("name", choices=sorted(BENCHMARKS),
-                       help="loops: robot_sim loop rate, jitter, lockstep speed; vision: detection time per frame")
+                       help="loops: robot_sim loop rate, jitter, lockstep speed; vision: detection time per frame; "
+                       "laws: µs per control-law iteration")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)

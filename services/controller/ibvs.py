@@ -20,10 +20,18 @@ def interaction_matrix(points, depths) -> np.ndarray:
         raise ValueError("one depth per point")
     if np.any(depths <= 0) or not np.all(np.isfinite(depths)):
         raise ValueError("depths must be positive and finite")
-    L = np.empty((2 * len(points), 6))
-    for i, ((x, y), Z) in enumerate(zip(points, depths, strict=True)):
-        L[2 * i] = (-1.0 / Z, 0.0, x / Z, x * y, -(1.0 + x * x), y)
-        L[2 * i + 1] = (0.0, -1.0 / Z, y / Z, 1.0 + y * y, -x * y, -x)
+    x, y, inv_z = points[:, 0], points[:, 1], 1.0 / depths
+    L = np.zeros((2 * len(points), 6))
+    L[0::2, 0] = -inv_z
+    L[0::2, 2] = x * inv_z
+    L[0::2, 3] = x * y
+    L[0::2, 4] = -(1.0 + x * x)
+    L[0::2, 5] = y
+    L[1::2, 1] = -inv_z
+    L[1::2, 2] = y * inv_z
+    L[1::2, 3] = 1.0 + y * y
+    L[1::2, 4] = -x * y
+    L[1::2, 5] = -x
     return L
 
 

@@ -128,9 +128,14 @@ class Law:
     def _camera_jacobian(self, q, camera_in_ee) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J_c, R_be, J_base): J_c maps joint velocities to the camera twist in the camera frame."""
         R_be, _, J_base = self.kin.pose_and_jacobian(q)
-        J_ee = frames.rotation_motion_transform(R_be.T) @ J_base
-        J_c = frames.motion_transform_inv(camera_in_ee[:3, :3], camera_in_ee[:3, 3]) @ J_ee
-        return J_c, R_be, J_base
+        key = camera_in_ee.tobytes()
+        if getattr(self, "_camera_key", None) != key:  # the mount rarely changes: keep its motion transform
+            self._camera_key = key
+            self._X_ce = frames.motion_transform_inv(camera_in_ee[:3, :3], camera_in_ee[:3, 3])
+        J_ee = np.empty_like(J_base)
+        J_ee[:3] = R_be.T @ J_base[:3]
+        J_ee[3:] = R_be.T @ J_base[3:]
+        return self._X_ce @ J_ee, R_be, J_base
 
 
 class CameraTwistLaw(Law):

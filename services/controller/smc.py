@@ -171,42 +171,40 @@ class SlidingModeLaw(Law):
         """(rows, rhs, phis, names): every constraint's φ, and the level-1 row and right-hand side for it."""
         opt = self.options
         rows, rhs, phis, names = [], [], [], []
+        n_joints = jaco2.N_JOINTS
         if opt.fov is not None:
             fov = opt.fov
             a, b = fov.semi_axes
             n = fov.exponent
-            for i, (x, y) in enumerate(np.asarray(inp.points)):
-                sigma = abs(x / a) ** n + abs(y / b) ** n - 1.0
-                d_sigma = np.array([n * np.sign(x) * abs(x) ** (n - 1) / a**n,
-                                    n * np.sign(y) * abs(y) ** (n - 1) / b**n])
-                grad = Js[2 * i: 2 * i + 2].T @ d_sigma
-                if opt.gradient_error:
-                    grad = grad + opt.gradient_error * GRADIENT_ERROR_SIGNS * np.abs(grad)
-                rows.append(fov.K * grad)
-                rhs.append(-fov.u_plus)
-                phis.append(sigma + fov.K * grad @ dq)
-                names.append(f"fov:{i}")
+            pts = np.asarray(inp.points)
+            x, y = pts[:, 0], pts[:, 1]
+            sigma = np.abs(x / a) ** n + np.abs(y / b) ** n - 1.0
+            d_sigma = np.stack([n * np.sign(x) * np.abs(x) ** (n - 1) / a**n,
+                                n * np.sign(y) * np.abs(y) ** (n - 1) / b**n], axis=1)
+            grads = np.einsum("pk,pkj->pj", d_sigma, Js.reshape(-1, 2, n_joints))
+            if opt.gradient_error:
+                grads = grads + opt.gradient_error * GRADIENT_ERROR_SIGNS * np.abs(grads)
+            rows.extend(fov.K * grads)
+            rhs.extend([-fov.u_plus] * len(pts))
+            phis.extend(sigma + fov.K * grads @ dq)
+            names.extend(f"fov:{i}" for i in range(len(pts)))
         if opt.joint_range is not None:
             jr = opt.joint_range
             for j, (lo, hi) in jr.joints.items():
                 half = (hi - lo) / 2.0
                 q_t = (inp.q[j] - (lo + hi) / 2.0) / half
-                sigma = -1.0 + abs(q_t) + jr.margin
-                grad = np.zeros(jaco2.N_JOINTS)
+                grad = np.zeros(n_joints)
                 grad[j] = np.sign(q_t) / half
                 rows.append(jr.K * grad)
                 rhs.append(-jr.u_plus)
-                phis.append(sigma + jr.K * grad @ dq)
+                phis.append(-1.0 + abs(q_t) + jr.margin + jr.K * grad[j] * dq[j])
                 names.append(f"joint_range:{j + 1}")
         if opt.joint_speed is not None:
             js = opt.joint_speed
-            for j in range(jaco2.N_JOINTS):
-                row = np.zeros(jaco2.N_JOINTS)
-                row[j] = np.sign(dq[j]) / js.max_speed[j]
-                rows.append(row)
-                rhs.append(-js.u_plus)
-                phis.append(-1.0 + abs(dq[j]) / js.max_speed[j] + js.margin)
-                names.append(f"joint_speed:{j + 1}")
+            rows.extend(np.diag(np.sign(dq) / js.max_speed))
+            rhs.extend([-js.u_plus] * n_joints)
+            phis.extend(-1.0 + np.abs(dq) / js.max_speed + js.margin)
+            names.extend(f"joint_speed:{j + 1}" for j in range(n_joints))
         for k, sphere in enumerate(opt.spheres):
             offset = p - np.asarray(sphere.centre)
             dist = float(np.linalg.norm(offset))
@@ -229,6 +227,16 @@ class SlidingModeLaw(Law):
             u_plus = opt.spheres[int(name.split(":")[1])].u_plus
         return self._Ts_nominal * u_plus
 
+    def _kinds(self, names: list[str]) -> dict:
+        """kind → (indices of its constraints, its band); the constraint list is fixed for a law, so cached."""
+        if getattr(self, "_kinds_cache", None) is None or self._kinds_cache[0] != len(names):
+            kinds: dict = {}
+            for i, name in enumerate(names):
+                kind = name.split(":")[0]
+                kinds.setdefault(kind, ([], self.band(name)))[0].append(i)
+            self._kinds_cache = (len(names), {k: (np.array(v[0]), v[1]) for k, v in kinds.items()})
+        return self._kinds_cache[1]
+
     # ------------------------------------------------------------------ the step
     def step(self, inp: ServoInput) -> LawOutput:
         from services.controller.service import ConstraintAbort
@@ -239,7 +247,7 @@ class SlidingModeLaw(Law):
             Ts = (inp.t_s - self._t_prev) if self._t_prev is not None and inp.t_s > self._t_prev else 1.0 / 30.0
         self._Ts_nominal = opt.Ts or 1.0 / 30.0
         J_c, R_be, J_base = self._camera_jacobian(inp.q, inp.camera_in_ee)
-        _, p = self.kin.pose(inp.q)
+        p = self.kin.data.oMf[self.kin.ee_frame_id].translation.copy()  # computed with the Jacobian above
         L = self._L(inp)
         Js = L @ J_c
         dq = self.dq_c
@@ -251,18 +259,19 @@ class SlidingModeLaw(Law):
         s_ddot = -K_p * e - K_v * e_dot
         Js_dot = np.zeros_like(Js) if self._Js_prev is None else (Js - self._Js_prev) / Ts
         rows, rhs, phis, names = self.constraints(inp, Js, J_base, p, dq)
-        active = [i for i, phi in enumerate(phis) if phi >= 0.0]
+        active = np.flatnonzero(phis >= 0.0).tolist()
         n = jaco2.N_JOINTS
         A2 = Js
         b2 = s_ddot - Js_dot @ dq
         if active:
             A1 = np.array([rows[i] for i in active])
             b1 = np.array([rhs[i] for i in active])
-            rank = np.linalg.matrix_rank(A1, tol=opt.rcond * max(np.linalg.norm(A1, 2), 1e-12))
+            U, s1, Vt = np.linalg.svd(A1, full_matrices=False)
+            rank = int(np.sum(s1 > opt.rcond * max(s1[0], 1e-12)))
             if len(active) > n or rank < len(active):
                 raise ConstraintAbort(f"{len(active)} active constraints (rank {rank}) leave no freedom for the "
                                       f"task: {', '.join(names[i] for i in active)}")
-            A1_pinv = np.linalg.pinv(A1, rcond=opt.rcond)
+            A1_pinv = Vt.T @ np.diag(1.0 / s1) @ U.T
             N1 = np.eye(n) - A1_pinv @ A1
             first = A1_pinv @ b1
         else:
@@ -287,9 +296,7 @@ class SlidingModeLaw(Law):
         self._t_prev = inp.t_s
         notes = {"max_phi": float(np.max(phis)) if len(phis) else -math.inf, "active": len(active),
                  "gain": K_p}
-        for kind in ("fov", "joint_range", "joint_speed", "sphere"):
-            values = [phis[i] for i, name in enumerate(names) if name.startswith(kind)]
-            if values:
-                notes[f"max_phi.{kind}"] = float(max(values))
-                notes[f"band.{kind}"] = self.band(names[[i for i, nm in enumerate(names) if nm.startswith(kind)][0]])
+        for kind, (indices, band) in self._kinds(names).items():
+            notes[f"max_phi.{kind}"] = float(np.max(phis[indices]))
+            notes[f"band.{kind}"] = band
         return LawOutput(joint_velocities=self.dq_c.copy(), camera_twist=J_c @ self.dq_c, gain=K_p, notes=notes)

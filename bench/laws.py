@@ -1,0 +1,70 @@
+"""Control-law cost: microseconds per iteration of every law (one features message → one output), on a
+typical input (4 points, the 7-joint arm), without zenoh.
+
+``python -m bench.laws [--json] [--iterations N]`` or ``mfvs bench laws``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from services.common import jaco2
+from services.controller.laws import LAW_NAMES, ServoInput, make_law
+from services.robot_sim.scene import CameraConfig
+
+#: per-iteration targets (µs) from the controller issue
+TARGETS_US = {"adaptive-pd-mixed": 100.0, "smc": 150.0}
+
+
+def _input(k: int) -> ServoInput:
+    goal = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
+    wobble = 0.01 * np.sin(0.1 * k)
+    return ServoInput(t_s=1.0 + k / 30.0, points=goal * 0.6 + np.array([0.03 + wobble, -0.02]),
+                      depths=np.full(4, 0.45), goal_points=goal, goal_depths=np.full(4, 0.2888),
+                      q=jaco2.HOME + 0.01 * np.sin(0.05 * k), camera_in_ee=CameraConfig().camera_in_ee.matrix())
+
+
+def measure(name: str, iterations: int) -> dict:
+    law = make_law(name)
+    inputs = [_input(k) for k in range(iterations + 50)]
+    for inp in inputs[:50]:  # warm-up (first-call costs, caches)
+        law.step(inp)
+    samples = []
+    for inp in inputs[50:]:
+        t = time.perf_counter_ns()
+        law.step(inp)
+        samples.append((time.perf_counter_ns() - t) / 1e3)
+    s = np.sort(samples)
+    result = {"p50_us": round(float(np.percentile(s, 50)), 1), "p99_us": round(float(np.percentile(s, 99)), 1),
+              "mean_us": round(float(s.mean()), 1), "n": len(s)}
+    if name in TARGETS_US:
+        result["target_us"] = TARGETS_US[name]
+        result["meets_target"] = result["p50_us"] <= TARGETS_US[name]
+    return result
+
+
+def run(iterations: int = 2000) -> dict:
+    return {name: measure(name, iterations) for name in LAW_NAMES}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="mfvs bench laws", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--iterations", type=int, default=2000, help="timed iterations per law")
+    args = parser.parse_args(argv)
+    result = run(args.iterations)
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for name, r in result.items():
+            target = f" (target ≤ {r['target_us']:.0f} µs: {'met' if r['meets_target'] else 'NOT met'})" \
+                if "target_us" in r else ""
+            print(f"{name:22s} p50 {r['p50_us']:8.1f} µs   p99 {r['p99_us']:8.1f} µs{target}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
