@@ -139,6 +139,48 @@ def _cmd_servo(args: argparse.Namespace) -> int:
     return 0 if result.converged else 1
 
 
+def _cmd_up(args: argparse.Namespace) -> int:
+    from services.common.config import ConfigError
+    from services.launcher import load_profile, up
+
+    try:
+        profile = load_profile(args.profile, args.port)
+    except ConfigError as exc:
+        print(f"mfvs up: {exc}", file=sys.stderr)
+        return 2
+    code, message = up(profile, args.clock, args.wait)
+    print(message, file=sys.stderr if code else sys.stdout)
+    return code
+
+
+def _cmd_down(args: argparse.Namespace) -> int:
+    from services.launcher import down
+
+    code, message = down()
+    print(message)
+    return code
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from services.launcher import read_stack, status_json
+
+    stack = read_stack()
+    endpoint = args.connect or (stack["endpoint"] if stack else "tcp/127.0.0.1:7447")
+    robot_id = args.robot_id or (stack["robot_id"] if stack else "jaco")
+    report = status_json(endpoint, robot_id, args.zenoh_config)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        router = report["router"]
+        print(f"router {router['endpoint']}: {'reachable' if router['reachable'] else 'NOT reachable'}")
+        for s in report["services"]:
+            rates = ", ".join(f"{k} {v:.1f} Hz" for k, v in sorted(s["rates_hz"].items()))
+            errors = ", ".join(f"{k} {v}" for k, v in sorted(s["errors"].items())) or "no errors"
+            print(f"  {s['name']:12s} pid {s['pid']}  {'healthy' if s['healthy'] else 'UNHEALTHY'}  {rates}; "
+                  f"{errors}")
+    return 0 if report["router"]["reachable"] else 1
+
+
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws"}
 
 
@@ -173,6 +215,21 @@ def build_parser() -> argparse.ArgumentParser:
     model = sub.add_parser("model", help="the JACO-2 j2s7s300 description")
     model.add_argument("what", choices=["urdf", "info"], help="urdf: print the URDF; info: limits, home pose")
     model.set_defaults(func=_cmd_model)
+
+    up_cmd = sub.add_parser("up", help="start a stack (router and services) as background processes")
+    up_cmd.add_argument("--profile", default="sim", help="sim, gateway, or a profile YAML file")
+    up_cmd.add_argument("--clock", choices=["realtime", "lockstep"], default=None, help="override the clock mode")
+    up_cmd.add_argument("--port", type=int, default=7447, help="router port (sim profile)")
+    up_cmd.add_argument("--wait", type=float, default=60.0, help="seconds to wait for every service")
+    up_cmd.set_defaults(func=_cmd_up)
+    down_cmd = sub.add_parser("down", help="stop the stack `mfvs up` started")
+    down_cmd.set_defaults(func=_cmd_down)
+    status_cmd = sub.add_parser("status", help="health, rates and error counters of the running services")
+    status_cmd.add_argument("--json", action="store_true", help="print one JSON object")
+    status_cmd.add_argument("--connect", default=None, help="router endpoint (default: the stack's)")
+    status_cmd.add_argument("--robot-id", default=None, help="robot id (default: the stack's)")
+    status_cmd.add_argument("--zenoh-config", default=None, help="zenoh client config (credentials, certificates)")
+    status_cmd.set_defaults(func=_cmd_status)
 
     servo = sub.add_parser("servo", help="run one servo task described by a scenario file")
     servo.add_argument("--scenario", required=True, help="scenario YAML (see examples/scenarios)")

@@ -299,6 +299,7 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
     parser.add_argument("--clock", choices=[m.value for m in ClockMode], help="override the clock mode")
     parser.add_argument("--connect", action="append", help="zenoh endpoint of the router (repeatable)")
     parser.add_argument("--robot-id", help="override the robot id (key prefix mfvs/<robot_id>/)")
+    parser.add_argument("--zenoh-config", help="zenoh client config file (credentials, certificates)")
     args = parser.parse_args(argv)
     try:
         data = read_yaml(args.config) if args.config else {}
@@ -308,11 +309,14 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
             data["clock"] = args.clock
         if args.robot_id:
             data["robot_id"] = args.robot_id
-        if args.connect:
+        if args.connect or args.zenoh_config:
             data.setdefault("zenoh", {})
             if not isinstance(data["zenoh"], dict):
                 raise ConfigError(args.config, "zenoh must be a mapping", "zenoh")
-            data["zenoh"]["connect"] = args.connect
+            if args.connect:
+                data["zenoh"]["connect"] = args.connect
+            if args.zenoh_config:
+                data["zenoh"]["config_file"] = args.zenoh_config
         config = config_from_mapping(data, config_type, args.config or "<command line>")
         Keys(config.robot_id)
     except (ConfigError, ValueError) as exc:

@@ -1,0 +1,226 @@
+"""``mfvs up``, ``mfvs down`` and ``mfvs status``: run a stack as background processes and look at it.
+
+A stack is a zenoh router plus services, each its own process (``python -m services.<name>``) with its config
+file, logging to the run directory (``$MFVS_RUN_DIR``, default ``~/.local/state/mfvs``), which also holds
+``stack.json`` (the router's endpoint, every process id and log). Profiles: ``sim`` (robot_sim, vision,
+controller, safety with their shipped configs) or a YAML file::
+
+    router: {port: 7447, config: null}          # config: a zenoh router config (access control, TLS)
+    services:
+      - {name: safety, config: services/safety/safety.yaml}
+      - {name: robot_sim, config: my_robot.yaml, zenoh_config: secrets/clients/robot_sim.json5}
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import msgspec
+
+from protocol import messages as m
+from protocol.keys import Keys
+from services.common.config import ConfigError, ConfigStruct, load_config
+from services.common.transport import ZenohConfig, open_session
+
+REPO = Path(__file__).resolve().parents[1]
+SERVICES = ("safety", "vision", "controller", "robot_sim")
+
+
+class ProfileService(ConfigStruct):
+    name: str
+    config: Optional[str] = None
+    zenoh_config: Optional[str] = None
+
+
+class ProfileRouter(ConfigStruct):
+    port: int = 7447
+    config: Optional[str] = None
+
+
+class Profile(ConfigStruct):
+    router: ProfileRouter = msgspec.field(default_factory=ProfileRouter)
+    services: list[ProfileService] = msgspec.field(default_factory=list)
+    robot_id: str = "jaco"
+
+    def __post_init__(self) -> None:
+        unknown = [s.name for s in self.services if s.name not in (*SERVICES, "robot_gateway")]
+        if unknown:
+            raise ValueError(f"unknown services {unknown}; known: {', '.join(SERVICES)}")
+
+
+def sim_profile(port: int) -> Profile:
+    return Profile(router=ProfileRouter(port=port), services=[
+        ProfileService(name=name, config=str(REPO / "services" / name / f"{name}.yaml")) for name in SERVICES])
+
+
+def run_dir() -> Path:
+    path = Path(os.environ.get("MFVS_RUN_DIR", Path.home() / ".local" / "state" / "mfvs"))
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def read_stack() -> Optional[dict]:
+    path = run_dir() / "stack.json"
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _spawn(args: list[str], log: Path) -> subprocess.Popen:
+    env = dict(os.environ)
+    env.setdefault("MUJOCO_GL", "egl")
+    out = log.open("ab")
+    return subprocess.Popen(args, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[int, str]:
+    """Start the stack; returns (exit code, message)."""
+    current = read_stack()
+    if current and any(_alive(p["pid"]) for p in current["processes"]):
+        return 1, f"a stack is already up (router {current['endpoint']}); run `mfvs down` first"
+    directory = run_dir()
+    scheme = "tcp"
+    if profile.router.config:
+        text = Path(profile.router.config).read_text()
+        scheme = "tls" if '"tls/' in text or "tls/" in text else "tcp"
+    endpoint = f"{scheme}/127.0.0.1:{profile.router.port}"
+    processes = []
+    children: list[subprocess.Popen] = []
+    router_args = [sys.executable, "-m", "services.cli", "router", "--port", str(profile.router.port)]
+    if profile.router.config:
+        router_args += ["--config", profile.router.config]
+    log = directory / "router.log"
+    children.append(_spawn(router_args, log))
+    processes.append({"name": "router", "pid": children[-1].pid, "log": str(log)})
+    time.sleep(0.5)
+    for service in profile.services:
+        module = f"services.{service.name}"
+        args = [sys.executable, "-m", module, "--connect", endpoint, "--robot-id", profile.robot_id]
+        if service.config:
+            args += ["--config", service.config]
+        if clock:
+            args += ["--clock", clock]
+        if service.zenoh_config:
+            args += ["--zenoh-config", service.zenoh_config]
+        log = directory / f"{service.name}.log"
+        children.append(_spawn(args, log))
+        processes.append({"name": service.name, "pid": children[-1].pid, "log": str(log)})
+    stack = {"endpoint": endpoint, "robot_id": profile.robot_id, "processes": processes, "started": time.time()}
+    (directory / "stack.json").write_text(json.dumps(stack, indent=2))
+    # wait until every service announces itself
+    names = {s.name for s in profile.services}
+    deadline = time.monotonic() + wait_s
+    alive: set[str] = set()
+    while time.monotonic() < deadline:
+        dead = [p for p, child in zip(processes, children, strict=True) if child.poll() is not None]
+        if dead:
+            down()
+            logs = "; ".join(f"{p['name']} exited (log {p['log']})" for p in dead)
+            return 1, f"the stack did not come up: {logs}"
+        try:
+            alive = set(status(endpoint, profile.robot_id, liveliness_only=True))
+        except Exception:
+            alive = set()
+        if names <= alive:
+            return 0, f"stack up: router {endpoint}, services {', '.join(sorted(names))} (logs in {directory})"
+        time.sleep(0.5)
+    down()
+    return 1, f"services not alive after {wait_s:g} s: {', '.join(sorted(names - alive))}"
+
+
+def down(timeout_s: float = 15.0) -> tuple[int, str]:
+    stack = read_stack()
+    if stack is None:
+        return 0, "no stack is up"
+    ordered = [p for p in stack["processes"] if p["name"] != "router"] + \
+              [p for p in stack["processes"] if p["name"] == "router"]
+    for group in (ordered[:-1], ordered[-1:]):
+        for proc in group:
+            if _alive(proc["pid"]):
+                try:
+                    os.kill(proc["pid"], signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and any(_alive(p["pid"]) for p in group):
+            time.sleep(0.1)
+            for p in group:  # reap our children if we started them in this process
+                try:
+                    os.waitpid(p["pid"], os.WNOHANG)
+                except ChildProcessError:
+                    pass
+        for proc in group:
+            if _alive(proc["pid"]):
+                os.kill(proc["pid"], signal.SIGKILL)
+    (run_dir() / "stack.json").unlink(missing_ok=True)
+    return 0, f"stopped {len(ordered)} processes"
+
+
+def status(endpoint: str, robot_id: str = "jaco", liveliness_only: bool = False, zenoh_config: str | None = None):
+    """Service name → health (ServiceHealth or None when only liveliness is known)."""
+    keys = Keys(robot_id)
+    session = open_session(ZenohConfig(connect=[endpoint], config_file=zenoh_config))
+    try:
+        alive = [str(r.ok.key_expr).rsplit("/", 1)[-1] for r in session.liveliness().get(keys.liveliness_all,
+                                                                                         timeout=2.0) if r.ok]
+        result: dict = {name: None for name in alive}
+        if not liveliness_only:
+            for reply in session.get(keys.health_all, timeout=2.0):
+                if reply.ok is None:
+                    continue
+                try:
+                    health = m.decode(reply.ok.payload.to_bytes(), m.ServiceHealth)
+                except m.ProtocolError:
+                    continue
+                result[health.service] = health
+        return result
+    finally:
+        session.close()
+
+
+def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -> dict:
+    stack = read_stack() or {"processes": []}
+    pids = {p["name"]: p["pid"] for p in stack["processes"]}
+    router: dict = {"endpoint": endpoint, "pid": pids.get("router"), "reachable": False}
+    services = []
+    try:
+        found = status(endpoint, robot_id, zenoh_config=zenoh_config)
+        router["reachable"] = True
+    except Exception as exc:
+        router["error"] = str(exc)
+        found = {}
+    for name, health in sorted(found.items()):
+        services.append({
+            "name": name, "pid": health.pid if health else pids.get(name),
+            "healthy": bool(health and health.healthy), "state": health.state if health else "unknown",
+            "rates_hz": dict(health.rates_hz) if health else {}, "errors": dict(health.errors) if health else {},
+            "detail": health.detail if health else "",
+        })
+    return {"router": router, "services": services}
+
+
+def load_profile(name_or_path: str, port: int) -> Profile:
+    if name_or_path == "sim":
+        return sim_profile(port)
+    if name_or_path == "gateway":
+        raise ConfigError("gateway", "the gateway profile arrives with robot_gateway (not built yet)")
+    return load_config(name_or_path, Profile)
