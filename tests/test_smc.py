@@ -31,8 +31,8 @@ def test_level_one_equality_on_a_hand_built_case():
     a, b = law.options.fov.semi_axes
     points = [(-0.1, -0.1), (a * 1.01, 0.0), (0.1, 0.1), (-0.1, 0.1)]  # point 1 just outside
     law.step(hand_input(points))
-    A1, b1, ddq, names = law.last_level1
-    assert names == ["fov:1"]
+    A1, b1, ddq, active = law.last_level1
+    assert [law._names(4)[i] for i in active] == ["fov:1"]
     assert np.allclose(A1 @ ddq, b1) and np.allclose(b1, [-2.0])
 
 

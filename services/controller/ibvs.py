@@ -18,7 +18,7 @@ def interaction_matrix(points, depths) -> np.ndarray:
     depths = np.asarray(depths, dtype=float).reshape(-1)
     if len(depths) != len(points):
         raise ValueError("one depth per point")
-    if np.any(depths <= 0) or not np.all(np.isfinite(depths)):
+    if not (depths.min(initial=np.inf) > 0 and np.isfinite(depths).all()):
         raise ValueError("depths must be positive and finite")
     x, y, inv_z = points[:, 0], points[:, 1], 1.0 / depths
     L = np.zeros((2 * len(points), 6))
@@ -38,7 +38,8 @@ def interaction_matrix(points, depths) -> np.ndarray:
 def approximate_interaction_matrix(points, depths, goal_points, goal_depths, source: DepthSource) -> np.ndarray:
     """L̂_s: at the current features and depths, at the goal, or the mean of the two (ViSP's CURRENT, DESIRED,
     MEAN)."""
-    source = DepthSource(source)
+    if source is not DepthSource.CURRENT:
+        source = DepthSource(source)
     if source is DepthSource.CURRENT:
         return interaction_matrix(points, depths)
     if source is DepthSource.GOAL:

@@ -155,6 +155,13 @@ class SlidingModeLaw(Law):
     def __init__(self, config: LawConfig | None = None, kinematics=None, **options) -> None:
         super().__init__(config, kinematics)
         self.options = SmcOptions.from_dict(options)
+        if self.options.joint_range is not None:
+            joints = self.options.joint_range.joints
+            idx = np.array(sorted(joints), dtype=int)
+            lo = np.array([joints[j][0] for j in idx])
+            hi = np.array([joints[j][1] for j in idx])
+            self._range_arrays = (idx, (lo + hi) / 2.0, (hi - lo) / 2.0)
+        self._eye = np.eye(jaco2.N_JOINTS)
         speed = self.options.joint_speed
         if speed is not None and speed.u_plus is None:
             speed.u_plus = 1.25 * self.options.max_task_accel / float(np.min(speed.max_speed))
@@ -168,53 +175,65 @@ class SlidingModeLaw(Law):
 
     # ------------------------------------------------------------------ constraints
     def constraints(self, inp: ServoInput, Js: np.ndarray, J_base: np.ndarray, p: np.ndarray, dq: np.ndarray):
-        """(rows, rhs, phis, names): every constraint's φ, and the level-1 row and right-hand side for it."""
+        """(rows, rhs, phis, names): every constraint's φ, and the level-1 row (K∇σᵀ, or ∂φ/∂q̇ for speeds) and
+        right-hand side (−u⁺) it contributes when active. Arrays, one entry per constraint, in a fixed order."""
         opt = self.options
-        rows, rhs, phis, names = [], [], [], []
         n_joints = jaco2.N_JOINTS
+        rows, rhs, phis = [], [], []
         if opt.fov is not None:
             fov = opt.fov
             a, b = fov.semi_axes
             n = fov.exponent
             pts = np.asarray(inp.points)
             x, y = pts[:, 0], pts[:, 1]
-            sigma = np.abs(x / a) ** n + np.abs(y / b) ** n - 1.0
-            d_sigma = np.stack([n * np.sign(x) * np.abs(x) ** (n - 1) / a**n,
-                                n * np.sign(y) * np.abs(y) ** (n - 1) / b**n], axis=1)
+            ax, ay = np.abs(x / a), np.abs(y / b)
+            sigma = ax**n + ay**n - 1.0
+            d_sigma = np.empty((len(pts), 2))
+            d_sigma[:, 0] = n * np.sign(x) * ax ** (n - 1) / a
+            d_sigma[:, 1] = n * np.sign(y) * ay ** (n - 1) / b
             grads = np.einsum("pk,pkj->pj", d_sigma, Js.reshape(-1, 2, n_joints))
             if opt.gradient_error:
                 grads = grads + opt.gradient_error * GRADIENT_ERROR_SIGNS * np.abs(grads)
-            rows.extend(fov.K * grads)
-            rhs.extend([-fov.u_plus] * len(pts))
-            phis.extend(sigma + fov.K * grads @ dq)
-            names.extend(f"fov:{i}" for i in range(len(pts)))
+            rows.append(fov.K * grads)
+            rhs.append(np.full(len(pts), -fov.u_plus))
+            phis.append(sigma + fov.K * (grads @ dq))
         if opt.joint_range is not None:
             jr = opt.joint_range
-            for j, (lo, hi) in jr.joints.items():
-                half = (hi - lo) / 2.0
-                q_t = (inp.q[j] - (lo + hi) / 2.0) / half
-                grad = np.zeros(n_joints)
-                grad[j] = np.sign(q_t) / half
-                rows.append(jr.K * grad)
-                rhs.append(-jr.u_plus)
-                phis.append(-1.0 + abs(q_t) + jr.margin + jr.K * grad[j] * dq[j])
-                names.append(f"joint_range:{j + 1}")
+            idx, mid, half = self._range_arrays
+            q_t = (np.asarray(inp.q)[idx] - mid) / half
+            block = np.zeros((len(idx), n_joints))
+            block[np.arange(len(idx)), idx] = jr.K * np.sign(q_t) / half
+            rows.append(block)
+            rhs.append(np.full(len(idx), -jr.u_plus))
+            phis.append(-1.0 + np.abs(q_t) + jr.margin + block[np.arange(len(idx)), idx] * dq[idx])
         if opt.joint_speed is not None:
             js = opt.joint_speed
-            rows.extend(np.diag(np.sign(dq) / js.max_speed))
-            rhs.extend([-js.u_plus] * n_joints)
-            phis.extend(-1.0 + np.abs(dq) / js.max_speed + js.margin)
-            names.extend(f"joint_speed:{j + 1}" for j in range(n_joints))
-        for k, sphere in enumerate(opt.spheres):
+            rows.append(np.diag(np.sign(dq) / js.max_speed))
+            rhs.append(np.full(n_joints, -js.u_plus))
+            phis.append(-1.0 + np.abs(dq) / js.max_speed + js.margin)
+        for sphere in opt.spheres:
             offset = p - np.asarray(sphere.centre)
             dist = float(np.linalg.norm(offset))
-            sigma = sphere.radius - dist + sphere.margin
             grad = J_base[:3].T @ (-offset / max(dist, 1e-12))
-            rows.append(sphere.K * grad)
-            rhs.append(-sphere.u_plus)
-            phis.append(sigma + sphere.K * grad @ dq)
-            names.append(f"sphere:{k}")
-        return rows, rhs, np.array(phis), names
+            rows.append((sphere.K * grad)[None, :])
+            rhs.append(np.array([-sphere.u_plus]))
+            phis.append(np.array([sphere.radius - dist + sphere.margin + sphere.K * grad @ dq]))
+        if not rows:
+            return np.zeros((0, n_joints)), np.zeros(0), np.zeros(0), []
+        return np.vstack(rows), np.concatenate(rhs), np.concatenate(phis), self._names(len(inp.points))
+
+    def _names(self, n_points: int) -> list[str]:
+        cached = getattr(self, "_names_cache", None)
+        if cached is None or cached[0] != n_points:
+            opt = self.options
+            names = [f"fov:{i}" for i in range(n_points)] if opt.fov is not None else []
+            if opt.joint_range is not None:
+                names += [f"joint_range:{j + 1}" for j in opt.joint_range.joints]
+            if opt.joint_speed is not None:
+                names += [f"joint_speed:{j + 1}" for j in range(jaco2.N_JOINTS)]
+            names += [f"sphere:{k}" for k in range(len(opt.spheres))]
+            self._names_cache = cached = (n_points, names)
+        return cached[1]
 
     def band(self, name: str) -> float:
         """The chattering band T_s·u⁺ of the constraint called ``name`` (for the nominal sampling time)."""
@@ -253,7 +272,7 @@ class SlidingModeLaw(Law):
         dq = self.dq_c
         e = inp.error
         e_dot = Js @ dq  # ṡ of the noise-free model (static target, static reference)
-        norm = float(np.linalg.norm(e))
+        norm = math.sqrt(float(e @ e))
         K_p = opt.K0 * math.exp(-(opt.Kdot0 / opt.K0) * norm)
         K_v = 3.0 * math.sqrt(K_p)
         s_ddot = -K_p * e - K_v * e_dot
@@ -264,33 +283,37 @@ class SlidingModeLaw(Law):
         A2 = Js
         b2 = s_ddot - Js_dot @ dq
         if active:
-            A1 = np.array([rows[i] for i in active])
-            b1 = np.array([rhs[i] for i in active])
+            A1 = rows[active]
+            b1 = rhs[active]
             U, s1, Vt = np.linalg.svd(A1, full_matrices=False)
             rank = int(np.sum(s1 > opt.rcond * max(s1[0], 1e-12)))
             if len(active) > n or rank < len(active):
                 raise ConstraintAbort(f"{len(active)} active constraints (rank {rank}) leave no freedom for the "
                                       f"task: {', '.join(names[i] for i in active)}")
-            A1_pinv = Vt.T @ np.diag(1.0 / s1) @ U.T
-            N1 = np.eye(n) - A1_pinv @ A1
+            A1_pinv = (Vt.T / s1) @ U.T
+            N1 = self._eye - A1_pinv @ A1
             first = A1_pinv @ b1
+            A2N1 = A2 @ N1
+            b2 = b2 - A2 @ first
         else:
-            N1, first = np.eye(n), np.zeros(n)
-        A2N1 = A2 @ N1
-        A2N1_pinv = np.linalg.pinv(A2N1, rcond=opt.task_rcond)
-        second = A2N1_pinv @ (b2 - A2 @ first)
-        # level 3: damp the self-motion in the null space of both levels
-        N12 = N1 @ (np.eye(n) - A2N1_pinv @ A2N1)
-        second = second + N12 @ (-opt.null_damping * dq)
+            N1, first, A2N1 = None, 0.0, A2
+        U2, s2, Vt2 = np.linalg.svd(A2N1, full_matrices=False)
+        keep = s2 > opt.task_rcond * s2[0]
+        V2 = Vt2[keep]
+        second = (V2.T / s2[keep]) @ (U2[:, keep].T @ b2)
+        # level 3: damp the self-motion in the null space of both levels (V2 spans A2N1's row space)
+        damping = -opt.null_damping * dq
+        damping = damping - V2.T @ (V2 @ damping)
+        second = second + (damping if N1 is None else N1 @ damping)
         # the task's acceleration is bounded by what the arm can do; level 1 never is, so the switching gains
         # u⁺ dominate the task's push on every constraint (the condition behind the chattering band)
-        peak = float(np.max(np.abs(second)))
+        peak = float(np.abs(second).max())
         if peak > opt.max_task_accel:
             second *= opt.max_task_accel / peak
-        ddq = first + second
-        #: the last step's level-1 system and acceleration, for inspection (A1·q̈ = b1 holds when A1 has full rank)
-        self.last_level1 = (np.array([rows[i] for i in active]).reshape(len(active), n),
-                            np.array([rhs[i] for i in active]), ddq, [names[i] for i in active])
+        ddq = second + first
+        #: the last step's level-1 system, acceleration and active constraint indices (into ``_names``), for
+        #: inspection: A1·q̈ = b1 holds when A1 has full rank
+        self.last_level1 = (rows[active], rhs[active], ddq, active)
         self.dq_c = dq + Ts * ddq
         self._Js_prev = Js
         self._t_prev = inp.t_s
