@@ -94,3 +94,37 @@ def test_estop_in_realtime_stops_within_v0_over_a_stop(moving_arm):
     bound = v0 / 1.5 + 0.030  # safety's estop_decel_mps2, the robot's emergency deceleration
     print(f"v0 {v0:.3f} m/s, at rest {elapsed * 1e3:.0f} ms after the e-stop (bound {bound * 1e3:.0f} ms)")
     assert elapsed <= bound
+
+
+@pytest.mark.parametrize("victim", ["controller", "vision"])
+def test_killing_the_real_controller_or_vision_mid_motion_stops_the_arm(victim, tmp_path, monkeypatch):
+    """The whole sim stack as processes (`mfvs up`), servoing in realtime; SIGKILL the controller or vision while
+    the arm moves: it rests no later than the freshness budget + v0/a_stop + 30 ms."""
+    import json
+
+    from services.common.transport import ZenohConfig, free_loopback_port
+    from services.launcher import down, sim_profile, up
+
+    monkeypatch.setenv("MFVS_RUN_DIR", str(tmp_path))
+    port = free_loopback_port()
+    code, message = up(sim_profile(port), "realtime")
+    assert code == 0, message
+    kin = ArmKinematics()
+    client = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+    states = Recorder(client, KEYS.robot_state, m.RobotState)
+    try:
+        # the default scene puts the tag 0.5 m ahead and the goal at 0.29 m: the arm moves toward it
+        assert wait_for(lambda: len(states) > 10 and ee_speed(kin, states.last()) > 0.05, timeout=30)
+        v0 = ee_speed(kin, states.last())
+        pids = {p["name"]: p["pid"] for p in json.loads((tmp_path / "stack.json").read_text())["processes"]}
+        kill_ns = time.time_ns()
+        os.kill(pids[victim], signal.SIGKILL)
+        time.sleep(1.5)
+        elapsed = time_to_rest(states, kin, kill_ns)
+        bound = 0.1 + v0 / 0.64 + 0.030
+        print(f"{victim} killed at v0 {v0:.3f} m/s: at rest after {elapsed * 1e3:.0f} ms (bound {bound * 1e3:.0f} ms)")
+        assert elapsed <= bound
+    finally:
+        states.close()
+        client.close()
+        down()
