@@ -13,17 +13,11 @@ from protocol.keys import Keys
 from services.common import jaco2
 from services.common.transport import open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
+from tests.stack import wait_for
 
 KEYS = Keys()
 
 
-def wait_for(predicate, timeout=10.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 class FakeSafety:

@@ -20,17 +20,11 @@ from services.common.logs import RateLimitedLogger
 from services.common.metrics import Counters, RateMeter
 from services.common.service import Service, ServiceConfig
 from services.common.transport import Router, ZenohConfig, open_session, to_zenoh_config
+from tests.stack import wait_for
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def wait_for(predicate, timeout=5.0, period=0.02):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(period)
-    return predicate()
 
 
 def twist(seq=0, x=0.1):

@@ -11,17 +11,11 @@ from protocol.keys import Keys
 from services.common.transport import open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.vision.service import VisionConfig, VisionService
+from tests.stack import wait_for
 
 KEYS = Keys()
 
 
-def wait_for(predicate, timeout=30.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 class StopOnFeatures:
