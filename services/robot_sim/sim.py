@@ -98,15 +98,20 @@ class Simulation:
         Returns the references written."""
         dq_ref = self.dsp.cycle(self.actuators.read())
         self.actuators.write(dq_ref)
+        self.step_physics(self.steps_per_cycle)
+        return dq_ref
+
+    def step_physics(self, steps: int = 1) -> None:
+        """Physics only (no DSP cycle): the actuators apply their torques each step. For the actuator-bus mode,
+        where the DSP runs in a gateway on the other side of the RS-485 bus."""
         dt = self.model.opt.timestep
         velocity = np.asarray(self.scene.target.velocity_mps, dtype=float)
-        for _ in range(self.steps_per_cycle):
+        for _ in range(steps):
             self.actuators.apply(dt)
             mujoco.mj_step(self.model, self.data)
             self.time_ns += self.physics_dt_ns
             if velocity.any():
                 self.data.mocap_pos[self._mocap] = self._target_start + velocity * (self.time_ns * 1e-9)
-        return dq_ref
 
     def frame_due(self) -> bool:
         return self.time_ns >= self.next_frame_ns

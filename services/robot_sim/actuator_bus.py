@@ -1,0 +1,234 @@
+"""The JACO-2's actuators as seen on their RS-485 bus: each answers the low-level messages of
+``protocol.rs485`` at 500 Hz and drives its MuJoCo joint, in position or torque mode.
+
+Per actuator (host 0x00, actuators at ``ACTUATOR_ADDRESSES``):
+
+* ``GET_ACTUAL_POSITION`` (0x01) → ``SEND_ACTUAL_POSITION`` (0x02), float[0] = position (deg, physical).
+* ``POSITION_AND_TORQUE_COMMAND`` (0x14) → one 0x15, 0x16 and 0x17 reply each. In position mode float[0] is the
+  position target; in torque mode float[0] is the host's idea of the current position (a safety reference: more
+  than ``reference_tolerance_deg`` off is a RELATIVE_POSITION fault) and float[2] the torque (N·m), clamped to the
+  actuator's limit (a TORQUE fault is reported when it had to be). 0x17 carries float [position target (deg),
+  torque command (N·m), mode (0 position / 1 torque), fault code] (this layout is mfvs's; the public sources do
+  not give one).
+* ``GET_TORQUE_VALIDATION_REQUEST`` (0x201), float[0] = the torque the host's model expects at the current
+  position → ``SEND_TORQUE_VALIDATION`` (0x202), uint32[0] = 1 when it matches the measured torque within
+  tolerance. Switching to torque mode needs a validation of the last second.
+* ``SWITCH_CONTROL_MODE_REQUEST`` (0x203), uint32[0] = 0 position / 1 torque → ``SWITCH_CONTROL_MODE_REPLY``
+  (0x204): 1 position OK, 257 torque OK, 0 refused.
+* ``CLEAR_FAULT_FLAG`` (0x33), ``START_SERVO``/``STOP_SERVO`` → ``ACK`` (0x3F); other commands → ``NACK``.
+* Faults (limits, torque, reference mismatch) are reported with ``REPORT_ERROR`` (0x30) once, latch, and make
+  the actuator hold its position until ``CLEAR_FAULT_FLAG``.
+* Torque mode falls back to holding the position when no torque command came for ``torque_timeout_s`` (250 ms).
+* Gravity compensation: in torque mode the actuator adds the model's gravity torque (the real DSP's option).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import msgspec
+import mujoco
+import numpy as np
+
+from protocol import rs485 as r
+from services.common import jaco2
+from services.common.config import ConfigStruct
+from services.common.dsp import JointState
+from services.common.metrics import Counters
+from services.common.rs485_bus import RS485Bus
+
+
+class ActuatorBusConfig(ConfigStruct):
+    addresses: list[int] = msgspec.field(default_factory=lambda: list(r.ACTUATOR_ADDRESSES))
+    torque_timeout_s: float = 0.25
+    gravity_compensation: bool = True
+    reference_tolerance_deg: float = 10.0
+    #: torque validation: the host's expected torque must match the measured one within this (N·m or fraction)
+    validation_tolerance_nm: float = 2.0
+    validation_tolerance_fraction: float = 0.2
+    validation_lifetime_s: float = 1.0
+
+
+# position-mode servo of each actuator (its own firmware loop)
+KP = np.array([400.0, 400.0, 400.0, 300.0, 120.0, 120.0, 120.0])
+KD = np.array([40.0, 40.0, 40.0, 30.0, 8.0, 8.0, 8.0])
+
+
+@dataclass
+class Actuator:
+    index: int
+    address: int
+    mode: r.ControlModeRequest = r.ControlModeRequest.POSITION
+    target_deg: float = 0.0
+    torque_nm: float = 0.0
+    last_torque_s: float = -math.inf
+    validated_s: float = -math.inf
+    fault: r.ActuatorError = r.ActuatorError.NONE
+    reported: set = field(default_factory=set)
+
+
+class ActuatorBusEmulator:
+    """The seven actuators on one bus, driving a MuJoCo arm. ``process(now_s)`` every 2 ms handles the bus;
+    ``apply(dt)`` every physics step sets the joint torques (the Simulation's actuator interface)."""
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, bus: RS485Bus,
+                 config: ActuatorBusConfig | None = None, counters: Counters | None = None) -> None:
+        self.model, self.data, self.bus = model, data, bus
+        self.config = config or ActuatorBusConfig()
+        self.counters = counters or bus.counters
+        self.n = jaco2.N_JOINTS
+        self.torque_limit = model.actuator_ctrlrange[: self.n, 1].copy()
+        self.lower, self.upper = jaco2.model_limits()
+        self.by_address = {}
+        for i, address in enumerate(self.config.addresses):
+            actuator = Actuator(i, address, target_deg=self._position_deg(i))
+            self.by_address[address] = actuator
+        self.actuators = list(self.by_address.values())
+        self._gravity = np.zeros(self.n)
+        self.now_s = 0.0
+
+    # ------------------------------------------------------------------ state in actuator units
+    def _position_deg(self, i: int) -> float:
+        return float(jaco2.model_to_physical_deg(self.data.qpos[: self.n])[i])
+
+    def _velocity_dps(self, i: int) -> float:
+        return float(jaco2.model_rate_to_physical(self.data.qvel[: self.n])[i])
+
+    def _torque_nm(self, i: int) -> float:
+        """Measured joint torque in the actuator's (physical) sign."""
+        return float(jaco2.SIGN[i] * self.data.actuator_force[i])
+
+    def read(self) -> JointState:
+        d = self.data
+        return JointState(q=d.qpos[: self.n].copy(), dq=d.qvel[: self.n].copy(),
+                          tau=d.actuator_force[: self.n].copy(), stamp_ns=int(round(d.time * 1e9)))
+
+    # ------------------------------------------------------------------ the 500 Hz bus cycle
+    def process(self, now_s: float) -> int:
+        """Handle every message waiting on the bus; returns how many were handled."""
+        self.now_s = now_s
+        handled = 0
+        for message in self.bus.drain():
+            actuator = self.by_address.get(message.destination)
+            if actuator is None:
+                continue  # for someone else (or the host)
+            handled += 1
+            self.counters.inc(f"bus.rx.{message.command.name.lower()}")
+            for reply in self._handle(actuator, message):
+                self.bus.send(reply)
+        for actuator in self.actuators:
+            if (actuator.mode is r.ControlModeRequest.TORQUE
+                    and now_s - actuator.last_torque_s > self.config.torque_timeout_s):
+                self._hold(actuator)
+                self.counters.inc("torque_timeouts")
+            self._check_limits(actuator)
+        return handled
+
+    def _hold(self, actuator: Actuator) -> None:
+        actuator.mode = r.ControlModeRequest.POSITION
+        actuator.target_deg = self._position_deg(actuator.index)
+        actuator.torque_nm = 0.0
+
+    def _fault(self, actuator: Actuator, error: r.ActuatorError) -> list:
+        if actuator.fault is r.ActuatorError.NONE:
+            actuator.fault = error
+            self._hold(actuator)
+            self.counters.inc(f"faults.{error.name.lower()}")
+            return [r.report_error(error, actuator.address)]
+        return []
+
+    def _check_limits(self, actuator: Actuator) -> None:
+        i = actuator.index
+        if not np.isfinite(self.lower[i]):
+            return
+        q = self.data.qpos[i]
+        if (q < self.lower[i] or q > self.upper[i]) and actuator.fault is r.ActuatorError.NONE:
+            for reply in self._fault(actuator, r.ActuatorError.POSITION_LIMIT):
+                self.bus.send(reply)
+
+    def _replies(self, actuator: Actuator) -> list:
+        i = actuator.index
+        torque = self._torque_nm(i)
+        current = torque / 0.08  # N·m per A of the geared motor, an emulation constant
+        return [
+            r.AllValues1(current, self._position_deg(i), self._velocity_dps(i), torque).to_message(actuator.address),
+            r.AllValues2((0.0, 0.0, 1.0), 35.0).to_message(actuator.address),
+            r.RS485Message.with_floats(r.Command.SEND_ALL_VALUES_3, actuator.address, r.HOST_ADDRESS,
+                                       [actuator.target_deg, actuator.torque_nm, float(actuator.mode),
+                                        float(actuator.fault)]),
+        ]
+
+    def _handle(self, actuator: Actuator, message: r.RS485Message) -> list:
+        cfg = self.config
+        command = message.command
+        i = actuator.index
+        if command is r.Command.GET_ACTUAL_POSITION:
+            return [r.RS485Message.with_floats(r.Command.SEND_ACTUAL_POSITION, actuator.address, r.HOST_ADDRESS,
+                                               [self._position_deg(i)])]
+        if command is r.Command.POSITION_AND_TORQUE_COMMAND:
+            try:
+                cmd = r.PositionTorqueCommand.from_message(message)
+            except r.RS485Error:
+                self.counters.inc("bus.rejected_payloads")
+                return self._fault(actuator, r.ActuatorError.COMMAND) + self._replies(actuator)
+            out = []
+            if actuator.fault is not r.ActuatorError.NONE:
+                return self._replies(actuator)
+            if actuator.mode is r.ControlModeRequest.POSITION:
+                actuator.target_deg = cmd.position_deg
+            else:
+                if abs(cmd.position_deg - self._position_deg(i)) > cfg.reference_tolerance_deg:
+                    return self._fault(actuator, r.ActuatorError.RELATIVE_POSITION) + self._replies(actuator)
+                limit = float(self.torque_limit[i])
+                torque = min(max(cmd.torque_nm, -limit), limit)
+                if torque != cmd.torque_nm and r.ActuatorError.TORQUE not in actuator.reported:
+                    actuator.reported.add(r.ActuatorError.TORQUE)  # clamped, reported once, not latched
+                    out.append(r.report_error(r.ActuatorError.TORQUE, actuator.address))
+                actuator.torque_nm = torque
+                actuator.last_torque_s = self.now_s
+            return out + self._replies(actuator)
+        if command is r.Command.GET_TORQUE_VALIDATION_REQUEST:
+            expected = message.floats[0]
+            measured = self._torque_nm(i)
+            ok = math.isfinite(expected) and abs(expected - measured) <= max(
+                cfg.validation_tolerance_nm, cfg.validation_tolerance_fraction * abs(measured))
+            if ok:
+                actuator.validated_s = self.now_s
+            return [r.RS485Message.with_uints(r.Command.SEND_TORQUE_VALIDATION, actuator.address, r.HOST_ADDRESS,
+                                              [1 if ok else 0])]
+        if command is r.Command.SWITCH_CONTROL_MODE_REQUEST:
+            wanted = message.uints[0]
+            if wanted == r.ControlModeRequest.POSITION:
+                self._hold(actuator)
+                return [r.switch_mode_reply(r.ControlModeReply.POSITION_OK, actuator.address)]
+            recent = self.now_s - actuator.validated_s <= cfg.validation_lifetime_s
+            if wanted == r.ControlModeRequest.TORQUE and recent and actuator.fault is r.ActuatorError.NONE:
+                actuator.mode = r.ControlModeRequest.TORQUE
+                actuator.torque_nm = 0.0
+                actuator.last_torque_s = self.now_s
+                return [r.switch_mode_reply(r.ControlModeReply.TORQUE_OK, actuator.address)]
+            self.counters.inc("mode_switch_refused")
+            return [r.switch_mode_reply(r.ControlModeReply.REFUSED, actuator.address)]
+        if command is r.Command.CLEAR_FAULT_FLAG:
+            actuator.fault = r.ActuatorError.NONE
+            actuator.reported.clear()
+            return [r.RS485Message(r.Command.ACK, actuator.address, r.HOST_ADDRESS)]
+        if command in (r.Command.START_SERVO, r.Command.STOP_SERVO):
+            return [r.RS485Message(r.Command.ACK, actuator.address, r.HOST_ADDRESS)]
+        self.counters.inc("bus.unsupported")
+        return [r.RS485Message(r.Command.NACK, actuator.address, r.HOST_ADDRESS)]
+
+    # ------------------------------------------------------------------ physics
+    def apply(self, dt: float) -> None:
+        d = self.data
+        q, dq = d.qpos[: self.n], d.qvel[: self.n]
+        tau = np.empty(self.n)
+        gravity = d.qfrc_bias[: self.n]  # at rest this is the gravity torque; it also cancels Coriolis terms
+        for a in self.actuators:
+            i = a.index
+            if a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE:
+                tau[i] = jaco2.SIGN[i] * a.torque_nm + (gravity[i] if self.config.gravity_compensation else 0.0)
+            else:
+                target = jaco2.SIGN[i] * math.radians(a.target_deg)
+                tau[i] = gravity[i] + KP[i] * (target - q[i]) - KD[i] * dq[i]
+        d.ctrl[: self.n] = np.clip(tau, -self.torque_limit, self.torque_limit)
