@@ -181,7 +181,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
     return 0 if report["router"]["reachable"] else 1
 
 
-BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency"}
+BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
+              "rs485": "bench.rs485"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -257,7 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="run a benchmark and print its figures")
     bench.add_argument("name", choices=sorted(BENCHMARKS),
                        help="loops: robot_sim loop rate, jitter, lockstep speed; vision: detection time per frame; "
-                       "laws: µs per control-law iteration; latency: capture → applied, per hop")
+                       "laws: µs per control-law iteration; latency: capture → applied, per hop; "
+                       "rs485: actuator bus cycle and request→reply latency")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)

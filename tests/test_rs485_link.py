@@ -1,0 +1,69 @@
+"""The host's RS-485 link against robot_sim's actuators running in realtime on a python-can virtual bus."""
+import itertools
+import time
+
+import numpy as np
+import pytest
+
+from protocol import rs485 as r
+from services.common import jaco2
+from services.common.rs485_bus import BusConfig, RS485Bus
+from services.robot_gateway.link import ActuatorLink, LinkError, expected_torques_physical
+from services.robot_sim.bus_runner import BusRunner
+from services.robot_sim.sim import Simulation
+
+_channels = itertools.count()
+
+
+@pytest.fixture
+def link():
+    channel = f"link-bus-{next(_channels)}"
+    runner = BusRunner(Simulation(render=False), BusConfig(channel=channel)).start()
+    host = RS485Bus(BusConfig(channel=channel))
+    time.sleep(0.05)
+    yield ActuatorLink(host, timeout_s=0.05), runner
+    host.close()
+    runner.stop()
+
+
+def test_positions_and_all_values(link):
+    link, runner = link
+    positions = link.positions_deg()
+    assert positions == pytest.approx(jaco2.HOME_DEG, abs=0.05)
+    reading = link.command(positions)
+    assert reading.position_deg == pytest.approx(jaco2.HOME_DEG, abs=0.05)
+    assert np.all(reading.mode == 0) and np.all(reading.fault == 0)
+    assert np.all(reading.temperature_c == pytest.approx(35.0))
+
+
+def test_torque_mode_round_trip_holds_the_arm_with_gravity_compensation(link):
+    link, runner = link
+    time.sleep(0.2)
+    with runner.lock:
+        q = runner.sim.q
+    link.switch_to_torque(expected_torques_physical(q))
+    positions = link.positions_deg()
+    for _ in range(100):  # 0.2 s of zero extra torque: the actuators' gravity compensation holds the arm
+        reading = link.command(positions, np.zeros(7))
+        time.sleep(0.002)
+    assert np.all(reading.mode == 1)
+    assert np.abs(reading.position_deg - positions).max() < 1.0
+    link.switch_to_position()
+    assert np.all(link.command(link.positions_deg()).mode == 0)
+
+
+def test_bad_validation_is_refused(link):
+    link, _ = link
+    with pytest.raises(LinkError, match="validation failed"):
+        link.switch_to_torque(np.full(7, 50.0))
+
+
+def test_missing_replies_time_out_and_nacks_raise(link):
+    link, _ = link
+    ghost = ActuatorLink(link.bus, addresses=[0x30], timeout_s=0.02)
+    with pytest.raises(LinkError, match="no reply"):
+        ghost.positions_deg()
+    assert link.bus.counters.get("link.timeouts") == 1
+    link.bus.send(r.RS485Message(r.Command.KP_GAIN, 0, 0x10))
+    with pytest.raises(LinkError, match="NACK"):
+        ActuatorLink(link.bus, addresses=[0x10], timeout_s=0.05)._collect({(0x10, r.Command.ACK): 1})
