@@ -1,0 +1,73 @@
+"""The DSP's joint-level actuator interface over the RS-485 link: the same ``read()``/``write()`` the simulator's
+actuators offer, so :class:`services.common.dsp.KinovaDSP` runs unchanged in the gateway.
+
+A 500 Hz loop (:meth:`LinkActuators.cycle`, called every 2 ms) integrates the DSP's joint velocity references into
+position targets and sends them to the actuators (position mode, 0x14), reading their state from the replies.
+A bus failure (:class:`~services.robot_gateway.link.LinkError`) is counted and the targets are frozen at the last
+measured angles, so the arm holds still rather than follow a stale reference; the DSP sees ``faults``.
+"""
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+
+from services.common import jaco2
+from services.common.dsp import JointState
+from services.robot_gateway.link import ActuatorLink, ActuatorReading, LinkError
+
+#: a reference further than this from the measured angle is pulled back (as the simulator's servos do)
+MAX_TRACKING_ERROR = math.radians(3.0)
+
+
+class LinkActuators:
+    def __init__(self, link: ActuatorLink, cycle_s: float = 0.002) -> None:
+        self.link = link
+        self.cycle_s = cycle_s
+        self.lock = threading.Lock()
+        self.faults: list[str] = []
+        self.bus_errors = 0
+        positions = link.positions_deg()
+        self.q_ref = jaco2.physical_deg_to_model(positions)
+        self.dq_ref = np.zeros(jaco2.N_JOINTS)
+        self.state = JointState(q=self.q_ref.copy(), dq=np.zeros(jaco2.N_JOINTS))
+        self.reading: ActuatorReading | None = None
+
+    # ---- the interface the DSP uses
+    def read(self) -> JointState:
+        with self.lock:
+            return JointState(q=self.state.q.copy(), dq=self.state.dq.copy(), tau=self.state.tau.copy(),
+                              stamp_ns=self.state.stamp_ns)
+
+    def write(self, dq_ref: np.ndarray) -> None:
+        dq_ref = np.asarray(dq_ref, dtype=float)
+        if dq_ref.shape != (jaco2.N_JOINTS,) or not np.all(np.isfinite(dq_ref)):
+            raise ValueError("joint velocity references must be 7 finite numbers")
+        with self.lock:
+            self.dq_ref = dq_ref.copy()
+
+    # ---- the 500 Hz bus cycle
+    def cycle(self, stamp_ns: int = 0) -> bool:
+        """One exchange with the actuators; False (and the arm held) when the bus failed."""
+        with self.lock:
+            q_meas = self.state.q
+            self.q_ref = self.q_ref + self.dq_ref * self.cycle_s
+            self.q_ref = q_meas + np.clip(self.q_ref - q_meas, -MAX_TRACKING_ERROR, MAX_TRACKING_ERROR)
+            targets = jaco2.model_to_physical_deg(self.q_ref)
+        try:
+            reading = self.link.command(targets)
+        except LinkError as exc:
+            with self.lock:
+                self.bus_errors += 1
+                self.q_ref = self.state.q.copy()  # hold where the arm was last seen
+                self.dq_ref = np.zeros(jaco2.N_JOINTS)
+                self.faults = [f"bus: {exc}"]
+            return False
+        with self.lock:
+            self.reading = reading
+            self.state = JointState(q=jaco2.physical_deg_to_model(reading.position_deg),
+                                    dq=jaco2.physical_rate_to_model(reading.velocity_dps),
+                                    tau=jaco2.SIGN * reading.torque_nm, stamp_ns=stamp_ns)
+            self.faults = [f"actuator {i + 1}: fault {int(code)}" for i, code in enumerate(reading.fault) if code]
+        return True
