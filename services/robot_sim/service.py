@@ -20,35 +20,25 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from concurrent.futures import Future
-from typing import Callable, Optional
+from typing import Optional
 
 import msgspec
 import mujoco
-import numpy as np
 import zenoh
 
-from protocol import kinova
 from protocol.conventions import ClockMode
 from protocol.messages import (
     CameraInfo,
-    Header,
     Image,
     ImageEncoding,
-    KinovaPose,
-    ProtocolError,
-    RobotCommand,
-    RobotState,
     SimClock,
-    decode,
     encode,
 )
-from services.common import frames, jaco2
 from services.common.config import ConfigStruct
-from services.common.dsp import CommandRefused, DSPConfig
+from services.common.dsp import DSPConfig
 from services.common.metrics import LoopTimer
+from services.common.robot_frontend import RobotFrontEnd
 from services.common.service import Service, ServiceConfig
-from services.common.zones import zone_from_kinova, zone_to_kinova
 from services.robot_sim import scene as scene_mod
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim import Simulation
@@ -75,103 +65,6 @@ class RobotSimConfig(ServiceConfig):
     max_sim_time_s: float = 0.0
 
 
-class _Api:
-    """Kinova API calls, executed by the simulation thread between cycles."""
-
-    def __init__(self, sim: Simulation) -> None:
-        self.sim = sim
-        self.dsp = sim.dsp
-        self.builtin_zones = list(sim.dsp.zones)
-        self.kinova_zones: list = []
-        self.last_command = np.zeros(jaco2.N_JOINTS)
-
-    def call(self, function: str, argument) -> kinova.ApiReply:
-        handler: Callable = getattr(self, f"_{function}")
-        return handler(argument)
-
-    def _InitAPI(self, _):
-        return kinova.ApiReply()
-
-    _CloseAPI = _SetCartesianControl = _SetAngularControl = _InitAPI
-
-    def _MoveHome(self, _):
-        self.dsp.move_home()
-        return kinova.ApiReply()
-
-    def _SendBasicTrajectory(self, point: kinova.TrajectoryPoint):
-        code = self.dsp.send_basic_trajectory(point)
-        message = "" if code == kinova.ErrorCode.NO_ERROR_KINOVA else "point refused (FIFO full, target outside " \
-                                                                       "the joint limits, or unsupported type)"
-        return kinova.ApiReply(code=int(code), message=message)
-
-    def _EraseAllTrajectories(self, _):
-        self.dsp.erase_all_trajectories()
-        return kinova.ApiReply()
-
-    def _GetGlobalTrajectoryInfo(self, _):
-        n = self.dsp.fifo_count
-        return kinova.TrajectoryFIFOReply(result=kinova.TrajectoryFIFO(
-            TrajectoryCount=n, UsedPercentage=100.0 * n / kinova.TRAJECTORY_FIFO_SIZE))
-
-    def _angular(self, values_deg) -> kinova.AngularPositionReply:
-        return kinova.AngularPositionReply(result=kinova.AngularPosition(
-            Actuators=kinova.AngularInfo.from_list(values_deg)))
-
-    def _GetAngularPosition(self, _):
-        return self._angular(jaco2.model_to_physical_deg(self.sim.q))
-
-    def _GetAngularVelocity(self, _):
-        return self._angular(jaco2.model_rate_to_physical(self.sim.dq))
-
-    def _GetAngularForce(self, _):
-        return self._angular(jaco2.SIGN * self.sim.actuators.read().tau)
-
-    def _GetAngularCommand(self, _):
-        return self._angular(jaco2.model_to_physical_deg(self.sim.actuators.q_ref))
-
-    def _cartesian(self, T) -> kinova.CartesianPositionReply:
-        euler = frames.matrix_to_euler_xyz(T[:3, :3])
-        return kinova.CartesianPositionReply(result=kinova.CartesianPosition(Coordinates=kinova.CartesianInfo(
-            X=T[0, 3], Y=T[1, 3], Z=T[2, 3], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2])))
-
-    def _GetCartesianPosition(self, _):
-        return self._cartesian(self.sim.ee_pose())
-
-    def _GetCartesianCommand(self, _):
-        return self._cartesian(jaco2.dh_forward_kinematics(self.sim.actuators.q_ref))
-
-    def _SetProtectionZone(self, zones: kinova.ZoneList):
-        try:
-            boxes = [zone_from_kinova(z) for z in zones.Zones]
-        except ValueError as exc:
-            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))
-        self.kinova_zones = boxes
-        self.dsp.zones = self.builtin_zones + boxes
-        return kinova.ApiReply()
-
-    def _GetProtectionZone(self, _):
-        zones = [zone_to_kinova(box, i + 1) for i, box in enumerate(self.kinova_zones)]
-        return kinova.ZoneListReply(result=kinova.ZoneList(NbZones=len(zones), Zones=zones))
-
-    def _EraseAllProtectionZones(self, _):
-        self.kinova_zones = []
-        self.dsp.zones = list(self.builtin_zones)
-        return kinova.ApiReply()
-
-    def _GetClientConfigurations(self, _):
-        cfg = self.dsp.config
-        return kinova.ClientConfigurationsReply(result=kinova.ClientConfigurations(
-            MaxTranslationVelocity=self.dsp.max_linear, MaxOrientationVelocity=self.dsp.max_angular,
-            MaxTranslationAcceleration=cfg.linear_accel_mps2, MaxOrientationAcceleration=cfg.angular_accel_rps2))
-
-    def _SetClientConfigurations(self, conf: kinova.ClientConfigurations):
-        try:
-            self.dsp.set_max_velocities(conf.MaxTranslationVelocity, conf.MaxOrientationVelocity)
-        except CommandRefused as exc:
-            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))
-        return kinova.ApiReply()
-
-
 class _StampClock:
     """The clock of robot_sim's stamps: wall time in realtime (so latencies across services are measured in one
     clock), simulated time in lockstep."""
@@ -187,7 +80,7 @@ class _StampClock:
         return self.now_ns() * 1e-9
 
 
-class RobotSimService(Service):
+class RobotSimService(RobotFrontEnd, Service):
     name = "robot_sim"
     follows_sim_clock = False  # it is the clock
 
@@ -199,13 +92,8 @@ class RobotSimService(Service):
         super().__init__(config, clock=_StampClock(self), **kw)
         self.config: RobotSimConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
-        self.api = _Api(self.sim)
-        self._command: Optional[tuple[RobotCommand, int]] = None
-        self._command_cond = threading.Condition()
-        self._api_calls: queue.Queue = queue.Queue()
+        self.init_frontend(self.sim, self.sim.dsp)
         self._thread: Optional[threading.Thread] = None
-        self._last_refusal = ""
-        self._refusal_cycles = 0
         self._render_queue: queue.Queue = queue.Queue(maxsize=1)
         self._render_thread: Optional[threading.Thread] = None
         self._render_data = mujoco.MjData(self.sim.model)
@@ -217,12 +105,10 @@ class RobotSimService(Service):
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
         keys = self.keys
-        self.state_pub = self.publisher(keys.robot_state, "state")
+        self.declare_frontend()
         self.image_pub = self.publisher(keys.camera_image, "image")
         self.info_pub = self.publisher(keys.camera_info, "camera_info")
         self.clock_pub = self.publisher(keys.clock, "clock")
-        self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
-        self.queryable(keys.robot_api_all, self._on_api)
         self.queryable(keys.camera_info, self._on_camera_info_query)
         self._epoch_ns = LOCKSTEP_EPOCH_NS if self.lockstep else time.time_ns()
         self._render_thread = threading.Thread(target=self._render_loop, name="robot_sim-render", daemon=True)
@@ -231,8 +117,8 @@ class RobotSimService(Service):
         self._thread.start()
 
     def on_stop(self) -> None:
-        with self._command_cond:
-            self._command_cond.notify_all()
+        with self.command_cond:
+            self.command_cond.notify_all()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
         self._render_queue.put(None)
@@ -248,41 +134,6 @@ class RobotSimService(Service):
                       f"jitter_ms_p99={stats['jitter_ms_p99']:.2f}")
 
     # ------------------------------------------------------------------ inputs (zenoh threads)
-    def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
-        with self._command_cond:
-            self._command = (command, recv_ns)
-            self._command_cond.notify_all()
-
-    def _on_api(self, query: zenoh.Query) -> None:
-        function = str(query.key_expr).rsplit("/", 1)[-1]
-        spec = kinova.API_FUNCTIONS.get(function)
-        if spec is None:
-            self.refuse("api", f"unknown Kinova API function {function!r}")
-            reply = kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
-                                    message=f"unknown function {function}")
-            query.reply(query.key_expr, encode(reply))
-            return
-        argument_type, _ = spec
-        argument = None
-        if argument_type is not None:
-            payload = query.payload.to_bytes() if query.payload is not None else b""
-            try:
-                argument = decode(payload, argument_type)
-            except ProtocolError as exc:
-                self.refuse("api", str(exc))
-                query.reply(query.key_expr, encode(kinova.ApiReply(
-                    code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))))
-                return
-        future: Future = Future()
-        self._api_calls.put((function, argument, future))
-        with self._command_cond:
-            self._command_cond.notify_all()
-        try:
-            reply = future.result(timeout=5.0)
-        except Exception as exc:  # the loop died or timed out: the caller gets Kinova's unknown error
-            reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR), message=f"not executed: {exc}")
-        query.reply(query.key_expr, encode(reply))
-
     def _on_camera_info_query(self, query: zenoh.Query) -> None:
         query.reply(self.keys.camera_info, encode(self._camera_info()))
 
@@ -322,7 +173,7 @@ class RobotSimService(Service):
                 cycle = int((time.monotonic() - start) / period)
             self.rates.tick("cycle")
             self.loop_timer.tick()
-            self._run_api_calls()
+            self.run_api_calls()
             if self.sim.frame_due():
                 self._capture_frame(wait=False)
             if time.monotonic() >= next_info:
@@ -330,7 +181,7 @@ class RobotSimService(Service):
                 next_info = time.monotonic() + self.config.camera_info_period_s
             self.clock_pub.put(SimClock(header=self.header("clock"), sim_time_ns=self._now_ns(),
                                         mode=ClockMode.REALTIME.value))
-            taken = self._take_command()
+            taken = self.take_command()
             self._cycle(taken)
             cycle += 1
 
@@ -351,13 +202,14 @@ class RobotSimService(Service):
                     frames_since_info = 0
             listening = self.clock_pub.matching or awaiting_frame is not None
             timeout = cfg.frame_timeout_s if awaiting_frame is not None else cfg.cycle_timeout_s
-            taken = self._wait_for_answer(tick, awaiting_frame, timeout) if listening else self._take_command()
+            taken = self._wait_for_answer(tick, awaiting_frame, timeout) if listening else self.take_command()
             self._cycle(taken)
 
     def _answered(self, tick: int, frame_stamp: Optional[int]) -> bool:
-        if self._command is None:
+        pending = self.peek_command()
+        if pending is None:
             return False
-        header = self._command[0].header
+        header = pending[0].header
         if header.stamp_ns < tick:
             return False
         return frame_stamp is None or header.source_stamp_ns >= frame_stamp
@@ -372,7 +224,7 @@ class RobotSimService(Service):
         cfg = self.config.lockstep
         start = time.monotonic()
         deadline, next_retry = start + timeout_s, start + cfg.retry_s
-        with self._command_cond:
+        with self.command_cond:
             while not self._answered(tick, frame_stamp) and not self.stop_requested:
                 self._run_api_calls_locked()
                 now = time.monotonic()
@@ -382,75 +234,28 @@ class RobotSimService(Service):
                     break
                 if now >= next_retry:
                     self.counters.inc("lockstep.retries")
-                    self._command_cond.release()
+                    self.command_cond.release()
                     try:
                         if frame_stamp is not None and self._last_image is not None:
                             self.image_pub.put(self._last_image)
                         self._publish_tick(tick)
                     finally:
-                        self._command_cond.acquire()
+                        self.command_cond.acquire()
                     next_retry = now + cfg.retry_s
-                self._command_cond.wait(min(deadline, next_retry) - now)
-        return self._take_command()
+                self.command_cond.wait(min(deadline, next_retry) - now)
+        return self.take_command()
 
     def _run_api_calls_locked(self) -> None:
-        self._command_cond.release()
+        self.command_cond.release()
         try:
-            self._run_api_calls()
+            self.run_api_calls()
         finally:
-            self._command_cond.acquire()
+            self.command_cond.acquire()
 
-    def _run_api_calls(self) -> None:
-        while True:
-            try:
-                function, argument, future = self._api_calls.get_nowait()
-            except queue.Empty:
-                return
-            try:
-                future.set_result(self.api.call(function, argument))
-            except Exception as exc:
-                self.counters.inc("errors.api")
-                future.set_exception(exc)
-
-    def _take_command(self) -> Optional[tuple[RobotCommand, int]]:
-        with self._command_cond:
-            taken, self._command = self._command, None
-        return taken
-
-    def _cycle(self, taken: Optional[tuple[RobotCommand, int]]) -> None:
-        self._run_api_calls()
-        applied: Optional[Header] = None
-        if taken is not None:
-            command, recv_ns = taken
-            try:
-                self.sim.dsp.submit(command)
-                applied = command.header.with_hop(self.name, recv_ns, self.clock.now_ns())
-            except CommandRefused as exc:
-                self.refuse("command", str(exc))
-                self.counters.inc("refused.convention")
-                self._last_refusal, self._refusal_cycles = str(exc), 100
+    def _cycle(self, taken) -> None:
+        applied = self.apply_command(taken)
         self.sim.step_cycle()
-        self._publish_state(applied)
-
-    def _publish_state(self, applied: Optional[Header]) -> None:
-        sim = self.sim
-        T = sim.ee_pose()
-        euler = frames.matrix_to_euler_xyz(T[:3, :3])
-        status = sim.dsp.status
-        faults = list(status.active_limits)
-        if self._refusal_cycles > 0:
-            faults.append(f"refused: {self._last_refusal}"[:120])
-            self._refusal_cycles -= 1
-        joint = sim.actuators.read()
-        state = RobotState(
-            header=self.header("state"),
-            q=joint.q.tolist(), dq=joint.dq.tolist(), tau=joint.tau.tolist(),
-            pose=KinovaPose(X=T[0, 3], Y=T[1, 3], Z=T[2, 3], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2]),
-            control_mode=status.mode, fifo_count=sim.dsp.fifo_count, faults=faults,
-            watchdog_tripped=status.watchdog_tripped, angular_convention=sim.dsp.config.angular_convention,
-            applied_command=applied,
-        )
-        self.state_pub.put(state)
+        self.publish_state(applied)
 
     # ------------------------------------------------------------------ camera
     def _capture_frame(self, wait: bool) -> bool:

@@ -60,6 +60,15 @@ class Simulation:
     def dq(self) -> np.ndarray:
         return self.data.qvel[: jaco2.N_JOINTS].copy()
 
+    @property
+    def tau(self) -> np.ndarray:
+        return self.actuators.read().tau
+
+    @property
+    def q_ref(self) -> np.ndarray:
+        """The joint angles the actuators are servoing to (what GetAngularCommand reports)."""
+        return self.actuators.q_ref.copy()
+
     def ee_pose(self) -> np.ndarray:
         T = np.eye(4)
         T[:3, :3] = self.data.xmat[self._ee_body].reshape(3, 3)

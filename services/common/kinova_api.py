@@ -1,0 +1,128 @@
+"""The Kinova high-level API (the functions of ``protocol.kinova.API_FUNCTIONS``) on top of the emulated DSP, for
+any robot: robot_sim's simulated arm or robot_gateway's real one. A :class:`RobotView` gives the measured state."""
+from __future__ import annotations
+
+from typing import Callable, Protocol
+
+import numpy as np
+
+from protocol import kinova
+from services.common import frames, jaco2
+from services.common.dsp import CommandRefused, KinovaDSP
+from services.common.zones import zone_from_kinova, zone_to_kinova
+
+
+class RobotView(Protocol):
+    """What the API reads of a robot (model units)."""
+
+    @property
+    def q(self) -> np.ndarray: ...
+
+    @property
+    def dq(self) -> np.ndarray: ...
+
+    @property
+    def tau(self) -> np.ndarray: ...
+
+    @property
+    def q_ref(self) -> np.ndarray: ...
+
+    def ee_pose(self) -> np.ndarray: ...
+
+
+class KinovaApi:
+    """The Kinova high-level API functions, on a robot (its measured state) and its DSP. Calls must run in the
+    thread that runs the DSP (between cycles)."""
+
+    def __init__(self, robot: "RobotView", dsp: KinovaDSP) -> None:
+        self.robot = robot
+        self.dsp = dsp
+        self.builtin_zones = list(dsp.zones)
+        self.kinova_zones: list = []
+        self.last_command = np.zeros(jaco2.N_JOINTS)
+
+    def call(self, function: str, argument) -> kinova.ApiReply:
+        handler: Callable = getattr(self, f"_{function}")
+        return handler(argument)
+
+    def _InitAPI(self, _):
+        return kinova.ApiReply()
+
+    _CloseAPI = _SetCartesianControl = _SetAngularControl = _InitAPI
+
+    def _MoveHome(self, _):
+        self.dsp.move_home()
+        return kinova.ApiReply()
+
+    def _SendBasicTrajectory(self, point: kinova.TrajectoryPoint):
+        code = self.dsp.send_basic_trajectory(point)
+        message = "" if code == kinova.ErrorCode.NO_ERROR_KINOVA else "point refused (FIFO full, target outside " \
+                                                                       "the joint limits, or unsupported type)"
+        return kinova.ApiReply(code=int(code), message=message)
+
+    def _EraseAllTrajectories(self, _):
+        self.dsp.erase_all_trajectories()
+        return kinova.ApiReply()
+
+    def _GetGlobalTrajectoryInfo(self, _):
+        n = self.dsp.fifo_count
+        return kinova.TrajectoryFIFOReply(result=kinova.TrajectoryFIFO(
+            TrajectoryCount=n, UsedPercentage=100.0 * n / kinova.TRAJECTORY_FIFO_SIZE))
+
+    def _angular(self, values_deg) -> kinova.AngularPositionReply:
+        return kinova.AngularPositionReply(result=kinova.AngularPosition(
+            Actuators=kinova.AngularInfo.from_list(values_deg)))
+
+    def _GetAngularPosition(self, _):
+        return self._angular(jaco2.model_to_physical_deg(self.robot.q))
+
+    def _GetAngularVelocity(self, _):
+        return self._angular(jaco2.model_rate_to_physical(self.robot.dq))
+
+    def _GetAngularForce(self, _):
+        return self._angular(jaco2.SIGN * self.robot.tau)
+
+    def _GetAngularCommand(self, _):
+        return self._angular(jaco2.model_to_physical_deg(self.robot.q_ref))
+
+    def _cartesian(self, T) -> kinova.CartesianPositionReply:
+        euler = frames.matrix_to_euler_xyz(T[:3, :3])
+        return kinova.CartesianPositionReply(result=kinova.CartesianPosition(Coordinates=kinova.CartesianInfo(
+            X=T[0, 3], Y=T[1, 3], Z=T[2, 3], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2])))
+
+    def _GetCartesianPosition(self, _):
+        return self._cartesian(self.robot.ee_pose())
+
+    def _GetCartesianCommand(self, _):
+        return self._cartesian(jaco2.dh_forward_kinematics(self.robot.q_ref))
+
+    def _SetProtectionZone(self, zones: kinova.ZoneList):
+        try:
+            boxes = [zone_from_kinova(z) for z in zones.Zones]
+        except ValueError as exc:
+            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))
+        self.kinova_zones = boxes
+        self.dsp.zones = self.builtin_zones + boxes
+        return kinova.ApiReply()
+
+    def _GetProtectionZone(self, _):
+        zones = [zone_to_kinova(box, i + 1) for i, box in enumerate(self.kinova_zones)]
+        return kinova.ZoneListReply(result=kinova.ZoneList(NbZones=len(zones), Zones=zones))
+
+    def _EraseAllProtectionZones(self, _):
+        self.kinova_zones = []
+        self.dsp.zones = list(self.builtin_zones)
+        return kinova.ApiReply()
+
+    def _GetClientConfigurations(self, _):
+        cfg = self.dsp.config
+        return kinova.ClientConfigurationsReply(result=kinova.ClientConfigurations(
+            MaxTranslationVelocity=self.dsp.max_linear, MaxOrientationVelocity=self.dsp.max_angular,
+            MaxTranslationAcceleration=cfg.linear_accel_mps2, MaxOrientationAcceleration=cfg.angular_accel_rps2))
+
+    def _SetClientConfigurations(self, conf: kinova.ClientConfigurations):
+        try:
+            self.dsp.set_max_velocities(conf.MaxTranslationVelocity, conf.MaxOrientationVelocity)
+        except CommandRefused as exc:
+            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))
+        return kinova.ApiReply()

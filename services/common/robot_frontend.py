@@ -1,0 +1,134 @@
+"""What every robot service offers on zenoh, whatever drives the arm (robot_sim's physics or robot_gateway's
+RS-485 bus): robot commands in, the Kinova API as queryables, robot state out. A mixin for a
+:class:`~services.common.service.Service` whose loop thread owns the DSP.
+
+The loop calls :meth:`take_command` (or waits on ``command_cond``), then :meth:`apply_command`, runs the DSP
+cycle, and :meth:`publish_state`. API calls arrive on zenoh threads and run in the loop thread through
+:meth:`run_api_calls`, so the DSP is never touched concurrently.
+"""
+from __future__ import annotations
+
+import queue
+import threading
+from concurrent.futures import Future
+from typing import Optional
+
+import numpy as np
+import zenoh
+
+from protocol import kinova
+from protocol.messages import Header, KinovaPose, ProtocolError, RobotCommand, RobotState, decode, encode
+from services.common import frames
+from services.common.dsp import CommandRefused, KinovaDSP
+from services.common.kinova_api import KinovaApi, RobotView
+
+
+class RobotFrontEnd:
+    """Mixin: requires ``self.keys``, ``self.clock``, ``self.name``, ``self.counters``, ``self.refuse``,
+    ``self.header``, ``self.publisher``, ``self.subscribe``, ``self.queryable`` (a Service)."""
+
+    def init_frontend(self, robot: RobotView, dsp: KinovaDSP) -> None:
+        self.robot_view = robot
+        self.dsp = dsp
+        self.api = KinovaApi(robot, dsp)
+        self._command: Optional[tuple[RobotCommand, int]] = None
+        self.command_cond = threading.Condition()
+        self._api_calls: queue.Queue = queue.Queue()
+        self._last_refusal = ""
+        self._refusal_cycles = 0
+
+    def declare_frontend(self) -> None:
+        keys = self.keys
+        self.state_pub = self.publisher(keys.robot_state, "state")
+        self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
+        self.queryable(keys.robot_api_all, self._on_api)
+
+    # ------------------------------------------------------------------ zenoh threads
+    def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
+        with self.command_cond:
+            self._command = (command, recv_ns)
+            self.command_cond.notify_all()
+
+    def _on_api(self, query: zenoh.Query) -> None:
+        function = str(query.key_expr).rsplit("/", 1)[-1]
+        spec = kinova.API_FUNCTIONS.get(function)
+        if spec is None:
+            self.refuse("api", f"unknown Kinova API function {function!r}")
+            reply = kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                    message=f"unknown function {function}")
+            query.reply(query.key_expr, encode(reply))
+            return
+        argument_type, _ = spec
+        argument = None
+        if argument_type is not None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                argument = decode(payload, argument_type)
+            except ProtocolError as exc:
+                self.refuse("api", str(exc))
+                query.reply(query.key_expr, encode(kinova.ApiReply(
+                    code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))))
+                return
+        future: Future = Future()
+        self._api_calls.put((function, argument, future))
+        with self.command_cond:
+            self.command_cond.notify_all()
+        try:
+            reply = future.result(timeout=5.0)
+        except Exception as exc:  # the loop died or timed out: the caller gets Kinova's unknown error
+            reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR), message=f"not executed: {exc}")
+        query.reply(query.key_expr, encode(reply))
+
+    # ------------------------------------------------------------------ the loop thread
+    def run_api_calls(self) -> None:
+        while True:
+            try:
+                function, argument, future = self._api_calls.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                future.set_result(self.api.call(function, argument))
+            except Exception as exc:
+                self.counters.inc("errors.api")
+                future.set_exception(exc)
+
+    def take_command(self) -> Optional[tuple[RobotCommand, int]]:
+        with self.command_cond:
+            taken, self._command = self._command, None
+        return taken
+
+    def peek_command(self) -> Optional[tuple[RobotCommand, int]]:
+        return self._command
+
+    def apply_command(self, taken: Optional[tuple[RobotCommand, int]]) -> Optional[Header]:
+        """Hand a received command to the DSP; the header (trace + this robot's hop) when it was accepted."""
+        self.run_api_calls()
+        if taken is None:
+            return None
+        command, recv_ns = taken
+        try:
+            self.dsp.submit(command)
+        except CommandRefused as exc:
+            self.refuse("command", str(exc))
+            self.counters.inc("refused.convention")
+            self._last_refusal, self._refusal_cycles = str(exc), 100
+            return None
+        return command.header.with_hop(self.name, recv_ns, self.clock.now_ns())
+
+    def publish_state(self, applied: Optional[Header], extra_faults: tuple = ()) -> None:
+        robot, dsp = self.robot_view, self.dsp
+        T = robot.ee_pose()
+        euler = frames.matrix_to_euler_xyz(T[:3, :3])
+        status = dsp.status
+        faults = list(status.active_limits) + list(extra_faults)
+        if self._refusal_cycles > 0:
+            faults.append(f"refused: {self._last_refusal}"[:120])
+            self._refusal_cycles -= 1
+        q, dq, tau = (np.asarray(v, dtype=float) for v in (robot.q, robot.dq, robot.tau))
+        self.state_pub.put(RobotState(
+            header=self.header("state"), q=q.tolist(), dq=dq.tolist(), tau=tau.tolist(),
+            pose=KinovaPose(X=T[0, 3], Y=T[1, 3], Z=T[2, 3], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2]),
+            control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],
+            watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
+            applied_command=applied,
+        ))
