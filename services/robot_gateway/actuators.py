@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 
 import numpy as np
 
@@ -33,6 +34,7 @@ class LinkActuators:
         self.dq_ref = np.zeros(jaco2.N_JOINTS)
         self.state = JointState(q=self.q_ref.copy(), dq=np.zeros(jaco2.N_JOINTS))
         self.reading: ActuatorReading | None = None
+        self._last_cycle: float | None = None
 
     # ---- the interface the DSP uses
     def read(self) -> JointState:
@@ -49,10 +51,15 @@ class LinkActuators:
 
     # ---- the 500 Hz bus cycle
     def cycle(self, stamp_ns: int = 0) -> bool:
-        """One exchange with the actuators; False (and the arm held) when the bus failed."""
+        """One exchange with the actuators; False (and the arm held) when the bus failed. The reference advances
+        by the time since the last exchange (an exchange waits for the actuators' cycle, so the loop can run a
+        little under its nominal 500 Hz)."""
+        now = time.monotonic()
+        dt = self.cycle_s if self._last_cycle is None else min(max(now - self._last_cycle, 0.0), 5 * self.cycle_s)
+        self._last_cycle = now
         with self.lock:
             q_meas = self.state.q
-            self.q_ref = self.q_ref + self.dq_ref * self.cycle_s
+            self.q_ref = self.q_ref + self.dq_ref * dt
             self.q_ref = q_meas + np.clip(self.q_ref - q_meas, -MAX_TRACKING_ERROR, MAX_TRACKING_ERROR)
             targets = jaco2.model_to_physical_deg(self.q_ref)
         try:

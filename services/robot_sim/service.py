@@ -20,7 +20,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
-from typing import Optional
+from typing import Literal, Optional
 
 import msgspec
 import mujoco
@@ -38,8 +38,10 @@ from services.common.config import ConfigStruct
 from services.common.dsp import DSPConfig
 from services.common.metrics import LoopTimer
 from services.common.robot_frontend import RobotFrontEnd
+from services.common.rs485_bus import BusConfig, RS485Bus
 from services.common.service import Service, ServiceConfig
 from services.robot_sim import scene as scene_mod
+from services.robot_sim.actuator_bus import ActuatorBusConfig, ActuatorBusEmulator
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim import Simulation
 
@@ -63,6 +65,15 @@ class RobotSimConfig(ServiceConfig):
     camera_info_period_s: float = 1.0
     #: stop after this much simulated time (0: run until stopped); for benchmarks and scripted runs
     max_sim_time_s: float = 0.0
+    #: api: the emulated DSP and the robot's zenoh API; actuator_bus: only the actuators, answering RS-485 frames
+    #: on ``bus`` (a robot_gateway drives them), plus the camera (realtime only)
+    mode: Literal["api", "actuator_bus"] = "api"
+    bus: BusConfig = msgspec.field(default_factory=BusConfig)
+    actuators: ActuatorBusConfig = msgspec.field(default_factory=ActuatorBusConfig)
+
+    def __post_init__(self) -> None:
+        if self.mode == "actuator_bus" and ClockMode(self.clock) is not ClockMode.REALTIME:
+            raise ValueError("the actuator_bus mode runs in realtime only")
 
 
 class _StampClock:
@@ -92,7 +103,14 @@ class RobotSimService(RobotFrontEnd, Service):
         super().__init__(config, clock=_StampClock(self), **kw)
         self.config: RobotSimConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
-        self.init_frontend(self.sim, self.sim.dsp)
+        self.bus_mode = config.mode == "actuator_bus"
+        self.bus: Optional[RS485Bus] = None
+        if self.bus_mode:
+            self.bus = RS485Bus(config.bus, self.counters)
+            self.sim.actuators = ActuatorBusEmulator(self.sim.model, self.sim.data, self.bus, config.actuators,
+                                                     self.counters)
+        else:
+            self.init_frontend(self.sim, self.sim.dsp)
         self._thread: Optional[threading.Thread] = None
         self._render_queue: queue.Queue = queue.Queue(maxsize=1)
         self._render_thread: Optional[threading.Thread] = None
@@ -105,7 +123,8 @@ class RobotSimService(RobotFrontEnd, Service):
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
         keys = self.keys
-        self.declare_frontend()
+        if not self.bus_mode:
+            self.declare_frontend()
         self.image_pub = self.publisher(keys.camera_image, "image")
         self.info_pub = self.publisher(keys.camera_info, "camera_info")
         self.clock_pub = self.publisher(keys.clock, "clock")
@@ -117,13 +136,16 @@ class RobotSimService(RobotFrontEnd, Service):
         self._thread.start()
 
     def on_stop(self) -> None:
-        with self.command_cond:
-            self.command_cond.notify_all()
+        if not self.bus_mode:
+            with self.command_cond:
+                self.command_cond.notify_all()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
         self._render_queue.put(None)
         if self._render_thread is not None:
             self._render_thread.join(timeout=5.0)
+        if self.bus is not None:
+            self.bus.close()
 
     def check_health(self) -> tuple[bool, str]:
         alive = self._thread is not None and self._thread.is_alive()
@@ -144,7 +166,9 @@ class RobotSimService(RobotFrontEnd, Service):
 
     def _run(self) -> None:
         try:
-            if self.lockstep:
+            if self.bus_mode:
+                self._run_bus()
+            elif self.lockstep:
                 self._run_lockstep()
             else:
                 self._run_realtime()
@@ -183,6 +207,35 @@ class RobotSimService(RobotFrontEnd, Service):
                                         mode=ClockMode.REALTIME.value))
             taken = self.take_command()
             self._cycle(taken)
+            cycle += 1
+
+    def _run_bus(self) -> None:
+        """Actuator-bus mode: the actuators' 500 Hz cycle and physics on wall time, the camera and the clock."""
+        period = 0.002  # the actuators' cycle (500 Hz)
+        steps = max(1, round(period / self.sim.model.opt.timestep))
+        self.loop_timer = LoopTimer(period)
+        next_info = 0.0
+        start = time.monotonic()
+        cycle = 0
+        while not self._done():
+            delay = start + cycle * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -5 * period:
+                self.counters.inc("overruns")
+                cycle = int((time.monotonic() - start) / period)
+            self.loop_timer.tick()
+            self.sim.actuators.process(time.monotonic() - start)
+            self.sim.step_physics(steps)
+            if self.sim.frame_due():
+                self._capture_frame(wait=False)
+            if cycle % 5 == 0:
+                self.rates.tick("cycle")
+                self.clock_pub.put(SimClock(header=self.header("clock"), sim_time_ns=self._now_ns(),
+                                            mode=ClockMode.REALTIME.value))
+            if time.monotonic() >= next_info:
+                self.info_pub.put(self._camera_info())
+                next_info = time.monotonic() + self.config.camera_info_period_s
             cycle += 1
 
     def _run_lockstep(self) -> None:

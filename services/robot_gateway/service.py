@@ -1,0 +1,153 @@
+"""The robot_gateway service: the robot's zenoh API (state, commands, the Kinova API queryables) backed by an arm
+on an RS-485 actuator bus (python-can). It runs the emulated DSP itself at 100 Hz on top of a 500 Hz link to the
+actuators, so every other service sees the same robot as with robot_sim.
+
+Backends: ``rs485`` (the actuator bus, any python-can interface); ``kinova_sdk`` loads Kinova's USB command
+layer through ctypes where it is installed (driving the arm through it is not implemented yet: with the
+library present the service says so; without it, it says the library is missing).
+
+Bus failures (timeouts, NACKs, missing replies, garbled frames) are counted; the arm is held at its last
+measured angles, and after ``max_bus_errors`` consecutive failures the gateway reports itself unhealthy and
+refuses motion until the bus answers again.
+"""
+from __future__ import annotations
+
+import ctypes
+import threading
+import time
+from typing import Literal, Optional
+
+import msgspec
+import numpy as np
+
+from protocol import rs485 as r
+from protocol.conventions import ClockMode
+from services.common.dsp import DSPConfig, KinovaDSP
+from services.common.kinematics import ArmKinematics
+from services.common.metrics import LoopTimer
+from services.common.robot_frontend import RobotFrontEnd
+from services.common.rs485_bus import BusConfig, RS485Bus
+from services.common.service import Service, ServiceConfig
+from services.robot_gateway.actuators import LinkActuators
+from services.robot_gateway.link import ActuatorLink
+
+KINOVA_SDK_LIBRARY = "Kinova.API.USBCommandLayerUbuntu.so"
+
+
+class GatewayConfig(ServiceConfig):
+    backend: Literal["rs485", "kinova_sdk"] = "rs485"
+    bus: BusConfig = msgspec.field(default_factory=BusConfig)
+    addresses: list[int] = msgspec.field(default_factory=lambda: list(r.ACTUATOR_ADDRESSES))
+    link_timeout_s: float = 0.01
+    max_bus_errors: int = 5
+    dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
+    sdk_library: str = KINOVA_SDK_LIBRARY
+
+
+def load_kinova_sdk(path: str):
+    """The Kinova SDK's shared library through ctypes, or a clear error."""
+    try:
+        return ctypes.CDLL(path)
+    except OSError as exc:
+        raise RuntimeError(f"the Kinova SDK library {path!r} is not installed or not loadable ({exc}); install "
+                           "Kinova's SDK or use the rs485 backend") from None
+
+
+class _LinkView:
+    """The RobotView of the arm behind the link (for the Kinova API and the state)."""
+
+    def __init__(self, actuators: LinkActuators) -> None:
+        self.actuators = actuators
+        self.kin = ArmKinematics()
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.actuators.read().q
+
+    @property
+    def dq(self) -> np.ndarray:
+        return self.actuators.read().dq
+
+    @property
+    def tau(self) -> np.ndarray:
+        return self.actuators.read().tau
+
+    @property
+    def q_ref(self) -> np.ndarray:
+        return self.actuators.q_ref.copy()
+
+    def ee_pose(self) -> np.ndarray:
+        R, p = self.kin.pose(self.q)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, p
+        return T
+
+
+class RobotGatewayService(RobotFrontEnd, Service):
+    name = "robot_gateway"
+    follows_sim_clock = False
+
+    def __init__(self, config: GatewayConfig | None = None, **kw) -> None:
+        config = config or GatewayConfig()
+        if ClockMode(config.clock) is not ClockMode.REALTIME:
+            raise ValueError("robot_gateway runs in realtime only (a real arm has no simulated clock)")
+        super().__init__(config, **kw)
+        self.config: GatewayConfig = config
+        if config.backend == "kinova_sdk":
+            load_kinova_sdk(config.sdk_library)
+            raise RuntimeError("the Kinova SDK backend loads the library but does not drive the arm yet; use rs485")
+        self.bus: Optional[RS485Bus] = None
+        self.loop_timer = LoopTimer(r.CYCLE_S)
+        self._thread: Optional[threading.Thread] = None
+        self._consecutive_errors = 0
+
+    def on_start(self) -> None:
+        cfg = self.config
+        self.bus = RS485Bus(cfg.bus, self.counters)
+        link = ActuatorLink(self.bus, cfg.addresses, cfg.link_timeout_s, self.counters)
+        self.actuators = LinkActuators(link)  # raises LinkError when no actuator answers: the start fails
+        self.init_frontend(_LinkView(self.actuators), KinovaDSP(cfg.dsp))
+        self.declare_frontend()
+        self._thread = threading.Thread(target=self._run, name="robot_gateway-loop", daemon=True)
+        self._thread.start()
+
+    def on_stop(self) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        if self.bus is not None:
+            self.bus.close()
+
+    def check_health(self) -> tuple[bool, str]:
+        alive = self._thread is not None and self._thread.is_alive()
+        if not alive:
+            return False, "gateway loop stopped"
+        if self._consecutive_errors >= self.config.max_bus_errors:
+            return False, f"bus failing: {self.actuators.faults[:1]}"
+        stats = self.loop_timer.stats()
+        return True, f"bus_rate_hz={stats['rate_hz']:.1f} jitter_ms_p99={stats['jitter_ms_p99']:.2f}"
+
+    def _run(self) -> None:
+        period = r.CYCLE_S
+        cycles_per_dsp = max(1, round(self.dsp.config.cycle_s / period))
+        start = time.monotonic()
+        k = 0
+        while not self.stop_requested:
+            delay = start + k * period - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            elif delay < -5 * period:
+                self.counters.inc("overruns")
+                k = int((time.monotonic() - start) / period)
+            self.loop_timer.tick()
+            ok = self.actuators.cycle(self.clock.now_ns())
+            self._consecutive_errors = 0 if ok else self._consecutive_errors + 1
+            if k % cycles_per_dsp == 0:
+                self.rates.tick("cycle")
+                taken = self.take_command()
+                if self._consecutive_errors >= self.config.max_bus_errors:
+                    taken = None  # no motion on a failing bus
+                    self.dsp.erase_all_trajectories()
+                applied = self.apply_command(taken)
+                self.actuators.write(self.dsp.cycle(self.actuators.read()))
+                self.publish_state(applied, tuple(self.actuators.faults))
+            k += 1

@@ -1,0 +1,99 @@
+"""The swap: robot_sim in actuator-bus mode plus robot_gateway offer the same zenoh robot as robot_sim alone.
+(Both in this process: python-can's virtual bus connects them; a bus between processes needs a real interface.)"""
+import itertools
+import time
+
+import numpy as np
+import pytest
+
+from protocol import kinova
+from protocol import messages as m
+from protocol.conventions import AngularConvention, ClockMode, Frame
+from services.common import jaco2
+from services.common.kinematics import ArmKinematics
+from services.common.rs485_bus import BusConfig
+from services.common.transport import open_session
+from services.robot_gateway.service import GatewayConfig, RobotGatewayService, load_kinova_sdk
+from services.robot_sim.service import RobotSimConfig, RobotSimService
+from tests.stack import KEYS, Recorder, wait_for
+
+_channels = itertools.count()
+
+
+@pytest.fixture
+def gateway_stack(router):
+    channel = f"gateway-{next(_channels)}"
+    sim = RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config(),
+                                         mode="actuator_bus", bus=BusConfig(channel=channel))).start()
+    time.sleep(0.1)
+    gateway = RobotGatewayService(GatewayConfig(zenoh=router.client_config(), bus=BusConfig(channel=channel),
+                                                link_timeout_s=0.05)).start()
+    client = open_session(router.client_config())
+    yield client, sim, gateway
+    client.close()
+    gateway.stop()
+    sim.stop()
+
+
+def command(stamp_ns):
+    header = m.Header(stamp_ns=stamp_ns)
+    twist = m.Twist(header=header, frame=Frame.MIXED, angular=AngularConvention.SEED000, linear=(0.04, -0.03, 0.03),
+                    rotational=(0.0, 0.0, 0.2))
+    return m.encode(m.RobotCommand(header=header, mode=m.CommandMode.CARTESIAN_VELOCITY, twist=twist))
+
+
+def test_same_keys_and_same_motion_as_robot_sim(gateway_stack):
+    client, sim, gateway = gateway_stack
+    states = Recorder(client, KEYS.robot_state, m.RobotState)
+    assert wait_for(lambda: len(states) > 20)
+    assert states.last().q == pytest.approx(jaco2.HOME.tolist(), abs=1e-3)
+    # the Kinova API answers through the gateway
+    replies = list(client.get(KEYS.robot_api("GetAngularPosition"), timeout=5.0))
+    position = m.decode(replies[0].ok.payload.to_bytes(), kinova.AngularPositionReply)
+    assert position.result.Actuators.as_list() == pytest.approx(jaco2.HOME_DEG.tolist(), abs=0.05)
+    # a mixed-frame velocity command, resent at 100 Hz like safety does
+    publisher = client.declare_publisher(KEYS.robot_command)
+    start = time.monotonic()
+    for k in range(150):  # on an absolute 10 ms schedule, as safety does
+        time.sleep(max(0.0, start + k * 0.01 - time.monotonic()))
+        publisher.put(command(time.time_ns()))
+    kin = ArmKinematics()
+    recent = [s for s in states.snapshot()[-40:]]
+    v = np.mean([(kin.jacobian_base(s.q) @ np.asarray(s.dq))[:3] for s in recent[-20:]], axis=0)
+    assert np.linalg.norm(v - np.array([0.04, -0.03, 0.03])) <= 0.05 * np.linalg.norm([0.04, -0.03, 0.03])
+    assert recent[-1].applied_command is not None and recent[-1].applied_command.trace[-1].service == "robot_gateway"
+    # the camera still comes from the simulator
+    images = Recorder(client, KEYS.camera_image, m.Image)
+    assert wait_for(lambda: len(images) > 2)
+    # a stall of the shared CPU can cost an exchange now and then (it is counted and the arm held for it)
+    exchanges = gateway.loop_timer.stats()["n"]
+    assert gateway.counters.get("link.timeouts") <= max(2, exchanges // 100)
+
+
+def test_sim_in_bus_mode_does_not_offer_the_robot_api(router):
+    sim = RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config(),
+                                         mode="actuator_bus", bus=BusConfig(channel="bus-only"))).start()
+    client = open_session(router.client_config())
+    try:
+        states = Recorder(client, KEYS.robot_state, m.RobotState)
+        time.sleep(0.5)
+        assert len(states) == 0
+        assert list(client.get(KEYS.robot_api("GetAngularPosition"), timeout=1.0)) == []
+    finally:
+        client.close()
+        sim.stop()
+
+
+def test_without_actuators_the_gateway_does_not_start(router):
+    with pytest.raises(Exception, match="no reply"):
+        RobotGatewayService(GatewayConfig(zenoh=router.client_config(), bus=BusConfig(channel="empty-bus"),
+                                          link_timeout_s=0.02)).start()
+
+
+def test_kinova_sdk_backend_fails_clearly_without_the_library():
+    with pytest.raises(RuntimeError, match="Kinova SDK library"):
+        load_kinova_sdk("/nonexistent/Kinova.API.USBCommandLayerUbuntu.so")
+    with pytest.raises(RuntimeError, match="Kinova SDK library"):
+        RobotGatewayService(GatewayConfig(backend="kinova_sdk", sdk_library="/nonexistent/libkinova.so"))
+    with pytest.raises(ValueError, match="realtime only"):
+        RobotSimConfig(mode="actuator_bus", clock=ClockMode.LOCKSTEP)
