@@ -119,16 +119,15 @@ def _cmd_servo(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"mfvs servo: {exc}", file=sys.stderr)
         return 2
-    if args.profile != "sim":
-        print("mfvs servo: only the sim profile exists so far (the gateway profile arrives with robot_gateway)",
-              file=sys.stderr)
+    if args.profile not in ("sim", "gateway"):
+        print(f"mfvs servo: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
         return 2
 
     def progress(record) -> None:
         if not args.json:
             print(f"iteration {record.iteration:4d}  {record.status:12s}  ‖e‖ = {record.error_norm:.3e}", flush=True)
 
-    result = run(scenario, Path(args.out) if args.out else None, progress)
+    result = run(scenario, Path(args.out) if args.out else None, progress, profile=args.profile)
     if args.json:
         print(json.dumps(result.to_json()))
     else:
@@ -234,7 +233,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     servo = sub.add_parser("servo", help="run one servo task described by a scenario file")
     servo.add_argument("--scenario", required=True, help="scenario YAML (see examples/scenarios)")
-    servo.add_argument("--profile", default="sim", help="sim (the simulator; default)")
+    servo.add_argument("--profile", default="sim",
+                       help="sim (the simulator's DSP; default) or gateway (robot_gateway over the RS-485 bus, "
+                            "realtime)")
     servo.add_argument("--json", action="store_true", help="print one JSON object with the result")
     servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
     servo.set_defaults(func=_cmd_servo)

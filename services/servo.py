@@ -246,9 +246,11 @@ class _Watcher:
             sub.undeclare()
 
 
-def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None) -> ServoResult:
-    """Run the scenario through a local stack; ``progress(iteration_record)`` is called per iteration."""
+def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim") -> ServoResult:
+    """Run the scenario through a local stack; ``progress(iteration_record)`` is called per iteration. The gateway
+    profile drives the simulated arm through robot_gateway and its RS-485 bus, in realtime."""
     config = stack_config(scenario)
+    config.profile = profile
     joint_output = config.controller.law in ("p-joint", "adaptive-p-joint", "adaptive-pd-joint",
                                              "mixed-jacobian-joint", "manipulability", "smc")
     kin = ArmKinematics()

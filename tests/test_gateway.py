@@ -97,3 +97,22 @@ def test_kinova_sdk_backend_fails_clearly_without_the_library():
         RobotGatewayService(GatewayConfig(backend="kinova_sdk", sdk_library="/nonexistent/libkinova.so"))
     with pytest.raises(ValueError, match="realtime only"):
         RobotSimConfig(mode="actuator_bus", clock=ClockMode.LOCKSTEP)
+
+
+def test_servo_runs_through_the_gateway_profile():
+    """`mfvs servo --profile gateway`: the task runs through robot_gateway and the RS-485 bus (realtime). It
+    brings the error down by two orders of magnitude; converging to 5e-5 through the gateway in realtime is not
+    reached yet (see the issue note)."""
+    from pathlib import Path
+
+    from services.servo import load_scenario, run
+
+    scenario = load_scenario(Path(__file__).resolve().parents[1] / "examples" / "scenarios" / "table2.yaml")
+    scenario.gains.lambda0, scenario.gains.lambda_inf, scenario.gains.kd = 2.0, 0.4, 0.2
+    scenario.convergence.max_iterations = 250
+    records = []
+    result = run(scenario, progress=records.append, profile="gateway")
+    assert result.status in ("converged", "max_iterations")
+    initial = next(r.error_norm for r in records if r.status == "converging")
+    assert result.final_error_norm < initial / 50
+    assert result.max_joint_limit_violation_deg == 0.0

@@ -60,6 +60,9 @@ class Actuator:
     address: int
     mode: r.ControlModeRequest = r.ControlModeRequest.POSITION
     target_deg: float = 0.0
+    #: the target's rate, from successive position commands (the actuator's own interpolation)
+    target_rate_dps: float = 0.0
+    target_time_s: float = -math.inf
     torque_nm: float = 0.0
     last_torque_s: float = -math.inf
     validated_s: float = -math.inf
@@ -127,6 +130,7 @@ class ActuatorBusEmulator:
     def _hold(self, actuator: Actuator) -> None:
         actuator.mode = r.ControlModeRequest.POSITION
         actuator.target_deg = self._position_deg(actuator.index)
+        actuator.target_rate_dps = 0.0
         actuator.torque_nm = 0.0
 
     def _fault(self, actuator: Actuator, error: r.ActuatorError) -> list:
@@ -175,7 +179,10 @@ class ActuatorBusEmulator:
             if actuator.fault is not r.ActuatorError.NONE:
                 return self._replies(actuator)
             if actuator.mode is r.ControlModeRequest.POSITION:
-                actuator.target_deg = cmd.position_deg
+                elapsed = self.now_s - actuator.target_time_s
+                rate = (cmd.position_deg - actuator.target_deg) / elapsed if 0 < elapsed <= 0.02 else 0.0
+                actuator.target_rate_dps += 0.5 * (rate - actuator.target_rate_dps)  # smooth the estimate
+                actuator.target_deg, actuator.target_time_s = cmd.position_deg, self.now_s
             else:
                 if abs(cmd.position_deg - self._position_deg(i)) > cfg.reference_tolerance_deg:
                     return self._fault(actuator, r.ActuatorError.RELATIVE_POSITION) + self._replies(actuator)
@@ -229,6 +236,10 @@ class ActuatorBusEmulator:
             if a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE:
                 tau[i] = jaco2.SIGN[i] * a.torque_nm + (gravity[i] if self.config.gravity_compensation else 0.0)
             else:
-                target = jaco2.SIGN[i] * math.radians(a.target_deg)
-                tau[i] = gravity[i] + KP[i] * (target - q[i]) - KD[i] * dq[i]
+                # follow the target, extrapolated along its rate until the next command (stale after 20 ms)
+                fresh = 0.0 <= self.now_s - a.target_time_s <= 0.02
+                rate = math.radians(a.target_rate_dps) if fresh else 0.0
+                ahead = (self.now_s - a.target_time_s) if fresh else 0.0
+                target = jaco2.SIGN[i] * (math.radians(a.target_deg) + rate * ahead)
+                tau[i] = gravity[i] + KP[i] * (target - q[i]) + KD[i] * (jaco2.SIGN[i] * rate - dq[i])
         d.ctrl[: self.n] = np.clip(tau, -self.torque_limit, self.torque_limit)
