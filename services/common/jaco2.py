@@ -78,6 +78,11 @@ MAX_SPEED = np.radians(MAX_SPEED_DPS)
 MAX_TORQUE = np.array([j.max_torque_nm for j in JOINTS])
 CONTINUOUS = np.array([j.continuous for j in JOINTS])
 
+# Rotor inertia reflected through the gears (K-75+ and K-58 at 160:1 and 110:1; kg·m²) and viscous joint
+# friction (N·m·s/rad): part of the one description, so physics (MuJoCo) and model-based control (Pinocchio) agree.
+ARMATURE = np.array([0.10, 0.10, 0.10, 0.10, 0.04, 0.04, 0.04])
+DAMPING = np.array([0.4, 0.4, 0.4, 0.4, 0.15, 0.15, 0.15])
+
 #: Physical angles (deg) of mfvs's home ("ready") pose: the end effector about 0.45 m in front of the base
 #: (−y) at 0.5 m height, approach axis forward and 40° down, every limited joint ≥ 40° from its limits and
 #: the wrist ≥ 40° from its singular straight configuration.
@@ -225,14 +230,23 @@ def urdf() -> str:
 
 
 def mujoco_spec():
-    """A MuJoCo MjSpec of the arm (from :func:`urdf`), continuous joints unlimited; scenes attach to it."""
+    """A MuJoCo MjSpec of the arm (from :func:`urdf`): continuous joints unlimited, rotor inertia and joint
+    friction as :data:`ARMATURE` and :data:`DAMPING`, no contacts. Scenes add to it."""
     import mujoco
 
     spec = mujoco.MjSpec.from_string(urdf())
-    for spec_joint in JOINTS:
+    for i, spec_joint in enumerate(JOINTS):
         joint = spec.joint(spec_joint.name)
+        joint.armature = float(ARMATURE[i])
+        joint.damping = [float(DAMPING[i]), 0.0, 0.0]  # MuJoCo 4: polynomial damping coefficients
         if spec_joint.continuous:
             joint.limited = mujoco.mjtLimited.mjLIMITED_FALSE
+    # The primitive link shapes overlap at the joints, and the arm does not collide with itself or its
+    # surroundings in this model (protection zones and joint limits keep it clear, as on the real arm):
+    # they are visual.
+    for geom in spec.geoms:
+        geom.contype = 0
+        geom.conaffinity = 0
     return spec
 
 
@@ -255,4 +269,6 @@ def load_pinocchio() -> PinocchioArm:
     model = pin.buildModelFromXML(urdf())
     if model.nq != N_JOINTS or model.nv != N_JOINTS:
         raise RuntimeError(f"Pinocchio built nq={model.nq}, nv={model.nv} from the URDF; expected {N_JOINTS}")
+    model.armature = ARMATURE.copy()  # URDF has no rotor inertia: the same values MuJoCo gets
+    model.damping = DAMPING.copy()
     return PinocchioArm(model, model.getFrameId(EE_LINK))

@@ -106,10 +106,6 @@ class SceneConfig(ConfigStruct):
             raise ValueError("initial_joints_deg are outside the joint limits")
 
 
-# Rotor inertia reflected through the gears (K-75+ and K-58 at 160:1 and 110:1) and joint friction: they make
-# the simulated joints behave like geared actuators and keep the 1 kHz integration well conditioned.
-ARMATURE = (0.10, 0.10, 0.10, 0.10, 0.04, 0.04, 0.04)
-DAMPING = (0.4, 0.4, 0.4, 0.4, 0.15, 0.15, 0.15)
 
 
 def camera_in_ee(cfg: SceneConfig) -> np.ndarray:
@@ -138,19 +134,13 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
 
     for i, joint_spec in enumerate(jaco2.JOINTS):
         joint = spec.joint(joint_spec.name)
-        joint.armature = ARMATURE[i]
-        joint.damping = [DAMPING[i], 0.0, 0.0]  # MuJoCo 4: polynomial damping coefficients
         motor = spec.add_actuator(name=f"motor_{i + 1}", target=joint_spec.name)
         motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
         motor.gainprm[0] = 1.0
         motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         motor.ctrlrange = [-joint_spec.max_torque_nm, joint_spec.max_torque_nm]
 
-    # The arm does not collide with itself or the floor in this model: protection zones and joint limits keep it
-    # clear, as on the real arm; contacts would only add stiffness to the integration.
     for geom in spec.geoms:
-        geom.contype = 0
-        geom.conaffinity = 0
         geom.rgba = [0.15, 0.15, 0.17, 1.0]
 
     world = spec.worldbody
