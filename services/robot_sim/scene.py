@@ -133,7 +133,6 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
     spec.visual.headlight.diffuse = [0.4, 0.4, 0.4]
 
     for i, joint_spec in enumerate(jaco2.JOINTS):
-        joint = spec.joint(joint_spec.name)
         motor = spec.add_actuator(name=f"motor_{i + 1}", target=joint_spec.name)
         motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
         motor.gainprm[0] = 1.0
