@@ -64,7 +64,6 @@ class Message(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
                 raise ValueError(f"non-finite number (NaN or Inf) at field '{bad}'")
 
 
-Float = float
 NonNegInt = Annotated[int, msgspec.Meta(ge=0)]
 Vec3 = tuple[float, float, float]
 JointVector = Annotated[list[float], msgspec.Meta(min_length=N_JOINTS, max_length=N_JOINTS)]

@@ -26,7 +26,7 @@ from services.common import jaco2
 from services.common.config import ConfigError, ConfigStruct, PoseConfig, load_config
 from services.common.kinematics import ArmKinematics
 from services.common.transport import open_session
-from services.controller.laws import LAW_NAMES, Gains, LawConfig
+from services.controller.laws import JOINT_LAWS, LAW_NAMES, Gains, LawConfig
 from services.controller.service import ControllerConfig
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig
 from services.robot_sim.service import RobotSimConfig
@@ -251,8 +251,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     profile drives the simulated arm through robot_gateway and its RS-485 bus, in realtime."""
     config = stack_config(scenario)
     config.profile = profile
-    joint_output = config.controller.law in ("p-joint", "adaptive-p-joint", "adaptive-pd-joint",
-                                             "mixed-jacobian-joint", "manipulability", "smc")
+    joint_output = config.controller.law in JOINT_LAWS
     kin = ArmKinematics()
     lower, upper = jaco2.model_limits()
     records: list[Iteration] = []

@@ -88,8 +88,6 @@ class SafetyService(Service):
         self.last_refusal = ""
         self.active_limits: list[str] = []
         self.safety_state = SafetyState.REFUSING
-        self._last_sent_ns = 0
-        self._was_moving = False
         self._thread: Optional[threading.Thread] = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -261,7 +259,6 @@ class SafetyService(Service):
         self.safety_state = state
         self.active_limits = list(decision.limits)
         self.command_pub.put(command)
-        self._last_sent_ns = now
 
     def _cycle(self, stamp_ns: Optional[int] = None) -> None:
         """One control cycle: resend the held command if it is still fresh and allowed, else stop."""
