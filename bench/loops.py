@@ -18,7 +18,7 @@ from protocol import messages as m
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
 from services.common.metrics import LoopTimer
-from services.common.transport import Router, open_session
+from services.common.transport import GuardedPublisher, Router, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 
 KEYS = Keys()
@@ -28,7 +28,7 @@ class _StandInPipeline:
     """Answers each clock tick with a stop command stamped at the tick, and each frame with one derived from it."""
 
     def __init__(self, session) -> None:
-        self.publisher = session.declare_publisher(KEYS.robot_command)
+        self.publisher = GuardedPublisher.declare(session, KEYS.robot_command)
         self.frame_stamp = 0
         self.lock = threading.Lock()
         self.subscribers = [

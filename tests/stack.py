@@ -7,6 +7,7 @@ import numpy as np
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
+from services.common.transport import GuardedPublisher
 
 KEYS = Keys()
 
@@ -61,7 +62,7 @@ class FakePipeline:
         self.enabled = True
         self.sent = 0
         self.tokens = [session.liveliness().declare_token(KEYS.liveliness(name)) for name in ("vision", "controller")]
-        self.publisher = session.declare_publisher(KEYS.desired_twist)
+        self.publisher = GuardedPublisher.declare(session, KEYS.desired_twist)
         self.sub = session.declare_subscriber(KEYS.camera_image, self._on_image)
 
     def _on_image(self, sample):

@@ -11,7 +11,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
 from services.common import jaco2
-from services.common.transport import open_session
+from services.common.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import wait_for
 
@@ -27,7 +27,7 @@ class FakeSafety:
     def __init__(self, session, make_command, watch_frames=False):
         self.session = session
         self.make_command = make_command
-        self.publisher = session.declare_publisher(KEYS.robot_command)
+        self.publisher = GuardedPublisher.declare(session, KEYS.robot_command)
         self.ticks = 0
         self.frame_stamp = 0
         self.lock = threading.Lock()

@@ -259,3 +259,26 @@ def test_rate_limited_logger(caplog):
         now[0] = 1.5
         assert log.warning("k", "bad input")
     assert [r.getMessage() for r in caplog.records][-1] == "bad input (2 similar suppressed in the last 1 s)"
+
+
+def test_guarded_publisher_survives_undeclare_during_puts(router, client):
+    from services.common.transport import GuardedPublisher
+
+    publisher = GuardedPublisher.declare(client, "mfvs/test/guarded")
+    errors = []
+
+    def hammer():
+        try:
+            for _ in range(2000):
+                publisher.put(b"x")
+        except Exception as exc:  # the race this class exists to prevent
+            errors.append(exc)
+
+    threads = [threading.Thread(target=hammer) for _ in range(3)]
+    for t in threads:
+        t.start()
+    time.sleep(0.005)
+    publisher.undeclare()
+    for t in threads:
+        t.join()
+    assert errors == [] and publisher.put(b"late") is False

@@ -8,7 +8,7 @@ import pytest
 from protocol import messages as m
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
-from services.common.transport import open_session
+from services.common.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.vision.service import VisionConfig, VisionService
 from tests.stack import wait_for
@@ -22,7 +22,7 @@ class StopOnFeatures:
     """Stands in for controller + safety: answers each tick, and each frame once its features arrive."""
 
     def __init__(self, session):
-        self.publisher = session.declare_publisher(KEYS.robot_command)
+        self.publisher = GuardedPublisher.declare(session, KEYS.robot_command)
         self.features = []
         self.frame_stamp = 0
         self.lock = threading.Lock()

@@ -31,7 +31,7 @@ from services.common.clock import SimulatedClock, WallClock, make_clock
 from services.common.config import ConfigStruct
 from services.common.logs import RateLimitedLogger
 from services.common.metrics import Counters, Rates
-from services.common.transport import ZenohConfig, open_session
+from services.common.transport import GuardedPublisher, ZenohConfig, open_session
 
 M = TypeVar("M", bound=msgspec.Struct)
 
@@ -45,21 +45,22 @@ class ServiceConfig(ConfigStruct):
 
 
 class TypedPublisher:
-    """A zenoh publisher that takes messages, encodes them, and counts what it sends."""
+    """A zenoh publisher that takes messages, encodes them, and counts what it sends. Safe to use from callback
+    threads while the service stops (see GuardedPublisher)."""
 
     def __init__(self, publisher: zenoh.Publisher, rates: Rates, name: str) -> None:
-        self._publisher = publisher
+        self._publisher = GuardedPublisher(publisher)
         self._rates = rates
         self._name = name
 
     def put(self, message: msgspec.Struct) -> None:
-        self._publisher.put(encode(message))
-        self._rates.tick(self._name)
+        if self._publisher.put(encode(message)):
+            self._rates.tick(self._name)
 
     @property
     def matching(self) -> bool:
         """Whether any subscriber currently matches this publisher's key."""
-        return self._publisher.matching_status.matching
+        return self._publisher.matching
 
     def undeclare(self) -> None:
         self._publisher.undeclare()
@@ -158,7 +159,10 @@ class Service:
     def _teardown(self) -> None:
         if self._health_thread is not None and self._health_thread is not threading.current_thread():
             self._health_thread.join(timeout=2.0)
-        for entity in reversed(self._declared):
+        # inputs first (subscribers, queryables), then outputs, so no callback publishes on an undeclared publisher
+        ordered = [e for e in reversed(self._declared) if not isinstance(e, TypedPublisher)] + \
+                  [e for e in reversed(self._declared) if isinstance(e, TypedPublisher)]
+        for entity in ordered:
             try:
                 entity.undeclare()
             except Exception:  # already gone with a closed session
@@ -217,9 +221,9 @@ class Service:
 
     def publisher(self, key: str, stream: str, **options) -> TypedPublisher:
         assert self.session is not None, "publisher() belongs in on_start()"
-        publisher = self.session.declare_publisher(key, **options)
-        self._declared.append(publisher)
-        return TypedPublisher(publisher, self.rates, f"pub.{stream}")
+        typed = TypedPublisher(self.session.declare_publisher(key, **options), self.rates, f"pub.{stream}")
+        self._declared.append(typed)
+        return typed
 
     def queryable(self, key: str, handler: Callable[[zenoh.Query], None]) -> None:
         assert self.session is not None, "queryable() belongs in on_start()"

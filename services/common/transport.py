@@ -61,6 +61,37 @@ def open_session(cfg: ZenohConfig) -> zenoh.Session:
     return zenoh.open(to_zenoh_config(cfg))
 
 
+class GuardedPublisher:
+    """A zenoh publisher that callback threads may keep using while it is undeclared: a put after (or during)
+    undeclare is dropped instead of racing the undeclare (which the binding refuses with "Already borrowed")."""
+
+    def __init__(self, publisher: zenoh.Publisher) -> None:
+        self._publisher = publisher
+        self._lock = threading.Lock()
+        self._closed = False
+
+    @classmethod
+    def declare(cls, session: zenoh.Session, key: str, **options) -> "GuardedPublisher":
+        return cls(session.declare_publisher(key, **options))
+
+    def put(self, payload: bytes) -> bool:
+        with self._lock:
+            if self._closed:
+                return False
+            self._publisher.put(payload)
+            return True
+
+    @property
+    def matching(self) -> bool:
+        return self._publisher.matching_status.matching
+
+    def undeclare(self) -> None:
+        with self._lock:
+            if not self._closed:
+                self._closed = True
+                self._publisher.undeclare()
+
+
 def free_loopback_port(host: str = "127.0.0.1") -> int:
     """A TCP port that is free on the loopback interface right now."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
