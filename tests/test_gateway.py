@@ -116,3 +116,28 @@ def test_servo_runs_through_the_gateway_profile():
     initial = next(r.error_norm for r in records if r.status == "converging")
     assert result.final_error_norm < initial / 50
     assert result.max_joint_limit_violation_deg == 0.0
+
+
+def test_low_level_torque_api_with_its_watchdog(gateway_stack):
+    """Torque commands on robot/lowlevel/command put the actuators in torque mode (500 Hz low-level state says
+    so); robot commands are refused meanwhile; without torque commands the arm holds, and after the actuators'
+    250 ms timeout it is back under the high-level DSP."""
+    client, sim, gateway = gateway_stack
+    low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
+    assert wait_for(lambda: len(low) > 50)
+    assert low.last().mode is m.ActuatorMode.POSITION
+    q0 = np.array(low.last().q)
+    publisher = client.declare_publisher(KEYS.lowlevel_command)
+    start = time.monotonic()
+    for k in range(200):  # 0.4 s of zero extra torque at 500 Hz: gravity compensation holds the arm
+        time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
+        publisher.put(m.encode(m.TorqueCommand(header=m.Header(stamp_ns=time.time_ns()), torques=[0.0] * 7)))
+        if k == 100:
+            client.put(KEYS.robot_command, command(time.time_ns()))  # refused while torque control is active
+    assert low.last().mode is m.ActuatorMode.TORQUE
+    assert np.degrees(np.abs(np.array(low.last().q) - q0)).max() < 1.0
+    assert gateway.counters.get("rejected.command") == 1  # the robot command was refused, and counted
+    assert wait_for(lambda: gateway.counters.get("lowlevel.watchdog") > 0, timeout=2)
+    assert wait_for(lambda: low.last().mode is m.ActuatorMode.POSITION, timeout=2)  # the 250 ms fallback
+    rates = gateway.rates.snapshot()
+    assert rates["pub.lowlevel_state"] > 200  # ~500 Hz nominal; generous bound on a shared machine

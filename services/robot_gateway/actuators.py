@@ -35,6 +35,9 @@ class LinkActuators:
         self.state = JointState(q=self.q_ref.copy(), dq=np.zeros(jaco2.N_JOINTS))
         self.reading: ActuatorReading | None = None
         self._last_cycle: float | None = None
+        #: low-level torque control: the actuators are in torque mode and get ``torques_nm`` (actuator sign)
+        self.torque_mode = False
+        self.torques_nm = np.zeros(jaco2.N_JOINTS)
 
     # ---- the interface the DSP uses
     def read(self) -> JointState:
@@ -59,11 +62,14 @@ class LinkActuators:
         self._last_cycle = now
         with self.lock:
             q_meas = self.state.q
-            self.q_ref = self.q_ref + self.dq_ref * dt
-            self.q_ref = q_meas + np.clip(self.q_ref - q_meas, -MAX_TRACKING_ERROR, MAX_TRACKING_ERROR)
-            targets = jaco2.model_to_physical_deg(self.q_ref)
+            if self.torque_mode:  # the position field is the safety reference: where the joint is
+                targets, torques = jaco2.model_to_physical_deg(q_meas), self.torques_nm.copy()
+            else:
+                self.q_ref = self.q_ref + self.dq_ref * dt
+                self.q_ref = q_meas + np.clip(self.q_ref - q_meas, -MAX_TRACKING_ERROR, MAX_TRACKING_ERROR)
+                targets, torques = jaco2.model_to_physical_deg(self.q_ref), None
         try:
-            reading = self.link.command(targets)
+            reading = self.link.command(targets, torques)
         except LinkError as exc:
             with self.lock:
                 self.bus_errors += 1
@@ -77,4 +83,23 @@ class LinkActuators:
                                     dq=jaco2.physical_rate_to_model(reading.velocity_dps),
                                     tau=jaco2.SIGN * reading.torque_nm, stamp_ns=stamp_ns)
             self.faults = [f"actuator {i + 1}: fault {int(code)}" for i, code in enumerate(reading.fault) if code]
+            if self.torque_mode and not np.any(reading.mode == 1):
+                # the actuators dropped back to position mode (their 250 ms torque timeout): follow them
+                self.torque_mode = False
+                self.q_ref, self.dq_ref = self.state.q.copy(), np.zeros(jaco2.N_JOINTS)
         return True
+
+    def enter_torque_mode(self) -> None:
+        """The torque-mode handshake (validation against the model's gravity torques, then the switch)."""
+        from services.robot_gateway.link import expected_torques_physical
+
+        self.link.switch_to_torque(expected_torques_physical(self.read().q))
+        with self.lock:
+            self.torques_nm = np.zeros(jaco2.N_JOINTS)
+            self.torque_mode = True
+
+    def leave_torque_mode(self) -> None:
+        self.link.switch_to_position()
+        with self.lock:
+            self.torque_mode = False
+            self.q_ref, self.dq_ref = self.state.q.copy(), np.zeros(jaco2.N_JOINTS)
