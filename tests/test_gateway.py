@@ -141,3 +141,23 @@ def test_low_level_torque_api_with_its_watchdog(gateway_stack):
     assert wait_for(lambda: low.last().mode is m.ActuatorMode.POSITION, timeout=2)  # the 250 ms fallback
     rates = gateway.rates.snapshot()
     assert rates["pub.lowlevel_state"] > 200  # ~500 Hz nominal; generous bound on a shared machine
+
+
+def test_computed_torque_over_the_low_level_zenoh_api(gateway_stack):
+    """Seed 003's computed torque as a zenoh client of robot_gateway's low-level API tracks the eq. 5.1 cubic."""
+    from services.controller.torque_client import CubicTorqueClient
+
+    client, sim, gateway = gateway_stack
+    low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
+    assert wait_for(lambda: len(low) > 20)
+    q0 = np.array(low.last().q)
+    qf = q0 + np.radians([10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
+    controller = CubicTorqueClient(client, KEYS, q0, qf, duration_s=2.0)
+    try:
+        assert controller.done.wait(15.0)
+    finally:
+        controller.close()
+    errors = controller.errors_deg
+    print(f"computed torque over zenoh: max joint error {max(errors):.3f}° over {len(errors)} states")
+    assert len(errors) > 300
+    assert max(errors) < 1.0

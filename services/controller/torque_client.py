@@ -1,0 +1,50 @@
+"""A computed-torque client of the robot's low-level zenoh API: on every low-level state it publishes the
+torque of :class:`~services.controller.computed_torque.ComputedTorque` for the cubic reference (seed 003 ch. 4
+and eq. 5.1). Runs against robot_gateway (or any robot offering ``robot/lowlevel/*``)."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from protocol import messages as m
+from protocol.keys import Keys
+from services.common.transport import GuardedPublisher
+from services.controller.computed_torque import ComputedTorque, cubic
+
+
+class CubicTorqueClient:
+    def __init__(self, session, keys: Keys, q0, qf, duration_s: float, controller: ComputedTorque | None = None):
+        self.keys = keys
+        self.q0, self.qf, self.duration_s = np.asarray(q0, float), np.asarray(qf, float), duration_s
+        self.controller = controller or ComputedTorque()
+        self.errors_deg: list[float] = []
+        self.start: float | None = None
+        self.done = threading.Event()
+        self._lock = threading.Lock()
+        self._publisher = GuardedPublisher.declare(session, keys.lowlevel_command)
+        self._subscriber = session.declare_subscriber(keys.lowlevel_state, self._on_state)
+
+    def _on_state(self, sample) -> None:
+        if self.done.is_set():
+            return
+        state = m.decode(sample.payload.to_bytes(), m.LowLevelState)
+        with self._lock:
+            if self.start is None:
+                self.start = time.monotonic()
+            t = time.monotonic() - self.start
+            q, dq = np.asarray(state.q), np.asarray(state.dq)
+            q_d, dq_d, ddq_d = cubic(self.q0, self.qf, self.duration_s, t)
+            if state.mode is m.ActuatorMode.TORQUE:
+                self.errors_deg.append(float(np.degrees(np.abs(q_d - q)).max()))
+            tau = self.controller.torque(q, dq, q_d, dq_d, ddq_d)
+        self._publisher.put(m.encode(m.TorqueCommand(header=m.Header(stamp_ns=time.time_ns()),
+                                                     torques=tau.tolist(), gravity_compensation=True)))
+        if t > self.duration_s + 0.3:
+            self.done.set()
+
+    def close(self) -> None:
+        self.done.set()
+        self._subscriber.undeclare()
+        self._publisher.undeclare()
