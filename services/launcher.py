@@ -101,7 +101,7 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
     scheme = "tcp"
     if profile.router.config:
         text = Path(profile.router.config).read_text()
-        scheme = "tls" if '"tls/' in text or "tls/" in text else "tcp"
+        scheme = "tls" if "tls/" in text else "tcp"
     endpoint = f"{scheme}/127.0.0.1:{profile.router.port}"
     processes = []
     children: list[subprocess.Popen] = []

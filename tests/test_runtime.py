@@ -282,3 +282,18 @@ def test_guarded_publisher_survives_undeclare_during_puts(router, client):
     for t in threads:
         t.join()
     assert errors == [] and publisher.put(b"late") is False
+
+
+def test_periodic_schedule_keeps_slots_and_skips_after_a_stall():
+    from services.common.clock import PeriodicSchedule
+
+    schedule = PeriodicSchedule(0.01)
+    assert [schedule.wait() for _ in range(5)] == [(i, False) for i in range(5)]
+    assert 0.035 <= schedule.elapsed_s() < 1.0  # slot 4 is due 40 ms after the start
+    time.sleep(0.2)  # a stall of 20 periods, more than the 5 allowed
+    slot, skipped = schedule.wait()
+    assert skipped and slot >= 20
+    patient = PeriodicSchedule(0.01, max_lag_periods=None)
+    patient.wait()
+    time.sleep(0.1)
+    assert patient.wait() == (1, False)  # never skips: it runs the missed slots

@@ -64,6 +64,33 @@ class SimulatedClock:
             return self._cond.wait_for(lambda: self._now >= t_ns, timeout=timeout_s)
 
 
+class PeriodicSchedule:
+    """Wakes a loop on an absolute schedule of fixed period (wall, monotonic), so periods do not drift. After a
+    stall longer than ``max_lag_periods`` it skips ahead instead of running the missed slots back to back (None:
+    never skip). ``wait()`` returns the slot index it woke for and whether it had to skip."""
+
+    def __init__(self, period_s: float, max_lag_periods: float | None = 5.0) -> None:
+        self.period_s = period_s
+        self.max_lag_periods = max_lag_periods
+        self.start = time.monotonic()
+        self._next = 0
+
+    def elapsed_s(self) -> float:
+        return time.monotonic() - self.start
+
+    def wait(self) -> tuple[int, bool]:
+        delay = self.start + self._next * self.period_s - time.monotonic()
+        skipped = False
+        if delay > 0:
+            time.sleep(delay)
+        elif self.max_lag_periods is not None and delay < -self.max_lag_periods * self.period_s:
+            self._next = int(self.elapsed_s() / self.period_s)
+            skipped = True
+        slot = self._next
+        self._next += 1
+        return slot, skipped
+
+
 def make_clock(mode: ClockMode | str) -> WallClock | SimulatedClock:
     mode = ClockMode(mode)
     return WallClock() if mode is ClockMode.REALTIME else SimulatedClock()

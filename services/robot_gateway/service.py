@@ -24,6 +24,7 @@ from protocol import rs485 as r
 from protocol.conventions import ClockMode
 from protocol.messages import ActuatorMode, LowLevelState, TorqueCommand
 from services.common import jaco2
+from services.common.clock import PeriodicSchedule
 from services.common.dsp import DSPConfig, KinovaDSP
 from services.common.kinematics import ArmKinematics
 from services.common.metrics import LoopTimer
@@ -195,17 +196,12 @@ class RobotGatewayService(RobotFrontEnd, Service):
             temperature_c=reading.temperature_c.tolist(), faults=list(self.actuators.faults)[:32]))
 
     def _run(self) -> None:
-        period = r.CYCLE_S
-        cycles_per_dsp = max(1, round(self.dsp.config.cycle_s / period))
-        start = time.monotonic()
-        k = 0
+        schedule = PeriodicSchedule(r.CYCLE_S)
+        cycles_per_dsp = max(1, round(self.dsp.config.cycle_s / r.CYCLE_S))
         while not self.stop_requested:
-            delay = start + k * period - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -5 * period:
+            k, skipped = schedule.wait()
+            if skipped:
                 self.counters.inc("overruns")
-                k = int((time.monotonic() - start) / period)
             self.loop_timer.tick()
             self._lowlevel()
             ok = self.actuators.cycle(self.clock.now_ns())
@@ -226,4 +222,3 @@ class RobotGatewayService(RobotFrontEnd, Service):
                 if not self.actuators.torque_mode:
                     self.actuators.write(dq_ref)
                 self.publish_state(applied, tuple(self.actuators.faults))
-            k += 1

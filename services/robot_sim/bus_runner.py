@@ -3,14 +3,15 @@ time, in a thread. (The DSP is not here: a gateway drives the actuators over the
 from __future__ import annotations
 
 import threading
-import time
 
+from protocol import rs485
+from services.common.clock import PeriodicSchedule
 from services.common.metrics import LoopTimer
 from services.common.rs485_bus import BusConfig, RS485Bus
 from services.robot_sim.actuator_bus import ActuatorBusConfig, ActuatorBusEmulator
 from services.robot_sim.sim import Simulation
 
-CYCLE_S = 0.002
+CYCLE_S = rs485.CYCLE_S
 
 
 class BusRunner:
@@ -29,19 +30,14 @@ class BusRunner:
         return self
 
     def _run(self) -> None:
-        start = time.monotonic()
-        cycle = 0
+        schedule = PeriodicSchedule(CYCLE_S, max_lag_periods=None)
         steps = max(1, round(CYCLE_S / self.sim.model.opt.timestep))
         while not self._stop.is_set():
-            deadline = start + cycle * CYCLE_S
-            delay = deadline - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
+            schedule.wait()
             self.loop_timer.tick()
             with self.lock:
-                self.emulator.process(time.monotonic() - start)
+                self.emulator.process(schedule.elapsed_s())
                 self.sim.step_physics(steps)
-            cycle += 1
 
     def stop(self) -> None:
         self._stop.set()

@@ -26,6 +26,7 @@ import msgspec
 import mujoco
 import zenoh
 
+from protocol import rs485
 from protocol.conventions import ClockMode
 from protocol.messages import (
     CameraInfo,
@@ -34,6 +35,7 @@ from protocol.messages import (
     SimClock,
     encode,
 )
+from services.common.clock import PeriodicSchedule
 from services.common.config import ConfigStruct
 from services.common.dsp import DSPConfig
 from services.common.metrics import LoopTimer
@@ -183,18 +185,11 @@ class RobotSimService(RobotFrontEnd, Service):
         return self.stop_requested or (limit > 0 and self.sim.time_ns >= limit * 1e9)
 
     def _run_realtime(self) -> None:
-        period = self.sim.cycle_ns * 1e-9
+        schedule = PeriodicSchedule(self.sim.cycle_ns * 1e-9)
         next_info = 0.0
-        start = time.monotonic()
-        cycle = 0
         while not self._done():
-            deadline = start + cycle * period
-            delay = deadline - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -5 * period:  # fell far behind (a stall): skip ahead rather than burst
+            if schedule.wait()[1]:
                 self.counters.inc("overruns")
-                cycle = int((time.monotonic() - start) / period)
             self.rates.tick("cycle")
             self.loop_timer.tick()
             self.run_api_calls()
@@ -207,25 +202,19 @@ class RobotSimService(RobotFrontEnd, Service):
                                         mode=ClockMode.REALTIME.value))
             taken = self.take_command()
             self._cycle(taken)
-            cycle += 1
 
     def _run_bus(self) -> None:
         """Actuator-bus mode: the actuators' 500 Hz cycle and physics on wall time, the camera and the clock."""
-        period = 0.002  # the actuators' cycle (500 Hz)
-        steps = max(1, round(period / self.sim.model.opt.timestep))
-        self.loop_timer = LoopTimer(period)
+        schedule = PeriodicSchedule(rs485.CYCLE_S)  # the actuators' cycle (500 Hz)
+        steps = max(1, round(rs485.CYCLE_S / self.sim.model.opt.timestep))
+        self.loop_timer = LoopTimer(rs485.CYCLE_S)
         next_info = 0.0
-        start = time.monotonic()
-        cycle = 0
         while not self._done():
-            delay = start + cycle * period - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            elif delay < -5 * period:
+            cycle, skipped = schedule.wait()
+            if skipped:
                 self.counters.inc("overruns")
-                cycle = int((time.monotonic() - start) / period)
             self.loop_timer.tick()
-            self.sim.actuators.process(time.monotonic() - start)
+            self.sim.actuators.process(schedule.elapsed_s())
             self.sim.step_physics(steps)
             if self.sim.frame_due():
                 self._capture_frame(wait=False)
@@ -236,7 +225,6 @@ class RobotSimService(RobotFrontEnd, Service):
             if time.monotonic() >= next_info:
                 self.info_pub.put(self._camera_info())
                 next_info = time.monotonic() + self.config.camera_info_period_s
-            cycle += 1
 
     def _run_lockstep(self) -> None:
         cfg = self.config.lockstep
