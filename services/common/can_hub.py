@@ -1,0 +1,328 @@
+"""A CAN bus between processes on one machine, over TCP loopback: the wire between robot_sim's emulated actuators
+and robot_gateway when both run as separate processes.
+
+python-can's ``virtual`` interface only connects buses inside one process, ``udp_multicast`` needs multicast
+groups and ``socketcan``'s ``vcan`` needs a kernel module; none of them can be assumed on a deploy host. So mfvs
+ships a small hub that behaves like a bus: every frame one node sends reaches every other node, never the sender,
+in order; a node that does not read loses frames (an overrun, counted) instead of stalling the others.
+
+``HubBus`` is an ordinary python-can interface (registered as ``mfvs_hub`` through the ``can.interface`` entry
+point), so the RS-485 transport uses it like any other: ``{interface: mfvs_hub, channel: "127.0.0.1:7448"}``.
+``CanHub`` is the relay (``mfvs bus-hub --port 7448``, or in-process for tests).
+
+Wire format, both directions: a 6-byte header ``<IBB`` (arbitration id, flags, data length) then the data.
+"""
+from __future__ import annotations
+
+import collections
+import logging
+import select
+import selectors
+import socket
+import struct
+import threading
+import time
+from typing import Optional
+
+import can
+
+from services.common.metrics import Counters
+from services.common.transport import free_loopback_port
+
+log = logging.getLogger("mfvs.can_hub")
+
+HEADER = struct.Struct("<IBB")
+FLAG_EXTENDED = 0x01
+FLAG_FD = 0x02
+FLAG_BRS = 0x04
+MAX_DATA = 64
+#: a node this far behind loses frames rather than holding the others up (about 0.5 s of RS-485 traffic)
+MAX_BACKLOG_BYTES = 1 << 18
+
+
+def parse_channel(channel: str) -> tuple[str, int]:
+    """``"host:port"`` (or ``"port"``) → (host, port)."""
+    host, _, port = str(channel).rpartition(":")
+    try:
+        number = int(port)
+    except ValueError:
+        raise ValueError(f"mfvs_hub channel {channel!r} is not host:port") from None
+    if not 0 < number < 65536:
+        raise ValueError(f"mfvs_hub channel {channel!r}: port out of range")
+    return host or "127.0.0.1", number
+
+
+def encode_frame(message: can.Message) -> bytes:
+    data = bytes(message.data)
+    if len(data) > MAX_DATA:
+        raise ValueError(f"a CAN frame carries at most {MAX_DATA} bytes, not {len(data)}")
+    flags = ((FLAG_EXTENDED if message.is_extended_id else 0) | (FLAG_FD if message.is_fd else 0)
+             | (FLAG_BRS if message.bitrate_switch else 0))
+    return HEADER.pack(message.arbitration_id, flags, len(data)) + data
+
+
+def split_frames(buffer: bytearray) -> list[bytes]:
+    """Remove and return the complete frames at the start of ``buffer`` (as wire bytes)."""
+    frames = []
+    offset = 0
+    while len(buffer) - offset >= HEADER.size:
+        length = buffer[offset + 5]
+        if length > MAX_DATA:
+            raise ValueError(f"frame length {length} > {MAX_DATA}")
+        end = offset + HEADER.size + length
+        if end > len(buffer):
+            break
+        frames.append(bytes(buffer[offset:end]))
+        offset = end
+    del buffer[:offset]
+    return frames
+
+
+def decode_frame(frame: bytes, channel: str) -> can.Message:
+    arbitration_id, flags, length = HEADER.unpack_from(frame)
+    return can.Message(timestamp=time.time(), arbitration_id=arbitration_id, data=frame[HEADER.size:],
+                       is_extended_id=bool(flags & FLAG_EXTENDED), is_fd=bool(flags & FLAG_FD),
+                       bitrate_switch=bool(flags & FLAG_BRS), is_rx=True, channel=channel, check=False)
+
+
+class HubBus(can.BusABC):
+    """A python-can bus whose wire is a ``CanHub``: ``can.Bus(interface="mfvs_hub", channel="127.0.0.1:7448")``."""
+
+    def __init__(self, channel: str, can_filters=None, connect_timeout_s: float = 5.0, **kwargs) -> None:
+        host, port = parse_channel(channel)
+        deadline = time.monotonic() + connect_timeout_s
+        while True:  # the hub may be starting in another process at the same moment
+            try:
+                self._socket = socket.create_connection((host, port), timeout=1.0)
+                break
+            except OSError as exc:
+                if time.monotonic() > deadline:
+                    raise can.CanInitializationError(f"no mfvs CAN hub at {host}:{port}: {exc}") from exc
+                time.sleep(0.05)
+        self._socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._socket.setblocking(False)
+        self._selector = selectors.DefaultSelector()
+        self._selector.register(self._socket, selectors.EVENT_READ)
+        self._buffer = bytearray()
+        self._received: collections.deque[bytes] = collections.deque()
+        self._send_lock = threading.Lock()
+        self.channel_info = f"mfvs CAN hub at {host}:{port}"
+        self._channel = str(channel)
+        super().__init__(channel=channel, can_filters=can_filters, **kwargs)
+
+    def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
+        pending = memoryview(encode_frame(msg))
+        deadline = time.monotonic() + (1.0 if timeout is None else timeout)
+        with self._send_lock:
+            while pending:
+                try:
+                    pending = pending[self._socket.send(pending):]
+                except BlockingIOError:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0 or not select.select([], [self._socket], [], remaining)[1]:
+                        if len(pending) < HEADER.size + len(msg.data):  # half a frame is on the wire
+                            self._socket.shutdown(socket.SHUT_RDWR)
+                        raise can.CanOperationError("mfvs CAN hub: send timed out") from None
+                except OSError as exc:
+                    raise can.CanOperationError(f"mfvs CAN hub: send failed: {exc}") from exc
+
+    def _recv_internal(self, timeout: Optional[float]):
+        if not self._received:
+            deadline = None if timeout is None else time.monotonic() + timeout
+            while not self._received:
+                remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+                if not self._selector.select(remaining):
+                    return None, False
+                try:
+                    chunk = self._socket.recv(65536)
+                except BlockingIOError:
+                    continue
+                except OSError as exc:
+                    raise can.CanOperationError(f"mfvs CAN hub: receive failed: {exc}") from exc
+                if not chunk:
+                    raise can.CanOperationError("mfvs CAN hub closed the connection")
+                self._buffer += chunk
+                try:
+                    self._received.extend(split_frames(self._buffer))
+                except ValueError as exc:
+                    raise can.CanOperationError(f"mfvs CAN hub sent a bad frame: {exc}") from exc
+                if deadline is not None and time.monotonic() >= deadline and not self._received:
+                    return None, False
+        return decode_frame(self._received.popleft(), self._channel), False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+        try:
+            self._selector.close()
+        finally:
+            self._socket.close()
+
+
+class _Node:
+    __slots__ = ("sock", "address", "inbox", "outbox")
+
+    def __init__(self, sock: socket.socket, address) -> None:
+        self.sock = sock
+        self.address = address
+        self.inbox = bytearray()
+        self.outbox = bytearray()
+
+
+class CanHub:
+    """The relay: accepts nodes on a loopback TCP port and copies every frame to every other node.
+
+    Runs in a thread (``start()``/``close()`` or a context manager); ``serve_forever()`` for ``mfvs bus-hub``.
+    Counters: ``frames`` relayed, ``overruns`` (frames a slow node lost), ``bad_frames`` (a node that sent a
+    malformed frame is disconnected), ``nodes``.
+    """
+
+    def __init__(self, port: int = 0, host: str = "127.0.0.1") -> None:
+        self.host = host
+        self.port = port or free_loopback_port(host)
+        self.counters = Counters()
+        self._selector = selectors.DefaultSelector()
+        self._listener: Optional[socket.socket] = None
+        self._nodes: dict[socket.socket, _Node] = {}
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._wake_r, self._wake_w = socket.socketpair()
+
+    @property
+    def channel(self) -> str:
+        return f"{self.host}:{self.port}"
+
+    def bind(self) -> None:
+        """Listen now (``start``/``serve_forever`` do it when not done yet): a taken port fails here."""
+        if self._listener is not None:
+            return
+        listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind((self.host, self.port))
+        listener.listen(16)
+        listener.setblocking(False)
+        self._listener = listener
+        self._selector.register(listener, selectors.EVENT_READ, "accept")
+        self._selector.register(self._wake_r, selectors.EVENT_READ, "wake")
+
+    def start(self) -> "CanHub":
+        self.bind()
+        self._thread = threading.Thread(target=self._run, name="can-hub", daemon=True)
+        self._thread.start()
+        return self
+
+    def serve_forever(self) -> None:
+        self.bind()
+        self._run()
+
+    def stop(self) -> None:
+        self._stop.set()
+        try:
+            self._wake_w.send(b"x")
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        self.stop()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+
+    def __enter__(self) -> "CanHub":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                for key, events in self._selector.select(timeout=0.5):
+                    if key.data == "accept":
+                        self._accept()
+                    elif key.data == "wake":
+                        self._wake_r.recv(64)
+                    else:
+                        node = self._nodes.get(key.fileobj)
+                        if node is None:
+                            continue
+                        if events & selectors.EVENT_READ:
+                            self._read(node)
+                        if events & selectors.EVENT_WRITE and node.sock in self._nodes:
+                            self._flush(node)
+        finally:
+            for node in list(self._nodes.values()):
+                self._drop(node, "hub stopping")
+            self._selector.close()
+            if self._listener is not None:
+                self._listener.close()
+            self._wake_r.close()
+            self._wake_w.close()
+
+    def _accept(self) -> None:
+        try:
+            sock, address = self._listener.accept()
+        except BlockingIOError:
+            return
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.setblocking(False)
+        node = _Node(sock, address)
+        self._nodes[sock] = node
+        self._selector.register(sock, selectors.EVENT_READ, "node")
+        self.counters.inc("nodes")
+        log.info("node %s joined (%d on the bus)", address, len(self._nodes))
+
+    def _read(self, node: _Node) -> None:
+        try:
+            chunk = node.sock.recv(65536)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._drop(node, str(exc))
+            return
+        if not chunk:
+            self._drop(node, "disconnected")
+            return
+        node.inbox += chunk
+        try:
+            frames = split_frames(node.inbox)
+        except ValueError as exc:
+            self.counters.inc("bad_frames")
+            self._drop(node, f"malformed frame: {exc}")
+            return
+        if not frames:
+            return
+        payload = b"".join(frames)
+        self.counters.inc("frames", len(frames))
+        for other in list(self._nodes.values()):
+            if other is not node:
+                self._queue(other, payload, len(frames))
+
+    def _queue(self, node: _Node, payload: bytes, count: int) -> None:
+        if len(node.outbox) + len(payload) > MAX_BACKLOG_BYTES:
+            self.counters.inc("overruns", count)
+            return
+        was_empty = not node.outbox
+        node.outbox += payload
+        if was_empty:
+            self._flush(node)
+
+    def _flush(self, node: _Node) -> None:
+        try:
+            sent = node.sock.send(node.outbox)
+        except BlockingIOError:
+            sent = 0
+        except OSError as exc:
+            self._drop(node, str(exc))
+            return
+        del node.outbox[:sent]
+        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if node.outbox else 0)
+        self._selector.modify(node.sock, events, "node")
+
+    def _drop(self, node: _Node, why: str) -> None:
+        self._nodes.pop(node.sock, None)
+        try:
+            self._selector.unregister(node.sock)
+        except (KeyError, ValueError):
+            pass
+        node.sock.close()
+        log.info("node %s left: %s", node.address, why)
