@@ -2,7 +2,7 @@
 read off the per-hop trace every robot command carries. The stack runs in realtime as separate processes
 (`mfvs up`), on a free loopback port.
 
-``python -m bench.latency [--json] [--seconds S]`` or ``mfvs bench latency``. ``--json`` prints
+``python -m bench.latency [--json] [--seconds S] [--profile sim|gateway]`` or ``mfvs bench latency``. ``--json`` prints
 ``{"e2e_ms": {p50, p99, max, n}, "hops": {name: {p50, p99, max, n}}}``; e2e counts each frame once, at the
 first robot cycle that applies a command derived from it.
 """
@@ -19,7 +19,7 @@ import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
 from services.common.transport import ZenohConfig, free_loopback_port, open_session
-from services.launcher import down, sim_profile, up
+from services.launcher import down, load_profile, up
 
 
 def _stats(values_ms: list[float]) -> dict:
@@ -53,13 +53,13 @@ def analyse(states: list[m.RobotState]) -> dict:
     return {"e2e_ms": _stats(e2e), "hops": {name: _stats(values) for name, values in hops.items()}}
 
 
-def run(seconds: float = 10.0) -> dict:
+def run(seconds: float = 10.0, profile: str = "sim") -> dict:
     previous = os.environ.get("MFVS_RUN_DIR")
     with tempfile.TemporaryDirectory(prefix="mfvs-latency-") as directory:
         os.environ["MFVS_RUN_DIR"] = directory
         port = free_loopback_port()
         try:
-            code, message = up(sim_profile(port), "realtime")
+            code, message = up(load_profile(profile, port, free_loopback_port()), "realtime")
             if code:
                 raise RuntimeError(message)
             session = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
@@ -79,6 +79,7 @@ def run(seconds: float = 10.0) -> dict:
                 os.environ["MFVS_RUN_DIR"] = previous
     result = analyse(window)
     result["seconds"] = seconds
+    result["profile"] = profile
     return result
 
 
@@ -86,8 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mfvs bench latency", description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--seconds", type=float, default=10.0, help="measurement window (s)")
+    parser.add_argument("--profile", choices=["sim", "gateway"], default="sim",
+                        help="sim: robot_sim's DSP; gateway: robot_gateway over the RS-485 bus hub")
     args = parser.parse_args(argv)
-    result = run(args.seconds)
+    result = run(args.seconds, args.profile)
     if args.json:
         print(json.dumps(result))
     else:

@@ -28,6 +28,25 @@ def _cmd_router(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bus_hub(args: argparse.Namespace) -> int:
+    from services.common.can_hub import CanHub
+    from services.common.logs import setup_logging
+
+    setup_logging("info")
+    hub = CanHub(port=args.port, host=args.host)
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: hub.stop())
+    try:
+        hub.bind()
+    except OSError as exc:
+        print(f"mfvs bus-hub: cannot listen on {args.host}:{args.port}: {exc}", file=sys.stderr)
+        return 1
+    print(json.dumps({"bus_hub": hub.channel, "interface": "mfvs_hub"}), flush=True)
+    hub.serve_forever()
+    print(json.dumps({"bus_hub": hub.channel, **hub.counters.snapshot()}), flush=True)
+    return 0
+
+
 def _cmd_model(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -143,9 +162,12 @@ def _cmd_up(args: argparse.Namespace) -> int:
     from services.launcher import load_profile, up
 
     try:
-        profile = load_profile(args.profile, args.port)
+        profile = load_profile(args.profile, args.port, args.bus_port)
     except ConfigError as exc:
         print(f"mfvs up: {exc}", file=sys.stderr)
+        return 2
+    if profile.realtime_only and args.clock == "lockstep":
+        print("mfvs up: robot_gateway runs in realtime only (a real arm has no simulated clock)", file=sys.stderr)
         return 2
     code, message = up(profile, args.clock, args.wait)
     print(message, file=sys.stderr if code else sys.stdout)
@@ -181,7 +203,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
-              "rs485": "bench.rs485"}
+              "rs485": "bench.rs485", "swap": "bench.swap"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -212,6 +234,12 @@ def build_parser() -> argparse.ArgumentParser:
     router.add_argument("--config", default=None, help="zenoh JSON5 config file (access control, TLS)")
     router.set_defaults(func=_cmd_router)
 
+    hub = sub.add_parser("bus-hub", help="run the loopback CAN hub that carries RS-485 frames between robot_sim's "
+                         "emulated actuators and robot_gateway (python-can interface mfvs_hub)")
+    hub.add_argument("--port", type=int, default=7448, help="TCP port to listen on (default 7448)")
+    hub.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    hub.set_defaults(func=_cmd_bus_hub)
+
     model = sub.add_parser("model", help="the JACO-2 j2s7s300 description")
     model.add_argument("what", choices=["urdf", "info"], help="urdf: print the URDF; info: limits, home pose")
     model.set_defaults(func=_cmd_model)
@@ -219,7 +247,8 @@ def build_parser() -> argparse.ArgumentParser:
     up_cmd = sub.add_parser("up", help="start a stack (router and services) as background processes")
     up_cmd.add_argument("--profile", default="sim", help="sim, gateway, or a profile YAML file")
     up_cmd.add_argument("--clock", choices=["realtime", "lockstep"], default=None, help="override the clock mode")
-    up_cmd.add_argument("--port", type=int, default=7447, help="router port (sim profile)")
+    up_cmd.add_argument("--port", type=int, default=7447, help="router port (sim and gateway profiles)")
+    up_cmd.add_argument("--bus-port", type=int, default=7448, help="CAN hub port (gateway profile)")
     up_cmd.add_argument("--wait", type=float, default=60.0, help="seconds to wait for every service")
     up_cmd.set_defaults(func=_cmd_up)
     down_cmd = sub.add_parser("down", help="stop the stack `mfvs up` started")
@@ -260,7 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("name", choices=sorted(BENCHMARKS),
                        help="loops: robot_sim loop rate, jitter, lockstep speed; vision: detection time per frame; "
                        "laws: µs per control-law iteration; latency: capture → applied, per hop; "
-                       "rs485: actuator bus cycle and request→reply latency")
+                       "rs485: actuator bus cycle and request→reply latency; swap: iterations to converge through "
+                       "robot_sim and through robot_gateway")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)

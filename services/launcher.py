@@ -2,13 +2,20 @@
 
 A stack is a zenoh router plus services, each its own process (``python -m services.<name>``) with its config
 file, logging to the run directory (``$MFVS_RUN_DIR``, default ``~/.local/state/mfvs``), which also holds
-``stack.json`` (the router's endpoint, every process id and log). Profiles: ``sim`` (robot_sim, vision,
-controller, safety with their shipped configs) or a YAML file::
+``stack.json`` (the router's endpoint, every process id and log). Profiles:
+
+- ``sim``: robot_sim (its emulated DSP and API), vision, controller, safety with their shipped configs;
+- ``gateway``: the same, except that robot_sim runs only the actuators (``mode: actuator_bus``) on an RS-485 bus
+  carried by the loopback CAN hub (``mfvs bus-hub``), and robot_gateway offers the robot's zenoh API on top of
+  that bus, as it would for a real arm (realtime only);
+- a YAML file::
 
     router: {port: 7447, config: null}          # config: a zenoh router config (access control, TLS)
+    bus_hub: {port: 7448}                       # optional: run the loopback CAN hub (python-can mfvs_hub)
     services:
       - {name: safety, config: services/safety/safety.yaml}
-      - {name: robot_sim, config: my_robot.yaml, zenoh_config: secrets/clients/robot_sim.json5}
+      - {name: robot_sim, config: my_robot.yaml, zenoh_config: secrets/clients/robot_sim.json5,
+         set: [mode=actuator_bus]}              # set: config overrides, as `--set KEY=VALUE`
 """
 from __future__ import annotations
 
@@ -25,17 +32,21 @@ import msgspec
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.common.config import ConfigError, ConfigStruct, load_config
+from services.common.config import ConfigStruct, load_config
 from services.common.transport import ZenohConfig, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICES = ("safety", "vision", "controller", "robot_sim")
+KNOWN_SERVICES = (*SERVICES, "robot_gateway")
+BUS_HUB_PORT = 7448
 
 
 class ProfileService(ConfigStruct):
     name: str
     config: Optional[str] = None
     zenoh_config: Optional[str] = None
+    #: config overrides, each ``dotted.key=value`` (the service's ``--set``)
+    set: list[str] = msgspec.field(default_factory=list)
 
 
 class ProfileRouter(ConfigStruct):
@@ -43,20 +54,42 @@ class ProfileRouter(ConfigStruct):
     config: Optional[str] = None
 
 
+class ProfileBusHub(ConfigStruct):
+    port: int = BUS_HUB_PORT
+    host: str = "127.0.0.1"
+
+
 class Profile(ConfigStruct):
     router: ProfileRouter = msgspec.field(default_factory=ProfileRouter)
+    bus_hub: Optional[ProfileBusHub] = None
     services: list[ProfileService] = msgspec.field(default_factory=list)
     robot_id: str = "jaco"
 
     def __post_init__(self) -> None:
-        unknown = [s.name for s in self.services if s.name not in (*SERVICES, "robot_gateway")]
+        unknown = [s.name for s in self.services if s.name not in KNOWN_SERVICES]
         if unknown:
-            raise ValueError(f"unknown services {unknown}; known: {', '.join(SERVICES)}")
+            raise ValueError(f"unknown services {unknown}; known: {', '.join(KNOWN_SERVICES)}")
+
+    @property
+    def realtime_only(self) -> bool:
+        return any(s.name == "robot_gateway" for s in self.services)
+
+
+def _shipped(name: str, overrides: list[str] | None = None) -> ProfileService:
+    return ProfileService(name=name, config=str(REPO / "services" / name / f"{name}.yaml"), set=overrides or [])
 
 
 def sim_profile(port: int) -> Profile:
-    return Profile(router=ProfileRouter(port=port), services=[
-        ProfileService(name=name, config=str(REPO / "services" / name / f"{name}.yaml")) for name in SERVICES])
+    return Profile(router=ProfileRouter(port=port), services=[_shipped(name) for name in SERVICES])
+
+
+def gateway_profile(port: int, bus_port: int = BUS_HUB_PORT) -> Profile:
+    """robot_sim's actuators on the hub's bus, robot_gateway in front of them; everything else as in ``sim``.
+    Only the robot's side changes: vision, controller and safety run with exactly their ``sim`` configs."""
+    bus = ["bus.interface=mfvs_hub", f"bus.channel=127.0.0.1:{bus_port}"]
+    pipeline = [_shipped(name) for name in SERVICES if name != "robot_sim"]
+    return Profile(router=ProfileRouter(port=port), bus_hub=ProfileBusHub(port=bus_port), services=[
+        *pipeline, _shipped("robot_sim", ["mode=actuator_bus", *bus]), _shipped("robot_gateway", bus)])
 
 
 def run_dir() -> Path:
@@ -111,6 +144,11 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
     log = directory / "router.log"
     children.append(_spawn(router_args, log))
     processes.append({"name": "router", "pid": children[-1].pid, "log": str(log)})
+    if profile.bus_hub is not None:
+        log = directory / "bus_hub.log"
+        children.append(_spawn([sys.executable, "-m", "services.cli", "bus-hub", "--port", str(profile.bus_hub.port),
+                                "--host", profile.bus_hub.host], log))
+        processes.append({"name": "bus_hub", "pid": children[-1].pid, "log": str(log)})
     time.sleep(0.5)
     for service in profile.services:
         module = f"services.{service.name}"
@@ -121,6 +159,8 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
             args += ["--clock", clock]
         if service.zenoh_config:
             args += ["--zenoh-config", service.zenoh_config]
+        for assignment in service.set:
+            args += ["--set", assignment]
         log = directory / f"{service.name}.log"
         children.append(_spawn(args, log))
         processes.append({"name": service.name, "pid": children[-1].pid, "log": str(log)})
@@ -151,9 +191,12 @@ def down(timeout_s: float = 15.0) -> tuple[int, str]:
     stack = read_stack()
     if stack is None:
         return 0, "no stack is up"
-    ordered = [p for p in stack["processes"] if p["name"] != "router"] + \
-              [p for p in stack["processes"] if p["name"] == "router"]
-    for group in (ordered[:-1], ordered[-1:]):
+    # the services first, then what carries their traffic (the CAN hub, the router)
+    infrastructure = ("bus_hub", "router")
+    ordered = [p for p in stack["processes"] if p["name"] not in infrastructure] + \
+              [p for p in stack["processes"] if p["name"] in infrastructure]
+    services = sum(p["name"] not in infrastructure for p in ordered)
+    for group in (ordered[:services], ordered[services:]):
         for proc in group:
             if _alive(proc["pid"]):
                 try:
@@ -218,9 +261,9 @@ def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -
     return {"router": router, "services": services}
 
 
-def load_profile(name_or_path: str, port: int) -> Profile:
+def load_profile(name_or_path: str, port: int, bus_port: int = BUS_HUB_PORT) -> Profile:
     if name_or_path == "sim":
         return sim_profile(port)
     if name_or_path == "gateway":
-        raise ConfigError("gateway", "the gateway profile arrives with robot_gateway (not built yet)")
+        return gateway_profile(port, bus_port)
     return load_config(name_or_path, Profile)

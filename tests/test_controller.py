@@ -93,12 +93,3 @@ def test_a_robot_reading_another_convention_is_not_commanded():
 def test_unknown_law_is_refused_in_config():
     with pytest.raises(ValueError, match="unknown law"):
         ControllerConfig(law="pid")
-
-
-def test_shipped_config_documents_the_defaults():
-    from pathlib import Path
-
-    from services.common.config import load_config
-
-    shipped = Path(__file__).resolve().parents[1] / "services" / "controller" / "controller.yaml"
-    assert load_config(shipped, ControllerConfig) == ControllerConfig()

@@ -54,5 +54,47 @@ def test_unknown_profile_is_refused(tmp_path):
     bad.write_text("services: [{name: teleporter}]\n")
     out = mfvs("up", "--profile", str(bad), env=env)
     assert out.returncode == 2 and "teleporter" in out.stderr
-    out = mfvs("up", "--profile", "gateway", env=env)
-    assert out.returncode == 2 and "robot_gateway" in out.stderr
+    out = mfvs("up", "--profile", "gateway", "--clock", "lockstep", env=env)
+    assert out.returncode == 2 and "realtime only" in out.stderr
+
+
+def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
+    """`mfvs up --profile gateway`: robot_sim runs only the actuators, robot_gateway offers the robot over the
+    RS-485 bus carried by the CAN hub, every service is its own process, and the stack servos onto the tag
+    exactly as with the sim profile (vision, controller and safety use the same shipped configs)."""
+    from protocol import messages as m
+    from protocol.keys import Keys
+    from services.common.transport import ZenohConfig, open_session
+
+    env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path))
+    port, bus_port = str(free_loopback_port()), str(free_loopback_port())
+    out = mfvs("up", "--profile", "gateway", "--port", port, "--bus-port", bus_port, env=env)
+    try:
+        assert out.returncode == 0, out.stderr
+        stack = json.loads((tmp_path / "stack.json").read_text())
+        assert [p["name"] for p in stack["processes"]][:2] == ["router", "bus_hub"]
+        session = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+        errors, states = [], []
+        keys = Keys()
+        session.declare_subscriber(keys.features, lambda s: errors.append(
+            m.decode(s.payload.to_bytes(), m.Features).error_norm))
+        session.declare_subscriber(keys.robot_state, lambda s: states.append(
+            m.decode(s.payload.to_bytes(), m.RobotState)))
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (errors and errors[-1] < 5e-3 and len(states) > 100):
+            time.sleep(0.5)
+        session.close()
+        assert errors and errors[-1] < 5e-3, errors[-5:]  # the arm moved the tag to the goal
+        applied_by = {s.applied_command.trace[-1].service for s in states
+                      if s.applied_command is not None and s.applied_command.trace}
+        assert applied_by == {"robot_gateway"}  # safety's commands reached the arm through the gateway
+        status = json.loads(mfvs("status", "--json", env=env).stdout)
+        services = {s["name"]: s for s in status["services"]}
+        assert set(services) == {"robot_sim", "robot_gateway", "vision", "controller", "safety"}
+        assert all(s["healthy"] for s in services.values()), services
+        assert services["robot_gateway"]["rates_hz"]["pub.state"] > 50  # generous: 100 Hz nominal
+        assert services["robot_gateway"]["rates_hz"]["pub.lowlevel_state"] > 200  # generous: 500 Hz nominal
+        assert "pub.state" not in services["robot_sim"]["rates_hz"]  # only the gateway is the robot
+    finally:
+        down = mfvs("down", env=env)
+    assert down.returncode == 0 and "stopped 7 processes" in down.stdout

@@ -10,17 +10,12 @@ import numpy as np
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.common.config import load_config
 from services.common.transport import open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "services" / "robot_sim" / "robot_sim.yaml"
 KEYS = Keys()
-
-
-def test_shipped_config_documents_the_defaults():
-    assert load_config(SHIPPED, RobotSimConfig) == RobotSimConfig()
 
 
 def start(router, *args):
@@ -66,6 +61,13 @@ def test_bad_config_is_refused_with_the_key_name(router, tmp_path):
     out = subprocess.run([sys.executable, "-m", "services.robot_sim", "--config", str(bad)], cwd=REPO,
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "scene.camera.focal" in out.stderr
+    # a deploy profile's override is validated like the file it changes
+    out = subprocess.run([sys.executable, "-m", "services.robot_sim", "--config", str(SHIPPED), "--set",
+                          "dsp.max_linear_speed_mps=0.5"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "max_linear_speed_mps" in out.stderr
+    out = subprocess.run([sys.executable, "-m", "services.robot_sim", "--set", "mode=teleport"], cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "mode" in out.stderr
 
 
 def test_max_sim_time_ends_a_lockstep_run(router):

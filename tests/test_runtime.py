@@ -15,7 +15,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
 from services.common.clock import SimulatedClock, WallClock, make_clock
-from services.common.config import ConfigError, config_from_text, load_config
+from services.common.config import ConfigError, apply_override, config_from_text, load_config
 from services.common.logs import RateLimitedLogger
 from services.common.metrics import Counters, RateMeter
 from services.common.service import Service, ServiceConfig
@@ -208,6 +208,21 @@ def test_config_defaults_unknown_keys_and_types(tmp_path):
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_config(path, ServiceConfig)
     assert load_config(None, ServiceConfig) == ServiceConfig()
+
+
+def test_overrides_set_one_key_of_a_config_and_are_validated_with_it():
+    data = {"bus": {"interface": "virtual"}}
+    for assignment in ("bus.channel=127.0.0.1:7448", "mode=actuator_bus", "dsp.zones=[]", "scene.camera.cx=null"):
+        apply_override(data, assignment)
+    assert data == {"bus": {"interface": "virtual", "channel": "127.0.0.1:7448"}, "mode": "actuator_bus",
+                    "dsp": {"zones": []}, "scene": {"camera": {"cx": None}}}
+    with pytest.raises(ConfigError, match="not key=value"):
+        apply_override(data, "bus.channel")
+    with pytest.raises(ConfigError) as err:
+        apply_override(data, "bus.interface.name=x")
+    assert err.value.key == "bus.interface"
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        apply_override(data, "dsp.zones=[1,")
 
 
 def test_zenoh_config_file_must_exist():

@@ -199,12 +199,3 @@ def test_detector_refinement_options():
         F.TagDetector(refinement="magic")
     with pytest.raises(ValueError):
         tags.dictionary("tag25h9")
-
-
-def test_shipped_config_documents_the_defaults():
-    from pathlib import Path
-
-    from services.common.config import load_config
-
-    shipped = Path(__file__).resolve().parents[1] / "services" / "vision" / "vision.yaml"
-    assert load_config(shipped, VisionConfig) == VisionConfig()

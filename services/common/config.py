@@ -94,6 +94,25 @@ def config_from_mapping(data: Any, config_type: type[T], name: str = "<mapping>"
         raise ConfigError(name, reason, path) from None
 
 
+def apply_override(data: dict, assignment: str, name: str = "--set") -> None:
+    """Apply one ``dotted.key=value`` assignment (the value is read as YAML) to a config mapping in place, so that
+    a deploy profile can change one key of a shipped config file without copying it."""
+    key, sep, text = assignment.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(name, f"{assignment!r} is not key=value")
+    parts = key.strip().split(".")
+    node = data
+    for i, part in enumerate(parts[:-1]):
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise ConfigError(name, "is not a mapping", ".".join(parts[:i + 1]))
+        node = child
+    try:
+        node[parts[-1]] = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(name, f"value of {key.strip()} is not valid YAML ({exc})") from None
+
+
 def dump_defaults(config_type: type) -> str:
     """YAML text of a config type's defaults (for documentation and `--print-config`)."""
     return yaml.safe_dump(msgspec.to_builtins(config_type()), sort_keys=False)

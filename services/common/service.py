@@ -295,7 +295,7 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
     import argparse
     import sys
 
-    from services.common.config import ConfigError, config_from_mapping, read_yaml
+    from services.common.config import ConfigError, apply_override, config_from_mapping, read_yaml
     from services.common.logs import setup_logging
 
     parser = argparse.ArgumentParser(prog=f"python -m services.{service_type.name}", description=description)
@@ -304,11 +304,15 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
     parser.add_argument("--connect", action="append", help="zenoh endpoint of the router (repeatable)")
     parser.add_argument("--robot-id", help="override the robot id (key prefix mfvs/<robot_id>/)")
     parser.add_argument("--zenoh-config", help="zenoh client config file (credentials, certificates)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one config key (dotted path, YAML value), e.g. bus.channel=127.0.0.1:7448")
     args = parser.parse_args(argv)
     try:
         data = read_yaml(args.config) if args.config else {}
         if not isinstance(data, dict):
             raise ConfigError(args.config, "expected a mapping at the top level")
+        for assignment in args.set:
+            apply_override(data, assignment)
         if args.clock:
             data["clock"] = args.clock
         if args.robot_id:

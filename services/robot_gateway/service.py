@@ -32,7 +32,7 @@ from services.common.robot_frontend import RobotFrontEnd
 from services.common.rs485_bus import BusConfig, RS485Bus
 from services.common.service import Service, ServiceConfig
 from services.robot_gateway.actuators import LinkActuators
-from services.robot_gateway.link import ActuatorLink
+from services.robot_gateway.link import ActuatorLink, LinkError
 
 KINOVA_SDK_LIBRARY = "Kinova.API.USBCommandLayerUbuntu.so"
 
@@ -42,6 +42,8 @@ class GatewayConfig(ServiceConfig):
     bus: BusConfig = msgspec.field(default_factory=BusConfig)
     addresses: list[int] = msgspec.field(default_factory=lambda: list(r.ACTUATOR_ADDRESSES))
     link_timeout_s: float = 0.01
+    #: at start, keep asking the actuators for their positions this long (an arm, or robot_sim, powering up)
+    connect_timeout_s: float = 30.0
     max_bus_errors: int = 5
     dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
     sdk_library: str = KINOVA_SDK_LIBRARY
@@ -120,11 +122,23 @@ class RobotGatewayService(RobotFrontEnd, Service):
         cfg = self.config
         self.bus = RS485Bus(cfg.bus, self.counters)
         link = ActuatorLink(self.bus, cfg.addresses, cfg.link_timeout_s, self.counters)
-        self.actuators = LinkActuators(link)  # raises LinkError when no actuator answers: the start fails
+        self.actuators = self._connect(link)
         self.init_frontend(_LinkView(self.actuators), KinovaDSP(cfg.dsp))
         self.declare_frontend()
         self._thread = threading.Thread(target=self._run, name="robot_gateway-loop", daemon=True)
         self._thread.start()
+
+    def _connect(self, link: ActuatorLink) -> LinkActuators:
+        """The actuators' first answer, waiting up to ``connect_timeout_s`` for them; the start fails after."""
+        deadline = time.monotonic() + self.config.connect_timeout_s
+        while True:
+            try:
+                return LinkActuators(link)
+            except LinkError as exc:
+                if time.monotonic() > deadline or self.stop_requested:
+                    raise
+                self.log.warning("waiting for the actuators: %s", exc)
+                time.sleep(0.5)
 
     def on_stop(self) -> None:
         if self._thread is not None:

@@ -1,0 +1,40 @@
+"""Each service's shipped YAML is its documentation: it must load to exactly the code's defaults and show every
+key (a key missing from the file would be an undocumented setting)."""
+from pathlib import Path
+
+import msgspec
+import pytest
+
+from services.common.config import load_config, read_yaml
+from services.controller.service import ControllerConfig
+from services.robot_gateway.service import GatewayConfig
+from services.robot_sim.service import RobotSimConfig
+from services.safety.service import SafetyConfig
+from services.vision.service import VisionConfig
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED = {
+    "robot_sim": RobotSimConfig, "vision": VisionConfig, "controller": ControllerConfig, "safety": SafetyConfig,
+    "robot_gateway": GatewayConfig,
+}
+
+
+def key_paths(node, prefix=""):
+    """Dotted paths of every mapping key (lists are values: their items are not walked)."""
+    if not isinstance(node, dict):
+        return set()
+    paths = set()
+    for key, value in node.items():
+        path = f"{prefix}{key}"
+        paths.add(path)
+        paths |= key_paths(value, f"{path}.")
+    return paths
+
+
+@pytest.mark.parametrize("service", sorted(SHIPPED))
+def test_shipped_config_is_the_defaults_with_every_key(service):
+    config_type = SHIPPED[service]
+    shipped = REPO / "services" / service / f"{service}.yaml"
+    assert load_config(shipped, config_type) == config_type()
+    missing = key_paths(msgspec.to_builtins(config_type())) - key_paths(read_yaml(shipped))
+    assert not missing, f"{shipped.name} does not show {sorted(missing)}"
