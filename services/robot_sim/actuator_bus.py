@@ -20,9 +20,14 @@ Per actuator (host 0x00, actuators at ``ACTUATOR_ADDRESSES``):
   the actuator hold its position until ``CLEAR_FAULT_FLAG``.
 * Torque mode falls back to holding the position when no torque command came for ``torque_timeout_s`` (250 ms).
 * Gravity compensation: in torque mode the actuator adds the model's gravity torque (the real DSP's option).
+* Position mode: the firmware's reference is a quadratic fitted to the last ~12 ms of targets (position, rate
+  and acceleration, robust to a host whose commands jitter by a cycle), followed by a servo critically damped at
+  ``SERVO_BANDWIDTH_RPS`` for the joint's current inertia, with inertia, friction and gravity feedforward: a
+  4 Hz motion comes out within a few percent and a cycle of its target, on the shoulder as on the wrist.
 """
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass, field
 
@@ -49,9 +54,39 @@ class ActuatorBusConfig(ConfigStruct):
     validation_lifetime_s: float = 1.0
 
 
-# position-mode servo of each actuator (its own firmware loop)
-KP = np.array([400.0, 400.0, 400.0, 300.0, 120.0, 120.0, 120.0])
-KD = np.array([40.0, 40.0, 40.0, 30.0, 8.0, 8.0, 8.0])
+#: the position-mode reference is fitted to the targets of about this long (a few bus cycles)
+RATE_WINDOW_S = 0.012
+#: a target older than this is not extrapolated (the host stopped sending)
+STALE_TARGET_S = 0.02
+#: position-mode servo of each actuator (its own firmware loop): critically damped at this natural frequency for
+#: the inertia the joint currently drives, so that the shoulder follows its targets as promptly as the wrist (a
+#: fixed PD would leave the heavy joints ~30 ms behind the light ones, and a Cartesian motion that needs both
+#: would come out distorted)
+SERVO_BANDWIDTH_RPS = 150.0
+
+
+def quadratic_at_end(samples, t_end: float) -> tuple[float, float, float]:
+    """Least-squares p(t) = a + b·x + c·x² with x = t − t_end over (t, p) samples: (a, b, 2c), i.e. the fitted
+    position, rate and acceleration at t_end. Plain arithmetic: it runs for every actuator every cycle."""
+    s0 = s1 = s2 = s3 = s4 = y0 = y1 = y2 = 0.0
+    for t, p in samples:
+        x = t - t_end
+        x2 = x * x
+        s0 += 1.0
+        s1 += x
+        s2 += x2
+        s3 += x2 * x
+        s4 += x2 * x2
+        y0 += p
+        y1 += p * x
+        y2 += p * x2
+    det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s3 * s2) + s2 * (s1 * s3 - s2 * s2)
+    if abs(det) < 1e-30:
+        return samples[-1][1], 0.0, 0.0
+    a = (y0 * (s2 * s4 - s3 * s3) - s1 * (y1 * s4 - s3 * y2) + s2 * (y1 * s3 - s2 * y2)) / det
+    b = (s0 * (y1 * s4 - s3 * y2) - y0 * (s1 * s4 - s3 * s2) + s2 * (s1 * y2 - y1 * s2)) / det
+    c = (s0 * (s2 * y2 - y1 * s3) - s1 * (s1 * y2 - y1 * s2) + y0 * (s1 * s3 - s2 * s2)) / det
+    return a, b, 2.0 * c
 
 
 @dataclass
@@ -60,9 +95,13 @@ class Actuator:
     address: int
     mode: r.ControlModeRequest = r.ControlModeRequest.POSITION
     target_deg: float = 0.0
-    #: the target's rate, from successive position commands (the actuator's own interpolation)
+    #: the target's rate, from the position commands of the last few cycles (the actuator's own interpolation)
     target_rate_dps: float = 0.0
     target_time_s: float = -math.inf
+    #: the rate's own rate (deg/s²), for the servo's inertia feedforward
+    target_accel_dps2: float = 0.0
+    #: recent (time, target) pairs the rate is measured over
+    target_history: collections.deque = field(default_factory=lambda: collections.deque(maxlen=16))
     torque_nm: float = 0.0
     last_torque_s: float = -math.inf
     validated_s: float = -math.inf
@@ -88,6 +127,8 @@ class ActuatorBusEmulator:
             self.by_address[address] = actuator
         self.actuators = list(self.by_address.values())
         self._gravity = np.zeros(self.n)
+        self._mass = np.zeros((model.nv, model.nv))
+        self._friction = model.dof_damping[: self.n].copy()
         self.now_s = 0.0
 
     # ------------------------------------------------------------------ state in actuator units
@@ -127,10 +168,33 @@ class ActuatorBusEmulator:
             self._check_limits(actuator)
         return handled
 
+    def _follow(self, actuator: Actuator, position_deg: float) -> None:
+        """Take a new position target: the firmware's reference is a quadratic fitted to the targets of the last
+        RATE_WINDOW_S, which gives its position, rate and acceleration at once, consistently. (One cycle's
+        difference would do on a perfectly periodic bus; a host whose commands jitter by a cycle, two in one
+        cycle and none in the next, would make such a rate jump between zero and double.)"""
+        history = actuator.target_history
+        if history and self.now_s - history[-1][0] > STALE_TARGET_S:
+            history.clear()  # the host paused: the old targets say nothing about the new motion
+        history.append((self.now_s, position_deg))
+        while len(history) > 3 and self.now_s - history[1][0] >= RATE_WINDOW_S:
+            history.popleft()
+        position, rate, accel = position_deg, 0.0, 0.0
+        times = {t for t, _ in history}
+        if len(times) >= 3:
+            position, rate, accel = quadratic_at_end(history, self.now_s)
+        elif len(times) == 2:
+            (t0, p0), (t1, p1) = history[0], history[-1]
+            rate = (p1 - p0) / (t1 - t0)
+        actuator.target_deg, actuator.target_rate_dps, actuator.target_accel_dps2 = position, rate, accel
+        actuator.target_time_s = self.now_s
+
     def _hold(self, actuator: Actuator) -> None:
         actuator.mode = r.ControlModeRequest.POSITION
         actuator.target_deg = self._position_deg(actuator.index)
         actuator.target_rate_dps = 0.0
+        actuator.target_accel_dps2 = 0.0
+        actuator.target_history.clear()
         actuator.torque_nm = 0.0
 
     def _fault(self, actuator: Actuator, error: r.ActuatorError) -> list:
@@ -179,10 +243,7 @@ class ActuatorBusEmulator:
             if actuator.fault is not r.ActuatorError.NONE:
                 return self._replies(actuator)
             if actuator.mode is r.ControlModeRequest.POSITION:
-                elapsed = self.now_s - actuator.target_time_s
-                rate = (cmd.position_deg - actuator.target_deg) / elapsed if 0 < elapsed <= 0.02 else 0.0
-                actuator.target_rate_dps += 0.5 * (rate - actuator.target_rate_dps)  # smooth the estimate
-                actuator.target_deg, actuator.target_time_s = cmd.position_deg, self.now_s
+                self._follow(actuator, cmd.position_deg)
             else:
                 if abs(cmd.position_deg - self._position_deg(i)) > cfg.reference_tolerance_deg:
                     return self._fault(actuator, r.ActuatorError.RELATIVE_POSITION) + self._replies(actuator)
@@ -231,15 +292,22 @@ class ActuatorBusEmulator:
         q, dq = d.qpos[: self.n], d.qvel[: self.n]
         tau = np.empty(self.n)
         gravity = d.qfrc_bias[: self.n]  # at rest this is the gravity torque; it also cancels Coriolis terms
+        mujoco.mj_fullM(self.model, d, self._mass)
+        inertia = np.diag(self._mass)[: self.n]
+        kp, kd = inertia * SERVO_BANDWIDTH_RPS**2, inertia * 2.0 * SERVO_BANDWIDTH_RPS
+        accel = np.zeros(self.n)
         for a in self.actuators:
             i = a.index
             if a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE:
                 tau[i] = jaco2.SIGN[i] * a.torque_nm + (gravity[i] if self.config.gravity_compensation else 0.0)
             else:
-                # follow the target, extrapolated along its rate until the next command (stale after 20 ms)
-                fresh = 0.0 <= self.now_s - a.target_time_s <= 0.02
-                rate = math.radians(a.target_rate_dps) if fresh else 0.0
+                # follow the target, extrapolated along its rate until the next command, with the inertia and
+                # friction its motion needs as feedforward (so the servo follows without lag or overshoot)
+                fresh = 0.0 <= self.now_s - a.target_time_s <= STALE_TARGET_S
+                rate = jaco2.SIGN[i] * math.radians(a.target_rate_dps) if fresh else 0.0
                 ahead = (self.now_s - a.target_time_s) if fresh else 0.0
-                target = jaco2.SIGN[i] * (math.radians(a.target_deg) + rate * ahead)
-                tau[i] = gravity[i] + KP[i] * (target - q[i]) + KD[i] * (jaco2.SIGN[i] * rate - dq[i])
+                accel[i] = jaco2.SIGN[i] * math.radians(a.target_accel_dps2) if fresh else 0.0
+                target = jaco2.SIGN[i] * math.radians(a.target_deg) + rate * ahead
+                tau[i] = (gravity[i] + self._friction[i] * rate + kp[i] * (target - q[i]) + kd[i] * (rate - dq[i]))
+        tau += self._mass[: self.n, : self.n] @ accel
         d.ctrl[: self.n] = np.clip(tau, -self.torque_limit, self.torque_limit)
