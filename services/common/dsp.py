@@ -395,8 +395,10 @@ class KinovaDSP:
             damping2 = (1.0 - (sigma_min / cfg.singular_threshold) ** 2) * cfg.max_damping**2
             self._flag("singularity")
         dq = J.T @ np.linalg.solve(J @ J.T + damping2 * np.eye(6), twist)
-        # self-motion away from joint limits and singularities, only while the end effector moves
-        moving = min(1.0, np.linalg.norm(twist[:3]) / 0.02 + np.linalg.norm(twist[3:]) / 0.1)
+        # self-motion away from joint limits and singularities, in proportion to how fast the end effector moves:
+        # a fine approach stays fine (the joints never cancel each other's self-motion exactly, so self-motion
+        # faster than the task itself shakes the end effector), and the arm at rest does not drift
+        moving = min(1.0, np.linalg.norm(twist[:3]) / max_lin + np.linalg.norm(twist[3:]) / max_ang)
         if moving > 0.0:
             s_inv = np.where(s > 1e-6, 1.0 / np.maximum(s, 1e-12), 0.0)
             J_pinv = Vt.T[:, :6] @ np.diag(s_inv) @ U.T
