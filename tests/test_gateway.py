@@ -1,5 +1,6 @@
 """The swap: robot_sim in actuator-bus mode plus robot_gateway offer the same zenoh robot as robot_sim alone.
-(Both in this process: python-can's virtual bus connects them; a bus between processes needs a real interface.)"""
+(Both in this process, on python-can's virtual bus; tests/test_launcher.py runs them as processes on the CAN
+hub.)"""
 import itertools
 import time
 
@@ -87,7 +88,7 @@ def test_sim_in_bus_mode_does_not_offer_the_robot_api(router):
 def test_without_actuators_the_gateway_does_not_start(router):
     with pytest.raises(Exception, match="no reply"):
         RobotGatewayService(GatewayConfig(zenoh=router.client_config(), bus=BusConfig(channel="empty-bus"),
-                                          link_timeout_s=0.02)).start()
+                                          link_timeout_s=0.02, connect_timeout_s=1.0)).start()
 
 
 def test_kinova_sdk_backend_fails_clearly_without_the_library():
@@ -100,21 +101,17 @@ def test_kinova_sdk_backend_fails_clearly_without_the_library():
 
 
 def test_servo_runs_through_the_gateway_profile():
-    """`mfvs servo --profile gateway`: the task runs through robot_gateway and the RS-485 bus (realtime). It
-    brings the error down by two orders of magnitude; converging to 5e-5 through the gateway in realtime is not
-    reached yet (see the issue note)."""
+    """`mfvs servo --profile gateway`: the Table-2-like task with the seed's gains runs through robot_gateway and
+    the RS-485 bus (realtime) and converges to 5e-5. (`mfvs bench swap` compares the iteration counts with the
+    sim profile over several runs: 126-256 against 128-129 when measured.)"""
     from pathlib import Path
 
     from services.servo import load_scenario, run
 
     scenario = load_scenario(Path(__file__).resolve().parents[1] / "examples" / "scenarios" / "table2.yaml")
-    scenario.gains.lambda0, scenario.gains.lambda_inf, scenario.gains.kd = 2.0, 0.4, 0.2
-    scenario.convergence.max_iterations = 250
-    records = []
-    result = run(scenario, progress=records.append, profile="gateway")
-    assert result.status in ("converged", "max_iterations")
-    initial = next(r.error_norm for r in records if r.status == "converging")
-    assert result.final_error_norm < initial / 50
+    scenario.convergence.max_iterations = 900
+    result = run(scenario, profile="gateway")
+    assert result.converged, (result.status, result.iterations, result.final_error_norm)
     assert result.max_joint_limit_violation_deg == 0.0
 
 
