@@ -48,6 +48,10 @@ class SimActuators:
         self.damping = model.dof_damping[: self.n].copy()
         self.saturated = np.zeros(self.n, dtype=bool)
         self._inertial = np.zeros(self.n)
+        #: low-level torque control (services.common.lowlevel): the joints get ``torques`` plus the model's
+        #: bias torques (gravity compensation) instead of the servo; velocity references are ignored meanwhile
+        self.torque_mode = False
+        self.torques = np.zeros(self.n)
         self.hold()
 
     def read(self) -> JointState:
@@ -71,10 +75,29 @@ class SimActuators:
         self._to = np.zeros(self.n)
         self._elapsed = self.cycle_s
 
+    def enter_torque_mode(self) -> None:
+        self.torques = np.zeros(self.n)
+        self.torque_mode = True
+
+    def leave_torque_mode(self) -> None:
+        self.torque_mode = False
+        self.hold()
+
+    def set_torques(self, torques: np.ndarray) -> None:
+        torques = np.asarray(torques, dtype=float)
+        if torques.shape != (self.n,) or not np.all(np.isfinite(torques)):
+            raise ValueError("joint torques must be 7 finite numbers")
+        self.torques = torques.copy()
+
     def apply(self, dt: float) -> None:
         """One physics step of the joint servos: advance the reference and set the motor torques."""
         d = self.data
         q, dq = d.qpos[: self.n], d.qvel[: self.n]
+        if self.torque_mode:
+            tau = d.qfrc_bias[: self.n] + self.torques
+            self.saturated = np.abs(tau) > self.torque_limit
+            d.ctrl[: self.n] = np.clip(tau, -self.torque_limit, self.torque_limit)
+            return
         if self._elapsed < self.cycle_s:
             ddq_ref = (self._to - self._from) / self.cycle_s
             self._elapsed += dt

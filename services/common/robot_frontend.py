@@ -4,12 +4,14 @@ RS-485 bus): robot commands in, the Kinova API as queryables, robot state out. A
 
 The loop calls :meth:`take_command` (or waits on ``command_cond``), then :meth:`apply_command`, runs the DSP
 cycle, and :meth:`publish_state`. API calls arrive on zenoh threads and run in the loop thread through
-:meth:`run_api_calls`, so the DSP is never touched concurrently.
+:meth:`run_api_calls`, so the DSP is never touched concurrently. With :meth:`declare_lowlevel`, the low-level
+torque API too: the loop calls :meth:`lowlevel_cycle` and :meth:`publish_lowlevel` every actuator cycle (2 ms).
 """
 from __future__ import annotations
 
 import queue
 import threading
+import time
 from concurrent.futures import Future
 from typing import Optional
 
@@ -17,10 +19,22 @@ import numpy as np
 import zenoh
 
 from protocol import kinova
-from protocol.messages import Header, KinovaPose, ProtocolError, RobotCommand, RobotState, decode, encode
+from protocol.messages import (
+    ActuatorMode,
+    Header,
+    KinovaPose,
+    LowLevelState,
+    ProtocolError,
+    RobotCommand,
+    RobotState,
+    TorqueCommand,
+    decode,
+    encode,
+)
 from services.common import frames
 from services.common.dsp import CommandRefused, KinovaDSP
 from services.common.kinova_api import KinovaApi, RobotView
+from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome, TorqueJoints
 
 
 class RobotFrontEnd:
@@ -36,6 +50,8 @@ class RobotFrontEnd:
         self._api_calls: queue.Queue = queue.Queue()
         self._last_refusal = ""
         self._refusal_cycles = 0
+        self.lowlevel: Optional[LowLevelControl] = None
+        self._lowlevel_unavailable = ""
 
     def declare_frontend(self) -> None:
         keys = self.keys
@@ -43,7 +59,23 @@ class RobotFrontEnd:
         self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
         self.queryable(keys.robot_api_all, self._on_api)
 
+    def declare_lowlevel(self, joints: TorqueJoints, config: LowLevelConfig, gravity,
+                         unavailable: str = "") -> None:
+        """The low-level torque API on ``joints``; ``unavailable``: why torque commands are refused (e.g. a
+        lockstep simulation), with the state still published."""
+        keys = self.keys
+        self.lowlevel = LowLevelControl(config, joints, gravity)
+        self._lowlevel_unavailable = unavailable
+        self.lowlevel_pub = self.publisher(keys.lowlevel_state, "lowlevel_state")
+        self.subscribe(keys.lowlevel_command, TorqueCommand, self._on_torque, "lowlevel_command")
+
     # ------------------------------------------------------------------ zenoh threads
+    def _on_torque(self, command: TorqueCommand, _recv_ns: int) -> None:
+        if self._lowlevel_unavailable:
+            self.refuse("lowlevel_command", self._lowlevel_unavailable)
+            return
+        self.lowlevel.receive(command, time.monotonic())
+
     def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
         with self.command_cond:
             self._command = (command, recv_ns)
@@ -106,6 +138,9 @@ class RobotFrontEnd:
         if taken is None:
             return None
         command, recv_ns = taken
+        if self.lowlevel is not None and self.lowlevel.active:
+            self.refuse("command", "low-level torque control is active")
+            return None
         try:
             self.dsp.submit(command)
         except CommandRefused as exc:
@@ -132,3 +167,24 @@ class RobotFrontEnd:
             watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
             applied_command=applied,
         ))
+
+    def lowlevel_cycle(self, q: np.ndarray) -> None:
+        """One low-level cycle: engage, apply, hold or release torque control (see services.common.lowlevel)."""
+        outcome, detail = self.lowlevel.step(time.monotonic(), q)
+        if outcome is Outcome.ENGAGED:
+            self.dsp.erase_all_trajectories()
+            self.log.info("low-level torque control engaged")
+        elif outcome is Outcome.RELEASED:
+            self.log.info("low-level torque control released %s", detail)
+        elif outcome is Outcome.WATCHDOG:
+            self.counters.inc("lowlevel.watchdog")
+        elif outcome is Outcome.REFUSED:
+            self.refuse("lowlevel_command", detail)
+
+    def publish_lowlevel(self, q, dq, tau, current_a, temperature_c, faults=()) -> None:
+        self.lowlevel_pub.put(LowLevelState(
+            header=self.header("lowlevel_state"),
+            mode=ActuatorMode.TORQUE if self.lowlevel.active else ActuatorMode.POSITION,
+            q=list(map(float, q)), dq=list(map(float, dq)), tau=list(map(float, tau)),
+            current_a=list(map(float, current_a)), temperature_c=list(map(float, temperature_c)),
+            faults=list(faults)[:32]))

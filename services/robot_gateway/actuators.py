@@ -98,6 +98,11 @@ class LinkActuators:
             self.torques_nm = np.zeros(jaco2.N_JOINTS)
             self.torque_mode = True
 
+    def set_torques(self, torques: np.ndarray) -> None:
+        """Extra joint torques (model sign, N·m) for the next exchanges in torque mode."""
+        with self.lock:
+            self.torques_nm = jaco2.SIGN * np.asarray(torques, dtype=float)
+
     def leave_torque_mode(self) -> None:
         self.link.switch_to_position()
         with self.lock:

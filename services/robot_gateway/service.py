@@ -22,11 +22,10 @@ import numpy as np
 
 from protocol import rs485 as r
 from protocol.conventions import ClockMode
-from protocol.messages import ActuatorMode, LowLevelState, TorqueCommand
-from services.common import jaco2
 from services.common.clock import PeriodicSchedule
 from services.common.dsp import DSPConfig, KinovaDSP
 from services.common.kinematics import ArmKinematics
+from services.common.lowlevel import LowLevelConfig
 from services.common.metrics import LoopTimer
 from services.common.robot_frontend import RobotFrontEnd
 from services.common.rs485_bus import BusConfig, RS485Bus
@@ -47,12 +46,8 @@ class GatewayConfig(ServiceConfig):
     max_bus_errors: int = 5
     dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
     sdk_library: str = KINOVA_SDK_LIBRARY
-    #: a low-level torque command older than this is not applied (zero extra torque: the arm holds); about two
-    #: of the link's cycles, like the high-level watchdog's two DSP cycles
-    lowlevel_watchdog_s: float = 0.005
-    #: after this long without torque commands the gateway returns the actuators to position mode (the actuators'
-    #: own torque-inactivity timeout is the same 250 ms)
-    lowlevel_release_s: float = 0.25
+    #: the low-level torque API's watchdog and release (services.common.lowlevel)
+    lowlevel: LowLevelConfig = msgspec.field(default_factory=LowLevelConfig)
 
 
 def load_kinova_sdk(path: str):
@@ -111,20 +106,16 @@ class RobotGatewayService(RobotFrontEnd, Service):
         self.loop_timer = LoopTimer(r.CYCLE_S)
         self._thread: Optional[threading.Thread] = None
         self._consecutive_errors = 0
-        self._torque: Optional[tuple[TorqueCommand, float]] = None
-        self._torque_lock = threading.Lock()
-        self._kin = ArmKinematics()
 
     def on_start(self) -> None:
-        keys = self.keys
-        self.lowlevel_pub = self.publisher(keys.lowlevel_state, "lowlevel_state")
-        self.subscribe(keys.lowlevel_command, TorqueCommand, self._on_torque, "lowlevel_command")
         cfg = self.config
         self.bus = RS485Bus(cfg.bus, self.counters)
         link = ActuatorLink(self.bus, cfg.addresses, cfg.link_timeout_s, self.counters)
         self.actuators = self._connect(link)
-        self.init_frontend(_LinkView(self.actuators), KinovaDSP(cfg.dsp))
+        view = _LinkView(self.actuators)
+        self.init_frontend(view, KinovaDSP(cfg.dsp))
         self.declare_frontend()
+        self.declare_lowlevel(self.actuators, cfg.lowlevel, view.kin.gravity)
         self._thread = threading.Thread(target=self._run, name="robot_gateway-loop", daemon=True)
         self._thread.start()
 
@@ -155,59 +146,13 @@ class RobotGatewayService(RobotFrontEnd, Service):
         stats = self.loop_timer.stats()
         return True, f"bus_rate_hz={stats['rate_hz']:.1f} jitter_ms_p99={stats['jitter_ms_p99']:.2f}"
 
-    def _on_torque(self, command: TorqueCommand, _recv_ns: int) -> None:
-        with self._torque_lock:
-            self._torque = (command, time.monotonic())
-
-    def _lowlevel(self) -> None:
-        """Low-level torque control: enter torque mode on the first command; each cycle send the latest torque
-        while it is fresh (two bus cycles), else zero extra torque (the actuators' gravity compensation holds
-        the arm); after 250 ms without torque commands, back to position mode under the DSP."""
-        with self._torque_lock:
-            pending = self._torque
-        if pending is None:
-            return
-        command, received = pending
-        age = time.monotonic() - received
-        if not self.actuators.torque_mode:
-            if age > self.config.lowlevel_watchdog_s:  # an old command does not start torque control
-                return
-            try:
-                self.actuators.enter_torque_mode()
-                self.dsp.erase_all_trajectories()
-                self.log.info("low-level torque control engaged")
-            except Exception as exc:
-                self.refuse("lowlevel_command", f"torque mode refused: {exc}")
-                with self._torque_lock:
-                    self._torque = None
-                return
-        if age > self.config.lowlevel_release_s:  # the client is gone: back to holding under the DSP
-            try:
-                self.actuators.leave_torque_mode()
-            except Exception as exc:
-                self.refuse("lowlevel_command", f"leaving torque mode failed: {exc}")
-            with self._torque_lock:
-                self._torque = None
-            self.log.info("low-level torque control released after %.0f ms without commands", age * 1e3)
-            return
-        torques = np.asarray(command.torques, dtype=float) if age <= self.config.lowlevel_watchdog_s else \
-            np.zeros(jaco2.N_JOINTS)
-        if age > self.config.lowlevel_watchdog_s:
-            self.counters.inc("lowlevel.watchdog")
-        elif not command.gravity_compensation:  # the client's torques include gravity; the actuators add it too
-            torques = torques - self._kin.gravity(self.actuators.read().q)
-        self.actuators.torques_nm = jaco2.SIGN * torques
-
     def _publish_lowlevel(self) -> None:
         reading = self.actuators.reading
         if reading is None:
             return
         state = self.actuators.read()
-        self.lowlevel_pub.put(LowLevelState(
-            header=self.header("lowlevel_state"),
-            mode=ActuatorMode.TORQUE if self.actuators.torque_mode else ActuatorMode.POSITION,
-            q=state.q.tolist(), dq=state.dq.tolist(), tau=state.tau.tolist(), current_a=reading.current_a.tolist(),
-            temperature_c=reading.temperature_c.tolist(), faults=list(self.actuators.faults)[:32]))
+        self.publish_lowlevel(state.q, state.dq, state.tau, reading.current_a, reading.temperature_c,
+                              self.actuators.faults)
 
     def _run(self) -> None:
         schedule = PeriodicSchedule(r.CYCLE_S)
@@ -217,7 +162,7 @@ class RobotGatewayService(RobotFrontEnd, Service):
             if skipped:
                 self.counters.inc("overruns")
             self.loop_timer.tick()
-            self._lowlevel()
+            self.lowlevel_cycle(self.actuators.read().q)
             ok = self.actuators.cycle(self.clock.now_ns())
             self._consecutive_errors = 0 if ok else self._consecutive_errors + 1
             self._publish_lowlevel()
@@ -227,10 +172,6 @@ class RobotGatewayService(RobotFrontEnd, Service):
                 if self._consecutive_errors >= self.config.max_bus_errors:
                     taken = None  # no motion on a failing bus
                     self.dsp.erase_all_trajectories()
-                if self.actuators.torque_mode:
-                    if taken is not None:
-                        self.refuse("command", "low-level torque control is active")
-                    taken = None
                 applied = self.apply_command(taken)
                 dq_ref = self.dsp.cycle(self.actuators.read())
                 if not self.actuators.torque_mode:

@@ -24,6 +24,7 @@ from typing import Literal, Optional
 
 import msgspec
 import mujoco
+import numpy as np
 import zenoh
 
 from protocol import rs485
@@ -35,20 +36,31 @@ from protocol.messages import (
     SimClock,
     encode,
 )
+from services.common import jaco2
 from services.common.clock import PeriodicSchedule
 from services.common.config import ConfigStruct
 from services.common.dsp import DSPConfig
+from services.common.lowlevel import LowLevelConfig
 from services.common.metrics import LoopTimer
 from services.common.robot_frontend import RobotFrontEnd
 from services.common.rs485_bus import BusConfig, RS485Bus
 from services.common.service import Service, ServiceConfig
 from services.robot_sim import scene as scene_mod
-from services.robot_sim.actuator_bus import ActuatorBusConfig, ActuatorBusEmulator
+from services.robot_sim.actuator_bus import (
+    ACTUATOR_TEMPERATURE_C,
+    TORQUE_PER_AMPERE,
+    ActuatorBusConfig,
+    ActuatorBusEmulator,
+)
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim import Simulation
 
 #: simulated time in lockstep starts here, so that a stamp of 0 always means "none" (no source image)
 LOCKSTEP_EPOCH_NS = 1_000_000_000
+
+
+#: actuator-bus mode: after a stall, physics catches up this many 2 ms cycles at most (0.1 s), then drops time
+MAX_CATCH_UP_CYCLES = 50
 
 
 class LockstepConfig(ConfigStruct):
@@ -72,6 +84,8 @@ class RobotSimConfig(ServiceConfig):
     mode: Literal["api", "actuator_bus"] = "api"
     bus: BusConfig = msgspec.field(default_factory=BusConfig)
     actuators: ActuatorBusConfig = msgspec.field(default_factory=ActuatorBusConfig)
+    #: api mode: the low-level torque API (robot/lowlevel/*, realtime) with its watchdog and release
+    lowlevel: LowLevelConfig = msgspec.field(default_factory=LowLevelConfig)
 
     def __post_init__(self) -> None:
         if self.mode == "actuator_bus" and ClockMode(self.clock) is not ClockMode.REALTIME:
@@ -127,6 +141,9 @@ class RobotSimService(RobotFrontEnd, Service):
         keys = self.keys
         if not self.bus_mode:
             self.declare_frontend()
+            self.declare_lowlevel(self.sim.actuators, self.config.lowlevel, self.sim.dsp.kin.gravity,
+                                  unavailable="low-level torque control runs in realtime only" if self.lockstep
+                                  else "")
         self.image_pub = self.publisher(keys.camera_image, "image")
         self.info_pub = self.publisher(keys.camera_info, "camera_info")
         self.clock_pub = self.publisher(keys.clock, "clock")
@@ -185,23 +202,42 @@ class RobotSimService(RobotFrontEnd, Service):
         return self.stop_requested or (limit > 0 and self.sim.time_ns >= limit * 1e9)
 
     def _run_realtime(self) -> None:
-        schedule = PeriodicSchedule(self.sim.cycle_ns * 1e-9)
+        """The actuators' 2 ms cycle on wall time: low-level torque control and state every cycle, the DSP (robot
+        commands, Kinova API, state) every fifth, frames when due."""
+        schedule = PeriodicSchedule(rs485.CYCLE_S)
+        steps = max(1, round(rs485.CYCLE_S / self.sim.model.opt.timestep))
+        per_dsp_cycle = max(1, round(self.sim.cycle_ns * 1e-9 / rs485.CYCLE_S))
         next_info = 0.0
+        applied = None
         while not self._done():
-            if schedule.wait()[1]:
+            cycle, skipped = schedule.wait()
+            if skipped:
                 self.counters.inc("overruns")
-            self.rates.tick("cycle")
-            self.loop_timer.tick()
-            self.run_api_calls()
-            if self.sim.frame_due():
-                self._capture_frame(wait=False)
-            if time.monotonic() >= next_info:
-                self.info_pub.put(self._camera_info())
-                next_info = time.monotonic() + self.config.camera_info_period_s
-            self.clock_pub.put(SimClock(header=self.header("clock"), sim_time_ns=self._now_ns(),
-                                        mode=ClockMode.REALTIME.value))
-            taken = self.take_command()
-            self._cycle(taken)
+            phase = cycle % per_dsp_cycle
+            if phase == 0:
+                self.rates.tick("cycle")
+                self.loop_timer.tick()
+                self.run_api_calls()
+                if self.sim.frame_due():
+                    self._capture_frame(wait=False)
+                if time.monotonic() >= next_info:
+                    self.info_pub.put(self._camera_info())
+                    next_info = time.monotonic() + self.config.camera_info_period_s
+                self.clock_pub.put(SimClock(header=self.header("clock"), sim_time_ns=self._now_ns(),
+                                            mode=ClockMode.REALTIME.value))
+                applied = self.apply_command(self.take_command())
+                self.sim.dsp_cycle()
+            self.lowlevel_cycle(self.sim.q)
+            self.sim.step_physics(steps)
+            self._publish_lowlevel()
+            if phase == per_dsp_cycle - 1:
+                self.publish_state(applied)
+
+    def _publish_lowlevel(self) -> None:
+        data = self.sim.data
+        tau = data.actuator_force[: jaco2.N_JOINTS]
+        self.publish_lowlevel(data.qpos[: jaco2.N_JOINTS], data.qvel[: jaco2.N_JOINTS], tau,
+                              tau / TORQUE_PER_AMPERE, np.full(jaco2.N_JOINTS, ACTUATOR_TEMPERATURE_C))
 
     def _run_bus(self) -> None:
         """Actuator-bus mode: the actuators' 500 Hz cycle and physics on wall time, the camera and the clock."""
@@ -209,13 +245,21 @@ class RobotSimService(RobotFrontEnd, Service):
         steps = max(1, round(rs485.CYCLE_S / self.sim.model.opt.timestep))
         self.loop_timer = LoopTimer(rs485.CYCLE_S)
         next_info = 0.0
+        last = -1
         while not self._done():
             cycle, skipped = schedule.wait()
             if skipped:
                 self.counters.inc("overruns")
             self.loop_timer.tick()
+            # physics keeps up with wall time even when the loop stalled (rendering, a busy machine): the
+            # gateway's position targets are wall-time trajectories, and a simulation that dropped time would
+            # run them faster than commanded (and stamp its images behind the robot's state)
+            cycles = 1 if last < 0 else min(cycle - last, MAX_CATCH_UP_CYCLES)
+            if last >= 0 and cycle - last > MAX_CATCH_UP_CYCLES:
+                self.counters.inc("physics.dropped_cycles", cycle - last - MAX_CATCH_UP_CYCLES)
+            last = cycle
             self.sim.actuators.process(schedule.elapsed_s())
-            self.sim.step_physics(steps)
+            self.sim.step_physics(steps * cycles)
             if self.sim.frame_due():
                 self._capture_frame(wait=False)
             if cycle % 5 == 0:

@@ -105,9 +105,14 @@ class Simulation:
     def step_cycle(self) -> np.ndarray:
         """One DSP cycle (10 ms): the DSP reads the joints and writes references; physics runs to the next cycle.
         Returns the references written."""
+        dq_ref = self.dsp_cycle()
+        self.step_physics(self.steps_per_cycle)
+        return dq_ref
+
+    def dsp_cycle(self) -> np.ndarray:
+        """The DSP's part of a cycle only (physics is the caller's, e.g. in 2 ms steps)."""
         dq_ref = self.dsp.cycle(self.actuators.read())
         self.actuators.write(dq_ref)
-        self.step_physics(self.steps_per_cycle)
         return dq_ref
 
     def step_physics(self, steps: int = 1) -> None:

@@ -1,0 +1,116 @@
+"""Low-level torque control behind the robot's zenoh API (``robot/lowlevel/command`` in, ``robot/lowlevel/state``
+out), for controllers that do their own dynamics. robot_sim and robot_gateway share it, so the semantics do not
+depend on what drives the arm:
+
+* the first fresh :class:`~protocol.messages.TorqueCommand` switches the joints to torque mode (the robot erases
+  the DSP's trajectories and refuses robot commands while it lasts);
+* every low-level cycle applies the latest command while it is fresh (``watchdog_s``, about two cycles); an older
+  one is replaced by zero extra torque, so the actuators' gravity compensation holds the arm;
+* after ``release_s`` without commands the joints return to position mode, holding where they are, under the DSP
+  (the real actuators' own torque-inactivity timeout is the same 250 ms);
+* ``gravity_compensation: false`` means the client's torques already include gravity: since the actuators always
+  add it, the model's gravity torque is subtracted.
+
+Time is the caller's monotonic wall clock: low-level control runs in realtime only.
+"""
+from __future__ import annotations
+
+import enum
+import threading
+from typing import Callable, Optional, Protocol
+
+import numpy as np
+
+from protocol.messages import TorqueCommand
+from services.common.config import ConfigStruct
+
+
+class LowLevelConfig(ConfigStruct):
+    #: a torque command older than this is not applied (zero extra torque: the arm holds)
+    watchdog_s: float = 0.005
+    #: after this long without torque commands the joints return to position mode under the DSP
+    release_s: float = 0.25
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.watchdog_s < self.release_s):
+            raise ValueError("low-level timing needs 0 < watchdog_s < release_s")
+
+
+class TorqueJoints(Protocol):
+    """What low-level control needs from the joints (the simulator's servos, or the actuators on the bus)."""
+
+    torque_mode: bool
+
+    def enter_torque_mode(self) -> None: ...
+
+    def leave_torque_mode(self) -> None: ...
+
+    def set_torques(self, torques: np.ndarray) -> None:
+        """Extra joint torques (model sign, N·m) on top of the gravity compensation."""
+
+
+class Outcome(enum.Enum):
+    IDLE = "idle"            # no torque control
+    ENGAGED = "engaged"      # switched to torque mode this cycle (and applied the command)
+    APPLIED = "applied"
+    WATCHDOG = "watchdog"    # the command is stale: zero extra torque
+    RELEASED = "released"    # back to position mode
+    REFUSED = "refused"      # the joints refused torque mode (detail says why)
+
+
+class LowLevelControl:
+    def __init__(self, config: LowLevelConfig, joints: TorqueJoints,
+                 gravity: Callable[[np.ndarray], np.ndarray]) -> None:
+        self.config = config
+        self.joints = joints
+        self.gravity = gravity
+        self._latest: Optional[tuple[TorqueCommand, float]] = None
+        self._lock = threading.Lock()
+
+    @property
+    def active(self) -> bool:
+        return self.joints.torque_mode
+
+    def receive(self, command: TorqueCommand, now_s: float) -> None:
+        """A decoded, valid command (any thread)."""
+        with self._lock:
+            self._latest = (command, now_s)
+
+    def step(self, now_s: float, q: np.ndarray) -> tuple[Outcome, str]:
+        """One low-level cycle (the loop thread): engage, apply, hold or release."""
+        with self._lock:
+            latest = self._latest
+        if latest is None:
+            return Outcome.IDLE, ""
+        command, received = latest
+        age = now_s - received
+        outcome = Outcome.APPLIED
+        if not self.joints.torque_mode:
+            if age > self.config.watchdog_s:  # an old command does not start torque control
+                return Outcome.IDLE, ""
+            try:
+                self.joints.enter_torque_mode()
+            except Exception as exc:
+                self._forget(latest)
+                return Outcome.REFUSED, f"torque mode refused: {exc}"
+            outcome = Outcome.ENGAGED
+        if age > self.config.release_s:  # the client is gone: back to holding under the DSP
+            self._forget(latest)
+            try:
+                self.joints.leave_torque_mode()
+            except Exception as exc:
+                return Outcome.REFUSED, f"leaving torque mode failed: {exc}"
+            return Outcome.RELEASED, f"after {age * 1e3:.0f} ms without commands"
+        if age > self.config.watchdog_s:
+            self.joints.set_torques(np.zeros(len(q)))
+            return Outcome.WATCHDOG, f"command {age * 1e3:.1f} ms old"
+        torques = np.asarray(command.torques, dtype=float)
+        if not command.gravity_compensation:  # the client's torques include gravity; the actuators add it too
+            torques = torques - self.gravity(q)
+        self.joints.set_torques(torques)
+        return outcome, ""
+
+    def _forget(self, latest) -> None:
+        with self._lock:
+            if self._latest is latest:
+                self._latest = None
