@@ -44,6 +44,8 @@ def test_frames_reach_every_other_node_in_order_and_byte_exact(hub):
         assert a.recv(0.1) is None  # a bus does not echo a node's own frames
         b.send(frame(0x00, b"\x01" * 8))
         assert bytes(a.recv(2.0).data) == b"\x01" * 8
+        b.send_batch([frame(0x00, bytes([k]) * 20) for k in range(21)])  # one write, 21 frames
+        assert [bytes(a.recv(2.0).data) for _ in range(21)] == [bytes([k]) * 20 for k in range(21)]
     finally:
         for bus in (a, b, c):
             bus.shutdown()

@@ -111,7 +111,15 @@ class HubBus(can.BusABC):
         super().__init__(channel=channel, can_filters=can_filters, **kwargs)
 
     def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
-        pending = memoryview(encode_frame(msg))
+        self._write(encode_frame(msg), timeout)
+
+    def send_batch(self, messages: list[can.Message], timeout: Optional[float] = None) -> None:
+        """Several frames in one write (they still arrive as separate frames, in order): a 2 ms bus cycle's
+        seven commands, or twenty-one replies, cost one system call instead of one each."""
+        self._write(b"".join(encode_frame(msg) for msg in messages), timeout)
+
+    def _write(self, data: bytes, timeout: Optional[float]) -> None:
+        pending = memoryview(data)
         deadline = time.monotonic() + (1.0 if timeout is None else timeout)
         with self._send_lock:
             while pending:
@@ -120,7 +128,7 @@ class HubBus(can.BusABC):
                 except BlockingIOError:
                     remaining = deadline - time.monotonic()
                     if remaining <= 0 or not select.select([], [self._socket], [], remaining)[1]:
-                        if len(pending) < HEADER.size + len(msg.data):  # half a frame is on the wire
+                        if len(pending) < len(data):  # part of a frame may be on the wire
                             self._socket.shutdown(socket.SHUT_RDWR)
                         raise can.CanOperationError("mfvs CAN hub: send timed out") from None
                 except OSError as exc:

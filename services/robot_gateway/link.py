@@ -79,8 +79,8 @@ class ActuatorLink:
         """One 0x14 to every actuator (position targets, or safety references with torques in torque mode);
         returns what the 0x15-0x17 replies say."""
         torques = np.zeros(len(self.addresses)) if torques_nm is None else np.asarray(torques_nm, dtype=float)
-        for address, position, torque in zip(self.addresses, positions_deg, torques, strict=True):
-            self.bus.send(r.PositionTorqueCommand(float(position), float(torque)).to_message(address))
+        self.bus.send_all(r.PositionTorqueCommand(float(position), float(torque)).to_message(address)
+                          for address, position, torque in zip(self.addresses, positions_deg, torques, strict=True))
         expected = {}
         for a in self.addresses:
             for command in (r.Command.SEND_ALL_VALUES_1, r.Command.SEND_ALL_VALUES_2, r.Command.SEND_ALL_VALUES_3):

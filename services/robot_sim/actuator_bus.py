@@ -54,6 +54,10 @@ class ActuatorBusConfig(ConfigStruct):
     validation_lifetime_s: float = 1.0
 
 
+#: N·m per A of a geared motor, and a steady temperature: emulation constants for the reported current and
+#: temperature (nothing in the simulation heats up)
+TORQUE_PER_AMPERE = 0.08
+ACTUATOR_TEMPERATURE_C = 35.0
 #: the position-mode reference is fitted to the targets of about this long (a few bus cycles)
 RATE_WINDOW_S = 0.012
 #: a target older than this is not extrapolated (the host stopped sending)
@@ -152,14 +156,15 @@ class ActuatorBusEmulator:
         """Handle every message waiting on the bus; returns how many were handled."""
         self.now_s = now_s
         handled = 0
+        replies = []
         for message in self.bus.drain():
             actuator = self.by_address.get(message.destination)
             if actuator is None:
                 continue  # for someone else (or the host)
             handled += 1
             self.counters.inc(f"bus.rx.{message.command.name.lower()}")
-            for reply in self._handle(actuator, message):
-                self.bus.send(reply)
+            replies += self._handle(actuator, message)
+        self.bus.send_all(replies)
         for actuator in self.actuators:
             if (actuator.mode is r.ControlModeRequest.TORQUE
                     and now_s - actuator.last_torque_s > self.config.torque_timeout_s):
@@ -217,10 +222,10 @@ class ActuatorBusEmulator:
     def _replies(self, actuator: Actuator) -> list:
         i = actuator.index
         torque = self._torque_nm(i)
-        current = torque / 0.08  # N·m per A of the geared motor, an emulation constant
+        current = torque / TORQUE_PER_AMPERE
         return [
             r.AllValues1(current, self._position_deg(i), self._velocity_dps(i), torque).to_message(actuator.address),
-            r.AllValues2((0.0, 0.0, 1.0), 35.0).to_message(actuator.address),
+            r.AllValues2((0.0, 0.0, 1.0), ACTUATOR_TEMPERATURE_C).to_message(actuator.address),
             r.RS485Message.with_floats(r.Command.SEND_ALL_VALUES_3, actuator.address, r.HOST_ADDRESS,
                                        [actuator.target_deg, actuator.torque_nm, float(actuator.mode),
                                         float(actuator.fault)]),
