@@ -102,59 +102,15 @@ def test_kinova_sdk_backend_fails_clearly_without_the_library():
 
 def test_servo_runs_through_the_gateway_profile():
     """`mfvs servo --profile gateway`: the Table-2-like task with the seed's gains runs through robot_gateway and
-    the RS-485 bus (realtime) and converges to 5e-5. (`mfvs bench swap` compares the iteration counts with the
-    sim profile over several runs: 126-256 against 128-129 when measured.)"""
+    the RS-485 bus (realtime) and converges to 5e-5 in about as many iterations as through robot_sim (134 in
+    lockstep, 129-133 in realtime; `mfvs bench swap --scenario examples/scenarios/table2_qvga.yaml`). The QVGA
+    variant leaves the robot's 500 Hz loops enough of this machine's two cores (see the scenario file)."""
     from pathlib import Path
 
     from services.servo import load_scenario, run
 
-    scenario = load_scenario(Path(__file__).resolve().parents[1] / "examples" / "scenarios" / "table2.yaml")
-    scenario.convergence.max_iterations = 900
+    scenario = load_scenario(Path(__file__).resolve().parents[1] / "examples" / "scenarios" / "table2_qvga.yaml")
     result = run(scenario, profile="gateway")
     assert result.converged, (result.status, result.iterations, result.final_error_norm)
+    assert result.iterations < 300  # generous against 133-146 measured
     assert result.max_joint_limit_violation_deg == 0.0
-
-
-def test_low_level_torque_api_with_its_watchdog(gateway_stack):
-    """Torque commands on robot/lowlevel/command put the actuators in torque mode (500 Hz low-level state says
-    so); robot commands are refused meanwhile; without torque commands the arm holds, and after the actuators'
-    250 ms timeout it is back under the high-level DSP."""
-    client, sim, gateway = gateway_stack
-    low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
-    assert wait_for(lambda: len(low) > 50)
-    assert low.last().mode is m.ActuatorMode.POSITION
-    q0 = np.array(low.last().q)
-    publisher = client.declare_publisher(KEYS.lowlevel_command)
-    start = time.monotonic()
-    for k in range(200):  # 0.4 s of zero extra torque at 500 Hz: gravity compensation holds the arm
-        time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
-        publisher.put(m.encode(m.TorqueCommand(header=m.Header(stamp_ns=time.time_ns()), torques=[0.0] * 7)))
-        if k == 100:
-            client.put(KEYS.robot_command, command(time.time_ns()))  # refused while torque control is active
-    assert low.last().mode is m.ActuatorMode.TORQUE
-    assert np.degrees(np.abs(np.array(low.last().q) - q0)).max() < 1.0
-    assert gateway.counters.get("rejected.command") == 1  # the robot command was refused, and counted
-    assert wait_for(lambda: gateway.counters.get("lowlevel.watchdog") > 0, timeout=2)
-    assert wait_for(lambda: low.last().mode is m.ActuatorMode.POSITION, timeout=2)  # the 250 ms fallback
-    rates = gateway.rates.snapshot()
-    assert rates["pub.lowlevel_state"] > 200  # ~500 Hz nominal; generous bound on a shared machine
-
-
-def test_computed_torque_over_the_low_level_zenoh_api(gateway_stack):
-    """Seed 003's computed torque as a zenoh client of robot_gateway's low-level API tracks the eq. 5.1 cubic."""
-    from services.controller.torque_client import CubicTorqueClient
-
-    client, sim, gateway = gateway_stack
-    low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
-    assert wait_for(lambda: len(low) > 20)
-    q0 = np.array(low.last().q)
-    qf = q0 + np.radians([10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
-    controller = CubicTorqueClient(client, KEYS, q0, qf, duration_s=2.0)
-    try:
-        assert controller.done.wait(15.0)
-    finally:
-        controller.close()
-    errors = controller.errors_deg
-    print(f"computed torque over zenoh: max joint error {max(errors):.3f}° over {len(errors)} states")
-    assert len(errors) > 300
-    assert max(errors) < 1.0
