@@ -14,7 +14,7 @@ from services.common import jaco2
 from services.common.kinematics import ArmKinematics
 from services.common.rs485_bus import BusConfig
 from services.common.transport import open_session
-from services.robot_gateway.service import GatewayConfig, RobotGatewayService, load_kinova_sdk
+from services.robot_gateway.service import GatewayConfig, RobotGatewayService
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import KEYS, Recorder, wait_for
 
@@ -92,8 +92,6 @@ def test_without_actuators_the_gateway_does_not_start(router):
 
 
 def test_kinova_sdk_backend_fails_clearly_without_the_library():
-    with pytest.raises(RuntimeError, match="Kinova SDK library"):
-        load_kinova_sdk("/nonexistent/Kinova.API.USBCommandLayerUbuntu.so")
     with pytest.raises(RuntimeError, match="Kinova SDK library"):
         RobotGatewayService(GatewayConfig(backend="kinova_sdk", sdk_library="/nonexistent/libkinova.so"))
     with pytest.raises(ValueError, match="realtime only"):

@@ -41,10 +41,12 @@ class RobotFrontEnd:
     """Mixin: requires ``self.keys``, ``self.clock``, ``self.name``, ``self.counters``, ``self.refuse``,
     ``self.header``, ``self.publisher``, ``self.subscribe``, ``self.queryable`` (a Service)."""
 
-    def init_frontend(self, robot: RobotView, dsp: KinovaDSP) -> None:
+    def init_frontend(self, robot: RobotView, dsp: KinovaDSP, api=None) -> None:
+        """``api``: what answers ``robot/api/*`` (anything with ``call(function, argument) -> ApiReply``); by
+        default the emulated Kinova API on ``robot`` and ``dsp``."""
         self.robot_view = robot
         self.dsp = dsp
-        self.api = KinovaApi(robot, dsp)
+        self.api = api if api is not None else KinovaApi(robot, dsp)
         self._command: Optional[tuple[RobotCommand, int]] = None
         self.command_cond = threading.Condition()
         self._api_calls: queue.Queue = queue.Queue()

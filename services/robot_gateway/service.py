@@ -2,9 +2,9 @@
 on an RS-485 actuator bus (python-can). It runs the emulated DSP itself at 100 Hz on top of a 500 Hz link to the
 actuators, so every other service sees the same robot as with robot_sim.
 
-Backends: ``rs485`` (the actuator bus, any python-can interface); ``kinova_sdk`` loads Kinova's USB command
-layer through ctypes where it is installed (driving the arm through it is not implemented yet: with the
-library present the service says so; without it, it says the library is missing).
+Backends: ``rs485`` (the actuator bus, any python-can interface); ``kinova_sdk`` drives the arm through Kinova's
+USB command layer loaded with ctypes where it is installed (services.robot_gateway.kinova_sdk: the arm's own DSP
+interprets the commands; no low-level torque API); without the library it fails with a clear message.
 
 Bus failures (timeouts, NACKs, missing replies, garbled frames) are counted; the arm is held at its last
 measured angles, and after ``max_bus_errors`` consecutive failures the gateway reports itself unhealthy and
@@ -12,7 +12,6 @@ refuses motion until the bus answers again.
 """
 from __future__ import annotations
 
-import ctypes
 import threading
 import time
 from typing import Literal, Optional
@@ -20,6 +19,7 @@ from typing import Literal, Optional
 import msgspec
 import numpy as np
 
+from protocol import kinova
 from protocol import rs485 as r
 from protocol.conventions import ClockMode
 from services.common.clock import PeriodicSchedule
@@ -31,9 +31,8 @@ from services.common.robot_frontend import RobotFrontEnd
 from services.common.rs485_bus import BusConfig, RS485Bus
 from services.common.service import Service, ServiceConfig
 from services.robot_gateway.actuators import LinkActuators
+from services.robot_gateway.kinova_sdk import KINOVA_SDK_LIBRARY, KinovaSdk, SdkArm, SdkError
 from services.robot_gateway.link import ActuatorLink, LinkError
-
-KINOVA_SDK_LIBRARY = "Kinova.API.USBCommandLayerUbuntu.so"
 
 
 class GatewayConfig(ServiceConfig):
@@ -50,13 +49,19 @@ class GatewayConfig(ServiceConfig):
     lowlevel: LowLevelConfig = msgspec.field(default_factory=LowLevelConfig)
 
 
-def load_kinova_sdk(path: str):
-    """The Kinova SDK's shared library through ctypes, or a clear error."""
-    try:
-        return ctypes.CDLL(path)
-    except OSError as exc:
-        raise RuntimeError(f"the Kinova SDK library {path!r} is not installed or not loadable ({exc}); install "
-                           "Kinova's SDK or use the rs485 backend") from None
+class _NoTorque:
+    """The kinova_sdk backend's joints as low-level control sees them: never in torque mode."""
+
+    torque_mode = False
+
+    def enter_torque_mode(self) -> None:
+        raise RuntimeError("no low-level torque API through the Kinova SDK")
+
+    def leave_torque_mode(self) -> None:
+        pass
+
+    def set_torques(self, torques) -> None:
+        pass
 
 
 class _LinkView:
@@ -99,15 +104,17 @@ class RobotGatewayService(RobotFrontEnd, Service):
             raise ValueError("robot_gateway runs in realtime only (a real arm has no simulated clock)")
         super().__init__(config, **kw)
         self.config: GatewayConfig = config
-        if config.backend == "kinova_sdk":
-            load_kinova_sdk(config.sdk_library)
-            raise RuntimeError("the Kinova SDK backend loads the library but does not drive the arm yet; use rs485")
+        #: the kinova_sdk backend's library, loaded now so that a missing one fails before anything starts
+        self.sdk: Optional[KinovaSdk] = KinovaSdk(config.sdk_library) if config.backend == "kinova_sdk" else None
         self.bus: Optional[RS485Bus] = None
         self.loop_timer = LoopTimer(r.CYCLE_S)
         self._thread: Optional[threading.Thread] = None
         self._consecutive_errors = 0
 
     def on_start(self) -> None:
+        if self.sdk is not None:
+            self._start_sdk()
+            return
         cfg = self.config
         self.bus = RS485Bus(cfg.bus, self.counters)
         link = ActuatorLink(self.bus, cfg.addresses, cfg.link_timeout_s, self.counters)
@@ -118,6 +125,43 @@ class RobotGatewayService(RobotFrontEnd, Service):
         self.declare_lowlevel(self.actuators, cfg.lowlevel, view.kin.gravity)
         self._thread = threading.Thread(target=self._run, name="robot_gateway-loop", daemon=True)
         self._thread.start()
+
+    def _start_sdk(self) -> None:
+        cfg = self.config
+        code = self.sdk.action("InitAPI")
+        if code != kinova.ErrorCode.NO_ERROR_KINOVA:
+            raise SdkError("InitAPI", code)
+        self.arm = SdkArm(self.sdk, cfg.dsp)
+        self.arm.read()
+        self.init_frontend(self.arm, self.arm, api=self.sdk)
+        self.declare_frontend()
+        self.declare_lowlevel(_NoTorque(), cfg.lowlevel, gravity=None,
+                              unavailable="the kinova_sdk backend has no low-level torque API (the USB layer "
+                                          "offers none); use the rs485 backend")
+        self._thread = threading.Thread(target=self._run_sdk, name="robot_gateway-sdk", daemon=True)
+        self._thread.start()
+
+    def _run_sdk(self) -> None:
+        """The DSP cycle (100 Hz): forward the latest robot command, read the arm, publish its state."""
+        schedule = PeriodicSchedule(self.config.dsp.cycle_s)
+        self.loop_timer = LoopTimer(self.config.dsp.cycle_s)
+        faults: tuple = ()
+        while not self.stop_requested:
+            if schedule.wait()[1]:
+                self.counters.inc("overruns")
+            self.loop_timer.tick()
+            self.rates.tick("cycle")
+            applied = self.apply_command(self.take_command())
+            try:
+                self.arm.cycle()
+                self.arm.read()
+                self._consecutive_errors, faults = 0, ()
+            except SdkError as exc:
+                self._consecutive_errors += 1
+                self.counters.inc("sdk.errors")
+                self.limited_log.error("sdk", "%s", exc)
+                faults = (f"sdk: {exc}",)
+            self.publish_state(applied, faults)
 
     def _connect(self, link: ActuatorLink) -> LinkActuators:
         """The actuators' first answer, waiting up to ``connect_timeout_s`` for them; the start fails after."""
@@ -134,6 +178,8 @@ class RobotGatewayService(RobotFrontEnd, Service):
     def on_stop(self) -> None:
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        if self.sdk is not None:
+            self.sdk.action("CloseAPI")
         if self.bus is not None:
             self.bus.close()
 
@@ -142,7 +188,7 @@ class RobotGatewayService(RobotFrontEnd, Service):
         if not alive:
             return False, "gateway loop stopped"
         if self._consecutive_errors >= self.config.max_bus_errors:
-            return False, f"bus failing: {self.actuators.faults[:1]}"
+            return False, "SDK calls failing" if self.sdk is not None else f"bus failing: {self.actuators.faults[:1]}"
         stats = self.loop_timer.stats()
         return True, f"bus_rate_hz={stats['rate_hz']:.1f} jitter_ms_p99={stats['jitter_ms_p99']:.2f}"
 
