@@ -1,10 +1,13 @@
-"""RS-485 actuator bus benchmark (robot_sim's actuators on a python-can virtual bus, in realtime):
+"""RS-485 actuator bus benchmark (robot_sim's actuators answering a host, in realtime):
 
 * the actuators' 500 Hz cycle: achieved rate and period jitter (|period − 2 ms|) while the host commands them;
 * request → reply latency of one full exchange: a 0x14 to each of the seven actuators until all 21 replies
   (0x15, 0x16, 0x17 each) are back, and of a single position query.
 
-``python -m bench.rs485 [--json] [--seconds S]`` or ``mfvs bench rs485``.
+Transports: ``virtual`` (python-can's in-process bus, the actuators in a thread of this process) or ``hub`` (the
+deploy shape of the gateway profile: the actuators in a robot_sim process, frames through the mfvs CAN hub).
+
+``python -m bench.rs485 [--json] [--seconds S] [--transport virtual|hub]`` or ``mfvs bench rs485``.
 """
 from __future__ import annotations
 
@@ -27,6 +30,61 @@ def _stats(ms: list[float]) -> dict:
             "max": round(float(v[-1]), 3), "n": len(v)}
 
 
+def _measure(link: ActuatorLink, seconds: float) -> tuple[list[float], list[float]]:
+    positions = link.positions_deg()
+    exchange_ms, query_ms = [], []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        t = time.perf_counter()
+        link.command(positions)
+        exchange_ms.append((time.perf_counter() - t) * 1e3)
+        t = time.perf_counter()
+        link.positions_deg()
+        query_ms.append((time.perf_counter() - t) * 1e3)
+        time.sleep(0.002)
+    return exchange_ms, query_ms
+
+
+def run_hub(seconds: float = 5.0) -> dict:
+    """The actuators in a robot_sim process (actuator_bus mode), this process the host, the hub in between."""
+    import subprocess
+    import sys
+
+    from services.common.can_hub import CanHub
+    from services.common.transport import Router
+    from services.launcher import REPO, status
+
+    with Router(port=0) as router, CanHub() as hub:
+        config = BusConfig(interface="mfvs_hub", channel=hub.channel)
+        sim = subprocess.Popen([sys.executable, "-m", "services.robot_sim", "--connect", router.endpoint,
+                                "--set", "mode=actuator_bus", "--set", "bus.interface=mfvs_hub",
+                                "--set", f"bus.channel={hub.channel}"], cwd=REPO,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        host = RS485Bus(config)
+        try:
+            link = ActuatorLink(host, timeout_s=0.1)
+            deadline = time.monotonic() + 60.0
+            while True:  # until the actuators answer (the process loads MuJoCo first)
+                try:
+                    link.positions_deg()
+                    break
+                except Exception:
+                    if time.monotonic() > deadline or sim.poll() is not None:
+                        raise RuntimeError("robot_sim's actuators did not answer on the hub") from None
+                    time.sleep(0.2)
+            time.sleep(1.0)
+            exchange_ms, query_ms = _measure(link, seconds)
+            health = status(router.endpoint).get("robot_sim")
+            detail = dict(item.split("=") for item in health.detail.split()) if health else {}
+        finally:
+            host.close()
+            sim.terminate()
+            sim.wait(timeout=20)
+    return {"transport": "hub", "cycle_rate_hz": float(detail.get("cycle_rate_hz", "nan")),
+            "cycle_jitter_ms_p99": float(detail.get("jitter_ms_p99", "nan")),
+            "exchange_ms": _stats(exchange_ms), "position_query_ms": _stats(query_ms), "seconds": seconds}
+
+
 def run(seconds: float = 5.0) -> dict:
     channel = f"bench-rs485-{time.monotonic_ns()}"
     runner = BusRunner(Simulation(render=False), BusConfig(channel=channel)).start()
@@ -35,22 +93,13 @@ def run(seconds: float = 5.0) -> dict:
     try:
         time.sleep(0.5)
         runner.loop_timer = LoopTimer(0.002)
-        positions = link.positions_deg()
-        exchange_ms, query_ms = [], []
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            t = time.perf_counter()
-            link.command(positions)
-            exchange_ms.append((time.perf_counter() - t) * 1e3)
-            t = time.perf_counter()
-            link.positions_deg()
-            query_ms.append((time.perf_counter() - t) * 1e3)
-            time.sleep(0.002)
+        exchange_ms, query_ms = _measure(link, seconds)
         loop = runner.loop_timer.stats()
     finally:
         host.close()
         runner.stop()
-    return {"cycle_rate_hz": round(loop["rate_hz"], 2), "cycle_jitter_ms_p50": round(loop["jitter_ms_p50"], 3),
+    return {"transport": "virtual", "cycle_rate_hz": round(loop["rate_hz"], 2),
+            "cycle_jitter_ms_p50": round(loop["jitter_ms_p50"], 3),
             "cycle_jitter_ms_p99": round(loop["jitter_ms_p99"], 3),
             "cycle_jitter_ms_max": round(loop["jitter_ms_max"], 3),
             "exchange_ms": _stats(exchange_ms), "position_query_ms": _stats(query_ms), "seconds": seconds}
@@ -60,14 +109,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mfvs bench rs485", description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--seconds", type=float, default=5.0, help="measurement window (s)")
+    parser.add_argument("--transport", choices=["virtual", "hub"], default="virtual",
+                        help="virtual: one process; hub: robot_sim's actuators in their own process, via the hub")
     args = parser.parse_args(argv)
-    result = run(args.seconds)
+    result = run(args.seconds) if args.transport == "virtual" else run_hub(args.seconds)
     if args.json:
         print(json.dumps(result))
     else:
-        print(f"actuator cycle: {result['cycle_rate_hz']:.2f} Hz (nominal 500), period jitter p50 "
-              f"{result['cycle_jitter_ms_p50']:.3f} ms, p99 {result['cycle_jitter_ms_p99']:.3f} ms, max "
-              f"{result['cycle_jitter_ms_max']:.3f} ms")
+        if result["transport"] == "virtual":
+            print(f"actuator cycle: {result['cycle_rate_hz']:.2f} Hz (nominal 500), period jitter p50 "
+                  f"{result['cycle_jitter_ms_p50']:.3f} ms, p99 {result['cycle_jitter_ms_p99']:.3f} ms, max "
+                  f"{result['cycle_jitter_ms_max']:.3f} ms")
+        else:
+            print(f"actuator cycle (robot_sim process, via the CAN hub): {result['cycle_rate_hz']:.2f} Hz (nominal "
+                  f"500), period jitter p99 {result['cycle_jitter_ms_p99']:.3f} ms")
         for name in ("exchange_ms", "position_query_ms"):
             s = result[name]
             label = "0x14 ×7 → 21 replies" if name == "exchange_ms" else "position query ×7 → 7 replies"
