@@ -64,7 +64,10 @@ def test_calls_round_trip_through_the_library(library, fake):
     assert code == 1 and len(position.Actuators.as_list()) == 7
     reply = sdk.call("GetCartesianPosition", None)
     assert isinstance(reply, kinova.CartesianPositionReply) and reply.result.Coordinates.Z != 0.0
-    assert sdk.call("SetTorqueZero", None).code == kinova.ErrorCode.ERROR_INVALID_PARAM
+    fifo = sdk.call("GetGlobalTrajectoryInfo", None)
+    assert isinstance(fifo, kinova.TrajectoryFIFOReply) and fifo.result.MaxSize == 2000
+    assert sdk.call("SetCartesianControl", None).code == kinova.ErrorCode.NO_ERROR_KINOVA
+    assert sdk.call("GetProtectionZone", None).code == kinova.ErrorCode.ERROR_INVALID_PARAM
 
 
 def test_a_library_that_is_not_the_sdk_is_refused(tmp_path):

@@ -101,15 +101,19 @@ def from_c(struct, message_type):
     return msgspec.convert(plain(struct), message_type, strict=False)
 
 
-#: API function → (argument type or None, ctypes struct it is passed as or filled into, reply type)
+#: getter → (the ctypes struct it fills through a pointer, the protocol.kinova type of the value); replies are
+#: the types of kinova.API_FUNCTIONS, as with the emulated API
 _GETTERS = {
-    "GetAngularPosition": (AngularPosition, kinova.AngularPosition, kinova.AngularPositionReply),
-    "GetAngularVelocity": (AngularPosition, kinova.AngularPosition, kinova.AngularPositionReply),
-    "GetAngularForce": (AngularPosition, kinova.AngularPosition, kinova.AngularPositionReply),
-    "GetCartesianPosition": (CartesianPosition, kinova.CartesianPosition, kinova.CartesianPositionReply),
-    "GetGlobalTrajectoryInfo": (TrajectoryFIFO, kinova.TrajectoryFIFO, None),
+    "GetAngularPosition": (AngularPosition, kinova.AngularPosition),
+    "GetAngularVelocity": (AngularPosition, kinova.AngularPosition),
+    "GetAngularForce": (AngularPosition, kinova.AngularPosition),
+    "GetAngularCommand": (AngularPosition, kinova.AngularPosition),
+    "GetCartesianPosition": (CartesianPosition, kinova.CartesianPosition),
+    "GetCartesianCommand": (CartesianPosition, kinova.CartesianPosition),
+    "GetGlobalTrajectoryInfo": (TrajectoryFIFO, kinova.TrajectoryFIFO),
 }
-_ACTIONS = ("InitAPI", "CloseAPI", "MoveHome", "EraseAllTrajectories")
+#: functions without arguments
+_ACTIONS = ("InitAPI", "CloseAPI", "MoveHome", "EraseAllTrajectories", "SetCartesianControl", "SetAngularControl")
 
 
 class KinovaSdk:
@@ -128,7 +132,7 @@ class KinovaSdk:
             getattr(self.lib, name).argtypes, getattr(self.lib, name).restype = [], ctypes.c_int
         self.lib.SendBasicTrajectory.argtypes = [TrajectoryPoint]
         self.lib.SendBasicTrajectory.restype = ctypes.c_int
-        for name, (c_type, _, _) in _GETTERS.items():
+        for name, (c_type, _) in _GETTERS.items():
             getattr(self.lib, name).argtypes = [ctypes.POINTER(c_type)]
             getattr(self.lib, name).restype = ctypes.c_int
 
@@ -140,7 +144,7 @@ class KinovaSdk:
 
     def get(self, name: str):
         """(code, value as a protocol.kinova message) of a getter."""
-        c_type, message_type, _ = _GETTERS[name]
+        c_type, message_type = _GETTERS[name]
         out = c_type()
         code = int(getattr(self.lib, name)(ctypes.byref(out)))
         return code, from_c(out, message_type)
@@ -159,10 +163,8 @@ class KinovaSdk:
             return kinova.ApiReply(code=self.send_basic_trajectory(argument))
         if function in _GETTERS:
             code, value = self.get(function)
-            reply_type = _GETTERS[function][2]
-            if reply_type is None:
-                return kinova.ApiReply(code=code, message=str(msgspec.to_builtins(value)))
-            return reply_type(code=code, result=value)
+            return kinova.API_FUNCTIONS[function][1](code=code, result=value)
+        # zones and client configurations: the SDK's structs hold more than mfvs's types describe
         return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
                                message=f"{function} is not available through the kinova_sdk backend")
 

@@ -156,7 +156,7 @@ class RobotGatewayService(RobotFrontEnd, Service):
                 self.arm.cycle()
                 self.arm.read()
                 self._consecutive_errors, faults = 0, ()
-            except SdkError as exc:
+            except Exception as exc:  # an SDK error code, or values the arm should never report (NaN)
                 self._consecutive_errors += 1
                 self.counters.inc("sdk.errors")
                 self.limited_log.error("sdk", "%s", exc)

@@ -55,6 +55,20 @@ int SendBasicTrajectory(TrajectoryPoint point) {
 }
 
 int EraseAllTrajectories(void) { if (!initialized) return ERROR_API_NOT_INITIALIZED; erased++; return NO_ERROR_KINOVA; }
+int SetCartesianControl(void) { return initialized ? NO_ERROR_KINOVA : ERROR_API_NOT_INITIALIZED; }
+int SetAngularControl(void) { return initialized ? NO_ERROR_KINOVA : ERROR_API_NOT_INITIALIZED; }
+int GetAngularCommand(AngularPosition *out) {
+    if (!initialized) return ERROR_API_NOT_INITIALIZED;
+    memset(out, 0, sizeof *out);
+    memcpy(&out->Actuators, angles, sizeof angles);
+    return NO_ERROR_KINOVA;
+}
+int GetCartesianCommand(CartesianPosition *out) {
+    if (!initialized) return ERROR_API_NOT_INITIALIZED;
+    memset(out, 0, sizeof *out);
+    out->Coordinates = pose;
+    return NO_ERROR_KINOVA;
+}
 int MoveHome(void) { if (!initialized) return ERROR_API_NOT_INITIALIZED; homed++; return NO_ERROR_KINOVA; }
 
 int GetAngularPosition(AngularPosition *out) {
