@@ -98,3 +98,15 @@ def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
     finally:
         down = mfvs("down", env=env)
     assert down.returncode == 0 and "stopped 7 processes" in down.stdout
+
+
+def test_shipped_profile_files_are_the_built_in_profiles():
+    """deploy/profiles/*.yaml are the built-in profiles spelled out (for users to copy and change)."""
+    from services.common.config import load_config
+    from services.launcher import REPO, Profile, load_profile
+
+    for name in ("sim", "gateway"):
+        shipped = load_config(REPO / "deploy" / "profiles" / f"{name}.yaml", Profile)
+        for service in shipped.services:
+            service.config = str(REPO / service.config)
+        assert shipped == load_profile(name, 7447), name
