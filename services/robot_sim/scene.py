@@ -128,7 +128,9 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
     cam = cfg.camera
     spec.visual.global_.offwidth = max(cam.width, 640)
     spec.visual.global_.offheight = max(cam.height, 480)
-    spec.visual.quality.offsamples = 4
+    # No multisampling: on Mesa's EGL/llvmpipe the 4x buffer gave the very same pixels (checksum-identical frames)
+    # at twice the cost (11 ms against 5.5 ms a 640x480 frame)
+    spec.visual.quality.offsamples = 0
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
     spec.visual.headlight.diffuse = [0.4, 0.4, 0.4]
 
