@@ -271,7 +271,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                     new = watcher.statuses[seen:]
                     seen = len(watcher.statuses)
                 if not new:
-                    if not stack.robot.finished.is_set() and stack.robot.state == "running":
+                    if stack.robot_alive():
                         continue
                     status = "robot_stopped"
                     break

@@ -1,25 +1,40 @@
-"""Start a whole mfvs stack in this process: a zenoh router on a free loopback port and the services, each a
-separate zenoh client of the router (they talk only over zenoh, exactly as when deployed as processes)."""
+"""Start a whole mfvs stack: a zenoh router on a free loopback port and the services, each a separate zenoh
+client of the router (they talk only over zenoh, exactly as when deployed as processes).
+
+With the ``sim`` profile every service runs in this process. With ``gateway`` the robot's side runs as its own
+processes, as deployed: the CAN hub, robot_sim's actuators and robot_gateway, each with two 500 Hz loops that
+would otherwise compete with vision and rendering for one interpreter.
+"""
 from __future__ import annotations
 
+import subprocess
+import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgspec
+import yaml
 
 from protocol.conventions import ClockMode
+from protocol.keys import Keys
 from services.common.rs485_bus import BusConfig
-from services.common.transport import Router
+from services.common.transport import Router, free_loopback_port, open_session
 from services.controller.service import ControllerConfig, ControllerService
-from services.robot_gateway.service import GatewayConfig, RobotGatewayService
+from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.safety.service import SafetyConfig, SafetyService
 from services.vision.service import VisionConfig, VisionService
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 @dataclass
 class StackConfig:
     clock: ClockMode = ClockMode.LOCKSTEP
-    #: sim: robot_sim with its emulated DSP; gateway: robot_sim's actuators on an RS-485 bus (python-can's
-    #: virtual interface, this process) driven by robot_gateway — realtime only
+    #: sim: robot_sim with its emulated DSP; gateway: robot_sim's actuators on an RS-485 bus (the CAN hub) driven
+    #: by robot_gateway, as processes — realtime only
     profile: str = "sim"
     robot: RobotSimConfig = field(default_factory=RobotSimConfig)
     vision: VisionConfig = field(default_factory=VisionConfig)
@@ -35,6 +50,8 @@ class LocalStack:
         self.config = config
         self.router = Router(port=0)
         self.services: list = []
+        self.processes: list[subprocess.Popen] = []
+        self._files = tempfile.TemporaryDirectory(prefix="mfvs-stack-")
 
     def __enter__(self) -> "LocalStack":
         self.router.start()
@@ -45,8 +62,6 @@ class LocalStack:
         gateway = cfg.profile == "gateway"
         if gateway:
             cfg.clock = ClockMode.REALTIME
-            cfg.robot.mode = "actuator_bus"
-            cfg.robot.bus = BusConfig(channel=f"mfvs-stack-{id(self)}")
         for service_cfg in (cfg.safety, cfg.vision, cfg.controller, cfg.robot):
             service_cfg.zenoh = client
             service_cfg.clock = cfg.clock
@@ -59,22 +74,70 @@ class LocalStack:
             self.controller = ControllerService(cfg.controller).start()
             self.services.append(self.controller)
             time.sleep(0.3)  # let the declarations reach the router before the robot starts the clock
-            self.robot = RobotSimService(cfg.robot).start()
-            self.services.append(self.robot)
-            if gateway:  # after the simulated actuators, which must answer its first exchange
-                self.gateway = RobotGatewayService(GatewayConfig(
-                    zenoh=client, bus=cfg.robot.bus, dsp=cfg.robot.dsp, link_timeout_s=0.05)).start()
-                self.services.append(self.gateway)
+            if gateway:
+                self._start_robot_processes()
+            else:
+                self.robot = RobotSimService(cfg.robot).start()
+                self.services.append(self.robot)
         except BaseException:
             self.__exit__(None, None, None)
             raise
         return self
+
+    def _start_robot_processes(self) -> None:
+        cfg = self.config
+        hub_port = free_loopback_port()
+        bus = BusConfig(interface="mfvs_hub", channel=f"127.0.0.1:{hub_port}")
+        robot = msgspec.structs.replace(cfg.robot, mode="actuator_bus", bus=bus)
+        gateway = GatewayConfig(zenoh=cfg.robot.zenoh, robot_id=cfg.robot.robot_id, bus=bus, dsp=cfg.robot.dsp,
+                                log_level=cfg.robot.log_level)
+        self._spawn(["-m", "services.cli", "bus-hub", "--port", str(hub_port)], "bus_hub")
+        self._spawn(["-m", "services.robot_sim", "--config", self._write("robot_sim", robot)], "robot_sim")
+        self._spawn(["-m", "services.robot_gateway", "--config", self._write("robot_gateway", gateway)],
+                    "robot_gateway")
+        keys = Keys(cfg.robot.robot_id)
+        session = open_session(self.router.client_config())
+        try:
+            deadline = time.monotonic() + 60.0
+            while not list(session.liveliness().get(keys.liveliness("robot_gateway"), timeout=1.0)):
+                dead = [p.args for p in self.processes if p.poll() is not None]
+                if dead or time.monotonic() > deadline:
+                    raise RuntimeError(f"the gateway profile's robot did not come up (exited: {dead}; logs in "
+                                       f"{self._files.name})")
+                time.sleep(0.2)
+        finally:
+            session.close()
+
+    def _write(self, name: str, config) -> str:
+        path = Path(self._files.name) / f"{name}.yaml"
+        path.write_text(yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False))
+        return str(path)
+
+    def _spawn(self, args: list[str], name: str) -> None:
+        log = open(Path(self._files.name) / f"{name}.log", "ab")
+        self.processes.append(subprocess.Popen([sys.executable, *args], cwd=REPO, stdout=log,
+                                               stderr=subprocess.STDOUT))
+        log.close()
+
+    def robot_alive(self) -> bool:
+        """The robot still runs (in this process: its loop; with the gateway profile: its processes)."""
+        if self.processes:
+            return all(p.poll() is None for p in self.processes)
+        return not self.robot.finished.is_set() and self.robot.state == "running"
 
     @property
     def endpoint(self) -> str:
         return self.router.endpoint
 
     def __exit__(self, *exc) -> None:
+        for process in reversed(self.processes):  # the gateway, then the actuators, then the hub
+            process.terminate()
+            try:
+                process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+        self.processes.clear()
         for service in reversed(self.services):
             try:
                 service.stop()
@@ -82,3 +145,4 @@ class LocalStack:
                 pass
         self.services.clear()
         self.router.close()
+        self._files.cleanup()
