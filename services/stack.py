@@ -7,6 +7,7 @@ would otherwise compete with vision and rendering for one interpreter.
 """
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import tempfile
@@ -20,7 +21,7 @@ import yaml
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
 from services.common.rs485_bus import BusConfig
-from services.common.transport import Router, free_loopback_port, open_session
+from services.common.transport import Router, open_session
 from services.controller.service import ControllerConfig, ControllerService
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, RobotSimService
@@ -52,6 +53,7 @@ class LocalStack:
         self.services: list = []
         self.processes: list[subprocess.Popen] = []
         self._files = tempfile.TemporaryDirectory(prefix="mfvs-stack-")
+        self._keep_files = False  # kept when the robot processes failed to start: their logs say why
 
     def __enter__(self) -> "LocalStack":
         self.router.start()
@@ -86,12 +88,10 @@ class LocalStack:
 
     def _start_robot_processes(self) -> None:
         cfg = self.config
-        hub_port = free_loopback_port()
-        bus = BusConfig(interface="mfvs_hub", channel=f"127.0.0.1:{hub_port}")
+        bus = BusConfig(interface="mfvs_hub", channel=self._start_hub())
         robot = msgspec.structs.replace(cfg.robot, mode="actuator_bus", bus=bus)
         gateway = GatewayConfig(zenoh=cfg.robot.zenoh, robot_id=cfg.robot.robot_id, bus=bus, dsp=cfg.robot.dsp,
                                 log_level=cfg.robot.log_level)
-        self._spawn(["-m", "services.cli", "bus-hub", "--port", str(hub_port)], "bus_hub")
         self._spawn(["-m", "services.robot_sim", "--config", self._write("robot_sim", robot)], "robot_sim")
         self._spawn(["-m", "services.robot_gateway", "--config", self._write("robot_gateway", gateway)],
                     "robot_gateway")
@@ -102,11 +102,23 @@ class LocalStack:
             while not list(session.liveliness().get(keys.liveliness("robot_gateway"), timeout=1.0)):
                 dead = [p.args for p in self.processes if p.poll() is not None]
                 if dead or time.monotonic() > deadline:
+                    self._keep_files = True
                     raise RuntimeError(f"the gateway profile's robot did not come up (exited: {dead}; logs in "
                                        f"{self._files.name})")
                 time.sleep(0.2)
         finally:
             session.close()
+
+    def _start_hub(self) -> str:
+        """The CAN hub on a port it picks itself (no window for another program to take it); its channel."""
+        hub = subprocess.Popen([sys.executable, "-m", "services.cli", "bus-hub", "--port", "0"], cwd=REPO,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        self.processes.append(hub)
+        line = hub.stdout.readline()  # the hub's first line says where it listens (EOF if it failed)
+        try:
+            return json.loads(line)["bus_hub"]
+        except (ValueError, KeyError):
+            raise RuntimeError(f"the CAN hub did not start (it said {line!r})") from None
 
     def _write(self, name: str, config) -> str:
         path = Path(self._files.name) / f"{name}.yaml"
@@ -137,6 +149,8 @@ class LocalStack:
             except subprocess.TimeoutExpired:
                 process.kill()
                 process.wait()
+            if process.stdout is not None:
+                process.stdout.close()
         self.processes.clear()
         for service in reversed(self.services):
             try:
@@ -145,4 +159,5 @@ class LocalStack:
                 pass
         self.services.clear()
         self.router.close()
-        self._files.cleanup()
+        if not self._keep_files:
+            self._files.cleanup()

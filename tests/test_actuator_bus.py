@@ -96,6 +96,20 @@ def test_reference_fit_recovers_a_quadratic():
     assert (position, rate, accel) == pytest.approx((3.0 - 0.02 + 0.004, -2.0 + 0.8, 80.0), rel=1e-9)
 
 
+def test_commands_handled_back_to_back_do_not_distort_the_reference(rig):
+    """A loop catching up handles two cycles' commands microseconds apart: the reference rate stays the target's
+    (a fit through near-simultaneous samples would read 418 deg/s for 20)."""
+    address, home = 0x11, float(jaco2.HOME_DEG[1])
+    actuator = rig.emulator.by_address[address]
+    # (when handled, which cycle's target): cycle 3 is handled late, cycle 4 right after it
+    for t, cycle in ((0.0, 0), (0.002, 1), (0.004, 2), (0.0080, 3), (0.0081, 4), (0.010, 5), (0.012, 6)):
+        rig.host.send(r.PositionTorqueCommand(home + 20.0 * cycle * 0.002, 0.0).to_message(address))
+        rig.emulator.process(t)
+        rig.host.drain()
+        assert abs(actuator.target_rate_dps) <= 25.0, t
+    assert actuator.target_rate_dps == pytest.approx(20.0, rel=0.1)
+
+
 @pytest.mark.parametrize("joint", [1, 5])
 def test_position_mode_follows_a_moving_target_without_lag_or_overshoot(rig, joint):
     """A heavy shoulder joint and a light wrist joint both follow a 4 Hz sinusoidal target sent at 500 Hz with

@@ -91,3 +91,37 @@ def test_rs485_exchange_with_the_emulated_actuators_across_the_hub(hub):
     finally:
         host.close()
         runner.stop()
+
+
+def test_the_link_survives_a_hub_restart():
+    """The hub goes away: exchanges fail as counted link errors (no loop dies), and once a hub listens again on
+    the same port both ends reconnect by themselves."""
+    from services.robot_gateway.link import LinkError
+
+    hub = CanHub().start()
+    port = hub.port
+    config = BusConfig(interface="mfvs_hub", channel=hub.channel)
+    runner = BusRunner(Simulation(render=False), config).start()
+    host = RS485Bus(config)
+    link = ActuatorLink(host, timeout_s=0.05)
+    try:
+        positions = link.positions_deg()
+        hub.close()
+        for _ in range(5):
+            with pytest.raises(LinkError):
+                link.command(positions)
+        assert host.counters.get("bus.errors") >= 1
+        hub = CanHub(port=port).start()
+
+        def exchange_works():
+            try:
+                link.command(positions)
+                return True
+            except LinkError:
+                return False
+        assert wait_for(exchange_works, timeout=10)
+        assert runner._thread.is_alive()
+    finally:
+        host.close()
+        runner.stop()
+        hub.close()

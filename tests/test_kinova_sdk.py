@@ -68,6 +68,14 @@ def test_calls_round_trip_through_the_library(library, fake):
     assert isinstance(fifo, kinova.TrajectoryFIFOReply) and fifo.result.MaxSize == 2000
     assert sdk.call("SetCartesianControl", None).code == kinova.ErrorCode.NO_ERROR_KINOVA
     assert sdk.call("GetProtectionZone", None).code == kinova.ErrorCode.ERROR_INVALID_PARAM
+    # the session is the gateway's: a client's CloseAPI does not close it
+    assert sdk.call("CloseAPI", None).code == 1 and fake.FakeCount(b"initialized") == 1
+    # a value beyond float32 would reach the arm as inf: refused
+    huge = sdk_mod.velocity_point(kinova.POSITION_TYPE.CARTESIAN_VELOCITY, cartesian=[1e39, 0, 0, 0, 0, 0])
+    sent = fake.FakeCount(b"points")
+    reply = sdk.call("SendBasicTrajectory", huge)
+    assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM and "float32" in reply.message
+    assert fake.FakeCount(b"points") == sent
 
 
 def test_a_library_that_is_not_the_sdk_is_refused(tmp_path):

@@ -1,11 +1,13 @@
 """The low-level torque API (robot/lowlevel/*): the same semantics on robot_sim (its own simulated actuators) and
 on robot_gateway (the actuators on the RS-485 bus), and the pure state machine behind both."""
 import itertools
+import threading
 import time
 
 import numpy as np
 import pytest
 
+from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome
@@ -19,8 +21,9 @@ _channels = itertools.count()
 
 
 class FakeJoints:
-    def __init__(self, refuse=False):
-        self.torque_mode, self.torques, self.refuse = False, None, refuse
+    def __init__(self, refuse=False, stuck=0):
+        self.torque_mode, self.torques, self.refuse, self.stuck = False, None, refuse, stuck
+        self.leaves = 0
 
     def enter_torque_mode(self):
         if self.refuse:
@@ -28,6 +31,10 @@ class FakeJoints:
         self.torque_mode = True
 
     def leave_torque_mode(self):
+        self.leaves += 1
+        if self.stuck > 0:
+            self.stuck -= 1
+            raise RuntimeError("no reply")
         self.torque_mode = False
 
     def set_torques(self, torques):
@@ -58,11 +65,23 @@ def test_state_machine_engages_applies_holds_and_releases():
 
 
 def test_state_machine_reports_a_refused_switch():
-    control = LowLevelControl(LowLevelConfig(), FakeJoints(refuse=True), gravity=lambda q: np.zeros(7))
+    joints = FakeJoints(refuse=True)
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.zeros(7))
     control.receive(torque_command([0.0] * 7), 0.0)
     outcome, detail = control.step(0.001, np.zeros(7))
     assert outcome is Outcome.REFUSED and "validation failed" in detail
+    assert joints.leaves == 1  # joints that switched before the failure are put back
     assert control.step(0.002, np.zeros(7))[0] is Outcome.IDLE  # not retried with the same command
+
+
+def test_a_failed_release_is_retried_until_the_joints_are_back_in_position_mode():
+    joints = FakeJoints(stuck=2)
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.zeros(7))
+    control.receive(torque_command([1.0] * 7), 0.0)
+    assert control.step(0.001, np.zeros(7))[0] is Outcome.ENGAGED
+    assert control.step(0.3, np.zeros(7))[0] is Outcome.REFUSED and not joints.torques.any()
+    assert control.step(0.302, np.zeros(7))[0] is Outcome.REFUSED and joints.torque_mode
+    assert control.step(0.304, np.zeros(7))[0] is Outcome.RELEASED and not joints.torque_mode
 
 
 def test_timing_is_validated():
@@ -109,12 +128,19 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     assert low.last().mode is m.ActuatorMode.POSITION
     q0 = np.array(low.last().q)
     publisher = client.declare_publisher(KEYS.lowlevel_command)
+    api_replies = []
+    api_call = threading.Thread(target=lambda: api_replies.extend(client.get(KEYS.robot_api("MoveHome"),
+                                                                             timeout=5.0)))
     start = time.monotonic()
     for k in range(200):  # 0.4 s of zero extra torque at 500 Hz: gravity compensation holds the arm
         time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
         publisher.put(m.encode(m.TorqueCommand(header=m.Header(stamp_ns=time.time_ns()), torques=[0.0] * 7)))
         if k == 100:
             client.put(KEYS.robot_command, robot_command())  # refused while torque control is active
+            api_call.start()  # and so is a motion through the Kinova API
+    api_call.join(timeout=10)
+    reply = m.decode(api_replies[0].ok.payload.to_bytes(), kinova.ApiReply)
+    assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM and "torque control" in reply.message
     assert low.last().mode is m.ActuatorMode.TORQUE
     assert np.degrees(np.abs(np.array(low.last().q) - q0)).max() < 1.0
     assert wait_for(lambda: service.counters.get("rejected.command") == 1)  # refused, and counted

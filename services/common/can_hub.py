@@ -27,7 +27,6 @@ from typing import Optional
 import can
 
 from services.common.metrics import Counters
-from services.common.transport import free_loopback_port
 
 log = logging.getLogger("mfvs.can_hub")
 
@@ -36,6 +35,8 @@ FLAG_EXTENDED = 0x01
 FLAG_FD = 0x02
 FLAG_BRS = 0x04
 MAX_DATA = 64
+#: a node whose hub went away tries to reconnect at most this often
+RECONNECT_S = 0.5
 #: a node this far behind loses frames rather than holding the others up (about 0.5 s of RS-485 traffic)
 MAX_BACKLOG_BYTES = 1 << 18
 
@@ -89,26 +90,68 @@ class HubBus(can.BusABC):
     """A python-can bus whose wire is a ``CanHub``: ``can.Bus(interface="mfvs_hub", channel="127.0.0.1:7448")``."""
 
     def __init__(self, channel: str, can_filters=None, connect_timeout_s: float = 5.0, **kwargs) -> None:
-        host, port = parse_channel(channel)
-        deadline = time.monotonic() + connect_timeout_s
-        while True:  # the hub may be starting in another process at the same moment
-            try:
-                self._socket = socket.create_connection((host, port), timeout=1.0)
-                break
-            except OSError as exc:
-                if time.monotonic() > deadline:
-                    raise can.CanInitializationError(f"no mfvs CAN hub at {host}:{port}: {exc}") from exc
-                time.sleep(0.05)
-        self._socket.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self._socket.setblocking(False)
+        self._host, self._port = parse_channel(channel)
+        self._socket: Optional[socket.socket] = None
         self._selector = selectors.DefaultSelector()
-        self._selector.register(self._socket, selectors.EVENT_READ)
         self._buffer = bytearray()
         self._received: collections.deque[bytes] = collections.deque()
         self._send_lock = threading.Lock()
-        self.channel_info = f"mfvs CAN hub at {host}:{port}"
+        self._next_attempt = 0.0
+        self.channel_info = f"mfvs CAN hub at {self._host}:{self._port}"
         self._channel = str(channel)
-        super().__init__(channel=channel, can_filters=can_filters, **kwargs)
+        deadline = time.monotonic() + connect_timeout_s
+        while True:  # the hub may be starting in another process at the same moment
+            try:
+                self._connect(timeout_s=1.0)
+                break
+            except OSError as exc:
+                if time.monotonic() > deadline:
+                    self._selector.close()
+                    raise can.CanInitializationError(f"no mfvs CAN hub at {self._host}:{self._port}: {exc}") from exc
+                time.sleep(0.05)
+        try:
+            super().__init__(channel=channel, can_filters=can_filters, **kwargs)
+        except BaseException:
+            self._disconnect()
+            self._selector.close()
+            raise
+
+    def _connect(self, timeout_s: float) -> None:
+        sock = socket.create_connection((self._host, self._port), timeout=timeout_s)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.setblocking(False)
+        self._socket = sock
+        self._selector.register(sock, selectors.EVENT_READ)
+
+    def _disconnect(self) -> None:
+        """Drop a broken connection (and any half-received frame); the next call reconnects."""
+        if self._socket is not None:
+            try:
+                self._selector.unregister(self._socket)
+            except (KeyError, ValueError):
+                pass
+            self._socket.close()
+            self._socket = None
+        self._buffer.clear()
+
+    def _ensure_connected(self) -> None:
+        """Reconnect after the hub restarted: one quick attempt, at most every RECONNECT_S."""
+        if self._socket is not None:
+            return
+        now = time.monotonic()
+        if now < self._next_attempt:
+            raise can.CanOperationError("mfvs CAN hub: not connected")
+        self._next_attempt = now + RECONNECT_S
+        try:
+            self._connect(timeout_s=0.2)
+        except OSError as exc:
+            raise can.CanOperationError(f"mfvs CAN hub: reconnecting failed: {exc}") from exc
+
+    def _fail(self, reason: str, exc: Optional[BaseException] = None) -> can.CanOperationError:
+        self._disconnect()
+        error = can.CanOperationError(f"mfvs CAN hub: {reason}")
+        error.__cause__ = exc
+        return error
 
     def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
         self._write(encode_frame(msg), timeout)
@@ -122,20 +165,22 @@ class HubBus(can.BusABC):
         pending = memoryview(data)
         deadline = time.monotonic() + (1.0 if timeout is None else timeout)
         with self._send_lock:
+            self._ensure_connected()
             while pending:
                 try:
                     pending = pending[self._socket.send(pending):]
                 except BlockingIOError:
                     remaining = deadline - time.monotonic()
                     if remaining <= 0 or not select.select([], [self._socket], [], remaining)[1]:
-                        if len(pending) < len(data):  # part of a frame may be on the wire
-                            self._socket.shutdown(socket.SHUT_RDWR)
+                        if len(pending) < len(data):  # part of a frame may be on the wire: start afresh
+                            raise self._fail("send timed out mid-frame") from None
                         raise can.CanOperationError("mfvs CAN hub: send timed out") from None
                 except OSError as exc:
-                    raise can.CanOperationError(f"mfvs CAN hub: send failed: {exc}") from exc
+                    raise self._fail(f"send failed: {exc}", exc) from exc
 
     def _recv_internal(self, timeout: Optional[float]):
         if not self._received:
+            self._ensure_connected()
             deadline = None if timeout is None else time.monotonic() + timeout
             while not self._received:
                 remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
@@ -146,14 +191,14 @@ class HubBus(can.BusABC):
                 except BlockingIOError:
                     continue
                 except OSError as exc:
-                    raise can.CanOperationError(f"mfvs CAN hub: receive failed: {exc}") from exc
+                    raise self._fail(f"receive failed: {exc}", exc) from exc
                 if not chunk:
-                    raise can.CanOperationError("mfvs CAN hub closed the connection")
+                    raise self._fail("the hub closed the connection")
                 self._buffer += chunk
                 try:
                     self._received.extend(split_frames(self._buffer))
                 except ValueError as exc:
-                    raise can.CanOperationError(f"mfvs CAN hub sent a bad frame: {exc}") from exc
+                    raise self._fail(f"the hub sent a bad frame: {exc}", exc) from exc
                 if deadline is not None and time.monotonic() >= deadline and not self._received:
                     return None, False
         return decode_frame(self._received.popleft(), self._channel), False
@@ -161,9 +206,9 @@ class HubBus(can.BusABC):
     def shutdown(self) -> None:
         super().shutdown()
         try:
-            self._selector.close()
+            self._disconnect()
         finally:
-            self._socket.close()
+            self._selector.close()
 
 
 class _Node:
@@ -186,7 +231,8 @@ class CanHub:
 
     def __init__(self, port: int = 0, host: str = "127.0.0.1") -> None:
         self.host = host
-        self.port = port or free_loopback_port(host)
+        #: the port it listens on (0 before ``bind``/``start`` when asked for any free port)
+        self.port = port
         self.counters = Counters()
         self._selector = selectors.DefaultSelector()
         self._listener: Optional[socket.socket] = None
@@ -205,7 +251,8 @@ class CanHub:
             return
         listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        listener.bind((self.host, self.port))
+        listener.bind((self.host, self.port))  # port 0: the kernel picks one, with no window for anyone else
+        self.port = listener.getsockname()[1]
         listener.listen(16)
         listener.setblocking(False)
         self._listener = listener
@@ -269,10 +316,16 @@ class CanHub:
     def _accept(self) -> None:
         try:
             sock, address = self._listener.accept()
-        except BlockingIOError:
+        except OSError:  # nothing to accept after all, or the peer gave up (ECONNABORTED), or out of descriptors
+            self.counters.inc("accept_errors")
             return
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sock.setblocking(False)
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            sock.setblocking(False)
+        except OSError:
+            sock.close()
+            self.counters.inc("accept_errors")
+            return
         node = _Node(sock, address)
         self._nodes[sock] = node
         self._selector.register(sock, selectors.EVENT_READ, "node")

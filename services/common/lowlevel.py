@@ -92,14 +92,19 @@ class LowLevelControl:
                 self.joints.enter_torque_mode()
             except Exception as exc:
                 self._forget(latest)
+                try:  # some joints may have switched before the failure: put them all back
+                    self.joints.leave_torque_mode()
+                except Exception:
+                    pass
                 return Outcome.REFUSED, f"torque mode refused: {exc}"
             outcome = Outcome.ENGAGED
         if age > self.config.release_s:  # the client is gone: back to holding under the DSP
-            self._forget(latest)
             try:
                 self.joints.leave_torque_mode()
-            except Exception as exc:
+            except Exception as exc:  # still in torque mode: zero extra torque, and try again next cycle
+                self.joints.set_torques(np.zeros(len(q)))
                 return Outcome.REFUSED, f"leaving torque mode failed: {exc}"
+            self._forget(latest)
             return Outcome.RELEASED, f"after {age * 1e3:.0f} ms without commands"
         if age > self.config.watchdog_s:
             self.joints.set_torques(np.zeros(len(q)))

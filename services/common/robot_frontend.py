@@ -36,6 +36,10 @@ from services.common.dsp import CommandRefused, KinovaDSP
 from services.common.kinova_api import KinovaApi, RobotView
 from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome, TorqueJoints
 
+#: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
+#: in the DSP and run, unexpectedly, once torque control ends)
+MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})
+
 
 class RobotFrontEnd:
     """Mixin: requires ``self.keys``, ``self.clock``, ``self.name``, ``self.counters``, ``self.refuse``,
@@ -120,6 +124,11 @@ class RobotFrontEnd:
                 function, argument, future = self._api_calls.get_nowait()
             except queue.Empty:
                 return
+            if function in MOTION_FUNCTIONS and self.lowlevel is not None and self.lowlevel.active:
+                self.refuse("api", f"{function}: low-level torque control is active")
+                future.set_result(kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                                  message="low-level torque control is active"))
+                continue
             try:
                 future.set_result(self.api.call(function, argument))
             except Exception as exc:

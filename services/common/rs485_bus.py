@@ -25,6 +25,10 @@ class BusConfig(ConfigStruct):
     options: dict = msgspec.field(default_factory=dict)
 
 
+class BusError(RuntimeError):
+    """The bus itself failed (interface down, the hub gone): counted as ``bus.errors``; callers hold the arm."""
+
+
 class RS485Bus:
     def __init__(self, config: BusConfig | None = None, counters: Counters | None = None) -> None:
         self.config = config or BusConfig()
@@ -33,9 +37,13 @@ class RS485Bus:
                             **self.config.options)
         self.last_error = ""
 
+    def _failed(self, exc: can.CanError) -> BusError:
+        self.counters.inc("bus.errors")
+        self.last_error = str(exc)
+        return BusError(str(exc))
+
     def send(self, message: RS485Message) -> None:
-        self._bus.send(can.Message(arbitration_id=message.destination, data=message.encode(), is_fd=True,
-                                   is_extended_id=False))
+        self.send_all([message])
 
     def send_all(self, messages) -> None:
         """Several messages, in order; in one write where the interface can batch (the mfvs CAN hub)."""
@@ -44,20 +52,30 @@ class RS485Bus:
         if not frames:
             return
         batch = getattr(self._bus, "send_batch", None)
-        if batch is not None:
-            batch(frames)
-            return
-        for frame in frames:
-            self._bus.send(frame)
+        try:
+            if batch is not None:
+                batch(frames)
+                return
+            for frame in frames:
+                self._bus.send(frame)
+        except can.CanError as exc:
+            raise self._failed(exc) from exc
 
     def send_raw(self, data: bytes, arbitration_id: int = 0) -> None:
         """Put arbitrary bytes on the bus (tests of garbled frames)."""
-        self._bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_fd=True, is_extended_id=False))
+        try:
+            self._bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_fd=True, is_extended_id=False))
+        except can.CanError as exc:
+            raise self._failed(exc) from exc
 
     def recv(self, timeout: Optional[float] = 0.0) -> Optional[RS485Message]:
-        """The next valid message, or None when none arrived within ``timeout``; invalid frames are counted."""
+        """The next valid message, or None when none arrived within ``timeout``; invalid frames are counted. A
+        failing bus raises :class:`BusError`."""
         while True:
-            frame = self._bus.recv(timeout)
+            try:
+                frame = self._bus.recv(timeout)
+            except can.CanError as exc:
+                raise self._failed(exc) from exc
             if frame is None:
                 return None
             try:

@@ -156,10 +156,16 @@ class KinovaSdk:
         return value
 
     def call(self, function: str, argument) -> kinova.ApiReply:
-        """A Kinova API call by name (the robot/api/* queryables)."""
+        """A Kinova API call by name (the robot/api/* queryables). The session belongs to the gateway: InitAPI
+        and CloseAPI from a client are answered without touching it (as the emulated API does)."""
+        if function in ("InitAPI", "CloseAPI"):
+            return kinova.ApiReply()
         if function in _ACTIONS:
             return kinova.ApiReply(code=self.action(function))
         if function == "SendBasicTrajectory":
+            problem = float32_problem(argument)
+            if problem:
+                return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=problem)
             return kinova.ApiReply(code=self.send_basic_trajectory(argument))
         if function in _GETTERS:
             code, value = self.get(function)
@@ -167,6 +173,22 @@ class KinovaSdk:
         # zones and client configurations: the SDK's structs hold more than mfvs's types describe
         return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
                                message=f"{function} is not available through the kinova_sdk backend")
+
+
+FLOAT32_MAX = 3.4028234663852886e38
+
+
+def float32_problem(message, path: str = "") -> str:
+    """Why a message cannot travel as the SDK's float32 fields (a float beyond float32 would arrive as inf)."""
+    for name in message.__struct_fields__:
+        value = getattr(message, name)
+        if isinstance(value, float) and not abs(value) <= FLOAT32_MAX:
+            return f"{path}{name} = {value} does not fit a float32"
+        if hasattr(value, "__struct_fields__"):
+            problem = float32_problem(value, f"{path}{name}.")
+            if problem:
+                return problem
+    return ""
 
 
 class SdkArm:

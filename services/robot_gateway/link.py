@@ -13,7 +13,7 @@ import numpy as np
 from protocol import rs485 as r
 from services.common import jaco2
 from services.common.metrics import Counters
-from services.common.rs485_bus import RS485Bus
+from services.common.rs485_bus import BusError, RS485Bus
 
 
 class LinkError(RuntimeError):
@@ -41,22 +41,41 @@ class ActuatorLink:
         self.counters = counters or bus.counters
         self.errors: list[tuple[int, r.ActuatorError]] = []
 
+    def _request(self, messages) -> None:
+        """Send a request in one write, after taking what is still queued: the late replies of an exchange that
+        timed out would otherwise answer this one, and every later reading would be a cycle old."""
+        try:
+            for message in self.bus.drain():
+                if message.command is r.Command.REPORT_ERROR:
+                    self._record_error(message)
+                else:
+                    self.counters.inc("link.stale_replies")
+            self.bus.send_all(messages)
+        except BusError as exc:
+            raise LinkError(f"bus failure: {exc}") from exc
+
+    def _record_error(self, message: r.RS485Message) -> None:
+        error = r.parse_report_error(message)
+        self.errors.append((message.source, error))
+        self.counters.inc(f"link.actuator_errors.{error.name.lower()}")
+
     def _collect(self, expected: dict[tuple[int, r.Command], int]) -> list[r.RS485Message]:
         """Wait for the expected replies ((source, command) → count); error reports are kept aside."""
         remaining = dict(expected)
         replies = []
         deadline = time.monotonic() + self.timeout_s
         while any(remaining.values()):
-            message = self.bus.recv(max(0.0, deadline - time.monotonic()))
+            try:
+                message = self.bus.recv(max(0.0, deadline - time.monotonic()))
+            except BusError as exc:
+                raise LinkError(f"bus failure: {exc}") from exc
             if message is None:
                 self.counters.inc("link.timeouts")
                 missing = [f"0x{a:02X}:{c.name}" for (a, c), n in remaining.items() if n]
                 raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(missing)}")
             key = (message.source, message.command)
             if message.command is r.Command.REPORT_ERROR:
-                error = r.parse_report_error(message)
-                self.errors.append((message.source, error))
-                self.counters.inc(f"link.actuator_errors.{error.name.lower()}")
+                self._record_error(message)
                 continue
             if message.command is r.Command.NACK:
                 self.counters.inc("link.nacks")
@@ -69,8 +88,8 @@ class ActuatorLink:
         return replies
 
     def positions_deg(self) -> np.ndarray:
-        for address in self.addresses:
-            self.bus.send(r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, address))
+        self._request(r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, address)
+                      for address in self.addresses)
         replies = self._collect({(a, r.Command.SEND_ACTUAL_POSITION): 1 for a in self.addresses})
         by_source = {m.source: m.floats[0] for m in replies}
         return np.array([by_source[a] for a in self.addresses])
@@ -79,8 +98,8 @@ class ActuatorLink:
         """One 0x14 to every actuator (position targets, or safety references with torques in torque mode);
         returns what the 0x15-0x17 replies say."""
         torques = np.zeros(len(self.addresses)) if torques_nm is None else np.asarray(torques_nm, dtype=float)
-        self.bus.send_all(r.PositionTorqueCommand(float(position), float(torque)).to_message(address)
-                          for address, position, torque in zip(self.addresses, positions_deg, torques, strict=True))
+        self._request(r.PositionTorqueCommand(float(position), float(torque)).to_message(address)
+                      for address, position, torque in zip(self.addresses, positions_deg, torques, strict=True))
         expected = {}
         for a in self.addresses:
             for command in (r.Command.SEND_ALL_VALUES_1, r.Command.SEND_ALL_VALUES_2, r.Command.SEND_ALL_VALUES_3):
@@ -104,15 +123,14 @@ class ActuatorLink:
 
     def switch_to_torque(self, expected_torques_nm) -> None:
         """The torque-mode handshake for every actuator: validation of the expected torques, then the switch."""
-        for address, torque in zip(self.addresses, expected_torques_nm, strict=True):
-            self.bus.send(r.RS485Message.with_floats(r.Command.GET_TORQUE_VALIDATION_REQUEST, r.HOST_ADDRESS,
-                                                     address, [float(torque)]))
+        self._request(r.RS485Message.with_floats(r.Command.GET_TORQUE_VALIDATION_REQUEST, r.HOST_ADDRESS, address,
+                                                 [float(torque)])
+                      for address, torque in zip(self.addresses, expected_torques_nm, strict=True))
         replies = self._collect({(a, r.Command.SEND_TORQUE_VALIDATION): 1 for a in self.addresses})
         invalid = [f"0x{m.source:02X}" for m in replies if m.uints[0] != 1]
         if invalid:
             raise LinkError(f"torque validation failed for {', '.join(invalid)}")
-        for address in self.addresses:
-            self.bus.send(r.switch_mode_request(r.ControlModeRequest.TORQUE, address))
+        self._request(r.switch_mode_request(r.ControlModeRequest.TORQUE, address) for address in self.addresses)
         replies = self._collect({(a, r.Command.SWITCH_CONTROL_MODE_REPLY): 1 for a in self.addresses})
         refused = [f"0x{m.source:02X}" for m in replies if r.parse_switch_mode_reply(m) is not
                    r.ControlModeReply.TORQUE_OK]
@@ -120,8 +138,7 @@ class ActuatorLink:
             raise LinkError(f"torque mode refused by {', '.join(refused)}")
 
     def switch_to_position(self) -> None:
-        for address in self.addresses:
-            self.bus.send(r.switch_mode_request(r.ControlModeRequest.POSITION, address))
+        self._request(r.switch_mode_request(r.ControlModeRequest.POSITION, address) for address in self.addresses)
         self._collect({(a, r.Command.SWITCH_CONTROL_MODE_REPLY): 1 for a in self.addresses})
 
 

@@ -22,6 +22,7 @@ import numpy as np
 from protocol import kinova
 from protocol import rs485 as r
 from protocol.conventions import ClockMode
+from services.common import jaco2
 from services.common.clock import PeriodicSchedule
 from services.common.dsp import DSPConfig, KinovaDSP
 from services.common.kinematics import ArmKinematics
@@ -118,7 +119,12 @@ class RobotGatewayService(RobotFrontEnd, Service):
         cfg = self.config
         self.bus = RS485Bus(cfg.bus, self.counters)
         link = ActuatorLink(self.bus, cfg.addresses, cfg.link_timeout_s, self.counters)
-        self.actuators = self._connect(link)
+        try:
+            self.actuators = self._connect(link)
+        except BaseException:
+            self.bus.close()  # a start that fails leaves no socket behind
+            self.bus = None
+            raise
         view = _LinkView(self.actuators)
         self.init_frontend(view, KinovaDSP(cfg.dsp))
         self.declare_frontend()
@@ -132,7 +138,11 @@ class RobotGatewayService(RobotFrontEnd, Service):
         if code != kinova.ErrorCode.NO_ERROR_KINOVA:
             raise SdkError("InitAPI", code)
         self.arm = SdkArm(self.sdk, cfg.dsp)
-        self.arm.read()
+        try:
+            self.arm.read()
+        except BaseException:
+            self.sdk.action("CloseAPI")
+            raise
         self.init_frontend(self.arm, self.arm, api=self.sdk)
         self.declare_frontend()
         self.declare_lowlevel(_NoTorque(), cfg.lowlevel, gravity=None,
@@ -197,7 +207,7 @@ class RobotGatewayService(RobotFrontEnd, Service):
         if reading is None:
             return
         state = self.actuators.read()
-        self.publish_lowlevel(state.q, state.dq, state.tau, reading.current_a, reading.temperature_c,
+        self.publish_lowlevel(state.q, state.dq, state.tau, jaco2.SIGN * reading.current_a, reading.temperature_c,
                               self.actuators.faults)
 
     def _run(self) -> None:

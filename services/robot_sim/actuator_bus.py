@@ -40,7 +40,7 @@ from services.common import jaco2
 from services.common.config import ConfigStruct
 from services.common.dsp import JointState
 from services.common.metrics import Counters
-from services.common.rs485_bus import RS485Bus
+from services.common.rs485_bus import BusError, RS485Bus
 
 
 class ActuatorBusConfig(ConfigStruct):
@@ -60,6 +60,10 @@ TORQUE_PER_AMPERE = 0.08
 ACTUATOR_TEMPERATURE_C = 35.0
 #: the position-mode reference is fitted to the targets of about this long (a few bus cycles)
 RATE_WINDOW_S = 0.012
+#: bounds of the fitted reference's rate and acceleration (well beyond the arm's 48 deg/s and the DSP's
+#: 200 deg/s², so they only cut glitches)
+MAX_REFERENCE_RATE_DPS = 120.0
+MAX_REFERENCE_ACCEL_DPS2 = 2000.0
 #: a target older than this is not extrapolated (the host stopped sending)
 STALE_TARGET_S = 0.02
 #: position-mode servo of each actuator (its own firmware loop): critically damped at this natural frequency for
@@ -157,14 +161,21 @@ class ActuatorBusEmulator:
         self.now_s = now_s
         handled = 0
         replies = []
-        for message in self.bus.drain():
+        try:
+            incoming = self.bus.drain()
+        except BusError:  # counted by the bus; the actuators keep their last command (torque mode times out)
+            incoming = []
+        for message in incoming:
             actuator = self.by_address.get(message.destination)
             if actuator is None:
                 continue  # for someone else (or the host)
             handled += 1
             self.counters.inc(f"bus.rx.{message.command.name.lower()}")
             replies += self._handle(actuator, message)
-        self.bus.send_all(replies)
+        try:
+            self.bus.send_all(replies)
+        except BusError:
+            pass  # counted by the bus; the host times out and holds the arm
         for actuator in self.actuators:
             if (actuator.mode is r.ControlModeRequest.TORQUE
                     and now_s - actuator.last_torque_s > self.config.torque_timeout_s):
@@ -181,17 +192,22 @@ class ActuatorBusEmulator:
         history = actuator.target_history
         if history and self.now_s - history[-1][0] > STALE_TARGET_S:
             history.clear()  # the host paused: the old targets say nothing about the new motion
-        history.append((self.now_s, position_deg))
+        if history and self.now_s - history[-1][0] < 0.5 * r.CYCLE_S:
+            history[-1] = (self.now_s, position_deg)  # same cycle (or a catch-up right after): the newest wins
+        else:
+            history.append((self.now_s, position_deg))
         while len(history) > 3 and self.now_s - history[1][0] >= RATE_WINDOW_S:
             history.popleft()
         position, rate, accel = position_deg, 0.0, 0.0
-        times = {t for t, _ in history}
-        if len(times) >= 3:
+        if len(history) >= 3:
             position, rate, accel = quadratic_at_end(history, self.now_s)
-        elif len(times) == 2:
-            (t0, p0), (t1, p1) = history[0], history[-1]
+        elif len(history) == 2:
+            (t0, p0), (t1, p1) = history
             rate = (p1 - p0) / (t1 - t0)
-        actuator.target_deg, actuator.target_rate_dps, actuator.target_accel_dps2 = position, rate, accel
+        # a reference no actuator could follow is a host glitch, not a trajectory
+        actuator.target_deg = position
+        actuator.target_rate_dps = min(max(rate, -MAX_REFERENCE_RATE_DPS), MAX_REFERENCE_RATE_DPS)
+        actuator.target_accel_dps2 = min(max(accel, -MAX_REFERENCE_ACCEL_DPS2), MAX_REFERENCE_ACCEL_DPS2)
         actuator.target_time_s = self.now_s
 
     def _hold(self, actuator: Actuator) -> None:
@@ -216,8 +232,10 @@ class ActuatorBusEmulator:
             return
         q = self.data.qpos[i]
         if (q < self.lower[i] or q > self.upper[i]) and actuator.fault is r.ActuatorError.NONE:
-            for reply in self._fault(actuator, r.ActuatorError.POSITION_LIMIT):
-                self.bus.send(reply)
+            try:
+                self.bus.send_all(self._fault(actuator, r.ActuatorError.POSITION_LIMIT))
+            except BusError:
+                pass  # the fault still latches; the host sees it in the 0x17 replies
 
     def _replies(self, actuator: Actuator) -> list:
         i = actuator.index

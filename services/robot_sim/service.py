@@ -203,35 +203,45 @@ class RobotSimService(RobotFrontEnd, Service):
 
     def _run_realtime(self) -> None:
         """The actuators' 2 ms cycle on wall time: low-level torque control and state every cycle, the DSP (robot
-        commands, Kinova API, state) every fifth, frames when due."""
+        commands, Kinova API, state) every fifth, frames when due. After a stall the missed cycles run back to
+        back (up to MAX_CATCH_UP_CYCLES), so simulated time keeps up with the wall-time stamps of everyone else."""
         schedule = PeriodicSchedule(rs485.CYCLE_S)
-        steps = max(1, round(rs485.CYCLE_S / self.sim.model.opt.timestep))
-        per_dsp_cycle = max(1, round(self.sim.cycle_ns * 1e-9 / rs485.CYCLE_S))
-        next_info = 0.0
-        applied = None
+        last = -1
+        self._next_info = 0.0
+        self._applied = None
         while not self._done():
             cycle, skipped = schedule.wait()
             if skipped:
                 self.counters.inc("overruns")
-            phase = cycle % per_dsp_cycle
-            if phase == 0:
-                self.rates.tick("cycle")
-                self.loop_timer.tick()
-                self.run_api_calls()
-                if self.sim.frame_due():
-                    self._capture_frame(wait=False)
-                if time.monotonic() >= next_info:
-                    self.info_pub.put(self._camera_info())
-                    next_info = time.monotonic() + self.config.camera_info_period_s
-                self.clock_pub.put(SimClock(header=self.header("clock"), sim_time_ns=self._now_ns(),
-                                            mode=ClockMode.REALTIME.value))
-                applied = self.apply_command(self.take_command())
-                self.sim.dsp_cycle()
-            self.lowlevel_cycle(self.sim.q)
-            self.sim.step_physics(steps)
-            self._publish_lowlevel()
-            if phase == per_dsp_cycle - 1:
-                self.publish_state(applied)
+            first = cycle if last < 0 else max(last + 1, cycle - MAX_CATCH_UP_CYCLES + 1)
+            if first > last + 1 and last >= 0:
+                self.counters.inc("physics.dropped_cycles", first - last - 1)
+            for slot in range(first, cycle + 1):
+                self._actuator_cycle(slot)
+            last = cycle
+
+    def _actuator_cycle(self, slot: int) -> None:
+        per_dsp_cycle = max(1, round(self.sim.cycle_ns * 1e-9 / rs485.CYCLE_S))
+        phase = slot % per_dsp_cycle
+        if phase == 0:
+            self.rates.tick("cycle")
+            self.loop_timer.tick()
+            self.run_api_calls()
+            if self.sim.frame_due():
+                self._capture_frame(wait=False)
+            if time.monotonic() >= self._next_info:
+                self.info_pub.put(self._camera_info())
+                self._next_info = time.monotonic() + self.config.camera_info_period_s
+            self.clock_pub.put(SimClock(header=self.header("clock"), sim_time_ns=self._now_ns(),
+                                        mode=ClockMode.REALTIME.value))
+            self._applied = self.apply_command(self.take_command())
+            self.sim.dsp_cycle()
+        self.lowlevel_cycle(self.sim.q)
+        self.sim.step_physics(max(1, round(rs485.CYCLE_S / self.sim.model.opt.timestep)))
+        self._publish_lowlevel()
+        if phase == per_dsp_cycle - 1:
+            self.publish_state(self._applied)
+            self._applied = None
 
     def _publish_lowlevel(self) -> None:
         data = self.sim.data
