@@ -239,6 +239,13 @@ class ClientConfigurationsReply(ApiReply):
 
 
 #: function name → (argument type or None, reply type)
+#: functions that move the arm or change how it moves (zones, limits, control mode): in an authority deployment
+#: only the service that commands the robot may call them (services/common/authority.py)
+MUTATING_API_FUNCTIONS = frozenset({
+    "MoveHome", "SetCartesianControl", "SetAngularControl", "SendBasicTrajectory", "EraseAllTrajectories",
+    "SetProtectionZone", "EraseAllProtectionZones", "SetClientConfigurations",
+})
+
 API_FUNCTIONS: dict[str, tuple[type | None, type]] = {
     "InitAPI": (None, ApiReply),
     "CloseAPI": (None, ApiReply),

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.common.authority import write_deployment
@@ -86,6 +87,56 @@ def test_only_safety_can_command_the_robot(deployment):
         operator.close()
     finally:
         robot.stop()
+
+
+@pytest.fixture
+def robot(deployment):
+    service = RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=ZenohConfig(
+        connect=[deployment.endpoint], config_file=str(deployment.client_configs["robot_sim"]))))
+    service.start()
+    yield service
+    service.stop()
+
+
+def api_call(session, function):
+    replies = [r for r in session.get(KEYS.robot_api(function), timeout=3.0) if r.ok is not None]
+    return [m.decode(r.ok.payload.to_bytes(), kinova.API_FUNCTIONS[function][1]) for r in replies]
+
+
+def test_only_safety_changes_the_robot_through_its_api(deployment, robot):
+    """Everyone may read the arm through the Kinova API; moving it, or changing its zones and limits, is
+    safety's alone (the router drops the other identities' queries)."""
+    for name in ("operator", "controller", "vision", "torque_controller"):
+        session = session_as(deployment, name)
+        assert [reply.code for reply in api_call(session, "GetAngularPosition")] == [1], name
+        for function in ("MoveHome", "EraseAllProtectionZones", "SendBasicTrajectory"):
+            assert api_call(session, function) == [], (name, function)
+        session.close()
+    assert robot.counters.get("rejected.api") == 0  # they never reached the robot
+    safety = session_as(deployment, "safety")
+    assert [reply.code for reply in api_call(safety, "EraseAllTrajectories")] == [1]
+    safety.close()
+
+
+def test_only_the_torque_controller_identity_commands_torques(deployment, robot):
+    """Low-level torque commands bypass safety: only the identity given to a tested torque controller may send
+    them."""
+    def torques_from(name):
+        session = session_as(deployment, name)
+        publisher = session.declare_publisher(KEYS.lowlevel_command)
+        time.sleep(0.2)
+        start = time.monotonic()
+        for k in range(100):  # 0.2 s at 500 Hz
+            time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
+            publisher.put(m.encode(m.TorqueCommand(header=m.Header(stamp_ns=time.time_ns()), torques=[0.0] * 7)))
+        session.close()
+
+    for name in ("safety", "controller", "operator"):
+        torques_from(name)
+        assert not robot.lowlevel.active and "lowlevel_command" not in robot.rates.snapshot(), name
+    torques_from("torque_controller")
+    assert robot.rates.snapshot().get("lowlevel_command", 0) > 0
+    assert wait_for(lambda: not robot.lowlevel.active, timeout=2)  # released 250 ms after the last command
 
 
 def test_only_robots_publish_robot_state(deployment):

@@ -9,7 +9,10 @@ Two flavours, written by :func:`write_deployment` (``mfvs authority init``):
   ``deploy/tls/gen_certs.sh``) and access control by certificate common name.
 
 In both, default permission is deny; every listed service may do everything except: put/delete on robot
-commands (only ``safety``) and on robot state (only the robot services). Deny rules act on ingress to the router
+commands (only ``safety``), on low-level torque commands (only ``torque_controller``, a controller that does its
+own dynamics and so bypasses safety: give that identity only to a tested one) and on robot state (only the robot
+services); and queries to the Kinova API functions that move the arm or change its zones and limits (only
+``safety``; everyone may read). Deny rules act on ingress to the router
 (an egress deny would also drop what the router forwards to the robot). Services must run as zenoh clients of the
 router: access control lives there. The generated files hold secrets (keys, passwords): keep them out of git.
 """
@@ -22,12 +25,14 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
+from protocol import kinova
 from protocol.keys import Keys
 
 COMMANDERS = ("safety",)
 ROBOTS = ("robot_sim", "robot_gateway")
+TORQUE_CONTROLLERS = ("torque_controller",)
 OTHERS = ("vision", "controller", "operator")
-DEFAULT_SERVICES = COMMANDERS + ROBOTS + OTHERS
+DEFAULT_SERVICES = COMMANDERS + ROBOTS + TORQUE_CONTROLLERS + OTHERS
 
 #: every message kind zenoh's access control knows; the allow rule must list them all under default deny
 _ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
@@ -50,9 +55,11 @@ def access_control(services, match: str) -> dict:
     keys = Keys.all_robots()
     commanders = [s for s in services if s in COMMANDERS]
     robots = [s for s in services if s in ROBOTS]
-    others = [s for s in services if s not in COMMANDERS and s not in ROBOTS]
+    torque = [s for s in services if s in TORQUE_CONTROLLERS]
+    others = [s for s in services if s not in COMMANDERS + ROBOTS + TORQUE_CONTROLLERS]
     subjects, ids = [], {}
-    for group, members in (("commanders", commanders), ("robots", robots), ("others", others)):
+    for group, members in (("commanders", commanders), ("robots", robots), ("torque_controllers", torque),
+                           ("others", others)):
         if members:
             subjects.append({"id": group, match: members})
             ids[group] = group
@@ -67,6 +74,10 @@ def access_control(services, match: str) -> dict:
              "key_exprs": [keys.robot_command]},
             {"id": "deny_robot_state", "permission": "deny", "flows": ["ingress"], "messages": ["put", "delete"],
              "key_exprs": [keys.robot_state, keys.lowlevel_state]},
+            {"id": "deny_torque_command", "permission": "deny", "flows": ["ingress"], "messages": ["put", "delete"],
+             "key_exprs": [keys.lowlevel_command]},
+            {"id": "deny_robot_api_changes", "permission": "deny", "flows": ["ingress"], "messages": ["query"],
+             "key_exprs": sorted(keys.robot_api(f) for f in kinova.MUTATING_API_FUNCTIONS)},
         ],
         "subjects": subjects,
         "policies": [p for p in (
@@ -75,6 +86,10 @@ def access_control(services, match: str) -> dict:
              "subjects": [g for g in present if g != "commanders"]},
             {"id": "only_robots_publish_state", "rules": ["deny_robot_state"],
              "subjects": [g for g in present if g != "robots"]},
+            {"id": "only_torque_controllers_command_torques", "rules": ["deny_torque_command"],
+             "subjects": [g for g in present if g != "torque_controllers"]},
+            {"id": "only_safety_changes_the_robot_through_its_api", "rules": ["deny_robot_api_changes"],
+             "subjects": [g for g in present if g != "commanders"]},
         ) if p["subjects"]],
     }
 
