@@ -20,8 +20,7 @@ import numpy as np
 from services.common.metrics import LoopTimer
 from services.common.rs485_bus import BusConfig, RS485Bus
 from services.robot_gateway.link import ActuatorLink
-from services.robot_sim.bus_runner import BusRunner
-from services.robot_sim.sim import Simulation
+from services.stack import simulated_link
 
 
 def _stats(ms: list[float]) -> dict:
@@ -86,18 +85,10 @@ def run_hub(seconds: float = 5.0) -> dict:
 
 
 def run(seconds: float = 5.0) -> dict:
-    channel = f"bench-rs485-{time.monotonic_ns()}"
-    runner = BusRunner(Simulation(render=False), BusConfig(channel=channel)).start()
-    host = RS485Bus(BusConfig(channel=channel))
-    link = ActuatorLink(host, timeout_s=0.1)
-    try:
-        time.sleep(0.5)
+    with simulated_link(timeout_s=0.1, settle_s=0.5) as (runner, link):
         runner.loop_timer = LoopTimer(0.002)
         exchange_ms, query_ms = _measure(link, seconds)
         loop = runner.loop_timer.stats()
-    finally:
-        host.close()
-        runner.stop()
     return {"transport": "virtual", "cycle_rate_hz": round(loop["rate_hz"], 2),
             "cycle_jitter_ms_p50": round(loop["jitter_ms_p50"], 3),
             "cycle_jitter_ms_p99": round(loop["jitter_ms_p99"], 3),

@@ -7,7 +7,10 @@ would otherwise compete with vision and rendering for one interpreter.
 """
 from __future__ import annotations
 
+import contextlib
+import itertools
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -20,15 +23,37 @@ import yaml
 
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
-from services.common.rs485_bus import BusConfig
+from services.common.rs485_bus import BusConfig, RS485Bus
 from services.common.transport import Router, open_session
 from services.controller.service import ControllerConfig, ControllerService
+from services.robot_gateway.link import ActuatorLink
 from services.robot_gateway.service import GatewayConfig
+from services.robot_sim.bus_runner import BusRunner
 from services.robot_sim.service import RobotSimConfig, RobotSimService
+from services.robot_sim.sim import Simulation
 from services.safety.service import SafetyConfig, SafetyService
 from services.vision.service import VisionConfig, VisionService
 
 REPO = Path(__file__).resolve().parents[1]
+_rig_channels = itertools.count()
+
+
+@contextlib.contextmanager
+def simulated_link(bus: BusConfig | None = None, timeout_s: float = 0.05, settle_s: float = 0.05):
+    """A simulated arm's actuators answering on a bus (robot_sim's BusRunner, in a thread) and the host's link to
+    them, as ``(runner, link)``: the gateway's view of the arm without zenoh, for tests and benchmarks. By
+    default the bus is a fresh python-can virtual channel of this process."""
+    bus = bus or BusConfig(channel=f"simulated-link-{os.getpid()}-{next(_rig_channels)}")
+    runner = BusRunner(Simulation(render=False), bus).start()
+    try:
+        host = RS485Bus(bus)
+        try:
+            time.sleep(settle_s)
+            yield runner, ActuatorLink(host, timeout_s=timeout_s)
+        finally:
+            host.close()
+    finally:
+        runner.stop()
 
 
 @dataclass

@@ -9,10 +9,8 @@ import pytest
 
 from protocol import rs485 as r
 from services.common.can_hub import HEADER, CanHub, parse_channel
-from services.common.rs485_bus import BusConfig, RS485Bus
-from services.robot_gateway.link import ActuatorLink
-from services.robot_sim.bus_runner import BusRunner
-from services.robot_sim.sim import Simulation
+from services.common.rs485_bus import BusConfig
+from services.stack import simulated_link
 from tests.stack import wait_for
 
 
@@ -75,11 +73,7 @@ def test_without_a_hub_the_interface_fails_clearly():
 
 
 def test_rs485_exchange_with_the_emulated_actuators_across_the_hub(hub):
-    config = BusConfig(interface="mfvs_hub", channel=hub.channel)
-    runner = BusRunner(Simulation(render=False), config).start()
-    host = RS485Bus(config)
-    try:
-        link = ActuatorLink(host, timeout_s=0.05)
+    with simulated_link(BusConfig(interface="mfvs_hub", channel=hub.channel), settle_s=0.0) as (_, link):
         positions = link.positions_deg()
         assert len(positions) == len(r.ACTUATOR_ADDRESSES)
         started = time.monotonic()
@@ -88,9 +82,6 @@ def test_rs485_exchange_with_the_emulated_actuators_across_the_hub(hub):
         per_exchange_ms = (time.monotonic() - started) / 50 * 1e3
         assert reading.position_deg == pytest.approx(positions, abs=0.05)
         assert per_exchange_ms < 20.0  # generous: about 2-3 ms on an idle machine (`mfvs bench rs485`)
-    finally:
-        host.close()
-        runner.stop()
 
 
 def test_the_link_survives_a_hub_restart():
@@ -100,28 +91,23 @@ def test_the_link_survives_a_hub_restart():
 
     hub = CanHub().start()
     port = hub.port
-    config = BusConfig(interface="mfvs_hub", channel=hub.channel)
-    runner = BusRunner(Simulation(render=False), config).start()
-    host = RS485Bus(config)
-    link = ActuatorLink(host, timeout_s=0.05)
     try:
-        positions = link.positions_deg()
-        hub.close()
-        for _ in range(5):
-            with pytest.raises(LinkError):
-                link.command(positions)
-        assert host.counters.get("bus.errors") >= 1
-        hub = CanHub(port=port).start()
+        with simulated_link(BusConfig(interface="mfvs_hub", channel=hub.channel), settle_s=0.0) as (runner, link):
+            positions = link.positions_deg()
+            hub.close()
+            for _ in range(5):
+                with pytest.raises(LinkError):
+                    link.command(positions)
+            assert link.counters.get("bus.errors") >= 1
+            hub = CanHub(port=port).start()
 
-        def exchange_works():
-            try:
-                link.command(positions)
-                return True
-            except LinkError:
-                return False
-        assert wait_for(exchange_works, timeout=10)
-        assert runner._thread.is_alive()
+            def exchange_works():
+                try:
+                    link.command(positions)
+                    return True
+                except LinkError:
+                    return False
+            assert wait_for(exchange_works, timeout=10)
+            assert runner._thread.is_alive()
     finally:
-        host.close()
-        runner.stop()
         hub.close()

@@ -5,11 +5,9 @@ import numpy as np
 import pytest
 
 from services.common import jaco2
-from services.common.rs485_bus import BusConfig, RS485Bus
 from services.controller.computed_torque import ComputedTorque, cubic
-from services.robot_gateway.link import ActuatorLink, expected_torques_physical
-from services.robot_sim.bus_runner import BusRunner
-from services.robot_sim.sim import Simulation
+from services.robot_gateway.link import expected_torques_physical
+from services.stack import simulated_link
 
 
 def test_cubic_reference_matches_eq_5_1_and_its_derivatives():
@@ -46,12 +44,7 @@ def test_torque_is_inverse_dynamics_of_the_commanded_acceleration(rng):
 
 
 def test_computed_torque_tracks_the_cubic_within_one_degree_over_the_bus():
-    channel = f"ct-{time.monotonic_ns()}"
-    runner = BusRunner(Simulation(render=False), BusConfig(channel=channel)).start()
-    host = RS485Bus(BusConfig(channel=channel))
-    link = ActuatorLink(host, timeout_s=0.05)
-    try:
-        time.sleep(0.3)
+    with simulated_link(settle_s=0.3) as (runner, link):
         with runner.lock:
             q0 = runner.sim.q
         link.switch_to_torque(expected_torques_physical(q0))
@@ -69,9 +62,6 @@ def test_computed_torque_tracks_the_cubic_within_one_degree_over_the_bus():
             tau = ct.torque(q, dq, q_d, dq_d, ddq_d)
             reading = link.command(reading.position_deg, jaco2.SIGN * tau)  # safety reference: where it is
         link.switch_to_position()
-    finally:
-        host.close()
-        runner.stop()
     print(f"computed torque over the bus: max joint error {max(errors):.3f}° over {len(errors)} cycles")
     assert len(errors) > 500  # about 500 Hz for 2.5 s (an exchange waits for the actuators' 2 ms cycle)
     assert max(errors) < 1.0, f"max joint error {max(errors):.3f}°"

@@ -1,6 +1,5 @@
 """The emulated DSP running in the gateway, over the RS-485 link to robot_sim's actuators (realtime, virtual
 bus): a mixed-frame velocity command moves the end effector as it does in robot_sim."""
-import itertools
 import threading
 import time
 
@@ -11,13 +10,8 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from services.common.dsp import KinovaDSP
 from services.common.kinematics import ArmKinematics
-from services.common.rs485_bus import BusConfig, RS485Bus
 from services.robot_gateway.actuators import LinkActuators
-from services.robot_gateway.link import ActuatorLink
-from services.robot_sim.bus_runner import BusRunner
-from services.robot_sim.sim import Simulation
-
-_channels = itertools.count()
+from services.stack import simulated_link
 
 
 def twist_command(linear, rotational):
@@ -28,14 +22,8 @@ def twist_command(linear, rotational):
 
 @pytest.fixture
 def gateway():
-    channel = f"gw-bus-{next(_channels)}"
-    runner = BusRunner(Simulation(render=False), BusConfig(channel=channel)).start()
-    host = RS485Bus(BusConfig(channel=channel))
-    time.sleep(0.05)
-    actuators = LinkActuators(ActuatorLink(host, timeout_s=0.05))
-    yield runner, actuators
-    host.close()
-    runner.stop()
+    with simulated_link() as (runner, link):
+        yield runner, LinkActuators(link)
 
 
 def run_dsp(actuators, dsp, command, seconds):

@@ -1,5 +1,4 @@
 """The host's RS-485 link against robot_sim's actuators running in realtime on a python-can virtual bus."""
-import itertools
 import time
 
 import numpy as np
@@ -7,23 +6,14 @@ import pytest
 
 from protocol import rs485 as r
 from services.common import jaco2
-from services.common.rs485_bus import BusConfig, RS485Bus
 from services.robot_gateway.link import ActuatorLink, LinkError, expected_torques_physical
-from services.robot_sim.bus_runner import BusRunner
-from services.robot_sim.sim import Simulation
-
-_channels = itertools.count()
+from services.stack import simulated_link
 
 
 @pytest.fixture
 def link():
-    channel = f"link-bus-{next(_channels)}"
-    runner = BusRunner(Simulation(render=False), BusConfig(channel=channel)).start()
-    host = RS485Bus(BusConfig(channel=channel))
-    time.sleep(0.05)
-    yield ActuatorLink(host, timeout_s=0.05), runner
-    host.close()
-    runner.stop()
+    with simulated_link() as (runner, link):
+        yield link, runner
 
 
 def test_positions_and_all_values(link):

@@ -22,7 +22,7 @@ import numpy as np
 from protocol import kinova
 from protocol import rs485 as r
 from protocol.conventions import ClockMode
-from services.common import jaco2
+from services.common import frames, jaco2
 from services.common.clock import PeriodicSchedule
 from services.common.dsp import DSPConfig, KinovaDSP
 from services.common.kinematics import ArmKinematics
@@ -89,10 +89,7 @@ class _LinkView:
         return self.actuators.q_ref.copy()
 
     def ee_pose(self) -> np.ndarray:
-        R, p = self.kin.pose(self.q)
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = R, p
-        return T
+        return frames.homogeneous(*self.kin.pose(self.q))
 
 
 class RobotGatewayService(RobotFrontEnd, Service):
