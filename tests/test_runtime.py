@@ -233,12 +233,57 @@ def test_zenoh_config_file_must_exist():
 # ------------------------------------------------------------------------------------------ clock, metrics, logs
 
 
+def test_a_lockstep_follower_takes_the_simulators_stamps_as_time(router, client):
+    """Zenoh orders nothing between keys: a frame can arrive before the clock tick that announced it. A follower
+    subscribed with sim_stamped receives it at its capture time and moves its clock there; other streams do not
+    move the clock, and nothing rewinds it."""
+    keys = Keys()
+
+    class Follower(Service):
+        name = "follower"
+
+        def on_start(self):
+            self.got = []
+            self.subscribe(keys.robot_state, m.RobotState, lambda msg, t: self.got.append(("state", t)),
+                           "robot_state", sim_stamped=True)
+            self.subscribe(keys.desired_twist, m.Twist, lambda msg, t: self.got.append(("twist", t)), "twist")
+
+    service = Follower(ServiceConfig(zenoh=router.client_config(), clock=ClockMode.LOCKSTEP)).start()
+    try:
+        time.sleep(0.3)
+        state = m.RobotState(header=m.Header(stamp_ns=5_000_000_000), q=[0.0] * 7, dq=[0.0] * 7, tau=[0.0] * 7,
+                             pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
+                             control_mode=m.ControlMode.IDLE)
+        client.put(keys.desired_twist, m.encode(msgspec_replace(twist(), stamp_ns=9_000_000_000)))
+        assert wait_for(lambda: len(service.got) == 1)
+        assert service.got[-1] == ("twist", 0) and service.clock.now_ns() == 0
+        client.put(keys.robot_state, m.encode(state))
+        assert wait_for(lambda: len(service.got) == 2)
+        assert service.got[-1] == ("state", 5_000_000_000) and service.clock.now_ns() == 5_000_000_000
+        client.put(keys.robot_state, m.encode(msgspec_replace(state, stamp_ns=4_000_000_000)))  # an older one
+        assert wait_for(lambda: len(service.got) == 3)
+        assert service.got[-1] == ("state", 5_000_000_000) and service.clock.now_ns() == 5_000_000_000
+    finally:
+        service.stop()
+
+
+def msgspec_replace(message, stamp_ns):
+    import msgspec
+
+    return msgspec.structs.replace(message, header=msgspec.structs.replace(message.header, stamp_ns=stamp_ns))
+
+
 def test_simulated_clock_is_monotonic_and_waitable():
     clock = SimulatedClock()
     assert clock.now_ns() == 0
     clock.advance_ns(10)
     with pytest.raises(ValueError):
         clock.set_ns(5)
+    clock.advance_to(5)  # never back
+    assert clock.now_ns() == 10
+    clock.advance_to(12)
+    assert clock.now_ns() == 12
+    clock.set_ns(10 + 2)
     assert not clock.wait_until_ns(100, timeout_s=0.01)
     threading.Timer(0.05, clock.set_ns, args=(100,)).start()
     assert clock.wait_until_ns(100, timeout_s=5)

@@ -42,6 +42,13 @@ class SimulatedClock:
     def now_s(self) -> float:
         return self.now_ns() * 1e-9
 
+    def advance_to(self, t_ns: int) -> None:
+        """Move to ``t_ns`` unless already there or later (concurrent callers cannot rewind each other)."""
+        with self._cond:
+            if int(t_ns) > self._now:
+                self._now = int(t_ns)
+                self._cond.notify_all()
+
     def set_ns(self, t_ns: int) -> None:
         t_ns = int(t_ns)
         with self._cond:

@@ -198,9 +198,15 @@ class Service:
         self.stop()
 
     # ------------------------------------------------------------------ I/O helpers
-    def subscribe(self, key: str, message_type: type[M], handler: Callable[[M, int], None], stream: str) -> None:
-        """Deliver decoded, validated messages of ``message_type`` on ``key`` to ``handler(message, recv_ns)``."""
+    def subscribe(self, key: str, message_type: type[M], handler: Callable[[M, int], None], stream: str,
+                  sim_stamped: bool = False) -> None:
+        """Deliver decoded, validated messages of ``message_type`` on ``key`` to ``handler(message, recv_ns)``.
+
+        ``sim_stamped``: the simulator publishes these, stamped with its time. A service that follows the
+        simulated clock then takes such a message as proof that the simulation reached its stamp: zenoh orders
+        nothing between keys, so the clock tick may arrive just after the frame it announced."""
         assert self.session is not None, "subscribe() belongs in on_start()"
+        follows = sim_stamped and isinstance(self.clock, SimulatedClock) and self.follows_sim_clock
 
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock.now_ns()
@@ -210,6 +216,9 @@ class Service:
             except ProtocolError as exc:
                 self.refuse(stream, str(exc))
                 return
+            if follows and message.header.stamp_ns > recv_ns:
+                self.clock.advance_to(message.header.stamp_ns)
+                recv_ns = message.header.stamp_ns
             try:
                 handler(message, recv_ns)
             except Exception:
@@ -255,8 +264,7 @@ class Service:
         )
 
     def _on_sim_clock(self, tick: SimClock, _recv_ns: int) -> None:
-        if tick.sim_time_ns > self.clock.now_ns():  # ticks are re-sent; time never runs backwards
-            self.clock.set_ns(tick.sim_time_ns)
+        self.clock.advance_to(tick.sim_time_ns)  # ticks are re-sent; time never runs backwards
 
     # ------------------------------------------------------------------ health
     def health(self) -> ServiceHealth:

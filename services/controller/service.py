@@ -85,7 +85,7 @@ class ControllerService(Service):
         self.output_pub = self.publisher(keys.desired_joint_velocity if self.joint_output else keys.desired_twist,
                                          "output")
         self.status_pub = self.publisher(keys.controller_status, "status")
-        self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state")
+        self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state", sim_stamped=True)
         self.subscribe(keys.camera_info, CameraInfo, self._on_camera_info, "camera_info")
         self.subscribe(keys.features, Features, self._on_features, "features")
 

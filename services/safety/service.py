@@ -95,7 +95,7 @@ class SafetyService(Service):
         keys = self.keys
         self.command_pub = self.publisher(keys.robot_command, "command")
         self.status_pub = self.publisher(keys.safety_status, "status")
-        self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state")
+        self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state", sim_stamped=True)
         self.subscribe(keys.desired_twist, Twist, self._on_twist, "twist")
         self.subscribe(keys.desired_joint_velocity, JointVelocity, self._on_joint_velocity, "joint_velocity")
         self.subscribe(keys.estop, EStop, self._on_estop, "estop")

@@ -120,7 +120,7 @@ class VisionService(Service):
         keys = self.keys
         self.features_pub = self.publisher(keys.features, "features")
         self.subscribe(keys.camera_info, CameraInfo, self._on_camera_info, "camera_info")
-        self.subscribe(keys.camera_image, Image, self._on_image, "image")
+        self.subscribe(keys.camera_image, Image, self._on_image, "image", sim_stamped=True)
         self.subscribe(keys.vision_goal, VisionGoal, lambda goal, _: self.set_goal(goal), "goal")
         self.queryable(keys.vision_api("set_goal"), self._on_set_goal_query)
         self.queryable(keys.vision_api("get_goal"), self._on_get_goal_query)
