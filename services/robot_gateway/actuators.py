@@ -18,6 +18,9 @@ from services.common import jaco2
 from services.common.dsp import JointState
 from services.robot_gateway.link import ActuatorLink, ActuatorReading, LinkError
 
+#: the reference advances by the real time since the last exchange, up to this: the DSP's velocity holds through
+#: a host loop that stalled for a few cycles (a busy machine), not through one that stopped
+MAX_STALL_S = 0.05
 #: a reference further than this from the measured angle is pulled back (as the simulator's servos do)
 MAX_TRACKING_ERROR = math.radians(3.0)
 
@@ -58,7 +61,7 @@ class LinkActuators:
         by the time since the last exchange (an exchange waits for the actuators' cycle, so the loop can run a
         little under its nominal 500 Hz)."""
         now = time.monotonic()
-        dt = self.cycle_s if self._last_cycle is None else min(max(now - self._last_cycle, 0.0), 5 * self.cycle_s)
+        dt = self.cycle_s if self._last_cycle is None else min(max(now - self._last_cycle, 0.0), MAX_STALL_S)
         self._last_cycle = now
         with self.lock:
             q_meas = self.state.q
