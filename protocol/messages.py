@@ -19,7 +19,8 @@ import msgspec
 from protocol.conventions import AngularConvention, Frame
 
 #: Bumped on any incompatible change; a message with another version is refused, never guessed at.
-SCHEMA_VERSION = 1
+#: 2: RobotState.timing, SimClock.frame_stamp_ns, ServiceHealth.degraded.
+SCHEMA_VERSION = 2
 
 #: The JACO-2 j2s7s300 has seven actuators; the wire carries exactly that many joint values.
 N_JOINTS = 7
@@ -336,6 +337,17 @@ class KinovaPose(Message):
     ThetaZ: float
 
 
+class LoopTiming(Message):
+    """How the robot's 500 Hz bus loop kept time over the last seconds (per second of wall time)."""
+
+    #: bus cycles per second (nominal 500)
+    rate_hz: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    #: cycles that started late (more than a fraction of a cycle after their slot)
+    late_per_s: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    #: cycles the arm ran without a target from this loop (skipped by a late host, failed exchanges)
+    missed_per_s: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+
+
 class RobotState(Message):
     header: Header
     #: model joint angles (rad), velocities (rad/s), torques (N·m)
@@ -349,8 +361,9 @@ class RobotState(Message):
     watchdog_tripped: bool = False
     #: the angular convention the robot's DSP interprets for Cartesian velocity commands
     angular_convention: AngularConvention = AngularConvention.SEED000
-    #: header (with trace) of the command applied in this cycle, the robot's hop appended
+    #: header (with trace) of the command applied in the last DSP cycle, the robot's hop appended
     applied_command: Optional[Header] = None
+    timing: LoopTiming = msgspec.field(default_factory=LoopTiming)
 
 
 class TorqueCommand(Message):
@@ -381,6 +394,9 @@ class SimClock(Message):
     header: Header
     sim_time_ns: NonNegInt
     mode: Annotated[str, msgspec.Meta(pattern="^(realtime|lockstep)$")]
+    #: the capture stamp of the camera frame taken at this tick (0: none), so that a robot node in another
+    #: process knows, in lockstep, that its answer must derive from that frame
+    frame_stamp_ns: NonNegInt = 0
 
 
 # --------------------------------------------------------------------------------------------------- safety
@@ -423,6 +439,9 @@ class ServiceHealth(Message):
     rates_hz: dict[str, Annotated[float, msgspec.Meta(ge=0.0)]] = {}
     errors: dict[str, NonNegInt] = {}
     detail: Annotated[str, msgspec.Meta(max_length=512)] = ""
+    #: why the service is running but not keeping up (a loop below its nominal rate, overruns in the last
+    #: health period); empty when it is
+    degraded: Annotated[list[Annotated[str, msgspec.Meta(max_length=256)]], msgspec.Meta(max_length=16)] = []
 
 
 # --------------------------------------------------------------------------------------------------- codec

@@ -14,6 +14,8 @@ import math
 import struct
 from dataclasses import dataclass
 
+import numpy as np
+
 MESSAGE_SIZE = 20
 DATA_SIZE = 16
 #: Up to this many messages travel in one 64-byte USB packet; batches hold up to 50.
@@ -164,6 +166,50 @@ class RS485Message:
         except ValueError:
             raise RS485Error(f"unknown command id 0x{command & 0xFFFF:X}") from None
         return cls(command, source, destination, data)
+
+
+#: A batch of messages as one array (what OpenRS485_Write/Read exchange: 20 bytes each, little-endian): the data
+#: union as float32[4]; its uint32 and int16 views are ``batch["data"].view("<u4")`` and ``.view("<i2")``.
+MESSAGE_DTYPE = np.dtype([("command", "<i2"), ("source", "u1"), ("destination", "u1"), ("data", "<f4", (4,))])
+assert MESSAGE_DTYPE.itemsize == MESSAGE_SIZE
+_KNOWN_COMMANDS = np.zeros(1 << 16, dtype=bool)  # indexed by the command id's 16 bits
+_KNOWN_COMMANDS[[c.value for c in Command]] = True
+
+
+def records(count: int) -> np.ndarray:
+    return np.zeros(count, dtype=MESSAGE_DTYPE)
+
+
+def to_records(messages) -> np.ndarray:
+    """Messages as a batch array."""
+    payload = b"".join(m.encode() for m in messages)
+    return np.frombuffer(payload, dtype=MESSAGE_DTYPE).copy()
+
+
+def from_records(batch: np.ndarray) -> list[RS485Message]:
+    """A batch array as messages (validated one by one: an unknown command raises :class:`RS485Error`)."""
+    raw = batch.tobytes()
+    return [RS485Message.decode(raw[i : i + MESSAGE_SIZE]) for i in range(0, len(raw), MESSAGE_SIZE)]
+
+
+def known_commands(batch: np.ndarray) -> np.ndarray:
+    """Which records of a batch carry a command id this codec knows (the others are garbage to refuse)."""
+    return _KNOWN_COMMANDS[batch["command"].view(np.uint16)]
+
+
+def position_torque_records(destinations, positions_deg, torques_nm, source: int = HOST_ADDRESS) -> np.ndarray:
+    """A batch of 0x14, one per destination (Kp, mode and damping 0): float[0] position, float[2] torque."""
+    positions = np.asarray(positions_deg, dtype=np.float64)
+    torques = np.asarray(torques_nm, dtype=np.float64)
+    if not (np.all(np.isfinite(positions)) and np.all(np.isfinite(torques))):
+        raise RS485Error("non-finite position or torque in a command batch")
+    batch = records(len(positions))
+    batch["command"] = Command.POSITION_AND_TORQUE_COMMAND
+    batch["source"] = source
+    batch["destination"] = destinations
+    batch["data"][:, 0] = positions
+    batch["data"][:, 2] = torques
+    return batch
 
 
 def encode_batch(messages) -> bytes:

@@ -54,7 +54,7 @@ def test_a_node_that_sends_a_malformed_frame_is_cut_off_and_the_bus_keeps_workin
     rogue = socket.create_connection(("127.0.0.1", hub.port))
     try:
         assert wait_for(lambda: hub.counters.get("nodes") == 3)
-        rogue.sendall(HEADER.pack(0x10, 0, 200) + bytes(200))  # longer than any CAN frame
+        rogue.sendall(HEADER.pack(0x10, 0, 200, 0.0) + bytes(200))  # longer than any CAN frame
         assert wait_for(lambda: hub.counters.get("bad_frames") == 1)
         assert rogue.recv(16) == b""  # the hub closed it
         a.send(frame(0x11, range(20)))

@@ -67,7 +67,7 @@ def test_plain_msgpack_reads_and_writes(message):
 
 def test_plain_msgpack_client_writes_a_twist_from_scratch():
     payload = msgpack.packb({
-        "header": {"schema": 1, "seq": 3, "stamp_ns": 5, "source_stamp_ns": 4, "trace": []},
+        "header": {"schema": m.SCHEMA_VERSION, "seq": 3, "stamp_ns": 5, "source_stamp_ns": 4, "trace": []},
         "frame": "mixed", "angular": "euler_xyz_rates", "linear": [0.1, 0, 0], "rotational": [0, 0, 1],
     })
     twist = m.decode(payload, m.Twist)
@@ -89,7 +89,8 @@ TWIST = SAMPLES[4]
     [
         (lambda d: d["linear"].__setitem__(1, math.nan), "linear[1]", "NaN"),
         (lambda d: d["rotational"].__setitem__(2, math.inf), "rotational[2]", "NaN or Inf"),
-        (lambda d: d["header"].__setitem__("schema", 2), "header.schema", "schema version 2"),
+        (lambda d: d["header"].__setitem__("schema", m.SCHEMA_VERSION + 1), "header.schema",
+         f"schema version {m.SCHEMA_VERSION + 1}"),
         (lambda d: d.__setitem__("angular", "quaternion_rates"), "angular", "Invalid enum value"),
         (lambda d: d.__setitem__("frame", "tool"), "frame", "Invalid enum value"),
         (lambda d: d.__setitem__("linear", [0.1, 0.2]), "linear", "length 3"),

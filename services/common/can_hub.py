@@ -10,7 +10,8 @@ in order; a node that does not read loses frames (an overrun, counted) instead o
 point), so the RS-485 transport uses it like any other: ``{interface: mfvs_hub, channel: "127.0.0.1:7448"}``.
 ``CanHub`` is the relay (``mfvs bus-hub --port 7448``, or in-process for tests).
 
-Wire format, both directions: a 6-byte header ``<IBB`` (arbitration id, flags, data length) then the data.
+Wire format, both directions: a 14-byte header ``<IBBd`` (arbitration id, flags, data length, the frame's
+timestamp in seconds, 0 for none) then the data. A frame sent without a timestamp is stamped when received.
 """
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from services.common.metrics import Counters
 
 log = logging.getLogger("mfvs.can_hub")
 
-HEADER = struct.Struct("<IBB")
+HEADER = struct.Struct("<IBBd")
 FLAG_EXTENDED = 0x01
 FLAG_FD = 0x02
 FLAG_BRS = 0x04
@@ -59,7 +60,7 @@ def encode_frame(message: can.Message) -> bytes:
         raise ValueError(f"a CAN frame carries at most {MAX_DATA} bytes, not {len(data)}")
     flags = ((FLAG_EXTENDED if message.is_extended_id else 0) | (FLAG_FD if message.is_fd else 0)
              | (FLAG_BRS if message.bitrate_switch else 0))
-    return HEADER.pack(message.arbitration_id, flags, len(data)) + data
+    return HEADER.pack(message.arbitration_id, flags, len(data), float(message.timestamp or 0.0)) + data
 
 
 def split_frames(buffer: bytearray) -> list[bytes]:
@@ -80,8 +81,9 @@ def split_frames(buffer: bytearray) -> list[bytes]:
 
 
 def decode_frame(frame: bytes, channel: str) -> can.Message:
-    arbitration_id, flags, length = HEADER.unpack_from(frame)
-    return can.Message(timestamp=time.time(), arbitration_id=arbitration_id, data=frame[HEADER.size:],
+    arbitration_id, flags, length, timestamp = HEADER.unpack_from(frame)
+    return can.Message(timestamp=timestamp if timestamp > 0 else time.time(), arbitration_id=arbitration_id,
+                       data=frame[HEADER.size:],
                        is_extended_id=bool(flags & FLAG_EXTENDED), is_fd=bool(flags & FLAG_FD),
                        bitrate_switch=bool(flags & FLAG_BRS), is_rx=True, channel=channel, check=False)
 
@@ -92,7 +94,6 @@ class HubBus(can.BusABC):
     def __init__(self, channel: str, can_filters=None, connect_timeout_s: float = 5.0, **kwargs) -> None:
         self._host, self._port = parse_channel(channel)
         self._socket: Optional[socket.socket] = None
-        self._selector = selectors.DefaultSelector()
         self._buffer = bytearray()
         self._received: collections.deque[bytes] = collections.deque()
         self._send_lock = threading.Lock()
@@ -106,14 +107,12 @@ class HubBus(can.BusABC):
                 break
             except OSError as exc:
                 if time.monotonic() > deadline:
-                    self._selector.close()
                     raise can.CanInitializationError(f"no mfvs CAN hub at {self._host}:{self._port}: {exc}") from exc
                 time.sleep(0.05)
         try:
             super().__init__(channel=channel, can_filters=can_filters, **kwargs)
         except BaseException:
             self._disconnect()
-            self._selector.close()
             raise
 
     def _connect(self, timeout_s: float) -> None:
@@ -121,15 +120,10 @@ class HubBus(can.BusABC):
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         sock.setblocking(False)
         self._socket = sock
-        self._selector.register(sock, selectors.EVENT_READ)
 
     def _disconnect(self) -> None:
         """Drop a broken connection (and any half-received frame); the next call reconnects."""
         if self._socket is not None:
-            try:
-                self._selector.unregister(self._socket)
-            except (KeyError, ValueError):
-                pass
             self._socket.close()
             self._socket = None
         self._buffer.clear()
@@ -161,6 +155,26 @@ class HubBus(can.BusABC):
         seven commands, or twenty-one replies, cost one system call instead of one each."""
         self._write(b"".join(encode_frame(msg) for msg in messages), timeout)
 
+    def send_raw(self, arbitration_ids, payloads, timestamp: float = 0.0) -> None:
+        """CAN FD frames from plain ids and payloads, in one write, without python-can Message objects (the
+        RS-485 transport's fast path)."""
+        header = HEADER.pack
+        self._write(b"".join(header(i, FLAG_FD, len(p), timestamp) + p
+                             for i, p in zip(arbitration_ids, payloads, strict=True)), None)
+
+    def recv_raw(self, timeout: Optional[float]) -> list[tuple[int, float, bytes]]:
+        """Every frame that has arrived, waiting up to ``timeout`` for the first: (arbitration id, timestamp or
+        0, data)."""
+        if not self._fill(timeout):
+            return []
+        out = []
+        unpack = HEADER.unpack_from
+        while self._received:
+            frame = self._received.popleft()
+            arbitration_id, _flags, _length, timestamp = unpack(frame)
+            out.append((arbitration_id, timestamp, frame[HEADER.size:]))
+        return out
+
     def _write(self, data: bytes, timeout: Optional[float]) -> None:
         pending = memoryview(data)
         deadline = time.monotonic() + (1.0 if timeout is None else timeout)
@@ -178,37 +192,54 @@ class HubBus(can.BusABC):
                 except OSError as exc:
                     raise self._fail(f"send failed: {exc}", exc) from exc
 
+    def _fill(self, timeout: Optional[float]) -> bool:
+        """Wait up to ``timeout`` until at least one frame is in; read everything that is there. Whether any is."""
+        if self._received:
+            self._read_available()
+            return True
+        self._ensure_connected()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._received:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            # select(), not epoll: its timeout has microseconds, epoll's whole milliseconds (rounded up), which
+            # would make a 2 ms loop that waits here for frames or its next cycle wake up to 1 ms late
+            try:
+                readable, _, _ = select.select([self._socket], [], [], remaining)
+            except (OSError, ValueError) as exc:
+                raise self._fail(f"waiting failed: {exc}", exc) from exc
+            if not readable:
+                return False
+            self._read_available()
+            if deadline is not None and time.monotonic() >= deadline and not self._received:
+                return False
+        return True
+
+    def _read_available(self) -> None:
+        while True:
+            try:
+                chunk = self._socket.recv(65536)
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                raise self._fail(f"receive failed: {exc}", exc) from exc
+            if not chunk:
+                raise self._fail("the hub closed the connection")
+            self._buffer += chunk
+            try:
+                self._received.extend(split_frames(self._buffer))
+            except ValueError as exc:
+                raise self._fail(f"the hub sent a bad frame: {exc}", exc) from exc
+            if len(chunk) < 65536:
+                return
+
     def _recv_internal(self, timeout: Optional[float]):
-        if not self._received:
-            self._ensure_connected()
-            deadline = None if timeout is None else time.monotonic() + timeout
-            while not self._received:
-                remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
-                if not self._selector.select(remaining):
-                    return None, False
-                try:
-                    chunk = self._socket.recv(65536)
-                except BlockingIOError:
-                    continue
-                except OSError as exc:
-                    raise self._fail(f"receive failed: {exc}", exc) from exc
-                if not chunk:
-                    raise self._fail("the hub closed the connection")
-                self._buffer += chunk
-                try:
-                    self._received.extend(split_frames(self._buffer))
-                except ValueError as exc:
-                    raise self._fail(f"the hub sent a bad frame: {exc}", exc) from exc
-                if deadline is not None and time.monotonic() >= deadline and not self._received:
-                    return None, False
+        if not self._fill(timeout):
+            return None, False
         return decode_frame(self._received.popleft(), self._channel), False
 
     def shutdown(self) -> None:
         super().shutdown()
-        try:
-            self._disconnect()
-        finally:
-            self._selector.close()
+        self._disconnect()
 
 
 class _Node:

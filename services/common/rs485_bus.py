@@ -1,21 +1,39 @@
-"""RS-485 frames over a python-can bus: the transport between a host (the gateway) and the actuators (a real
-arm's, or robot_sim's emulation).
+"""RS-485 frames over a python-can bus: the transport between a host (the gateway) and the actuators (a real arm's,
+or robot_sim's emulation).
 
 One RS485_Message travels as one CAN FD frame whose 20 data bytes are the message itself (20 is a valid CAN FD
 length); the arbitration id is the destination address, so receivers can filter. Any python-can interface works
-(``virtual`` by default for the emulator and tests, ``socketcan`` on Linux hardware). A frame that is not a valid
-RS-485 message (wrong length, unknown command) is dropped and counted, never passed on.
+(``socketcan`` on Linux hardware, ``virtual``); mfvs's own ``mfvs_hub`` (between processes) and ``mfvs_local``
+(between threads of one process) also carry a whole batch without a python-can object per frame, which is what a
+500 Hz loop in Python can afford. A frame that is not a valid RS-485 message (wrong length, unknown command) is
+dropped and counted (``bus.rejected``), never passed on.
+
+The hot path works on batches (``send_batch``/``recv_batch``, arrays of ``protocol.rs485.MESSAGE_DTYPE``), as the
+SDK's OpenRS485_Write/Read do; single messages (``send_all``/``recv``) are for handshakes and tests.
+
+Stamps: a frame's python-can timestamp says when the reading it carries was taken. robot_sim's emulated actuators
+stamp their replies with the time of their cycle on the arm's own timeline (carried by ``mfvs_hub``,
+``mfvs_local`` and ``virtual``, whose timestamps mfvs preserves); on real hardware the interface stamps each frame
+when it receives it. A frame without a stamp gets its receive time.
 """
 from __future__ import annotations
 
+import collections
+import time
 from typing import Optional
 
 import can
 import msgspec
+import numpy as np
 
-from protocol.rs485 import MESSAGE_SIZE, RS485Error, RS485Message
+from protocol.rs485 import MESSAGE_DTYPE, MESSAGE_SIZE, RS485Error, RS485Message, from_records, known_commands, \
+    to_records
 from services.common.config import ConfigStruct
 from services.common.metrics import Counters
+
+
+_NO_MESSAGES = np.zeros(0, dtype=MESSAGE_DTYPE)
+_NO_STAMPS = np.zeros(0, dtype=np.int64)
 
 
 class BusConfig(ConfigStruct):
@@ -33,8 +51,12 @@ class RS485Bus:
     def __init__(self, config: BusConfig | None = None, counters: Counters | None = None) -> None:
         self.config = config or BusConfig()
         self.counters = counters or Counters()
-        self._bus = can.Bus(interface=self.config.interface, channel=self.config.channel, fd=True,
-                            **self.config.options)
+        options = dict(self.config.options)
+        if self.config.interface == "virtual":
+            options.setdefault("preserve_timestamps", True)  # the sender's stamps (the emulated arm's timeline)
+        self._bus = can.Bus(interface=self.config.interface, channel=self.config.channel, fd=True, **options)
+        self._raw = hasattr(self._bus, "send_raw") and hasattr(self._bus, "recv_raw")
+        self._pending: collections.deque[tuple[RS485Message, int]] = collections.deque()
         self.last_error = ""
 
     def _failed(self, exc: can.CanError) -> BusError:
@@ -42,24 +64,80 @@ class RS485Bus:
         self.last_error = str(exc)
         return BusError(str(exc))
 
-    def send(self, message: RS485Message) -> None:
-        self.send_all([message])
-
-    def send_all(self, messages) -> None:
-        """Several messages, in order; in one write where the interface can batch (the mfvs CAN hub)."""
-        frames = [can.Message(arbitration_id=message.destination, data=message.encode(), is_fd=True,
-                              is_extended_id=False) for message in messages]
-        if not frames:
+    # ------------------------------------------------------------------ batches (the hot path)
+    def send_batch(self, batch: np.ndarray, stamp_ns: int = 0) -> None:
+        """A batch of messages, in order, in one write where the interface can. ``stamp_ns``: when the values
+        they carry were taken (0: no stamp)."""
+        if len(batch) == 0:
             return
-        batch = getattr(self._bus, "send_batch", None)
+        timestamp = stamp_ns * 1e-9
+        raw = batch.tobytes()
+        payloads = [raw[i : i + MESSAGE_SIZE] for i in range(0, len(raw), MESSAGE_SIZE)]
+        ids = batch["destination"].tolist()
         try:
-            if batch is not None:
-                batch(frames)
+            if self._raw:
+                self._bus.send_raw(ids, payloads, timestamp)
                 return
-            for frame in frames:
-                self._bus.send(frame)
+            frames = [can.Message(timestamp=timestamp, arbitration_id=i, data=p, is_fd=True, is_extended_id=False)
+                      for i, p in zip(ids, payloads)]
+            batch_send = getattr(self._bus, "send_batch", None)
+            if batch_send is not None:
+                batch_send(frames)
+            else:
+                for frame in frames:
+                    self._bus.send(frame)
         except can.CanError as exc:
             raise self._failed(exc) from exc
+
+    def recv_batch(self, timeout: Optional[float] = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """Every valid message that has arrived (waiting up to ``timeout`` for the first), and their stamps (ns):
+        two arrays, empty when nothing came. Invalid frames are counted and dropped; a failing bus raises
+        :class:`BusError`."""
+        try:
+            if self._raw:
+                items = self._bus.recv_raw(timeout)
+            else:
+                items = []
+                frame = self._bus.recv(timeout)
+                while frame is not None:
+                    items.append((frame.arbitration_id, frame.timestamp, bytes(frame.data)))
+                    frame = self._bus.recv(0.0)
+        except can.CanError as exc:
+            raise self._failed(exc) from exc
+        return self._decode(items)
+
+    def _decode(self, items) -> tuple[np.ndarray, np.ndarray]:
+        if not items:
+            return _NO_MESSAGES, _NO_STAMPS
+        if any(len(data) != MESSAGE_SIZE for _, _, data in items):
+            bad = next(len(d) for _, _, d in items if len(d) != MESSAGE_SIZE)
+            good = [item for item in items if len(item[2]) == MESSAGE_SIZE]
+            self._reject(len(items) - len(good), f"frame of {bad} bytes")
+            if not good:
+                return _NO_MESSAGES, _NO_STAMPS
+            items = good
+        batch = np.frombuffer(b"".join([data for _, _, data in items]), dtype=MESSAGE_DTYPE)
+        seconds = np.array([timestamp for _, timestamp, _ in items])
+        stamps = np.where(seconds > 0, np.rint(seconds * 1e9), time.time_ns()).astype(np.int64)
+        known = known_commands(batch)
+        if not np.all(known):
+            self._reject(int(np.count_nonzero(~known)), "unknown command id")
+            batch, stamps = batch[known], stamps[known]
+        return batch, stamps
+
+    def _reject(self, count: int, reason: str) -> None:
+        self.counters.inc("bus.rejected", count)
+        self.last_error = reason
+
+    # ------------------------------------------------------------------ single messages
+    def send(self, message: RS485Message, stamp_ns: int = 0) -> None:
+        self.send_all([message], stamp_ns)
+
+    def send_all(self, messages, stamp_ns: int = 0) -> None:
+        """Several messages, in order, in one write where the interface can."""
+        messages = list(messages)
+        if messages:
+            self.send_batch(to_records(messages), stamp_ns)
 
     def send_raw(self, data: bytes, arbitration_id: int = 0) -> None:
         """Put arbitrary bytes on the bus (tests of garbled frames)."""
@@ -69,23 +147,23 @@ class RS485Bus:
             raise self._failed(exc) from exc
 
     def recv(self, timeout: Optional[float] = 0.0) -> Optional[RS485Message]:
-        """The next valid message, or None when none arrived within ``timeout``; invalid frames are counted. A
-        failing bus raises :class:`BusError`."""
-        while True:
+        """The next valid message, or None when none arrived within ``timeout``."""
+        received = self.recv_stamped(timeout)
+        return None if received is None else received[0]
+
+    def recv_stamped(self, timeout: Optional[float] = 0.0) -> Optional[tuple[RS485Message, int]]:
+        """The next valid message and its stamp (ns)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while not self._pending:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            batch, stamps = self.recv_batch(remaining)
             try:
-                frame = self._bus.recv(timeout)
-            except can.CanError as exc:
-                raise self._failed(exc) from exc
-            if frame is None:
+                self._pending.extend(zip(from_records(batch), (int(s) for s in stamps)))
+            except RS485Error:  # recv_batch has filtered unknown commands out already
+                self._reject(1, "undecodable message")
+            if not self._pending and deadline is not None and time.monotonic() >= deadline:
                 return None
-            try:
-                if len(frame.data) != MESSAGE_SIZE:
-                    raise RS485Error(f"frame of {len(frame.data)} bytes")
-                return RS485Message.decode(bytes(frame.data))
-            except RS485Error as exc:
-                self.counters.inc("bus.rejected")
-                self.last_error = str(exc)
-                timeout = 0.0  # keep draining what is already there
+        return self._pending.popleft()
 
     def drain(self) -> list[RS485Message]:
         out = []
