@@ -1,8 +1,8 @@
 """The emulated Kinova DSP high-level controller: what the JACO-2's own firmware does at 100 Hz.
 
 It turns high-level commands (mixed-frame Cartesian velocity, joint velocity, angular and Cartesian position
-trajectories, MoveHome) into joint velocity references for a joint-level actuator interface (see
-:mod:`services.common.actuators`), reproducing the DSP's behaviour that the rest of mfvs relies on:
+trajectories, MoveHome) into joint velocity references, which the robot node (:mod:`services.robot.core`)
+integrates into the actuators' position targets, reproducing the DSP's behaviour that the rest of mfvs relies on:
 
 * a velocity command lasts one 10 ms cycle and must be resent; with no command for ``watchdog_cycles`` cycles
   the arm decelerates to rest within the acceleration limits;
@@ -89,16 +89,6 @@ class DSPConfig(ConfigStruct):
             raise ValueError("joint_speed_scale must be within (0, 1]")
         if self.watchdog_cycles < 1:
             raise ValueError("watchdog_cycles must be at least 1")
-
-
-@dataclass
-class JointState:
-    """Measured joint state in model units (rad, rad/s, N·m)."""
-
-    q: np.ndarray
-    dq: np.ndarray
-    tau: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS))
-    stamp_ns: int = 0
 
 
 class CommandRefused(ValueError):
@@ -275,8 +265,10 @@ class KinovaDSP:
         return len(self.fifo)
 
     # ------------------------------------------------------------------------------ the 100 Hz cycle
-    def cycle(self, joints: JointState) -> np.ndarray:
-        """One DSP cycle: returns joint velocity references (model rad/s) for the next cycle_s."""
+    def cycle(self, joints) -> np.ndarray:
+        """One DSP cycle on the measured joints (``joints.q``, ``joints.dq``: a
+        :class:`~services.robot.hardware.JointReading`): returns joint velocity references (model rad/s) for the
+        next cycle_s."""
         cfg = self.config
         dt = cfg.cycle_s
         q = np.asarray(joints.q, dtype=float)

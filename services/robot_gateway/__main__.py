@@ -2,7 +2,7 @@
 import sys
 
 from services.common.service import service_main
-from services.robot_gateway.service import GatewayConfig, RobotGatewayService
+from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 
 if __name__ == "__main__":
-    sys.exit(service_main(RobotGatewayService, GatewayConfig, description="the robot API backed by an RS-485 arm"))
+    sys.exit(service_main(robot_gateway_service, GatewayConfig, description="the robot API backed by a real arm"))

@@ -15,6 +15,7 @@ takes the TrajectoryPoint by value. There is no low-level torque API through the
 from __future__ import annotations
 
 import ctypes
+import time
 from typing import Optional
 
 import msgspec
@@ -24,7 +25,8 @@ from protocol import kinova
 from protocol.conventions import AngularConvention
 from protocol.messages import CommandMode, ControlMode, RobotCommand
 from services.common import frames, jaco2
-from services.common.dsp import CommandRefused, DSPConfig, DSPStatus, JointState
+from services.common.dsp import CommandRefused, DSPConfig, DSPStatus
+from services.robot.hardware import JointReading
 
 KINOVA_SDK_LIBRARY = "Kinova.API.USBCommandLayerUbuntu.so"
 
@@ -201,7 +203,8 @@ class SdkArm:
         self.status = DSPStatus()
         self.fifo_count = 0
         self._pending: Optional[RobotCommand] = None
-        self._state = JointState(q=np.zeros(jaco2.N_JOINTS), dq=np.zeros(jaco2.N_JOINTS))
+        self._state = JointReading(q=np.zeros(jaco2.N_JOINTS), dq=np.zeros(jaco2.N_JOINTS),
+                                   tau=np.zeros(jaco2.N_JOINTS))
         self._pose = np.eye(4)
 
     # ---- RobotView
@@ -220,14 +223,14 @@ class SdkArm:
     def ee_pose(self) -> np.ndarray:
         return self._pose
 
-    def read(self) -> JointState:
+    def read(self) -> JointReading:
         """Read the arm (4 SDK calls); raises SdkError when one fails."""
         angles = self.sdk.checked("GetAngularPosition").Actuators.as_list()
         rates = self.sdk.checked("GetAngularVelocity").Actuators.as_list()
         forces = self.sdk.checked("GetAngularForce").Actuators.as_list()
         c = self.sdk.checked("GetCartesianPosition").Coordinates
-        self._state = JointState(q=jaco2.physical_deg_to_model(angles), dq=jaco2.physical_rate_to_model(rates),
-                                 tau=jaco2.SIGN * np.asarray(forces, dtype=float))
+        self._state = JointReading(q=jaco2.physical_deg_to_model(angles), dq=jaco2.physical_rate_to_model(rates),
+                                   tau=jaco2.SIGN * np.asarray(forces, dtype=float), stamp_ns=time.time_ns())
         self._pose = frames.homogeneous(frames.euler_xyz_to_matrix([c.ThetaX, c.ThetaY, c.ThetaZ]),
                                         [c.X, c.Y, c.Z])
         return self._state
@@ -246,13 +249,14 @@ class SdkArm:
         self._pending = None
         self._check("EraseAllTrajectories", self.sdk.action("EraseAllTrajectories"))
 
-    def cycle(self) -> None:
-        """Forward this cycle's command (velocity commands last one cycle, so nothing pending means no motion)."""
+    def cycle(self, _reading=None) -> np.ndarray:
+        """Forward this cycle's command (velocity commands last one cycle, so nothing pending means no motion).
+        The joints are the arm's own DSP's business: no joint velocities come back (zeros)."""
         command, self._pending = self._pending, None
         self.status.cycles += 1
         if command is None:
             self.status.mode = ControlMode.IDLE
-            return
+            return np.zeros(jaco2.N_JOINTS)
         mode = CommandMode(command.mode)
         if mode in (CommandMode.STOP, CommandMode.EMERGENCY_STOP):
             self.erase_all_trajectories()
@@ -267,6 +271,7 @@ class SdkArm:
                                    angular_dps=jaco2.model_rate_to_physical(command.joint_velocities))
             self.status.mode, self.status.emergency_stop = ControlMode.ANGULAR_VELOCITY, False
         self._check("SendBasicTrajectory", self.sdk.send_basic_trajectory(point))
+        return np.zeros(jaco2.N_JOINTS)
 
     @staticmethod
     def _check(function: str, code: int) -> None:

@@ -2,11 +2,14 @@
 checks a real bus needs. Every exchange waits at most ``timeout_s`` for its replies; a timeout, a missing or
 unexpected reply, a NACK or an actuator error report is counted and raised as :class:`LinkError`, so the caller
 (the gateway's 500 Hz loop) can stop the arm safely instead of acting on a partial picture.
+
+:class:`LinkHardware` is the robot node's hardware interface (services.robot.hardware) on such a link.
 """
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -14,10 +17,18 @@ from protocol import rs485 as r
 from services.common import jaco2
 from services.common.metrics import Counters
 from services.common.rs485_bus import BusError, RS485Bus
+from services.robot.hardware import HardwareError, JointReading, JointTargets, physical_targets, \
+    reading_from_physical
 
 
 class LinkError(RuntimeError):
     """The bus did not deliver what the exchange needed (the message says what)."""
+
+
+_REPORT_ERROR, _NACK = int(r.Command.REPORT_ERROR), int(r.Command.NACK)
+#: the replies to a 0x14 are 0x15, 0x16, 0x17: their kind is the command id minus this
+_FIRST_REPLY = int(r.Command.SEND_ALL_VALUES_1)
+_REPLY_NAMES = ("SEND_ALL_VALUES_1", "SEND_ALL_VALUES_2", "SEND_ALL_VALUES_3")
 
 
 @dataclass
@@ -30,6 +41,8 @@ class ActuatorReading:
     #: per actuator: mode (0 position, 1 torque) and fault code, from the 0x17 replies
     mode: np.ndarray
     fault: np.ndarray
+    #: the replies' stamp (the newest): the arm's cycle on an emulated arm, the receive time on a real one
+    stamp_ns: int = 0
 
 
 class ActuatorLink:
@@ -40,106 +53,358 @@ class ActuatorLink:
         self.timeout_s = timeout_s
         self.counters = counters or bus.counters
         self.errors: list[tuple[int, r.ActuatorError]] = []
+        self.last_stamp_ns = 0
+        self._joint_of = np.full(256, -1)
+        self._joint_of[self.addresses] = np.arange(len(self.addresses))
+        #: replies received past the last collected request's (the next request's, in a pipeline)
+        self._carry: Optional[tuple[np.ndarray, np.ndarray]] = None
 
-    def _request(self, messages) -> None:
-        """Send a request in one write, after taking what is still queued: the late replies of an exchange that
-        timed out would otherwise answer this one, and every later reading would be a cycle old."""
+    def _request(self, batch: np.ndarray) -> None:
+        """Send a request batch in one write, after taking what is still queued: the late replies of an exchange
+        that timed out would otherwise answer this one, and every later reading would be a cycle old."""
         try:
-            for message in self.bus.drain():
-                if message.command is r.Command.REPORT_ERROR:
-                    self._record_error(message)
-                else:
-                    self.counters.inc("link.stale_replies")
-            self.bus.send_all(messages)
+            stale, _ = self.bus.recv_batch(0.0)
+            if self._carry is not None:
+                stale = np.concatenate([self._carry[0], stale])
+                self._carry = None
+            if len(stale):
+                errors = stale["command"] == _REPORT_ERROR
+                self._record_errors(stale[errors])
+                if not errors.all():
+                    self.counters.inc("link.stale_replies", int(np.count_nonzero(~errors)))
+            self.bus.send_batch(batch)
         except BusError as exc:
             raise LinkError(f"bus failure: {exc}") from exc
 
-    def _record_error(self, message: r.RS485Message) -> None:
-        error = r.parse_report_error(message)
-        self.errors.append((message.source, error))
-        self.counters.inc(f"link.actuator_errors.{error.name.lower()}")
-
-    def _collect(self, expected: dict[tuple[int, r.Command], int]) -> list[r.RS485Message]:
-        """Wait for the expected replies ((source, command) → count); error reports are kept aside."""
-        remaining = dict(expected)
-        replies = []
-        deadline = time.monotonic() + self.timeout_s
-        while any(remaining.values()):
+    def _record_errors(self, reports: np.ndarray) -> None:
+        for source, code in zip(reports["source"].tolist(), reports["data"].view("<u4")[:, 1].tolist()):
             try:
-                message = self.bus.recv(max(0.0, deadline - time.monotonic()))
+                error = r.ActuatorError(code)
+            except ValueError:
+                self.counters.inc("link.actuator_errors.unknown")
+                continue
+            self.errors.append((source, error))
+            self.counters.inc(f"link.actuator_errors.{error.name.lower()}")
+
+    def _collect(self, expected: dict[tuple[int, r.Command], int]) -> np.ndarray:
+        """Wait for the expected replies ((source, command) → count) and return them as a batch; error reports
+        are kept aside. The newest reply's stamp goes to :attr:`last_stamp_ns`."""
+        remaining = {(source, int(command)): n for (source, command), n in expected.items()}
+        missing = sum(remaining.values())
+        kept = []
+        deadline = time.monotonic() + self.timeout_s
+        self.last_stamp_ns = 0
+        while missing > 0:
+            try:
+                batch, stamps = self.bus.recv_batch(max(0.0, deadline - time.monotonic()))
             except BusError as exc:
                 raise LinkError(f"bus failure: {exc}") from exc
-            if message is None:
+            if len(batch) == 0:
                 self.counters.inc("link.timeouts")
-                missing = [f"0x{a:02X}:{c.name}" for (a, c), n in remaining.items() if n]
-                raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(missing)}")
-            key = (message.source, message.command)
-            if message.command is r.Command.REPORT_ERROR:
-                self._record_error(message)
-                continue
-            if message.command is r.Command.NACK:
-                self.counters.inc("link.nacks")
-                raise LinkError(f"actuator 0x{message.source:02X} refused the request (NACK)")
-            if remaining.get(key, 0) <= 0:
-                self.counters.inc("link.unexpected")
-                continue
-            remaining[key] -= 1
-            replies.append(message)
-        return replies
+                names = [f"0x{a:02X}:{r.Command(c).name}" for (a, c), n in remaining.items() if n]
+                raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(names)}")
+            take = []
+            for k, (command, source) in enumerate(zip(batch["command"].tolist(), batch["source"].tolist())):
+                if command == r.Command.REPORT_ERROR:
+                    self._record_errors(batch[k : k + 1])
+                    continue
+                if command == r.Command.NACK:
+                    self.counters.inc("link.nacks")
+                    raise LinkError(f"actuator 0x{source:02X} refused the request (NACK)")
+                if remaining.get((source, command), 0) <= 0:
+                    self.counters.inc("link.unexpected")
+                    continue
+                remaining[(source, command)] -= 1
+                missing -= 1
+                take.append(k)
+            if take:
+                kept.append(batch[take])
+                self.last_stamp_ns = max(self.last_stamp_ns, int(stamps[take].max()))
+        return np.concatenate(kept) if kept else r.records(0)
+
+    def _by_address(self, batch: np.ndarray) -> np.ndarray:
+        """The joint index of each record's source."""
+        return self._joint_of[batch["source"]]
 
     def positions_deg(self) -> np.ndarray:
-        self._request(r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, address)
-                      for address in self.addresses)
+        self._request(r.to_records(r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, address)
+                                   for address in self.addresses))
         replies = self._collect({(a, r.Command.SEND_ACTUAL_POSITION): 1 for a in self.addresses})
-        by_source = {m.source: m.floats[0] for m in replies}
-        return np.array([by_source[a] for a in self.addresses])
+        out = np.zeros(len(self.addresses))
+        out[self._by_address(replies)] = replies["data"][:, 0]
+        return out
 
     def command(self, positions_deg, torques_nm=None) -> ActuatorReading:
         """One 0x14 to every actuator (position targets, or safety references with torques in torque mode);
         returns what the 0x15-0x17 replies say."""
-        torques = np.zeros(len(self.addresses)) if torques_nm is None else np.asarray(torques_nm, dtype=float)
-        self._request(r.PositionTorqueCommand(float(position), float(torque)).to_message(address)
-                      for address, position, torque in zip(self.addresses, positions_deg, torques, strict=True))
-        expected = {}
-        for a in self.addresses:
-            for command in (r.Command.SEND_ALL_VALUES_1, r.Command.SEND_ALL_VALUES_2, r.Command.SEND_ALL_VALUES_3):
-                expected[(a, command)] = 1
-        replies = self._collect(expected)
-        index = {a: i for i, a in enumerate(self.addresses)}
+        self.send_command(positions_deg, torques_nm, drain=True)
+        return self.collect_command(time.monotonic() + self.timeout_s)
+
+    def send_command(self, positions_deg, torques_nm=None, drain: bool = False) -> None:
+        """The 0x14 batch only (``drain``: after taking what is still queued, see :meth:`_request`)."""
         n = len(self.addresses)
-        out = ActuatorReading(*(np.zeros(n) for _ in range(7)))
-        for message in replies:
-            i = index[message.source]
-            if message.command is r.Command.SEND_ALL_VALUES_1:
-                v = r.AllValues1.from_message(message)
-                out.current_a[i], out.position_deg[i] = v.current_a, v.position_deg
-                out.velocity_dps[i], out.torque_nm[i] = v.velocity_dps, v.torque_nm
-            elif message.command is r.Command.SEND_ALL_VALUES_2:
-                out.temperature_c[i] = r.AllValues2.from_message(message).temperature_c
+        torques = np.zeros(n) if torques_nm is None else np.asarray(torques_nm, dtype=float)
+        try:
+            batch = r.position_torque_records(self.addresses, positions_deg, torques)
+        except r.RS485Error as exc:
+            raise LinkError(str(exc)) from exc
+        if drain:
+            self._request(batch)
+            return
+        try:
+            self.bus.send_batch(batch)
+        except BusError as exc:
+            raise LinkError(f"bus failure: {exc}") from exc
+
+    def collect_command(self, deadline: float) -> ActuatorReading:
+        """The replies to a 0x14 batch, waiting until ``deadline`` (monotonic) at most."""
+        table = self._collect_values(deadline)
+        v1 = table[:, 0]["data"].astype(np.float64)
+        v3 = table[:, 2]["data"].astype(np.float64)
+        if not (np.isfinite(v1).all() and np.isfinite(v3).all()):
+            self.counters.inc("link.bad_values")
+            raise LinkError("an actuator reported a non-finite value")
+        temperature = table[:, 1]["data"].view("<i2")[:, 3] * 0.01
+        return ActuatorReading(position_deg=v1[:, 1], velocity_dps=v1[:, 2], torque_nm=v1[:, 3], current_a=v1[:, 0],
+                               temperature_c=temperature, mode=v3[:, 2], fault=v3[:, 3], stamp_ns=self.last_stamp_ns)
+
+    def _collect_values(self, deadline: float) -> np.ndarray:
+        """The 0x15, 0x16 and 0x17 reply of every actuator, as a (joint, kind) table of records: the first of each
+        in the order they arrive; what comes after the table is full belongs to the next request and is kept for
+        it (the transport keeps order, and the host may have sent that request already)."""
+        n = len(self.addresses)
+        table = r.records(3 * n).reshape(n, 3)
+        got = np.zeros((n, 3), dtype=bool)
+        missing = 3 * n
+        self.last_stamp_ns = 0
+        joint_of = self._joint_of
+        while missing:
+            if self._carry is not None:
+                (batch, stamps), self._carry = self._carry, None
             else:
-                floats = message.floats
-                out.mode[i], out.fault[i] = floats[2], floats[3]
+                try:
+                    batch, stamps = self.bus.recv_batch(max(0.0, deadline - time.monotonic()))
+                except BusError as exc:
+                    raise LinkError(f"bus failure: {exc}") from exc
+                if len(batch) == 0:
+                    self.counters.inc("link.timeouts")
+                    names = [f"0x{self.addresses[j]:02X}:{_REPLY_NAMES[k]}" for j, k in zip(*np.nonzero(~got))]
+                    raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(names)}")
+            commands, sources = batch["command"].tolist(), batch["source"].tolist()
+            for k, (command, source) in enumerate(zip(commands, sources)):
+                if not missing:
+                    self._carry = (batch[k:], stamps[k:])
+                    break
+                if command == _REPORT_ERROR:
+                    self._record_errors(batch[k : k + 1])
+                    continue
+                if command == _NACK:
+                    self.counters.inc("link.nacks")
+                    raise LinkError(f"actuator 0x{source:02X} refused the request (NACK)")
+                joint, kind = joint_of[source], command - _FIRST_REPLY
+                if joint < 0 or not 0 <= kind < 3 or got[joint, kind]:
+                    self.counters.inc("link.unexpected")
+                    continue
+                table[joint, kind] = batch[k]
+                got[joint, kind] = True
+                missing -= 1
+                self.last_stamp_ns = max(self.last_stamp_ns, int(stamps[k]))
+        return table
+
+    def _by_address(self, batch: np.ndarray) -> np.ndarray:
+        """The joint index of each record's source."""
+        return self._joint_of[batch["source"]]
+
+    def positions_deg(self) -> np.ndarray:
+        self._request(r.to_records(r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, address)
+                                   for address in self.addresses))
+        replies = self._collect({(a, r.Command.SEND_ACTUAL_POSITION): 1 for a in self.addresses})
+        out = np.zeros(len(self.addresses))
+        out[self._by_address(replies)] = replies["data"][:, 0]
         return out
+
+    def command(self, positions_deg, torques_nm=None) -> ActuatorReading:
+        """One 0x14 to every actuator (position targets, or safety references with torques in torque mode);
+        returns what the 0x15-0x17 replies say."""
+        self.send_command(positions_deg, torques_nm, drain=True)
+        return self.collect_command(time.monotonic() + self.timeout_s)
+
+    def send_command(self, positions_deg, torques_nm=None, drain: bool = False) -> None:
+        """The 0x14 batch only (``drain``: after taking what is still queued, see :meth:`_request`)."""
+        n = len(self.addresses)
+        torques = np.zeros(n) if torques_nm is None else np.asarray(torques_nm, dtype=float)
+        try:
+            batch = r.position_torque_records(self.addresses, positions_deg, torques)
+        except r.RS485Error as exc:
+            raise LinkError(str(exc)) from exc
+        if drain:
+            self._request(batch)
+            return
+        try:
+            self.bus.send_batch(batch)
+        except BusError as exc:
+            raise LinkError(f"bus failure: {exc}") from exc
+
+    def collect_command(self, deadline: float) -> ActuatorReading:
+        """The replies to a 0x14 batch, waiting until ``deadline`` (monotonic) at most."""
+        table = self._collect_values(deadline)
+        v1 = table[:, 0]["data"].astype(np.float64)
+        v3 = table[:, 2]["data"].astype(np.float64)
+        if not (np.isfinite(v1).all() and np.isfinite(v3).all()):
+            self.counters.inc("link.bad_values")
+            raise LinkError("an actuator reported a non-finite value")
+        temperature = table[:, 1]["data"].view("<i2")[:, 3] * 0.01
+        return ActuatorReading(position_deg=v1[:, 1], velocity_dps=v1[:, 2], torque_nm=v1[:, 3], current_a=v1[:, 0],
+                               temperature_c=temperature, mode=v3[:, 2], fault=v3[:, 3], stamp_ns=self.last_stamp_ns)
+
+    def _collect_values(self, deadline: float) -> np.ndarray:
+        """The 0x15, 0x16 and 0x17 reply of every actuator, as a (joint, kind) table of records."""
+        n = len(self.addresses)
+        table = r.records(3 * n).reshape(n, 3)
+        got = np.zeros((n, 3), dtype=bool)
+        self.last_stamp_ns = 0
+        while not got.all():
+            try:
+                batch, stamps = self.bus.recv_batch(max(0.0, deadline - time.monotonic()))
+            except BusError as exc:
+                raise LinkError(f"bus failure: {exc}") from exc
+            if len(batch) == 0:
+                self.counters.inc("link.timeouts")
+                missing = [f"0x{self.addresses[j]:02X}:{_REPLY_NAMES[k]}" for j, k in zip(*np.nonzero(~got))]
+                raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(missing)}")
+            command = batch["command"].astype(np.int64)
+            errors = command == _REPORT_ERROR
+            if errors.any():
+                self._record_errors(batch[errors])
+            if (command == _NACK).any():
+                self.counters.inc("link.nacks")
+                source = int(batch["source"][command == _NACK][0])
+                raise LinkError(f"actuator 0x{source:02X} refused the request (NACK)")
+            joint = self._joint_of[batch["source"]]
+            kind = command - _FIRST_REPLY
+            ok = (joint >= 0) & (kind >= 0) & (kind < 3)
+            ok[ok] &= ~got[joint[ok], kind[ok]]  # a second reply of a kind is unexpected
+            unexpected = int(np.count_nonzero(~ok & ~errors))
+            if unexpected:
+                self.counters.inc("link.unexpected", unexpected)
+            table[joint[ok], kind[ok]] = batch[ok]
+            got[joint[ok], kind[ok]] = True
+            if ok.any():
+                self.last_stamp_ns = max(self.last_stamp_ns, int(stamps[ok].max()))
+        return table
 
     def switch_to_torque(self, expected_torques_nm) -> None:
         """The torque-mode handshake for every actuator: validation of the expected torques, then the switch."""
-        self._request(r.RS485Message.with_floats(r.Command.GET_TORQUE_VALIDATION_REQUEST, r.HOST_ADDRESS, address,
-                                                 [float(torque)])
-                      for address, torque in zip(self.addresses, expected_torques_nm, strict=True))
-        replies = self._collect({(a, r.Command.SEND_TORQUE_VALIDATION): 1 for a in self.addresses})
+        self._request(r.to_records(
+            r.RS485Message.with_floats(r.Command.GET_TORQUE_VALIDATION_REQUEST, r.HOST_ADDRESS, address,
+                                       [float(torque)])
+            for address, torque in zip(self.addresses, expected_torques_nm, strict=True)))
+        replies = r.from_records(self._collect({(a, r.Command.SEND_TORQUE_VALIDATION): 1 for a in self.addresses}))
         invalid = [f"0x{m.source:02X}" for m in replies if m.uints[0] != 1]
         if invalid:
             raise LinkError(f"torque validation failed for {', '.join(invalid)}")
-        self._request(r.switch_mode_request(r.ControlModeRequest.TORQUE, address) for address in self.addresses)
-        replies = self._collect({(a, r.Command.SWITCH_CONTROL_MODE_REPLY): 1 for a in self.addresses})
+        self._request(r.to_records(r.switch_mode_request(r.ControlModeRequest.TORQUE, address)
+                                   for address in self.addresses))
+        replies = r.from_records(self._collect({(a, r.Command.SWITCH_CONTROL_MODE_REPLY): 1
+                                                for a in self.addresses}))
         refused = [f"0x{m.source:02X}" for m in replies if r.parse_switch_mode_reply(m) is not
                    r.ControlModeReply.TORQUE_OK]
         if refused:
             raise LinkError(f"torque mode refused by {', '.join(refused)}")
 
     def switch_to_position(self) -> None:
-        self._request(r.switch_mode_request(r.ControlModeRequest.POSITION, address) for address in self.addresses)
+        self._request(r.to_records(r.switch_mode_request(r.ControlModeRequest.POSITION, address)
+                                   for address in self.addresses))
         self._collect({(a, r.Command.SWITCH_CONTROL_MODE_REPLY): 1 for a in self.addresses})
+
+
+class LinkHardware:
+    """The robot node's hardware interface on an RS-485 link: each exchange is one 0x14 to every actuator and its
+    21 replies. The reading's stamp is the replies' (the emulated arm's timeline, or the interface's receive time
+    on a real arm).
+
+    Pipelined, as a fieldbus master runs its cycle: an exchange sends this cycle's targets and returns the replies
+    to the previous cycle's, which have had a whole cycle to come back (they are waited for, up to the link's
+    timeout from their sending, only when they have not). So the host keeps its 2 ms cycle whatever the round trip
+    up to a cycle costs, at the price of one cycle more between a reading and the targets made from it. The first
+    exchange, and the first after a failure, wait for their own replies."""
+
+    simulated_in_process = False
+
+    def __init__(self, link: ActuatorLink, pipelined: bool = True) -> None:
+        self.link = link
+        self.pipelined = pipelined
+        #: when the request whose replies are still to be collected went out (None: none is)
+        self._outstanding: Optional[float] = None
+        #: the next exchange waits for its own replies (at start, after a failure, after a mode switch)
+        self._resync = True
+        self._last: Optional[ActuatorReading] = None
+
+    def read(self) -> JointReading:
+        """The joints' positions (a GET_ACTUAL_POSITION round), before the first exchange."""
+        try:
+            positions = self.link.positions_deg()
+        except LinkError as exc:
+            raise HardwareError(str(exc)) from exc
+        zeros = np.zeros(len(positions))
+        return reading_from_physical(positions, zeros, zeros, zeros, zeros, zeros.astype(int), zeros.astype(int),
+                                     self.link.last_stamp_ns)
+
+    def exchange(self, targets: JointTargets) -> JointReading:
+        position_deg, torque_nm = physical_targets(targets)
+        torques = torque_nm if targets.torques is not None else None
+        link = self.link
+        try:
+            # in step: the first exchange, the first after a failure, and in torque mode (a torque loop is only as
+            # good as its delay: it gets the replies of its own cycle)
+            if self._resync or not self.pipelined or torques is not None:
+                link.send_command(position_deg, torques, drain=True)
+                reading = link.collect_command(time.monotonic() + link.timeout_s)
+                self._resync = False
+            else:  # this cycle's targets out on time; then the previous cycle's replies (or, right after an
+                # exchange in step, its reading again)
+                sent = time.monotonic()
+                link.send_command(position_deg, torques)
+                reading = self._collect_outstanding() or self._last
+                self._outstanding = sent
+        except LinkError as exc:
+            self._outstanding, self._resync = None, True  # start afresh, after draining what is left
+            raise HardwareError(str(exc)) from exc
+        self._last = reading
+        return reading_from_physical(reading.position_deg, reading.velocity_dps, reading.torque_nm,
+                                     reading.current_a, reading.temperature_c, reading.mode.astype(int),
+                                     reading.fault.astype(int), reading.stamp_ns)
+
+    def _collect_outstanding(self) -> Optional[ActuatorReading]:
+        if self._outstanding is None:
+            return None
+        sent, self._outstanding = self._outstanding, None
+        return self.link.collect_command(sent + self.link.timeout_s)
+
+    def _settle(self) -> None:
+        """Collect what is outstanding before a request of another kind (a mode switch)."""
+        try:
+            self._collect_outstanding()
+        except LinkError:
+            pass
+        self._outstanding, self._resync = None, True
+
+    def enter_torque_mode(self, expected_torques: np.ndarray) -> None:
+        self._settle()
+        try:
+            self.link.switch_to_torque(jaco2.SIGN * np.asarray(expected_torques, dtype=float))
+        except LinkError as exc:
+            raise HardwareError(str(exc)) from exc
+
+    def leave_torque_mode(self) -> None:
+        self._settle()
+        try:
+            self.link.switch_to_position()
+        except LinkError as exc:
+            raise HardwareError(str(exc)) from exc
+
+    def close(self) -> None:
+        self.link.bus.close()
 
 
 def expected_torques_physical(q_model) -> np.ndarray:

@@ -2,7 +2,8 @@
 import sys
 
 from services.common.service import service_main
-from services.robot_sim.service import RobotSimConfig, RobotSimService
+from services.robot_sim.service import RobotSimConfig, robot_sim_service
 
 if __name__ == "__main__":
-    sys.exit(service_main(RobotSimService, RobotSimConfig, description="MuJoCo JACO-2 behind the emulated Kinova API"))
+    sys.exit(service_main(robot_sim_service, RobotSimConfig,
+                          description="the simulated JACO-2: the robot node on it (api) or its actuators on a bus"))

@@ -1,8 +1,11 @@
-"""The simulation: MuJoCo physics at 1 kHz, the emulated DSP at 100 Hz on the joint actuator interface, the
-target's motion, and eye-in-hand rendering. No zenoh here: the service (and tests, and notebooks) drive it.
+"""The simulated world: MuJoCo physics at 1 kHz, the JACO-2's actuators (their firmware,
+:mod:`services.robot_sim.firmware`) on its joints, the target's motion, and eye-in-hand rendering. No zenoh, no
+threads, no wall time: the service (and tests, and notebooks) drive it.
 
-Time is simulated and integer: ``time_ns`` advances by whole physics steps; DSP cycles and camera frames fall on
-the physics step at or after their nominal times.
+Time is the arm's own timeline: integer nanoseconds that advance only by whole bus cycles (:meth:`cycle`, 2 ms),
+each a fixed number of physics steps. At a cycle boundary the actuators take the commands that came during the
+cycle before and report their values; then physics runs to the next boundary. Camera frames fall on the boundary
+at or after their nominal times.
 """
 from __future__ import annotations
 
@@ -10,23 +13,25 @@ import mujoco
 import numpy as np
 
 from services.common import frames, jaco2
-from services.common.actuators import SimActuators
-from services.common.dsp import DSPConfig, KinovaDSP
+from services.common.metrics import Counters
+from services.robot.hardware import CYCLE_NS
 from services.robot_sim import scene as scene_mod
+from services.robot_sim.firmware import ActuatorConfig, ActuatorFirmware, ActuatorValues
 
 
 class Simulation:
-    def __init__(self, scene: scene_mod.SceneConfig | None = None, dsp: DSPConfig | None = None,
-                 render: bool = True) -> None:
+    def __init__(self, scene: scene_mod.SceneConfig | None = None, actuators: ActuatorConfig | None = None,
+                 render: bool = True, counters: Counters | None = None) -> None:
         self.scene = scene or scene_mod.SceneConfig()
         self.model = scene_mod.build_model(self.scene)
         self.data = mujoco.MjData(self.model)
-        self.dsp = KinovaDSP(dsp)
-        self.actuators = SimActuators(self.model, self.data, self.dsp.config.cycle_s)
+        if self.model.nv != jaco2.N_JOINTS:
+            raise ValueError(f"the model must have exactly {jaco2.N_JOINTS} dofs, it has {self.model.nv}")
+        self.firmware = ActuatorFirmware(self.model, self.data, actuators, counters)
         self.physics_dt_ns = int(round(self.model.opt.timestep * 1e9))
-        self.cycle_ns = int(round(self.dsp.config.cycle_s * 1e9))
+        self.cycle_ns = CYCLE_NS
         if self.cycle_ns % self.physics_dt_ns:
-            raise ValueError("the DSP cycle must be a whole number of physics steps")
+            raise ValueError("the bus cycle must be a whole number of physics steps")
         self.steps_per_cycle = self.cycle_ns // self.physics_dt_ns
         self.frame_period_ns = int(round(1e9 / self.scene.camera.rate_hz))
         self.time_ns = 0
@@ -34,6 +39,7 @@ class Simulation:
         self.frame_count = 0
         self._mocap = self.model.body(scene_mod.TAG_BODY).mocapid[0]
         self._target_start = self.data.mocap_pos[self._mocap].copy()
+        self._target_velocity = np.asarray(self.scene.target.velocity_mps, dtype=float)
         self._ee_body = self.model.body(jaco2.EE_LINK).id
         self._camera_id = self.model.camera(scene_mod.CAMERA_NAME).id
         self._renderer = None
@@ -47,8 +53,9 @@ class Simulation:
         self.data.qpos[: jaco2.N_JOINTS] = q
         self.data.mocap_pos[self._mocap] = self._target_start
         mujoco.mj_forward(self.model, self.data)
-        self.actuators.hold()
         self.time_ns = 0
+        self.firmware.now_s = 0.0
+        self.firmware.hold_all()
         self.next_frame_ns = 0
         self.frame_count = 0
 
@@ -62,18 +69,10 @@ class Simulation:
 
     @property
     def tau(self) -> np.ndarray:
-        return self.actuators.read().tau
-
-    @property
-    def q_ref(self) -> np.ndarray:
-        """The joint angles the actuators are servoing to (what GetAngularCommand reports)."""
-        return self.actuators.q_ref.copy()
+        return self.data.actuator_force[: jaco2.N_JOINTS].copy()
 
     def ee_pose(self) -> np.ndarray:
-        T = np.eye(4)
-        T[:3, :3] = self.data.xmat[self._ee_body].reshape(3, 3)
-        T[:3, 3] = self.data.xpos[self._ee_body]
-        return T
+        return frames.homogeneous(self.data.xmat[self._ee_body].reshape(3, 3), self.data.xpos[self._ee_body])
 
     def ee_twist_base(self) -> np.ndarray:
         """[v; ω] of the end-effector origin in base coordinates, from MuJoCo's own Jacobian."""
@@ -83,49 +82,44 @@ class Simulation:
 
     def camera_pose(self) -> np.ndarray:
         """The camera's optical frame (OpenCV convention) in the base frame."""
-        T = np.eye(4)
-        T[:3, :3] = self.data.cam_xmat[self._camera_id].reshape(3, 3) @ scene_mod.MUJOCO_FROM_OPTICAL.T
-        T[:3, 3] = self.data.cam_xpos[self._camera_id]
-        return T
+        return frames.homogeneous(self.data.cam_xmat[self._camera_id].reshape(3, 3) @ scene_mod.MUJOCO_FROM_OPTICAL.T,
+                                  self.data.cam_xpos[self._camera_id])
 
     def target_pose(self) -> np.ndarray:
-        T = np.eye(4)
-        T[:3, :3] = frames.quat_wxyz_to_matrix(self.data.mocap_quat[self._mocap])
-        T[:3, 3] = self.data.mocap_pos[self._mocap]
-        return T
+        return frames.homogeneous(frames.quat_wxyz_to_matrix(self.data.mocap_quat[self._mocap]),
+                                  self.data.mocap_pos[self._mocap])
 
     def set_target_pose(self, T: np.ndarray) -> None:
         self.data.mocap_pos[self._mocap] = T[:3, 3]
         self.data.mocap_quat[self._mocap] = frames.matrix_to_quat_wxyz(T[:3, :3])
-        self._target_start = self.data.mocap_pos[self._mocap] - np.asarray(self.scene.target.velocity_mps) * (
-            self.time_ns * 1e-9)
+        self._target_start = self.data.mocap_pos[self._mocap] - self._target_velocity * (self.time_ns * 1e-9)
         mujoco.mj_kinematics(self.model, self.data)
 
     # ------------------------------------------------------------------ stepping
-    def step_cycle(self) -> np.ndarray:
-        """One DSP cycle (10 ms): the DSP reads the joints and writes references; physics runs to the next cycle.
-        Returns the references written."""
-        dq_ref = self.dsp_cycle()
-        self.step_physics(self.steps_per_cycle)
-        return dq_ref
+    def begin_cycle(self) -> ActuatorValues:
+        """The cycle boundary: the actuators take the commands of the cycle before; returns what they report for
+        this cycle (its stamp is the boundary's time)."""
+        self.firmware.begin_cycle(self.time_ns * 1e-9)
+        return self.firmware.values(self.time_ns)
 
-    def dsp_cycle(self) -> np.ndarray:
-        """The DSP's part of a cycle only (physics is the caller's, e.g. in 2 ms steps)."""
-        dq_ref = self.dsp.cycle(self.actuators.read())
-        self.actuators.write(dq_ref)
-        return dq_ref
+    def end_cycle(self) -> None:
+        """Physics to the next boundary."""
+        self.step_physics(self.steps_per_cycle)
+
+    def cycle(self) -> ActuatorValues:
+        values = self.begin_cycle()
+        self.end_cycle()
+        return values
 
     def step_physics(self, steps: int = 1) -> None:
-        """Physics only (no DSP cycle): the actuators apply their torques each step. For the actuator-bus mode,
-        where the DSP runs in a gateway on the other side of the RS-485 bus."""
-        dt = self.model.opt.timestep
-        velocity = np.asarray(self.scene.target.velocity_mps, dtype=float)
+        """Physics only: the actuators set their torques each step, the target moves."""
+        moving = bool(self._target_velocity.any())
         for _ in range(steps):
-            self.actuators.apply(dt)
+            self.firmware.apply(self.time_ns * 1e-9)
             mujoco.mj_step(self.model, self.data)
             self.time_ns += self.physics_dt_ns
-            if velocity.any():
-                self.data.mocap_pos[self._mocap] = self._target_start + velocity * (self.time_ns * 1e-9)
+            if moving:
+                self.data.mocap_pos[self._mocap] = self._target_start + self._target_velocity * (self.time_ns * 1e-9)
 
     def frame_due(self) -> bool:
         return self.time_ns >= self.next_frame_ns

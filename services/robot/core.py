@@ -1,0 +1,145 @@
+"""The robot node's rules, one bus cycle at a time, with no zenoh, no threads and no clock of its own: what the
+JACO-2's main board does between the Kinova API and the actuators.
+
+Every bus cycle (2 ms) the node asks :meth:`RobotCore.targets` for the actuators' targets, exchanges them with the
+hardware, and hands the reading to :meth:`RobotCore.observe` (or :meth:`RobotCore.hold` when the exchange failed).
+Every fifth cycle (10 ms) :meth:`RobotCore.dsp_cycle` applies the latest robot command and runs the DSP
+(:class:`~services.common.dsp.KinovaDSP`), whose joint velocities the next cycles integrate into targets.
+
+The reference advances by exactly one cycle of the DSP's velocities per exchange, never by the time that passed:
+a host that is late loses that motion (and counts it) instead of sending a bigger step that the arm would follow
+faster than commanded. Across a DSP cycle the velocity ramps linearly from the last cycle's to the new one (as the
+DSP's 100 Hz planner is interpolated into the joints' faster loop), so the targets accelerate exactly as the DSP
+decided, with no kink for the actuators to overshoot.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from protocol.messages import RobotCommand
+from services.common import jaco2
+from services.common.dsp import CommandRefused, KinovaDSP
+from services.robot.hardware import CYCLE_S, JointReading, JointTargets
+
+#: a reference further than this from the measured angle is pulled back (no wind-up against a torque limit or a
+#: joint the arm cannot move)
+MAX_TRACKING_ERROR = math.radians(3.0)
+#: the DSP runs every this many bus cycles (10 ms)
+CYCLES_PER_DSP = 5
+#: the joints keep the DSP's last velocities at most this many bus cycles without a new DSP cycle (two DSP
+#: periods); then they hold where they are: a DSP that stopped deciding must not leave the arm moving
+MAX_CYCLES_WITHOUT_DSP = 2 * CYCLES_PER_DSP
+
+
+@dataclass(frozen=True)
+class Refusal:
+    #: what refused it: ``convention`` (the DSP cannot read the command's frame or angular convention) or
+    #: ``torque_control`` (low-level control owns the joints)
+    kind: str
+    reason: str
+
+
+class RobotCore:
+    def __init__(self, dsp: KinovaDSP, reading: JointReading, cycle_s: float = CYCLE_S) -> None:
+        self.dsp = dsp
+        self.cycle_s = cycle_s
+        self.reading = reading
+        self.q_ref = reading.q.copy()
+        #: the DSP's joint velocities, and the ramp toward them: from ``_dq_from``, over the ``_step``-th
+        #: exchange since the DSP cycle
+        self.dq_ref = np.zeros(jaco2.N_JOINTS)
+        self._dq_from = np.zeros(jaco2.N_JOINTS)
+        self._step = CYCLES_PER_DSP
+        #: bus cycles in which the DSP was too late and the joints were held (see MAX_CYCLES_WITHOUT_DSP)
+        self.dsp_stale_cycles = 0
+        #: the DSP's trajectories are to be erased at its next cycle (torque control took the joints)
+        self._erase_requested = False
+        #: low-level torque control owns the joints: targets carry ``torques``, robot commands are refused
+        self.torque_mode = False
+        self.torques = np.zeros(jaco2.N_JOINTS)
+
+    # ------------------------------------------------------------------ the bus cycle
+    def targets(self) -> JointTargets:
+        """This cycle's targets: one cycle further along the DSP's joint velocities (position mode), or the
+        low-level torques with the measured angles as the actuators' safety reference (torque mode)."""
+        q_meas = self.reading.q
+        if self.torque_mode:
+            return JointTargets(q=q_meas.copy(), torques=self.torques.copy())
+        self._step += 1
+        if self._step > MAX_CYCLES_WITHOUT_DSP and (self.dq_ref.any() or self._dq_from.any()):
+            self.stop()
+            self.dsp_stale_cycles += 1
+        fraction = min(1.0, (self._step - 0.5) / CYCLES_PER_DSP)  # the ramp's mean over this exchange
+        q_ref = self.q_ref + (self._dq_from + (self.dq_ref - self._dq_from) * fraction) * self.cycle_s
+        self.q_ref = q_meas + np.clip(q_ref - q_meas, -MAX_TRACKING_ERROR, MAX_TRACKING_ERROR)
+        return JointTargets(q=self.q_ref.copy())
+
+    def observe(self, reading: JointReading) -> None:
+        self.reading = reading
+        if self.torque_mode and not np.any(reading.mode == 1):
+            # the actuators dropped back to position mode (their 250 ms torque timeout): follow them
+            self.torque_mode = False
+            self.hold()
+
+    def stop(self) -> None:
+        """Stop where the targets are (a failed exchange, a DSP too late): the reference stays, so the arm is not
+        pulled back to a reading that may be a few cycles old."""
+        self.dq_ref = np.zeros(jaco2.N_JOINTS)
+        self._dq_from = np.zeros(jaco2.N_JOINTS)
+        self._step = CYCLES_PER_DSP
+
+    def hold(self) -> None:
+        """Stop where the arm is measured to be (a mode switch: the targets held no meaning in torque mode)."""
+        self.q_ref = self.reading.q.copy()
+        self.stop()
+
+    # ------------------------------------------------------------------ the DSP cycle
+    def dsp_cycle(self, command: Optional[RobotCommand]) -> Optional[Refusal]:
+        """Apply ``command`` (if any) and run the DSP on the latest reading; why the command was refused, if it
+        was (the arm then behaves as if it had not come)."""
+        dq_ref, refusal = self.dsp_plan(command, self.reading)
+        self.take_plan(dq_ref)
+        return refusal
+
+    def dsp_plan(self, command: Optional[RobotCommand], reading: JointReading) -> tuple[np.ndarray,
+                                                                                          Optional[Refusal]]:
+        """The DSP's part of a cycle (it touches only the DSP): apply ``command``, run the DSP on ``reading``;
+        the joint velocities it decided, and why the command was refused, if it was."""
+        refusal = None
+        if self._erase_requested:
+            self._erase_requested = False
+            self.dsp.erase_all_trajectories()
+        if command is not None:
+            if self.torque_mode:
+                refusal = Refusal("torque_control", "low-level torque control is active")
+            else:
+                try:
+                    self.dsp.submit(command)
+                except CommandRefused as exc:
+                    refusal = Refusal("convention", str(exc))
+        return np.asarray(self.dsp.cycle(reading), dtype=float), refusal
+
+    def take_plan(self, dq_ref: np.ndarray) -> None:
+        """The DSP's new joint velocities: the next bus cycles ramp to them."""
+        if self.torque_mode:
+            return
+        fraction = min(1.0, self._step / CYCLES_PER_DSP)  # where the last ramp got to
+        self._dq_from = self._dq_from + (self.dq_ref - self._dq_from) * fraction
+        self.dq_ref = dq_ref
+        self._step = 0
+
+    # ------------------------------------------------------------------ low-level torque control
+    def enter_torque_mode(self) -> None:
+        """Low-level control takes the joints; the DSP forgets its trajectories at its next cycle (it may be
+        computing one now, in another thread)."""
+        self.torques = np.zeros(jaco2.N_JOINTS)
+        self.torque_mode = True
+        self._erase_requested = True
+
+    def leave_torque_mode(self) -> None:
+        self.torque_mode = False
+        self.hold()

@@ -1,0 +1,94 @@
+"""The robot's one hardware interface, in the shape of ros2_control's: what the robot node needs from an arm's
+joints, whatever drives them (the simulated arm in robot_sim's process, or actuators on an RS-485 bus).
+
+One call per bus cycle, :meth:`RobotHardware.exchange`, writes that cycle's targets and reads the joints back, as
+the actuators' 0x14 command and its 0x15-0x17 replies do on the real bus. The readings are what the bus carries
+(physical degrees as float32), converted to model units by :func:`reading_from_physical`, so that the simulated
+arm in-process and the same arm behind the bus give the node identical numbers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional, Protocol
+
+import numpy as np
+
+from services.common import jaco2
+
+#: the actuators' bus cycle (500 Hz)
+CYCLE_S = 0.002
+CYCLE_NS = 2_000_000
+
+
+class HardwareError(RuntimeError):
+    """An exchange that did not deliver a complete reading (bus timeout, NACK, a failed bus): the node holds the
+    arm at its last measured angles."""
+
+
+@dataclass
+class JointReading:
+    """The joints at one bus cycle, model units (rad, rad/s, N·m; current in A, temperature in °C)."""
+
+    q: np.ndarray
+    dq: np.ndarray
+    tau: np.ndarray
+    current_a: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS))
+    temperature_c: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS))
+    #: per actuator: 0 position mode, 1 torque mode
+    mode: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS, dtype=int))
+    #: per actuator: the latched fault (protocol.rs485.ActuatorError), 0 for none
+    fault: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS, dtype=int))
+    #: when the reading was taken: on the emulated arm's own timeline (robot_sim), or on the host's clock when
+    #: the bus gives no better (a real arm); 0 when unknown
+    stamp_ns: int = 0
+
+    def faults(self) -> list[str]:
+        return [f"actuator {i + 1}: fault {int(code)}" for i, code in enumerate(self.fault) if code]
+
+
+@dataclass
+class JointTargets:
+    """One bus cycle's command, model units: position targets; in torque mode ``torques`` (model sign, N·m, on
+    top of the actuators' gravity compensation) with ``q`` the actuators' safety reference (where the joints
+    are)."""
+
+    q: np.ndarray
+    torques: Optional[np.ndarray] = None
+
+
+def physical_targets(targets: JointTargets) -> tuple[np.ndarray, np.ndarray]:
+    """(position deg, torque N·m) in the actuators' own (physical) units and signs, as 0x14 carries them."""
+    torques = np.zeros(jaco2.N_JOINTS) if targets.torques is None else jaco2.SIGN * np.asarray(targets.torques)
+    return jaco2.model_to_physical_deg(targets.q), torques
+
+
+def reading_from_physical(position_deg, velocity_dps, torque_nm, current_a, temperature_c, mode, fault,
+                          stamp_ns: int) -> JointReading:
+    """A reading from the actuators' own values (physical degrees and signs): the one conversion both the bus
+    link and the in-process simulated arm use."""
+    return JointReading(q=jaco2.physical_deg_to_model(position_deg), dq=jaco2.physical_rate_to_model(velocity_dps),
+                        tau=jaco2.SIGN * np.asarray(torque_nm, dtype=float),
+                        current_a=jaco2.SIGN * np.asarray(current_a, dtype=float),
+                        temperature_c=np.asarray(temperature_c, dtype=float),
+                        mode=np.asarray(mode, dtype=int), fault=np.asarray(fault, dtype=int), stamp_ns=int(stamp_ns))
+
+
+class RobotHardware(Protocol):
+    """An arm's joints, one bus cycle at a time."""
+
+    #: True when the arm is simulated in this process and steps only when exchanged with: the node may then run
+    #: cycles it was late for back to back (the arm's time is the node's). A remote arm keeps its own time: a late
+    #: cycle is skipped and counted, never sent as a burst of targets (which the arm would follow faster).
+    simulated_in_process: bool
+
+    def exchange(self, targets: JointTargets) -> JointReading:
+        """Send this cycle's targets, return the joints' state (raises :class:`HardwareError`)."""
+
+    def enter_torque_mode(self, expected_torques: np.ndarray) -> None:
+        """The torque-mode handshake: ``expected_torques`` (model sign) are what the host's model expects the
+        joints to measure now (gravity); raises :class:`HardwareError` when the actuators refuse."""
+
+    def leave_torque_mode(self) -> None:
+        """Back to position mode, holding where the joints are (raises :class:`HardwareError`)."""
+
+    def close(self) -> None: ...

@@ -1,0 +1,615 @@
+"""The robot node: what every robot service offers on zenoh, whatever drives the arm (robot_sim's simulated arm,
+robot_gateway's actuators on a bus), and the robot's one loop.
+
+On zenoh: robot commands in (``…/robot/command``, from safety), the Kinova API as queryables
+(``…/robot/api/<Function>``), the robot state out at every DSP cycle (100 Hz), and the low-level torque API
+(``…/robot/lowlevel/*``, 500 Hz, realtime only).
+
+The loop: every bus cycle it exchanges targets with the hardware (:class:`~services.robot.hardware.RobotHardware`)
+and steps low-level control; every fifth cycle, the DSP cycle: publish the state, take the latest command, run
+the Kinova API calls and the DSP (:class:`~services.robot.core.RobotCore`). In realtime the DSP cycle runs in a
+worker thread, handed each tick's reading, so that the bus cycle goes out on time whatever the DSP costs (as a
+robot's servo loop never waits for its planner): a tick that comes while the worker is still busy is counted
+(``dsp.overruns``) and skipped, and the core holds the arm if no DSP cycle came for two DSP periods. In lockstep
+the DSP cycle runs in the loop, in order.
+
+Clock modes:
+
+* ``realtime``: the bus cycle runs every 2 ms of wall time (:class:`~services.robot.pacing.CyclePacer`), at
+  realtime priority where the OS allows; lateness is counted and reported in the state (``timing``) and health;
+* ``lockstep``: the arm's own timeline drives the loop, cycle after cycle with no pacing; at each DSP tick the node
+  publishes the state of that tick and waits (``lockstep.cycle_timeout_s``) for the pipeline's answer, a command
+  stamped at or after the tick, and when a camera frame was taken at the tick (``lockstep.frame_timeout_s``) a
+  command derived from that frame. It waits only while a service that answers is alive (``lockstep.answered_by``,
+  safety, which answers each robot state in lockstep): observers of the robot change nothing. The state (and the
+  frame) are published again every ``lockstep.retry_s`` while it waits, since a message can be lost while routes
+  are still being set up.
+
+Subclasses open the hardware and say which frame, if any, was taken at a tick (robot_sim takes it;
+robot_gateway learns it from the simulator's clock).
+"""
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from concurrent.futures import Future
+from typing import Optional
+
+import msgspec
+import numpy as np
+import zenoh
+
+from protocol import kinova
+from protocol.conventions import ClockMode
+from protocol.messages import (
+    ActuatorMode,
+    Header,
+    KinovaPose,
+    LoopTiming,
+    LowLevelState,
+    ProtocolError,
+    RobotCommand,
+    RobotState,
+    TorqueCommand,
+    decode,
+    encode,
+)
+from services.common import frames
+from services.common.config import ConfigStruct
+from services.common.dsp import DSPConfig, KinovaDSP
+from services.common.kinematics import ArmKinematics
+from services.common.kinova_api import KinovaApi
+from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome
+from services.common.metrics import DurationStats, LoopTimer, RateMeter
+from services.common.service import Service, ServiceConfig
+from services.robot.core import CYCLES_PER_DSP, RobotCore
+from services.robot.hardware import CYCLE_NS, CYCLE_S, HardwareError, JointReading, RobotHardware
+from services.robot.pacing import CyclePacer, request_realtime
+
+#: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
+#: in the DSP and run, unexpectedly, once torque control ends)
+MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})
+#: an in-process simulated arm runs at most this many late cycles back to back (0.1 s), then drops the stall
+MAX_CATCH_UP_CYCLES = 50
+DSP_CYCLE_NS = CYCLE_NS * CYCLES_PER_DSP
+
+
+class LockstepConfig(ConfigStruct):
+    #: wall time to wait for the answer to a tick before running the DSP cycle without it
+    cycle_timeout_s: float = 0.5
+    #: wall time to wait for the pipeline's answer to a frame
+    frame_timeout_s: float = 2.0
+    #: publish the state (and the frame) again after this long without an answer
+    retry_s: float = 0.25
+    #: an arm behind a bus (robot_sim's actuator_bus mode) runs a cycle without its host's commands after this
+    #: long; longer than the robot node's own waits, so that a host that is waiting is never overtaken
+    bus_timeout_s: float = 5.0
+    #: the robot node's exchanges with an arm behind a bus wait this long for the replies
+    link_timeout_s: float = 5.0
+    #: the robot node waits for the pipeline's answers while one of these services is alive (liveliness)
+    answered_by: list[str] = msgspec.field(default_factory=lambda: ["safety"])
+
+    def __post_init__(self) -> None:
+        if not (self.retry_s > 0 and self.cycle_timeout_s > 0 and self.frame_timeout_s > 0):
+            raise ValueError("lockstep needs positive retry_s, cycle_timeout_s and frame_timeout_s")
+        if self.bus_timeout_s <= max(self.frame_timeout_s, self.cycle_timeout_s):
+            raise ValueError("lockstep.bus_timeout_s must exceed the node's own waits (frame_timeout_s, "
+                             "cycle_timeout_s): the host may wait that long")
+
+
+class RobotNodeConfig(ServiceConfig):
+    dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
+    lockstep: LockstepConfig = msgspec.field(default_factory=LockstepConfig)
+    #: the low-level torque API's watchdog and release (services.common.lowlevel)
+    lowlevel: LowLevelConfig = msgspec.field(default_factory=LowLevelConfig)
+    #: after this many consecutive failed exchanges the node reports itself unhealthy and refuses motion
+    max_bus_errors: int = 5
+    #: realtime: SCHED_FIFO priority of the robot's process where the OS grants it (0: normal scheduling), above
+    #: the router's and safety's (30). A robot's hardware loop must not wait behind the rest of the host
+    realtime_priority: int = 40
+
+    def __post_init__(self) -> None:
+        if self.max_bus_errors < 1:
+            raise ValueError("max_bus_errors must be at least 1")
+        if not 0 <= self.realtime_priority <= 99:
+            raise ValueError("realtime_priority must be within 0..99 (SCHED_FIFO)")
+
+
+class _CoreView:
+    """What the Kinova API reads of the robot: the latest reading and the reference (model units)."""
+
+    def __init__(self, core: RobotCore, kin: ArmKinematics) -> None:
+        self.core, self.kin = core, kin
+
+    @property
+    def q(self) -> np.ndarray:
+        return self.core.reading.q
+
+    @property
+    def dq(self) -> np.ndarray:
+        return self.core.reading.dq
+
+    @property
+    def tau(self) -> np.ndarray:
+        return self.core.reading.tau
+
+    @property
+    def q_ref(self) -> np.ndarray:
+        return self.core.q_ref.copy()
+
+    def ee_pose(self) -> np.ndarray:
+        return frames.homogeneous(*self.kin.pose(self.core.reading.q))
+
+
+class _TorqueJoints:
+    """Low-level control's view of the joints: mode switches go through the hardware's handshake."""
+
+    def __init__(self, node: "RobotNode") -> None:
+        self.node = node
+
+    @property
+    def torque_mode(self) -> bool:
+        return self.node.core.torque_mode
+
+    def enter_torque_mode(self) -> None:
+        node = self.node
+        node.hardware.enter_torque_mode(node.gravity_kin.gravity(node.core.reading.q))
+        with node._core_lock:
+            node.core.enter_torque_mode()
+
+    def leave_torque_mode(self) -> None:
+        self.node.hardware.leave_torque_mode()
+        with self.node._core_lock:
+            self.node.core.leave_torque_mode()
+
+    def set_torques(self, torques) -> None:
+        with self.node._core_lock:
+            self.node.core.torques = np.asarray(torques, dtype=float).copy()
+
+
+class RobotNode(Service):
+    follows_sim_clock = True
+
+    def __init__(self, config: RobotNodeConfig, **kw) -> None:
+        super().__init__(config, **kw)
+        self.config: RobotNodeConfig = config
+        self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
+        self.kin = ArmKinematics()
+        #: the bus loop's own kinematics workspace (ArmKinematics is not thread-safe; the DSP worker uses ``kin``)
+        self.gravity_kin = ArmKinematics()
+        #: the loop's period: the bus cycle (a backend without a joint-level bus runs at its DSP's cycle)
+        self.cycle_s = CYCLE_S
+        self.hardware: Optional[RobotHardware] = None
+        self.core: Optional[RobotCore] = None
+        self.api = None
+        self.lowlevel: Optional[LowLevelControl] = None
+        self.finished = threading.Event()
+        self.loop_timer = LoopTimer(self.cycle_s)
+        #: the loop's work per cycle (without its sleep), and the exchanges' share of it
+        self.work = DurationStats()
+        self.exchange_time = DurationStats()
+        #: how late the loop woke for its slots, and how long the DSP cycles took (realtime)
+        self.wake_lag = DurationStats()
+        self.dsp_time = DurationStats()
+        self._thread: Optional[threading.Thread] = None
+        self._command: Optional[tuple[RobotCommand, int]] = None
+        self.command_cond = threading.Condition()
+        self._api_calls: queue.Queue = queue.Queue()
+        self._applied: Optional[Header] = None
+        self._last_refusal = ""
+        self._refusal_cycles = 0
+        self._exchanges = 0
+        self._dsp_stale_seen = 0
+        self._last_stamp: Optional[int] = None
+        self.consecutive_errors = 0
+        self._bus_faults: list[str] = []
+        #: lockstep: the services that answer the robot's ticks, alive now
+        self._answerers: set[str] = set()
+        #: serialises the core between the bus loop and the DSP worker (realtime)
+        self._core_lock = threading.Lock()
+        self._dsp_pending: Optional[tuple[int, JointReading]] = None
+        self._dsp_cond = threading.Condition()
+        self._dsp_thread: Optional[threading.Thread] = None
+        self._late = RateMeter()
+        self._missed = RateMeter()
+        self._cycles = RateMeter()
+
+    # ------------------------------------------------------------------ what a robot service provides
+    def open_hardware(self) -> tuple[RobotHardware, JointReading]:
+        """The hardware and its first reading (the arm's joints before the first cycle)."""
+        raise NotImplementedError
+
+    def frame_at_tick(self, tick_ns: int) -> Optional[int]:
+        """At a DSP tick (after its state went out): the capture stamp of the camera frame taken at this tick, if
+        any (robot_sim takes and publishes it here)."""
+        return None
+
+    def on_lockstep_retry(self, tick_ns: int) -> None:
+        """The answer to a tick is late: publish what it answers again (robot_sim: the frame and the tick)."""
+
+    def on_loop_start(self) -> None:
+        """The realtime loop is about to run its first cycle (robot_sim starts its arm's time now)."""
+
+    def lowlevel_unavailable(self) -> str:
+        """Why torque commands are refused ('' when the low-level API is offered)."""
+        return "low-level torque control runs in realtime only" if self.lockstep else ""
+
+    def done(self) -> bool:
+        return self.stop_requested
+
+    # ------------------------------------------------------------------ lifecycle
+    def on_start(self) -> None:
+        self.hardware, reading = self.open_hardware()
+        try:
+            self.core = RobotCore(self.make_dsp(), reading)
+            self.api = self.make_api()
+            keys = self.keys
+            self.state_pub = self.publisher(keys.robot_state, "state")
+            self.lowlevel_pub = self.publisher(keys.lowlevel_state, "lowlevel_state")
+            self.lowlevel = LowLevelControl(self.config.lowlevel, _TorqueJoints(self), self.gravity_kin.gravity)
+            self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
+            self.subscribe(keys.lowlevel_command, TorqueCommand, self._on_torque, "lowlevel_command")
+            self.queryable(keys.robot_api_all, self._on_api)
+            if self.lockstep:
+                self._declared.append(self.session.liveliness().declare_subscriber(
+                    keys.liveliness_all, self._on_liveliness, history=True))
+            self.declare_outputs()
+        except BaseException:
+            self.hardware.close()
+            raise
+        self._thread = threading.Thread(target=self._run, name=f"{self.name}-loop", daemon=True)
+        self._thread.start()
+
+    def make_dsp(self):
+        """What interprets robot commands: the emulated Kinova DSP (an arm behind Kinova's SDK has its own)."""
+        return KinovaDSP(self.config.dsp, self.kin)
+
+    def make_api(self):
+        """What answers ``robot/api/*`` (``call(function, argument) -> ApiReply``): the emulated Kinova API on the
+        DSP by default."""
+        return KinovaApi(_CoreView(self.core, self.kin), self.core.dsp)
+
+    def declare_outputs(self) -> None:
+        """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
+
+    def on_stop(self) -> None:
+        with self.command_cond:
+            self.command_cond.notify_all()
+        with self._dsp_cond:
+            self._dsp_cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        if self._dsp_thread is not None:
+            self._dsp_thread.join(timeout=5.0)
+        if self.hardware is not None:
+            self.hardware.close()
+
+    def check_health(self) -> tuple[bool, str]:
+        if self._thread is None or not self._thread.is_alive():
+            return False, "robot loop stopped"
+        if self.consecutive_errors >= self.config.max_bus_errors:
+            return False, f"hardware failing: {self._bus_faults[:1]}"
+        timing = self.timing()
+        work, exchange, lag, dsp = (self.work.stats(), self.exchange_time.stats(), self.wake_lag.stats(),
+                                    self.dsp_time.stats())
+        return True, (f"bus_rate_hz={timing.rate_hz:.1f} late_per_s={timing.late_per_s:.1f} "
+                      f"missed_per_s={timing.missed_per_s:.1f} work_ms={work['p50_ms']:.2f}/{work['p99_ms']:.2f} "
+                      f"exchange_ms={exchange['p50_ms']:.2f}/{exchange['p99_ms']:.2f} "
+                      f"wake_lag_ms={lag['p50_ms']:.2f}/{lag['p99_ms']:.2f} dsp_ms={dsp['p50_ms']:.2f}/"
+                      f"{dsp['p99_ms']:.2f} (p50/p99)")
+
+    def timing(self) -> LoopTiming:
+        return LoopTiming(rate_hz=self._cycles.rate_hz(), late_per_s=self._late.rate_hz(),
+                          missed_per_s=self._missed.rate_hz())
+
+    # ------------------------------------------------------------------ inputs (zenoh threads)
+    def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
+        with self.command_cond:
+            self._command = (command, recv_ns)
+            self.command_cond.notify_all()
+
+    def _on_liveliness(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if name in self.config.lockstep.answered_by:
+            with self.command_cond:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self._answerers.add(name)
+                else:
+                    self._answerers.discard(name)
+                self.command_cond.notify_all()
+
+    def _on_torque(self, command: TorqueCommand, _recv_ns: int) -> None:
+        unavailable = self.lowlevel_unavailable()
+        if unavailable:
+            self.refuse("lowlevel_command", unavailable)
+            return
+        self.lowlevel.receive(command, time.monotonic())
+
+    def _on_api(self, query: zenoh.Query) -> None:
+        function = str(query.key_expr).rsplit("/", 1)[-1]
+        spec = kinova.API_FUNCTIONS.get(function)
+        if spec is None:
+            self.refuse("api", f"unknown Kinova API function {function!r}")
+            query.reply(query.key_expr, encode(kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                                               message=f"unknown function {function}")))
+            return
+        argument_type, _ = spec
+        argument = None
+        if argument_type is not None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                argument = decode(payload, argument_type)
+            except ProtocolError as exc:
+                self.refuse("api", str(exc))
+                query.reply(query.key_expr, encode(kinova.ApiReply(
+                    code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))))
+                return
+        future: Future = Future()
+        self._api_calls.put((function, argument, future))
+        with self.command_cond:
+            self.command_cond.notify_all()
+        try:
+            reply = future.result(timeout=5.0)
+        except Exception as exc:  # the loop died or timed out: the caller gets Kinova's unknown error
+            reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR), message=f"not executed: {exc}")
+        query.reply(query.key_expr, encode(reply))
+
+    # ------------------------------------------------------------------ the loop thread
+    def run_api_calls(self) -> None:
+        while True:
+            try:
+                function, argument, future = self._api_calls.get_nowait()
+            except queue.Empty:
+                return
+            if function in MOTION_FUNCTIONS and self.core.torque_mode:
+                self.refuse("api", f"{function}: low-level torque control is active")
+                future.set_result(kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                                  message="low-level torque control is active"))
+                continue
+            try:
+                future.set_result(self.api.call(function, argument))
+            except Exception as exc:
+                self.counters.inc("errors.api")
+                future.set_exception(exc)
+
+    def take_command(self) -> Optional[tuple[RobotCommand, int]]:
+        with self.command_cond:
+            taken, self._command = self._command, None
+        return taken
+
+    def _run(self) -> None:
+        try:
+            if self.lockstep:
+                while not self.done():
+                    self.bus_cycle()
+            else:
+                self._run_realtime()
+        except Exception:
+            self.log.exception("robot loop failed")
+            self.counters.inc("errors.loop")
+        finally:
+            self.finished.set()
+
+    #: counters whose growth means the robot's own loop did not keep up (mfvs status shows it degraded); the
+    #: cycles the arm ran without a frame for other reasons (transport jitter) are in the missed rate only
+    OVERRUNS = ("cycles.late", "cycles.missed", "bus.failed_exchanges", "dsp.overruns", "dsp.stale_holds")
+
+    def _run_realtime(self) -> None:
+        self.declare_loop("bus_cycle", 1.0 / self.cycle_s, self.OVERRUNS)
+        if self.cycle_s < self.config.dsp.cycle_s:
+            self.declare_loop("cycle", 1.0 / self.config.dsp.cycle_s)
+        self._dsp_thread = threading.Thread(target=self._dsp_worker, name=f"{self.name}-dsp", daemon=True)
+        self._dsp_thread.start()
+        if request_realtime(self.config.realtime_priority, f"{self.name} bus loop"):
+            self.counters.inc("realtime_priority.granted")
+        self.on_loop_start()
+        pacer = CyclePacer(self.cycle_s, MAX_CATCH_UP_CYCLES if self.hardware.simulated_in_process else 0)
+        self.loop_timer = LoopTimer(self.cycle_s)
+        while not self.done():
+            slot = pacer.wait()
+            self.wake_lag.add(slot.lag_s)
+            if slot.late:
+                self.counters.inc("cycles.late")
+                self._late.tick()
+            if slot.missed:
+                self.cycles_dropped(slot.missed)
+            start = time.monotonic()
+            self.bus_cycle()
+            self.work.add(time.monotonic() - start)
+
+    def cycles_dropped(self, n: int) -> None:
+        """Cycles the loop did not run (a stall): counted as missed; the in-process arm's time skips them."""
+        self.counters.inc("cycles.missed", n)
+        for _ in range(n):
+            self._missed.tick()
+
+    def bus_cycle(self) -> None:
+        """One bus cycle: low-level control, the exchange, and every fifth cycle the DSP."""
+        self.loop_timer.tick()
+        self._cycles.tick()
+        if not self.lockstep:
+            self.rates.tick("bus_cycle")
+            self._lowlevel_step()
+        with self._core_lock:
+            targets = self.core.targets()
+            stale = self.core.dsp_stale_cycles
+        start = time.monotonic()
+        try:
+            reading = self.hardware.exchange(targets)
+        except HardwareError as exc:
+            reading = None
+            self.consecutive_errors += 1
+            self.counters.inc("bus.failed_exchanges")
+            self._missed.tick()
+            self._bus_faults = [f"bus: {exc}"[:120]]
+            self.limited_log.warning("exchange", "%s: exchange failed: %s", self.name, exc)
+            with self._core_lock:
+                self.core.stop()
+        else:
+            self.exchange_time.add(time.monotonic() - start)
+            self.consecutive_errors = 0
+            self._bus_faults = []
+            self._count_gap(reading.stamp_ns)
+            with self._core_lock:
+                self.core.observe(reading)
+            if self.lockstep and reading.stamp_ns > 0:
+                self.clock.advance_to(reading.stamp_ns)  # in lockstep the node's time is the arm's
+        if stale > self._dsp_stale_seen:
+            self.counters.inc("dsp.stale_holds", stale - self._dsp_stale_seen)
+            self._dsp_stale_seen = stale
+        index = self._exchanges
+        self._exchanges += 1
+        if self.lowlevel_pub.matching:
+            self._publish_lowlevel()
+        if self._is_dsp_tick(index, reading):
+            tick = reading.stamp_ns if reading is not None else self.clock.now_ns()
+            if self.lockstep:
+                self.dsp_tick(tick, self.core.reading)
+            else:
+                self._hand_to_dsp(tick, self.core.reading)
+
+    # ------------------------------------------------------------------ the DSP worker (realtime)
+    def _hand_to_dsp(self, tick_ns: int, reading: JointReading) -> None:
+        with self._dsp_cond:
+            if self._dsp_pending is not None:
+                self.counters.inc("dsp.overruns")  # the worker has not taken the last tick yet: this one is late
+            self._dsp_pending = (tick_ns, reading)
+            self._dsp_cond.notify()
+
+    def _dsp_worker(self) -> None:
+        while not self.done():
+            with self._dsp_cond:
+                while self._dsp_pending is None and not self.done():
+                    self._dsp_cond.wait(0.5)
+                pending, self._dsp_pending = self._dsp_pending, None
+            if pending is None:
+                continue
+            try:
+                start = time.monotonic()
+                self.dsp_tick(*pending)
+                self.dsp_time.add(time.monotonic() - start)
+            except Exception:
+                self.counters.inc("errors.dsp")
+                self.limited_log.error("dsp", "%s: DSP cycle failed", self.name)
+                self.log.debug("DSP cycle failure", exc_info=True)
+
+    def _count_gap(self, stamp_ns: int) -> None:
+        """Cycles the arm ran between two of our exchanges (from the readings' stamps on its timeline) beyond the
+        one each exchange takes: missed, whoever was late."""
+        if self._last_stamp is not None and stamp_ns > 0 and not self.hardware.simulated_in_process:
+            gap = int(round((stamp_ns - self._last_stamp) / CYCLE_NS)) - 1
+            if gap > 0:
+                self.counters.inc("cycles.arm_missed", gap)
+                for _ in range(gap):
+                    self._missed.tick()
+        self._last_stamp = stamp_ns
+
+    def _is_dsp_tick(self, index: int, reading: Optional[JointReading]) -> bool:
+        if self.lockstep and reading is not None and reading.stamp_ns > 0:
+            return reading.stamp_ns % DSP_CYCLE_NS == 0  # the simulator's 10 ms grid
+        return index % CYCLES_PER_DSP == 0
+
+    def dsp_tick(self, tick_ns: int, reading: JointReading) -> None:
+        """One DSP cycle on the reading of the tick at ``tick_ns``."""
+        self.rates.tick("cycle")
+        self.publish_state(tick_ns, reading)
+        frame_stamp = self.frame_at_tick(tick_ns)
+        if self.lockstep and self._answerers:
+            taken = self._wait_for_answer(tick_ns, frame_stamp, reading)
+        else:
+            taken = self.take_command()
+        self.run_api_calls()
+        if self.consecutive_errors >= self.config.max_bus_errors:
+            taken = None  # no motion on a failing bus
+            self.core.dsp.erase_all_trajectories()
+        dq_ref, refusal = self.core.dsp_plan(taken[0] if taken is not None else None, reading)
+        with self._core_lock:
+            self.core.take_plan(dq_ref)
+        self._applied = None
+        if taken is not None:
+            command, recv_ns = taken
+            if refusal is None:
+                self._applied = command.header.with_hop(self.name, recv_ns, self.clock.now_ns())
+            else:
+                self.refuse("command", refusal.reason)
+                self.counters.inc(f"refused.{refusal.kind}")
+                self._last_refusal, self._refusal_cycles = refusal.reason, 100
+
+    # ------------------------------------------------------------------ lockstep
+    def _answered(self, tick_ns: int, frame_stamp: Optional[int]) -> bool:
+        pending = self._command
+        if pending is None:
+            return False
+        header = pending[0].header
+        if header.stamp_ns < tick_ns:
+            return False
+        return not frame_stamp or header.source_stamp_ns >= frame_stamp
+
+    def _wait_for_answer(self, tick_ns: int, frame_stamp: Optional[int], reading: JointReading):
+        cfg = self.config.lockstep
+        start = time.monotonic()
+        deadline = start + (cfg.frame_timeout_s if frame_stamp else cfg.cycle_timeout_s)
+        next_retry = start + cfg.retry_s
+        with self.command_cond:
+            while not self._answered(tick_ns, frame_stamp) and not self.stop_requested:
+                self.command_cond.release()
+                try:
+                    self.run_api_calls()
+                finally:
+                    self.command_cond.acquire()
+                now = time.monotonic()
+                if now >= deadline:
+                    self.counters.inc("lockstep.timeouts.frame" if frame_stamp else "lockstep.timeouts.cycle")
+                    break
+                if now >= next_retry:
+                    self.counters.inc("lockstep.retries")
+                    self.command_cond.release()
+                    try:
+                        self.publish_state(tick_ns, reading)
+                        self.on_lockstep_retry(tick_ns)
+                    finally:
+                        self.command_cond.acquire()
+                    next_retry = now + cfg.retry_s
+                self.command_cond.wait(min(deadline, next_retry) - now)
+        return self.take_command()
+
+    # ------------------------------------------------------------------ outputs
+    def publish_state(self, stamp_ns: int, reading: JointReading) -> None:
+        dsp = self.core.dsp
+        R, p = self.kin.pose(reading.q)
+        euler = frames.matrix_to_euler_xyz(R)
+        status = dsp.status
+        faults = list(status.active_limits) + self._bus_faults + reading.faults()
+        if self._refusal_cycles > 0:
+            faults.append(f"refused: {self._last_refusal}"[:120])
+            self._refusal_cycles -= 1
+        self.state_pub.put(RobotState(
+            header=self.header("state", stamp_ns=stamp_ns), q=reading.q.tolist(), dq=reading.dq.tolist(),
+            tau=reading.tau.tolist(),
+            pose=KinovaPose(X=p[0], Y=p[1], Z=p[2], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2]),
+            control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],
+            watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
+            applied_command=self._applied, timing=self.timing(),
+        ))
+
+    def _publish_lowlevel(self) -> None:
+        reading = self.core.reading
+        self.lowlevel_pub.put(LowLevelState(
+            header=self.header("lowlevel_state", stamp_ns=reading.stamp_ns or None),
+            mode=ActuatorMode.TORQUE if self.core.torque_mode else ActuatorMode.POSITION,
+            q=reading.q.tolist(), dq=reading.dq.tolist(), tau=reading.tau.tolist(),
+            current_a=reading.current_a.tolist(), temperature_c=reading.temperature_c.tolist(),
+            faults=(self._bus_faults + reading.faults())[:32]))
+
+    def _lowlevel_step(self) -> None:
+        """Engage, apply, hold or release low-level torque control (services.common.lowlevel)."""
+        outcome, detail = self.lowlevel.step(time.monotonic(), self.core.reading.q)
+        if outcome is Outcome.ENGAGED:
+            self.log.info("low-level torque control engaged")
+        elif outcome is Outcome.RELEASED:
+            self.log.info("low-level torque control released %s", detail)
+        elif outcome is Outcome.WATCHDOG:
+            self.counters.inc("lowlevel.watchdog")
+        elif outcome is Outcome.REFUSED:
+            self.refuse("lowlevel_command", detail)

@@ -1,0 +1,227 @@
+"""The simulated arm behind its RS-485 bus, in one thread: the bus device (services.robot_sim.bus_device) fed with
+frames, and the arm's cycle boundaries placed in time. No zenoh: robot_sim's ``actuator_bus`` mode adds the camera
+and the clock through the ``on_*`` callbacks; tests and benchmarks run it bare.
+
+* realtime: boundaries every 2 ms of wall time (catching up after a stall of at most ``MAX_CATCH_UP_CYCLES``;
+  a longer one is dropped and the stamps skip it), locked to the host's frames so that they arrive half a cycle
+  after a boundary (``BusSyncConfig``), as actuators synchronise to their bus master; each frame is answered as
+  it arrives, with the values of the current cycle, and its command is taken at the next boundary. The loop asks
+  for realtime priority (it stands in for the actuators' own processors);
+* lockstep: a boundary when every actuator has its command (the host's batch), after which the replies go out;
+  with no host for ``timing.bus_timeout_s`` the arm runs a cycle alone. While it waits after a DSP tick, the
+  tick (and its frame) are published again every ``timing.retry_s`` (``on_retry``).
+
+Stamps (the frames' timestamps and the ticks) are ``epoch_ns`` plus the arm's time.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from protocol import rs485
+from services.common.config import ConfigStruct
+from services.common.metrics import Counters, DurationStats, LoopTimer
+from services.common.rs485_bus import BusError, RS485Bus
+from services.robot.hardware import CYCLE_NS, CYCLE_S
+from services.robot.node import DSP_CYCLE_NS, LockstepConfig
+from services.robot.pacing import request_realtime
+from services.robot_sim.bus_device import ActuatorBusDevice
+from services.robot_sim.sim import Simulation
+
+#: a loop this many cycles late runs them back to back; a longer stall is dropped
+MAX_CATCH_UP_CYCLES = 50
+#: the emulated actuators' loop runs this much above the configured realtime priority
+ACTUATOR_PRIORITY_ABOVE = 5
+
+
+class BusSyncConfig(ConfigStruct):
+    """Realtime: how the actuators' cycle boundaries lock to the host's frames."""
+
+    #: fraction of the phase error corrected per cycle
+    gain: float = 0.1
+    #: at most this much phase correction per cycle (s)
+    max_step_s: float = 0.00005
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.gain <= 1.0 and 0.0 <= self.max_step_s < CYCLE_S / 4):
+            raise ValueError("bus sync needs 0 <= gain <= 1 and 0 <= max_step_s < a quarter cycle")
+
+
+@dataclass
+class ArmOnBusConfig:
+    lockstep: bool = False
+    epoch_ns: int = 0
+    sync: BusSyncConfig = field(default_factory=BusSyncConfig)
+    timing: LockstepConfig = field(default_factory=LockstepConfig)
+    realtime_priority: int = 0
+    #: stop after this much of the arm's time (0: run until stopped)
+    max_sim_time_s: float = 0.0
+
+
+class ArmOnBus:
+    def __init__(self, sim: Simulation, bus: RS485Bus, config: ArmOnBusConfig | None = None,
+                 counters: Counters | None = None, on_boundary: Optional[Callable[[int], None]] = None,
+                 on_tick: Optional[Callable[[int], None]] = None, on_retry: Optional[Callable[[int], None]] = None,
+                 on_epoch: Optional[Callable[[int], None]] = None, log: logging.Logger | None = None) -> None:
+        self.sim = sim
+        self.bus = bus
+        self.config = config or ArmOnBusConfig()
+        self.counters = counters or Counters()
+        self.device = ActuatorBusDevice(sim, self.counters, defer_replies=self.config.lockstep)
+        self.epoch_ns = self.config.epoch_ns
+        self._on_boundary, self._on_tick, self._on_retry, self._on_epoch = on_boundary, on_tick, on_retry, on_epoch
+        self.log = log or logging.getLogger("mfvs.robot_sim.bus")
+        self.loop_timer = LoopTimer(CYCLE_S)
+        #: realtime: how far the host's frames arrive from mid-cycle (the lock to the host)
+        self.phase_error = DurationStats()
+        self.received_at = 0.0
+        #: held while a boundary runs: tests and benchmarks read the simulation between cycles under it
+        self.lock = threading.Lock()
+        self.finished = threading.Event()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._last_tick: Optional[int] = None
+
+    def start(self) -> "ArmOnBus":
+        self._thread = threading.Thread(target=self.run, name="robot_sim-bus", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, close_bus: bool = True) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        if close_bus:
+            self.bus.close()
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def _done(self) -> bool:
+        limit = self.config.max_sim_time_s
+        return self._stop.is_set() or (limit > 0 and self.sim.time_ns >= limit * 1e9)
+
+    def run(self) -> None:
+        try:
+            if self.config.lockstep:
+                self._run_lockstep()
+            else:
+                self._run_realtime()
+        except Exception:
+            self.log.exception("actuator loop failed")
+            self.counters.inc("errors.loop")
+        finally:
+            self.finished.set()
+
+    def _set_epoch(self, epoch_ns: int) -> None:
+        self.epoch_ns = epoch_ns
+        if self._on_epoch is not None:
+            self._on_epoch(epoch_ns)
+
+    # ------------------------------------------------------------------ bus I/O
+    def _send(self, replies: np.ndarray) -> None:
+        if len(replies):
+            try:
+                self.bus.send_batch(replies, self.epoch_ns + self.device.values.stamp_ns)
+            except BusError:
+                pass  # counted by the bus; the host times out and holds the arm
+
+    def _serve(self, timeout_s: float) -> int:
+        """Receive what comes within ``timeout_s`` and answer it; how many commands (0x14) it held (-1: nothing
+        came). :attr:`received_at` is when it came (monotonic)."""
+        try:
+            batch, _ = self.bus.recv_batch(max(0.0, timeout_s))
+        except BusError:  # counted by the bus; the actuators keep their last command (torque mode times out)
+            time.sleep(min(max(0.0, timeout_s), 0.01))
+            return -1
+        if len(batch) == 0:
+            return -1
+        self.received_at = time.monotonic()
+        with self.lock:
+            self._send(self.device.receive_batch(batch))
+        return int(np.count_nonzero(batch["command"] == rs485.Command.POSITION_AND_TORQUE_COMMAND))
+
+    def _cycle(self) -> None:
+        """One boundary: the actuators take their commands (and report), a frame may be taken, physics runs; then
+        the DSP tick's clock, if the boundary was on the 10 ms grid."""
+        with self.lock:
+            self.loop_timer.tick()
+            tick = self.epoch_ns + self.sim.time_ns if self.sim.time_ns % DSP_CYCLE_NS == 0 else None
+            self._send(self.device.begin_cycle())
+            if self._on_boundary is not None:
+                self._on_boundary(self.sim.time_ns)
+            self.sim.end_cycle()
+        if tick is not None and self._on_tick is not None:
+            self._on_tick(tick)
+        self._last_tick = tick
+
+    # ------------------------------------------------------------------ realtime: paced, locked to the host
+    def _run_realtime(self) -> None:
+        # above every other realtime loop of the robot (its host's included): the emulated actuators stand in for
+        # the arm's own processors, which no host load ever delays
+        priority = min(99, self.config.realtime_priority + ACTUATOR_PRIORITY_ABOVE) if self.config.realtime_priority else 0
+        if request_realtime(priority, "emulated actuators"):
+            self.counters.inc("realtime_priority.granted")
+        self._set_epoch(time.time_ns() - self.sim.time_ns)  # the arm's time starts now, as wall time does
+        sync = self.config.sync
+        boundary = time.monotonic() + CYCLE_S
+        locked = False
+        while not self._done():
+            first_command, commands = None, 0
+            while True:  # serve the bus until the boundary (only what is queued, when the loop is late)
+                received = self._serve(boundary - time.monotonic())
+                if received < 0:
+                    if time.monotonic() >= boundary:
+                        break
+                    continue
+                if received and first_command is None:
+                    first_command = self.received_at
+                commands += received
+            behind = int((time.monotonic() - boundary) / CYCLE_S)
+            if behind > MAX_CATCH_UP_CYCLES:  # a stall too long to catch up: drop it, the stamps skip it
+                self.counters.inc("cycles.dropped", behind)
+                self._set_epoch(self.epoch_ns + behind * CYCLE_NS)
+                boundary += behind * CYCLE_S
+            elif behind > 0:
+                self.counters.inc("cycles.late")
+            self._cycle()
+            # lock the boundaries to the host, whose frames should arrive half a cycle after a boundary: from the
+            # first frame of the cycle (a cycle that got none says nothing about the phase); far off (at the start,
+            # or after the host's phase moved), jump there, close to it, follow gently
+            correction = 0.0
+            if behind == 0 and first_command is not None:
+                error = (first_command - (boundary - CYCLE_S)) - CYCLE_S / 2
+                self.phase_error.add(abs(error))
+                if abs(error) > CYCLE_S / 4 and (not locked or commands > len(self.device.index)):
+                    correction = error
+                    self.counters.inc("sync.jumps")
+                else:
+                    correction = max(-sync.max_step_s, min(sync.max_step_s, sync.gain * error))
+                locked = True
+            boundary += CYCLE_S + correction
+
+    # ------------------------------------------------------------------ lockstep: a cycle per host batch
+    def _run_lockstep(self) -> None:
+        timing = self.config.timing
+        self._last_tick = None
+        while not self._done():
+            start = time.monotonic()
+            next_retry = start + timing.retry_s
+            while not self.device.batch_complete and not self._stop.is_set():
+                now = time.monotonic()
+                if now - start >= timing.bus_timeout_s:  # no host (yet, or any more): the arm runs a cycle alone
+                    self.counters.inc("lockstep.timeouts.bus")
+                    break
+                if self._last_tick is not None and now >= next_retry:  # the host waits for that tick's answer
+                    self.counters.inc("lockstep.retries")
+                    if self._on_retry is not None:
+                        self._on_retry(self._last_tick)
+                    next_retry = now + timing.retry_s
+                self._serve(min(next_retry, start + timing.bus_timeout_s) - now)
+            self._cycle()

@@ -1,0 +1,159 @@
+"""The simulated arm's face on its RS-485 bus: what each actuator answers to the messages of ``protocol.rs485``
+(host 0x00, actuators at ``ActuatorConfig.addresses``). Pure: no bus, no threads, no wall time; the service feeds
+it the frames and sends what it returns, and decides when cycles end (:mod:`services.robot_sim.service`).
+
+* ``GET_ACTUAL_POSITION`` (0x01) → ``SEND_ACTUAL_POSITION`` (0x02), float[0] = position (deg, physical).
+* ``POSITION_AND_TORQUE_COMMAND`` (0x14) → one 0x15, 0x16 and 0x17 reply each, with the values of the current
+  cycle (the state at its boundary); the command itself is taken at the next boundary
+  (:class:`~services.robot_sim.firmware.ActuatorFirmware`). In lockstep the replies wait for that boundary, so
+  they carry the state the command acts from. 0x17 carries float [the newest position target (deg) and torque
+  command (N·m) received, mode (0 position / 1 torque), fault code] (this layout is mfvs's; the public sources do
+  not give one).
+* ``GET_TORQUE_VALIDATION_REQUEST`` (0x201), float[0] = the torque the host's model expects → 
+  ``SEND_TORQUE_VALIDATION`` (0x202), uint32[0] = 1 when it matches the measured torque within tolerance.
+* ``SWITCH_CONTROL_MODE_REQUEST`` (0x203), uint32[0] = 0 position / 1 torque → ``SWITCH_CONTROL_MODE_REPLY``
+  (0x204): 1 position OK, 257 torque OK, 0 refused.
+* ``CLEAR_FAULT_FLAG`` (0x33), ``START_SERVO``/``STOP_SERVO`` → ``ACK`` (0x3F); other commands → ``NACK``.
+* Faults are reported with ``REPORT_ERROR`` (0x30) once (the firmware latches them).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from protocol import rs485 as r
+from services.common.metrics import Counters
+from services.robot_sim.firmware import ActuatorValues
+from services.robot_sim.sim import Simulation
+
+
+class ActuatorBusDevice:
+    def __init__(self, sim: Simulation, counters: Counters | None = None, defer_replies: bool = False) -> None:
+        self.sim = sim
+        self.firmware = sim.firmware
+        self.counters = counters or self.firmware.counters
+        #: lockstep: a 0x14's replies go out at the boundary that takes it (with the state it acts from)
+        self.defer_replies = defer_replies
+        self.index = {a.address: a.index for a in self.firmware.actuators}
+        self._joint_of = np.full(256, -1)
+        self._addresses = np.array([a.address for a in self.firmware.actuators])
+        self._joint_of[self._addresses] = np.arange(len(self._addresses))
+        #: per joint, its three replies without their data
+        self._reply_template = r.records(3 * len(self._addresses)).reshape(-1, 3)
+        self._reply_template["source"] = self._addresses[:, None]
+        self._reply_template["destination"] = r.HOST_ADDRESS
+        self._reply_template["command"] = [r.Command.SEND_ALL_VALUES_1, r.Command.SEND_ALL_VALUES_2,
+                                           r.Command.SEND_ALL_VALUES_3]
+        self.values: ActuatorValues = self.firmware.values(sim.time_ns)
+        self._deferred: list[int] = []
+        self._commanded: set[int] = set()
+
+    # ------------------------------------------------------------------ batches (the hot path)
+    def receive_batch(self, batch: np.ndarray) -> np.ndarray:
+        """The replies to a batch of messages, as a batch. The cycle's 0x14 commands are handled together; any
+        other message one by one, before them."""
+        joints = self._joint_of[batch["destination"]]
+        commands = (batch["command"] == r.Command.POSITION_AND_TORQUE_COMMAND) & (joints >= 0)
+        if commands.all():
+            return self._commands(batch, joints)
+        out = [r.to_records(self.receive(message)) for message in r.from_records(batch[~commands])]
+        if commands.any():
+            out.append(self._commands(batch[commands], joints[commands]))
+        out = [b for b in out if len(b)]
+        return np.concatenate(out) if out else r.records(0)
+
+    def _commands(self, batch: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        self.counters.inc("bus.rx.position_and_torque_command", len(batch))
+        data = batch["data"].tolist()
+        replied, reports = [], []
+        for joint, (position, _, torque, _) in zip(joints.tolist(), data):
+            if math.isfinite(position) and math.isfinite(torque):
+                self.firmware.command(joint, position, torque)
+                self._commanded.add(joint)
+                if self.defer_replies:
+                    self._deferred.append(joint)
+                    continue
+            else:
+                self.counters.inc("bus.rejected_payloads")
+                reports += self._report(int(self._addresses[joint]),
+                                        self.firmware.fault(joint, r.ActuatorError.COMMAND))
+            replied.append(joint)
+        if not reports:
+            return self.replies_batch(replied) if replied else r.records(0)
+        return np.concatenate([r.to_records(reports), self.replies_batch(replied)])
+
+    def replies_batch(self, joints) -> np.ndarray:
+        """0x15, 0x16 and 0x17 of each of ``joints`` with this cycle's values, as a batch."""
+        joints = list(joints)
+        v = self.values
+        firmware = self.firmware
+        values = np.zeros((len(joints), 3, 4))
+        values[:, 0] = np.stack([v.current_a, v.position_deg, v.velocity_dps, v.torque_nm], axis=1)[joints]
+        for row, j in enumerate(joints):
+            target, torque = firmware.commanded(j)
+            actuator = firmware.actuators[j]
+            values[row, 2] = (target, torque, float(actuator.mode), float(actuator.fault))
+        out = self._reply_template[joints].reshape(-1)  # a copy: the ids and addresses of each joint's three
+        out["data"] = values.reshape(-1, 4)
+        # AllValues2: int16 [ax, ay, az (×0.001 g), temperature (×0.01 °C)], zero-filled
+        ints = out["data"][1::3].view("<i2")
+        ints[:] = 0
+        ints[:, 2] = 1000
+        ints[:, 3] = np.rint(v.temperature_c[joints] / 0.01)
+        return out
+
+    def receive(self, message: r.RS485Message) -> list[r.RS485Message]:
+        """The replies to one message (none when it is not for an actuator, or deferred to the boundary)."""
+        i = self.index.get(message.destination)
+        if i is None:
+            return []  # for someone else (or the host)
+        if message.command is not r.Command.POSITION_AND_TORQUE_COMMAND:  # those are counted as a batch
+            self.counters.inc(f"bus.rx.{message.command.name.lower()}")
+        address = message.destination
+        firmware = self.firmware
+        command = message.command
+        if command is r.Command.GET_ACTUAL_POSITION:
+            return [r.RS485Message.with_floats(r.Command.SEND_ACTUAL_POSITION, address, r.HOST_ADDRESS,
+                                               [firmware.position_deg(i)])]
+        if command is r.Command.POSITION_AND_TORQUE_COMMAND:
+            return r.from_records(self._commands(r.to_records([message]), np.array([i])))
+        if command is r.Command.GET_TORQUE_VALIDATION_REQUEST:
+            ok = firmware.validate_torque(i, message.floats[0])
+            return [r.RS485Message.with_uints(r.Command.SEND_TORQUE_VALIDATION, address, r.HOST_ADDRESS,
+                                              [1 if ok else 0])]
+        if command is r.Command.SWITCH_CONTROL_MODE_REQUEST:
+            return [r.switch_mode_reply(firmware.switch_mode(i, message.uints[0]), address)]
+        if command is r.Command.CLEAR_FAULT_FLAG:
+            firmware.clear_fault(i)
+            return [r.RS485Message(r.Command.ACK, address, r.HOST_ADDRESS)]
+        if command in (r.Command.START_SERVO, r.Command.STOP_SERVO):
+            return [r.RS485Message(r.Command.ACK, address, r.HOST_ADDRESS)]
+        self.counters.inc("bus.unsupported")
+        return [r.RS485Message(r.Command.NACK, address, r.HOST_ADDRESS)]
+
+    @property
+    def batch_complete(self) -> bool:
+        """Every actuator has a 0x14 for the next boundary (lockstep ends a cycle on this)."""
+        return len(self._commanded) == len(self.index)
+
+    # ------------------------------------------------------------------ the boundary
+    def begin_cycle(self) -> np.ndarray:
+        """The cycle boundary: the actuators take their commands and report; returns what goes on the bus now
+        (fault reports, and in lockstep the deferred replies), as a batch stamped with :attr:`values`' time.
+        Physics is the caller's (``sim.end_cycle()``), so that a camera frame can be taken at the boundary
+        first."""
+        self.values = self.sim.begin_cycle()
+        self._commanded.clear()
+        reports = []
+        for address, error in self.firmware.reports:
+            reports += self._report(address, error)
+        self.firmware.reports.clear()
+        parts = [r.to_records(reports)] if reports else []
+        if self._deferred:
+            parts.append(self.replies_batch(self._deferred))
+            self._deferred.clear()
+        return np.concatenate(parts) if parts else r.records(0)
+
+    def _report(self, address: int, error) -> list[r.RS485Message]:
+        return [] if error is None else [r.report_error(error, address)]

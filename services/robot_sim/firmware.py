@@ -1,0 +1,333 @@
+"""The seven JACO-2 actuators' own firmware, emulated on the MuJoCo joints: what each actuator does with the
+commands its bus brings, one bus cycle (2 ms) at a time, on the simulated arm's timeline.
+
+Nothing here knows about buses, threads or wall time: :class:`~services.robot_sim.bus_device.ActuatorBusDevice`
+turns RS-485 frames into these calls, and the in-process hardware of robot_sim makes the same calls directly, so
+both drive the arm through exactly the same arithmetic.
+
+Per actuator:
+
+* Position mode (interpolated): a target received during a cycle is taken at the next cycle boundary (if several
+  arrived, the newest wins; the others are counted as ``superseded``), and the reference moves from where it is to
+  that target across the cycle, arriving at its end, as the host planned it. A servo critically damped at
+  ``SERVO_BANDWIDTH_RPS`` for the joint's current inertia follows the reference, with the reference's rate and its
+  change of rate as feed-forward (inertia, friction, gravity). A cycle without a target (``missed``) goes on along
+  the reference's rate for that one cycle (where the host's next target would have taken it: a frame that is only
+  late then continues the motion without a jump), and after it the reference holds. A late host therefore shows
+  up as missed cycles and lost motion (a cycle's pause, when its target comes a cycle late), never as a faster
+  joint.
+* Torque mode: the target's position is the host's idea of where the joint is (more than
+  ``reference_tolerance_deg`` off latches a RELATIVE_POSITION fault), its torque is clamped to the actuator's
+  limit (a TORQUE report once), gravity compensation is added (the real DSP's option), and after
+  ``torque_timeout_s`` (250 ms) without a torque command the actuator falls back to holding its position.
+* Switching to torque mode needs a torque validation of the last ``validation_lifetime_s``: the host's expected
+  torque must match the measured one.
+* Faults (joint limits, torque, reference mismatch, a bad command) latch, are reported once, and make the
+  actuator hold its position until CLEAR_FAULT_FLAG.
+
+Where the emulation departs from the real actuators (whose firmware is not public): the 0x17 layout, the
+interpolation across a cycle and the one cycle of extrapolation on a missed target are mfvs's choices (what
+servo drives commonly do); the torque timeout and the gravity compensation follow kinova.md.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import msgspec
+import mujoco
+import numpy as np
+
+from protocol import rs485 as r
+from services.common import jaco2
+from services.common.config import ConfigStruct
+from services.common.metrics import Counters
+
+
+class ActuatorConfig(ConfigStruct):
+    addresses: list[int] = msgspec.field(default_factory=lambda: list(r.ACTUATOR_ADDRESSES))
+    torque_timeout_s: float = 0.25
+    gravity_compensation: bool = True
+    reference_tolerance_deg: float = 10.0
+    #: torque validation: the host's expected torque must match the measured one within this (N·m or fraction)
+    validation_tolerance_nm: float = 2.0
+    validation_tolerance_fraction: float = 0.2
+    validation_lifetime_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if len(self.addresses) != jaco2.N_JOINTS or len(set(self.addresses)) != jaco2.N_JOINTS:
+            raise ValueError(f"addresses must be {jaco2.N_JOINTS} distinct bus addresses")
+        if not 0 < self.torque_timeout_s:
+            raise ValueError("torque_timeout_s must be positive")
+
+
+#: N·m per A of a geared motor, and a steady temperature: emulation constants for the reported current and
+#: temperature (nothing in the simulation heats up)
+TORQUE_PER_AMPERE = 0.08
+ACTUATOR_TEMPERATURE_C = 35.0
+#: the bus cycle a target is interpolated across
+CYCLE_S = 0.002
+#: bounds of the reference's rate and acceleration (well beyond the arm's 48 deg/s and the DSP's 200 deg/s², so
+#: they only cut glitches)
+MAX_REFERENCE_RATE_DPS = 120.0
+MAX_REFERENCE_ACCEL_DPS2 = 2000.0
+#: a host silent this long has stopped (or not started) sending: its silence is not counted as missed cycles
+HOST_GONE_S = 0.25
+#: position-mode servo of each actuator: critically damped at this natural frequency for the inertia the joint
+#: currently drives, so that the shoulder follows its targets as promptly as the wrist (a fixed PD would leave
+#: the heavy joints ~30 ms behind the light ones, and a Cartesian motion that needs both would come out
+#: distorted)
+SERVO_BANDWIDTH_RPS = 150.0
+
+
+@dataclass
+class Actuator:
+    index: int
+    address: int
+    mode: r.ControlModeRequest = r.ControlModeRequest.POSITION
+    #: the reference's segment across the cycle from ``target_time_s``: start position (deg), rate (deg/s) and
+    #: the change of rate from the segment before (deg/s²); it ends at ``last_target_deg``
+    target_deg: float = 0.0
+    target_rate_dps: float = 0.0
+    target_accel_dps2: float = 0.0
+    target_time_s: float = -math.inf
+    #: the last target taken: where the reference arrives, and holds until the next
+    last_target_deg: float = 0.0
+    #: the newest 0x14 of this cycle (position deg, torque N·m), taken at the next boundary; and how many came
+    pending: Optional[tuple[float, float]] = None
+    pending_count: int = 0
+    last_command_s: float = -math.inf
+    torque_nm: float = 0.0
+    last_torque_s: float = -math.inf
+    validated_s: float = -math.inf
+    fault: r.ActuatorError = r.ActuatorError.NONE
+    reported: set = field(default_factory=set)
+
+
+@dataclass
+class ActuatorValues:
+    """What the actuators report at a cycle boundary (their own units and signs), for every 0x15-0x17 reply of
+    that cycle: float64 here, float32 on the wire."""
+
+    position_deg: np.ndarray
+    velocity_dps: np.ndarray
+    torque_nm: np.ndarray
+    current_a: np.ndarray
+    temperature_c: np.ndarray
+    mode: np.ndarray
+    fault: np.ndarray
+    #: the boundary's time on the arm's timeline
+    stamp_ns: int
+
+
+class ActuatorFirmware:
+    """The seven actuators on a MuJoCo arm: bus commands go in between cycle boundaries (:meth:`command`,
+    :meth:`validate_torque`, :meth:`switch_mode`, :meth:`clear_fault`); :meth:`begin_cycle` takes them at a
+    boundary; :meth:`apply` sets the joint torques every physics step."""
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, config: ActuatorConfig | None = None,
+                 counters: Counters | None = None) -> None:
+        self.model, self.data = model, data
+        self.config = config or ActuatorConfig()
+        self.counters = counters or Counters()
+        self.n = jaco2.N_JOINTS
+        self.torque_limit = model.actuator_ctrlrange[: self.n, 1].copy()
+        self.lower, self.upper = jaco2.model_limits()
+        self.actuators = [Actuator(i, address) for i, address in enumerate(self.config.addresses)]
+        self.by_address = {a.address: a for a in self.actuators}
+        self._mass = np.zeros((model.nv, model.nv))
+        self._friction = model.dof_damping[: self.n].copy()
+        #: the current cycle boundary's time (s) on the arm's timeline
+        self.now_s = 0.0
+        #: reports raised at a boundary (joint limits) for the bus to carry: (address, error)
+        self.reports: list[tuple[int, r.ActuatorError]] = []
+        self.hold_all()
+
+    # ------------------------------------------------------------------ state in actuator units
+    def values(self, stamp_ns: int) -> ActuatorValues:
+        d = self.data
+        q, dq = d.qpos[: self.n], d.qvel[: self.n]
+        torque = jaco2.SIGN * d.actuator_force[: self.n]
+        return ActuatorValues(
+            position_deg=jaco2.model_to_physical_deg(q), velocity_dps=jaco2.model_rate_to_physical(dq),
+            torque_nm=torque, current_a=torque / TORQUE_PER_AMPERE,
+            temperature_c=np.full(self.n, ACTUATOR_TEMPERATURE_C),
+            mode=np.array([int(a.mode) for a in self.actuators]),
+            fault=np.array([int(a.fault) for a in self.actuators]), stamp_ns=stamp_ns)
+
+    def commanded(self, i: int) -> tuple[float, float]:
+        """The newest position target and torque the actuator received (what its 0x17 reports), taken or not."""
+        a = self.actuators[i]
+        if a.pending is not None:
+            return a.pending
+        return a.last_target_deg, a.torque_nm
+
+    def position_deg(self, i: int) -> float:
+        return math.degrees(jaco2.SIGN[i] * float(self.data.qpos[i]))
+
+    def hold_all(self) -> None:
+        """Every actuator in position mode, holding where its joint is (at start and after a reset)."""
+        for a in self.actuators:
+            a.mode = r.ControlModeRequest.POSITION
+            a.fault = r.ActuatorError.NONE
+            a.reported.clear()
+            a.pending, a.pending_count = None, 0
+            a.last_command_s = -math.inf
+            self._hold(a)
+
+    def _hold(self, a: Actuator) -> None:
+        a.mode = r.ControlModeRequest.POSITION
+        a.target_deg = a.last_target_deg = self.position_deg(a.index)
+        a.target_rate_dps = a.target_accel_dps2 = 0.0
+        a.target_time_s = -math.inf
+        a.torque_nm = 0.0
+
+    # ------------------------------------------------------------------ commands (between boundaries)
+    def command(self, i: int, position_deg: float, torque_nm: float) -> None:
+        """A 0x14 for actuator ``i``: taken at the next boundary (the newest of a cycle wins)."""
+        a = self.actuators[i]
+        a.pending = (position_deg, torque_nm)
+        a.pending_count += 1
+
+    def validate_torque(self, i: int, expected_nm: float) -> bool:
+        cfg = self.config
+        a = self.actuators[i]
+        measured = float(jaco2.SIGN[i] * self.data.actuator_force[i])
+        ok = math.isfinite(expected_nm) and abs(expected_nm - measured) <= max(
+            cfg.validation_tolerance_nm, cfg.validation_tolerance_fraction * abs(measured))
+        if ok:
+            a.validated_s = self.now_s
+        return ok
+
+    def switch_mode(self, i: int, wanted: int) -> r.ControlModeReply:
+        a = self.actuators[i]
+        if wanted == r.ControlModeRequest.POSITION:
+            self._hold(a)
+            return r.ControlModeReply.POSITION_OK
+        recent = self.now_s - a.validated_s <= self.config.validation_lifetime_s
+        if wanted == r.ControlModeRequest.TORQUE and recent and a.fault is r.ActuatorError.NONE:
+            a.mode = r.ControlModeRequest.TORQUE
+            a.torque_nm = 0.0
+            a.last_torque_s = self.now_s
+            a.pending, a.pending_count = None, 0
+            return r.ControlModeReply.TORQUE_OK
+        self.counters.inc("mode_switch_refused")
+        return r.ControlModeReply.REFUSED
+
+    def clear_fault(self, i: int) -> None:
+        a = self.actuators[i]
+        a.fault = r.ActuatorError.NONE
+        a.reported.clear()
+
+    def fault(self, i: int, error: r.ActuatorError) -> Optional[r.ActuatorError]:
+        """Latch a fault (reported once: returns it when it is new)."""
+        a = self.actuators[i]
+        if a.fault is r.ActuatorError.NONE:
+            a.fault = error
+            self._hold(a)
+            self.counters.inc(f"faults.{error.name.lower()}")
+            return error
+        return None
+
+    # ------------------------------------------------------------------ the cycle boundary
+    def begin_cycle(self, now_s: float) -> None:
+        """Take the commands of the cycle that ended (the newest per actuator), time out torque mode, check the
+        joint limits. Faults to report go to :attr:`reports`."""
+        self.now_s = now_s
+        for a in self.actuators:
+            pending, count = a.pending, a.pending_count
+            a.pending, a.pending_count = None, 0
+            if count > 1:
+                self.counters.inc("frames.superseded", count - 1)
+            if pending is None:
+                if now_s - a.last_command_s <= HOST_GONE_S:
+                    self.counters.inc("frames.missed")
+            else:
+                a.last_command_s = now_s
+                if a.fault is r.ActuatorError.NONE:
+                    self._take(a, *pending)
+            if a.mode is r.ControlModeRequest.TORQUE and now_s - a.last_torque_s > self.config.torque_timeout_s:
+                self._hold(a)
+                self.counters.inc("torque_timeouts")
+            self._check_limits(a)
+
+    def _take(self, a: Actuator, position_deg: float, torque_nm: float) -> None:
+        if a.mode is r.ControlModeRequest.POSITION:
+            self._follow(a, position_deg)
+            return
+        if abs(position_deg - self.position_deg(a.index)) > self.config.reference_tolerance_deg:
+            self._report(a, self.fault(a.index, r.ActuatorError.RELATIVE_POSITION))
+            return
+        limit = float(self.torque_limit[a.index])
+        torque = min(max(torque_nm, -limit), limit)
+        if torque != torque_nm and r.ActuatorError.TORQUE not in a.reported:
+            a.reported.add(r.ActuatorError.TORQUE)  # clamped: reported once, not latched
+            self._report(a, r.ActuatorError.TORQUE)
+        a.torque_nm = torque
+        a.last_torque_s = self.now_s
+
+    def _report(self, a: Actuator, error: Optional[r.ActuatorError]) -> None:
+        if error is not None:
+            self.reports.append((a.address, error))
+
+    def _reference_deg(self, a: Actuator, t_s: float) -> tuple[float, float]:
+        """The reference's position and rate at ``t_s``: along its segment during the cycle and, without a new
+        target, along the same rate for one more cycle; then it holds there."""
+        ahead = t_s - a.target_time_s
+        if 0.0 <= ahead < 2 * CYCLE_S - 1e-9:
+            return a.target_deg + a.target_rate_dps * ahead, a.target_rate_dps
+        if ahead >= 0.0:
+            return a.target_deg + a.target_rate_dps * 2 * CYCLE_S, 0.0
+        return a.last_target_deg, 0.0
+
+    def _follow(self, a: Actuator, position_deg: float) -> None:
+        """A new position target at this boundary: a segment from where the reference is to the target, across the
+        cycle."""
+        start, _ = self._reference_deg(a, self.now_s)
+        ahead = self.now_s - a.target_time_s
+        # the rate the reference moved at up to now (at the end of its one cycle of going on, it still moved)
+        rate_before = a.target_rate_dps if 0.0 <= ahead <= 2 * CYCLE_S + 1e-9 else 0.0
+        rate = (position_deg - start) / CYCLE_S
+        rate = min(max(rate, -MAX_REFERENCE_RATE_DPS), MAX_REFERENCE_RATE_DPS)  # a glitch, not a trajectory
+        accel = (rate - rate_before) / CYCLE_S
+        a.target_deg, a.last_target_deg = start, position_deg
+        a.target_rate_dps = rate
+        a.target_accel_dps2 = min(max(accel, -MAX_REFERENCE_ACCEL_DPS2), MAX_REFERENCE_ACCEL_DPS2)
+        a.target_time_s = self.now_s
+
+    def _check_limits(self, a: Actuator) -> None:
+        i = a.index
+        if not np.isfinite(self.lower[i]):
+            return
+        q = self.data.qpos[i]
+        if q < self.lower[i] or q > self.upper[i]:
+            self._report(a, self.fault(i, r.ActuatorError.POSITION_LIMIT))
+
+    # ------------------------------------------------------------------ physics
+    def apply(self, t_s: float) -> None:
+        """The actuators' torques for the physics step starting at ``t_s`` (the arm's timeline)."""
+        d = self.data
+        n = self.n
+        q, dq = d.qpos[:n], d.qvel[:n]
+        tau = np.empty(n)
+        gravity = d.qfrc_bias[:n]  # at rest this is the gravity torque; it also cancels Coriolis terms
+        mujoco.mj_fullM(self.model, d, self._mass)
+        inertia = np.diag(self._mass)[:n]
+        kp, kd = inertia * SERVO_BANDWIDTH_RPS**2, inertia * 2.0 * SERVO_BANDWIDTH_RPS
+        accel = np.zeros(n)
+        for a in self.actuators:
+            i = a.index
+            if a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE:
+                tau[i] = jaco2.SIGN[i] * a.torque_nm + (gravity[i] if self.config.gravity_compensation else 0.0)
+                continue
+            # follow the reference, with the inertia, friction and gravity its motion needs as feed-forward (the
+            # segment's change of rate during the cycle it was taken in)
+            reference_deg, rate_dps = self._reference_deg(a, t_s)
+            rate = jaco2.SIGN[i] * math.radians(rate_dps)
+            if 0.0 <= t_s - a.target_time_s < CYCLE_S - 1e-9:
+                accel[i] = jaco2.SIGN[i] * math.radians(a.target_accel_dps2)
+            target = jaco2.SIGN[i] * math.radians(reference_deg)
+            tau[i] = gravity[i] + self._friction[i] * rate + kp[i] * (target - q[i]) + kd[i] * (rate - dq[i])
+        tau += self._mass[:n, :n] @ accel
+        d.ctrl[:n] = np.clip(tau, -self.torque_limit, self.torque_limit)

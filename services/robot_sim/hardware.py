@@ -1,0 +1,79 @@
+"""The simulated arm as the robot node's hardware, in this process: each exchange is one bus cycle of
+:class:`~services.robot_sim.sim.Simulation` (the actuators take the targets at the boundary, report their values,
+physics runs to the next boundary).
+
+Targets and readings pass through float32, as the RS-485 frames carry them, so the same arm gives the node the same
+numbers whether it sits in this process or behind the bus (robot_sim's actuator-bus mode and robot_gateway).
+"""
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import numpy as np
+
+from protocol import rs485 as r
+from services.common import jaco2
+from services.robot.hardware import HardwareError, JointReading, JointTargets, physical_targets, \
+    reading_from_physical
+from services.robot_sim.firmware import ActuatorValues
+from services.robot_sim.sim import Simulation
+
+
+def float32(values) -> np.ndarray:
+    """What a float32 field of an RS-485 frame makes of these numbers."""
+    return np.asarray(values, dtype=np.float64).astype(np.float32).astype(np.float64)
+
+
+def reading_from_values(values: ActuatorValues, epoch_ns: int = 0) -> JointReading:
+    """The reading the 0x15-0x17 replies of this cycle carry (float32 values, the 0x16 temperature in 0.01 °C)."""
+    return reading_from_physical(float32(values.position_deg), float32(values.velocity_dps),
+                                 float32(values.torque_nm), float32(values.current_a),
+                                 np.round(values.temperature_c / 0.01) * 0.01, values.mode, values.fault,
+                                 epoch_ns + values.stamp_ns)
+
+
+class SimulatedHardware:
+    simulated_in_process = True
+
+    def __init__(self, sim: Simulation, epoch_ns: int = 0,
+                 on_boundary: Optional[Callable[[ActuatorValues], None]] = None) -> None:
+        self.sim = sim
+        #: stamps are ``epoch_ns`` plus the arm's time (wall-like in realtime, from 1 s in lockstep)
+        self.epoch_ns = epoch_ns
+        #: called at each cycle boundary, before physics moves on (robot_sim snapshots camera frames there)
+        self.on_boundary = on_boundary
+
+    def read(self) -> JointReading:
+        """The joints now, without a cycle (at start)."""
+        return reading_from_values(self.sim.firmware.values(self.sim.time_ns), self.epoch_ns)
+
+    def exchange(self, targets: JointTargets) -> JointReading:
+        position_deg, torque_nm = physical_targets(targets)
+        position_deg, torque_nm = float32(position_deg), float32(torque_nm)
+        firmware = self.sim.firmware
+        for i in range(jaco2.N_JOINTS):
+            firmware.command(i, float(position_deg[i]), float(torque_nm[i]))
+        values = self.sim.begin_cycle()
+        firmware.reports.clear()  # the faults are in the values; a bus would carry them as REPORT_ERROR too
+        if self.on_boundary is not None:
+            self.on_boundary(values)
+        self.sim.end_cycle()
+        return reading_from_values(values, self.epoch_ns)
+
+    def enter_torque_mode(self, expected_torques: np.ndarray) -> None:
+        firmware = self.sim.firmware
+        expected = float32(jaco2.SIGN * np.asarray(expected_torques, dtype=float))
+        invalid = [i for i in range(jaco2.N_JOINTS) if not firmware.validate_torque(i, float(expected[i]))]
+        if invalid:
+            raise HardwareError(f"torque validation failed for actuators {[i + 1 for i in invalid]}")
+        refused = [i for i in range(jaco2.N_JOINTS)
+                   if firmware.switch_mode(i, r.ControlModeRequest.TORQUE) is not r.ControlModeReply.TORQUE_OK]
+        if refused:
+            raise HardwareError(f"torque mode refused by actuators {[i + 1 for i in refused]}")
+
+    def leave_torque_mode(self) -> None:
+        for i in range(jaco2.N_JOINTS):
+            self.sim.firmware.switch_mode(i, r.ControlModeRequest.POSITION)
+
+    def close(self) -> None:
+        pass
