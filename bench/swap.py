@@ -1,10 +1,12 @@
-"""The swap, measured: one servo scenario through robot_sim's own DSP and through robot_gateway on the RS-485
-bus, several runs each, with the iterations to converge, the final error and the wall time of every run.
+"""The swap, measured: servo scenarios through robot_sim's own DSP and through robot_gateway on the RS-485 bus,
+several runs each, with the iterations to converge, the final error, the peak measured end-effector speed
+(J(q)·dq of every robot state) and the wall time of every run.
 
-Profiles: ``sim-lockstep`` (deterministic, the reference count), ``sim-realtime`` and ``gateway-realtime``
-(the gateway is realtime only, so the fair comparison is with the sim profile in realtime).
+Profiles: ``sim-lockstep`` and ``gateway-lockstep`` (deterministic: one run each, and they must agree exactly),
+``sim-realtime`` and ``gateway-realtime`` (the gateway's iterations should be within 10 % of the sim's).
 
-``python -m bench.swap [--json] [--runs N] [--scenario FILE]`` or ``mfvs bench swap``.
+``python -m bench.swap [--json] [--runs N] [--scenario FILE ...]`` or ``mfvs bench swap``; without ``--scenario``
+every file in ``examples/scenarios``.
 """
 from __future__ import annotations
 
@@ -16,12 +18,14 @@ from pathlib import Path
 from protocol.conventions import ClockMode
 from services.servo import load_scenario, run
 
-DEFAULT_SCENARIO = Path(__file__).resolve().parents[1] / "examples" / "scenarios" / "table2.yaml"
-PROFILES = {"sim-lockstep": ("sim", ClockMode.LOCKSTEP), "sim-realtime": ("sim", ClockMode.REALTIME),
-            "gateway-realtime": ("gateway", ClockMode.REALTIME)}
+SCENARIOS = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
+PROFILES = {"sim-lockstep": ("sim", ClockMode.LOCKSTEP), "gateway-lockstep": ("gateway", ClockMode.LOCKSTEP),
+            "sim-realtime": ("sim", ClockMode.REALTIME), "gateway-realtime": ("gateway", ClockMode.REALTIME)}
+#: the speed limit safety applies to commands (safety.yaml), to compare the measured peak with
+LINEAR_SPEED_LIMIT_MPS = 0.15
 
 
-def measure(scenario_path: Path, runs: int, profiles: list[str]) -> dict:
+def measure_scenario(scenario_path: Path, runs: int, profiles: list[str]) -> dict:
     results = {}
     for name in profiles:
         profile, clock = PROFILES[name]
@@ -30,22 +34,33 @@ def measure(scenario_path: Path, runs: int, profiles: list[str]) -> dict:
             scenario = load_scenario(scenario_path)
             scenario.clock = clock
             result = run(scenario, profile=profile)
-            rows.append({"converged": result.converged, "iterations": result.iterations,
-                         "final_error_norm": result.final_error_norm, "wall_time_s": result.wall_time_s})
+            rows.append({"converged": result.converged, "status": result.status, "iterations": result.iterations,
+                         "final_error_norm": result.final_error_norm,
+                         "peak_speed_mps": round(result.max_linear_speed_mps, 4),
+                         "wall_time_s": result.wall_time_s})
         converged = [row["iterations"] for row in rows if row["converged"]]
         results[name] = {
             "runs": rows, "converged": f"{len(converged)}/{len(rows)}",
             "iterations_median": statistics.median(converged) if converged else None,
             "iterations_min": min(converged, default=None), "iterations_max": max(converged, default=None),
+            "peak_speed_mps": max(row["peak_speed_mps"] for row in rows),
         }
-    return {"scenario": str(scenario_path), "profiles": results}
+    comparison = {}
+    for clock in ("lockstep", "realtime"):
+        sim, gateway = results.get(f"sim-{clock}"), results.get(f"gateway-{clock}")
+        if sim and gateway and sim["iterations_median"] and gateway["iterations_median"]:
+            comparison[clock] = {"gateway_over_sim": round(gateway["iterations_median"] / sim["iterations_median"], 3),
+                                 "worst_gateway_over_sim": round(gateway["iterations_max"] / sim["iterations_median"],
+                                                                 3)}
+    return {"scenario": str(scenario_path), "profiles": results, "comparison": comparison}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mfvs bench swap", description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--runs", type=int, default=3, help="runs per realtime profile (default 3)")
-    parser.add_argument("--scenario", type=Path, default=DEFAULT_SCENARIO, help="scenario YAML (default table2)")
+    parser.add_argument("--scenario", type=Path, action="append",
+                        help="scenario YAML, repeatable (default: every file in examples/scenarios)")
     parser.add_argument("--profiles", default=",".join(PROFILES),
                         help=f"comma-separated subset of {', '.join(PROFILES)}")
     args = parser.parse_args(argv)
@@ -53,16 +68,25 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [p for p in profiles if p not in PROFILES]
     if unknown or args.runs < 1:
         parser.error(f"unknown profiles {unknown}" if unknown else "--runs must be at least 1")
-    result = measure(args.scenario, args.runs, profiles)
+    scenarios = args.scenario or sorted(SCENARIOS.glob("*.yaml"))
+    results = []
+    for path in scenarios:
+        result = measure_scenario(path, args.runs, profiles)
+        results.append(result)
+        if args.json:
+            continue
+        print(f"scenario {result['scenario']}")
+        for name, r in result["profiles"].items():
+            runs = ", ".join(f"{row['iterations']}{'' if row['converged'] else ' (' + row['status'] + ')'}"
+                             for row in r["runs"])
+            print(f"  {name:17s} converged {r['converged']}, iterations median {r['iterations_median']} "
+                  f"(runs: {runs}), peak speed {r['peak_speed_mps']:.3f} m/s (limit {LINEAR_SPEED_LIMIT_MPS})",
+                  flush=True)
+        for clock, c in result["comparison"].items():
+            print(f"  {clock}: gateway/sim iterations {c['gateway_over_sim']} (worst run {c['worst_gateway_over_sim']})",
+                  flush=True)
     if args.json:
-        print(json.dumps(result))
-        return 0
-    print(f"scenario {result['scenario']}")
-    for name, r in result["profiles"].items():
-        runs = ", ".join(f"{row['iterations']}{'' if row['converged'] else ' (not converged)'}"
-                         for row in r["runs"])
-        print(f"  {name:17s} converged {r['converged']}, iterations median {r['iterations_median']} "
-              f"(runs: {runs})")
+        print(json.dumps({"scenarios": results}))
     return 0
 
 

@@ -19,6 +19,10 @@ def _version() -> str:
 def _cmd_router(args: argparse.Namespace) -> int:
     from services.common.transport import Router
 
+    from services.robot.pacing import request_realtime
+
+    # the router carries the command path (safety to the robot): it must not wait behind the rest of the host
+    request_realtime(args.realtime_priority, "router")
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
@@ -32,8 +36,13 @@ def _cmd_bus_hub(args: argparse.Namespace) -> int:
     from services.common.can_hub import CanHub
     from services.common.logs import setup_logging
 
+    from services.robot.pacing import request_realtime
+
     setup_logging("info")
     hub = CanHub(port=args.port, host=args.host)
+    # the hub carries the robot's bus: it relays every 2 ms cycle between the gateway and the actuators, whose
+    # loops run at realtime priority; a hub that waits behind the rest of the host would stall both
+    request_realtime(args.realtime_priority, "CAN hub")
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: hub.stop())
     try:
@@ -166,9 +175,6 @@ def _cmd_up(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"mfvs up: {exc}", file=sys.stderr)
         return 2
-    if profile.realtime_only and args.clock == "lockstep":
-        print("mfvs up: robot_gateway runs in realtime only (a real arm has no simulated clock)", file=sys.stderr)
-        return 2
     code, message = up(profile, args.clock, args.wait)
     print(message, file=sys.stderr if code else sys.stdout)
     return code
@@ -197,13 +203,14 @@ def _cmd_status(args: argparse.Namespace) -> int:
         for s in report["services"]:
             rates = ", ".join(f"{k} {v:.1f} Hz" for k, v in sorted(s["rates_hz"].items()))
             errors = ", ".join(f"{k} {v}" for k, v in sorted(s["errors"].items())) or "no errors"
-            print(f"  {s['name']:12s} pid {s['pid']}  {'healthy' if s['healthy'] else 'UNHEALTHY'}  {rates}; "
-                  f"{errors}")
+            condition = s["condition"].upper() if s["condition"] != "healthy" else "healthy"
+            why = f" ({'; '.join(s['degraded'])})" if s["degraded"] else ""
+            print(f"  {s['name']:12s} pid {s['pid']}  {condition}{why}  {rates}; {errors}")
     return 0 if report["router"]["reachable"] else 1
 
 
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
-              "rs485": "bench.rs485", "swap": "bench.swap"}
+              "rs485": "bench.rs485", "swap": "bench.swap", "cpu": "bench.cpu", "gateway": "bench.gateway"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -232,12 +239,17 @@ def build_parser() -> argparse.ArgumentParser:
     router.add_argument("--port", type=int, default=7447, help="TCP port to listen on (0: a free one; default 7447)")
     router.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     router.add_argument("--config", default=None, help="zenoh JSON5 config file (access control, TLS)")
+    router.add_argument("--realtime-priority", type=int, default=30, metavar="N",
+                        help="SCHED_FIFO priority where the OS grants it: the router carries safety's commands to "
+                             "the robot (0: normal scheduling)")
     router.set_defaults(func=_cmd_router)
 
     hub = sub.add_parser("bus-hub", help="run the loopback CAN hub that carries RS-485 frames between robot_sim's "
                          "emulated actuators and robot_gateway (python-can interface mfvs_hub)")
     hub.add_argument("--port", type=int, default=7448, help="TCP port to listen on (default 7448)")
     hub.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    hub.add_argument("--realtime-priority", type=int, default=40, metavar="N",
+                     help="SCHED_FIFO priority where the OS grants it, as the robot's loops (0: normal scheduling)")
     hub.set_defaults(func=_cmd_bus_hub)
 
     model = sub.add_parser("model", help="the JACO-2 j2s7s300 description")

@@ -7,7 +7,7 @@ file, logging to the run directory (``$MFVS_RUN_DIR``, default ``~/.local/state/
 - ``sim``: robot_sim (its emulated DSP and API), vision, controller, safety with their shipped configs;
 - ``gateway``: the same, except that robot_sim runs only the actuators (``mode: actuator_bus``) on an RS-485 bus
   carried by the loopback CAN hub (``mfvs bus-hub``), and robot_gateway offers the robot's zenoh API on top of
-  that bus, as it would for a real arm (realtime only);
+  that bus, as it would for a real arm (in lockstep the actuators wait for each of the gateway's exchanges);
 - a YAML file::
 
     router: {port: 7447, config: null}          # config: a zenoh router config (access control, TLS)
@@ -69,10 +69,6 @@ class Profile(ConfigStruct):
         unknown = [s.name for s in self.services if s.name not in KNOWN_SERVICES]
         if unknown:
             raise ValueError(f"unknown services {unknown}; known: {', '.join(KNOWN_SERVICES)}")
-
-    @property
-    def realtime_only(self) -> bool:
-        return any(s.name == "robot_gateway" for s in self.services)
 
 
 def _shipped(name: str, overrides: list[str] | None = None) -> ProfileService:
@@ -252,11 +248,18 @@ def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -
         router["error"] = str(exc)
         found = {}
     for name, health in sorted(found.items()):
+        if health is None:
+            condition = "unknown"
+        elif not health.healthy:
+            condition = "unhealthy"
+        else:
+            condition = "degraded" if health.degraded else "healthy"
         services.append({
             "name": name, "pid": health.pid if health else pids.get(name),
-            "healthy": bool(health and health.healthy), "state": health.state if health else "unknown",
+            "healthy": condition == "healthy", "condition": condition,
+            "state": health.state if health else "unknown",
             "rates_hz": dict(health.rates_hz) if health else {}, "errors": dict(health.errors) if health else {},
-            "detail": health.detail if health else "",
+            "degraded": list(health.degraded) if health else [], "detail": health.detail if health else "",
         })
     return {"router": router, "services": services}
 

@@ -248,7 +248,8 @@ class _Watcher:
 
 def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim") -> ServoResult:
     """Run the scenario through a local stack; ``progress(iteration_record)`` is called per iteration. The gateway
-    profile drives the simulated arm through robot_gateway and its RS-485 bus, in realtime."""
+    profile drives the simulated arm through robot_gateway and its RS-485 bus (the hub, robot_sim's actuators and
+    the gateway as processes), in the scenario's clock mode."""
     config = stack_config(scenario)
     config.profile = profile
     joint_output = config.controller.law in JOINT_LAWS
@@ -315,7 +316,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         limited = np.isfinite(lower)
         over = np.maximum(q_all[:, limited] - upper[limited], lower[limited] - q_all[:, limited])
         violation = max(0.0, float(np.degrees(over.max())))
-    speeds = [float(np.linalg.norm((kin.jacobian_base(s.q) @ np.asarray(s.dq))[:3])) for s in states[::5]]
+    speeds = [float(np.linalg.norm((kin.jacobian_base(s.q) @ np.asarray(s.dq))[:3])) for s in states]
     result = ServoResult(
         converged=status == "converged",
         iterations=max((r.iteration for r in records), default=0),

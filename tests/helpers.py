@@ -18,3 +18,29 @@ def random_q(rng, margin_deg: float = 2.0) -> np.ndarray:
 class PinArm(ArmKinematics):
     """Reference kinematics for tests: the product's Pinocchio wrapper (checked against MuJoCo and the DH table
     in test_jaco2_model)."""
+
+
+class CpuLoad:
+    """Keeps every core busy (one spinning process per core, at normal priority), as another program on a shared
+    machine would: a context manager. What runs beside it must stay correct: late, counted, never faster. (Plain
+    processes, not multiprocessing's: those would re-import the caller's main module.)"""
+
+    def __init__(self, processes: int | None = None) -> None:
+        import os
+
+        self.count = processes if processes is not None else (os.cpu_count() or 1)
+        self._procs = []
+
+    def __enter__(self) -> "CpuLoad":
+        import subprocess
+        import sys
+
+        for _ in range(self.count):
+            self._procs.append(subprocess.Popen([sys.executable, "-c", "while True: pass"]))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for process in self._procs:
+            process.kill()
+            process.wait(timeout=5)
+        self._procs.clear()

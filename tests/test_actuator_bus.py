@@ -1,5 +1,6 @@
-"""robot_sim's actuators on an RS-485 bus carried by python-can (virtual interface): replies byte for byte,
-the torque-mode handshake, the 250 ms torque fallback, faults, and garbled frames."""
+"""robot_sim's actuators on an RS-485 bus carried by python-can (virtual interface), cycle by cycle on the arm's
+timeline: replies byte for byte, interpolated position mode, the torque-mode handshake, the 250 ms torque
+fallback, faults, missed and superseded frames, and garbled frames."""
 import itertools
 import math
 import struct
@@ -10,33 +11,39 @@ import pytest
 from protocol import rs485 as r
 from services.common import jaco2
 from services.common.rs485_bus import BusConfig, RS485Bus
-from services.robot_sim.actuator_bus import ActuatorBusEmulator, quadratic_at_end
+from services.robot_sim.bus_device import ActuatorBusDevice
 from services.robot_sim.sim import Simulation
 
 _channels = itertools.count()
 
 
 class Rig:
-    """A simulated arm whose actuators sit on a bus, and the host's end of that bus."""
+    """A simulated arm whose actuators sit on a bus (answering each frame as it comes, as in realtime), and the
+    host's end of that bus."""
 
     def __init__(self):
         channel = f"test-bus-{next(_channels)}"
         self.sim = Simulation(render=False)
         self.host = RS485Bus(BusConfig(channel=channel))
         self.device_bus = RS485Bus(BusConfig(channel=channel))
-        self.emulator = ActuatorBusEmulator(self.sim.model, self.sim.data, self.device_bus)
-        self.sim.actuators = self.emulator
-        self.t = 0.0
+        self.device = ActuatorBusDevice(self.sim)
+        self.firmware = self.sim.firmware
 
     def cycle(self, n: int = 1) -> list[r.RS485Message]:
-        """n cycles of 2 ms: the actuators handle the bus, physics runs; returns what the host received."""
-        replies = []
+        """n cycles of 2 ms: the frames that came are answered, the boundary takes their commands, physics runs;
+        returns what the host received."""
+        return [message for message, _ in self.cycle_stamped(n)]
+
+    def cycle_stamped(self, n: int = 1) -> list[tuple[r.RS485Message, int]]:
         for _ in range(n):
-            self.emulator.process(self.t)
-            self.sim.step_physics(2)
-            self.t += 0.002
-            replies += self.host.drain()
-        return replies
+            batch, _ = self.device_bus.recv_batch(0.0)
+            self.device_bus.send_batch(self.device.receive_batch(batch), self.device.values.stamp_ns)
+            self.device_bus.send_batch(self.device.begin_cycle(), self.device.values.stamp_ns)
+            self.sim.end_cycle()
+        received = []
+        while (item := self.host.recv_stamped(0.0)) is not None:
+            received.append(item)
+        return received
 
     def request(self, message: r.RS485Message) -> list[r.RS485Message]:
         self.host.send(message)
@@ -82,6 +89,14 @@ def test_position_and_torque_command_gets_one_reply_of_each_kind(rig):
     assert len(replies) == 21 and {m.source for m in replies} == set(r.ACTUATOR_ADDRESSES)
 
 
+def test_replies_are_stamped_with_the_arm_cycle_they_report(rig):
+    rig.cycle(3)  # boundaries at 0, 2 and 4 ms: the third cycle runs from 4 ms
+    rig.host.send(r.PositionTorqueCommand(float(jaco2.HOME_DEG[0]), 0.0).to_message(0x10))
+    stamped = rig.cycle_stamped(1)
+    # the command came during that cycle: the replies carry its values and its time
+    assert {stamp for _, stamp in stamped} == {4_000_000}
+
+
 def test_position_mode_moves_the_joint_to_the_target(rig):
     target = float(jaco2.HOME_DEG[3]) + 5.0
     for _ in range(400):
@@ -90,48 +105,69 @@ def test_position_mode_moves_the_joint_to_the_target(rig):
     assert jaco2.model_to_physical_deg(rig.sim.q)[3] == pytest.approx(target, abs=0.1)
 
 
-def test_reference_fit_recovers_a_quadratic():
-    times = [0.0, 0.002, 0.002, 0.006, 0.008, 0.010]  # jittered arrivals: two in one cycle, none in another
-    position, rate, accel = quadratic_at_end([(t, 3.0 - 2.0 * t + 40.0 * t * t) for t in times], 0.010)
-    assert (position, rate, accel) == pytest.approx((3.0 - 0.02 + 0.004, -2.0 + 0.8, 80.0), rel=1e-9)
+def test_a_target_is_reached_at_the_end_of_the_cycle_that_takes_it(rig):
+    """Interpolated position mode: the reference moves from where it is to the new target across one cycle."""
+    address, home = 0x15, float(jaco2.HOME_DEG[5])
+    actuator = rig.firmware.actuators[5]
+    rig.host.send(r.PositionTorqueCommand(home + 0.01, 0.0).to_message(address))
+    rig.cycle(1)
+    assert actuator.last_target_deg == f32(home + 0.01)
+    assert actuator.target_rate_dps == pytest.approx((f32(home + 0.01) - home) / 0.002, rel=1e-3)
+    assert rig.firmware._reference_deg(actuator, actuator.target_time_s + 0.001)[0] == \
+        pytest.approx((home + f32(home + 0.01)) / 2, abs=1e-4)
 
 
-def test_commands_handled_back_to_back_do_not_distort_the_reference(rig):
-    """A loop catching up handles two cycles' commands microseconds apart: the reference rate stays the target's
-    (a fit through near-simultaneous samples would read 418 deg/s for 20)."""
+def test_a_missed_cycle_goes_on_one_cycle_then_holds_and_superseded_ones_are_counted(rig):
+    """A host that is late: a cycle without a target continues the reference along its rate for that cycle (where
+    the host's next target would have taken it), then the reference holds; two targets in one cycle keep the
+    newer. Both are counted, and a target that only came late continues the motion without a jump."""
     address, home = 0x11, float(jaco2.HOME_DEG[1])
-    actuator = rig.emulator.by_address[address]
-    # (when handled, which cycle's target): cycle 3 is handled late, cycle 4 right after it
-    for t, cycle in ((0.0, 0), (0.002, 1), (0.004, 2), (0.0080, 3), (0.0081, 4), (0.010, 5), (0.012, 6)):
-        rig.host.send(r.PositionTorqueCommand(home + 20.0 * cycle * 0.002, 0.0).to_message(address))
-        rig.emulator.process(t)
-        rig.host.drain()
-        assert abs(actuator.target_rate_dps) <= 25.0, t
-    assert actuator.target_rate_dps == pytest.approx(20.0, rel=0.1)
+    actuator = rig.firmware.actuators[1]
+    for k in range(5):
+        rig.host.send(r.PositionTorqueCommand(home + 0.02 * k, 0.0).to_message(address))
+        rig.cycle(1)
+    start, rate = actuator.target_deg, actuator.target_rate_dps  # the segment from the 4th target to the 5th
+    assert rate == pytest.approx(0.02 / 0.002, rel=1e-3)
+    rig.cycle(1)  # nothing came
+    assert rig.firmware.counters.get("frames.missed") >= 1
+    assert rig.firmware._reference_deg(actuator, actuator.target_time_s + 0.003) == pytest.approx(
+        (start + rate * 0.003, rate))
+    assert rig.firmware._reference_deg(actuator, actuator.target_time_s + 0.0045) == pytest.approx(
+        (start + rate * 0.004, 0.0))  # it went on one cycle, and holds there
+    # the late target and the next one come in the same cycle: the newer wins, from where the reference went on
+    rig.host.send(r.PositionTorqueCommand(home + 0.10, 0.0).to_message(address))
+    rig.host.send(r.PositionTorqueCommand(home + 0.12, 0.0).to_message(address))
+    rig.cycle(1)
+    assert actuator.last_target_deg == f32(home + 0.12)
+    assert rig.firmware.counters.get("frames.superseded") == 1
+    assert actuator.target_deg == pytest.approx(start + rate * 0.004, abs=1e-4)  # no jump
+    assert actuator.target_rate_dps == pytest.approx(0.02 / 0.002, rel=0.05)  # at the host's pace
 
 
 @pytest.mark.parametrize("joint", [1, 5])
 def test_position_mode_follows_a_moving_target_without_lag_or_overshoot(rig, joint):
-    """A heavy shoulder joint and a light wrist joint both follow a 4 Hz sinusoidal target sent at 500 Hz with
-    the jitter of a host that is not hard realtime (every 7th command late by a cycle): the fundamental of the
-    reported position matches the target's within 3 % and 2 ms (one cycle), like the simulator's own servos."""
+    """A heavy shoulder joint and a light wrist joint both follow a 4 Hz sinusoidal target sent at 500 Hz, each
+    target for the end of the cycle that takes it (as the robot node plans), with the jitter of a host that is
+    not hard realtime (every 7th command late by a cycle): the fundamental of the reported position matches the
+    target's within 3 % and within a cycle."""
     address = r.ACTUATOR_ADDRESSES[joint]
     home = float(jaco2.HOME_DEG[joint])
     f, amplitude = 4.0, 0.5
-    t_host, times, positions = 0.0, [], []
+
+    def target(t):
+        return home + amplitude * math.sin(2 * math.pi * f * t) * min(1.0, t / 0.3)
+
+    times, positions = [], []
     for k in range(700):
-        t_host = k * 0.002
         late = k % 7 == 3
         if not late:
-            target = home + amplitude * math.sin(2 * math.pi * f * t_host) * min(1.0, t_host / 0.3)
-            rig.host.send(r.PositionTorqueCommand(target, 0.0).to_message(address))
-        for reply in rig.cycle(1):
+            rig.host.send(r.PositionTorqueCommand(target((k + 1) * 0.002), 0.0).to_message(address))
+        for reply, stamp in rig.cycle_stamped(1):
             if reply.command is r.Command.SEND_ALL_VALUES_1 and reply.source == address:
-                times.append(rig.t)
+                times.append(stamp * 1e-9)
                 positions.append(reply.floats[1] - home)
         if late:  # the late command arrives with the next one, in the same cycle
-            rig.host.send(r.PositionTorqueCommand(home + amplitude * math.sin(2 * math.pi * f * t_host),
-                                                  0.0).to_message(address))
+            rig.host.send(r.PositionTorqueCommand(target((k + 1) * 0.002), 0.0).to_message(address))
     t, y = np.array(times), np.array(positions)
     keep = t > 0.5
     t, y = t[keep], y[keep]
@@ -142,7 +178,7 @@ def test_position_mode_follows_a_moving_target_without_lag_or_overshoot(rig, joi
 
 def torque_mode(rig, address=0x12):
     i = r.ACTUATOR_ADDRESSES.index(address)
-    measured = rig.emulator._torque_nm(i)
+    measured = float(jaco2.SIGN[i] * rig.sim.data.actuator_force[i])
     (valid,) = rig.request(r.RS485Message.with_floats(r.Command.GET_TORQUE_VALIDATION_REQUEST, 0, address,
                                                       [measured]))
     assert valid.command is r.Command.SEND_TORQUE_VALIDATION and valid.uints[0] == 1
@@ -169,16 +205,14 @@ def test_torque_mode_falls_back_to_position_after_250_ms_without_torque_commands
     for _ in range(50):  # 100 ms of zero torque commands: gravity compensation holds the arm
         rig.host.send(r.PositionTorqueCommand(position, 0.0).to_message(0x12))
         rig.cycle(1)
-    actuator = rig.emulator.by_address[0x12]
+    actuator = rig.firmware.by_address[0x12]
     assert actuator.mode is r.ControlModeRequest.TORQUE
-    last_command = rig.t - 0.002
-    cycles = 0
-    while actuator.mode is r.ControlModeRequest.TORQUE and cycles < 500:
+    last_command = actuator.last_torque_s
+    while actuator.mode is r.ControlModeRequest.TORQUE and rig.sim.time_ns < 10e9:
         rig.cycle(1)
-        cycles += 1
-    fallback = rig.t - 0.002
+    fallback = rig.firmware.now_s
     assert fallback - last_command == pytest.approx(0.25, abs=0.0025)  # 250 ms ± one 2 ms cycle
-    assert rig.emulator.counters.get("torque_timeouts") == 1
+    assert rig.firmware.counters.get("torque_timeouts") == 1
 
 
 def test_torque_over_the_limit_is_clamped_and_reported_once(rig):
@@ -188,7 +222,7 @@ def test_torque_over_the_limit_is_clamped_and_reported_once(rig):
     replies = rig.request(r.PositionTorqueCommand(position, 500.0).to_message(0x12))
     errors = [m for m in replies if m.command is r.Command.REPORT_ERROR]
     assert len(errors) == 1 and r.parse_report_error(errors[0]) is r.ActuatorError.TORQUE
-    assert rig.emulator.by_address[0x12].torque_nm == pytest.approx(jaco2.MAX_TORQUE[2])
+    assert rig.firmware.by_address[0x12].torque_nm == pytest.approx(jaco2.MAX_TORQUE[2])
     replies = rig.request(r.PositionTorqueCommand(position, 500.0).to_message(0x12))
     assert not [m for m in replies if m.command is r.Command.REPORT_ERROR]
 
@@ -199,7 +233,7 @@ def test_a_wrong_safety_reference_latches_a_fault_until_cleared(rig):
     replies = rig.request(r.PositionTorqueCommand(123.0, 1.0).to_message(0x12))  # far from the real angle
     errors = [m for m in replies if m.command is r.Command.REPORT_ERROR]
     assert r.parse_report_error(errors[0]) is r.ActuatorError.RELATIVE_POSITION
-    actuator = rig.emulator.by_address[0x12]
+    actuator = rig.firmware.by_address[0x12]
     assert actuator.fault is r.ActuatorError.RELATIVE_POSITION and actuator.mode is r.ControlModeRequest.POSITION
     (refused,) = rig.request(r.switch_mode_request(r.ControlModeRequest.TORQUE, 0x12))
     assert r.parse_switch_mode_reply(refused) is r.ControlModeReply.REFUSED
@@ -214,7 +248,7 @@ def test_garbled_frames_are_rejected_and_counted_without_disturbing_the_loop(rig
     rig.host.send_raw(bytes(64), 0x10)  # too long
     replies = rig.request(r.RS485Message(r.Command.GET_ACTUAL_POSITION, 0, 0x10))
     assert [m.command for m in replies] == [r.Command.SEND_ACTUAL_POSITION]
-    assert rig.emulator.counters.get("bus.rejected") == 3
+    assert rig.device_bus.counters.get("bus.rejected") == 3
     rig.cycle(50)
     assert np.abs(rig.sim.q - q0).max() < math.radians(0.05)
 

@@ -63,5 +63,5 @@ def test_computed_torque_tracks_the_cubic_within_one_degree_over_the_bus():
             reading = link.command(reading.position_deg, jaco2.SIGN * tau)  # safety reference: where it is
         link.switch_to_position()
     print(f"computed torque over the bus: max joint error {max(errors):.3f}° over {len(errors)} cycles")
-    assert len(errors) > 500  # about 500 Hz for 2.5 s (an exchange waits for the actuators' 2 ms cycle)
+    assert len(errors) > 500  # at least one exchange per 2 ms cycle of the arm for 2.5 s
     assert max(errors) < 1.0, f"max joint error {max(errors):.3f}°"

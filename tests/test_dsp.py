@@ -11,7 +11,7 @@ from services.common import frames, jaco2
 from services.common.dsp import CommandRefused, DSPConfig
 from services.common.zones import BoxZone
 from services.robot_sim.scene import SceneConfig
-from services.robot_sim.sim import Simulation
+from services.robot_sim.sim_robot import SimulatedRobot
 
 
 def twist_command(linear, rotational, convention=AngularConvention.SEED000, frame=Frame.MIXED, seq=0):
@@ -25,7 +25,7 @@ def joint_command(dq):
 
 
 def make_sim(**dsp):
-    return Simulation(SceneConfig(), DSPConfig(**dsp), render=False)
+    return SimulatedRobot(SceneConfig(), DSPConfig(**dsp))
 
 
 def run(sim, command, cycles):

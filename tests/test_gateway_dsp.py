@@ -1,16 +1,16 @@
-"""The emulated DSP running in the gateway, over the RS-485 link to robot_sim's actuators (realtime, virtual
-bus): a mixed-frame velocity command moves the end effector as it does in robot_sim."""
-import threading
-import time
-
+"""The robot node's rules running in the gateway, over the RS-485 link to robot_sim's actuators (in-process bus, no
+zenoh): a mixed-frame velocity command moves the end effector as it does in robot_sim. The arm runs a cycle per
+exchange here (lockstep), so the figures are exact; tests/test_gateway.py runs both sides in realtime, as
+processes."""
 import numpy as np
 import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from services.common.dsp import KinovaDSP
-from services.common.kinematics import ArmKinematics
-from services.robot_gateway.actuators import LinkActuators
+from services.robot.core import CYCLES_PER_DSP, RobotCore
+from services.robot.hardware import HardwareError
+from services.robot_gateway.link import LinkHardware
 from services.stack import simulated_link
 
 
@@ -22,51 +22,46 @@ def twist_command(linear, rotational):
 
 @pytest.fixture
 def gateway():
-    with simulated_link() as (runner, link):
-        yield runner, LinkActuators(link)
+    with simulated_link(lockstep=True) as (arm, link):
+        hardware = LinkHardware(link, pipelined=False)  # in step with the arm, as the gateway runs in lockstep
+        yield arm, hardware, RobotCore(KinovaDSP(), hardware.read())
 
 
-def run_dsp(actuators, dsp, command, seconds):
-    """The gateway's loops in miniature: bus every 2 ms, DSP every 10 ms (resending the command)."""
-    start = time.monotonic()
-    k = 0
-    while time.monotonic() - start < seconds:
-        deadline = start + k * 0.002
-        time.sleep(max(0.0, deadline - time.monotonic()))
-        actuators.cycle()
-        if k % 5 == 0:
-            if command is not None:
-                dsp.submit(command)
-            actuators.write(dsp.cycle(actuators.read()))
-        k += 1
-
-
-def ee_velocity(runner):
-    with runner.lock:
-        return runner.sim.ee_twist_base()
+def run_dsp(hardware, core, command, cycles, on_cycle=None):
+    """The gateway's loop in miniature: an exchange per bus cycle, the DSP every fifth (resending the command)."""
+    for k in range(cycles):
+        reading = hardware.exchange(core.targets())
+        core.observe(reading)
+        if k % CYCLES_PER_DSP == 0:
+            core.dsp_cycle(command)
+        if on_cycle is not None:
+            on_cycle(reading)
 
 
 def test_mixed_velocity_through_the_gateway_matches_robot_sim(gateway):
-    runner, actuators = gateway
-    dsp = KinovaDSP(kinematics=ArmKinematics())
+    arm, hardware, core = gateway
     linear = (0.04, -0.03, 0.03)
+    start = arm.sim.time_ns
+    run_dsp(hardware, core, twist_command(linear, (0.0, 0.0, 0.2)), 450)  # 0.9 s: past the acceleration ramp
     samples = []
-    thread = threading.Thread(target=run_dsp, args=(actuators, dsp, twist_command(linear, (0.0, 0.0, 0.2)), 1.6))
-    thread.start()
-    time.sleep(0.9)
-    for _ in range(20):
-        samples.append(ee_velocity(runner))
-        time.sleep(0.03)
-    thread.join()
+
+    def sample(_reading):
+        with arm.lock:  # the arm finishes its cycle (physics) after it replied
+            samples.append(arm.sim.ee_twist_base())
+
+    run_dsp(hardware, core, twist_command(linear, (0.0, 0.0, 0.2)), 350, sample)
+    with arm.lock:
+        assert arm.sim.time_ns - start == 800 * 2_000_000  # one arm cycle per exchange
     v = np.mean(samples, axis=0)
-    assert np.linalg.norm(v[:3] - np.array(linear)) <= 0.05 * np.linalg.norm(linear)  # within 5 %
-    assert actuators.bus_errors == 0
+    assert np.linalg.norm(v[:3] - np.array(linear)) <= 0.02 * np.linalg.norm(linear)  # within 2 %
+    assert hardware.link.bus.counters.get("link.timeouts") == 0
 
 
 def test_bus_failure_holds_the_arm(gateway):
-    runner, actuators = gateway
-    runner.stop()  # the actuators fall silent
-    actuators.write(np.full(7, 0.1))
-    assert not actuators.cycle()
-    assert actuators.bus_errors == 1 and actuators.faults[0].startswith("bus:")
-    assert np.all(actuators.dq_ref == 0) and np.allclose(actuators.q_ref, actuators.read().q)
+    arm, hardware, core = gateway
+    arm.stop(close_bus=False)  # the actuators fall silent
+    core.dq_ref = np.full(7, 0.1)
+    with pytest.raises(HardwareError, match="no reply"):
+        hardware.exchange(core.targets())
+    core.hold()
+    assert np.all(core.dq_ref == 0) and np.allclose(core.targets().q, core.reading.q)

@@ -18,7 +18,7 @@ from services.common import jaco2
 from services.common.transport import open_session
 from services.robot_gateway import kinova_sdk as sdk_mod
 from services.robot_gateway.kinova_sdk import KinovaSdk, SdkError
-from services.robot_gateway.service import GatewayConfig, RobotGatewayService
+from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 from tests.stack import KEYS, Recorder, wait_for
 
 SOURCE = Path(__file__).resolve().parent / "fake_kinova_sdk" / "fake_kinova_sdk.c"
@@ -87,7 +87,7 @@ def test_a_library_that_is_not_the_sdk_is_refused(tmp_path):
 
 @pytest.fixture
 def gateway(router, library, fake):
-    service = RobotGatewayService(GatewayConfig(zenoh=router.client_config(), backend="kinova_sdk",
+    service = robot_gateway_service(GatewayConfig(zenoh=router.client_config(), backend="kinova_sdk",
                                                 sdk_library=library)).start()
     client = open_session(router.client_config())
     yield client, service
@@ -151,5 +151,5 @@ def test_the_gateway_drives_the_arm_through_the_sdk(gateway, fake):
 def test_a_failing_init_stops_the_start_with_the_sdk_code(router, library, fake):
     fake.FakeFailInit(1)
     with pytest.raises(SdkError, match="InitAPI returned 1015"):
-        RobotGatewayService(GatewayConfig(zenoh=router.client_config(), backend="kinova_sdk",
+        robot_gateway_service(GatewayConfig(zenoh=router.client_config(), backend="kinova_sdk",
                                           sdk_library=library)).start()

@@ -54,8 +54,6 @@ def test_unknown_profile_is_refused(tmp_path):
     bad.write_text("services: [{name: teleporter}]\n")
     out = mfvs("up", "--profile", str(bad), env=env)
     assert out.returncode == 2 and "teleporter" in out.stderr
-    out = mfvs("up", "--profile", "gateway", "--clock", "lockstep", env=env)
-    assert out.returncode == 2 and "realtime only" in out.stderr
 
 
 def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
@@ -83,12 +81,17 @@ def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not (errors and errors[-1] < 5e-3 and len(states) > 100):
             time.sleep(0.5)
+        # the low-level state goes out while someone listens (at 500 Hz nobody reads it is the gateway's largest
+        # cost): listen for a health period before the status
+        lowlevel = []
+        session.declare_subscriber(keys.lowlevel_state, lambda s: lowlevel.append(1))
+        time.sleep(2.5)
+        status = json.loads(mfvs("status", "--json", env=env).stdout)
         session.close()
         assert errors and errors[-1] < 5e-3, errors[-5:]  # the arm moved the tag to the goal
         applied_by = {s.applied_command.trace[-1].service for s in states
                       if s.applied_command is not None and s.applied_command.trace}
         assert applied_by == {"robot_gateway"}  # safety's commands reached the arm through the gateway
-        status = json.loads(mfvs("status", "--json", env=env).stdout)
         services = {s["name"]: s for s in status["services"]}
         assert set(services) == {"robot_sim", "robot_gateway", "vision", "controller", "safety"}
         assert all(s["healthy"] for s in services.values()), services

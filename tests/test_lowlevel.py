@@ -13,8 +13,8 @@ from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome
 from services.common.rs485_bus import BusConfig
 from services.common.transport import open_session
-from services.robot_gateway.service import GatewayConfig, RobotGatewayService
-from services.robot_sim.service import RobotSimConfig, RobotSimService
+from services.robot_gateway.service import GatewayConfig, robot_gateway_service
+from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from tests.stack import KEYS, Recorder, wait_for
 
 _channels = itertools.count()
@@ -94,14 +94,14 @@ def robot(request, router):
     """A realtime robot offering the low-level API: robot_sim alone, or robot_sim's actuators behind the gateway."""
     services = []
     if request.param == "robot_sim":
-        services.append(RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME,
+        services.append(robot_sim_service(RobotSimConfig(clock=ClockMode.REALTIME,
                                                        zenoh=router.client_config())).start())
     else:
         channel = f"lowlevel-{next(_channels)}"
-        services.append(RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config(),
+        services.append(robot_sim_service(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config(),
                                                        mode="actuator_bus", bus=BusConfig(channel=channel))).start())
         time.sleep(0.1)
-        services.append(RobotGatewayService(GatewayConfig(zenoh=router.client_config(),
+        services.append(robot_gateway_service(GatewayConfig(zenoh=router.client_config(),
                                                           bus=BusConfig(channel=channel),
                                                           link_timeout_s=0.05)).start())
     client = open_session(router.client_config())
@@ -178,7 +178,7 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot):
 
 
 def test_lockstep_robot_sim_refuses_torque_commands(router):
-    service = RobotSimService(RobotSimConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config())).start()
+    service = robot_sim_service(RobotSimConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config())).start()
     client = open_session(router.client_config())
     try:
         client.put(KEYS.lowlevel_command, m.encode(m.TorqueCommand(header=m.Header(), torques=[0.0] * 7)))

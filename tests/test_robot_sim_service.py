@@ -22,7 +22,8 @@ KEYS = Keys()
 
 class FakeSafety:
     """Answers every clock tick with a robot command stamped at the tick and derived from the latest frame (what
-    the safety service does with the pipeline's output)."""
+    the safety service does with the pipeline's output), alive under safety's name (the robot waits for its
+    answers while safety is alive)."""
 
     def __init__(self, session, make_command, watch_frames=False):
         self.session = session
@@ -34,6 +35,8 @@ class FakeSafety:
         self.subscribers = [session.declare_subscriber(KEYS.clock, self._on_tick)]
         if watch_frames:
             self.subscribers.append(session.declare_subscriber(KEYS.camera_image, self._on_image))
+        # alive once it listens, as a service declares its liveliness after its subscriptions
+        self.token = session.liveliness().declare_token(KEYS.liveliness("safety"))
 
     def _on_image(self, sample):
         with self.lock:
@@ -55,6 +58,7 @@ class FakeSafety:
         for subscriber in self.subscribers:
             subscriber.undeclare()
         self.publisher.undeclare()
+        self.token.undeclare()
 
 
 def twist_payload(stamp, source_stamp=0, linear=(0.05, 0.0, 0.0), convention=AngularConvention.SEED000):

@@ -11,7 +11,8 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode
 from services.common.transport import open_session
 from services.common.zones import BoxZone, SphereZone
-from services.robot_sim.service import LockstepConfig, RobotSimConfig, RobotSimService
+from services.robot.node import LockstepConfig
+from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.safety.checks import SafetyLimits
 from services.safety.service import SafetyConfig, SafetyService
 from tests.stack import KEYS, FakePipeline, Recorder, ee_speeds, wait_for

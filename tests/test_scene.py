@@ -74,8 +74,8 @@ def test_moving_target_moves_at_its_velocity():
     cfg = SceneConfig(target=TargetConfig(velocity_mps=(0.02, 0.0, -0.01)))
     sim = Simulation(cfg, render=False)
     p0 = sim.target_pose()[:3, 3]
-    for _ in range(100):
-        sim.step_cycle()
+    for _ in range(500):  # 1 s of 2 ms bus cycles
+        sim.cycle()
     assert sim.target_pose()[:3, 3] - p0 == pytest.approx([0.02, 0.0, -0.01], abs=1e-9)
 
 

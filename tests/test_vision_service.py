@@ -19,7 +19,8 @@ KEYS = Keys()
 
 
 class StopOnFeatures:
-    """Stands in for controller + safety: answers each tick, and each frame once its features arrive."""
+    """Stands in for controller + safety: answers each tick, and each frame once its features arrive (alive as
+    safety: the robot waits for safety's answers)."""
 
     def __init__(self, session):
         self.publisher = GuardedPublisher.declare(session, KEYS.robot_command)
@@ -28,6 +29,7 @@ class StopOnFeatures:
         self.lock = threading.Lock()
         self.subs = [session.declare_subscriber(KEYS.clock, self._on_tick),
                      session.declare_subscriber(KEYS.features, self._on_features)]
+        self.token = session.liveliness().declare_token(KEYS.liveliness("safety"))
 
     def _send(self, stamp):
         header = m.Header(stamp_ns=stamp, source_stamp_ns=self.frame_stamp)
@@ -46,6 +48,7 @@ class StopOnFeatures:
     def close(self):
         for s in self.subs:
             s.undeclare()
+        self.token.undeclare()
 
 
 @pytest.fixture

@@ -43,3 +43,10 @@ class ArmKinematics:
     def gravity(self, q) -> np.ndarray:
         """Joint torques that hold the arm still against gravity (N·m)."""
         return pin.computeGeneralizedGravity(self.model, self.data, np.asarray(q, dtype=float)).copy()
+
+
+def manipulability(J: np.ndarray) -> float:
+    """Yoshikawa's manipulability w = √det(J Jᵀ), the product of J's singular values (seed 004 eq. 6; 0 at a
+    singularity)."""
+    return float(np.prod(np.linalg.svd(J, compute_uv=False)))
+

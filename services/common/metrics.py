@@ -5,6 +5,8 @@ import collections
 import threading
 import time
 
+import numpy as np
+
 
 class Counters:
     """Named monotonic counters (thread-safe)."""
@@ -64,6 +66,7 @@ class Rates:
 
     def __init__(self, window_s: float = 2.0, clock=time.monotonic) -> None:
         self._window_s = window_s
+        self.window_s = window_s
         self._clock = clock
         self._meters: dict[str, RateMeter] = {}
         self._lock = threading.Lock()
@@ -84,7 +87,7 @@ class Rates:
 class LoopTimer:
     """Periods of a periodic loop (wall, monotonic): achieved rate and period jitter over the last ``window``."""
 
-    def __init__(self, nominal_s: float, window: int = 6000, clock=time.monotonic) -> None:
+    def __init__(self, nominal_s: float, window: int = 2500, clock=time.monotonic) -> None:
         self.nominal_s = nominal_s
         self._clock = clock
         self._last: float | None = None
@@ -99,15 +102,36 @@ class LoopTimer:
             self._last = now
 
     def stats(self) -> dict[str, float]:
-        """rate_hz, and the period error |period − nominal| in ms: p50, p99, max; n periods."""
+        """rate_hz, and the period error |period − nominal| in ms: p50, p99, max; n periods. (NumPy, not a Python
+        sort: this runs in another thread of a process whose realtime loop needs the interpreter lock, and a sort
+        holds it throughout.)"""
         with self._lock:
-            periods = list(self._periods)
-        if not periods:
+            periods = np.array(self._periods)
+        if not len(periods):
             return {"rate_hz": 0.0, "jitter_ms_p50": 0.0, "jitter_ms_p99": 0.0, "jitter_ms_max": 0.0, "n": 0}
-        errors = sorted(abs(p - self.nominal_s) * 1e3 for p in periods)
+        errors = np.abs(periods - self.nominal_s) * 1e3
+        p50, p99 = np.percentile(errors, [50, 99], method="nearest")
+        return {"rate_hz": len(periods) / float(periods.sum()), "jitter_ms_p50": float(p50),
+                "jitter_ms_p99": float(p99), "jitter_ms_max": float(errors.max()), "n": len(periods)}
 
-        def pct(q: float) -> float:
-            return errors[min(len(errors) - 1, int(round(q * (len(errors) - 1))))]
 
-        return {"rate_hz": len(periods) / sum(periods), "jitter_ms_p50": pct(0.5), "jitter_ms_p99": pct(0.99),
-                "jitter_ms_max": errors[-1], "n": len(periods)}
+class DurationStats:
+    """Durations of a repeated piece of work (e.g. one cycle of a loop, without its sleep): p50, p99 and max over
+    the last ``window`` in ms."""
+
+    def __init__(self, window: int = 2500) -> None:
+        self._values: collections.deque[float] = collections.deque(maxlen=window)
+        self._lock = threading.Lock()
+
+    def add(self, seconds: float) -> None:
+        with self._lock:
+            self._values.append(seconds)
+
+    def stats(self) -> dict[str, float]:
+        """(NumPy, not a Python sort: see LoopTimer.stats.)"""
+        with self._lock:
+            values = np.array(self._values) * 1e3
+        if not len(values):
+            return {"p50_ms": 0.0, "p99_ms": 0.0, "max_ms": 0.0, "n": 0}
+        p50, p99 = np.percentile(values, [50, 99], method="nearest")
+        return {"p50_ms": float(p50), "p99_ms": float(p99), "max_ms": float(values.max()), "n": len(values)}

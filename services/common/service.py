@@ -93,6 +93,10 @@ class Service:
         self._seq: dict[str, itertools.count] = {}
         self._seq_lock = threading.Lock()
         self._lifecycle_lock = threading.Lock()
+        #: loops whose rate and overruns say whether the service keeps up (declare_loop)
+        self._loops: dict[str, tuple[float, tuple[str, ...]]] = {}
+        self._overruns_seen: dict[str, int] = {}
+        self._degraded: list[str] = []
 
     # ------------------------------------------------------------------ hooks
     def on_start(self) -> None:
@@ -265,10 +269,41 @@ class Service:
 
     def _on_sim_clock(self, tick: SimClock, _recv_ns: int) -> None:
         self.clock.advance_to(tick.sim_time_ns)  # ticks are re-sent; time never runs backwards
+        self.on_sim_clock(tick)
+
+    def on_sim_clock(self, tick: SimClock) -> None:
+        """A tick of the simulator's clock (lockstep followers), after the service's clock moved to it."""
 
     # ------------------------------------------------------------------ health
+    #: a loop below this fraction of its nominal rate is degraded
+    DEGRADED_RATE_FRACTION = 0.95
+
+    def declare_loop(self, rate: str, nominal_hz: float, overruns: tuple[str, ...] = ()) -> None:
+        """A periodic loop whose rate (``self.rates.tick(rate)`` each period) should be ``nominal_hz`` and whose
+        ``overruns`` counters should not grow: otherwise the service is *degraded* (running, not keeping up)."""
+        self._loops[rate] = (nominal_hz, tuple(overruns))
+
+    def degraded_reasons(self) -> list[str]:
+        """Why the service does not keep up now: a declared loop below DEGRADED_RATE_FRACTION of its nominal rate
+        (once it has run a full rate window), or overruns since the last look (a health period)."""
+        reasons = []
+        rates = self.rates.snapshot()
+        settled = time.monotonic() - self._started_monotonic > self.rates.window_s
+        for name, (nominal, overruns) in self._loops.items():
+            rate = rates.get(name, 0.0)
+            if settled and rate < self.DEGRADED_RATE_FRACTION * nominal:
+                reasons.append(f"{name} at {rate:.1f} Hz (nominal {nominal:g})")
+            for counter in overruns:
+                value = self.counters.get(counter)
+                grown = value - self._overruns_seen.get(counter, 0)
+                self._overruns_seen[counter] = value
+                if grown > 0:
+                    reasons.append(f"{counter} +{grown}")
+        return reasons
+
     def health(self) -> ServiceHealth:
         ok, detail = (False, "") if self.state != "running" else self.check_health()
+        degraded = self._degraded if self.state == "running" else []
         return ServiceHealth(
             header=self.header("health"),
             service=self.name,
@@ -278,11 +313,13 @@ class Service:
             uptime_s=max(0.0, time.monotonic() - self._started_monotonic),
             rates_hz=self.rates.snapshot(),
             errors=self.counters.snapshot(),
-            detail=detail,
+            detail=detail[:512],
+            degraded=[reason[:256] for reason in degraded[:16]],
         )
 
     def _health_loop(self) -> None:
         while not self._stop_event.is_set():
+            self._degraded = self.degraded_reasons()  # over the last health period, whoever asks
             try:
                 self._health_publisher.put(encode(self.health()))
             except Exception:
@@ -339,4 +376,12 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
         print(f"{service_type.name}: {exc}", file=sys.stderr)
         return 2
     setup_logging(config.log_level)
+    priority = getattr(config, "realtime_priority", 0)
+    if priority > 0:
+        # the whole process, before zenoh starts its threads (they inherit it), all at one priority: a loop at
+        # realtime priority that waits for the interpreter lock held by a thread of lower priority would wait
+        # behind whatever preempts that thread (the rest of the host, or another realtime process)
+        from services.robot.pacing import request_realtime
+
+        request_realtime(priority, f"{service_type.name} process")
     return service_type(config).run()

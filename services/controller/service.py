@@ -15,7 +15,7 @@ from typing import Optional
 import msgspec
 import numpy as np
 
-from protocol.conventions import Frame
+from protocol.conventions import ClockMode, Frame
 from protocol.messages import (
     USABLE_FEATURE_STATUSES,
     CameraInfo,
@@ -31,6 +31,7 @@ from protocol.messages import (
 from services.common import frames, jaco2
 from services.common.config import ConfigStruct
 from services.common.service import Service, ServiceConfig
+from services.common.state_history import StateHistory
 from services.controller import ibvs
 from services.controller.laws import JOINT_LAWS, LAW_NAMES, LawConfig, LawOutput, ServoInput, make_law
 
@@ -76,6 +77,13 @@ class ControllerService(Service):
         self.joint_output = config.law in JOINT_LAWS
         self.lock = threading.Lock()
         self.robot_state: Optional[RobotState] = None
+        self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
+        self.states: StateHistory[RobotState] = StateHistory()
+        #: lockstep: features whose frame's robot state has not arrived yet, with their receive time
+        self._waiting: list[tuple[Features, int]] = []
+        #: one iteration at a time: features are handled on zenoh's threads (and deferred ones on the state's),
+        #: and the law's kinematics are not thread-safe
+        self._iteration_lock = threading.Lock()
         self.camera_in_ee: Optional[np.ndarray] = None
         self.iteration = 0
         self.last_status: Optional[ControllerStatus] = None
@@ -98,6 +106,10 @@ class ControllerService(Service):
     def _on_state(self, state: RobotState, _recv_ns: int) -> None:
         with self.lock:
             self.robot_state = state
+            self.states.add(state.header.stamp_ns, state)
+            waiting, self._waiting = self._waiting, []
+        for features, recv_ns in waiting:
+            self._on_features(features, recv_ns)
 
     def _on_camera_info(self, info: CameraInfo, _recv_ns: int) -> None:
         T = frames.homogeneous(frames.quat_wxyz_to_matrix(info.camera_in_ee.quat_wxyz), info.camera_in_ee.xyz)
@@ -105,16 +117,28 @@ class ControllerService(Service):
             self.camera_in_ee = T
 
     def _on_features(self, features: Features, recv_ns: int) -> None:
-        status, output = self.compute(features)
-        self._publish(features, recv_ns, status, output)
+        state = None
+        if self.lockstep:  # the law uses the arm as it was when the frame was taken
+            with self.lock:
+                state, ready = self.states.for_input(features.header.source_stamp_ns)
+                if not ready:
+                    self._waiting.append((features, recv_ns))
+                    return
+        with self._iteration_lock:
+            status, output = self.compute(features, state)
+            self._publish(features, recv_ns, status, output)
 
     # ------------------------------------------------------------------ one iteration
-    def compute(self, features: Features) -> tuple[ControllerStatus, Optional[LawOutput]]:
-        """The law's output for one features message, or None (zero output) with the reason in the status."""
+    def compute(self, features: Features, state: Optional[RobotState] = None) -> tuple[ControllerStatus,
+                                                                                       Optional[LawOutput]]:
+        """The law's output for one features message, or None (zero output) with the reason in the status.
+        ``state``: the robot state to use (default: the latest)."""
         cfg = self.config
         header = features.header
         with self.lock:
-            state, camera_in_ee = self.robot_state, self.camera_in_ee
+            camera_in_ee = self.camera_in_ee
+            if state is None:
+                state = self.robot_state
 
         def status(kind: ControllerState, detail: str = "", **kw) -> ControllerStatus:
             return ControllerStatus(header=self.header("status", source=header), law=cfg.law, status=kind,

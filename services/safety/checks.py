@@ -40,6 +40,11 @@ class SafetyLimits(ConfigStruct):
     #: joint limits are predicted this far ahead, and kept this far inside
     joint_horizon_s: float = 0.1
     joint_limit_margin_deg: float = 3.0
+    #: measured motion: the end effector's speeds (from the robot state's q and dq) and each joint's may exceed
+    #: their limits (the speed limits above; the joints' rated speeds, which the robot's DSP enforces) by this
+    #: fraction for less than ``measured_overspeed_s``; beyond that, a latched protective stop
+    measured_speed_margin: float = 0.1
+    measured_overspeed_s: float = 0.01
     #: workspace zones the end effector must not enter (base frame)
     zones: list[Zone] = msgspec.field(default_factory=lambda: [default_base_zone()])
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=lambda: ZoneFilterConfig(margin_m=0.02))
@@ -47,12 +52,14 @@ class SafetyLimits(ConfigStruct):
     def __post_init__(self) -> None:
         for name in ("command_budget_s", "image_budget_s", "state_budget_s", "max_linear_speed_mps",
                      "max_angular_speed_rps", "max_linear_accel_mps2", "max_angular_accel_rps2",
-                     "max_joint_accel_dps2", "joint_horizon_s"):
+                     "max_joint_accel_dps2", "joint_horizon_s", "measured_overspeed_s"):
             value = getattr(self, name)
             if not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive")
         if not 0 < self.joint_speed_scale <= 1:
             raise ValueError("joint_speed_scale must be within (0, 1]")
+        if not 0 <= self.measured_speed_margin <= 1:
+            raise ValueError("measured_speed_margin must be within [0, 1]")
 
 
 @dataclass
@@ -197,3 +204,55 @@ class CommandChecker:
 
     def end_effector_position(self, q) -> np.ndarray:
         return self.kin.pose(q)[1]
+
+
+class MotionMonitor:
+    """Watches what the arm does, not what it was told: from each robot state (q, dq), the end effector's linear
+    and angular speed (J(q)·dq) and each joint's speed, against the limits plus ``measured_speed_margin``. Over a
+    limit continuously for at least ``measured_overspeed_s`` (by the states' stamps: two consecutive states at
+    100 Hz) is an overspeed: :meth:`observe` returns why, once, and the service latches a protective stop."""
+
+    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics | None = None) -> None:
+        self.limits = limits
+        self.kin = kinematics or ArmKinematics()
+        margin = 1.0 + limits.measured_speed_margin
+        self.linear_limit = limits.max_linear_speed_mps * margin
+        self.angular_limit = limits.max_angular_speed_rps * margin
+        self.joint_limit = jaco2.MAX_SPEED * margin
+        self._since: Optional[int] = None
+        #: the largest measured speeds so far, as fractions of their limits (without the margin)
+        self.peak_ratio = {"linear": 0.0, "angular": 0.0, "joint": 0.0}
+        self.peak_linear_mps = 0.0
+
+    def speeds(self, q, dq) -> tuple[float, float, np.ndarray]:
+        twist = self.kin.jacobian_base(np.asarray(q, dtype=float)) @ np.asarray(dq, dtype=float)
+        return float(np.linalg.norm(twist[:3])), float(np.linalg.norm(twist[3:])), np.abs(np.asarray(dq, float))
+
+    def observe(self, q, dq, stamp_ns: int) -> Optional[str]:
+        lim = self.limits
+        linear, angular, joints = self.speeds(q, dq)
+        self.peak_linear_mps = max(self.peak_linear_mps, linear)
+        ratios = {"linear": linear / lim.max_linear_speed_mps, "angular": angular / lim.max_angular_speed_rps,
+                  "joint": float(np.max(joints / jaco2.MAX_SPEED))}
+        for name, ratio in ratios.items():
+            self.peak_ratio[name] = max(self.peak_ratio[name], ratio)
+        over = []
+        if linear > self.linear_limit:
+            over.append(f"end-effector speed {linear:.3f} m/s over {lim.max_linear_speed_mps:.3f}")
+        if angular > self.angular_limit:
+            over.append(f"end-effector angular speed {angular:.3f} rad/s over {lim.max_angular_speed_rps:.3f}")
+        fast = np.flatnonzero(joints > self.joint_limit)
+        if len(fast):
+            i = int(fast[0])
+            over.append(f"joint {i + 1} speed {np.degrees(joints[i]):.1f} deg/s over {jaco2.MAX_SPEED_DPS[i]:.0f}")
+        if not over:
+            self._since = None
+            return None
+        if self._since is None:
+            self._since = stamp_ns
+            return None
+        lasted = (stamp_ns - self._since) * 1e-9
+        if lasted + 1e-9 < lim.measured_overspeed_s:
+            return None
+        self._since = None
+        return f"measured {'; '.join(over)} (+{lim.measured_speed_margin:.0%}) for {lasted * 1e3:.0f} ms"

@@ -5,9 +5,14 @@ holds the latest approved command and resends it every control cycle while it is
 a stop, saying why. It watches a latched emergency stop (``…/safety/estop``: any operator tool engages it, only
 an explicit reset releases it) and the liveliness of the upstream services and of the robot.
 
-Clock modes: in realtime the 100 Hz resend runs on wall time. In lockstep safety answers every simulator clock
-tick (stamped with the tick), and every new approved command is forwarded at once, which is the pipeline's answer
-to the frame it derives from.
+Clock modes: in realtime the 100 Hz resend runs on wall time. In lockstep safety answers every robot state (the
+robot's DSP tick) with the held command checked against that very state and stamped with its tick, and every new
+approved command is forwarded at once, checked against the state of the tick its frame was captured at, which is
+the pipeline's answer to that frame.
+
+It also watches what the arm does (:class:`~services.safety.checks.MotionMonitor`): a measured end-effector or
+joint speed over its limit by more than the margin, for longer than a state period, latches a protective stop,
+released like the e-stop.
 """
 from __future__ import annotations
 
@@ -29,11 +34,12 @@ from protocol.messages import (
     RobotState,
     SafetyState,
     SafetyStatus,
-    SimClock,
     Twist,
 )
 from services.common.service import Service, ServiceConfig
-from services.safety.checks import CommandChecker, Decision, SafetyLimits
+from services.common.state_history import StateHistory
+from services.robot.pacing import request_realtime
+from services.safety.checks import CommandChecker, Decision, MotionMonitor, SafetyLimits
 
 
 class SafetyConfig(ServiceConfig):
@@ -47,6 +53,9 @@ class SafetyConfig(ServiceConfig):
     robots: list[str] = msgspec.field(default_factory=lambda: ["robot_sim", "robot_gateway"])
     #: the emergency deceleration the robot applies to an e-stop (documents the robot's setting; m/s²)
     estop_decel_mps2: float = 1.5
+    #: SCHED_FIFO priority of the safety process where the OS grants it (0: normal scheduling): its resends feed the
+    #: robot's 20 ms watchdog, which must not trip because safety waited behind the rest of the host
+    realtime_priority: int = 30
 
 
 class _Held:
@@ -63,6 +72,7 @@ class _Held:
         return self.twist.header if self.twist is not None else self.joint.header
 
     def check(self, checker: CommandChecker, q, dt: float) -> Decision:
+        """Check the command against the joint angles ``q``."""
         if self.twist is not None:
             t = self.twist
             return checker.check_twist(t.frame, t.angular, (*t.linear, *t.rotational), q, dt)
@@ -71,7 +81,7 @@ class _Held:
 
 class SafetyService(Service):
     name = "safety"
-    follows_sim_clock = False  # it answers the ticks itself and sets its clock from them
+    follows_sim_clock = False  # it answers the robot's ticks itself and sets its clock from them
 
     def __init__(self, config: SafetyConfig | None = None, **kw) -> None:
         config = config or SafetyConfig()
@@ -79,9 +89,13 @@ class SafetyService(Service):
         self.config: SafetyConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
         self.checker = CommandChecker(config.limits)
+        self.monitor = MotionMonitor(config.limits, self.checker.kin)
         self.lock = threading.RLock()
         self.held: Optional[_Held] = None
         self.robot_state: Optional[tuple[RobotState, int]] = None
+        self.states: StateHistory[RobotState] = StateHistory()
+        #: lockstep: desired commands whose frame's robot state has not arrived yet
+        self._waiting: list[_Held] = []
         self.estop_latched = False
         self.estop_reason = ""
         self.alive: set[str] = set()
@@ -99,8 +113,6 @@ class SafetyService(Service):
         self.subscribe(keys.desired_twist, Twist, self._on_twist, "twist")
         self.subscribe(keys.desired_joint_velocity, JointVelocity, self._on_joint_velocity, "joint_velocity")
         self.subscribe(keys.estop, EStop, self._on_estop, "estop")
-        if self.lockstep:
-            self.subscribe(keys.clock, SimClock, self._on_tick, "clock")
         self._declared.append(self.session.liveliness().declare_subscriber(
             keys.liveliness_all, self._on_liveliness, history=True))
         self._thread = threading.Thread(target=self._loop, name="safety-loop", daemon=True)
@@ -117,7 +129,9 @@ class SafetyService(Service):
 
     def check_health(self) -> tuple[bool, str]:
         alive = self._thread is not None and self._thread.is_alive()
-        return alive, f"state={self.safety_state.value} estop={self.estop_latched} alive={sorted(self.alive)}"
+        peaks = " ".join(f"peak_{name}={ratio:.2f}" for name, ratio in self.monitor.peak_ratio.items())
+        return alive, (f"state={self.safety_state.value} estop={self.estop_latched} alive={sorted(self.alive)} "
+                       f"measured speeds/limits: {peaks}")
 
     # ------------------------------------------------------------------ inputs
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
@@ -133,8 +147,32 @@ class SafetyService(Service):
                     self._send_stop_now()
 
     def _on_state(self, state: RobotState, recv_ns: int) -> None:
+        stamp = state.header.stamp_ns
         with self.lock:
             self.robot_state = (state, recv_ns)
+            self.states.add(stamp, state)
+            overspeed = self.monitor.observe(state.q, state.dq, stamp)
+            if overspeed is not None:
+                self._protective_stop(overspeed)
+            if not self.lockstep:
+                return
+            if stamp > self.clock.now_ns():
+                self.clock.set_ns(stamp)
+            waiting, self._waiting = self._waiting, []
+            for candidate in waiting:
+                self._on_desired(candidate)
+            self._cycle(stamp_ns=stamp, state=state)  # the answer to this tick
+
+    def _protective_stop(self, reason: str) -> None:
+        """Latched like the e-stop (and released the same way): the arm does something it was not told to."""
+        self.counters.inc("overspeed.trips")
+        if not self.estop_latched:
+            self._refuse(f"protective_stop: {reason}")
+            self.estop_latched = True
+            self.estop_reason = f"protective stop: {reason}"
+            self.held = None
+            self.log.error("PROTECTIVE STOP: %s", reason)
+            self._send_stop_now()
 
     def _on_estop(self, message: EStop, _recv_ns: int) -> None:
         with self.lock:
@@ -160,11 +198,17 @@ class SafetyService(Service):
 
     def _on_desired(self, candidate: _Held) -> None:
         with self.lock:
+            state = None
+            if self.lockstep:  # checked against the state of the tick its frame was captured at
+                state, ready = self.states.for_input(candidate.source.source_stamp_ns)
+                if not ready:
+                    self._waiting.append(candidate)
+                    return
             if self.estop_latched:
                 self._refuse(f"estop: latched ({self.estop_reason})")
                 self._send(Decision(refusal=self.last_refusal), candidate)  # answers the frame with the e-stop
                 return
-            decision, reason = self._evaluate(candidate)
+            decision, reason = self._evaluate(candidate, state)
             if reason is None:
                 self.held = candidate
                 self._send(decision, candidate)
@@ -174,12 +218,13 @@ class SafetyService(Service):
             # the stop carries the refused command's source: it is the pipeline's answer to that frame
             self._send(Decision(refusal=reason), candidate)
 
-    def _evaluate(self, held: _Held) -> tuple[Optional[Decision], Optional[str]]:
-        """(decision, None) when the command may go to the robot now, else (None, reason)."""
+    def _evaluate(self, held: _Held, state: Optional[RobotState] = None) -> tuple[Optional[Decision], Optional[str]]:
+        """(decision, None) when the command may go to the robot now, else (None, reason). ``state``: the robot
+        state to check against (default: the latest)."""
         reason = self._input_problem(held.source)
         if reason is not None:
             return None, reason
-        q = self._fresh_q()
+        q = self._fresh_q(state)
         if q is None:
             return None, "robot_state: no fresh robot state to check the command against"
         decision = held.check(self.checker, q, self._dt())
@@ -212,10 +257,11 @@ class SafetyService(Service):
                     f"'{lim.robot_convention.value}'")
         return None
 
-    def _fresh_q(self) -> Optional[np.ndarray]:
-        if self.robot_state is None:
-            return None
-        state, _ = self.robot_state
+    def _fresh_q(self, state: Optional[RobotState] = None) -> Optional[np.ndarray]:
+        if state is None:
+            if self.robot_state is None:
+                return None
+            state, _ = self.robot_state
         if (self.clock.now_ns() - state.header.stamp_ns) * 1e-9 > self.config.limits.state_budget_s:
             return None
         return np.asarray(state.q, dtype=float)
@@ -260,12 +306,12 @@ class SafetyService(Service):
         self.active_limits = list(decision.limits)
         self.command_pub.put(command)
 
-    def _cycle(self, stamp_ns: Optional[int] = None) -> None:
+    def _cycle(self, stamp_ns: Optional[int] = None, state: Optional[RobotState] = None) -> None:
         """One control cycle: resend the held command if it is still fresh and allowed, else stop."""
         with self.lock:
             held = self.held
             if held is not None and not self.estop_latched:
-                decision, reason = self._evaluate(held)
+                decision, reason = self._evaluate(held, state)
                 if reason is None:
                     self._send(decision, held, stamp_ns)
                     return
@@ -273,12 +319,10 @@ class SafetyService(Service):
                 self._refuse(reason)
             self._send(Decision(refusal=self.last_refusal or "idle: no command"), None, stamp_ns)
 
-    def _on_tick(self, tick: SimClock, _recv_ns: int) -> None:
-        if tick.sim_time_ns > self.clock.now_ns():
-            self.clock.set_ns(tick.sim_time_ns)
-        self._cycle(stamp_ns=tick.sim_time_ns)
-
     def _loop(self) -> None:
+        if not self.lockstep:
+            request_realtime(self.config.realtime_priority, "safety resend loop")
+            self.declare_loop("pub.command", self.config.rate_hz, ("cycles.late",))
         status_period = 1.0 / self.config.status_rate_hz
         next_status = time.monotonic()
         period = 1.0 / self.config.rate_hz
@@ -293,6 +337,8 @@ class SafetyService(Service):
                     self.limited_log.error("cycle", "safety cycle failed")
                     self.log.debug("cycle failure", exc_info=True)
                 next_cycle += period
+                if next_cycle < now - period:  # a resend missed its deadline (the robot's watchdog is two)
+                    self.counters.inc("cycles.late")
                 if next_cycle < now - 5 * period:
                     next_cycle = now + period
             if now >= next_status:

@@ -1,0 +1,76 @@
+"""What each service costs per second of running: CPU (% of one core, user + system) and resident memory (MB) of
+every process of a stack, per profile, while it servos onto the tag (`mfvs up`, realtime, on free ports).
+
+``python -m bench.cpu [--json] [--seconds S] [--profiles sim,gateway]`` or ``mfvs bench cpu``. ``--json`` prints
+``{"profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb"}}, "total_cpu_pct", "total_rss_mb"}}}``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+
+from services.common.transport import free_loopback_port
+from services.launcher import down, load_profile, read_stack, up
+
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (s), from /proc."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def measure(profile_name: str, seconds: float, settle_s: float = 3.0) -> dict:
+    with tempfile.TemporaryDirectory(prefix="mfvs-bench-cpu-") as run_dir:
+        os.environ["MFVS_RUN_DIR"] = run_dir
+        profile = load_profile(profile_name, free_loopback_port(), free_loopback_port())
+        code, message = up(profile, "realtime")
+        if code != 0:
+            raise RuntimeError(message)
+        try:
+            time.sleep(settle_s)  # past start-up (imports, first frames)
+            processes = {p["name"]: p["pid"] for p in read_stack()["processes"]}
+            before = {name: cpu_seconds(pid) for name, pid in processes.items()}
+            start = time.monotonic()
+            time.sleep(seconds)
+            elapsed = time.monotonic() - start
+            result = {name: {"cpu_pct": round(100.0 * (cpu_seconds(pid) - before[name]) / elapsed, 1),
+                             "rss_mb": round(rss_mb(pid), 1)} for name, pid in processes.items()}
+        finally:
+            down()
+    return {"processes": result, "total_cpu_pct": round(sum(r["cpu_pct"] for r in result.values()), 1),
+            "total_rss_mb": round(sum(r["rss_mb"] for r in result.values()), 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="mfvs bench cpu", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--seconds", type=float, default=8.0, help="measured time per profile (default 8)")
+    parser.add_argument("--profiles", default="sim,gateway", help="comma-separated profiles (default sim,gateway)")
+    args = parser.parse_args(argv)
+    results = {name: measure(name, args.seconds) for name in args.profiles.split(",") if name}
+    if args.json:
+        print(json.dumps({"seconds": args.seconds, "profiles": results}))
+        return 0
+    for name, r in results.items():
+        print(f"{name}: {r['total_cpu_pct']:.0f} % of a core, {r['total_rss_mb']:.0f} MB")
+        for process, figures in sorted(r["processes"].items(), key=lambda kv: -kv[1]["cpu_pct"]):
+            print(f"  {process:14s} {figures['cpu_pct']:5.1f} %  {figures['rss_mb']:6.0f} MB")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
