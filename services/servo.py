@@ -151,6 +151,8 @@ class Iteration:
 
     iteration: int
     t_s: float
+    #: the stamp of the camera frame this iteration answers
+    stamp_ns: int
     status: str
     error_norm: float
     points: list
@@ -202,6 +204,9 @@ class _Watcher:
         self.features: dict[int, m.Features] = {}
         self.commands: dict[int, list] = {}
         self.state: Optional[m.RobotState] = None
+        #: the robot's states by stamp, to log each iteration with the state of its frame's tick
+        self.state_at: dict[int, m.RobotState] = {}
+        self.latest_state_stamp = -1
         self.safety: Optional[m.SafetyStatus] = None
         self.states: list[m.RobotState] = []
         output_key = keys.desired_joint_velocity if joint_output else keys.desired_twist
@@ -236,6 +241,20 @@ class _Watcher:
         with self.lock:
             self.state = state
             self.states.append(state)
+            self.state_at[state.header.stamp_ns] = state
+            self.latest_state_stamp = max(self.latest_state_stamp, state.header.stamp_ns)
+            self.lock.notify_all()
+
+    def state_for_frame(self, stamp_ns: int, timeout_s: float = 1.0) -> Optional[m.RobotState]:
+        """The state of the tick at which the frame ``stamp_ns`` was taken (in lockstep the robot publishes one
+        with that stamp; it may reach us after the controller's answer, so wait for it), else the last state
+        before it, else the newest. Call with :attr:`lock` held."""
+        self.lock.wait_for(lambda: self.latest_state_stamp >= stamp_ns, timeout=timeout_s)
+        state = self.state_at.get(stamp_ns)
+        if state is None:
+            before = [s for s in self.state_at if s <= stamp_ns]
+            state = self.state_at[max(before)] if before else self.state
+        return state
 
     def _on_safety(self, status):
         with self.lock:
@@ -258,9 +277,22 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     records: list[Iteration] = []
     started = time.monotonic()
     status = "timeout"
-    with LocalStack(config) as stack:
-        session = open_session(stack.router.client_config())
-        watcher = _Watcher(session, Keys(config.robot.robot_id), joint_output)
+    observer: dict = {}
+
+    def watch(stack: LocalStack) -> None:  # before the robot's first message
+        observer["session"] = open_session(stack.router.client_config())
+        observer["watcher"] = _Watcher(observer["session"], Keys(config.robot.robot_id), joint_output)
+
+    try:
+        stack_context = LocalStack(config, before_robot=watch)
+        stack = stack_context.__enter__()
+    except BaseException:
+        if observer:
+            observer["watcher"].close()
+            observer["session"].close()
+        raise
+    try:
+        session, watcher = observer["session"], observer["watcher"]
         try:
             seen = 0
             initial_error = None
@@ -305,9 +337,14 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                 if done:
                     break
             states = list(watcher.states)
+            with watcher.lock:  # features and commands may reach us after their status (each subscriber has
+                for record in records:  # its own thread): complete the log with what came later
+                    _fill_inputs(record, watcher)
         finally:
             watcher.close()
             session.close()
+    finally:
+        stack_context.__exit__(None, None, None)
     wall = time.monotonic() - started
     converging = [r for r in records if r.status in ("converging", "converged")]
     q_all = np.array([s.q for s in states]) if states else np.zeros((0, 7))
@@ -356,21 +393,31 @@ def _law_figures(records: list[Iteration]) -> dict:
 def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics) -> Iteration:
     stamp = status.header.source_stamp_ns
     with watcher.lock:
-        features = watcher.features.get(stamp)
-        command = watcher.commands.get(stamp, [])
-        state = watcher.state
+        state = watcher.state_for_frame(stamp)
     q = list(state.q) if state is not None else []
     manip, speed = math.nan, 0.0
     if state is not None:
         J = kin.jacobian_base(state.q)
         manip = float(math.sqrt(max(0.0, np.linalg.det(J @ J.T))))
         speed = float(np.linalg.norm((J @ np.asarray(state.dq))[:3]))
-    return Iteration(
-        iteration=status.iteration, t_s=stamp * 1e-9, status=status.status.value, error_norm=status.error_norm,
-        points=[list(p) for p in features.points] if features is not None else [],
-        error=list(features.error) if features is not None else [],
-        command=command, command_kind="joint_velocity" if len(command) == 7 else "mixed_twist", q=q,
+    record = Iteration(
+        iteration=status.iteration, t_s=stamp * 1e-9, stamp_ns=stamp, status=status.status.value,
+        error_norm=status.error_norm,
+        points=[], error=[], command=[], command_kind="", q=q,
         gain=status.gain, saturated=status.saturated,
         camera_twist=list(status.camera_twist) if status.camera_twist is not None else None,
         manipulability=manip, ee_speed_mps=speed, notes=dict(status.notes),
     )
+    with watcher.lock:
+        _fill_inputs(record, watcher)
+    return record
+
+
+def _fill_inputs(record: Iteration, watcher: _Watcher) -> None:
+    """The iteration's features and command, by its frame's stamp (call with the watcher's lock held)."""
+    features = watcher.features.get(record.stamp_ns)
+    if features is not None:
+        record.points = [list(p) for p in features.points]
+        record.error = list(features.error)
+    record.command = watcher.commands.get(record.stamp_ns, [])
+    record.command_kind = "joint_velocity" if len(record.command) == 7 else "mixed_twist"

@@ -17,7 +17,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import msgspec
 import yaml
@@ -205,8 +205,11 @@ class LocalStack:
     """Router + safety + vision + controller + robot_sim (+ robot_gateway with the gateway profile). Use as a
     context manager."""
 
-    def __init__(self, config: StackConfig) -> None:
+    def __init__(self, config: StackConfig, before_robot: Optional[Callable[["LocalStack"], None]] = None) -> None:
+        """``before_robot(stack)`` runs once the router and the pipeline are up and before the robot starts (an
+        observer that subscribes there misses none of the robot's messages)."""
         self.config = config
+        self._before_robot = before_robot
         self.router = Router(port=0)
         self.services: list = []
         self.robot_processes: Optional[RobotProcesses] = None
@@ -229,6 +232,8 @@ class LocalStack:
             self.services.append(self.vision)
             self.controller = ControllerService(cfg.controller).start()
             self.services.append(self.controller)
+            if self._before_robot is not None:
+                self._before_robot(self)
             time.sleep(0.3)  # let the declarations reach the router before the robot starts the clock
             if gateway:
                 self._start_robot_processes()

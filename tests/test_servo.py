@@ -80,3 +80,24 @@ def test_mfvs_servo_command_prints_the_result_fields(tmp_path):
     bad.write_text("law: adaptive-pd-mixed\ncamera: {fx: -3}\n")
     out = subprocess.run([mfvs, "servo", "--scenario", str(bad)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "camera" in out.stderr
+
+
+def trajectory(result) -> list[dict]:
+    return [json.loads(line) for line in Path(result.trajectory_log).read_text().splitlines()]
+
+
+def test_lockstep_is_bit_identical_run_to_run_and_through_the_gateway(tmp_path):
+    """Lockstep is a function of the scenario: the same run twice, and the same run through robot_gateway and its
+    RS-485 bus (the CAN hub, robot_sim's emulated arm and the gateway as processes), give the same per-iteration
+    log to the last bit: frames, features, commands, joint angles."""
+    first = run(load_scenario(EASY), tmp_path / "sim1")
+    again = run(load_scenario(EASY), tmp_path / "sim2")
+    gateway = run(load_scenario(EASY), tmp_path / "gateway", profile="gateway")
+    assert first.converged and first.iterations > 20
+    reference = trajectory(first)
+    assert all(record["q"] and record["points"] for record in reference)
+    for other in (again, gateway):
+        assert other.iterations == first.iterations
+        log = trajectory(other)
+        mismatched = [(a["iteration"], [k for k in a if a[k] != b.get(k)]) for a, b in zip(reference, log) if a != b]
+        assert len(log) == len(reference) and not mismatched, mismatched[:5]

@@ -7,8 +7,10 @@ and the clock through the ``on_*`` callbacks; tests and benchmarks run it bare.
   after a boundary (``BusSyncConfig``), as actuators synchronise to their bus master; each frame is answered as
   it arrives, with the values of the current cycle, and its command is taken at the next boundary. The loop asks
   for realtime priority (it stands in for the actuators' own processors);
-* lockstep: a boundary when every actuator has its command (the host's batch), after which the replies go out;
-  with no host for ``timing.bus_timeout_s`` the arm runs a cycle alone. While it waits after a DSP tick, the
+* lockstep: a boundary when every actuator has its command (the host's batch), after which the replies go out.
+  The arm's time starts with its host's first batch (however long the host takes to come up, so that a run is the
+  same run whatever the start-up order); a host that stops for ``timing.bus_timeout_s`` after that is gone, and
+  the arm runs a cycle alone (``lockstep.timeouts.bus``). While it waits after a DSP tick, the
   tick (and its frame) are published again every ``timing.retry_s`` (``on_retry``).
 
 Stamps (the frames' timestamps and the ticks) are ``epoch_ns`` plus the arm's time.
@@ -210,12 +212,13 @@ class ArmOnBus:
     def _run_lockstep(self) -> None:
         timing = self.config.timing
         self._last_tick = None
+        host_seen = False
         while not self._done():
             start = time.monotonic()
             next_retry = start + timing.retry_s
             while not self.device.batch_complete and not self._stop.is_set():
                 now = time.monotonic()
-                if now - start >= timing.bus_timeout_s:  # no host (yet, or any more): the arm runs a cycle alone
+                if host_seen and now - start >= timing.bus_timeout_s:  # the host is gone: a cycle alone
                     self.counters.inc("lockstep.timeouts.bus")
                     break
                 if self._last_tick is not None and now >= next_retry:  # the host waits for that tick's answer
@@ -223,5 +226,7 @@ class ArmOnBus:
                     if self._on_retry is not None:
                         self._on_retry(self._last_tick)
                     next_retry = now + timing.retry_s
-                self._serve(min(next_retry, start + timing.bus_timeout_s) - now)
+                until = min(next_retry, start + timing.bus_timeout_s) if host_seen else next_retry
+                self._serve(max(until, now + 0.001) - now)
+            host_seen = host_seen or self.device.batch_complete
             self._cycle()
