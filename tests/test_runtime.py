@@ -357,3 +357,51 @@ def test_periodic_schedule_keeps_slots_and_skips_after_a_stall():
     patient.wait()
     time.sleep(0.1)
     assert patient.wait() == (1, False)  # never skips: it runs the missed slots
+
+
+class PacedService(Service):
+    """A loop ticking ``loop`` at ``hz`` (its nominal rate is 100 Hz), counting ``loop.overruns`` when told to."""
+
+    name = "paced"
+
+    def __init__(self, config, hz: float):
+        super().__init__(config)
+        self.hz, self.overrun = hz, threading.Event()
+
+    def on_start(self):
+        self.declare_loop("loop", 100.0, overruns=("loop.overruns",))
+        threading.Thread(target=self._loop, daemon=True).start()
+
+    def _loop(self):
+        while not self.stop_requested:
+            self.rates.tick("loop")
+            if self.overrun.is_set():
+                self.overrun.clear()
+                self.counters.inc("loop.overruns")
+            time.sleep(1.0 / self.hz)
+
+
+@pytest.mark.parametrize("hz, slow", [(300.0, False), (40.0, True)])
+def test_a_loop_below_its_rate_or_overrunning_is_degraded_in_status(router, hz, slow):
+    """`mfvs status` says degraded, with the reasons, for a loop under 95 % of its nominal rate (once a rate window
+    has passed) or with overruns in the last health period; healthy only when neither."""
+    from services.launcher import status_json
+    service = PacedService(ServiceConfig(zenoh=router.client_config(), health_period_s=0.2), hz=hz).start()
+    try:
+        def condition():
+            found = {s["name"]: s for s in status_json(router.endpoint, "jaco")["services"]}
+            return found.get("paced")
+
+        time.sleep(service.rates.window_s + 0.5)
+        paced = condition()
+        if slow:
+            assert paced["condition"] == "degraded" and not paced["healthy"]
+            assert any(reason.startswith("loop at ") and "(nominal 100)" in reason for reason in paced["degraded"])
+        else:
+            assert paced["condition"] == "healthy" and paced["degraded"] == []
+            service.overrun.set()
+            assert wait_for(lambda: condition()["degraded"] == ["loop.overruns +1"], timeout=5)
+            assert condition()["condition"] == "degraded"
+            assert wait_for(lambda: condition()["condition"] == "healthy", timeout=5)  # not grown since
+    finally:
+        service.stop()

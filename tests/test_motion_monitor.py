@@ -1,0 +1,110 @@
+"""Safety watches what the arm does: the measured end-effector and joint speeds (J(q)·dq of each robot state)
+against its limits, with a margin, for longer than one state period (services.safety.checks.MotionMonitor), and
+the service latches a protective stop on it."""
+import time
+
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from protocol.conventions import ClockMode
+from services.common import jaco2
+from services.common.kinematics import ArmKinematics
+from services.common.transport import open_session
+from services.safety.checks import MotionMonitor, SafetyLimits
+from services.safety.service import SafetyConfig, SafetyService
+from tests.stack import KEYS, Recorder, wait_for
+
+PERIOD_NS = 10_000_000  # the robot state's period (100 Hz)
+KIN = ArmKinematics()
+Q = jaco2.HOME.copy()
+
+
+def dq_for_linear(speed_mps: float, direction=(1.0, 0.0, 0.0)) -> np.ndarray:
+    """Joint velocities that move the end effector at ``speed_mps`` along ``direction`` without rotating it."""
+    twist = np.zeros(6)
+    twist[:3] = speed_mps * np.asarray(direction) / np.linalg.norm(direction)
+    return np.linalg.pinv(KIN.jacobian_base(Q)) @ twist
+
+
+def feed(monitor: MotionMonitor, dq, states: int, start_ns: int = 0) -> list:
+    return [monitor.observe(Q, dq, start_ns + i * PERIOD_NS) for i in range(states)]
+
+
+def test_measured_speed_within_the_margin_never_trips():
+    monitor = MotionMonitor(SafetyLimits())
+    assert feed(monitor, dq_for_linear(0.15 * 1.09), 50) == [None] * 50
+    assert monitor.peak_ratio["linear"] == pytest.approx(1.09, rel=1e-6)
+    assert monitor.peak_linear_mps == pytest.approx(0.15 * 1.09, rel=1e-6)
+
+
+def test_one_state_over_is_tolerated_two_in_a_row_trip():
+    monitor = MotionMonitor(SafetyLimits())
+    fast, slow = dq_for_linear(0.15 * 1.16, (0.3, -0.5, 0.8)), dq_for_linear(0.05)
+    assert feed(monitor, fast, 1) == [None]
+    assert monitor.observe(Q, slow, PERIOD_NS) is None  # back under: the count starts again
+    assert monitor.observe(Q, fast, 2 * PERIOD_NS) is None
+    reason = monitor.observe(Q, fast, 3 * PERIOD_NS)
+    assert reason is not None and "end-effector speed 0.174" in reason and "10 ms" in reason
+
+
+@pytest.mark.parametrize("joint", range(7))
+def test_a_joint_over_its_own_limit_trips(joint):
+    monitor = MotionMonitor(SafetyLimits(max_linear_speed_mps=100.0, max_angular_speed_rps=100.0))
+    dq = np.zeros(7)
+    dq[joint] = jaco2.MAX_SPEED[joint] * 1.12
+    reasons = feed(monitor, dq, 2)
+    assert reasons[0] is None and f"joint {joint + 1} speed" in reasons[1]
+    dq[joint] = jaco2.MAX_SPEED[joint] * 1.05
+    assert feed(MotionMonitor(SafetyLimits(max_linear_speed_mps=100.0, max_angular_speed_rps=100.0)), dq, 20) \
+        == [None] * 20
+
+
+def test_angular_overspeed_trips():
+    monitor = MotionMonitor(SafetyLimits(max_angular_speed_rps=0.5))
+    twist = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.5 * 1.2])
+    dq = np.linalg.pinv(KIN.jacobian_base(Q)) @ twist
+    assert "angular speed" in feed(monitor, dq, 2)[1]
+
+
+@pytest.fixture
+def safety(router):
+    service = SafetyService(SafetyConfig(clock=ClockMode.REALTIME, zenoh=router.client_config())).start()
+    client = open_session(router.client_config())
+    yield service, client
+    client.close()
+    service.stop()
+
+
+def robot_state(dq, stamp_ns: int) -> bytes:
+    return m.encode(m.RobotState(header=m.Header(stamp_ns=stamp_ns), q=Q.tolist(), dq=list(map(float, dq)),
+                                 tau=[0.0] * 7, pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
+                                 control_mode=m.ControlMode.CARTESIAN_VELOCITY))
+
+
+def test_an_arm_faster_than_told_gets_a_latched_protective_stop(safety):
+    """A robot whose states say it moves 20 % over the linear limit (as the gateway's arm did before the emulated
+    arm kept its own time): safety stops it, counts the trip, says so in its status and health, and stays stopped
+    until an operator resets it."""
+    service, client = safety
+    commands = Recorder(client, KEYS.robot_command, m.RobotCommand)
+    status = Recorder(client, KEYS.safety_status, m.SafetyStatus)
+    time.sleep(0.3)
+    now = time.time_ns()
+    client.put(KEYS.robot_state, robot_state(dq_for_linear(0.10), now))
+    time.sleep(0.1)
+    assert service.counters.snapshot().get("overspeed.trips", 0) == 0
+    for i in range(3):
+        client.put(KEYS.robot_state, robot_state(dq_for_linear(0.18), now + (i + 1) * PERIOD_NS))
+    assert wait_for(lambda: service.counters.snapshot().get("overspeed.trips", 0) >= 1, timeout=5)
+    assert wait_for(lambda: any(c.mode is m.CommandMode.EMERGENCY_STOP and "protective stop" in c.reason
+                                for c in commands.snapshot()), timeout=5)
+    assert wait_for(lambda: status.last() is not None and status.last().state is m.SafetyState.ESTOP, timeout=5)
+    assert service.estop_latched and "end-effector speed 0.180" in service.estop_reason
+    assert "peak_linear=1.20" in service.check_health()[1]
+    # slow again: still stopped (latched) until the operator's reset
+    client.put(KEYS.robot_state, robot_state(np.zeros(7), now + 10 * PERIOD_NS))
+    time.sleep(0.3)
+    assert service.estop_latched
+    client.put(KEYS.estop, m.encode(m.EStop(header=m.Header(), reset=True, operator="test")))
+    assert wait_for(lambda: not service.estop_latched, timeout=5)
