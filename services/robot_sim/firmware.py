@@ -142,6 +142,8 @@ class ActuatorFirmware:
         self.now_s = 0.0
         #: reports raised at a boundary (joint limits) for the bus to carry: (address, error)
         self.reports: list[tuple[int, r.ActuatorError]] = []
+        #: bumped by every change of an actuator's reference or mode (apply's arrays follow it)
+        self._version, self._segments_version, self._segment_arrays = 0, -1, ()
         self.hold_all()
 
     # ------------------------------------------------------------------ state in actuator units
@@ -177,6 +179,7 @@ class ActuatorFirmware:
             self._hold(a)
 
     def _hold(self, a: Actuator) -> None:
+        self._version += 1
         a.mode = r.ControlModeRequest.POSITION
         a.target_deg = a.last_target_deg = self.position_deg(a.index)
         a.target_rate_dps = a.target_accel_dps2 = 0.0
@@ -201,6 +204,7 @@ class ActuatorFirmware:
         return ok
 
     def switch_mode(self, i: int, wanted: int) -> r.ControlModeReply:
+        self._version += 1
         a = self.actuators[i]
         if wanted == r.ControlModeRequest.POSITION:
             self._hold(a)
@@ -216,6 +220,7 @@ class ActuatorFirmware:
         return r.ControlModeReply.REFUSED
 
     def clear_fault(self, i: int) -> None:
+        self._version += 1
         a = self.actuators[i]
         a.fault = r.ActuatorError.NONE
         a.reported.clear()
@@ -234,6 +239,7 @@ class ActuatorFirmware:
     def begin_cycle(self, now_s: float) -> None:
         """Take the commands of the cycle that ended (the newest per actuator), time out torque mode, check the
         joint limits. Faults to report go to :attr:`reports`."""
+        self._version += 1
         self.now_s = now_s
         for a in self.actuators:
             pending, count = a.pending, a.pending_count
@@ -305,29 +311,42 @@ class ActuatorFirmware:
             self._report(a, self.fault(i, r.ActuatorError.POSITION_LIMIT))
 
     # ------------------------------------------------------------------ physics
+    def _segments(self) -> tuple:
+        """The actuators' references as arrays, for :meth:`apply` (rebuilt only after a change: apply runs every
+        physics step, the references change at boundaries and on mode switches)."""
+        if self._segments_version != self._version:
+            acts = self.actuators
+            self._segment_arrays = (
+                np.array([a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE for a in acts]),
+                np.array([a.torque_nm for a in acts]), np.array([a.target_deg for a in acts]),
+                np.array([a.target_rate_dps for a in acts]), np.array([a.target_accel_dps2 for a in acts]),
+                np.array([a.target_time_s for a in acts]), np.array([a.last_target_deg for a in acts]))
+            self._segments_version = self._version
+        return self._segment_arrays
+
     def apply(self, t_s: float) -> None:
         """The actuators' torques for the physics step starting at ``t_s`` (the arm's timeline)."""
         d = self.data
         n = self.n
         q, dq = d.qpos[:n], d.qvel[:n]
-        tau = np.empty(n)
         gravity = d.qfrc_bias[:n]  # at rest this is the gravity torque; it also cancels Coriolis terms
         mujoco.mj_fullM(self.model, d, self._mass)
         inertia = np.diag(self._mass)[:n]
         kp, kd = inertia * SERVO_BANDWIDTH_RPS**2, inertia * 2.0 * SERVO_BANDWIDTH_RPS
-        accel = np.zeros(n)
-        for a in self.actuators:
-            i = a.index
-            if a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE:
-                tau[i] = jaco2.SIGN[i] * a.torque_nm + (gravity[i] if self.config.gravity_compensation else 0.0)
-                continue
-            # follow the reference, with the inertia, friction and gravity its motion needs as feed-forward (the
-            # segment's change of rate during the cycle it was taken in)
-            reference_deg, rate_dps = self._reference_deg(a, t_s)
-            rate = jaco2.SIGN[i] * math.radians(rate_dps)
-            if 0.0 <= t_s - a.target_time_s < CYCLE_S - 1e-9:
-                accel[i] = jaco2.SIGN[i] * math.radians(a.target_accel_dps2)
-            target = jaco2.SIGN[i] * math.radians(reference_deg)
-            tau[i] = gravity[i] + self._friction[i] * rate + kp[i] * (target - q[i]) + kd[i] * (rate - dq[i])
-        tau += self._mass[:n, :n] @ accel
+        torque_mode, torque_nm, start_deg, rate_dps, accel_dps2, taken_s, last_deg = self._segments()
+        # follow the reference (_reference_deg, for all seven at once), with the inertia, friction and gravity its
+        # motion needs as feed-forward (the segment's change of rate during the cycle it was taken in)
+        ahead = t_s - taken_s
+        started = ahead >= 0.0
+        reference_deg = np.where(started, start_deg + rate_dps * np.clip(ahead, 0.0, 2 * CYCLE_S), last_deg)
+        moving = started & (ahead < 2 * CYCLE_S - 1e-9)
+        rate = jaco2.SIGN * np.radians(np.where(moving, rate_dps, 0.0))
+        in_first_cycle = started & (ahead < CYCLE_S - 1e-9) & ~torque_mode
+        accel = np.where(in_first_cycle, jaco2.SIGN * np.radians(accel_dps2), 0.0)
+        target = jaco2.SIGN * np.radians(reference_deg)
+        tau = gravity + self._friction * rate + kp * (target - q) + kd * (rate - dq)
+        if torque_mode.any():
+            commanded = jaco2.SIGN * torque_nm + (gravity if self.config.gravity_compensation else 0.0)
+            tau = np.where(torque_mode, commanded, tau)
+        tau = tau + self._mass[:n, :n] @ accel
         d.ctrl[:n] = np.clip(tau, -self.torque_limit, self.torque_limit)
