@@ -478,6 +478,45 @@ def decode(payload: bytes | bytearray | memoryview, message_type: type[M]) -> M:
         raise _protocol_error(message_type, exc) from None
     except msgspec.DecodeError as exc:
         raise ProtocolError(message_type.__name__, f"malformed MessagePack ({exc})") from None
+    except (UnicodeDecodeError, ValueError, TypeError, OverflowError, RecursionError) as exc:
+        # what msgspec lets through for some malformed input (an invalid UTF-8 map key raises UnicodeDecodeError):
+        # still a malformed message, never an exception of another kind for the service to trip over
+        raise ProtocolError(message_type.__name__, f"malformed MessagePack ({type(exc).__name__}: {exc})") from None
+
+
+def missing_fields(payload: bytes | bytearray | memoryview, message_type: type) -> list[str]:
+    """The fields of ``message_type`` (at every level of nesting) that the MessagePack ``payload`` leaves to their
+    defaults: a request that changes the robot must say everything it means, since a default (an empty zone
+    list, a target of zero angles) is not what a caller who forgot a field wanted. Paths as ``a.b[0].c``; a
+    payload that is not even a map names the whole message ("$")."""
+    try:
+        obj = msgspec.msgpack.decode(payload)
+    except Exception:
+        return ["$"]
+    out: list[str] = []
+    _missing(obj, msgspec.inspect.type_info(message_type), "", out)
+    return out
+
+
+def _missing(obj: Any, info, path: str, out: list[str]) -> None:
+    while isinstance(info, (msgspec.inspect.Metadata,)):
+        info = info.type
+    if isinstance(info, msgspec.inspect.StructType):
+        if not isinstance(obj, dict):
+            out.append(path or "$")
+            return
+        for field in info.fields:
+            name = f"{path}.{field.encode_name}" if path else field.encode_name
+            if field.encode_name not in obj:
+                out.append(name)
+            else:
+                _missing(obj[field.encode_name], field.type, name, out)
+    elif isinstance(info, (msgspec.inspect.ListType, msgspec.inspect.TupleType, msgspec.inspect.VarTupleType)):
+        if isinstance(obj, list):
+            item = getattr(info, "item_type", None)
+            items = [item] * len(obj) if item is not None else list(info.item_types)
+            for i, (value, item_info) in enumerate(zip(obj, items)):
+                _missing(value, item_info, f"{path}[{i}]", out)
 
 
 def to_builtins(message: msgspec.Struct) -> dict:

@@ -227,6 +227,39 @@ def test_kinova_api_refuses_unknown_functions_and_bad_arguments(robot, client):
     assert robot.counters.get("rejected.api") == 2
 
 
+def raw_api(client, function, payload: bytes) -> kinova.ApiReply:
+    replies = list(client.get(KEYS.robot_api(function), payload=payload, timeout=10.0))
+    assert len(replies) == 1  # every query is answered
+    return m.decode(replies[0].ok.payload.to_bytes(), kinova.ApiReply)
+
+
+def test_kinova_api_refuses_what_a_request_does_not_say(robot, client):
+    """A request that changes the arm must spell out every field (``{}`` must not erase the zones or send the arm
+    to zero angles); a function without an argument refuses a payload (garbage must not run MoveHome); a payload
+    that is not MessagePack at all (an invalid UTF-8 key) gets an error reply, not silence."""
+    corners = [kinova.CartesianInfo(X=x, Y=y, Z=z) for z in (0.0, 0.8) for x, y in
+               ((0.3, -0.3), (0.6, -0.3), (0.6, 0.3), (0.3, 0.3))]
+    zone = kinova.Zone(ID=1, zoneShape=kinova.ZoneShape(Points=corners))
+    assert api(client, "SetProtectionZone", kinova.ZoneList(NbZones=1, Zones=[zone])).code == 1
+    before = api(client, "GetAngularPosition", reply_type=kinova.AngularPositionReply).result.Actuators.as_list()
+    probes = [("SetProtectionZone", msgpack.packb({})), ("SetProtectionZone", msgpack.packb({"NbZones": 0})),
+              ("SendBasicTrajectory", msgpack.packb({"Position": {"Type": 2}})),
+              ("SetClientConfigurations", msgpack.packb({"MaxTranslationVelocity": 0.1})),
+              ("MoveHome", b"\x01\x02garbage"), ("EraseAllProtectionZones", msgpack.packb({})),
+              ("SendBasicTrajectory", bytes.fromhex("81a1ff00"))]
+    for function, payload in probes:
+        reply = raw_api(client, function, payload)
+        assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM, (function, payload, reply)
+    assert robot.counters.get("rejected.api") == len(probes)
+    assert api(client, "GetProtectionZone", reply_type=kinova.ZoneListReply).result.NbZones == 1
+    time.sleep(0.3)
+    after = api(client, "GetAngularPosition", reply_type=kinova.AngularPositionReply).result.Actuators.as_list()
+    assert np.abs(np.array(after) - np.array(before)).max() < 0.05
+    # the explicit forms still work: every field said, and the empty zone list is its own request
+    assert api(client, "SetProtectionZone", kinova.ZoneList(NbZones=0, Zones=[])).code == 1
+    assert api(client, "EraseAllProtectionZones").code == 1
+
+
 def test_lockstep_retries_a_tick_whose_answer_was_lost(robot, client):
     seen = set()
 

@@ -54,6 +54,7 @@ from protocol.messages import (
     TorqueCommand,
     decode,
     encode,
+    missing_fields,
 )
 from services.common import frames
 from services.common.config import ConfigStruct
@@ -336,15 +337,22 @@ class RobotNode(Service):
             return
         argument_type, _ = spec
         argument = None
-        if argument_type is not None:
-            payload = query.payload.to_bytes() if query.payload is not None else b""
-            try:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            if argument_type is None:
+                if payload:  # garbage must not run MoveHome: a function without an argument takes no payload
+                    raise ProtocolError(function, f"takes no argument, got {len(payload)} bytes")
+            else:
                 argument = decode(payload, argument_type)
-            except ProtocolError as exc:
-                self.refuse("api", str(exc))
-                query.reply(query.key_expr, encode(kinova.ApiReply(
-                    code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))))
-                return
+                missing = missing_fields(payload, argument_type) if function in kinova.MUTATING_API_FUNCTIONS else []
+                if missing:
+                    raise ProtocolError(argument_type.__name__, "a request that changes the arm must give every "
+                                        f"field; missing: {', '.join(missing[:8])}")
+        except ProtocolError as exc:
+            self.refuse("api", str(exc))
+            query.reply(query.key_expr, encode(kinova.ApiReply(
+                code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc)[:256])))
+            return
         future: Future = Future()
         self._api_calls.put((function, argument, future))
         with self.command_cond:
