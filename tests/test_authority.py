@@ -13,7 +13,8 @@ import zenoh
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
-from services.common.authority import write_deployment
+from protocol.keys import Keys
+from services.common.authority import DEFAULT_SERVICES, write_deployment
 from services.common.transport import Router, ZenohConfig, free_loopback_port, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import KEYS, Recorder, wait_for
@@ -200,3 +201,99 @@ def test_unauthenticated_clients_cannot_join(deployment, tmp_path):
             open_session(ZenohConfig(connect=[deployment.endpoint], config_file=str(bad)))
         with pytest.raises(zenoh.ZError):
             open_session(ZenohConfig(connect=[deployment.endpoint]))  # no credentials at all
+
+
+WILDCARD_FORMS = ["mfvs/jaco/robot/*", "mfvs/jaco/robot/**", "mfvs/jaco/robot/comm$*", "mfvs/jaco/**", "mfvs/*/robot/command",
+                  "mfvs/**/command", "**"]
+
+
+@pytest.mark.parametrize("key", WILDCARD_FORMS)
+def test_no_wildcard_reaches_the_robot_for_an_identity_that_may_not_command(deployment, robot, key):
+    """Zenoh's access control applies a rule to a key expression included in the rule's: the per-identity allow
+    lists include no wildcard form of a protected key, so the router drops them (as it drops the literal key)."""
+    operator = session_as(deployment, "operator")
+    states = Recorder(operator, KEYS.robot_state, m.RobotState)
+    assert wait_for(lambda: len(states) > 5)
+    q0 = np.array(states.last().q)
+    run_intruder(deployment.endpoint, deployment.client_configs["operator"], key)
+    assert "command" not in robot.rates.snapshot()
+    assert np.abs(np.array(states.last().q) - q0).max() < 1e-6
+    states.close()
+    operator.close()
+
+
+def concrete_keys() -> list[str]:
+    k = KEYS
+    return [k.camera_image, k.camera_info, k.features, k.vision_goal, k.desired_twist, k.desired_joint_velocity,
+            k.controller_status, k.robot_command, k.safety_status, k.estop, k.robot_state, k.lowlevel_command,
+            k.lowlevel_state, k.clock] + [k.health(s) for s in DEFAULT_SERVICES]
+
+
+def test_each_identity_writes_exactly_its_own_keys(deployment):
+    """Every identity puts on every key of the stack, and on the wildcard forms above; a subscriber to everything
+    sees exactly what the role table (services.common.authority.writes) allows: one writer per key that can move
+    the arm, health only in one's own name, no wildcard."""
+    from services.common.authority import writes
+    table = writes(Keys("jaco"))
+    rules = writes(Keys.all_robots())
+
+    def allowed(identity, key):  # zenoh's rule: the key expression is included in one of the identity's
+        own = rules.get(identity, []) + [Keys.all_robots().health(identity)]
+        return any(zenoh.KeyExpr(rule).includes(zenoh.KeyExpr(key)) for rule in own)
+
+    listener = session_as(deployment, "robot_sim")
+    seen: list[tuple[str, bytes]] = []
+    sub = listener.declare_subscriber("**", lambda s: seen.append((str(s.key_expr), s.payload.to_bytes())))
+    time.sleep(0.3)
+    expected = set()
+    for identity in DEFAULT_SERVICES:
+        session = session_as(deployment, identity)
+        time.sleep(0.2)
+        for key in concrete_keys() + WILDCARD_FORMS:
+            marker = f"{identity}>{key}".encode()
+            session.put(key, marker)
+            if allowed(identity, key):
+                expected.add((key, marker))
+        time.sleep(0.2)
+        session.close()
+    assert wait_for(lambda: expected <= set(seen), timeout=5), sorted(expected - set(seen))
+    time.sleep(0.3)
+    ours = {(key, payload) for key, payload in seen if b">" in payload}
+    assert ours == expected, sorted(ours - expected)
+    writers = {}
+    for identity, keys in table.items():
+        for key in keys:
+            writers.setdefault(key, []).append(identity)
+    for key in (KEYS.camera_image, KEYS.features, KEYS.desired_twist, KEYS.desired_joint_velocity,
+                KEYS.robot_command, KEYS.lowlevel_command):  # the keys that can cause motion: one writer each
+        assert len(writers[key]) == 1, (key, writers[key])
+    sub.undeclare()
+    listener.close()
+
+
+@pytest.mark.parametrize("key", ["mfvs/jaco/robot/*", "mfvs/jaco/robot/**", "mfvs/jaco/robot/comm$*", "mfvs/*/robot/command"])
+def test_without_the_acl_the_robot_still_drops_commands_on_a_wildcard(router, key):
+    """Defence in depth: on an open router (no access control) a command published on a wildcard that intersects
+    the robot's key reaches its subscription, and the robot drops it, counted, because it is not on the literal key
+    its one writer uses."""
+    robot = RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config())).start()
+    try:
+        client = open_session(router.client_config())
+        states = Recorder(client, KEYS.robot_state, m.RobotState)
+        assert wait_for(lambda: len(states) > 5)
+        q0 = np.array(states.last().q)
+        publisher = client.declare_publisher(key)
+        time.sleep(0.3)
+        for _ in range(50):
+            publisher.put(velocity_command(time.time_ns()))
+            time.sleep(0.01)
+        assert wait_for(lambda: robot.counters.get("rejected.command.key") >= 45, timeout=5)
+        assert "command" not in robot.rates.snapshot()
+        time.sleep(0.2)
+        assert np.abs(np.array(states.last().q) - q0).max() < 1e-6
+        client.put(KEYS.robot_command, velocity_command(time.time_ns()))  # the literal key still works
+        assert wait_for(lambda: robot.rates.snapshot().get("command", 0) > 0, timeout=5)
+        states.close()
+        client.close()
+    finally:
+        robot.stop()

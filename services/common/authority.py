@@ -8,12 +8,14 @@ Two flavours, written by :func:`write_deployment` (``mfvs authority init``):
 * ``tls``: mutual TLS (a CA, the router's certificate, one client certificate per service, made by
   ``deploy/tls/gen_certs.sh``) and access control by certificate common name.
 
-In both, default permission is deny; every listed service may do everything except: put/delete on robot
-commands (only ``safety``), on low-level torque commands (only ``torque_controller``, a controller that does its
-own dynamics and so bypasses safety: give that identity only to a tested one) and on robot state (only the robot
-services); and queries to the Kinova API functions that move the arm or change its zones and limits (only
-``safety``; everyone may read). Deny rules act on ingress to the router
-(an egress deny would also drop what the router forwards to the robot). Services must run as zenoh clients of the
+In both, default permission is deny and each identity may publish only its own keys (:func:`writes`): robot
+commands only ``safety``, low-level torque commands only ``torque_controller`` (a controller that does its own
+dynamics and so bypasses safety: give that identity only to a tested one), robot state only the robot services,
+camera images and the clock only ``robot_sim``, features only ``vision``, the controller's outputs only
+``controller``, the e-stop and the goal only ``operator``; queries to the Kinova API functions that move the arm
+or change its zones and limits only ``safety`` (everyone may read); a liveliness token and a health key only in
+its own name. The rules act on ingress to the router (an egress rule would also drop what the router forwards to
+the robot). Services must run as zenoh clients of the
 router: access control lives there. The generated files hold secrets (keys, passwords): keep them out of git.
 """
 from __future__ import annotations
@@ -28,11 +30,7 @@ from pathlib import Path
 from protocol import kinova
 from protocol.keys import Keys
 
-COMMANDERS = ("safety",)
-ROBOTS = ("robot_sim", "robot_gateway")
-TORQUE_CONTROLLERS = ("torque_controller",)
-OTHERS = ("vision", "controller", "operator")
-DEFAULT_SERVICES = COMMANDERS + ROBOTS + TORQUE_CONTROLLERS + OTHERS
+DEFAULT_SERVICES = ("safety", "robot_sim", "robot_gateway", "torque_controller", "vision", "controller", "operator")
 
 #: every message kind zenoh's access control knows; the allow rule must list them all under default deny
 _ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
@@ -49,49 +47,76 @@ class Deployment:
     tls: bool
 
 
+#: what each identity may publish (put/delete): every key that can cause motion has exactly one writer
+def writes(keys: Keys) -> dict[str, list[str]]:
+    return {
+        "robot_sim": [keys.camera_image, keys.camera_info, keys.clock, keys.robot_state, keys.lowlevel_state],
+        "robot_gateway": [keys.robot_state, keys.lowlevel_state],
+        "vision": [keys.features],
+        "controller": [keys.desired_twist, keys.desired_joint_velocity, keys.controller_status],
+        "safety": [keys.robot_command, keys.safety_status],
+        "torque_controller": [keys.lowlevel_command],
+        # the person (and their tools): the e-stop and its reset, and the goal (which vision validates)
+        "operator": [keys.estop, keys.vision_goal],
+    }
+
+
+#: the Kinova API functions anyone may call (they read the arm); the others move it or change its zones/limits
+READ_API_FUNCTIONS = sorted(set(kinova.API_FUNCTIONS) - kinova.MUTATING_API_FUNCTIONS)
+
+
+def queries(keys: Keys) -> dict[str, list[str]]:
+    """What each identity may query, beyond what everyone may (:func:`everyone_queries`)."""
+    return {"safety": sorted(keys.robot_api(f) for f in kinova.MUTATING_API_FUNCTIONS),
+            "operator": [keys.vision_api("set_goal")]}
+
+
+def everyone_queries(keys: Keys) -> list[str]:
+    return [keys.robot_api(f) for f in READ_API_FUNCTIONS] + [keys.vision_api("get_goal"), keys.health_all]
+
+
+def queryables(keys: Keys) -> dict[str, list[str]]:
+    """Who may answer which queries (a rogue queryable could answer in a robot's name)."""
+    return {"robot_sim": [keys.robot_api_all], "robot_gateway": [keys.robot_api_all],
+            "vision": [keys.vision_api("set_goal"), keys.vision_api("get_goal")]}
+
+
 def access_control(services, match: str) -> dict:
-    """The router's access_control block; ``match`` is "usernames" or "cert_common_names"."""
+    """The router's access_control block; ``match`` is "usernames" or "cert_common_names".
+
+    An allow list per identity, under default deny, on ingress (what a client sends to the router): zenoh's access
+    control applies a rule to a message whose key expression is *included in* the rule's, so a publication on a
+    wildcard (``robot/*``, ``robot/**``, ``robot/comm$*``) is included in no identity's literal keys and is
+    denied, where a deny list of literal keys let it through. Egress (what the router forwards to a client) is
+    open: the robot must receive safety's commands."""
     services = list(services)
     keys = Keys.all_robots()
-    commanders = [s for s in services if s in COMMANDERS]
-    robots = [s for s in services if s in ROBOTS]
-    torque = [s for s in services if s in TORQUE_CONTROLLERS]
-    others = [s for s in services if s not in COMMANDERS + ROBOTS + TORQUE_CONTROLLERS]
-    subjects, ids = [], {}
-    for group, members in (("commanders", commanders), ("robots", robots), ("torque_controllers", torque),
-                           ("others", others)):
-        if members:
-            subjects.append({"id": group, match: members})
-            ids[group] = group
-    present = list(ids)
-    return {
-        "enabled": True,
-        "default_permission": "deny",
-        "rules": [
-            {"id": "allow_all", "permission": "allow", "flows": ["ingress", "egress"], "messages": _ALL_MESSAGES,
-             "key_exprs": ["**"]},
-            {"id": "deny_command", "permission": "deny", "flows": ["ingress"], "messages": ["put", "delete"],
-             "key_exprs": [keys.robot_command]},
-            {"id": "deny_robot_state", "permission": "deny", "flows": ["ingress"], "messages": ["put", "delete"],
-             "key_exprs": [keys.robot_state, keys.lowlevel_state]},
-            {"id": "deny_torque_command", "permission": "deny", "flows": ["ingress"], "messages": ["put", "delete"],
-             "key_exprs": [keys.lowlevel_command]},
-            {"id": "deny_robot_api_changes", "permission": "deny", "flows": ["ingress"], "messages": ["query"],
-             "key_exprs": sorted(keys.robot_api(f) for f in kinova.MUTATING_API_FUNCTIONS)},
-        ],
-        "subjects": subjects,
-        "policies": [p for p in (
-            {"id": "everyone", "rules": ["allow_all"], "subjects": present},
-            {"id": "only_safety_commands", "rules": ["deny_command"],
-             "subjects": [g for g in present if g != "commanders"]},
-            {"id": "only_robots_publish_state", "rules": ["deny_robot_state"],
-             "subjects": [g for g in present if g != "robots"]},
-            {"id": "only_torque_controllers_command_torques", "rules": ["deny_torque_command"],
-             "subjects": [g for g in present if g != "torque_controllers"]},
-            {"id": "only_safety_changes_the_robot_through_its_api", "rules": ["deny_robot_api_changes"],
-             "subjects": [g for g in present if g != "commanders"]},
-        ) if p["subjects"]],
-    }
+    write, query, answer = writes(keys), queries(keys), queryables(keys)
+    rules = [
+        {"id": "egress", "permission": "allow", "flows": ["egress"], "messages": _ALL_MESSAGES, "key_exprs": ["**"]},
+        {"id": "subscribe_and_reply", "permission": "allow", "flows": ["ingress"],
+         "messages": ["declare_subscriber", "declare_liveliness_subscriber", "reply"], "key_exprs": ["**"]},
+        {"id": "liveliness_query", "permission": "allow", "flows": ["ingress"], "messages": ["liveliness_query"],
+         "key_exprs": [keys.liveliness_all]},
+        {"id": "read_queries", "permission": "allow", "flows": ["ingress"], "messages": ["query"],
+         "key_exprs": everyone_queries(keys)},
+    ]
+    policies = [{"id": "everyone", "rules": [r["id"] for r in rules], "subjects": services}]
+    subjects = []
+    for service in services:
+        subjects.append({"id": service, match: [service]})
+        own = [{"id": f"{service}_writes", "messages": ["put", "delete"],
+                "key_exprs": write.get(service, []) + [keys.health(service)]},
+               {"id": f"{service}_alive", "messages": ["liveliness_token"], "key_exprs": [keys.liveliness(service)]},
+               {"id": f"{service}_queryables", "messages": ["declare_queryable"],
+                "key_exprs": answer.get(service, []) + [keys.health(service)]}]
+        if service in query:
+            own.append({"id": f"{service}_queries", "messages": ["query"], "key_exprs": query[service]})
+        for rule in own:
+            rules.append({**rule, "permission": "allow", "flows": ["ingress"]})
+        policies.append({"id": f"{service}_own", "rules": [rule["id"] for rule in own], "subjects": [service]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
 
 
 def _write(path: Path, data: dict, secret: bool = False) -> Path:

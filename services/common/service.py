@@ -212,8 +212,15 @@ class Service:
         assert self.session is not None, "subscribe() belongs in on_start()"
         follows = sim_stamped and isinstance(self.clock, SimulatedClock) and self.follows_sim_clock
 
+        literal = not any(c in key for c in "*$")
+
         def on_sample(sample: zenoh.Sample) -> None:
             recv_ns = self.clock.now_ns()
+            if literal and str(sample.key_expr) != key:
+                # published on a wildcard that intersects our key (robot/*, robot/**, comm$*): whoever did that
+                # is not the key's writer, whatever the router let through; a second line behind its ACL
+                self.refuse(f"{stream}.key", f"published on {str(sample.key_expr)[:80]!r}, not on {key!r}")
+                return
             self.rates.tick(stream)
             try:
                 message = decode(sample.payload.to_bytes(), message_type)
