@@ -30,6 +30,7 @@ class _StandInPipeline:
     def __init__(self, session) -> None:
         self.publisher = GuardedPublisher.declare(session, KEYS.robot_command)
         self.frame_stamp = 0
+        self.seq = 0  # numbered: the robot refuses a repeat
         self.lock = threading.Lock()
         self.subscribers = [
             session.declare_subscriber(KEYS.clock, self._on_tick),
@@ -38,7 +39,8 @@ class _StandInPipeline:
 
     def _answer(self, stamp: int) -> None:
         with self.lock:
-            header = m.Header(stamp_ns=stamp, source_stamp_ns=self.frame_stamp)
+            self.seq += 1
+            header = m.Header(seq=self.seq, stamp_ns=stamp, source_stamp_ns=self.frame_stamp)
         self.publisher.put(m.encode(m.RobotCommand(header=header, mode=m.CommandMode.STOP)))
 
     def _on_tick(self, sample) -> None:

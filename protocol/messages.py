@@ -66,6 +66,8 @@ class Message(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
 
 
 NonNegInt = Annotated[int, msgspec.Meta(ge=0)]
+#: a time stamp or sequence number: an int64 (what every clock and counter here fits, what a peer in C expects)
+Stamp = Annotated[int, msgspec.Meta(ge=0, le=2**63 - 1)]
 Vec3 = tuple[float, float, float]
 JointVector = Annotated[list[float], msgspec.Meta(min_length=N_JOINTS, max_length=N_JOINTS)]
 ServiceName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-.]{1,64}$")]
@@ -75,17 +77,17 @@ class Hop(Message):
     """One service's passage: when it received the input and when it published the output (ns, its clock)."""
 
     service: ServiceName
-    recv_ns: NonNegInt
-    pub_ns: NonNegInt
+    recv_ns: Stamp
+    pub_ns: Stamp
 
 
 class Header(Message):
     schema: int = SCHEMA_VERSION
-    seq: NonNegInt = 0
+    seq: Stamp = 0
     #: time this message's content refers to (ns; wall or simulated per the clock mode)
-    stamp_ns: NonNegInt = 0
+    stamp_ns: Stamp = 0
     #: capture time of the image this message derives from (0 when it derives from no image)
-    source_stamp_ns: NonNegInt = 0
+    source_stamp_ns: Stamp = 0
     trace: Annotated[list[Hop], msgspec.Meta(max_length=32)] = []
 
     def __post_init__(self) -> None:

@@ -1,4 +1,5 @@
 """Test helpers that start real services against a real router, and stand-ins for services not under test."""
+import itertools
 import threading
 import time
 
@@ -8,6 +9,14 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
 from services.common.transport import GuardedPublisher
+
+#: robot commands are numbered per sender (the robot refuses a repeat): tests number theirs from here
+_command_seq = itertools.count(1)
+
+
+def next_seq() -> int:
+    return next(_command_seq)
+
 
 KEYS = Keys()
 

@@ -17,13 +17,13 @@ from protocol.keys import Keys
 from services.common.authority import DEFAULT_SERVICES, write_deployment
 from services.common.transport import Router, ZenohConfig, free_loopback_port, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
-from tests.stack import KEYS, Recorder, wait_for
+from tests.stack import KEYS, Recorder, next_seq, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def velocity_command(stamp=0):
-    header = m.Header(stamp_ns=stamp)
+    header = m.Header(stamp_ns=stamp, seq=next_seq())
     twist = m.Twist(header=header, frame=Frame.MIXED, angular=AngularConvention.SEED000, linear=(0.05, 0.0, 0.0),
                     rotational=(0.0, 0.0, 0.0))
     return m.encode(m.RobotCommand(header=header, mode=m.CommandMode.CARTESIAN_VELOCITY, twist=twist))

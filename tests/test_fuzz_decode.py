@@ -71,3 +71,14 @@ def test_one_field_of_a_message_replaced(message_type, data):
     obj["header"] = {"schema": m.SCHEMA_VERSION, "seq": 1, "stamp_ns": 1}
     obj[field.encode_name] = data.draw(values)
     decode_or_reject(pack(obj), message_type)
+
+
+@pytest.mark.parametrize("field", ["seq", "stamp_ns", "source_stamp_ns"])
+def test_header_stamps_and_sequence_numbers_are_int64(field):
+    """A goal stamped 2**64 - 1 was accepted and moved the arm: stamps and sequence numbers are range-checked."""
+    goal = m.to_builtins(m.VisionGoal(header=m.Header(), features=[(0.0, 0.0)] * 4, depth_m=0.3))
+    goal["header"][field] = 2**64 - 1
+    with pytest.raises(m.ProtocolError, match=field):
+        m.decode(msgpack.packb(goal), m.VisionGoal)
+    goal["header"][field] = 2**63 - 1
+    assert getattr(m.decode(msgpack.packb(goal), m.VisionGoal).header, field) == 2**63 - 1

@@ -19,7 +19,7 @@ from services.common.transport import open_session
 from services.robot_gateway import kinova_sdk as sdk_mod
 from services.robot_gateway.kinova_sdk import KinovaSdk, SdkError
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
-from tests.stack import KEYS, Recorder, wait_for
+from tests.stack import KEYS, Recorder, next_seq, wait_for
 
 SOURCE = Path(__file__).resolve().parent / "fake_kinova_sdk" / "fake_kinova_sdk.c"
 
@@ -96,7 +96,7 @@ def gateway(router, library, fake):
 
 
 def command(mode, **fields):
-    header = m.Header(stamp_ns=time.time_ns())
+    header = m.Header(stamp_ns=time.time_ns(), seq=next_seq())
     return m.encode(m.RobotCommand(header=header, mode=mode, **fields))
 
 

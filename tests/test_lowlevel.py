@@ -15,7 +15,7 @@ from services.common.rs485_bus import BusConfig
 from services.common.transport import open_session
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
-from tests.stack import KEYS, Recorder, wait_for
+from tests.stack import KEYS, Recorder, next_seq, wait_for
 
 _channels = itertools.count()
 
@@ -112,7 +112,7 @@ def robot(request, router):
 
 
 def robot_command():
-    header = m.Header(stamp_ns=time.time_ns())
+    header = m.Header(stamp_ns=time.time_ns(), seq=next_seq())
     twist = m.Twist(header=header, frame=Frame.MIXED, angular=AngularConvention.SEED000, linear=(0.04, 0.0, 0.0),
                     rotational=(0.0, 0.0, 0.0))
     return m.encode(m.RobotCommand(header=header, mode=m.CommandMode.CARTESIAN_VELOCITY, twist=twist))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from protocol import messages as m
-from protocol.conventions import ClockMode
+from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.common import jaco2
 from services.common.kinematics import ArmKinematics
 from services.common.transport import open_session
@@ -108,3 +108,31 @@ def test_an_arm_faster_than_told_gets_a_latched_protective_stop(safety):
     assert service.estop_latched
     client.put(KEYS.estop, m.encode(m.EStop(header=m.Header(), reset=True, operator="test")))
     assert wait_for(lambda: not service.estop_latched, timeout=5)
+
+
+def test_safety_refuses_an_input_from_the_future(safety):
+    """Freshness is two-sided: a twist stamped an hour ahead (or derived from an image stamped ahead) is refused
+    like a stale one; one within the skew passes."""
+    service, client = safety
+    tokens = [client.liveliness().declare_token(KEYS.liveliness(name)) for name in ("vision", "controller",
+                                                                                   "robot_sim")]
+    commands = Recorder(client, KEYS.robot_command, m.RobotCommand)
+    time.sleep(0.3)
+
+    def twist(stamp, source):
+        h = m.Header(stamp_ns=stamp, source_stamp_ns=source)
+        return m.encode(m.Twist(header=h, frame=Frame.MIXED, angular=AngularConvention.SEED000,
+                                linear=(0.01, 0.0, 0.0), rotational=(0.0, 0.0, 0.0)))
+
+    now = time.time_ns()
+    client.put(KEYS.robot_state, robot_state(np.zeros(7), now))
+    client.put(KEYS.desired_twist, twist(now + 3600 * 10**9, now))
+    client.put(KEYS.desired_twist, twist(now, now + 3600 * 10**9))
+    assert wait_for(lambda: service.counters.get("refused.freshness") >= 2, timeout=5)
+    assert "in the future" in service.last_refusal
+    now = time.time_ns()
+    client.put(KEYS.robot_state, robot_state(np.zeros(7), now))
+    client.put(KEYS.desired_twist, twist(now + 20_000_000, now))
+    assert wait_for(lambda: any(c.mode is m.CommandMode.CARTESIAN_VELOCITY for c in commands.snapshot()), timeout=5)
+    for token in tokens:
+        token.undeclare()

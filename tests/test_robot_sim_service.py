@@ -13,7 +13,7 @@ from protocol.keys import Keys
 from services.common import jaco2
 from services.common.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
-from tests.stack import wait_for
+from tests.stack import next_seq, wait_for
 
 KEYS = Keys()
 
@@ -62,7 +62,7 @@ class FakeSafety:
 
 
 def twist_payload(stamp, source_stamp=0, linear=(0.05, 0.0, 0.0), convention=AngularConvention.SEED000):
-    header = m.Header(stamp_ns=stamp, source_stamp_ns=source_stamp)
+    header = m.Header(stamp_ns=stamp, source_stamp_ns=source_stamp, seq=next_seq())
     twist = m.Twist(header=header, frame=Frame.MIXED, angular=convention, linear=linear, rotational=(0.0, 0.0, 0.0))
     return m.encode(m.RobotCommand(header=header, mode=m.CommandMode.CARTESIAN_VELOCITY, twist=twist))
 

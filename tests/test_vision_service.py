@@ -11,7 +11,7 @@ from protocol.keys import Keys
 from services.common.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.vision.service import VisionConfig, VisionService
-from tests.stack import wait_for
+from tests.stack import next_seq, wait_for
 
 KEYS = Keys()
 
@@ -32,7 +32,7 @@ class StopOnFeatures:
         self.token = session.liveliness().declare_token(KEYS.liveliness("safety"))
 
     def _send(self, stamp):
-        header = m.Header(stamp_ns=stamp, source_stamp_ns=self.frame_stamp)
+        header = m.Header(stamp_ns=stamp, source_stamp_ns=self.frame_stamp, seq=next_seq())
         self.publisher.put(m.encode(m.RobotCommand(header=header, mode=m.CommandMode.STOP)))
 
     def _on_tick(self, sample):

@@ -64,6 +64,7 @@ from services.common.kinova_api import KinovaApi
 from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome
 from services.common.metrics import DurationStats, LoopTimer, RateMeter
 from services.common.service import Service, ServiceConfig
+from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import CYCLES_PER_DSP, RobotCore
 from services.robot.hardware import CYCLE_NS, CYCLE_S, HardwareError, JointReading, RobotHardware
 from services.robot.pacing import CyclePacer, request_realtime
@@ -102,6 +103,8 @@ class LockstepConfig(ConfigStruct):
 class RobotNodeConfig(ServiceConfig):
     dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
     lockstep: LockstepConfig = msgspec.field(default_factory=LockstepConfig)
+    #: which robot commands are applied at all: fresh, not from the future, in sequence per sender
+    admission: AdmissionConfig = msgspec.field(default_factory=AdmissionConfig)
     #: the low-level torque API's watchdog and release (services.common.lowlevel)
     lowlevel: LowLevelConfig = msgspec.field(default_factory=LowLevelConfig)
     #: after this many consecutive failed exchanges the node reports itself unhealthy and refuses motion
@@ -196,6 +199,7 @@ class RobotNode(Service):
         self._thread: Optional[threading.Thread] = None
         self._command: Optional[tuple[RobotCommand, int]] = None
         self.command_cond = threading.Condition()
+        self.admission = CommandAdmission(config.admission)
         self._api_calls: queue.Queue = queue.Queue()
         self._applied: Optional[Header] = None
         self._last_refusal = ""
@@ -252,9 +256,9 @@ class RobotNode(Service):
             self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
             self.subscribe(keys.lowlevel_command, TorqueCommand, self._on_torque, "lowlevel_command")
             self.queryable(keys.robot_api_all, self._on_api)
-            if self.lockstep:
-                self._declared.append(self.session.liveliness().declare_subscriber(
-                    keys.liveliness_all, self._on_liveliness, history=True))
+            # who is alive: lockstep waits for its answerers; a sender's new session restarts its numbering
+            self._declared.append(self.session.liveliness().declare_subscriber(
+                keys.liveliness_all, self._on_liveliness, history=True))
             self.declare_outputs()
         except BaseException:
             self.hardware.close()
@@ -307,11 +311,20 @@ class RobotNode(Service):
     # ------------------------------------------------------------------ inputs (zenoh threads)
     def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
         with self.command_cond:
+            rejection = self.admission.admit(command.header, recv_ns)
+            if rejection is not None:
+                self.counters.inc(f"refused.{rejection.kind}")
+                self.refuse("command", rejection.reason)
+                self._last_refusal, self._refusal_cycles = rejection.reason, 100
+                return
             self._command = (command, recv_ns)
             self.command_cond.notify_all()
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if sample.kind == zenoh.SampleKind.PUT:
+            with self.command_cond:
+                self.admission.new_session(name)  # a new session of a sender numbers its commands afresh
         if name in self.config.lockstep.answered_by:
             with self.command_cond:
                 if sample.kind == zenoh.SampleKind.PUT:

@@ -28,6 +28,8 @@ class SafetyLimits(ConfigStruct):
     image_budget_s: float = 0.25
     #: the robot state used for the joint and zone checks must be this fresh
     state_budget_s: float = 0.1
+    #: an input stamped further ahead of safety's clock than this is refused (clock skew between hosts, no more)
+    future_skew_s: float = 0.05
     max_linear_speed_mps: float = 0.15
     max_angular_speed_rps: float = 0.8
     max_linear_accel_mps2: float = 0.64
@@ -50,8 +52,8 @@ class SafetyLimits(ConfigStruct):
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=lambda: ZoneFilterConfig(margin_m=0.02))
 
     def __post_init__(self) -> None:
-        for name in ("command_budget_s", "image_budget_s", "state_budget_s", "max_linear_speed_mps",
-                     "max_angular_speed_rps", "max_linear_accel_mps2", "max_angular_accel_rps2",
+        for name in ("command_budget_s", "image_budget_s", "state_budget_s", "future_skew_s",
+                     "max_linear_speed_mps", "max_angular_speed_rps", "max_linear_accel_mps2", "max_angular_accel_rps2",
                      "max_joint_accel_dps2", "joint_horizon_s", "measured_overspeed_s"):
             value = getattr(self, name)
             if not (value > 0 and math.isfinite(value)):

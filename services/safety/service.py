@@ -243,6 +243,9 @@ class SafetyService(Service):
         if not any(name in self.alive for name in self.config.robots):
             return "liveliness: no robot alive"
         age = (now - header.stamp_ns) * 1e-9
+        if -age > lim.future_skew_s or -(now - header.source_stamp_ns) * 1e-9 > lim.future_skew_s:
+            return (f"freshness: stamped {max(-age, (header.source_stamp_ns - now) * 1e-9) * 1e3:.0f} ms in the "
+                    f"future (skew at most {lim.future_skew_s * 1e3:.0f} ms)")
         if age > lim.command_budget_s:
             return f"freshness: command is {age * 1e3:.0f} ms old (budget {lim.command_budget_s * 1e3:.0f} ms)"
         if header.source_stamp_ns == 0:
