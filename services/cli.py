@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
@@ -26,7 +27,15 @@ def _cmd_router(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    with Router(port=args.port, host=args.host, config_file=args.config) as router:
+    from services.common.config import ConfigError
+
+    port = args.port if args.port is not None or args.config else 7447  # a config's own endpoint wins
+    try:
+        router = Router(port=port, host=args.host, config_file=args.config).start()
+    except ConfigError as exc:
+        print(f"mfvs router: {exc}", file=sys.stderr)
+        return 2
+    with router:
         print(json.dumps({"router": router.endpoint, "zid": router.zid}), flush=True)
         stop.wait()
     return 0
@@ -87,9 +96,21 @@ def _cmd_model(args: argparse.Namespace) -> int:
     return 0
 
 
+def _stack_connection(args: argparse.Namespace) -> None:
+    """Fill in what the command line left open from the running stack (its run directory), as `status` does:
+    the router's endpoint and the robot id; a stack on another port is then reached without saying so."""
+    from services.launcher import read_stack
+
+    stack = read_stack() or {}
+    args.connect = args.connect or stack.get("endpoint") or "tcp/127.0.0.1:7447"
+    args.robot_id = args.robot_id or stack.get("robot_id") or "jaco"
+    args.zenoh_config = args.zenoh_config or stack.get("zenoh_config")
+
+
 def _operator_session(args: argparse.Namespace):
     from services.common.transport import ZenohConfig, open_session
 
+    _stack_connection(args)
     return open_session(ZenohConfig(connect=[args.connect], config_file=args.zenoh_config))
 
 
@@ -100,8 +121,13 @@ def _cmd_estop(args: argparse.Namespace) -> int:
     from protocol import messages as m
     from protocol.keys import Keys
 
+    try:
+        session = _operator_session(args)
+    except Exception as exc:  # the command a person reaches for in an emergency: say what failed, plainly
+        print(f"e-stop NOT sent: cannot reach the router at {args.connect} ({exc}); is the stack up? "
+              f"(--connect ENDPOINT, --zenoh-config FILE)", file=sys.stderr)
+        return 2
     keys = Keys(args.robot_id)
-    session = _operator_session(args)
     statuses: list = []
     session.declare_subscriber(keys.safety_status, lambda s: statuses.append(m.decode(s.payload.to_bytes(),
                                                                                       m.SafetyStatus)))
@@ -194,7 +220,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
     stack = read_stack()
     endpoint = args.connect or (stack["endpoint"] if stack else "tcp/127.0.0.1:7447")
     robot_id = args.robot_id or (stack["robot_id"] if stack else "jaco")
-    report = status_json(endpoint, robot_id, args.zenoh_config)
+    report = status_json(endpoint, robot_id, args.zenoh_config or (stack or {}).get("zenoh_config"))
     if args.json:
         print(json.dumps(report))
     else:
@@ -206,6 +232,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
             condition = s["condition"].upper() if s["condition"] != "healthy" else "healthy"
             why = f" ({'; '.join(s['degraded'])})" if s["degraded"] else ""
             print(f"  {s['name']:12s} pid {s['pid']}  {condition}{why}  {rates}; {errors}")
+            if s["name"] in ("safety", "controller") or s["condition"] in ("dead", "not responding"):
+                print(f"  {'':12s} {s['detail']}")  # the e-stop, the task's state, or how it ended
     return 0 if report["router"]["reachable"] else 1
 
 
@@ -221,9 +249,10 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _add_connection_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--connect", default="tcp/127.0.0.1:7447", help="zenoh router endpoint")
+    parser.add_argument("--connect", default=None, help="zenoh router endpoint (default: the running stack's)")
     parser.add_argument("--zenoh-config", default=None, help="zenoh client config (credentials, certificates)")
-    parser.add_argument("--robot-id", default="jaco", help="robot id (keys under mfvs/<robot_id>/)")
+    parser.add_argument("--robot-id", default=None, help="robot id (keys under mfvs/<robot_id>/; default: the "
+                        "running stack's)")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for confirmation")
 
 
@@ -236,7 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     router = sub.add_parser("router", help="run a zenoh router in the foreground until SIGTERM/SIGINT")
-    router.add_argument("--port", type=int, default=7447, help="TCP port to listen on (0: a free one; default 7447)")
+    router.add_argument("--port", type=int, default=None,
+                        help="TCP port to listen on (0: a free one; default: the --config file's listen endpoint, "
+                             "else 7447); a port that conflicts with the file's is an error")
     router.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     router.add_argument("--config", default=None, help="zenoh JSON5 config file (access control, TLS)")
     router.add_argument("--realtime-priority", type=int, default=30, metavar="N",
@@ -315,7 +346,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    return args.func(args)
+    try:
+        return args.func(args)
+    except BrokenPipeError:  # `mfvs status | head -2`: the reader left; nothing more to say, and no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

@@ -33,7 +33,8 @@ import msgspec
 from protocol import messages as m
 from protocol.keys import Keys
 from services.common.config import ConfigStruct, load_config
-from services.common.transport import ZenohConfig, open_session
+from services.common.service import EXIT_FILE_ENV
+from services.common.transport import ZenohConfig, file_endpoints, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICES = ("safety", "vision", "controller", "robot_sim")
@@ -114,9 +115,12 @@ def read_stack() -> Optional[dict]:
         return None
 
 
-def _spawn(args: list[str], log: Path) -> subprocess.Popen:
+def _spawn(args: list[str], log: Path, exit_file: Optional[Path] = None) -> subprocess.Popen:
     env = dict(os.environ)
     env.setdefault("MUJOCO_GL", "egl")
+    if exit_file is not None:
+        exit_file.unlink(missing_ok=True)
+        env[EXIT_FILE_ENV] = str(exit_file)
     out = log.open("ab")
     return subprocess.Popen(args, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
 
@@ -127,16 +131,21 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
     if current and any(_alive(p["pid"]) for p in current["processes"]):
         return 1, f"a stack is already up (router {current['endpoint']}); run `mfvs down` first"
     directory = run_dir()
-    scheme = "tcp"
-    if profile.router.config:
-        text = Path(profile.router.config).read_text()
-        scheme = "tls" if "tls/" in text else "tcp"
-    endpoint = f"{scheme}/127.0.0.1:{profile.router.port}"
+    endpoint = f"tcp/127.0.0.1:{profile.router.port}"
+    router_args = [sys.executable, "-m", "services.cli", "router"]
+    listen = file_endpoints(profile.router.config, "listen") if profile.router.config else []
+    if listen:  # the router's config says where it listens (and whether over TLS)
+        endpoint = listen[0]
+        router_args += ["--config", profile.router.config]
+    else:
+        router_args += ["--port", str(profile.router.port)]
+        if profile.router.config:
+            router_args += ["--config", profile.router.config]
+    # behind an authority router, the launcher's own checks (and `status`, `estop`) need an identity: the
+    # operator's, from the same directory as the services' client configs
+    observer = _observer_config(profile)
     processes = []
     children: list[subprocess.Popen] = []
-    router_args = [sys.executable, "-m", "services.cli", "router", "--port", str(profile.router.port)]
-    if profile.router.config:
-        router_args += ["--config", profile.router.config]
     log = directory / "router.log"
     children.append(_spawn(router_args, log))
     processes.append({"name": "router", "pid": children[-1].pid, "log": str(log)})
@@ -158,9 +167,12 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
         for assignment in service.set:
             args += ["--set", assignment]
         log = directory / f"{service.name}.log"
-        children.append(_spawn(args, log))
-        processes.append({"name": service.name, "pid": children[-1].pid, "log": str(log)})
-    stack = {"endpoint": endpoint, "robot_id": profile.robot_id, "processes": processes, "started": time.time()}
+        exit_file = directory / f"{service.name}.exit"
+        children.append(_spawn(args, log, exit_file))
+        processes.append({"name": service.name, "pid": children[-1].pid, "log": str(log),
+                          "exit_file": str(exit_file)})
+    stack = {"endpoint": endpoint, "robot_id": profile.robot_id, "processes": processes, "started": time.time(),
+             "zenoh_config": observer}
     (directory / "stack.json").write_text(json.dumps(stack, indent=2))
     # wait until every service announces itself
     names = {s.name for s in profile.services}
@@ -173,7 +185,7 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
             logs = "; ".join(f"{p['name']} exited (log {p['log']})" for p in dead)
             return 1, f"the stack did not come up: {logs}"
         try:
-            alive = set(status(endpoint, profile.robot_id, liveliness_only=True))
+            alive = set(status(endpoint, profile.robot_id, liveliness_only=True, zenoh_config=observer))
         except Exception:
             alive = set()
         if names <= alive:
@@ -181,6 +193,17 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
         time.sleep(0.5)
     down()
     return 1, f"services not alive after {wait_s:g} s: {', '.join(sorted(names - alive))}"
+
+
+def _observer_config(profile: Profile) -> Optional[str]:
+    """The operator's client config next to the services' (``mfvs authority init`` writes them together), if the
+    services run with client configs."""
+    for service in profile.services:
+        if service.zenoh_config:
+            candidate = Path(service.zenoh_config).parent / "operator.json5"
+            if candidate.is_file():
+                return str(candidate)
+    return None
 
 
 def down(timeout_s: float = 15.0) -> tuple[int, str]:
@@ -261,7 +284,29 @@ def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -
             "rates_hz": dict(health.rates_hz) if health else {}, "errors": dict(health.errors) if health else {},
             "degraded": list(health.degraded) if health else [], "detail": health.detail if health else "",
         })
+    # what the run directory started and the bus does not know: dead (with its exit code when it left one), or
+    # running but silent
+    for process in stack["processes"]:
+        name = process["name"]
+        if name in found or name in ("router", "bus_hub"):
+            continue
+        alive = _alive(process["pid"])
+        exit_code = _exit_code(process.get("exit_file"))
+        services.append({
+            "name": name, "pid": process["pid"], "healthy": False,
+            "condition": "not responding" if alive else "dead", "state": "running" if alive else "exited",
+            "exit_code": None if alive else exit_code, "rates_hz": {}, "errors": {}, "degraded": [],
+            "detail": "" if alive else ("killed (no exit code)" if exit_code is None else f"exit code {exit_code}")
+                      + f"; log {process.get('log', '')}",
+        })
     return {"router": router, "services": services}
+
+
+def _exit_code(path: Optional[str]) -> Optional[int]:
+    try:
+        return int(Path(path).read_text().strip()) if path else None
+    except (OSError, ValueError):
+        return None
 
 
 def load_profile(name_or_path: str, port: int, bus_port: int = BUS_HUB_PORT) -> Profile:

@@ -70,3 +70,33 @@ def test_router_command_serves_and_stops_on_sigterm():
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_a_config_files_endpoints_win_and_a_conflicting_port_is_an_error(tmp_path):
+    """`mfvs router --config` listens where the file says (it listened on the default 7447); a --port that
+    conflicts is refused; a client's --zenoh-config endpoints win over the default and a conflicting --connect is
+    refused, so no service silently joins whatever router runs on 7447."""
+    import pytest
+
+    from services.common.config import ConfigError
+    from services.common.transport import free_loopback_port, to_zenoh_config
+
+    port = free_loopback_port()
+    router_file = tmp_path / "router.json5"
+    router_file.write_text(json.dumps({"mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]}}))
+    conflict = run("router", "--config", str(router_file), "--port", str(port + 1), timeout=30)
+    assert conflict.returncode == 2 and "conflicts" in conflict.stderr
+    proc = subprocess.Popen([mfvs_executable(), "router", "--config", str(router_file)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        assert json.loads(proc.stdout.readline())["router"] == f"tcp/127.0.0.1:{port}"
+        client_file = tmp_path / "client.json5"
+        client_file.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]}}))
+        session = open_session(ZenohConfig(config_file=str(client_file)))  # the default --connect gives way
+        assert session.info.routers_zid()
+        session.close()
+        with pytest.raises(ConfigError, match="conflict"):
+            to_zenoh_config(ZenohConfig(connect=["tcp/127.0.0.1:1"], config_file=str(client_file)))
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=10)

@@ -6,6 +6,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from services.common.transport import free_loopback_port
 
 MFVS = str(Path(sys.executable).parent / "mfvs")
@@ -24,21 +26,45 @@ def test_up_status_down(tmp_path):
         assert "stack up" in out.stdout
         again = mfvs("up", "--port", port, env=env)
         assert again.returncode == 1 and "already up" in again.stderr
-        time.sleep(3.0)
-        status = mfvs("status", "--json", env=env)
-        assert status.returncode == 0, status.stderr
-        report = json.loads(status.stdout)
+        # start-up is late (imports, the first frames, the router's routes): degraded for a health period or two
+        deadline = time.monotonic() + 20
+        while True:
+            time.sleep(1.0)
+            status = mfvs("status", "--json", env=env)
+            assert status.returncode == 0, status.stderr
+            report = json.loads(status.stdout)
+            if all(s["healthy"] for s in report["services"]) or time.monotonic() > deadline:
+                break
         assert report["router"]["reachable"] and report["router"]["endpoint"].endswith(port)
         services = {s["name"]: s for s in report["services"]}
         assert set(services) == {"robot_sim", "vision", "controller", "safety"}
         stack = json.loads((tmp_path / "stack.json").read_text())
         pids = {p["name"]: p["pid"] for p in stack["processes"]}
         for name, service in services.items():
-            assert service["healthy"], (name, service)
+            assert service["healthy"], (name, service["condition"], service["degraded"], service["errors"])
             assert service["pid"] == pids[name]
             assert isinstance(service["errors"], dict) and service["rates_hz"]
         assert services["robot_sim"]["rates_hz"]["pub.state"] > 50  # generous: 100 Hz nominal
         assert services["vision"]["rates_hz"]["pub.features"] > 10  # 30 Hz nominal
+        # the e-stop reaches this stack on its own port from the run directory, and the text status shows it
+        engaged = mfvs("estop", "--reason", "test", env=env, timeout=60)
+        assert engaged.returncode == 0 and "e-stop engaged" in engaged.stdout, engaged.stderr
+        text = mfvs("status", env=env)
+        assert "estop=True" in text.stdout
+        released = mfvs("estop", "--reset", env=env, timeout=60)
+        assert released.returncode == 0 and "e-stop reset" in released.stdout, released.stderr
+        # piping the status into a reader that leaves early is clean
+        piped = subprocess.run(f"{MFVS} status | head -1", shell=True, capture_output=True, text=True, env=env,
+                               timeout=60)
+        assert piped.stdout.startswith("router ") and "Traceback" not in piped.stderr
+        # a service killed outright, and one stopped, are reported dead, not dropped
+        os.kill(pids["controller"], 9)
+        os.kill(pids["vision"], 15)
+        time.sleep(5.0)
+        services = {s["name"]: s for s in json.loads(mfvs("status", "--json", env=env).stdout)["services"]}
+        assert services["controller"]["condition"] == "dead" and "killed" in services["controller"]["detail"]
+        assert services["vision"]["condition"] == "dead" and services["vision"]["exit_code"] == 0
+        assert "DEAD" in mfvs("status", env=env).stdout
     finally:
         down = mfvs("down", env=env)
     assert down.returncode == 0 and "stopped 5 processes" in down.stdout
@@ -94,7 +120,11 @@ def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
         assert applied_by == {"robot_gateway"}  # safety's commands reached the arm through the gateway
         services = {s["name"]: s for s in status["services"]}
         assert set(services) == {"robot_sim", "robot_gateway", "vision", "controller", "safety"}
-        assert all(s["healthy"] for s in services.values()), services
+        # running, and honest about it: on a 2-core machine that also renders and detects, the gateway profile
+        # can miss a bus cycle now and then, which makes it degraded (counted), never unhealthy
+        assert all(s["condition"] in ("healthy", "degraded") for s in services.values()), \
+            {name: (s["condition"], s["degraded"], s["errors"]) for name, s in services.items()}
+        assert all(s["condition"] == "healthy" or s["degraded"] for s in services.values())
         assert services["robot_gateway"]["rates_hz"]["pub.state"] > 50  # generous: 100 Hz nominal
         assert services["robot_gateway"]["rates_hz"]["pub.lowlevel_state"] > 200  # generous: 500 Hz nominal
         assert "pub.state" not in services["robot_sim"]["rates_hz"]  # only the gateway is the robot
@@ -113,3 +143,43 @@ def test_shipped_profile_files_are_the_built_in_profiles():
         for service in shipped.services:
             service.config = str(REPO / service.config)
         assert shipped == load_profile(name, 7447), name
+
+
+def test_estop_without_a_reachable_router_says_so_plainly(tmp_path):
+    env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path))
+    out = mfvs("estop", "--connect", f"tcp/127.0.0.1:{free_loopback_port()}", env=env, timeout=60)
+    assert out.returncode == 2 and "e-stop NOT sent" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("tls", [False, True], ids=["acl", "tls"])
+def test_up_behind_an_authority_router_and_estop_through_it(tmp_path, tls):
+    """`mfvs up` with a profile whose router and services use `mfvs authority init`'s configs: the router listens
+    where its config says (TLS included), the launcher's checks and `status`/`estop` use the operator identity of
+    the same directory."""
+    import yaml
+
+    from services.common.authority import write_deployment
+
+    port = free_loopback_port()
+    deployment = write_deployment(tmp_path / "authority", tls=tls, port=port)
+    profile = {"router": {"port": 7447, "config": str(deployment.router_config)},
+               "services": [{"name": name, "config": f"services/{name}/{name}.yaml",
+                             "zenoh_config": str(deployment.client_configs[name])}
+                            for name in ("safety", "vision", "controller", "robot_sim")]}
+    (tmp_path / "profile.yaml").write_text(yaml.safe_dump(profile))
+    env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path / "run"))
+    out = mfvs("up", "--profile", str(tmp_path / "profile.yaml"), "--clock", "realtime", env=env)
+    try:
+        assert out.returncode == 0, (out.stdout, out.stderr)
+        assert deployment.endpoint in out.stdout  # the config's endpoint, not the profile's port
+        time.sleep(2.0)
+        report = json.loads(mfvs("status", "--json", env=env).stdout)
+        assert {s["name"] for s in report["services"] if s["condition"] in ("healthy", "degraded")} == \
+            {"safety", "vision", "controller", "robot_sim"}, report
+        engaged = mfvs("estop", "--reason", "test", env=env, timeout=60)
+        assert engaged.returncode == 0, engaged.stderr
+        released = mfvs("estop", "--reset", env=env, timeout=60)
+        assert released.returncode == 0, released.stderr
+    finally:
+        down = mfvs("down", env=env)
+    assert down.returncode == 0

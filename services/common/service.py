@@ -391,4 +391,26 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
         from services.robot.pacing import request_realtime
 
         request_realtime(priority, f"{service_type.name} process")
-    return service_type(config).run()
+    code = 1
+    try:
+        code = service_type(config).run()
+        return code
+    finally:
+        _record_exit(code)
+
+
+#: where a service started by ``mfvs up`` leaves its exit code, for ``mfvs status`` to report (a process killed
+#: outright leaves none)
+EXIT_FILE_ENV = "MFVS_EXIT_FILE"
+
+
+def _record_exit(code: int) -> None:
+    import os
+
+    path = os.environ.get(EXIT_FILE_ENV)
+    if path:
+        try:
+            with open(path, "w") as f:
+                f.write(f"{code}\n")
+        except OSError:
+            pass

@@ -34,24 +34,47 @@ class ZenohConfig(ConfigStruct):
     config_file: str | None = None
 
 
+def _load_file(config_file: str) -> zenoh.Config:
+    path = Path(config_file)
+    if not path.is_file():
+        raise ConfigError(str(path), "zenoh config file not found", "zenoh.config_file")
+    try:
+        return zenoh.Config.from_file(str(path))
+    except Exception as exc:  # zenoh raises its own error type with the parser's message
+        raise ConfigError(str(path), f"invalid zenoh config ({exc})", "zenoh.config_file") from None
+
+
+def file_endpoints(config_file: str, which: str) -> list[str]:
+    """The ``connect`` or ``listen`` endpoints a zenoh config file sets ([] when it leaves them to zenoh)."""
+    value = json.loads(_load_file(config_file).get_json(f"{which}/endpoints"))
+    return list(value) if isinstance(value, list) else []
+
+
+def _endpoints(wanted: list[str], default: list[str], in_file: list[str], which: str, config_file: str) -> list[str]:
+    """The file's endpoints win over the built-in default; endpoints given as well must agree with them (a
+    service that silently joined another router than its file names would be worse than one that fails)."""
+    if not in_file or not wanted or wanted == default:
+        return wanted if not in_file else []
+    if sorted(wanted) != sorted(in_file):
+        raise ConfigError(config_file, f"{which} endpoints {wanted} conflict with the file's {in_file}",
+                          f"zenoh.{which}")
+    return []
+
+
 def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
+    conf = _load_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+    connect, listen = cfg.connect, cfg.listen
     if cfg.config_file:
-        path = Path(cfg.config_file)
-        if not path.is_file():
-            raise ConfigError(str(path), "zenoh config file not found", "zenoh.config_file")
-        try:
-            conf = zenoh.Config.from_file(str(path))
-        except Exception as exc:  # zenoh raises its own error type with the parser's message
-            raise ConfigError(str(path), f"invalid zenoh config ({exc})", "zenoh.config_file") from None
-    else:
-        conf = zenoh.Config()
+        connect = _endpoints(cfg.connect, ZenohConfig().connect, file_endpoints(cfg.config_file, "connect"),
+                             "connect", cfg.config_file)
+        listen = _endpoints(cfg.listen, [], file_endpoints(cfg.config_file, "listen"), "listen", cfg.config_file)
     try:
         conf.insert_json5("mode", json.dumps(cfg.mode))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
-        if cfg.connect:
-            conf.insert_json5("connect/endpoints", json.dumps(cfg.connect))
-        if cfg.listen:
-            conf.insert_json5("listen/endpoints", json.dumps(cfg.listen))
+        if connect:
+            conf.insert_json5("connect/endpoints", json.dumps(connect))
+        if listen:
+            conf.insert_json5("listen/endpoints", json.dumps(listen))
     except Exception as exc:
         raise ConfigError("zenoh", f"rejected by zenoh ({exc})", "zenoh") from None
     return conf
@@ -105,11 +128,21 @@ class Router:
     Use as a context manager, or ``start()``/``close()``. ``port=0`` picks a free port.
     """
 
-    def __init__(self, port: int = 0, host: str = "127.0.0.1", config_file: str | None = None,
+    def __init__(self, port: int | None = 0, host: str = "127.0.0.1", config_file: str | None = None,
                  scheme: str = "tcp") -> None:
+        """``port=None`` with a config file: listen where the file says (its first listen endpoint); a port given
+        as well must be the file's."""
+        self.config_file = None if config_file is None else str(config_file)
+        listen = file_endpoints(self.config_file, "listen") if self.config_file else []
+        if listen:
+            file_scheme, address = listen[0].split("/", 1)
+            file_host, file_port = address.rsplit(":", 1)
+            if port and (int(file_port), file_scheme) != (port, scheme):
+                raise ConfigError(self.config_file, f"port {port} ({scheme}) conflicts with the file's listen "
+                                  f"endpoint {listen[0]}", "listen.endpoints")
+            host, port, scheme = file_host, int(file_port), file_scheme
         self.host = host
         self.port = port or free_loopback_port(host)
-        self.config_file = None if config_file is None else str(config_file)
         self.scheme = scheme
         self._session: zenoh.Session | None = None
         self._lock = threading.Lock()
@@ -125,7 +158,8 @@ class Router:
     def start(self) -> "Router":
         with self._lock:
             if self._session is None:
-                cfg = ZenohConfig(mode="router", connect=[], listen=[self.endpoint], config_file=self.config_file)
+                listen = [] if self.config_file and file_endpoints(self.config_file, "listen") else [self.endpoint]
+                cfg = ZenohConfig(mode="router", connect=[], listen=listen, config_file=self.config_file)
                 self._session = open_session(cfg)
         return self
 
