@@ -57,3 +57,19 @@ def test_missing_replies_time_out_and_nacks_raise(link):
     link.bus.send(r.RS485Message(r.Command.KP_GAIN, 0, 0x10))
     with pytest.raises(LinkError, match="NACK"):
         ActuatorLink(link.bus, addresses=[0x10], timeout_s=0.05)._collect({(0x10, r.Command.ACK): 1})
+
+
+def test_replies_of_the_next_cycle_that_come_early_are_kept_for_it():
+    """Pipelined, the host sends the next cycle's targets before it collects the last cycle's replies; when both
+    cycles' replies arrive in one read, the second cycle's belong to the next collection (a copy of the collector
+    without this counted them as unexpected, and the next exchange then timed out)."""
+    with simulated_link(lockstep=True) as (_, link):
+        home = jaco2.HOME_DEG.astype(float)
+        link.command(home)
+        link.send_command(home)
+        link.send_command(home + 0.01)
+        time.sleep(0.3)  # both cycles' 21 replies are waiting now
+        first = link.collect_command(time.monotonic() + 1.0)
+        second = link.collect_command(time.monotonic() + 1.0)  # from what the first read kept
+        assert second.stamp_ns >= first.stamp_ns > 0
+        assert link.counters.get("link.unexpected") == 0 and link.counters.get("link.timeouts") == 0
