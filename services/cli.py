@@ -306,8 +306,8 @@ def build_parser() -> argparse.ArgumentParser:
     servo = sub.add_parser("servo", help="run one servo task described by a scenario file")
     servo.add_argument("--scenario", required=True, help="scenario YAML (see examples/scenarios)")
     servo.add_argument("--profile", default="sim",
-                       help="sim (the simulator's DSP; default) or gateway (robot_gateway over the RS-485 bus, "
-                            "realtime)")
+                       help="sim (the simulator's DSP; default) or gateway (robot_gateway over the RS-485 bus, as "
+                            "processes; in lockstep the same run to the bit)")
     servo.add_argument("--json", action="store_true", help="print one JSON object with the result")
     servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
     servo.set_defaults(func=_cmd_servo)

@@ -92,3 +92,22 @@ def test_the_robot_refuses_a_replayed_capture_stale_future_and_repeated_commands
     finally:
         client.close()
         robot.stop()
+
+
+def test_low_level_torques_are_admitted_as_robot_commands_are(router):
+    """Torques bypass safety: a stale or repeated torque command does not engage low-level control."""
+    robot = RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config())).start()
+    client = open_session(router.client_config())
+    try:
+        time.sleep(0.3)
+        torques = lambda seq, stamp: m.encode(m.TorqueCommand(header=m.Header(seq=seq, stamp_ns=stamp),
+                                                              torques=[0.0] * 7))
+        client.put(KEYS.lowlevel_command, torques(1, time.time_ns() - 3600 * 10**9))
+        client.put(KEYS.lowlevel_command, torques(2, 0))
+        assert wait_for(lambda: robot.counters.get("refused.lowlevel_stale") == 2, timeout=5)
+        client.put(KEYS.lowlevel_command, torques(5, time.time_ns()))
+        client.put(KEYS.lowlevel_command, torques(5, time.time_ns()))
+        assert wait_for(lambda: robot.counters.get("refused.lowlevel_sequence") == 1, timeout=5)
+    finally:
+        client.close()
+        robot.stop()

@@ -129,7 +129,8 @@ def test_only_the_torque_controller_identity_commands_torques(deployment, robot)
         start = time.monotonic()
         for k in range(100):  # 0.2 s at 500 Hz
             time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
-            publisher.put(m.encode(m.TorqueCommand(header=m.Header(stamp_ns=time.time_ns()), torques=[0.0] * 7)))
+            publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=next_seq(), stamp_ns=time.time_ns()),
+                                                   torques=[0.0] * 7)))
         session.close()
 
     for name in ("safety", "controller", "operator"):

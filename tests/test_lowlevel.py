@@ -134,7 +134,8 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     start = time.monotonic()
     for k in range(200):  # 0.4 s of zero extra torque at 500 Hz: gravity compensation holds the arm
         time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
-        publisher.put(m.encode(m.TorqueCommand(header=m.Header(stamp_ns=time.time_ns()), torques=[0.0] * 7)))
+        publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=next_seq(), stamp_ns=time.time_ns()),
+                                               torques=[0.0] * 7)))
         if k == 100:
             client.put(KEYS.robot_command, robot_command())  # refused while torque control is active
             api_call.start()  # and so is a motion through the Kinova API

@@ -23,6 +23,9 @@ class CubicTorqueClient:
         self.start: float | None = None
         self.done = threading.Event()
         self._lock = threading.Lock()
+        # the robot refuses a sequence number not above the sender's last; a client without a liveliness token
+        # (whose new session the robot cannot see) starts above any earlier run's numbers
+        self._seq = time.time_ns() // 1000
         self._publisher = GuardedPublisher.declare(session, keys.lowlevel_command)
         self._subscriber = session.declare_subscriber(keys.lowlevel_state, self._on_state)
 
@@ -39,7 +42,8 @@ class CubicTorqueClient:
             if state.mode is m.ActuatorMode.TORQUE:
                 self.errors_deg.append(float(np.degrees(np.abs(q_d - q)).max()))
             tau = self.controller.torque(q, dq, q_d, dq_d, ddq_d)
-        self._publisher.put(m.encode(m.TorqueCommand(header=m.Header(stamp_ns=time.time_ns()),
+        self._seq += 1
+        self._publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=self._seq, stamp_ns=time.time_ns()),
                                                      torques=tau.tolist(), gravity_compensation=True)))
         if t > self.duration_s + 0.3:
             self.done.set()

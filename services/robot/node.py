@@ -200,6 +200,7 @@ class RobotNode(Service):
         self._command: Optional[tuple[RobotCommand, int]] = None
         self.command_cond = threading.Condition()
         self.admission = CommandAdmission(config.admission)
+        self.torque_admission = CommandAdmission(config.admission)
         self._api_calls: queue.Queue = queue.Queue()
         self._applied: Optional[Header] = None
         self._last_refusal = ""
@@ -325,6 +326,7 @@ class RobotNode(Service):
         if sample.kind == zenoh.SampleKind.PUT:
             with self.command_cond:
                 self.admission.new_session(name)  # a new session of a sender numbers its commands afresh
+                self.torque_admission.new_session(name)
         if name in self.config.lockstep.answered_by:
             with self.command_cond:
                 if sample.kind == zenoh.SampleKind.PUT:
@@ -333,10 +335,16 @@ class RobotNode(Service):
                     self._answerers.discard(name)
                 self.command_cond.notify_all()
 
-    def _on_torque(self, command: TorqueCommand, _recv_ns: int) -> None:
+    def _on_torque(self, command: TorqueCommand, recv_ns: int) -> None:
         unavailable = self.lowlevel_unavailable()
         if unavailable:
             self.refuse("lowlevel_command", unavailable)
+            return
+        with self.command_cond:
+            rejection = self.torque_admission.admit(command.header, recv_ns)
+        if rejection is not None:  # torques bypass safety: the same freshness and sequence as robot commands
+            self.counters.inc(f"refused.lowlevel_{rejection.kind}")
+            self.refuse("lowlevel_command", rejection.reason)
             return
         self.lowlevel.receive(command, time.monotonic())
 
