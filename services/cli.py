@@ -183,7 +183,7 @@ def _cmd_servo(args: argparse.Namespace) -> int:
 
     result = run(scenario, Path(args.out) if args.out else None, progress, profile=args.profile)
     if args.json:
-        print(json.dumps(result.to_json()))
+        print(json.dumps(result.to_json()), flush=True)
     else:
         print(f"{result.status}: {result.iterations} iterations, final ‖e‖ = {result.final_error_norm:.3e}, "
               f"max speed {result.max_linear_speed_mps:.3f} m/s, min manipulability {result.min_manipulability:.4f}")
@@ -341,6 +341,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import faulthandler
+
+    faulthandler.enable()  # a crash in a native library (EGL, MuJoCo, zenoh) says where, on stderr
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

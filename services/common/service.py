@@ -359,6 +359,9 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override one config key (dotted path, YAML value), e.g. bus.channel=127.0.0.1:7448")
     args = parser.parse_args(argv)
+    import faulthandler
+
+    faulthandler.enable()  # a crash in a native library (EGL, MuJoCo, zenoh) says where, on stderr (the log)
     try:
         data = read_yaml(args.config) if args.config else {}
         if not isinstance(data, dict):

@@ -7,6 +7,7 @@ the loop does later can change a frame being rendered.
 """
 from __future__ import annotations
 
+import logging
 import os
 import queue
 import threading
@@ -20,6 +21,8 @@ from protocol.messages import CameraInfo, Header, Image, ImageEncoding
 from services.robot.pacing import request_realtime
 from services.robot_sim import scene as scene_mod
 from services.robot_sim.sim import Simulation
+
+log = logging.getLogger("mfvs.robot_sim.camera")
 
 
 def normal_priority() -> None:
@@ -52,6 +55,7 @@ class SimCamera:
         self._header = header
         self._on_failure = on_failure
         self._queue: queue.Queue = queue.Queue(maxsize=1)
+        self._stopping = threading.Event()
         self._thread: Optional[threading.Thread] = None
         #: the last image published (published again when a lockstep answer is late)
         self.last_image: Optional[Image] = None
@@ -60,17 +64,23 @@ class SimCamera:
         """Start the render thread, and wait until its renderer exists: creating an EGL context holds the
         interpreter lock for a long while, which must happen before the arm's loop runs, not during it."""
         self._ready = threading.Event()
+        self._stopping.clear()
         self._thread = threading.Thread(target=self._render_loop, name="robot_sim-render", daemon=True)
         self._thread.start()
         self._ready.wait(timeout=30.0)
 
     def stop(self) -> None:
+        # the loop must end before the process does: a thread still inside EGL while the interpreter tears down
+        # crashes it (a full queue once kept the stop sentinel out, and the join gave up)
+        self._stopping.set()
         try:
-            self._queue.put(None, timeout=1.0)
+            self._queue.put_nowait(None)
         except queue.Full:
             pass
         if self._thread is not None:
-            self._thread.join(timeout=5.0)
+            self._thread.join(timeout=30.0)
+            if self._thread.is_alive():
+                log.error("camera render thread did not stop within 30 s")
 
     def capture(self, stamp_ns: int) -> Optional[threading.Event]:
         """Snapshot the world now for a frame stamped ``stamp_ns``; None when the renderer is still busy with the
@@ -98,8 +108,11 @@ class SimCamera:
             finally:
                 self._ready.set()
             request_realtime(self.realtime_priority, "camera render thread")
-            while True:
-                snapshot = self._queue.get()
+            while not self._stopping.is_set():
+                try:
+                    snapshot = self._queue.get(timeout=0.1)
+                except queue.Empty:
+                    continue
                 if snapshot is None:
                     return
                 try:
