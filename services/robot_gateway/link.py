@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -86,6 +86,27 @@ class ActuatorLink:
             self.errors.append((source, error))
             self.counters.inc(f"link.actuator_errors.{error.name.lower()}")
 
+    def _receive(self, deadline: float, missing: Callable[[], list[str]]) -> tuple[np.ndarray, np.ndarray]:
+        """What has arrived by ``deadline`` (monotonic); nothing at all is a timeout that names ``missing()``."""
+        try:
+            batch, stamps = self.bus.recv_batch(max(0.0, deadline - time.monotonic()))
+        except BusError as exc:
+            raise LinkError(f"bus failure: {exc}") from exc
+        if len(batch) == 0:
+            self.counters.inc("link.timeouts")
+            raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(missing())}")
+        return batch, stamps
+
+    def _report(self, command: int, source: int, batch: np.ndarray, k: int) -> bool:
+        """Whether message ``k`` is an actuator's error report (recorded); a NACK fails the request."""
+        if command == _REPORT_ERROR:
+            self._record_errors(batch[k : k + 1])
+            return True
+        if command == _NACK:
+            self.counters.inc("link.nacks")
+            raise LinkError(f"actuator 0x{source:02X} refused the request (NACK)")
+        return False
+
     def _collect(self, expected: dict[tuple[int, r.Command], int]) -> np.ndarray:
         """Wait for the expected replies ((source, command) → count) and return them as a batch; error reports
         are kept aside. The newest reply's stamp goes to :attr:`last_stamp_ns`."""
@@ -95,22 +116,12 @@ class ActuatorLink:
         deadline = time.monotonic() + self.timeout_s
         self.last_stamp_ns = 0
         while missing > 0:
-            try:
-                batch, stamps = self.bus.recv_batch(max(0.0, deadline - time.monotonic()))
-            except BusError as exc:
-                raise LinkError(f"bus failure: {exc}") from exc
-            if len(batch) == 0:
-                self.counters.inc("link.timeouts")
-                names = [f"0x{a:02X}:{r.Command(c).name}" for (a, c), n in remaining.items() if n]
-                raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(names)}")
+            batch, stamps = self._receive(deadline, lambda: [f"0x{a:02X}:{r.Command(c).name}"
+                                                             for (a, c), n in remaining.items() if n])
             take = []
             for k, (command, source) in enumerate(zip(batch["command"].tolist(), batch["source"].tolist())):
-                if command == r.Command.REPORT_ERROR:
-                    self._record_errors(batch[k : k + 1])
+                if self._report(command, source, batch, k):
                     continue
-                if command == r.Command.NACK:
-                    self.counters.inc("link.nacks")
-                    raise LinkError(f"actuator 0x{source:02X} refused the request (NACK)")
                 if remaining.get((source, command), 0) <= 0:
                     self.counters.inc("link.unexpected")
                     continue
@@ -182,25 +193,15 @@ class ActuatorLink:
             if self._carry is not None:
                 (batch, stamps), self._carry = self._carry, None
             else:
-                try:
-                    batch, stamps = self.bus.recv_batch(max(0.0, deadline - time.monotonic()))
-                except BusError as exc:
-                    raise LinkError(f"bus failure: {exc}") from exc
-                if len(batch) == 0:
-                    self.counters.inc("link.timeouts")
-                    names = [f"0x{self.addresses[j]:02X}:{_REPLY_NAMES[k]}" for j, k in zip(*np.nonzero(~got))]
-                    raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(names)}")
+                batch, stamps = self._receive(deadline, lambda: [f"0x{self.addresses[j]:02X}:{_REPLY_NAMES[k]}"
+                                                                 for j, k in zip(*np.nonzero(~got))])
             commands, sources = batch["command"].tolist(), batch["source"].tolist()
             for k, (command, source) in enumerate(zip(commands, sources)):
                 if not missing:
                     self._carry = (batch[k:], stamps[k:])
                     break
-                if command == _REPORT_ERROR:
-                    self._record_errors(batch[k : k + 1])
+                if self._report(command, source, batch, k):
                     continue
-                if command == _NACK:
-                    self.counters.inc("link.nacks")
-                    raise LinkError(f"actuator 0x{source:02X} refused the request (NACK)")
                 joint, kind = joint_of[source], command - _FIRST_REPLY
                 if joint < 0 or not 0 <= kind < 3 or got[joint, kind]:
                     self.counters.inc("link.unexpected")
