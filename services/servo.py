@@ -231,11 +231,13 @@ class _Watcher:
     def _on_features(self, features):
         with self.lock:
             self.features[features.header.source_stamp_ns] = features
+            self.lock.notify_all()
 
     def _on_output(self, output):
         values = output.velocities if isinstance(output, m.JointVelocity) else [*output.linear, *output.rotational]
         with self.lock:
             self.commands[output.header.source_stamp_ns] = list(values)
+            self.lock.notify_all()
 
     def _on_state(self, state):
         with self.lock:
@@ -338,7 +340,11 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                     break
             states = list(watcher.states)
             with watcher.lock:  # features and commands may reach us after their status (each subscriber has
-                for record in records:  # its own thread): complete the log with what came later
+                # its own thread; the last ones may still be on their way): complete the log with what came later
+                watcher.lock.wait_for(lambda: all(
+                    r.stamp_ns in watcher.features and (r.stamp_ns in watcher.commands or r.status not in (
+                        "converging", "converged")) for r in records), timeout=2.0)  # the law answers those
+                for record in records:
                     _fill_inputs(record, watcher)
         finally:
             watcher.close()
