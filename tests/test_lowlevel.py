@@ -1,6 +1,5 @@
 """The low-level torque API (robot/lowlevel/*): the same semantics on robot_sim (its own simulated actuators) and
 on robot_gateway (the actuators on the RS-485 bus), and the pure state machine behind both."""
-import itertools
 import threading
 import time
 
@@ -11,13 +10,12 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome
-from services.common.rs485_bus import BusConfig
 from services.common.transport import open_session
-from services.robot_gateway.service import GatewayConfig, robot_gateway_service
+from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
+from services.stack import RobotProcesses
 from tests.stack import KEYS, Recorder, next_seq, wait_for
 
-_channels = itertools.count()
 
 
 class FakeJoints:
@@ -89,26 +87,41 @@ def test_timing_is_validated():
         LowLevelConfig(watchdog_s=0.3, release_s=0.25)
 
 
+class RobotUnderTest:
+    """The robot a low-level test talks to: a zenoh client of it, its name, and its counters and rates."""
+
+    def __init__(self, client, name: str, service=None) -> None:
+        self.client, self.name, self._service = client, name, service
+
+    def health(self) -> m.ServiceHealth:
+        if self._service is not None:
+            return self._service.health()
+        for reply in self.client.get(KEYS.health(self.name), timeout=2.0):
+            if reply.ok is not None:
+                return m.decode(reply.ok.payload.to_bytes(), m.ServiceHealth)
+        raise AssertionError(f"{self.name} did not answer its health query")
+
+    def counter(self, name: str) -> int:
+        return self.health().errors.get(name, 0)
+
+
 @pytest.fixture(params=["robot_sim", "robot_gateway"])
 def robot(request, router):
-    """A realtime robot offering the low-level API: robot_sim alone, or robot_sim's actuators behind the gateway."""
-    services = []
+    """A realtime robot offering the low-level API: robot_sim alone (in this process), or the gateway profile as
+    deployed: robot_sim's emulated actuators, the CAN hub and robot_gateway as processes. The emulated arm stands
+    in for the arm's own processors, so it gets an interpreter of its own as they would; sharing this one with the
+    gateway, the router and the test's client, it fell behind its 2 ms cycle and skipped time."""
     if request.param == "robot_sim":
-        services.append(robot_sim_service(RobotSimConfig(clock=ClockMode.REALTIME,
-                                                       zenoh=router.client_config())).start())
-    else:
-        channel = f"lowlevel-{next(_channels)}"
-        services.append(robot_sim_service(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config(),
-                                                       mode="actuator_bus", bus=BusConfig(channel=channel))).start())
-        time.sleep(0.1)
-        services.append(robot_gateway_service(GatewayConfig(zenoh=router.client_config(),
-                                                          bus=BusConfig(channel=channel),
-                                                          link_timeout_s=0.05)).start())
-    client = open_session(router.client_config())
-    yield client, services[-1]
-    client.close()
-    for service in reversed(services):
+        service = robot_sim_service(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config())).start()
+        client = open_session(router.client_config())
+        yield RobotUnderTest(client, "robot_sim", service)
+        client.close()
         service.stop()
+    else:
+        with RobotProcesses(router.client_config(), gateway=GatewayConfig(link_timeout_s=0.05)):
+            client = open_session(router.client_config())
+            yield RobotUnderTest(client, "robot_gateway")
+            client.close()
 
 
 def robot_command():
@@ -122,7 +135,7 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     """Torque commands on robot/lowlevel/command put the joints in torque mode (the ~500 Hz low-level state says
     so); robot commands are refused meanwhile; without torque commands the arm holds, and after 250 ms it is back
     under the high-level DSP."""
-    client, service = robot
+    client = robot.client
     low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
     assert wait_for(lambda: len(low) > 50)
     assert low.last().mode is m.ActuatorMode.POSITION
@@ -144,11 +157,11 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM and "torque control" in reply.message
     assert low.last().mode is m.ActuatorMode.TORQUE
     assert np.degrees(np.abs(np.array(low.last().q) - q0)).max() < 1.0
-    assert wait_for(lambda: service.counters.get("rejected.command") == 1)  # refused, and counted
-    assert wait_for(lambda: service.counters.get("lowlevel.watchdog") > 0, timeout=2)
+    assert wait_for(lambda: robot.counter("rejected.command") == 1)  # refused, and counted
+    assert wait_for(lambda: robot.counter("lowlevel.watchdog") > 0, timeout=2)
     assert wait_for(lambda: low.last().mode is m.ActuatorMode.POSITION, timeout=2)  # the 250 ms fallback
     assert np.degrees(np.abs(np.array(low.last().q) - q0)).max() < 1.0
-    assert service.rates.snapshot()["pub.lowlevel_state"] > 200  # ~500 Hz nominal; generous on a shared machine
+    assert robot.health().rates_hz["pub.lowlevel_state"] > 200  # ~500 Hz nominal; generous on a shared machine
     # and the DSP drives the arm again
     states = Recorder(client, KEYS.robot_state, m.RobotState)
     for _ in range(30):
@@ -161,7 +174,7 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot):
     """Seed 003's computed torque as a zenoh client of the low-level API tracks the eq. 5.1 cubic within 1°."""
     from services.controller.torque_client import CubicTorqueClient
 
-    client, service = robot
+    client = robot.client
     low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
     assert wait_for(lambda: len(low) > 20)
     q0 = np.array(low.last().q)
@@ -172,7 +185,7 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot):
     finally:
         controller.close()
     errors = controller.errors_deg
-    print(f"computed torque over zenoh ({service.name}): max joint error {max(errors):.3f}° over "
+    print(f"computed torque over zenoh ({robot.name}): max joint error {max(errors):.3f}° over "
           f"{len(errors)} states")
     assert len(errors) > 300
     assert max(errors) < 1.0

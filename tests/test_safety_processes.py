@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from protocol import messages as m
+from services.common.dsp import DSPConfig
 from services.common.kinematics import ArmKinematics
 from services.common.transport import open_session
 from tests.stack import KEYS, Recorder, wait_for
@@ -64,6 +65,10 @@ def moving_arm(router):
         client.close()
 
 
+def position(state) -> np.ndarray:
+    return np.array([state.pose.X, state.pose.Y, state.pose.Z])
+
+
 def time_to_rest(states, kin, since_ns: int) -> float:
     after = [s for s in states.snapshot() if s.header.stamp_ns >= since_ns]
     rest = next(s.header.stamp_ns for s in after if ee_speed(kin, s) < 1e-3)
@@ -84,16 +89,37 @@ def test_killing_the_pipeline_mid_motion_stops_the_arm_in_time(moving_arm):
     assert elapsed <= bound
 
 
+#: the budgets an e-stop's stop is made of, beyond the braking itself: the e-stop reaching the robot through
+#: safety (zenoh and two processes on a shared machine: generous), the wait for the DSP's next 10 ms tick, the
+#: emulated arm's position servo trailing its braking reference (it settles below 1 mm/s 10-20 ms after the
+#: reference stops), and the 100 Hz robot states that show the rest
+ESTOP_DELIVERY_BUDGET_S = 0.020
+SERVO_SETTLE_S = 0.025
+STATE_PERIOD_S = 0.010
+
+
 def test_estop_in_realtime_stops_within_v0_over_a_stop(moving_arm):
+    """The e-stop in realtime: the arm travels no further than at full speed until the DSP tick after the e-stop
+    arrives plus its emergency braking distance, and is at rest within the braking time plus the budgets above.
+    (Measured: 4.5 or 5.5 mm, one DSP tick at 0.1 m/s apart, against 3.3 mm of braking; at rest 83-101 ms.)"""
+    dsp = DSPConfig()
     client, states, pipeline, kin = moving_arm
-    v0 = ee_speed(kin, states.last())
+    before = states.last()
+    v0 = ee_speed(kin, before)
     trigger_ns = time.time_ns()
     client.put(KEYS.estop, m.encode(m.EStop(header=m.Header(stamp_ns=trigger_ns), operator="test")))
     time.sleep(1.0)
     elapsed = time_to_rest(states, kin, trigger_ns)
-    bound = v0 / 1.5 + 0.030  # safety's estop_decel_mps2, the robot's emergency deceleration
-    print(f"v0 {v0:.3f} m/s, at rest {elapsed * 1e3:.0f} ms after the e-stop (bound {bound * 1e3:.0f} ms)")
-    assert elapsed <= bound
+    decel = dsp.emergency_linear_decel_mps2
+    reaction_s = (trigger_ns - before.header.stamp_ns) * 1e-9 + ESTOP_DELIVERY_BUDGET_S + dsp.cycle_s
+    distance_bound = v0 * (reaction_s + SERVO_SETTLE_S) + v0 ** 2 / (2 * decel)
+    distance = float(np.linalg.norm(position(states.last()) - position(before)))
+    time_bound = v0 / decel + ESTOP_DELIVERY_BUDGET_S + dsp.cycle_s + SERVO_SETTLE_S + STATE_PERIOD_S
+    print(f"v0 {v0:.3f} m/s: stopped in {distance * 1e3:.2f} mm (bound {distance_bound * 1e3:.2f}, braking alone "
+          f"{v0 ** 2 / (2 * decel) * 1e3:.2f}), at rest {elapsed * 1e3:.0f} ms after the e-stop (bound "
+          f"{time_bound * 1e3:.0f} ms)")
+    assert distance <= distance_bound
+    assert elapsed <= time_bound
 
 
 @pytest.mark.parametrize("victim", ["controller", "vision"])

@@ -1,6 +1,10 @@
 """A computed-torque client of the robot's low-level zenoh API: on every low-level state it publishes the
 torque of :class:`~services.controller.computed_torque.ComputedTorque` for the cubic reference (seed 003 ch. 4
-and eq. 5.1). Runs against robot_gateway (or any robot offering ``robot/lowlevel/*``)."""
+and eq. 5.1). Runs against robot_gateway (or any robot offering ``robot/lowlevel/*``).
+
+The reference is evaluated at the state's stamp (the arm's time), not at the client's clock: a state delivered
+late is compared with where the arm should have been when it was measured, so a late host or transport costs
+tracking only through the delay of the torque it answers with, never through a reference that ran ahead."""
 from __future__ import annotations
 
 import threading
@@ -20,7 +24,8 @@ class CubicTorqueClient:
         self.q0, self.qf, self.duration_s = np.asarray(q0, float), np.asarray(qf, float), duration_s
         self.controller = controller or ComputedTorque()
         self.errors_deg: list[float] = []
-        self.start: float | None = None
+        #: the arm's time (ns) of the first state: the cubic starts there
+        self.start_ns: int | None = None
         self.done = threading.Event()
         self._lock = threading.Lock()
         # the robot refuses a sequence number not above the sender's last; a client without a liveliness token
@@ -34,9 +39,9 @@ class CubicTorqueClient:
             return
         state = m.decode(sample.payload.to_bytes(), m.LowLevelState)
         with self._lock:
-            if self.start is None:
-                self.start = time.monotonic()
-            t = time.monotonic() - self.start
+            if self.start_ns is None:
+                self.start_ns = state.header.stamp_ns
+            t = (state.header.stamp_ns - self.start_ns) / 1e9
             q, dq = np.asarray(state.q), np.asarray(state.dq)
             q_d, dq_d, ddq_d = cubic(self.q0, self.qf, self.duration_s, t)
             if state.mode is m.ActuatorMode.TORQUE:
