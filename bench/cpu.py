@@ -13,7 +13,8 @@ import tempfile
 import time
 
 from services.common.transport import free_loopback_port
-from services.launcher import down, load_profile, read_stack, up
+from protocol import messages as m
+from services.launcher import down, load_profile, read_stack, stack_task, up
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -40,6 +41,7 @@ def measure(profile_name: str, seconds: float, settle_s: float = 3.0) -> dict:
         code, message = up(profile, "realtime")
         if code != 0:
             raise RuntimeError(message)
+        stack_task(m.START_TASK, operator="bench cpu")  # a servoing stack, not an idle one
         try:
             time.sleep(settle_s)  # past start-up (imports, first frames)
             processes = {p["name"]: p["pid"] for p in read_stack()["processes"]}

@@ -19,7 +19,7 @@ import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
 from services.common.transport import ZenohConfig, free_loopback_port, open_session
-from services.launcher import down, load_profile, up
+from services.launcher import down, load_profile, stack_task, up
 
 
 def _stats(values_ms: list[float]) -> dict:
@@ -62,6 +62,7 @@ def run(seconds: float = 10.0, profile: str = "sim") -> dict:
             code, message = up(load_profile(profile, port, free_loopback_port()), "realtime")
             if code:
                 raise RuntimeError(message)
+            stack_task(m.START_TASK, operator="bench latency")  # the stack comes up idle
             session = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
             states: list[m.RobotState] = []
             session.declare_subscriber(Keys().robot_state,

@@ -83,6 +83,11 @@ class Keys:
     def controller_status(self) -> str:
         return self._k("controller/status")
 
+    def controller_api(self, function: str) -> str:
+        """The queryables of the controller's task (protocol.messages.TASK_FUNCTIONS): the stack comes up idle and
+        moves only for a started task."""
+        return self._k(f"controller/api/{_check_chunk('function name', function)}")
+
     # safety
     @property
     def robot_command(self) -> str:

@@ -295,6 +295,42 @@ class ControllerState(str, enum.Enum):
     STALE_INPUT = "stale_input"
     ILL_CONDITIONED = "ill_conditioned"
     CONSTRAINT_ABORT = "constraint_abort"
+    #: no task is running (the stack comes up so): zero output until someone starts one
+    IDLE = "idle"
+
+
+class TaskState(str, enum.Enum):
+    IDLE = "idle"
+    RUNNING = "running"
+
+
+#: the controller's task functions (``Keys.controller_api``): start and stop take a TaskRequest, get_task nothing;
+#: each answers a TaskStatus
+START_TASK, STOP_TASK, GET_TASK = "start_task", "stop_task", "get_task"
+TASK_FUNCTIONS = (START_TASK, STOP_TASK, GET_TASK)
+
+
+class TaskRequest(Message):
+    """The argument of the controller's ``start_task`` and ``stop_task``: who asks, and why (logged, and kept in
+    the task's status)."""
+
+    operator: Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+    reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
+
+
+class TaskStatus(Message):
+    """The controller's answer to every task query: whether the request was done, and the task as it now is."""
+
+    ok: bool
+    state: TaskState
+    message: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    #: how many tasks were started since the controller started (this one's number while running)
+    task: NonNegInt = 0
+    #: when the current task started (the controller's clock, ns); 0 when idle
+    started_ns: Stamp = 0
+    #: the last start's or stop's operator and reason
+    by: Annotated[str, msgspec.Meta(max_length=64)] = ""
+    reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
 
 class ControllerStatus(Message):

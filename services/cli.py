@@ -151,6 +151,37 @@ def _cmd_estop(args: argparse.Namespace) -> int:
     return 1
 
 
+def _cmd_task(args: argparse.Namespace) -> int:
+    """Start, stop or show the controller's task: the stack moves the arm only while a task runs."""
+    import msgspec
+
+    from protocol import messages as m
+    from protocol.keys import Keys
+    from services.controller.task_client import TaskUnavailable, call_task
+
+    try:
+        session = _operator_session(args)
+    except Exception as exc:
+        print(f"task {args.action}: cannot reach the router at {args.connect} ({exc}); is the stack up? "
+              f"(--connect ENDPOINT, --zenoh-config FILE)", file=sys.stderr)
+        return 2
+    function = {"start": m.START_TASK, "stop": m.STOP_TASK, "status": m.GET_TASK}[args.action]
+    request = None if function == m.GET_TASK else m.TaskRequest(operator=args.operator, reason=args.reason)
+    try:
+        status = call_task(session, Keys(args.robot_id), function, request, args.timeout)
+    except TaskUnavailable as exc:
+        print(f"task {args.action}: {exc} (is the controller up? may this identity ask it?)", file=sys.stderr)
+        return 2
+    finally:
+        session.close()
+    if args.json:
+        print(json.dumps(msgspec.to_builtins(status)))
+    else:
+        by = f", by {status.by}" + (f": {status.reason}" if status.reason else "") if status.by else ""
+        print(f"task {status.state.value} (task {status.task}{by}){': ' + status.message if status.message else ''}")
+    return 0 if status.ok else 1
+
+
 def _cmd_authority(args: argparse.Namespace) -> int:
     from services.common.authority import DEFAULT_SERVICES, write_deployment
 
@@ -318,6 +349,15 @@ def build_parser() -> argparse.ArgumentParser:
     estop.add_argument("--reason", default="", help="why (logged by safety)")
     _add_connection_options(estop)
     estop.set_defaults(func=_cmd_estop)
+
+    task = sub.add_parser("task", help="start, stop or show the servo task (the stack comes up idle: the arm "
+                                       "moves only while a task runs)")
+    task.add_argument("action", choices=["start", "stop", "status"])
+    task.add_argument("--operator", default="mfvs-cli", help="who is asking (logged, and kept in the task status)")
+    task.add_argument("--reason", default="", help="why (logged)")
+    task.add_argument("--json", action="store_true", help="print the task status as one JSON object")
+    _add_connection_options(task)
+    task.set_defaults(func=_cmd_task)
 
     authority = sub.add_parser("authority", help="write zenoh configs where only safety may command the robot")
     authority.add_argument("action", choices=["init"])

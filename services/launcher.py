@@ -2,7 +2,8 @@
 
 A stack is a zenoh router plus services, each its own process (``python -m services.<name>``) with its config
 file, logging to the run directory (``$MFVS_RUN_DIR``, default ``~/.local/state/mfvs``), which also holds
-``stack.json`` (the router's endpoint, every process id and log). Profiles:
+``stack.json`` (the router's endpoint, every process id and log). The stack comes up idle: the arm moves only
+once a task is started (``mfvs task start``, :func:`stack_task`). Profiles:
 
 - ``sim``: robot_sim (its emulated DSP and API), vision, controller, safety with their shipped configs;
 - ``gateway``: the same, except that robot_sim runs only the actuators (``mode: actuator_bus``) on an RS-485 bus
@@ -204,6 +205,22 @@ def _observer_config(profile: Profile) -> Optional[str]:
             if candidate.is_file():
                 return str(candidate)
     return None
+
+
+def stack_task(function: str, operator: str = "mfvs", reason: str = "", timeout_s: float = 5.0) -> m.TaskStatus:
+    """Start, stop or read the running stack's task (``m.START_TASK``, ``m.STOP_TASK``, ``m.GET_TASK``), reached
+    through its run directory as `mfvs task` reaches it: the stack comes up idle."""
+    from services.controller.task_client import call_task
+
+    stack = read_stack()
+    if stack is None:
+        raise RuntimeError(f"no stack in {run_dir()} (mfvs up)")
+    session = open_session(ZenohConfig(connect=[stack["endpoint"]], config_file=stack.get("zenoh_config")))
+    try:
+        request = None if function == m.GET_TASK else m.TaskRequest(operator=operator, reason=reason)
+        return call_task(session, Keys(stack.get("robot_id") or "jaco"), function, request, timeout_s)
+    finally:
+        session.close()
 
 
 def down(timeout_s: float = 15.0) -> tuple[int, str]:

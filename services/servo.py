@@ -28,6 +28,7 @@ from services.common.kinematics import ArmKinematics
 from services.common.transport import open_session
 from services.controller.laws import JOINT_LAWS, LAW_NAMES, Gains, LawConfig
 from services.controller.service import ControllerConfig
+from services.controller.task_client import start_task
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
@@ -282,8 +283,13 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     observer: dict = {}
 
     def watch(stack: LocalStack) -> None:  # before the robot's first message
+        keys = Keys(config.robot.robot_id)
         observer["session"] = open_session(stack.router.client_config())
-        observer["watcher"] = _Watcher(observer["session"], Keys(config.robot.robot_id), joint_output)
+        observer["watcher"] = _Watcher(observer["session"], keys, joint_output)
+        # the stack comes up idle; the task starts before the robot's clock does, so lockstep stays exact
+        started = start_task(observer["session"], keys, operator="mfvs servo", reason=f"{scenario.law} scenario")
+        if started.state is not m.TaskState.RUNNING:
+            raise RuntimeError(f"the controller did not start the task: {started.message}")
 
     try:
         stack_context = LocalStack(config, before_robot=watch)

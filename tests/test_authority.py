@@ -119,6 +119,36 @@ def test_only_safety_changes_the_robot_through_its_api(deployment, robot):
     safety.close()
 
 
+def test_only_the_operator_starts_and_stops_the_task(deployment):
+    """The stack moves only for a started task, and only the operator identity may start or stop it (the router
+    drops the others' requests: no reply); everyone may read it."""
+    from services.controller.service import ControllerConfig, ControllerService
+    from services.controller.task_client import TaskUnavailable, call_task, start_task, stop_task
+
+    controller = ControllerService(ControllerConfig(zenoh=ZenohConfig(
+        connect=[deployment.endpoint], config_file=str(deployment.client_configs["controller"])))).start()
+    try:
+        for name in ("vision", "safety", "robot_sim", "torque_controller"):
+            session = session_as(deployment, name)
+            with pytest.raises(TaskUnavailable):
+                start_task(session, KEYS, operator=name, timeout_s=1.0)
+            assert call_task(session, KEYS, m.GET_TASK).state is m.TaskState.IDLE, name
+            session.close()
+        assert not controller.task.running
+        operator = session_as(deployment, "operator")
+        assert start_task(operator, KEYS, operator="test").state is m.TaskState.RUNNING
+        assert controller.task.running
+        vision = session_as(deployment, "vision")
+        with pytest.raises(TaskUnavailable):
+            stop_task(vision, KEYS, operator="vision", timeout_s=1.0)
+        assert call_task(vision, KEYS, m.GET_TASK).state is m.TaskState.RUNNING
+        vision.close()
+        assert stop_task(operator, KEYS, operator="test").state is m.TaskState.IDLE
+        operator.close()
+    finally:
+        controller.stop()
+
+
 def test_only_the_torque_controller_identity_commands_torques(deployment, robot):
     """Low-level torque commands bypass safety: only the identity given to a tested torque controller may send
     them."""

@@ -25,8 +25,10 @@ def features(points=None, status=m.FeatureStatus.OK, age_s=0.0, depth=0.5):
                       goal_depths=[0.2888] * 4, error=e.tolist(), error_norm=float(np.linalg.norm(e)))
 
 
-def controller(law="adaptive-pd-mixed", with_state=True, **kw):
+def controller(law="adaptive-pd-mixed", with_state=True, started=True, **kw):
     service = ControllerService(ControllerConfig(law=law, **kw))
+    if started:
+        service.start_task(m.TaskRequest(operator="test"))
     if with_state:
         service._on_state(m.RobotState(header=m.Header(stamp_ns=time.time_ns()), q=jaco2.HOME.tolist(),
                                        dq=[0.0] * 7, tau=[0.0] * 7,
@@ -93,3 +95,55 @@ def test_a_robot_reading_another_convention_is_not_commanded():
 def test_unknown_law_is_refused_in_config():
     with pytest.raises(ValueError, match="unknown law"):
         ControllerConfig(law="pid")
+
+
+def test_idle_until_a_task_starts_and_idle_again_when_it_stops():
+    """The stack comes up idle: zero output, status idle, no iteration counted; a start counts iterations from
+    one with the law's memory cleared; a stop answers with zero output again."""
+    service = controller(started=False)
+    status, output = service.compute(features())
+    assert status.status is m.ControllerState.IDLE and output is None and status.iteration == 0
+    assert "mfvs task start" in status.detail and "task=idle" in service.check_health()[1]
+    reply = service.start_task(m.TaskRequest(operator="alice", reason="drink"))
+    assert reply.ok and reply.state is m.TaskState.RUNNING and reply.task == 1 and reply.started_ns > 0
+    assert [service.compute(features())[0].iteration for _ in range(3)] == [1, 2, 3]
+    assert "task=running(1 by alice)" in service.check_health()[1]
+    again = service.start_task(m.TaskRequest(operator="bob"))  # no restart: the running task goes on
+    assert again.ok and again.task == 1 and "already running" in again.message and again.by == "alice"
+    assert service.compute(features())[0].iteration == 4
+    stopped = service.stop_task(m.TaskRequest(operator="alice", reason="done"))
+    assert stopped.ok and stopped.state is m.TaskState.IDLE and stopped.started_ns == 0 and stopped.reason == "done"
+    status, output = service.compute(features())
+    assert status.status is m.ControllerState.IDLE and output is None
+    assert "no task running" in service.stop_task(m.TaskRequest(operator="alice")).message
+    service.start_task(m.TaskRequest(operator="alice"))
+    assert service.compute(features())[0].iteration == 1 and service.task.count == 2
+
+
+def test_task_queries_validate_their_payload(router):
+    """Over zenoh: start and stop need a TaskRequest with an operator, get_task takes nothing; bad payloads are
+    answered (ok false, the reason) and counted, and change nothing."""
+    from services.common.transport import open_session
+    from services.controller.task_client import call_task, start_task
+    from tests.stack import KEYS
+
+    service = ControllerService(ControllerConfig(zenoh=router.client_config())).start()
+    client = open_session(router.client_config())
+    try:
+        def raw(function, payload):
+            replies = [r for r in client.get(KEYS.controller_api(function), payload=payload, timeout=5.0)]
+            assert len(replies) == 1 and replies[0].ok is not None, function
+            return m.decode(replies[0].ok.payload.to_bytes(), m.TaskStatus)
+
+        for function, payload in ((m.START_TASK, b""), (m.START_TASK, b"\x81\xa1\xff\x00"),
+                                  (m.START_TASK, m.encode(m.VisionGoalReply(ok=True))),
+                                  (m.START_TASK, b'\x81\xa8operator\xa0'), (m.STOP_TASK, b"\xc1"),
+                                  (m.GET_TASK, b"start")):
+            reply = raw(function, payload)
+            assert not reply.ok and reply.state is m.TaskState.IDLE and reply.message, (function, payload)
+        assert service.counters.get("rejected.task") == 6 and not service.task.running
+        assert start_task(client, KEYS, operator="test").state is m.TaskState.RUNNING
+        assert call_task(client, KEYS, m.GET_TASK).state is m.TaskState.RUNNING
+    finally:
+        client.close()
+        service.stop()

@@ -46,6 +46,15 @@ def test_up_status_down(tmp_path):
             assert isinstance(service["errors"], dict) and service["rates_hz"]
         assert services["robot_sim"]["rates_hz"]["pub.state"] > 50  # generous: 100 Hz nominal
         assert services["vision"]["rates_hz"]["pub.features"] > 10  # 30 Hz nominal
+        # it came up idle; `mfvs task` reaches it from the run directory, and the text status shows the task
+        idle = mfvs("task", "status", "--json", env=env)
+        assert idle.returncode == 0 and json.loads(idle.stdout)["state"] == "idle", idle.stderr
+        assert "task=idle" in mfvs("status", env=env).stdout
+        started = mfvs("task", "start", "--operator", "alice", "--reason", "a drink", env=env)
+        assert started.returncode == 0 and "task running (task 1, by alice: a drink)" in started.stdout, started
+        assert "task=running(1 by alice)" in mfvs("status", env=env).stdout
+        stopped = mfvs("task", "stop", "--operator", "alice", env=env)
+        assert stopped.returncode == 0 and stopped.stdout.startswith("task idle"), stopped
         # the e-stop reaches this stack on its own port from the run directory, and the text status shows it
         engaged = mfvs("estop", "--reason", "test", env=env, timeout=60)
         assert engaged.returncode == 0 and "e-stop engaged" in engaged.stdout, engaged.stderr

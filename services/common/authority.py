@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from protocol import kinova
+from protocol import messages as m
 from protocol.keys import Keys
 
 DEFAULT_SERVICES = ("safety", "robot_sim", "robot_gateway", "torque_controller", "vision", "controller", "operator")
@@ -68,17 +69,21 @@ READ_API_FUNCTIONS = sorted(set(kinova.API_FUNCTIONS) - kinova.MUTATING_API_FUNC
 def queries(keys: Keys) -> dict[str, list[str]]:
     """What each identity may query, beyond what everyone may (:func:`everyone_queries`)."""
     return {"safety": sorted(keys.robot_api(f) for f in kinova.MUTATING_API_FUNCTIONS),
-            "operator": [keys.vision_api("set_goal")]}
+            # the person starts and stops the servo task (the stack comes up idle)
+            "operator": [keys.vision_api("set_goal"), keys.controller_api(m.START_TASK),
+                         keys.controller_api(m.STOP_TASK)]}
 
 
 def everyone_queries(keys: Keys) -> list[str]:
-    return [keys.robot_api(f) for f in READ_API_FUNCTIONS] + [keys.vision_api("get_goal"), keys.health_all]
+    return [keys.robot_api(f) for f in READ_API_FUNCTIONS] + [keys.vision_api("get_goal"),
+                                                              keys.controller_api(m.GET_TASK), keys.health_all]
 
 
 def queryables(keys: Keys) -> dict[str, list[str]]:
     """Who may answer which queries (a rogue queryable could answer in a robot's name)."""
     return {"robot_sim": [keys.robot_api_all], "robot_gateway": [keys.robot_api_all],
-            "vision": [keys.vision_api("set_goal"), keys.vision_api("get_goal")]}
+            "vision": [keys.vision_api("set_goal"), keys.vision_api("get_goal")],
+            "controller": [keys.controller_api(f) for f in m.TASK_FUNCTIONS]}
 
 
 def access_control(services, match: str) -> dict:

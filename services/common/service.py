@@ -66,6 +66,18 @@ class TypedPublisher:
         self._publisher.undeclare()
 
 
+def query_argument(query: zenoh.Query, function: str, message_type: type[M] | None) -> M | None:
+    """A query's argument: a ``message_type`` decoded from its payload; for a function without an argument
+    (``message_type`` None), nothing, and a payload is an error (garbage must not run such a function). Raises
+    :class:`ProtocolError` with the reason, which the queryable answers with its own error reply."""
+    payload = query.payload.to_bytes() if query.payload is not None else b""
+    if message_type is None:
+        if payload:
+            raise ProtocolError(function, f"takes no argument, got {len(payload)} bytes")
+        return None
+    return decode(payload, message_type)
+
+
 class Service:
     #: service name: key chunk for liveliness/health, and the name in trace hops
     name = "service"

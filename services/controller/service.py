@@ -4,8 +4,11 @@ Inputs: features (``…/vision/features``), robot state, camera info (for the ca
 Outputs: the desired twist (mixed frame, the robot's angular convention) or desired joint velocities, carrying
 the features' source stamp and trace, and a ControllerStatus per iteration.
 
-Never the last command: on tag loss, stale input, an ill-conditioned interaction matrix or a constraint abort
-the output is zero and the status says why. Outputs are saturated to the configured limits (``saturated``).
+Never the last command: with no task running (the controller comes up idle: :mod:`services.controller.task`),
+on tag loss, stale input, an ill-conditioned interaction matrix or a constraint abort the output is zero and the
+status says why. Outputs are saturated to the configured limits (``saturated``).
+
+Queryables ``…/controller/api/{start_task,stop_task,get_task}`` (TaskRequest, TaskRequest, nothing → TaskStatus).
 """
 from __future__ import annotations
 
@@ -14,6 +17,7 @@ from typing import Optional
 
 import msgspec
 import numpy as np
+import zenoh
 
 from protocol.conventions import ClockMode, Frame
 from protocol.messages import (
@@ -25,15 +29,20 @@ from protocol.messages import (
     FeatureStatus,
     Header,
     JointVelocity,
+    ProtocolError,
     RobotState,
+    TaskRequest,
     Twist,
+    encode,
 )
+from protocol import messages
 from services.common import frames, jaco2
 from services.common.config import ConfigStruct
-from services.common.service import Service, ServiceConfig
+from services.common.service import Service, ServiceConfig, query_argument
 from services.common.state_history import StateHistory
 from services.controller import ibvs
 from services.controller.laws import JOINT_LAWS, LAW_NAMES, LawConfig, LawOutput, ServoInput, make_law
+from services.controller.task import Task
 
 
 class ConstraintAbort(RuntimeError):
@@ -87,6 +96,10 @@ class ControllerService(Service):
         self.camera_in_ee: Optional[np.ndarray] = None
         self.iteration = 0
         self.last_status: Optional[ControllerStatus] = None
+        #: idle until started; changed under the iteration lock, so a start or stop falls between iterations
+        self.task = Task()
+        #: the last features answered (realtime: a stopped task answers them again with zero at once)
+        self._last_features: Optional[tuple[Features, int]] = None
 
     def on_start(self) -> None:
         keys = self.keys
@@ -96,11 +109,57 @@ class ControllerService(Service):
         self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state", sim_stamped=True)
         self.subscribe(keys.camera_info, CameraInfo, self._on_camera_info, "camera_info")
         self.subscribe(keys.features, Features, self._on_features, "features")
+        for function in messages.TASK_FUNCTIONS:
+            self.queryable(keys.controller_api(function), self._on_task_query)
 
     def check_health(self) -> tuple[bool, str]:
         status = self.last_status
-        return True, f"law={self.config.law} iteration={self.iteration} " + (
+        task = f"task={self.task.state.value}" + (f"({self.task.count} by {self.task.by})" if self.task.by else "")
+        return True, f"{task} law={self.config.law} iteration={self.iteration} " + (
             f"status={status.status.value} error_norm={status.error_norm:.3g}" if status else "no features yet")
+
+    # ------------------------------------------------------------------ the task
+    def start_task(self, request: TaskRequest) -> messages.TaskStatus:
+        with self._iteration_lock:
+            was_running = self.task.running
+            reply = self.task.start(request, self.clock.now_ns())
+            if not was_running:  # a new task: the law's memory and the iteration count start afresh
+                self.law.reset()
+                self.iteration = 0
+        self.log.info("task: %s (%s%s)", reply.message, request.operator, f": {request.reason}" if request.reason else "")
+        return reply
+
+    def stop_task(self, request: TaskRequest) -> messages.TaskStatus:
+        with self._iteration_lock:
+            was_running = self.task.running
+            reply = self.task.stop(request)
+            self.law.reset()
+            last = self._last_features
+            if was_running and last is not None and not self.lockstep and self.session is not None:
+                # realtime: answer the last frame again, now with zero, so the arm starts braking at once
+                # rather than a frame and the pipeline later (lockstep answers the next tick's frame with zero)
+                features, _ = last
+                status, _ = self.compute(features)
+                self._publish(features, self.clock.now_ns(), status, None)
+        self.log.info("task: %s (%s%s)", reply.message, request.operator, f": {request.reason}" if request.reason else "")
+        return reply
+
+    def _on_task_query(self, query: zenoh.Query) -> None:
+        function = str(query.key_expr).rsplit("/", 1)[-1]
+        try:
+            if function == messages.START_TASK:
+                reply = self.start_task(query_argument(query, function, TaskRequest))
+            elif function == messages.STOP_TASK:
+                reply = self.stop_task(query_argument(query, function, TaskRequest))
+            else:
+                query_argument(query, function, None)
+                with self._iteration_lock:
+                    reply = self.task.status()
+        except ProtocolError as exc:
+            self.refuse("task", str(exc))
+            with self._iteration_lock:
+                reply = self.task.status(False, str(exc))
+        query.reply(query.key_expr, encode(reply))
 
     # ------------------------------------------------------------------ inputs
     def _on_state(self, state: RobotState, _recv_ns: int) -> None:
@@ -127,6 +186,7 @@ class ControllerService(Service):
         with self._iteration_lock:
             status, output = self.compute(features, state)
             self._publish(features, recv_ns, status, output)
+            self._last_features = (features, recv_ns)
 
     # ------------------------------------------------------------------ one iteration
     def compute(self, features: Features, state: Optional[RobotState] = None) -> tuple[ControllerStatus,
@@ -143,6 +203,9 @@ class ControllerService(Service):
         def status(kind: ControllerState, detail: str = "", **kw) -> ControllerStatus:
             return ControllerStatus(header=self.header("status", source=header), law=cfg.law, status=kind,
                                     iteration=self.iteration, error_norm=features.error_norm, detail=detail[:256], **kw)
+
+        if not self.task.running:
+            return status(ControllerState.IDLE, "no task running (mfvs task start)"), None
 
         if features.status not in USABLE_FEATURE_STATUSES:
             self.law.reset()

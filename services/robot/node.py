@@ -52,7 +52,6 @@ from protocol.messages import (
     RobotCommand,
     RobotState,
     TorqueCommand,
-    decode,
     encode,
     missing_fields,
 )
@@ -63,7 +62,7 @@ from services.common.kinematics import ArmKinematics
 from services.common.kinova_api import KinovaApi
 from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome
 from services.common.metrics import DurationStats, LoopTimer, RateMeter
-from services.common.service import Service, ServiceConfig
+from services.common.service import Service, ServiceConfig, query_argument
 from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import CYCLES_PER_DSP, RobotCore
 from services.robot.hardware import CYCLE_NS, CYCLE_S, HardwareError, JointReading, RobotHardware
@@ -357,15 +356,10 @@ class RobotNode(Service):
                                                                message=f"unknown function {function}")))
             return
         argument_type, _ = spec
-        argument = None
-        payload = query.payload.to_bytes() if query.payload is not None else b""
         try:
-            if argument_type is None:
-                if payload:  # garbage must not run MoveHome: a function without an argument takes no payload
-                    raise ProtocolError(function, f"takes no argument, got {len(payload)} bytes")
-            else:
-                argument = decode(payload, argument_type)
-                missing = missing_fields(payload, argument_type) if function in kinova.MUTATING_API_FUNCTIONS else []
+            argument = query_argument(query, function, argument_type)  # no payload for MoveHome & co
+            if argument_type is not None and function in kinova.MUTATING_API_FUNCTIONS:
+                missing = missing_fields(query.payload.to_bytes(), argument_type)
                 if missing:
                     raise ProtocolError(argument_type.__name__, "a request that changes the arm must give every "
                                         f"field; missing: {', '.join(missing[:8])}")

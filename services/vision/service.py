@@ -34,7 +34,7 @@ from protocol.messages import (
 from services.common import frames
 from services.common import tag as tags
 from services.common.config import ConfigStruct, PoseConfig
-from services.common.service import Service, ServiceConfig
+from services.common.service import Service, ServiceConfig, query_argument
 from services.vision import features as F
 
 #: seed 000 Table 2's desired square (±0.1666 at 0.2888 m), in this project's corner order
@@ -198,14 +198,19 @@ class VisionService(Service):
 
     def _on_set_goal_query(self, query: zenoh.Query) -> None:
         try:
-            goal = decode(query.payload.to_bytes() if query.payload is not None else b"", VisionGoal)
-            reply = self.set_goal(goal)
+            reply = self.set_goal(query_argument(query, "set_goal", VisionGoal))
         except ProtocolError as exc:
             self.refuse("goal", str(exc))
-            reply = VisionGoalReply(ok=False, message=str(exc))
+            reply = VisionGoalReply(ok=False, message=str(exc)[:256])
         query.reply(query.key_expr, encode(reply))
 
     def _on_get_goal_query(self, query: zenoh.Query) -> None:
+        try:
+            query_argument(query, "get_goal", None)
+        except ProtocolError as exc:
+            self.refuse("api", str(exc))
+            query.reply(query.key_expr, encode(VisionGoalReply(ok=False, message=str(exc)[:256])))
+            return
         with self._lock:
             goal = self.goal
         query.reply(query.key_expr, encode(VisionGoalReply(

@@ -1,0 +1,41 @@
+"""Start, stop and read the controller's task over zenoh (``…/controller/api/*``), as `mfvs task`, `mfvs servo`
+and the benchmarks do."""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+from protocol import messages as m
+from protocol.keys import Keys
+
+
+class TaskUnavailable(RuntimeError):
+    """No controller answered (none running, or this identity may not ask)."""
+
+
+def call_task(session, keys: Keys, function: str, request: Optional[m.TaskRequest] = None,
+              timeout_s: float = 5.0) -> m.TaskStatus:
+    """The controller's answer to one task function (``m.START_TASK``, ``m.STOP_TASK``, ``m.GET_TASK``); a
+    refused request comes back with ``ok`` false and the reason in ``message``."""
+    if function not in m.TASK_FUNCTIONS:
+        raise ValueError(f"unknown task function {function!r}: one of {', '.join(m.TASK_FUNCTIONS)}")
+    if (request is None) != (function == m.GET_TASK):
+        raise ValueError(f"{function} takes {'no request' if function == m.GET_TASK else 'a TaskRequest'}")
+    payload = m.encode(request) if request is not None else None
+    deadline = time.monotonic() + timeout_s
+    while True:  # a controller that just started may not be known to the router yet: ask again (both idempotent)
+        for reply in session.get(keys.controller_api(function), payload=payload,
+                                 timeout=max(0.1, deadline - time.monotonic())):
+            if reply.ok is not None:
+                return m.decode(reply.ok.payload.to_bytes(), m.TaskStatus)
+        if time.monotonic() >= deadline:
+            raise TaskUnavailable(f"no controller answered {keys.controller_api(function)} within {timeout_s:g} s")
+        time.sleep(0.05)
+
+
+def start_task(session, keys: Keys, operator: str, reason: str = "", timeout_s: float = 5.0) -> m.TaskStatus:
+    return call_task(session, keys, m.START_TASK, m.TaskRequest(operator=operator, reason=reason), timeout_s)
+
+
+def stop_task(session, keys: Keys, operator: str, reason: str = "", timeout_s: float = 5.0) -> m.TaskStatus:
+    return call_task(session, keys, m.STOP_TASK, m.TaskRequest(operator=operator, reason=reason), timeout_s)
