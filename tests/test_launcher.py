@@ -163,8 +163,8 @@ def test_estop_without_a_reachable_router_says_so_plainly(tmp_path):
 @pytest.mark.parametrize("tls", [False, True], ids=["acl", "tls"])
 def test_up_behind_an_authority_router_and_estop_through_it(tmp_path, tls):
     """`mfvs up` with a profile whose router and services use `mfvs authority init`'s configs: the router listens
-    where its config says (TLS included), the launcher's checks and `status`/`estop` use the operator identity of
-    the same directory."""
+    where its config says (TLS included), the launcher's checks and `status`/`task`/`estop` use the operator
+    identity of the same directory, and the stack comes up idle."""
     import yaml
 
     from services.common.authority import write_deployment
@@ -185,6 +185,12 @@ def test_up_behind_an_authority_router_and_estop_through_it(tmp_path, tls):
         report = json.loads(mfvs("status", "--json", env=env).stdout)
         assert {s["name"] for s in report["services"] if s["condition"] in ("healthy", "degraded")} == \
             {"safety", "vision", "controller", "robot_sim"}, report
+        # it came up idle, and the operator identity starts and stops the task through the router's ACL
+        assert json.loads(mfvs("task", "status", "--json", env=env).stdout)["state"] == "idle"
+        started = mfvs("task", "start", env=env)
+        assert started.returncode == 0 and started.stdout.startswith("task running"), started
+        stopped = mfvs("task", "stop", env=env)
+        assert stopped.returncode == 0 and stopped.stdout.startswith("task idle"), stopped
         engaged = mfvs("estop", "--reason", "test", env=env, timeout=60)
         assert engaged.returncode == 0, engaged.stderr
         released = mfvs("estop", "--reset", env=env, timeout=60)
