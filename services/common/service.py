@@ -19,6 +19,7 @@ import os
 import signal
 import threading
 import time
+from dataclasses import dataclass
 from typing import Callable, TypeVar
 
 import msgspec
@@ -66,6 +67,16 @@ class TypedPublisher:
         self._publisher.undeclare()
 
 
+@dataclass(frozen=True)
+class DeclaredInput:
+    """One subscription of a service: its key, the message type it decodes, and the stream that names its rate
+    and its ``rejected.<stream>`` counter."""
+
+    key: str
+    message_type: type
+    stream: str
+
+
 def query_argument(query: zenoh.Query, function: str, message_type: type[M] | None) -> M | None:
     """A query's argument: a ``message_type`` decoded from its payload; for a function without an argument
     (``message_type`` None), nothing, and a payload is an error (garbage must not run such a function). Raises
@@ -98,6 +109,9 @@ class Service:
         self.state = "created"
         self.session: zenoh.Session | None = None
         self._declared: list = []
+        #: what the service takes from the network, as declared in on_start (each validated and counted)
+        self.inputs: list[DeclaredInput] = []
+        self.queryables: list[str] = []
         self._token = None
         self._stop_event = threading.Event()
         self._health_thread: threading.Thread | None = None
@@ -134,9 +148,7 @@ class Service:
                     self.subscribe(self.keys.clock, SimClock, self._on_sim_clock, "sim_clock")
                 self.on_start()
                 self._token = self.session.liveliness().declare_token(self.keys.liveliness(self.name))
-                self._declared.append(
-                    self.session.declare_queryable(self.keys.health(self.name), self._answer_health)
-                )
+                self.queryable(self.keys.health(self.name), self._answer_health)
                 self._health_publisher = self.session.declare_publisher(self.keys.health(self.name))
                 self._declared.append(self._health_publisher)
                 self._health_thread = threading.Thread(
@@ -250,6 +262,7 @@ class Service:
                 self.log.debug("handler failure", exc_info=True)
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
+        self.inputs.append(DeclaredInput(key, message_type, stream))
 
     def publisher(self, key: str, stream: str, **options) -> TypedPublisher:
         assert self.session is not None, "publisher() belongs in on_start()"
@@ -260,6 +273,7 @@ class Service:
     def queryable(self, key: str, handler: Callable[[zenoh.Query], None]) -> None:
         assert self.session is not None, "queryable() belongs in on_start()"
         self._declared.append(self.session.declare_queryable(key, handler))
+        self.queryables.append(key)
 
     def refuse(self, stream: str, reason: str) -> None:
         """Count and log (rate-limited) an input that was dropped."""
