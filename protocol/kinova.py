@@ -11,7 +11,7 @@ from typing import Annotated
 
 import msgspec
 
-from protocol.messages import Message
+from protocol.messages import Message, prepare_decoders, wire_types
 
 #: Maximum number of points in the DSP's trajectory FIFO.
 TRAJECTORY_FIFO_SIZE = 2000
@@ -240,7 +240,7 @@ class ClientConfigurationsReply(ApiReply):
 
 #: function name → (argument type or None, reply type)
 #: functions that move the arm or change how it moves (zones, limits, control mode): in an authority deployment
-#: only the service that commands the robot may call them (services/common/authority.py)
+#: only the service that commands the robot may call them (services/runtime/authority.py)
 MUTATING_API_FUNCTIONS = frozenset({
     "MoveHome", "SetCartesianControl", "SetAngularControl", "SendBasicTrajectory", "EraseAllTrajectories",
     "SetProtectionZone", "EraseAllProtectionZones", "SetClientConfigurations",
@@ -267,3 +267,5 @@ API_FUNCTIONS: dict[str, tuple[type | None, type]] = {
     "GetClientConfigurations": (None, ClientConfigurationsReply),
     "SetClientConfigurations": (ClientConfigurations, ApiReply),
 }
+
+prepare_decoders(wire_types(globals()))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import enum
 import math
 import re
+import threading
 from typing import Annotated, Any, Optional, TypeVar
 
 import msgspec
@@ -255,7 +256,7 @@ class Twist(Message):
 
 
 class JointVelocity(Message):
-    """Desired joint velocities in rad/s, model joint order and sign (see services.common.jaco2)."""
+    """Desired joint velocities in rad/s, model joint order and sign (see services.model.jaco2)."""
 
     header: Header
     velocities: JointVector
@@ -496,6 +497,10 @@ def _encode_hook(obj: Any) -> Any:
 
 _encoder = msgspec.msgpack.Encoder(enc_hook=_encode_hook)
 _decoders: dict[type, msgspec.msgpack.Decoder] = {}
+#: building a decoder fills msgspec's per-type caches, and doing that while another thread decodes crashed a service
+#: (a segfault at start-up, two subscriber threads each decoding its first message): the wire's types get their
+#: decoders at import (:func:`prepare_decoders`), anything else under this lock
+_decoders_lock = threading.Lock()
 _AT_PATH = re.compile(r" - at `\$(?P<path>[^`]*)`$")
 _INNER_FIELD = re.compile(r"at field '(?P<field>[^']+)'|(?:unknown|missing required) field `(?P<unknown>[^`]+)`")
 
@@ -509,7 +514,7 @@ def decode(payload: bytes | bytearray | memoryview, message_type: type[M]) -> M:
     """Decode and validate; raises :class:`ProtocolError` naming the bad field."""
     decoder = _decoders.get(message_type)
     if decoder is None:
-        decoder = _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
+        decoder = prepare_decoders([message_type])[0]
     try:
         return decoder.decode(payload)
     except msgspec.ValidationError as exc:
@@ -520,6 +525,21 @@ def decode(payload: bytes | bytearray | memoryview, message_type: type[M]) -> M:
         # what msgspec lets through for some malformed input (an invalid UTF-8 map key raises UnicodeDecodeError):
         # still a malformed message, never an exception of another kind for the service to trip over
         raise ProtocolError(message_type.__name__, f"malformed MessagePack ({type(exc).__name__}: {exc})") from None
+
+
+def prepare_decoders(message_types) -> list[msgspec.msgpack.Decoder]:
+    """Build (once) the decoders of ``message_types``, one thread at a time."""
+    with _decoders_lock:
+        for message_type in message_types:
+            if message_type not in _decoders:
+                _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
+        return [_decoders[message_type] for message_type in message_types]
+
+
+def wire_types(namespace: dict) -> list[type]:
+    """The message types defined in a module's namespace (its ``globals()``)."""
+    return [value for value in namespace.values()
+            if isinstance(value, type) and issubclass(value, Message) and value is not Message]
 
 
 def missing_fields(payload: bytes | bytearray | memoryview, message_type: type) -> list[str]:
@@ -587,3 +607,6 @@ def validation_error_path(exc: msgspec.ValidationError) -> tuple[str, str]:
 def _protocol_error(message_type: type, exc: msgspec.ValidationError) -> ProtocolError:
     path, reason = validation_error_path(exc)
     return ProtocolError(message_type.__name__, reason, path)
+
+
+prepare_decoders(wire_types(globals()))

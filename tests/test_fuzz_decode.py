@@ -2,6 +2,9 @@
 one field replaced by an arbitrary value, for every message type on the wire. Decoding either returns a valid
 message of the asked type or raises ProtocolError: no other exception may reach a service's handler."""
 import inspect
+import subprocess
+import sys
+from pathlib import Path
 
 import msgpack
 import msgspec
@@ -82,3 +85,18 @@ def test_header_stamps_and_sequence_numbers_are_int64(field):
         m.decode(msgpack.packb(goal), m.VisionGoal)
     goal["header"][field] = 2**63 - 1
     assert getattr(m.decode(msgpack.packb(goal), m.VisionGoal).header, field) == 2**63 - 1
+
+
+def test_every_wire_type_has_its_decoder_before_any_thread_decodes():
+    """A decoder built while another thread decoded crashed a service at start-up (a segfault in msgspec's type
+    caches, two subscriber threads each with its first message): importing the protocol builds them all."""
+    script = ("import inspect\nfrom protocol import kinova, messages as m\n"
+              "types = {c for mod in (m, kinova) for _, c in inspect.getmembers(mod, inspect.isclass)\n"
+              "         if issubclass(c, m.Message) and c is not m.Message}\n"
+              "missing = sorted(t.__name__ for t in types if t not in m._decoders)\n"
+              "print(len(types), missing)")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0, out.stderr
+    count, missing = out.stdout.split(" ", 1)
+    assert int(count) > 30 and missing.strip() == "[]", out.stdout
