@@ -10,7 +10,7 @@ import time
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from protocol.keys import Keys
-from services.common.transport import ZenohConfig, open_session
+from services.runtime.transport import ZenohConfig, open_session
 from services.robot.pacing import request_realtime
 
 

@@ -12,7 +12,7 @@ import os
 import tempfile
 import time
 
-from services.common.transport import free_loopback_port
+from services.runtime.transport import free_loopback_port
 from protocol import messages as m
 from services.launcher import down, load_profile, read_stack, stack_task, up
 

@@ -24,8 +24,8 @@ import numpy as np
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.common.kinematics import ArmKinematics
-from services.common.transport import open_session
+from services.model.kinematics import ArmKinematics
+from services.runtime.transport import open_session
 from services.safety.checks import SafetyLimits
 from services.stack import RobotProcesses, RouterProcess
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.common.transport import ZenohConfig, free_loopback_port, open_session
+from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
 from services.launcher import down, load_profile, stack_task, up
 
 

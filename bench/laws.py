@@ -11,8 +11,9 @@ import time
 
 import numpy as np
 
-from services.common import jaco2
-from services.controller.laws import LAW_NAMES, ServoInput, make_law
+from services.model import jaco2
+from services.controller.law import ServoInput
+from services.controller.laws import LAW_NAMES, make_law
 from services.robot_sim.scene import CameraConfig
 
 #: per-iteration targets (µs) from the controller issue

@@ -17,8 +17,8 @@ import time
 from protocol import messages as m
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
-from services.common.metrics import LoopTimer
-from services.common.transport import GuardedPublisher, Router, open_session
+from services.runtime.metrics import LoopTimer
+from services.runtime.transport import GuardedPublisher, Router, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 
 KEYS = Keys()

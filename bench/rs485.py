@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from services.common.metrics import LoopTimer
-from services.common.rs485_bus import BusConfig, RS485Bus
+from services.runtime.metrics import LoopTimer
+from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.robot_gateway.link import ActuatorLink
 from services.stack import simulated_link
 
@@ -49,8 +49,8 @@ def run_hub(seconds: float = 5.0) -> dict:
     import subprocess
     import sys
 
-    from services.common.can_hub import CanHub
-    from services.common.transport import Router
+    from services.tools.can_hub import CanHub
+    from services.runtime.transport import Router
     from services.launcher import REPO, status
 
     with Router(port=0) as router, CanHub() as hub:

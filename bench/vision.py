@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from protocol import messages as m
-from services.common.config import PoseConfig
+from services.runtime.config import PoseConfig
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, camera_info
 from services.robot_sim.sim import Simulation
 from services.vision.features import TagDetector

@@ -18,7 +18,7 @@ def _version() -> str:
 
 
 def _cmd_router(args: argparse.Namespace) -> int:
-    from services.common.transport import Router
+    from services.runtime.transport import Router
 
     from services.robot.pacing import request_realtime
 
@@ -27,7 +27,7 @@ def _cmd_router(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    from services.common.config import ConfigError
+    from services.runtime.config import ConfigError
 
     port = args.port if args.port is not None or args.config else 7447  # a config's own endpoint wins
     try:
@@ -42,8 +42,8 @@ def _cmd_router(args: argparse.Namespace) -> int:
 
 
 def _cmd_bus_hub(args: argparse.Namespace) -> int:
-    from services.common.can_hub import CanHub
-    from services.common.logs import setup_logging
+    from services.tools.can_hub import CanHub
+    from services.runtime.logs import setup_logging
 
     from services.robot.pacing import request_realtime
 
@@ -68,7 +68,7 @@ def _cmd_bus_hub(args: argparse.Namespace) -> int:
 def _cmd_model(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from services.common import frames, jaco2
+    from services.model import frames, jaco2
 
     if args.what == "urdf":
         sys.stdout.write(jaco2.urdf() + "\n")
@@ -108,7 +108,7 @@ def _stack_connection(args: argparse.Namespace) -> None:
 
 
 def _operator_session(args: argparse.Namespace):
-    from services.common.transport import ZenohConfig, open_session
+    from services.runtime.transport import ZenohConfig, open_session
 
     _stack_connection(args)
     return open_session(ZenohConfig(connect=[args.connect], config_file=args.zenoh_config))
@@ -183,7 +183,7 @@ def _cmd_task(args: argparse.Namespace) -> int:
 
 
 def _cmd_authority(args: argparse.Namespace) -> int:
-    from services.common.authority import DEFAULT_SERVICES, write_deployment
+    from services.runtime.authority import DEFAULT_SERVICES, write_deployment
 
     services = args.services.split(",") if args.services else list(DEFAULT_SERVICES)
     deployment = write_deployment(args.out, tls=args.tls, host=args.host, port=args.port, services=services)
@@ -196,7 +196,7 @@ def _cmd_authority(args: argparse.Namespace) -> int:
 def _cmd_servo(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from services.common.config import ConfigError
+    from services.runtime.config import ConfigError
     from services.servo import load_scenario, run
 
     try:
@@ -224,7 +224,7 @@ def _cmd_servo(args: argparse.Namespace) -> int:
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
-    from services.common.config import ConfigError
+    from services.runtime.config import ConfigError
     from services.launcher import load_profile, up
 
     try:

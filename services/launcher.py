@@ -33,9 +33,9 @@ import msgspec
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.common.config import ConfigStruct, load_config
-from services.common.service import EXIT_FILE_ENV
-from services.common.transport import ZenohConfig, file_endpoints, open_session
+from services.runtime.config import ConfigStruct, load_config
+from services.runtime.service import EXIT_FILE_ENV
+from services.runtime.transport import ZenohConfig, file_endpoints, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICES = ("safety", "vision", "controller", "robot_sim")

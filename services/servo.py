@@ -22,11 +22,12 @@ import numpy as np
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, DepthSource
 from protocol.keys import Keys
-from services.common import jaco2
-from services.common.config import ConfigError, ConfigStruct, PoseConfig, load_config
-from services.common.kinematics import ArmKinematics
-from services.common.transport import open_session
-from services.controller.laws import JOINT_LAWS, LAW_NAMES, Gains, LawConfig
+from services.model import jaco2
+from services.runtime.config import ConfigError, ConfigStruct, PoseConfig, load_config
+from services.model.kinematics import ArmKinematics, manipulability
+from services.runtime.transport import open_session
+from services.controller.law import Gains, LawConfig
+from services.controller.laws import JOINT_LAWS, LAW_NAMES
 from services.controller.service import ControllerConfig
 from services.controller.task_client import start_task
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig
@@ -410,7 +411,7 @@ def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics) -
     manip, speed = math.nan, 0.0
     if state is not None:
         J = kin.jacobian_base(state.q)
-        manip = float(math.sqrt(max(0.0, np.linalg.det(J @ J.T))))
+        manip = manipulability(J)
         speed = float(np.linalg.norm((J @ np.asarray(state.dq))[:3]))
     record = Iteration(
         iteration=status.iteration, t_s=stamp * 1e-9, stamp_ns=stamp, status=status.status.value,

@@ -24,8 +24,8 @@ import yaml
 
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
-from services.common.rs485_bus import BusConfig, RS485Bus
-from services.common.transport import Router, ZenohConfig, open_session
+from services.robot.rs485_bus import BusConfig, RS485Bus
+from services.runtime.transport import Router, ZenohConfig, open_session
 from services.controller.service import ControllerConfig, ControllerService
 from services.robot.pacing import SWITCH_INTERVAL_S
 from services.robot_gateway.link import ActuatorLink

@@ -5,7 +5,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np
 import pytest
 
-from services.common.transport import Router
+from services.runtime.transport import Router
 
 
 @pytest.fixture

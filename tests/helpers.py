@@ -1,8 +1,8 @@
 """Shared test helpers: random configurations and reference kinematics through Pinocchio."""
 import numpy as np
 
-from services.common import jaco2
-from services.common.kinematics import ArmKinematics
+from services.model import jaco2
+from services.model.kinematics import ArmKinematics
 
 
 def random_q(rng, margin_deg: float = 2.0) -> np.ndarray:

@@ -8,7 +8,7 @@ import numpy as np
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
-from services.common.transport import GuardedPublisher
+from services.runtime.transport import GuardedPublisher
 
 #: robot commands are numbered per sender (the robot refuses a repeat): tests number theirs from here
 _command_seq = itertools.count(1)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from protocol import rs485 as r
-from services.common import jaco2
-from services.common.rs485_bus import BusConfig, RS485Bus
+from services.model import jaco2
+from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.robot_sim.bus_device import ActuatorBusDevice
 from services.robot_sim.sim import Simulation
 

@@ -7,7 +7,7 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
-from services.common.transport import open_session
+from services.runtime.transport import open_session
 from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import KEYS, Recorder, wait_for

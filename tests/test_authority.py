@@ -14,8 +14,8 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
-from services.common.authority import DEFAULT_SERVICES, write_deployment
-from services.common.transport import Router, ZenohConfig, free_loopback_port, open_session
+from services.runtime.authority import DEFAULT_SERVICES, write_deployment
+from services.runtime.transport import Router, ZenohConfig, free_loopback_port, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import KEYS, Recorder, next_seq, wait_for
 
@@ -31,7 +31,7 @@ def velocity_command(stamp=0):
 
 INTRUDER = textwrap.dedent("""
     import sys, time
-    from services.common.transport import ZenohConfig, open_session
+    from services.runtime.transport import ZenohConfig, open_session
     from tests.test_authority import velocity_command
     endpoint, config_file, key = sys.argv[1:4]
     session = open_session(ZenohConfig(connect=[endpoint], config_file=config_file))
@@ -262,9 +262,9 @@ def concrete_keys() -> list[str]:
 
 def test_each_identity_writes_exactly_its_own_keys(deployment):
     """Every identity puts on every key of the stack, and on the wildcard forms above; a subscriber to everything
-    sees exactly what the role table (services.common.authority.writes) allows: one writer per key that can move
+    sees exactly what the role table (services.runtime.authority.writes) allows: one writer per key that can move
     the arm, health only in one's own name, no wildcard."""
-    from services.common.authority import writes
+    from services.runtime.authority import writes
     table = writes(Keys("jaco"))
     rules = writes(Keys.all_robots())
 

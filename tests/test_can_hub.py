@@ -8,8 +8,8 @@ import can
 import pytest
 
 from protocol import rs485 as r
-from services.common.can_hub import HEADER, CanHub, parse_channel
-from services.common.rs485_bus import BusConfig
+from services.tools.can_hub import HEADER, CanHub, parse_channel
+from services.robot.rs485_bus import BusConfig
 from services.stack import simulated_link
 from tests.stack import wait_for
 

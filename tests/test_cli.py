@@ -7,8 +7,8 @@ import sys
 import time
 from pathlib import Path
 
-from services.common import jaco2
-from services.common.transport import ZenohConfig, open_session
+from services.model import jaco2
+from services.runtime.transport import ZenohConfig, open_session
 
 
 def mfvs_executable() -> str:
@@ -78,8 +78,8 @@ def test_a_config_files_endpoints_win_and_a_conflicting_port_is_an_error(tmp_pat
     refused, so no service silently joins whatever router runs on 7447."""
     import pytest
 
-    from services.common.config import ConfigError
-    from services.common.transport import free_loopback_port, to_zenoh_config
+    from services.runtime.config import ConfigError
+    from services.runtime.transport import free_loopback_port, to_zenoh_config
 
     port = free_loopback_port()
     router_file = tmp_path / "router.json5"

@@ -4,7 +4,7 @@ import time
 import numpy as np
 import pytest
 
-from services.common import jaco2
+from services.model import jaco2
 from services.controller.computed_torque import ComputedTorque, cubic
 from services.robot_gateway.link import expected_torques_physical
 from services.stack import simulated_link

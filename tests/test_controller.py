@@ -6,8 +6,8 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention
-from services.common import frames, jaco2
-from services.controller.laws import LawConfig
+from services.model import frames, jaco2
+from services.controller.law import LawConfig
 from services.controller.service import ControllerConfig, ControllerService
 from services.robot_sim.scene import CameraConfig
 
@@ -123,7 +123,7 @@ def test_idle_until_a_task_starts_and_idle_again_when_it_stops():
 def test_task_queries_validate_their_payload(router):
     """Over zenoh: start and stop need a TaskRequest with an operator, get_task takes nothing; bad payloads are
     answered (ok false, the reason) and counted, and change nothing."""
-    from services.common.transport import open_session
+    from services.runtime.transport import open_session
     from services.controller.task_client import call_task, start_task
     from tests.stack import KEYS
 

@@ -7,9 +7,9 @@ import pytest
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from services.common import frames, jaco2
-from services.common.dsp import CommandRefused, DSPConfig
-from services.common.zones import BoxZone
+from services.model import frames, jaco2
+from services.robot.dsp import CommandRefused, DSPConfig
+from services.robot.zones import BoxZone
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim_robot import SimulatedRobot
 

@@ -8,8 +8,8 @@ import pinocchio as pin
 import pytest
 
 from protocol.conventions import AngularConvention
-from services.common import frames as f
-from services.common import jaco2
+from services.model import frames as f
+from services.model import jaco2
 from tests.helpers import PinArm, random_q
 
 CONVENTIONS = list(AngularConvention)

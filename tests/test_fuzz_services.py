@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import ClockMode
-from services.common.transport import open_session
+from services.runtime.transport import open_session
 from services.stack import LocalStack, StackConfig
 from tests.stack import KEYS, Recorder, wait_for
 from tests.test_fuzz_decode import MESSAGE_TYPES, pack, values

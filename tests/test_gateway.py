@@ -10,10 +10,10 @@ import pytest
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
-from services.common import jaco2
-from services.common.kinematics import ArmKinematics
-from services.common.rs485_bus import BusConfig
-from services.common.transport import open_session
+from services.model import jaco2
+from services.model.kinematics import ArmKinematics
+from services.robot.rs485_bus import BusConfig
+from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses, RouterProcess

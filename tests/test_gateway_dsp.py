@@ -7,7 +7,7 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from services.common.dsp import KinovaDSP
+from services.robot.dsp import KinovaDSP
 from services.robot.core import CYCLES_PER_DSP, RobotCore
 from services.robot.hardware import HardwareError
 from services.robot_gateway.link import LinkHardware

@@ -6,11 +6,12 @@ import pinocchio as pin
 import pytest
 
 from protocol.conventions import AngularConvention, DepthSource
-from services.common import frames, jaco2
-from services.common.config import PoseConfig
-from services.common.kinematics import ArmKinematics
+from services.model import frames, jaco2
+from services.runtime.config import PoseConfig
+from services.model.kinematics import ArmKinematics
 from services.controller import ibvs
-from services.controller.laws import Gains, LawConfig, ServoInput, make_law
+from services.controller.law import Gains, LawConfig, ServoInput
+from services.controller.laws import make_law
 
 CAMERA_IN_EE = PoseConfig(xyz=(0.065, 0.0, -0.02), rpy_deg=(0.0, 0.0, 90.0)).matrix()
 

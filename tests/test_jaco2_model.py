@@ -5,7 +5,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from services.common import frames, jaco2
+from services.model import frames, jaco2
 from tests.helpers import PinArm, random_q
 
 

@@ -14,8 +14,8 @@ import pytest
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from services.common import jaco2
-from services.common.transport import open_session
+from services.model import jaco2
+from services.runtime.transport import open_session
 from services.robot_gateway import kinova_sdk as sdk_mod
 from services.robot_gateway.kinova_sdk import KinovaSdk, SdkError
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service

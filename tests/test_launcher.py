@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.common.transport import free_loopback_port
+from services.runtime.transport import free_loopback_port
 
 MFVS = str(Path(sys.executable).parent / "mfvs")
 
@@ -97,7 +97,7 @@ def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
     exactly as with the sim profile (vision, controller and safety use the same shipped configs)."""
     from protocol import messages as m
     from protocol.keys import Keys
-    from services.common.transport import ZenohConfig, open_session
+    from services.runtime.transport import ZenohConfig, open_session
 
     env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path))
     port, bus_port = str(free_loopback_port()), str(free_loopback_port())
@@ -106,6 +106,8 @@ def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
         assert out.returncode == 0, out.stderr
         stack = json.loads((tmp_path / "stack.json").read_text())
         assert [p["name"] for p in stack["processes"]][:2] == ["router", "bus_hub"]
+        started = mfvs("task", "start", env=env)  # it came up idle
+        assert started.returncode == 0, started
         session = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
         errors, states = [], []
         keys = Keys()
@@ -144,7 +146,7 @@ def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
 
 def test_shipped_profile_files_are_the_built_in_profiles():
     """deploy/profiles/*.yaml are the built-in profiles spelled out (for users to copy and change)."""
-    from services.common.config import load_config
+    from services.runtime.config import load_config
     from services.launcher import REPO, Profile, load_profile
 
     for name in ("sim", "gateway"):
@@ -167,7 +169,7 @@ def test_up_behind_an_authority_router_and_estop_through_it(tmp_path, tls):
     identity of the same directory, and the stack comes up idle."""
     import yaml
 
-    from services.common.authority import write_deployment
+    from services.runtime.authority import write_deployment
 
     port = free_loopback_port()
     deployment = write_deployment(tmp_path / "authority", tls=tls, port=port)

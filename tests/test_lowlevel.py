@@ -9,8 +9,8 @@ import pytest
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
-from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome
-from services.common.transport import open_session
+from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
+from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses

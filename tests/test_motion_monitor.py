@@ -8,9 +8,9 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
-from services.common import jaco2
-from services.common.kinematics import ArmKinematics
-from services.common.transport import open_session
+from services.model import jaco2
+from services.model.kinematics import ArmKinematics
+from services.runtime.transport import open_session
 from services.safety.checks import MotionMonitor, SafetyLimits
 from services.safety.service import SafetyConfig, SafetyService
 from tests.stack import KEYS, Recorder, wait_for

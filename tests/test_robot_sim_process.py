@@ -10,7 +10,7 @@ import numpy as np
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.common.transport import open_session
+from services.runtime.transport import open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 
 REPO = Path(__file__).resolve().parents[1]

@@ -10,8 +10,8 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
-from services.common import jaco2
-from services.common.transport import GuardedPublisher, open_session
+from services.model import jaco2
+from services.runtime.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import next_seq, wait_for
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from protocol import rs485 as r
-from services.common import jaco2
+from services.model import jaco2
 from services.robot_gateway.link import ActuatorLink, LinkError, expected_torques_physical
 from services.stack import simulated_link
 

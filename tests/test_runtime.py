@@ -14,12 +14,12 @@ import pytest
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
-from services.common.clock import SimulatedClock, WallClock, make_clock
-from services.common.config import ConfigError, apply_override, config_from_text, load_config
-from services.common.logs import RateLimitedLogger
-from services.common.metrics import Counters, RateMeter
-from services.common.service import Service, ServiceConfig
-from services.common.transport import Router, ZenohConfig, open_session, to_zenoh_config
+from services.runtime.clock import SimulatedClock, WallClock, make_clock
+from services.runtime.config import ConfigError, apply_override, config_from_text, load_config
+from services.runtime.logs import RateLimitedLogger
+from services.runtime.metrics import Counters, RateMeter
+from services.runtime.service import Service, ServiceConfig
+from services.runtime.transport import Router, ZenohConfig, open_session, to_zenoh_config
 from tests.stack import wait_for
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -138,8 +138,8 @@ def test_service_lifecycle_liveliness_health_and_bad_input(router, client):
 SERVICE_SCRIPT = textwrap.dedent(
     """
     import sys
-    from services.common.service import Service, ServiceConfig
-    from services.common.transport import ZenohConfig
+    from services.runtime.service import Service, ServiceConfig
+    from services.runtime.transport import ZenohConfig
     cfg = ServiceConfig(zenoh=ZenohConfig(connect=[sys.argv[1]]), health_period_s=0.1)
     class Idle(Service):
         name = "idle"
@@ -322,7 +322,7 @@ def test_rate_limited_logger(caplog):
 
 
 def test_guarded_publisher_survives_undeclare_during_puts(router, client):
-    from services.common.transport import GuardedPublisher
+    from services.runtime.transport import GuardedPublisher
 
     publisher = GuardedPublisher.declare(client, "mfvs/test/guarded")
     errors = []
@@ -345,7 +345,7 @@ def test_guarded_publisher_survives_undeclare_during_puts(router, client):
 
 
 def test_periodic_schedule_keeps_slots_and_skips_after_a_stall():
-    from services.common.clock import PeriodicSchedule
+    from services.runtime.clock import PeriodicSchedule
 
     schedule = PeriodicSchedule(0.01)
     assert [schedule.wait() for _ in range(5)] == [(i, False) for i in range(5)]

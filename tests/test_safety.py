@@ -9,8 +9,8 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode
-from services.common.transport import open_session
-from services.common.zones import BoxZone, SphereZone
+from services.runtime.transport import open_session
+from services.robot.zones import BoxZone, SphereZone
 from services.robot.node import LockstepConfig
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.safety.checks import SafetyLimits

@@ -12,17 +12,17 @@ import numpy as np
 import pytest
 
 from protocol import messages as m
-from services.common.dsp import DSPConfig
-from services.common.kinematics import ArmKinematics
+from services.robot.dsp import DSPConfig
+from services.model.kinematics import ArmKinematics
 from services.safety.service import SafetyConfig
-from services.common.transport import open_session
+from services.runtime.transport import open_session
 from tests.stack import KEYS, Recorder, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 
 PIPELINE = textwrap.dedent("""
     import sys, time
-    from services.common.transport import ZenohConfig, open_session
+    from services.runtime.transport import ZenohConfig, open_session
     from tests.stack import FakePipeline
     session = open_session(ZenohConfig(connect=[sys.argv[1]]))
     pipeline = FakePipeline(session, lambda capture: ((0.1, 0.0, 0.0), (0.0, 0.0, 0.0)))
@@ -139,7 +139,7 @@ def test_killing_the_real_controller_or_vision_mid_motion_stops_the_arm(victim, 
     (:func:`rest_bound`)."""
     import json
 
-    from services.common.transport import ZenohConfig, free_loopback_port
+    from services.runtime.transport import ZenohConfig, free_loopback_port
     from services.launcher import down, sim_profile, stack_task, up
 
     monkeypatch.setenv("MFVS_RUN_DIR", str(tmp_path))
@@ -173,7 +173,7 @@ def test_the_stack_comes_up_idle_moves_for_a_task_and_rests_when_it_stops(tmp_pa
     """`mfvs up` (realtime, every service a process): nothing moves until a task starts, though the tag is in
     view; the task moves the arm; stopping it brings the arm to rest within the pipeline's way for the next frame
     (the controller answers it with zero) and the DSP's normal stop."""
-    from services.common.transport import ZenohConfig, free_loopback_port
+    from services.runtime.transport import ZenohConfig, free_loopback_port
     from services.launcher import down, sim_profile, stack_task, up
 
     monkeypatch.setenv("MFVS_RUN_DIR", str(tmp_path))

@@ -3,8 +3,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.common import jaco2
-from services.common import tag as tags
+from services.model import jaco2
+from services.model import tag as tags
 from services.robot_sim.scene import CameraConfig, PoseConfig, SceneConfig, TargetConfig, build_model
 from services.robot_sim.sim import Simulation
 
@@ -102,7 +102,7 @@ def test_physics_model_matches_pinocchio_gravity(rng):
     """The inertial description is the same for MuJoCo's physics and Pinocchio's dynamics."""
     import mujoco
 
-    from services.common.kinematics import ArmKinematics
+    from services.model.kinematics import ArmKinematics
     from tests.helpers import random_q
 
     sim = Simulation(render=False)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from services.common.config import ConfigError, config_from_text
+from services.runtime.config import ConfigError, config_from_text
 from services.servo import Scenario, load_scenario, run
 
 REPO = Path(__file__).resolve().parents[1]

@@ -5,7 +5,7 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from services.common.config import load_config, read_yaml
+from services.runtime.config import load_config, read_yaml
 from services.controller.service import ControllerConfig
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig

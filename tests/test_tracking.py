@@ -4,9 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from services.common import frames, jaco2
-from services.common.config import PoseConfig
-from services.controller.laws import ServoInput, make_law
+from services.model import frames, jaco2
+from services.runtime.config import PoseConfig
+from services.controller.law import ServoInput
+from services.controller.laws import make_law
 from services.controller.tracking import joint_limit_penalty
 from services.robot_sim.scene import CameraConfig
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from protocol import messages as m
-from services.common import frames
-from services.common import tag as tags
-from services.common.config import PoseConfig
+from services.model import frames
+from services.model import tag as tags
+from services.runtime.config import PoseConfig
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, camera_info
 from services.robot_sim.sim import Simulation
 from services.vision import features as F
@@ -199,3 +199,24 @@ def test_detector_refinement_options():
         F.TagDetector(refinement="magic")
     with pytest.raises(ValueError):
         tags.dictionary("tag25h9")
+
+
+def test_measure_is_vision_without_the_service():
+    """The pure pipeline (detect → normalise → pose → error) on a rendered frame, an all-black one and an empty
+    one: the same figures the service publishes, with no zenoh, clock or lock."""
+    image, expected_px, T_ct, cfg = render(POSES[1])
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    K, goal = cfg.camera.matrix(), np.array(TABLE2_GOAL)
+    detector = F.TagDetector()
+    result = F.measure(gray, detector, 0, cfg.target.size_m, K, None, goal, min_peak_brightness=20)
+    assert result.status == "ok" and not result.rejected
+    assert np.linalg.norm(result.corners_px - expected_px, axis=1).max() < 0.5
+    assert np.allclose(result.error, (result.points - goal).reshape(-1)) and result.error_norm > 0
+    assert np.allclose(result.depths, F.corners_in_camera(T_ct, cfg.target.size_m)[:, 2], rtol=0.01)
+    published = vision_for(cfg).process(image_message(image), time.time_ns())
+    assert np.allclose(published.points, result.points) and published.error_norm == pytest.approx(result.error_norm)
+    black = F.measure(np.zeros_like(gray), detector, 0, cfg.target.size_m, K, None, goal, min_peak_brightness=20)
+    assert black.status == "invalid_image" and black.rejected and black.points is None
+    empty = F.measure(np.full_like(gray, 200), detector, 0, cfg.target.size_m, K, None, goal)
+    assert empty.status == "tag_lost" and not empty.rejected and "not in view" in empty.detail
+    assert F.measure(gray, detector, 7, cfg.target.size_m, K, None, goal).status == "tag_lost"  # another id

@@ -8,7 +8,7 @@ import pytest
 from protocol import messages as m
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
-from services.common.transport import GuardedPublisher, open_session
+from services.runtime.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.vision.service import VisionConfig, VisionService
 from tests.stack import next_seq, wait_for

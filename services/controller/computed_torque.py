@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from services.common import jaco2
+from services.model import jaco2
 
 
 def cubic(q0, qf, tf: float, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

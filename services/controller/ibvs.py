@@ -117,6 +117,13 @@ def joint_law(L_hat: np.ndarray, J_camera: np.ndarray, e, gain: float, kd: float
     return dq
 
 
+def mixed_jacobian_joint_velocity(Jm: np.ndarray, V_m, xi) -> np.ndarray:
+    """Eq. 26: q̇ = Jm⁺·V_m + (I − Jm⁺Jm)·ξ, the mixed twist V_m (eq. 21-25) realised in joint space through the
+    mixed Jacobian Jm, with the secondary task ξ in its null space."""
+    Jm_pinv = np.linalg.pinv(Jm)
+    return Jm_pinv @ np.asarray(V_m, dtype=float) + (np.eye(Jm.shape[1]) - Jm_pinv @ Jm) @ np.asarray(xi, dtype=float)
+
+
 def joint_limit_task(q, lower, upper, gain: float = 1.0) -> np.ndarray:
     """ξ of eq. 13/26: a gradient step away from the joint limits (toward each limited joint's mid-range);
     continuous joints (infinite limits) get nothing."""

@@ -6,10 +6,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.common import jaco2
-from services.common import tag as tags
-from services.common.kinematics import ArmKinematics
-from services.controller.laws import Law, LawOutput, ServoInput
+from services.model import jaco2
+from services.model import tag as tags
+from services.model.kinematics import ArmKinematics
+from services.controller.law import Law, LawOutput, ServoInput
 
 
 @dataclass

@@ -36,17 +36,14 @@ from protocol.messages import (
     encode,
 )
 from protocol import messages
-from services.common import frames, jaco2
-from services.common.config import ConfigStruct
-from services.common.service import Service, ServiceConfig, query_argument
-from services.common.state_history import StateHistory
+from services.model import frames, jaco2
+from services.runtime.config import ConfigStruct
+from services.runtime.service import Service, ServiceConfig, query_argument
+from services.runtime.state_history import StateHistory
 from services.controller import ibvs
-from services.controller.laws import JOINT_LAWS, LAW_NAMES, LawConfig, LawOutput, ServoInput, make_law
+from services.controller.law import ConstraintAbort, LawConfig, LawOutput, ServoInput
+from services.controller.laws import JOINT_LAWS, LAW_NAMES, make_law
 from services.controller.task import Task
-
-
-class ConstraintAbort(RuntimeError):
-    """A law gives up: its active constraints leave no freedom for the task (seed 002)."""
 
 
 class OutputLimits(ConfigStruct):
@@ -230,7 +227,9 @@ class ControllerService(Service):
         inp = ServoInput(t_s=header.source_stamp_ns * 1e-9, points=np.array(features.points),
                          depths=np.array(features.depths), goal_points=np.array(features.goal_points),
                          goal_depths=np.array(features.goal_depths), q=np.array(state.q), camera_in_ee=camera_in_ee)
-        L = ibvs.interaction_matrix(inp.points, inp.depths)
+        # the L̂ the law will invert, with the configured depth source
+        L = ibvs.approximate_interaction_matrix(inp.points, inp.depths, inp.goal_points, inp.goal_depths,
+                                                cfg.control.depth)
         if np.linalg.cond(L) > cfg.max_condition_number:
             self.law.reset()
             return status(ControllerState.ILL_CONDITIONED, f"cond(L) = {np.linalg.cond(L):.3g}"), None

@@ -24,8 +24,8 @@ from typing import Optional
 
 import numpy as np
 
-from services.common import jaco2
-from services.controller.laws import Law, LawConfig, LawOutput, ServoInput
+from services.model import jaco2
+from services.controller.law import ConstraintAbort, Law, LawConfig, LawOutput, ServoInput
 
 
 @dataclass
@@ -258,8 +258,6 @@ class SlidingModeLaw(Law):
 
     # ------------------------------------------------------------------ the step
     def step(self, inp: ServoInput) -> LawOutput:
-        from services.controller.service import ConstraintAbort
-
         opt = self.options
         Ts = opt.Ts
         if Ts is None:

@@ -14,7 +14,7 @@ import numpy as np
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.common.transport import GuardedPublisher
+from services.runtime.transport import GuardedPublisher
 from services.controller.computed_torque import ComputedTorque, cubic
 
 

@@ -25,8 +25,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.common import jaco2
-from services.controller.laws import Law, LawConfig, LawOutput, ServoInput
+from services.model import jaco2
+from services.model.kinematics import manipulability
+from services.controller.law import Law, LawConfig, LawOutput, ServoInput
 
 AXES = {"vx": 0, "vy": 1, "vz": 2, "wx": 3, "wy": 4, "wz": 5}
 
@@ -87,9 +88,8 @@ class ManipulabilityLaw(Law):
         self.R = np.diag(r)
 
     def manipulability(self, q) -> float:
-        """Yoshikawa's w = sqrt(det(J Jᵀ)) (frame-independent)."""
-        J = self.kin.jacobian_base(q)
-        return math.sqrt(max(0.0, float(np.linalg.det(J @ J.T))))
+        """Yoshikawa's w at q (frame-independent)."""
+        return manipulability(self.kin.jacobian_base(q))
 
     def modified_manipulability(self, q) -> float:
         """w'(q) = P(q)·det(J Jᵀ) (eq. 26 with the penalty of eq. 27)."""

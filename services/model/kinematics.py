@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from services.common import jaco2
+from services.model import jaco2
 
 
 class ArmKinematics:

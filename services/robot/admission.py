@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from protocol.messages import Header
-from services.common.config import ConfigStruct
+from services.runtime.config import ConfigStruct
 
 
 class AdmissionConfig(ConfigStruct):

@@ -4,7 +4,7 @@ JACO-2's main board does between the Kinova API and the actuators.
 Every bus cycle (2 ms) the node asks :meth:`RobotCore.targets` for the actuators' targets, exchanges them with the
 hardware, and hands the reading to :meth:`RobotCore.observe` (or :meth:`RobotCore.hold` when the exchange failed).
 Every fifth cycle (10 ms) :meth:`RobotCore.dsp_cycle` applies the latest robot command and runs the DSP
-(:class:`~services.common.dsp.KinovaDSP`), whose joint velocities the next cycles integrate into targets.
+(:class:`~services.robot.dsp.KinovaDSP`), whose joint velocities the next cycles integrate into targets.
 
 The reference advances by exactly one cycle of the DSP's velocities per exchange, never by the time that passed:
 a host that is late loses that motion (and counts it) instead of sending a bigger step that the arm would follow
@@ -21,8 +21,8 @@ from typing import Optional
 import numpy as np
 
 from protocol.messages import RobotCommand
-from services.common import jaco2
-from services.common.dsp import CommandRefused, KinovaDSP
+from services.model import jaco2
+from services.robot.dsp import CommandRefused, KinovaDSP
 from services.robot.hardware import CYCLE_S, JointReading, JointTargets
 
 #: a reference further than this from the measured angle is pulled back (no wind-up against a torque limit or a

@@ -36,10 +36,10 @@ import numpy as np
 from protocol import kinova
 from protocol.conventions import AngularConvention, Frame
 from protocol.messages import CommandMode, ControlMode, Header, RobotCommand
-from services.common import frames, jaco2
-from services.common.config import ConfigStruct
-from services.common.kinematics import ArmKinematics
-from services.common.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
+from services.model import frames, jaco2
+from services.runtime.config import ConfigStruct
+from services.model.kinematics import ArmKinematics, manipulability
+from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
 # Kinova's client configuration ranges (shared/reference/kinova.md).
 LINEAR_SPEED_RANGE = (0.04, 0.2)
@@ -404,13 +404,13 @@ class KinovaDSP:
         limited = self._limited
         xi[limited] = -cfg.joint_limit_gain * (q[limited] - self._mid[limited]) / self._half_range[limited]
         if cfg.manipulability_gain > 0.0:
-            w0 = float(np.prod(s))
+            w0 = float(np.prod(s))  # manipulability() of this J, from the singular values already at hand
             grad = np.zeros(jaco2.N_JOINTS)
             h = 1e-5
             for i in range(jaco2.N_JOINTS):
                 dq = np.zeros(jaco2.N_JOINTS)
                 dq[i] = h
-                grad[i] = (float(np.prod(np.linalg.svd(self.kin.jacobian_base(q + dq), compute_uv=False))) - w0) / h
+                grad[i] = (manipulability(self.kin.jacobian_base(q + dq)) - w0) / h
             norm = np.linalg.norm(grad)
             if norm > 1e-9:
                 xi += cfg.manipulability_gain * grad / norm * min(1.0, 0.02 / max(w0, 1e-6))

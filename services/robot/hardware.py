@@ -13,7 +13,7 @@ from typing import Optional, Protocol
 
 import numpy as np
 
-from services.common import jaco2
+from services.model import jaco2
 
 #: the actuators' bus cycle (500 Hz)
 CYCLE_S = 0.002

@@ -7,9 +7,9 @@ from typing import Callable, Protocol
 import numpy as np
 
 from protocol import kinova
-from services.common import frames, jaco2
-from services.common.dsp import CommandRefused, KinovaDSP
-from services.common.zones import zone_from_kinova, zone_to_kinova
+from services.model import frames, jaco2
+from services.robot.dsp import CommandRefused, KinovaDSP
+from services.robot.zones import zone_from_kinova, zone_to_kinova
 
 
 class RobotView(Protocol):

@@ -22,7 +22,7 @@ from typing import Callable, Optional, Protocol
 import numpy as np
 
 from protocol.messages import TorqueCommand
-from services.common.config import ConfigStruct
+from services.runtime.config import ConfigStruct
 
 
 class LowLevelConfig(ConfigStruct):

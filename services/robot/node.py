@@ -55,14 +55,14 @@ from protocol.messages import (
     encode,
     missing_fields,
 )
-from services.common import frames
-from services.common.config import ConfigStruct
-from services.common.dsp import DSPConfig, KinovaDSP
-from services.common.kinematics import ArmKinematics
-from services.common.kinova_api import KinovaApi
-from services.common.lowlevel import LowLevelConfig, LowLevelControl, Outcome
-from services.common.metrics import DurationStats, LoopTimer, RateMeter
-from services.common.service import Service, ServiceConfig, query_argument
+from services.model import frames
+from services.runtime.config import ConfigStruct
+from services.robot.dsp import DSPConfig, KinovaDSP
+from services.model.kinematics import ArmKinematics
+from services.robot.kinova_api import KinovaApi
+from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
+from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
+from services.runtime.service import Service, ServiceConfig, query_argument
 from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import CYCLES_PER_DSP, RobotCore
 from services.robot.hardware import CYCLE_NS, CYCLE_S, HardwareError, JointReading, RobotHardware
@@ -104,7 +104,7 @@ class RobotNodeConfig(ServiceConfig):
     lockstep: LockstepConfig = msgspec.field(default_factory=LockstepConfig)
     #: which robot commands are applied at all: fresh, not from the future, in sequence per sender
     admission: AdmissionConfig = msgspec.field(default_factory=AdmissionConfig)
-    #: the low-level torque API's watchdog and release (services.common.lowlevel)
+    #: the low-level torque API's watchdog and release (services.robot.lowlevel)
     lowlevel: LowLevelConfig = msgspec.field(default_factory=LowLevelConfig)
     #: after this many consecutive failed exchanges the node reports itself unhealthy and refuses motion
     max_bus_errors: int = 5
@@ -626,7 +626,7 @@ class RobotNode(Service):
             faults=(self._bus_faults + reading.faults())[:32]))
 
     def _lowlevel_step(self) -> None:
-        """Engage, apply, hold or release low-level torque control (services.common.lowlevel)."""
+        """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""
         outcome, detail = self.lowlevel.step(time.monotonic(), self.core.reading.q)
         if outcome is Outcome.ENGAGED:
             self.log.info("low-level torque control engaged")

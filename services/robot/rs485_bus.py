@@ -28,8 +28,8 @@ import numpy as np
 
 from protocol.rs485 import MESSAGE_DTYPE, MESSAGE_SIZE, RS485Error, RS485Message, from_records, known_commands, \
     to_records
-from services.common.config import ConfigStruct
-from services.common.metrics import Counters
+from services.runtime.config import ConfigStruct
+from services.runtime.metrics import Counters
 
 
 _NO_MESSAGES = np.zeros(0, dtype=MESSAGE_DTYPE)

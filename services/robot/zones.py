@@ -12,7 +12,7 @@ from typing import Optional, Union
 import numpy as np
 
 from protocol import kinova
-from services.common.config import ConfigStruct
+from services.runtime.config import ConfigStruct
 
 Vec3 = tuple[float, float, float]
 

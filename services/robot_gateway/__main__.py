@@ -1,7 +1,7 @@
 """``python -m services.robot_gateway [--config FILE] [--connect ENDPOINT]``"""
 import sys
 
-from services.common.service import service_main
+from services.runtime.service import service_main
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 
 if __name__ == "__main__":

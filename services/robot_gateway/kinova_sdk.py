@@ -24,8 +24,8 @@ import numpy as np
 from protocol import kinova
 from protocol.conventions import AngularConvention
 from protocol.messages import CommandMode, ControlMode, RobotCommand
-from services.common import frames, jaco2
-from services.common.dsp import CommandRefused, DSPConfig, DSPStatus
+from services.model import frames, jaco2
+from services.robot.dsp import CommandRefused, DSPConfig, DSPStatus
 from services.robot.hardware import JointReading
 
 KINOVA_SDK_LIBRARY = "Kinova.API.USBCommandLayerUbuntu.so"

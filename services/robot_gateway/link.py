@@ -14,9 +14,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from protocol import rs485 as r
-from services.common import jaco2
-from services.common.metrics import Counters
-from services.common.rs485_bus import BusError, RS485Bus
+from services.model import jaco2
+from services.runtime.metrics import Counters
+from services.robot.rs485_bus import BusError, RS485Bus
 from services.robot.hardware import HardwareError, JointReading, JointTargets, physical_targets, \
     reading_from_physical
 
@@ -328,6 +328,6 @@ class LinkHardware:
 
 def expected_torques_physical(q_model) -> np.ndarray:
     """The gravity torques the host's model expects at q (actuator sign), for the validation handshake."""
-    from services.common.kinematics import ArmKinematics
+    from services.model.kinematics import ArmKinematics
 
     return jaco2.SIGN * ArmKinematics().gravity(q_model)

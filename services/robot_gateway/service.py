@@ -27,8 +27,8 @@ from protocol import kinova
 from protocol import rs485 as r
 from protocol.conventions import ClockMode
 from protocol.messages import SimClock
-from services.common.rs485_bus import BusConfig, RS485Bus
-from services.common.service import Service
+from services.robot.rs485_bus import BusConfig, RS485Bus
+from services.runtime.service import Service
 from services.robot.hardware import HardwareError, JointReading
 from services.robot.node import RobotNode, RobotNodeConfig
 from services.robot_gateway.kinova_sdk import KINOVA_SDK_LIBRARY, KinovaSdk, SdkArm, SdkError

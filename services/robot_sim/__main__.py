@@ -1,7 +1,7 @@
 """``python -m services.robot_sim [--config FILE] [--clock realtime|lockstep] [--connect ENDPOINT]``"""
 import sys
 
-from services.common.service import service_main
+from services.runtime.service import service_main
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 
 if __name__ == "__main__":

@@ -26,9 +26,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from protocol import rs485
-from services.common.config import ConfigStruct
-from services.common.metrics import Counters, DurationStats, LoopTimer
-from services.common.rs485_bus import BusError, RS485Bus
+from services.runtime.config import ConfigStruct
+from services.runtime.metrics import Counters, DurationStats, LoopTimer
+from services.robot.rs485_bus import BusError, RS485Bus
 from services.robot.hardware import CYCLE_NS, CYCLE_S
 from services.robot.node import DSP_CYCLE_NS, LockstepConfig
 from services.robot.pacing import request_realtime

@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from protocol import rs485 as r
-from services.common.metrics import Counters
+from services.runtime.metrics import Counters
 from services.robot_sim.firmware import ActuatorValues
 from services.robot_sim.sim import Simulation
 

@@ -40,9 +40,9 @@ import mujoco
 import numpy as np
 
 from protocol import rs485 as r
-from services.common import jaco2
-from services.common.config import ConfigStruct
-from services.common.metrics import Counters
+from services.model import jaco2
+from services.runtime.config import ConfigStruct
+from services.runtime.metrics import Counters
 
 
 class ActuatorConfig(ConfigStruct):

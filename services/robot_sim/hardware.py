@@ -12,7 +12,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from protocol import rs485 as r
-from services.common import jaco2
+from services.model import jaco2
 from services.robot.hardware import HardwareError, JointReading, JointTargets, physical_targets, \
     reading_from_physical
 from services.robot_sim.firmware import ActuatorValues

@@ -13,9 +13,9 @@ import mujoco
 import numpy as np
 
 from protocol.messages import CameraInfo, Header, Pose
-from services.common import frames, jaco2
-from services.common import tag as tags
-from services.common.config import ConfigStruct, PoseConfig
+from services.model import frames, jaco2
+from services.model import tag as tags
+from services.runtime.config import ConfigStruct, PoseConfig
 
 Vec3 = tuple[float, float, float]
 

@@ -31,8 +31,8 @@ import zenoh
 
 from protocol.conventions import ClockMode
 from protocol.messages import SimClock, encode
-from services.common.rs485_bus import BusConfig, RS485Bus
-from services.common.service import Service
+from services.robot.rs485_bus import BusConfig, RS485Bus
+from services.runtime.service import Service
 from services.robot.hardware import CYCLE_NS, CYCLE_S
 from services.robot.node import DSP_CYCLE_NS, RobotNode, RobotNodeConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig

@@ -12,8 +12,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from services.common import frames, jaco2
-from services.common.metrics import Counters
+from services.model import frames, jaco2
+from services.runtime.metrics import Counters
 from services.robot.hardware import CYCLE_NS
 from services.robot_sim import scene as scene_mod
 from services.robot_sim.firmware import ActuatorConfig, ActuatorFirmware, ActuatorValues

@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from protocol.messages import RobotCommand
-from services.common.dsp import DSPConfig, KinovaDSP
+from services.robot.dsp import DSPConfig, KinovaDSP
 from services.robot.core import CYCLES_PER_DSP, Refusal, RobotCore
 from services.robot_sim.firmware import ActuatorConfig
 from services.robot_sim.hardware import SimulatedHardware

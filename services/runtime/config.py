@@ -46,7 +46,7 @@ class PoseConfig(ConfigStruct):
 
     def matrix(self):
         """The 4×4 homogeneous transform."""
-        from services.common.frames import pose_from_xyz_rpy_deg
+        from services.model.frames import pose_from_xyz_rpy_deg
 
         return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
 

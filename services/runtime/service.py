@@ -28,11 +28,11 @@ import zenoh
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
 from protocol.messages import Header, Hop, ProtocolError, ServiceHealth, SimClock, decode, encode
-from services.common.clock import SimulatedClock, WallClock, make_clock
-from services.common.config import ConfigStruct
-from services.common.logs import RateLimitedLogger
-from services.common.metrics import Counters, Rates
-from services.common.transport import GuardedPublisher, ZenohConfig, open_session
+from services.runtime.clock import SimulatedClock, WallClock, make_clock
+from services.runtime.config import ConfigStruct
+from services.runtime.logs import RateLimitedLogger
+from services.runtime.metrics import Counters, Rates
+from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session
 
 M = TypeVar("M", bound=msgspec.Struct)
 
@@ -373,8 +373,8 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
     import argparse
     import sys
 
-    from services.common.config import ConfigError, apply_override, config_from_mapping, read_yaml
-    from services.common.logs import setup_logging
+    from services.runtime.config import ConfigError, apply_override, config_from_mapping, read_yaml
+    from services.runtime.logs import setup_logging
 
     parser = argparse.ArgumentParser(prog=f"python -m services.{service_type.name}", description=description)
     parser.add_argument("--config", help="YAML config file (missing keys take their documented defaults)")

@@ -15,7 +15,7 @@ from typing import Literal
 import msgspec
 import zenoh
 
-from services.common.config import ConfigError, ConfigStruct
+from services.runtime.config import ConfigError, ConfigStruct
 
 DEFAULT_ROUTER_PORT = 7447
 

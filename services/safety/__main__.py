@@ -1,7 +1,7 @@
 """``python -m services.safety [--config FILE] [--clock realtime|lockstep] [--connect ENDPOINT]``"""
 import sys
 
-from services.common.service import service_main
+from services.runtime.service import service_main
 from services.safety.service import SafetyConfig, SafetyService
 
 if __name__ == "__main__":

@@ -13,10 +13,10 @@ import msgspec
 import numpy as np
 
 from protocol.conventions import AngularConvention, Frame
-from services.common import frames, jaco2
-from services.common.config import ConfigStruct
-from services.common.kinematics import ArmKinematics
-from services.common.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
+from services.model import frames, jaco2
+from services.runtime.config import ConfigStruct
+from services.model.kinematics import ArmKinematics
+from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
 
 class SafetyLimits(ConfigStruct):

@@ -36,8 +36,8 @@ from protocol.messages import (
     SafetyStatus,
     Twist,
 )
-from services.common.service import Service, ServiceConfig
-from services.common.state_history import StateHistory
+from services.runtime.service import Service, ServiceConfig
+from services.runtime.state_history import StateHistory
 from services.robot.pacing import request_realtime
 from services.safety.checks import CommandChecker, Decision, MotionMonitor, SafetyLimits
 

@@ -27,7 +27,7 @@ from typing import Optional
 
 import can
 
-from services.common.metrics import Counters
+from services.runtime.metrics import Counters
 
 log = logging.getLogger("mfvs.can_hub")
 

@@ -1,7 +1,7 @@
 """``python -m services.vision [--config FILE] [--clock realtime|lockstep] [--connect ENDPOINT]``"""
 import sys
 
-from services.common.service import service_main
+from services.runtime.service import service_main
 from services.vision.service import VisionConfig, VisionService
 
 if __name__ == "__main__":

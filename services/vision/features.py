@@ -1,6 +1,6 @@
 """Image features of the AprilTag target, as plain functions (OpenCV for detection and pose).
 
-Corner order is the detection order of :mod:`services.common.tag` (top-left, top-right, bottom-right,
+Corner order is the detection order of :mod:`services.model.tag` (top-left, top-right, bottom-right,
 bottom-left of the upright tag). Normalized image coordinates are x = X/Z, y = Y/Z in OpenCV's optical frame.
 """
 from __future__ import annotations
@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.common import tag as tags
+from services.model import frames
+from services.model import tag as tags
 
 
 class Refinement(str, enum.Enum):
@@ -127,3 +128,44 @@ def touches_border(corners_px: np.ndarray, width: int, height: int, margin_px: f
     c = np.asarray(corners_px)
     return bool(np.any(c[:, 0] < margin_px) or np.any(c[:, 1] < margin_px)
                 or np.any(c[:, 0] > width - 1 - margin_px) or np.any(c[:, 1] > height - 1 - margin_px))
+
+
+@dataclass
+class Measurement:
+    """What one grayscale image says about the tag: a status (``protocol.messages.FeatureStatus`` values), a
+    reason when it is not ``ok``, and for ``ok`` or ``partial`` the features, their depths, the error against the
+    goal and the tag's pose."""
+
+    status: str
+    detail: str = ""
+    #: the image was unusable or the pose implausible (counted as a rejection), rather than the tag out of view
+    rejected: bool = False
+    points: np.ndarray | None = None
+    depths: np.ndarray | None = None
+    error: np.ndarray | None = None
+    error_norm: float = 0.0
+    #: the tag's pose in the camera frame (R, t)
+    pose: tuple[np.ndarray, np.ndarray] | None = None
+    corners_px: np.ndarray | None = None
+
+
+def measure(gray: np.ndarray, detector: TagDetector, tag_id: int, size_m: float, K: np.ndarray,
+            distortion: np.ndarray | None, goal_points: np.ndarray, min_peak_brightness: int = 0,
+            border_margin_px: float = 0.0) -> Measurement:
+    """Detect → normalise → pose → error for one image: vision's rules, with no zenoh, clock or lock."""
+    if int(gray.max()) < min_peak_brightness:
+        return Measurement("invalid_image", "all-black image", rejected=True)
+    detection = detector.find(gray, tag_id)
+    if detection is None:
+        return Measurement("tag_lost", f"tag {tag_id} not in view")
+    points = normalize(detection.corners_px, K, distortion)
+    R, t = tag_pose(detection.corners_px, K, distortion, size_m)
+    depths = corners_in_camera(frames.homogeneous(R, t), size_m)[:, 2]
+    if np.any(depths <= 0):
+        return Measurement("tag_lost", "implausible tag pose: a corner behind the camera", rejected=True)
+    error, norm = feature_error(points, goal_points)
+    height, width = gray.shape[:2]
+    partial = touches_border(detection.corners_px, width, height, border_margin_px)
+    return Measurement("partial" if partial else "ok", "tag touches the image border" if partial else "",
+                       points=points, depths=depths, error=error, error_norm=norm, pose=(R, t),
+                       corners_px=detection.corners_px)

@@ -31,10 +31,10 @@ from protocol.messages import (
     decode,
     encode,
 )
-from services.common import frames
-from services.common import tag as tags
-from services.common.config import ConfigStruct, PoseConfig
-from services.common.service import Service, ServiceConfig, query_argument
+from services.model import frames
+from services.model import tag as tags
+from services.runtime.config import ConfigStruct, PoseConfig
+from services.runtime.service import Service, ServiceConfig, query_argument
 from services.vision import features as F
 
 #: seed 000 Table 2's desired square (±0.1666 at 0.2888 m), in this project's corner order
@@ -262,39 +262,31 @@ class VisionService(Service):
             reason = f"image is {image.width}x{image.height}, the camera info says {info.width}x{info.height}"
             self.refuse("image", reason)
             return self._answer(image, recv_ns, FeatureStatus.INVALID_IMAGE, reason)
-        gray = self._gray(image)
-        if int(gray.max()) < cfg.min_peak_brightness:
-            self.refuse("image", "all-black image")
-            return self._answer(image, recv_ns, FeatureStatus.INVALID_IMAGE, "all-black image")
-
-        detection = self.detector.find(gray, cfg.tag.id)
-        if detection is None:
-            with self._lock:
-                self._last_points = self._last_depths = None
+        measurement = F.measure(self._gray(image), self.detector, cfg.tag.id, cfg.tag.size_m,
+                                F.camera_matrix(info.fx, info.fy, info.cx, info.cy),
+                                np.asarray(info.distortion, dtype=float), goal_points=self._goal_points(),
+                                min_peak_brightness=cfg.min_peak_brightness, border_margin_px=cfg.border_margin_px)
+        status = FeatureStatus(measurement.status)
+        if measurement.rejected:
+            self.refuse("image", measurement.detail)
+        elif status is FeatureStatus.TAG_LOST:
             self.counters.inc("frames.tag_lost")
-            return self._answer(image, recv_ns, FeatureStatus.TAG_LOST, f"tag {cfg.tag.id} not in view")
-
-        K = F.camera_matrix(info.fx, info.fy, info.cx, info.cy)
-        dist = np.asarray(info.distortion, dtype=float)
-        points = F.normalize(detection.corners_px, K, dist)
-        R, t = F.tag_pose(detection.corners_px, K, dist, cfg.tag.size_m)
-        T_ct = frames.homogeneous(R, t)
-        depths = F.corners_in_camera(T_ct, cfg.tag.size_m)[:, 2]
-        if np.any(depths <= 0):
-            self.refuse("image", "tag pose puts a corner behind the camera")
-            return self._answer(image, recv_ns, FeatureStatus.TAG_LOST, "implausible tag pose")
-        with self._lock:
-            goal = self.goal
-            self._last_points, self._last_depths = points, depths
-        error, norm = F.feature_error(points, goal.points)
-        partial = F.touches_border(detection.corners_px, image.width, image.height, cfg.border_margin_px)
+        if measurement.points is not None or not measurement.rejected:
+            with self._lock:  # the last features seen (a goal taught from the current view uses them)
+                self._last_points, self._last_depths = measurement.points, measurement.depths
+        if measurement.points is None:
+            return self._answer(image, recv_ns, status, measurement.detail)
+        R, t = measurement.pose
         return self._answer(
-            image, recv_ns, FeatureStatus.PARTIAL if partial else FeatureStatus.OK,
-            "tag touches the image border" if partial else "",
-            points=[tuple(p) for p in points], depths=depths.tolist(), error=error.tolist(), error_norm=norm,
+            image, recv_ns, status, measurement.detail, points=[tuple(p) for p in measurement.points],
+            depths=measurement.depths.tolist(), error=measurement.error.tolist(), error_norm=measurement.error_norm,
             tag_pose_in_camera=Pose(xyz=tuple(t), quat_wxyz=tuple(frames.matrix_to_quat_wxyz(R))),
-            corners_px=[tuple(c) for c in detection.corners_px],
+            corners_px=[tuple(c) for c in measurement.corners_px],
         )
+
+    def _goal_points(self) -> np.ndarray:
+        with self._lock:
+            return self.goal.points
 
     @staticmethod
     def _gray(image: Image) -> np.ndarray:
