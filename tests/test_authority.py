@@ -134,10 +134,10 @@ def test_only_the_operator_starts_and_stops_the_task(deployment):
                 start_task(session, KEYS, operator=name, timeout_s=1.0)
             assert call_task(session, KEYS, m.GET_TASK).state is m.TaskState.IDLE, name
             session.close()
-        assert not controller.task.running
+        assert not controller.core.task.running
         operator = session_as(deployment, "operator")
         assert start_task(operator, KEYS, operator="test").state is m.TaskState.RUNNING
-        assert controller.task.running
+        assert controller.core.task.running
         vision = session_as(deployment, "vision")
         with pytest.raises(TaskUnavailable):
             stop_task(vision, KEYS, operator="vision", timeout_s=1.0)

@@ -117,7 +117,7 @@ def test_idle_until_a_task_starts_and_idle_again_when_it_stops():
     assert status.status is m.ControllerState.IDLE and output is None
     assert "no task running" in service.stop_task(m.TaskRequest(operator="alice")).message
     service.start_task(m.TaskRequest(operator="alice"))
-    assert service.compute(features())[0].iteration == 1 and service.task.count == 2
+    assert service.compute(features())[0].iteration == 1 and service.core.task.count == 2
 
 
 def test_task_queries_validate_their_payload(router):
@@ -141,9 +141,26 @@ def test_task_queries_validate_their_payload(router):
                                   (m.GET_TASK, b"start")):
             reply = raw(function, payload)
             assert not reply.ok and reply.state is m.TaskState.IDLE and reply.message, (function, payload)
-        assert service.counters.get("rejected.task") == 6 and not service.task.running
+        assert service.counters.get("rejected.task") == 6 and not service.core.task.running
         assert start_task(client, KEYS, operator="test").state is m.TaskState.RUNNING
         assert call_task(client, KEYS, m.GET_TASK).state is m.TaskState.RUNNING
     finally:
         client.close()
         service.stop()
+
+
+def test_the_core_answers_without_a_service():
+    """ControllerCore: the same rules with no zenoh, lock or clock (the time is an argument)."""
+    from services.controller.core import ControllerCore
+
+    helper = controller()  # a state and camera mount as the service would hold them
+    core = ControllerCore(ControllerConfig())
+    f = features()
+    now = f.header.source_stamp_ns
+    assert core.step(f, helper.robot_state, helper.camera_in_ee, now).kind is m.ControllerState.IDLE
+    core.start_task(m.TaskRequest(operator="test"), now)
+    step = core.step(f, helper.robot_state, helper.camera_in_ee, now)
+    assert step.kind is m.ControllerState.CONVERGING and step.iteration == 1 and step.output.twist is not None
+    late = core.step(f, helper.robot_state, helper.camera_in_ee, now + 200_000_000)  # 200 ms later: stale
+    assert late.kind is m.ControllerState.STALE_INPUT and late.output is None and "200 ms old" in late.detail
+    assert core.step(f, None, helper.camera_in_ee, now).detail == "no fresh robot state"

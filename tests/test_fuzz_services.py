@@ -62,8 +62,8 @@ def stack():
         for name, service in services.items():
             assert service.state == "running", name
             assert service.counters.get("errors.handler") == 0, (name, service.counters.snapshot())
-        assert not services["safety"].estop_latched
-        assert not services["controller"].task.running
+        assert not services["safety"].core.estop_latched
+        assert not services["controller"].core.task.running
         assert np.abs(np.array(states.last().q) - q0).max() < 1e-4
         states.close()
         client.close()

@@ -100,14 +100,14 @@ def test_an_arm_faster_than_told_gets_a_latched_protective_stop(safety):
     assert wait_for(lambda: any(c.mode is m.CommandMode.EMERGENCY_STOP and "protective stop" in c.reason
                                 for c in commands.snapshot()), timeout=5)
     assert wait_for(lambda: status.last() is not None and status.last().state is m.SafetyState.ESTOP, timeout=5)
-    assert service.estop_latched and "end-effector speed 0.180" in service.estop_reason
+    assert service.core.estop_latched and "end-effector speed 0.180" in service.core.estop_reason
     assert "peak_linear=1.20" in service.check_health()[1]
     # slow again: still stopped (latched) until the operator's reset
     client.put(KEYS.robot_state, robot_state(np.zeros(7), now + 10 * PERIOD_NS))
     time.sleep(0.3)
-    assert service.estop_latched
+    assert service.core.estop_latched
     client.put(KEYS.estop, m.encode(m.EStop(header=m.Header(), reset=True, operator="test")))
-    assert wait_for(lambda: not service.estop_latched, timeout=5)
+    assert wait_for(lambda: not service.core.estop_latched, timeout=5)
 
 
 def test_safety_refuses_an_input_from_the_future(safety):
@@ -129,7 +129,7 @@ def test_safety_refuses_an_input_from_the_future(safety):
     client.put(KEYS.desired_twist, twist(now + 3600 * 10**9, now))
     client.put(KEYS.desired_twist, twist(now, now + 3600 * 10**9))
     assert wait_for(lambda: service.counters.get("refused.freshness") >= 2, timeout=5)
-    assert "in the future" in service.last_refusal
+    assert "in the future" in service.core.last_refusal
     now = time.time_ns()
     client.put(KEYS.robot_state, robot_state(np.zeros(7), now))
     client.put(KEYS.desired_twist, twist(now + 20_000_000, now))

@@ -56,7 +56,7 @@ def test_commands_within_limits_are_forwarded(harness):
     state = h["states"].last()
     hops = [hop.service for hop in state.applied_command.trace]
     assert hops == ["safety", "robot_sim"]
-    assert h["safety"].safety_state is m.SafetyState.OK
+    assert h["safety"].core.safety_state is m.SafetyState.OK
 
 
 def test_over_the_speed_limit_is_clamped(harness):
@@ -96,7 +96,7 @@ def test_estop_stops_within_v0_over_a_stop_and_stays_latched(harness):
     trigger_ns = h["states"].last().header.stamp_ns
     v0 = ee_speeds(h["states"].snapshot()[-5:])[0][-1]
     h["client"].put(KEYS.estop, m.encode(m.EStop(header=m.Header(), operator="test", reason="hand in the way")))
-    assert wait_for(lambda: h["safety"].estop_latched)
+    assert wait_for(lambda: h["safety"].core.estop_latched)
     n = len(h["states"])
     assert wait_for(lambda: len(h["states"]) >= n + 100, timeout=60)
     snapshot = h["states"].snapshot()
@@ -141,7 +141,7 @@ def test_losing_the_controller_liveliness_stops_at_once(harness):
     h = harness(twist_for=lambda t: ((0.1, 0.0, 0.0), (0.0, 0.0, 0.0)))
     assert wait_for(lambda: len(h["states"]) >= 80, timeout=60)
     h["pipeline"].drop_liveliness("controller")
-    assert wait_for(lambda: "controller" not in h["safety"].alive)
+    assert wait_for(lambda: "controller" not in h["safety"].core.alive)
     assert wait_for(lambda: h["safety"].counters.get("refused.liveliness") >= 1)
     n = len(h["states"])
     assert wait_for(lambda: len(h["states"]) >= n + 60, timeout=60)
@@ -162,7 +162,7 @@ def test_wrong_convention_and_bad_payloads_are_refused(harness):
     q = np.array([s.q for s in h["states"].snapshot()])
     assert np.abs(q - q[0]).max() < 1e-6
     assert h["safety"].counters.get("refused.convention") > 5
-    assert not h["safety"].estop_latched and h["safety"].state == "running"
+    assert not h["safety"].core.estop_latched and h["safety"].state == "running"
 
 
 def test_mfvs_estop_command_engages_and_resets(router):
@@ -178,11 +178,11 @@ def test_mfvs_estop_command_engages_and_resets(router):
                              text=True, timeout=60)
         assert out.returncode == 0, out.stderr
         assert "e-stop engaged: safety reports state estop" in out.stdout
-        assert safety.estop_latched and "mfvs-cli: test" in safety.estop_reason
+        assert safety.core.estop_latched and "mfvs-cli: test" in safety.core.estop_reason
         out = subprocess.run([mfvs, "estop", "--reset", "--connect", router.endpoint], capture_output=True,
                              text=True, timeout=60)
         assert out.returncode == 0, out.stderr
-        assert not safety.estop_latched
+        assert not safety.core.estop_latched
     finally:
         safety.stop()
     out = subprocess.run([mfvs, "estop", "--connect", router.endpoint, "--timeout", "1"], capture_output=True,

@@ -8,9 +8,8 @@ import pytest
 from services.model import jaco2
 from services.runtime.config import PoseConfig
 from services.controller.kinematic import KinematicLoop
-from services.controller.law import ServoInput
+from services.controller.law import ConstraintAbort, ServoInput
 from services.controller.laws import make_law
-from services.controller.law import ConstraintAbort
 from services.controller.smc import GRADIENT_ERROR_SIGNS
 from services.robot_sim.scene import CameraConfig
 from services.servo import load_scenario, run

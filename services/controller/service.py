@@ -4,9 +4,10 @@ Inputs: features (``…/vision/features``), robot state, camera info (for the ca
 Outputs: the desired twist (mixed frame, the robot's angular convention) or desired joint velocities, carrying
 the features' source stamp and trace, and a ControllerStatus per iteration.
 
-Never the last command: with no task running (the controller comes up idle: :mod:`services.controller.task`),
-on tag loss, stale input, an ill-conditioned interaction matrix or a constraint abort the output is zero and the
-status says why. Outputs are saturated to the configured limits (``saturated``).
+Its rules are :class:`~services.controller.core.ControllerCore` (no zenoh, no locks, no clock): never the last
+command (with no task running, the controller comes up idle, on tag loss, stale input, an ill-conditioned
+interaction matrix or a constraint abort the output is zero and the status says why), and outputs saturated to the
+configured limits. This service pairs each features message with its robot state, calls the core and publishes.
 
 Queryables ``…/controller/api/{start_task,stop_task,get_task}`` (TaskRequest, TaskRequest, nothing → TaskStatus).
 """
@@ -21,12 +22,9 @@ import zenoh
 
 from protocol.conventions import ClockMode, Frame
 from protocol.messages import (
-    USABLE_FEATURE_STATUSES,
     CameraInfo,
-    ControllerState,
     ControllerStatus,
     Features,
-    FeatureStatus,
     Header,
     JointVelocity,
     ProtocolError,
@@ -37,19 +35,11 @@ from protocol.messages import (
 )
 from protocol import messages
 from services.model import frames, jaco2
-from services.runtime.config import ConfigStruct
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.state_history import StateHistory
-from services.controller import ibvs
-from services.controller.law import ConstraintAbort, LawConfig, LawOutput, ServoInput
-from services.controller.laws import JOINT_LAWS, LAW_NAMES, make_law
-from services.controller.task import Task
-
-
-class OutputLimits(ConfigStruct):
-    max_linear_speed_mps: float = 0.15
-    max_angular_speed_rps: float = 0.8
-    joint_speed_scale: float = 0.8
+from services.controller.core import ControllerCore, OutputLimits
+from services.controller.law import LawConfig, LawOutput
+from services.controller.laws import LAW_NAMES
 
 
 class ControllerConfig(ServiceConfig):
@@ -79,8 +69,8 @@ class ControllerService(Service):
         config = config or ControllerConfig()
         super().__init__(config, **kw)
         self.config: ControllerConfig = config
-        self.law = make_law(config.law, config.control, **config.options)
-        self.joint_output = config.law in JOINT_LAWS
+        self.core = ControllerCore(config)
+        self.joint_output = self.core.joint_output
         self.lock = threading.Lock()
         self.robot_state: Optional[RobotState] = None
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
@@ -88,13 +78,10 @@ class ControllerService(Service):
         #: lockstep: features whose frame's robot state has not arrived yet, with their receive time
         self._waiting: list[tuple[Features, int]] = []
         #: one iteration at a time: features are handled on zenoh's threads (and deferred ones on the state's),
-        #: and the law's kinematics are not thread-safe
+        #: the law's kinematics are not thread-safe, and a task's start or stop falls between iterations
         self._iteration_lock = threading.Lock()
         self.camera_in_ee: Optional[np.ndarray] = None
-        self.iteration = 0
         self.last_status: Optional[ControllerStatus] = None
-        #: idle until started; changed under the iteration lock, so a start or stop falls between iterations
-        self.task = Task()
         #: the last features answered (realtime: a stopped task answers them again with zero at once)
         self._last_features: Optional[tuple[Features, int]] = None
 
@@ -110,27 +97,22 @@ class ControllerService(Service):
             self.queryable(keys.controller_api(function), self._on_task_query)
 
     def check_health(self) -> tuple[bool, str]:
-        status = self.last_status
-        task = f"task={self.task.state.value}" + (f"({self.task.count} by {self.task.by})" if self.task.by else "")
-        return True, f"{task} law={self.config.law} iteration={self.iteration} " + (
+        status, task = self.last_status, self.core.task
+        state = f"task={task.state.value}" + (f"({task.count} by {task.by})" if task.by else "")
+        return True, f"{state} law={self.config.law} iteration={self.core.iteration} " + (
             f"status={status.status.value} error_norm={status.error_norm:.3g}" if status else "no features yet")
 
     # ------------------------------------------------------------------ the task
     def start_task(self, request: TaskRequest) -> messages.TaskStatus:
         with self._iteration_lock:
-            was_running = self.task.running
-            reply = self.task.start(request, self.clock.now_ns())
-            if not was_running:  # a new task: the law's memory and the iteration count start afresh
-                self.law.reset()
-                self.iteration = 0
+            reply = self.core.start_task(request, self.clock.now_ns())
         self.log.info("task: %s (%s%s)", reply.message, request.operator, f": {request.reason}" if request.reason else "")
         return reply
 
     def stop_task(self, request: TaskRequest) -> messages.TaskStatus:
         with self._iteration_lock:
-            was_running = self.task.running
-            reply = self.task.stop(request)
-            self.law.reset()
+            was_running = self.core.task.running
+            reply = self.core.stop_task(request)
             last = self._last_features
             if was_running and last is not None and not self.lockstep and self.session is not None:
                 # realtime: answer the last frame again, now with zero, so the arm starts braking at once
@@ -151,11 +133,11 @@ class ControllerService(Service):
             else:
                 query_argument(query, function, None)
                 with self._iteration_lock:
-                    reply = self.task.status()
+                    reply = self.core.task.status()
         except ProtocolError as exc:
             self.refuse("task", str(exc))
             with self._iteration_lock:
-                reply = self.task.status(False, str(exc))
+                reply = self.core.task.status(False, str(exc))
         query.reply(query.key_expr, encode(reply))
 
     # ------------------------------------------------------------------ inputs
@@ -190,82 +172,21 @@ class ControllerService(Service):
                                                                                        Optional[LawOutput]]:
         """The law's output for one features message, or None (zero output) with the reason in the status.
         ``state``: the robot state to use (default: the latest)."""
-        cfg = self.config
-        header = features.header
         with self.lock:
             camera_in_ee = self.camera_in_ee
             if state is None:
                 state = self.robot_state
-
-        def status(kind: ControllerState, detail: str = "", **kw) -> ControllerStatus:
-            return ControllerStatus(header=self.header("status", source=header), law=cfg.law, status=kind,
-                                    iteration=self.iteration, error_norm=features.error_norm, detail=detail[:256], **kw)
-
-        if not self.task.running:
-            return status(ControllerState.IDLE, "no task running (mfvs task start)"), None
-
-        if features.status not in USABLE_FEATURE_STATUSES:
-            self.law.reset()
-            kind = ControllerState.STALE_INPUT if features.status is FeatureStatus.STALE else ControllerState.TAG_LOST
-            return status(kind, f"features {features.status.value}: {features.detail}"), None
-        now = self.clock.now_ns()
-        age = (now - header.source_stamp_ns) * 1e-9
-        if age > cfg.max_input_age_s:
-            self.law.reset()
-            return status(ControllerState.STALE_INPUT, f"image is {age * 1e3:.0f} ms old"), None
-        if state is None or (now - state.header.stamp_ns) * 1e-9 > cfg.state_budget_s:
-            return status(ControllerState.STALE_INPUT, "no fresh robot state"), None
-        if camera_in_ee is None:
-            return status(ControllerState.STALE_INPUT, "no camera info (camera-in-end-effector transform)"), None
-        if state.angular_convention is not cfg.control.robot_convention and not self.joint_output:
-            return status(ControllerState.STALE_INPUT, f"the robot reads '{state.angular_convention.value}', the "
-                          f"controller is configured for '{cfg.control.robot_convention.value}'"), None
-
-        self.iteration += 1
-        if features.error_norm < cfg.convergence_error_norm:
-            return status(ControllerState.CONVERGED), None
-        inp = ServoInput(t_s=header.source_stamp_ns * 1e-9, points=np.array(features.points),
-                         depths=np.array(features.depths), goal_points=np.array(features.goal_points),
-                         goal_depths=np.array(features.goal_depths), q=np.array(state.q), camera_in_ee=camera_in_ee)
-        # the L̂ the law will invert, with the configured depth source
-        L = ibvs.approximate_interaction_matrix(inp.points, inp.depths, inp.goal_points, inp.goal_depths,
-                                                cfg.control.depth)
-        if np.linalg.cond(L) > cfg.max_condition_number:
-            self.law.reset()
-            return status(ControllerState.ILL_CONDITIONED, f"cond(L) = {np.linalg.cond(L):.3g}"), None
-        try:
-            output = self.law.step(inp)
-        except frames.EulerSingularityError as exc:
-            self.law.reset()
-            return status(ControllerState.ILL_CONDITIONED, str(exc)), None
-        except ConstraintAbort as exc:
-            self.law.reset()
-            return status(ControllerState.CONSTRAINT_ABORT, str(exc)), None
-        values = output.joint_velocities if self.joint_output else output.twist
-        if values is None or not np.all(np.isfinite(values)):
-            self.law.reset()
-            return status(ControllerState.ILL_CONDITIONED, "the law produced a non-finite output"), None
-        saturated = self._saturate(output)
-        camera_twist = tuple(output.camera_twist) if output.camera_twist is not None else None
-        notes = {k: float(v) for k, v in output.notes.items() if np.isfinite(v)}
-        return status(ControllerState.CONVERGING, gain=output.gain, saturated=saturated,
-                      camera_twist=camera_twist, notes=notes), output
-
-    def _saturate(self, output: LawOutput) -> bool:
-        lim = self.config.limits
-        if self.joint_output:
-            ratio = float(np.max(np.abs(output.joint_velocities) / (jaco2.MAX_SPEED * lim.joint_speed_scale)))
-            if ratio > 1.0:
-                output.joint_velocities = output.joint_velocities / ratio
-                return True
-            return False
-        saturated = False
-        for part, vmax in ((slice(0, 3), lim.max_linear_speed_mps), (slice(3, 6), lim.max_angular_speed_rps)):
-            speed = float(np.linalg.norm(output.twist[part]))
-            if speed > vmax:
-                output.twist[part] *= vmax / speed
-                saturated = True
-        return saturated
+        step = self.core.step(features, state, camera_in_ee, self.clock.now_ns())
+        output = step.output
+        figures = {}
+        if output is not None:
+            figures = dict(gain=output.gain, saturated=step.saturated,
+                           camera_twist=tuple(output.camera_twist) if output.camera_twist is not None else None,
+                           notes={k: float(v) for k, v in output.notes.items() if np.isfinite(v)})
+        status = ControllerStatus(header=self.header("status", source=features.header), law=self.config.law,
+                                  status=step.kind, iteration=step.iteration, error_norm=features.error_norm,
+                                  detail=step.detail[:256], **figures)
+        return status, output
 
     def _publish(self, features: Features, recv_ns: int, status: ControllerStatus,
                  output: Optional[LawOutput]) -> None:

@@ -2,7 +2,9 @@
 JACO-2's main board does between the Kinova API and the actuators.
 
 Every bus cycle (2 ms) the node asks :meth:`RobotCore.targets` for the actuators' targets, exchanges them with the
-hardware, and hands the reading to :meth:`RobotCore.observe` (or :meth:`RobotCore.hold` when the exchange failed).
+hardware, and hands the reading to :meth:`RobotCore.observe`. When exchanges fail for longer than the actuators
+go on along their last targets (``EXTRAPOLATED_CYCLES``), the node stops the reference where the targets are
+(:meth:`RobotCore.stop`); one lost exchange is a missed cycle.
 Every fifth cycle (10 ms) :meth:`RobotCore.dsp_cycle` applies the latest robot command and runs the DSP
 (:class:`~services.robot.dsp.KinovaDSP`), whose joint velocities the next cycles integrate into targets.
 

@@ -18,6 +18,9 @@ from services.model import jaco2
 #: the actuators' bus cycle (500 Hz)
 CYCLE_S = 0.002
 CYCLE_NS = 2_000_000
+#: cycles an actuator goes on along its last target's rate when no target comes, before it holds (robot_sim's
+#: firmware emulates one, as servo drives commonly do; the real actuators' behaviour is not public)
+EXTRAPOLATED_CYCLES = 1
 
 
 class HardwareError(RuntimeError):

@@ -65,7 +65,8 @@ from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import CYCLES_PER_DSP, RobotCore
-from services.robot.hardware import CYCLE_NS, CYCLE_S, HardwareError, JointReading, RobotHardware
+from services.robot.hardware import (CYCLE_NS, CYCLE_S, EXTRAPOLATED_CYCLES, HardwareError, JointReading,
+                                     RobotHardware)
 from services.robot.pacing import CyclePacer, request_realtime
 
 #: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
@@ -467,8 +468,11 @@ class RobotNode(Service):
             self._missed.tick()
             self._bus_faults = [f"bus: {exc}"[:120]]
             self.limited_log.warning("exchange", "%s: exchange failed: %s", self.name, exc)
-            with self._core_lock:
-                self.core.stop()
+            if self.consecutive_errors > EXTRAPOLATED_CYCLES:
+                # the actuators went on along their last targets for as many cycles as the reference did, and
+                # hold now: the reference holds too (one lost exchange is a missed cycle, not a stop)
+                with self._core_lock:
+                    self.core.stop()
         else:
             self.exchange_time.add(time.monotonic() - start)
             self.consecutive_errors = 0

@@ -41,6 +41,7 @@ import numpy as np
 
 from protocol import rs485 as r
 from services.model import jaco2
+from services.robot.hardware import CYCLE_S, EXTRAPOLATED_CYCLES
 from services.runtime.config import ConfigStruct
 from services.runtime.metrics import Counters
 
@@ -66,8 +67,8 @@ class ActuatorConfig(ConfigStruct):
 #: temperature (nothing in the simulation heats up)
 TORQUE_PER_AMPERE = 0.08
 ACTUATOR_TEMPERATURE_C = 35.0
-#: the bus cycle a target is interpolated across
-CYCLE_S = 0.002
+#: how long a target's reference moves: across its bus cycle, then on along its rate for the extrapolated cycles
+GOES_ON_S = (1 + EXTRAPOLATED_CYCLES) * CYCLE_S
 #: bounds of the reference's rate and acceleration (well beyond the arm's 48 deg/s and the DSP's 200 deg/s², so
 #: they only cut glitches)
 MAX_REFERENCE_RATE_DPS = 120.0
@@ -281,10 +282,10 @@ class ActuatorFirmware:
         """The reference's position and rate at ``t_s``: along its segment during the cycle and, without a new
         target, along the same rate for one more cycle; then it holds there."""
         ahead = t_s - a.target_time_s
-        if 0.0 <= ahead < 2 * CYCLE_S - 1e-9:
+        if 0.0 <= ahead < GOES_ON_S - 1e-9:
             return a.target_deg + a.target_rate_dps * ahead, a.target_rate_dps
         if ahead >= 0.0:
-            return a.target_deg + a.target_rate_dps * 2 * CYCLE_S, 0.0
+            return a.target_deg + a.target_rate_dps * GOES_ON_S, 0.0
         return a.last_target_deg, 0.0
 
     def _follow(self, a: Actuator, position_deg: float) -> None:
@@ -293,7 +294,7 @@ class ActuatorFirmware:
         start, _ = self._reference_deg(a, self.now_s)
         ahead = self.now_s - a.target_time_s
         # the rate the reference moved at up to now (at the end of its one cycle of going on, it still moved)
-        rate_before = a.target_rate_dps if 0.0 <= ahead <= 2 * CYCLE_S + 1e-9 else 0.0
+        rate_before = a.target_rate_dps if 0.0 <= ahead <= GOES_ON_S + 1e-9 else 0.0
         rate = (position_deg - start) / CYCLE_S
         rate = min(max(rate, -MAX_REFERENCE_RATE_DPS), MAX_REFERENCE_RATE_DPS)  # a glitch, not a trajectory
         accel = (rate - rate_before) / CYCLE_S
@@ -338,8 +339,8 @@ class ActuatorFirmware:
         # motion needs as feed-forward (the segment's change of rate during the cycle it was taken in)
         ahead = t_s - taken_s
         started = ahead >= 0.0
-        reference_deg = np.where(started, start_deg + rate_dps * np.clip(ahead, 0.0, 2 * CYCLE_S), last_deg)
-        moving = started & (ahead < 2 * CYCLE_S - 1e-9)
+        reference_deg = np.where(started, start_deg + rate_dps * np.clip(ahead, 0.0, GOES_ON_S), last_deg)
+        moving = started & (ahead < GOES_ON_S - 1e-9)
         rate = jaco2.SIGN * np.radians(np.where(moving, rate_dps, 0.0))
         in_first_cycle = started & (ahead < CYCLE_S - 1e-9) & ~torque_mode
         accel = np.where(in_first_cycle, jaco2.SIGN * np.radians(accel_dps2), 0.0)

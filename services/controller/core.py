@@ -1,0 +1,140 @@
+"""The controller's rules, with no zenoh, no locks and no clock: for one features message, the robot state and the
+camera mount, at a given time, what the law outputs, or why the output is zero.
+
+Never the last command: with no task running, on tag loss, stale input, an ill-conditioned interaction matrix, a
+law that gives up (a constraint abort, an Euler singularity, a non-finite output) the output is zero and the step
+says why. The law's output is saturated to the configured limits (``saturated``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from protocol.messages import (
+    USABLE_FEATURE_STATUSES,
+    ControllerState,
+    Features,
+    FeatureStatus,
+    RobotState,
+    TaskRequest,
+    TaskStatus,
+)
+from services.controller import ibvs
+from services.controller.law import ConstraintAbort, LawOutput, ServoInput
+from services.controller.laws import JOINT_LAWS, make_law
+from services.controller.task import Task
+from services.model import frames, jaco2
+from services.runtime.config import ConfigStruct
+
+
+class OutputLimits(ConfigStruct):
+    max_linear_speed_mps: float = 0.15
+    max_angular_speed_rps: float = 0.8
+    joint_speed_scale: float = 0.8
+
+
+@dataclass
+class Step:
+    """One features message answered: the state, why (when not converging), the law's output (None: zero), the
+    iteration it counts as, and whether the output was scaled down to the limits."""
+
+    kind: ControllerState
+    iteration: int
+    detail: str = ""
+    output: Optional[LawOutput] = None
+    saturated: bool = False
+
+
+class ControllerCore:
+    def __init__(self, config) -> None:
+        """``config``: the service's :class:`~services.controller.service.ControllerConfig` (the law, its options,
+        the convergence threshold, the input budgets, the conditioning bound and the output limits)."""
+        self.config = config
+        self.law = make_law(config.law, config.control, **config.options)
+        self.joint_output = config.law in JOINT_LAWS
+        self.task = Task()
+        self.iteration = 0
+
+    # ------------------------------------------------------------------ the task
+    def start_task(self, request: TaskRequest, now_ns: int) -> TaskStatus:
+        was_running = self.task.running
+        reply = self.task.start(request, now_ns)
+        if not was_running:  # a new task: the law's memory and the iteration count start afresh
+            self.law.reset()
+            self.iteration = 0
+        return reply
+
+    def stop_task(self, request: TaskRequest) -> TaskStatus:
+        reply = self.task.stop(request)
+        self.law.reset()
+        return reply
+
+    # ------------------------------------------------------------------ one iteration
+    def step(self, features: Features, state: Optional[RobotState], camera_in_ee: Optional[np.ndarray],
+             now_ns: int) -> Step:
+        cfg = self.config
+        header = features.header
+
+        def zero(kind: ControllerState, detail: str = "", reset: bool = False) -> Step:
+            if reset:
+                self.law.reset()
+            return Step(kind, self.iteration, detail)
+
+        if not self.task.running:
+            return zero(ControllerState.IDLE, "no task running (mfvs task start)")
+        if features.status not in USABLE_FEATURE_STATUSES:
+            kind = ControllerState.STALE_INPUT if features.status is FeatureStatus.STALE else ControllerState.TAG_LOST
+            return zero(kind, f"features {features.status.value}: {features.detail}", reset=True)
+        age = (now_ns - header.source_stamp_ns) * 1e-9
+        if age > cfg.max_input_age_s:
+            return zero(ControllerState.STALE_INPUT, f"image is {age * 1e3:.0f} ms old", reset=True)
+        if state is None or (now_ns - state.header.stamp_ns) * 1e-9 > cfg.state_budget_s:
+            return zero(ControllerState.STALE_INPUT, "no fresh robot state")
+        if camera_in_ee is None:
+            return zero(ControllerState.STALE_INPUT, "no camera info (camera-in-end-effector transform)")
+        if state.angular_convention is not cfg.control.robot_convention and not self.joint_output:
+            return zero(ControllerState.STALE_INPUT, f"the robot reads '{state.angular_convention.value}', the "
+                        f"controller is configured for '{cfg.control.robot_convention.value}'")
+
+        self.iteration += 1
+        if features.error_norm < cfg.convergence_error_norm:
+            return zero(ControllerState.CONVERGED)
+        inp = ServoInput(t_s=header.source_stamp_ns * 1e-9, points=np.array(features.points),
+                         depths=np.array(features.depths), goal_points=np.array(features.goal_points),
+                         goal_depths=np.array(features.goal_depths), q=np.array(state.q), camera_in_ee=camera_in_ee)
+        # the L̂ the law will invert, with the configured depth source
+        L = ibvs.approximate_interaction_matrix(inp.points, inp.depths, inp.goal_points, inp.goal_depths,
+                                                cfg.control.depth)
+        if np.linalg.cond(L) > cfg.max_condition_number:
+            return zero(ControllerState.ILL_CONDITIONED, f"cond(L) = {np.linalg.cond(L):.3g}", reset=True)
+        try:
+            output = self.law.step(inp)
+        except frames.EulerSingularityError as exc:
+            return zero(ControllerState.ILL_CONDITIONED, str(exc), reset=True)
+        except ConstraintAbort as exc:
+            return zero(ControllerState.CONSTRAINT_ABORT, str(exc), reset=True)
+        values = output.joint_velocities if self.joint_output else output.twist
+        if values is None or not np.all(np.isfinite(values)):
+            return zero(ControllerState.ILL_CONDITIONED, "the law produced a non-finite output", reset=True)
+        saturated = saturate(output, cfg.limits, self.joint_output)
+        return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated)
+
+
+def saturate(output: LawOutput, limits: OutputLimits, joint_output: bool) -> bool:
+    """Scale the law's output down to the limits (in place): joint velocities uniformly to the joints' speed
+    scale, a twist's linear and angular parts each to their speed; whether anything was scaled."""
+    if joint_output:
+        ratio = float(np.max(np.abs(output.joint_velocities) / (jaco2.MAX_SPEED * limits.joint_speed_scale)))
+        if ratio > 1.0:
+            output.joint_velocities = output.joint_velocities / ratio
+            return True
+        return False
+    saturated = False
+    for part, vmax in ((slice(0, 3), limits.max_linear_speed_mps), (slice(3, 6), limits.max_angular_speed_rps)):
+        speed = float(np.linalg.norm(output.twist[part]))
+        if speed > vmax:
+            output.twist[part] *= vmax / speed
+            saturated = True
+    return saturated

@@ -1,0 +1,280 @@
+"""Safety's rules, with no zenoh, no locks and no clock: what to send to the robot for each input.
+
+:class:`SafetyCore` holds the latest approved desired command and checks it again at every resend (so clamps ramp
+and zones and joint limits follow the arm), the latched e-stop and protective stop, the liveliness of the command
+path and the robot, and the freshness of every input, two-sided (stale, or stamped in the future beyond a small
+skew). Each input (a desired command, a robot state, an e-stop, a liveliness change, a resend cycle) is a method
+that takes the time and returns what to do, in order: :class:`Send` a robot command, :class:`Refused` an input
+(counted ``refused.<kind>``), :class:`Count` an event, :class:`Note` a log line. The service
+(:mod:`services.safety.service`) decodes, calls, and carries those out.
+
+Lockstep: a desired command is checked against the state of the tick its frame was captured at, and waits for
+that state if it has not arrived; every robot state is answered with the held command checked against it.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Optional, Union
+
+import numpy as np
+
+from protocol.conventions import Frame
+from protocol.messages import (
+    CommandMode,
+    EStop,
+    Header,
+    JointVelocity,
+    RobotCommand,
+    RobotState,
+    SafetyState,
+    Twist,
+)
+from services.runtime.state_history import StateHistory
+from services.safety.checks import CommandChecker, Decision, MotionMonitor, SafetyLimits
+
+
+class HeldCommand:
+    """A desired command as the controller sent it, and when it arrived."""
+
+    def __init__(self, twist: Optional[Twist], joint: Optional[JointVelocity], recv_ns: int) -> None:
+        self.twist = twist
+        self.joint = joint
+        self.recv_ns = recv_ns
+
+    @property
+    def source(self) -> Header:
+        return self.twist.header if self.twist is not None else self.joint.header
+
+    def check(self, checker: CommandChecker, q, dt: float) -> Decision:
+        """Check the command against the joint angles ``q``."""
+        if self.twist is not None:
+            t = self.twist
+            return checker.check_twist(t.frame, t.angular, (*t.linear, *t.rotational), q, dt)
+        return checker.check_joint_velocity(self.joint.velocities, q, dt)
+
+
+@dataclass
+class Send:
+    """A robot command to publish: ``command`` (its header is the service's to fill) answering ``held`` (whose
+    source and trace the header carries), stamped ``stamp_ns`` (None: now)."""
+
+    command: RobotCommand
+    held: Optional[HeldCommand] = None
+    stamp_ns: Optional[int] = None
+
+
+@dataclass
+class Refused:
+    reason: str
+
+    @property
+    def kind(self) -> str:
+        return self.reason.split(":", 1)[0]
+
+
+@dataclass
+class Count:
+    name: str
+
+
+@dataclass
+class Note:
+    level: int
+    text: str
+
+
+Action = Union[Send, Refused, Count, Note]
+
+
+class SafetyCore:
+    def __init__(self, limits: SafetyLimits, upstream: list[str], robots: list[str], rate_hz: float,
+                 lockstep: bool) -> None:
+        self.limits = limits
+        self.upstream, self.robots = list(upstream), list(robots)
+        self.dt = 1.0 / rate_hz
+        self.lockstep = lockstep
+        self.checker = CommandChecker(limits)
+        self.monitor = MotionMonitor(limits, self.checker.kin)
+        self.held: Optional[HeldCommand] = None
+        self.robot_state: Optional[RobotState] = None
+        self.states: StateHistory[RobotState] = StateHistory()
+        #: lockstep: desired commands whose frame's robot state has not arrived yet
+        self.waiting: list[HeldCommand] = []
+        self.estop_latched = False
+        self.estop_reason = ""
+        self.alive: set[str] = set()
+        self.last_refusal = ""
+        self.active_limits: list[str] = []
+        self.safety_state = SafetyState.REFUSING
+
+    # ------------------------------------------------------------------ inputs
+    def liveliness(self, name: str, present: bool) -> list[Action]:
+        if present:
+            self.alive.add(name)
+            return []
+        self.alive.discard(name)
+        if name in self.upstream and self.held is not None:
+            self.held = None
+            return [self._refuse(f"liveliness: {name} is gone"), self._stop_now()]
+        return []
+
+    def state(self, state: RobotState, now_ns: int) -> list[Action]:
+        """A robot state; in lockstep ``now_ns`` is its stamp, and it is answered (the waiting commands first)."""
+        stamp = state.header.stamp_ns
+        self.robot_state = state
+        self.states.add(stamp, state)
+        out: list[Action] = []
+        overspeed = self.monitor.observe(state.q, state.dq, stamp)
+        if overspeed is not None:
+            out += self._protective_stop(overspeed)
+        if self.lockstep:
+            waiting, self.waiting = self.waiting, []
+            for candidate in waiting:
+                out += self.desired(candidate, now_ns)
+            out += self.cycle(now_ns, stamp_ns=stamp, state=state)  # the answer to this tick
+        return out
+
+    def estop(self, message: EStop) -> list[Action]:
+        if message.reset:
+            out: list[Action] = [Count("estop.resets")]
+            if self.estop_latched:
+                out.append(Note(logging.WARNING, f"e-stop reset by {message.operator or 'an operator'}"))
+            self.estop_latched, self.estop_reason = False, ""
+            return out
+        self.estop_latched = True
+        self.estop_reason = f"{message.operator or 'operator'}: {message.reason or 'e-stop'}"
+        self.held = None
+        return [Count("estop.triggers"), Note(logging.WARNING, f"E-STOP engaged ({self.estop_reason})"),
+                self._stop_now()]
+
+    def desired(self, candidate: HeldCommand, now_ns: int) -> list[Action]:
+        """A desired twist or joint velocity from the controller: approved and held, or refused with a stop that
+        answers its frame."""
+        state = None
+        if self.lockstep:  # checked against the state of the tick its frame was captured at
+            state, ready = self.states.for_input(candidate.source.source_stamp_ns)
+            if not ready:
+                self.waiting.append(candidate)
+                return []
+        if self.estop_latched:
+            refused = self._refuse(f"estop: latched ({self.estop_reason})")
+            return [refused, self._send(Decision(refusal=self.last_refusal), candidate)]  # the frame's answer
+        decision, reason = self._evaluate(candidate, now_ns, state)
+        if reason is None:
+            self.held = candidate
+            return [self._send(decision, candidate)]
+        self.held = None
+        # the stop carries the refused command's source: it is the pipeline's answer to that frame
+        return [self._refuse(reason), self._send(Decision(refusal=reason), candidate)]
+
+    def cycle(self, now_ns: int, stamp_ns: Optional[int] = None, state: Optional[RobotState] = None) -> list[Action]:
+        """One control cycle: resend the held command if it is still fresh and allowed, else stop."""
+        out: list[Action] = []
+        held = self.held
+        if held is not None and not self.estop_latched:
+            decision, reason = self._evaluate(held, now_ns, state)
+            if reason is None:
+                return [self._send(decision, held, stamp_ns)]
+            self.held = None
+            out.append(self._refuse(reason))
+        out.append(self._send(Decision(refusal=self.last_refusal or "idle: no command"), None, stamp_ns))
+        return out
+
+    def stop(self, reason: str) -> list[Action]:
+        """A stop now (the service stopping: leave the arm stopping rather than holding a last command)."""
+        return [self._send(Decision(refusal=reason), None)]
+
+    # ------------------------------------------------------------------ checks of the moment
+    def _protective_stop(self, reason: str) -> list[Action]:
+        """Latched like the e-stop (and released the same way): the arm does something it was not told to."""
+        out: list[Action] = [Count("overspeed.trips")]
+        if not self.estop_latched:
+            out.append(self._refuse(f"protective_stop: {reason}"))
+            self.estop_latched = True
+            self.estop_reason = f"protective stop: {reason}"
+            self.held = None
+            out += [Note(logging.ERROR, f"PROTECTIVE STOP: {reason}"), self._stop_now()]
+        return out
+
+    def _evaluate(self, held: HeldCommand, now_ns: int,
+                  state: Optional[RobotState] = None) -> tuple[Optional[Decision], Optional[str]]:
+        """(decision, None) when the command may go to the robot now, else (None, reason). ``state``: the robot
+        state to check against (default: the latest)."""
+        reason = self.input_problem(held.source, now_ns)
+        if reason is not None:
+            return None, reason
+        q = self._fresh_q(now_ns, state)
+        if q is None:
+            return None, "robot_state: no fresh robot state to check the command against"
+        decision = held.check(self.checker, q, self.dt)
+        if decision.refused:
+            self.active_limits = list(decision.limits)
+            return None, decision.refusal
+        return decision, None
+
+    def input_problem(self, header: Header, now_ns: int) -> Optional[str]:
+        """Why a desired command may not move the arm now (liveliness, freshness both ways, convention), or None."""
+        lim = self.limits
+        missing = [name for name in self.upstream if name not in self.alive]
+        if missing:
+            return f"liveliness: {', '.join(missing)} not alive"
+        if not any(name in self.alive for name in self.robots):
+            return "liveliness: no robot alive"
+        age = (now_ns - header.stamp_ns) * 1e-9
+        if -age > lim.future_skew_s or -(now_ns - header.source_stamp_ns) * 1e-9 > lim.future_skew_s:
+            return (f"freshness: stamped {max(-age, (header.source_stamp_ns - now_ns) * 1e-9) * 1e3:.0f} ms in the "
+                    f"future (skew at most {lim.future_skew_s * 1e3:.0f} ms)")
+        if age > lim.command_budget_s:
+            return f"freshness: command is {age * 1e3:.0f} ms old (budget {lim.command_budget_s * 1e3:.0f} ms)"
+        if header.source_stamp_ns == 0:
+            return "freshness: command does not say which image it derives from"
+        image_age = (now_ns - header.source_stamp_ns) * 1e-9
+        if image_age > lim.image_budget_s:
+            return (f"freshness: image is {image_age * 1e3:.0f} ms old "
+                    f"(budget {lim.image_budget_s * 1e3:.0f} ms)")
+        state = self.robot_state
+        if state is not None and state.angular_convention is not lim.robot_convention:
+            return (f"convention: the robot reads '{state.angular_convention.value}', safety is configured for "
+                    f"'{lim.robot_convention.value}'")
+        return None
+
+    def _fresh_q(self, now_ns: int, state: Optional[RobotState] = None) -> Optional[np.ndarray]:
+        if state is None:
+            if self.robot_state is None:
+                return None
+            state = self.robot_state
+        if (now_ns - state.header.stamp_ns) * 1e-9 > self.limits.state_budget_s:
+            return None
+        return np.asarray(state.q, dtype=float)
+
+    # ------------------------------------------------------------------ output
+    def _refuse(self, reason: str) -> Refused:
+        self.last_refusal = reason
+        return Refused(reason)
+
+    def _stop_now(self) -> Send:
+        return self._send(Decision(refusal=self.last_refusal or "stop"), None)
+
+    def _send(self, decision: Decision, held: Optional[HeldCommand], stamp_ns: Optional[int] = None) -> Send:
+        """The robot command for a decision: its motion, or a stop (an emergency stop when latched)."""
+        header = Header()  # the service fills it (sequence, stamp, source and trace)
+        if self.estop_latched:
+            command = RobotCommand(header=header, mode=CommandMode.EMERGENCY_STOP, reason=self.estop_reason[:256])
+            state = SafetyState.ESTOP
+        elif decision.refused or held is None:
+            command = RobotCommand(header=header, mode=CommandMode.STOP, reason=(decision.refusal or "")[:256])
+            state = SafetyState.REFUSING if self.last_refusal else SafetyState.OK
+            self.checker.reset_motion()
+        elif decision.twist is not None:
+            twist = Twist(header=header, frame=Frame.MIXED, angular=self.limits.robot_convention,
+                          linear=tuple(decision.twist[:3]), rotational=tuple(decision.twist[3:]))
+            command = RobotCommand(header=header, mode=CommandMode.CARTESIAN_VELOCITY, twist=twist)
+            state = SafetyState.LIMITING if decision.limits else SafetyState.OK
+        else:
+            command = RobotCommand(header=header, mode=CommandMode.JOINT_VELOCITY,
+                                   joint_velocities=decision.joint_velocities.tolist())
+            state = SafetyState.LIMITING if decision.limits else SafetyState.OK
+        self.safety_state = state
+        self.active_limits = list(decision.limits)
+        return Send(command, held, stamp_ns)

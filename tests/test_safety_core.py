@@ -1,0 +1,116 @@
+"""Safety's rules without zenoh, locks or a clock (services.safety.core): what each input makes safety send."""
+import numpy as np
+
+from protocol import messages as m
+from protocol.conventions import AngularConvention, Frame
+from services.model import jaco2
+from services.safety.checks import SafetyLimits
+from services.safety.core import Count, HeldCommand, Note, Refused, SafetyCore, Send
+
+S = 1_000_000_000  # ns
+
+
+def core(lockstep=False, **limits) -> SafetyCore:
+    safety = SafetyCore(SafetyLimits(**limits), upstream=["vision", "controller"], robots=["robot_sim"],
+                        rate_hz=100.0, lockstep=lockstep)
+    for name in ("vision", "controller", "robot_sim"):
+        safety.liveliness(name, True)
+    return safety
+
+
+def state(stamp_ns, q=None) -> m.RobotState:
+    return m.RobotState(header=m.Header(stamp_ns=stamp_ns), q=(jaco2.HOME if q is None else q).tolist(),
+                        dq=[0.0] * 7, tau=[0.0] * 7,
+                        pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
+                        control_mode=m.ControlMode.CARTESIAN_VELOCITY)
+
+
+def twist(stamp_ns, capture_ns=None, linear=(0.05, 0.0, 0.0)) -> HeldCommand:
+    header = m.Header(stamp_ns=stamp_ns, source_stamp_ns=stamp_ns if capture_ns is None else capture_ns)
+    return HeldCommand(m.Twist(header=header, frame=Frame.MIXED, angular=AngularConvention.SEED000, linear=linear,
+                               rotational=(0.0, 0.0, 0.0)), None, stamp_ns)
+
+
+def sends(actions) -> list[m.RobotCommand]:
+    return [a.command for a in actions if isinstance(a, Send)]
+
+
+def refusals(actions) -> list[str]:
+    return [a.reason for a in actions if isinstance(a, Refused)]
+
+
+def test_idle_is_a_stop_and_an_approved_command_is_held_and_resent_while_fresh():
+    safety = core()
+    assert [c.mode for c in sends(safety.cycle(10 * S))] == [m.CommandMode.STOP]
+    safety.state(state(10 * S), 10 * S)
+    approved = safety.desired(twist(10 * S), 10 * S + 5_000_000)
+    assert [c.mode for c in sends(approved)] == [m.CommandMode.CARTESIAN_VELOCITY]
+    assert sends(approved)[0].twist.linear[0] > 0 and approved[0].held is safety.held
+    resent = sends(safety.cycle(10 * S + 50_000_000))
+    assert resent[0].mode is m.CommandMode.CARTESIAN_VELOCITY
+    stale = safety.cycle(10 * S + 150_000_000)  # the command is 150 ms old: budget 100 ms
+    assert refusals(stale) == ["freshness: command is 150 ms old (budget 100 ms)"]
+    assert [c.mode for c in sends(stale)] == [m.CommandMode.STOP] and safety.held is None
+
+
+def test_freshness_is_two_sided_and_liveliness_is_required():
+    safety = core()
+    safety.state(state(10 * S), 10 * S)
+    future = safety.desired(twist(10 * S + 60_000_000), 10 * S)
+    assert "in the future" in refusals(future)[0]
+    assert [c.mode for c in sends(future)] == [m.CommandMode.STOP]
+    assert "image is 300 ms old" in refusals(safety.desired(twist(10 * S, capture_ns=10 * S - 300_000_000),
+                                                           10 * S))[0]
+    safety.liveliness("vision", False)
+    assert refusals(safety.desired(twist(10 * S), 10 * S)) == ["liveliness: vision not alive"]
+
+
+def test_losing_the_command_path_while_a_command_is_held_stops_at_once():
+    safety = core()
+    safety.state(state(10 * S), 10 * S)
+    safety.desired(twist(10 * S), 10 * S)
+    actions = safety.liveliness("controller", False)
+    assert refusals(actions) == ["liveliness: controller is gone"]
+    assert [c.mode for c in sends(actions)] == [m.CommandMode.STOP] and safety.held is None
+
+
+def test_the_estop_latches_answers_every_frame_with_an_emergency_stop_and_only_a_reset_releases_it():
+    safety = core()
+    safety.state(state(10 * S), 10 * S)
+    safety.desired(twist(10 * S), 10 * S)
+    engaged = safety.estop(m.EStop(header=m.Header(), operator="alice", reason="spill"))
+    assert [a.name for a in engaged if isinstance(a, Count)] == ["estop.triggers"]
+    assert any(isinstance(a, Note) and "alice: spill" in a.text for a in engaged)
+    assert [c.mode for c in sends(engaged)] == [m.CommandMode.EMERGENCY_STOP] and safety.held is None
+    answer = safety.desired(twist(10 * S + 10_000_000), 10 * S + 10_000_000)
+    assert refusals(answer) == ["estop: latched (alice: spill)"]
+    assert [c.mode for c in sends(answer)] == [m.CommandMode.EMERGENCY_STOP]
+    assert sends(safety.cycle(10 * S + 20_000_000))[0].mode is m.CommandMode.EMERGENCY_STOP
+    released = safety.estop(m.EStop(header=m.Header(), reset=True, operator="alice"))
+    assert [a.name for a in released if isinstance(a, Count)] == ["estop.resets"] and not safety.estop_latched
+    assert sends(safety.desired(twist(10 * S + 30_000_000), 10 * S + 30_000_000))[0].mode is \
+        m.CommandMode.CARTESIAN_VELOCITY
+
+
+def test_measured_overspeed_latches_a_protective_stop():
+    safety = core()
+    J = safety.checker.kin.jacobian_base(jaco2.HOME)
+    actions = []
+    for k in range(3):  # the end effector at 0.3 m/s (limit 0.15) for longer than a state period
+        moving = state(10 * S + k * 10_000_000)
+        moving.dq = (np.linalg.pinv(J) @ np.array([0.3, 0, 0, 0, 0, 0])).tolist()
+        actions += safety.state(moving, moving.header.stamp_ns)
+    assert safety.estop_latched and "protective stop" in safety.estop_reason
+    assert [a.name for a in actions if isinstance(a, Count)] == ["overspeed.trips"]
+    assert [c.mode for c in sends(actions)] == [m.CommandMode.EMERGENCY_STOP]
+
+
+def test_lockstep_checks_a_command_against_its_frame_s_state_and_answers_every_tick():
+    safety = core(lockstep=True)
+    frame = 10 * S
+    waiting = safety.desired(twist(frame), frame)  # its frame's state has not arrived yet
+    assert waiting == [] and len(safety.waiting) == 1
+    actions = safety.state(state(frame), frame)  # the tick: the waiting command, then the tick's answer
+    modes = [c.mode for c in sends(actions)]
+    assert modes == [m.CommandMode.CARTESIAN_VELOCITY, m.CommandMode.CARTESIAN_VELOCITY]
+    assert [a.stamp_ns for a in actions if isinstance(a, Send)] == [None, frame]
