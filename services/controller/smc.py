@@ -161,7 +161,6 @@ class SlidingModeLaw(Law):
             lo = np.array([joints[j][0] for j in idx])
             hi = np.array([joints[j][1] for j in idx])
             self._range_arrays = (idx, (lo + hi) / 2.0, (hi - lo) / 2.0)
-        self._eye = np.eye(jaco2.N_JOINTS)
         speed = self.options.joint_speed
         if speed is not None and speed.u_plus is None:
             speed.u_plus = 1.25 * self.options.max_task_accel / float(np.min(speed.max_speed))
@@ -270,45 +269,14 @@ class SlidingModeLaw(Law):
         dq = self.dq_c
         e = inp.error
         e_dot = Js @ dq  # ṡ of the noise-free model (static target, static reference)
-        norm = math.sqrt(float(e @ e))
-        K_p = opt.K0 * math.exp(-(opt.Kdot0 / opt.K0) * norm)
-        K_v = 3.0 * math.sqrt(K_p)
-        s_ddot = -K_p * e - K_v * e_dot
+        s_ddot, K_p = tracking_acceleration(e, e_dot, opt.K0, opt.Kdot0)
         Js_dot = np.zeros_like(Js) if self._Js_prev is None else (Js - self._Js_prev) / Ts
         rows, rhs, phis, names = self.constraints(inp, Js, J_base, p, dq)
         active = np.flatnonzero(phis >= 0.0).tolist()
-        n = jaco2.N_JOINTS
-        A2 = Js
-        b2 = s_ddot - Js_dot @ dq
-        if active:
-            A1 = rows[active]
-            b1 = rhs[active]
-            U, s1, Vt = np.linalg.svd(A1, full_matrices=False)
-            rank = int(np.sum(s1 > opt.rcond * max(s1[0], 1e-12)))
-            if len(active) > n or rank < len(active):
-                raise ConstraintAbort(f"{len(active)} active constraints (rank {rank}) leave no freedom for the "
-                                      f"task: {', '.join(names[i] for i in active)}")
-            A1_pinv = (Vt.T / s1) @ U.T
-            N1 = self._eye - A1_pinv @ A1
-            first = A1_pinv @ b1
-            A2N1 = A2 @ N1
-            b2 = b2 - A2 @ first
-        else:
-            N1, first, A2N1 = None, 0.0, A2
-        U2, s2, Vt2 = np.linalg.svd(A2N1, full_matrices=False)
-        keep = s2 > opt.task_rcond * s2[0]
-        V2 = Vt2[keep]
-        second = (V2.T / s2[keep]) @ (U2[:, keep].T @ b2)
-        # level 3: damp the self-motion in the null space of both levels (V2 spans A2N1's row space)
-        damping = -opt.null_damping * dq
-        damping = damping - V2.T @ (V2 @ damping)
-        second = second + (damping if N1 is None else N1 @ damping)
-        # the task's acceleration is bounded by what the arm can do; level 1 never is, so the switching gains
-        # u⁺ dominate the task's push on every constraint (the condition behind the chattering band)
-        peak = float(np.abs(second).max())
-        if peak > opt.max_task_accel:
-            second *= opt.max_task_accel / peak
-        ddq = second + first
+        try:
+            ddq = prioritized_acceleration(rows[active], rhs[active], Js, s_ddot - Js_dot @ dq, dq, opt)
+        except ConstraintAbort as exc:
+            raise ConstraintAbort(f"{exc}: {', '.join(names[i] for i in active)}") from None
         #: the last step's level-1 system, acceleration and active constraint indices (into ``_names``), for
         #: inspection: A1·q̈ = b1 holds when A1 has full rank
         self.last_level1 = (rows[active], rhs[active], ddq, active)
@@ -321,3 +289,44 @@ class SlidingModeLaw(Law):
             notes[f"max_phi.{kind}"] = float(np.max(phis[indices]))
             notes[f"band.{kind}"] = band
         return LawOutput(joint_velocities=self.dq_c.copy(), camera_twist=J_c @ self.dq_c, gain=K_p, notes=notes)
+
+
+def tracking_acceleration(e: np.ndarray, e_dot: np.ndarray, K0: float, Kdot0: float) -> tuple[np.ndarray, float]:
+    """Eq. 41-42: the features' desired acceleration s̈ = −K_T,p e − K_T,v ė, with the exponential gain
+    K_T,p(‖e‖) = K0·exp(−(K̇0/K0)‖e‖) and K_T,v = 3√K_T,p; (s̈, K_T,p)."""
+    K_p = K0 * math.exp(-(Kdot0 / K0) * math.sqrt(float(e @ e)))
+    return -K_p * e - 3.0 * math.sqrt(K_p) * e_dot, K_p
+
+
+def prioritized_acceleration(A1: np.ndarray, b1: np.ndarray, A2: np.ndarray, b2: np.ndarray, dq: np.ndarray,
+                             opt: "SmcOptions") -> np.ndarray:
+    """Eq. 15: q̈ = A1⁺ b1 + (A2 N1)⁺ (b2 − A2 A1⁺ b1), N1 = I − A1⁺ A1 — level 1 the active constraints (rows of
+    A1, none if it is empty), level 2 the features' task — plus a third level that damps the self-motion left in
+    the null space of both. The task's part is bounded by ``opt.max_task_accel`` (what the arm can do); level 1
+    never is, so the switching gains dominate the task's push on every constraint (the condition behind the
+    chattering band of eq. 43). Raises ConstraintAbort when the constraints leave no freedom."""
+    n = dq.shape[0]
+    if len(A1):
+        U, s1, Vt = np.linalg.svd(A1, full_matrices=False)
+        rank = int(np.sum(s1 > opt.rcond * max(s1[0], 1e-12)))
+        if len(A1) > n or rank < len(A1):
+            raise ConstraintAbort(f"{len(A1)} active constraints (rank {rank}) leave no freedom for the task")
+        A1_pinv = (Vt.T / s1) @ U.T
+        N1 = np.eye(n) - A1_pinv @ A1
+        first = A1_pinv @ b1
+        A2N1 = A2 @ N1
+        b2 = b2 - A2 @ first
+    else:
+        N1, first, A2N1 = None, 0.0, A2
+    U2, s2, Vt2 = np.linalg.svd(A2N1, full_matrices=False)
+    keep = s2 > opt.task_rcond * s2[0]
+    V2 = Vt2[keep]
+    second = (V2.T / s2[keep]) @ (U2[:, keep].T @ b2)
+    # level 3: damp the self-motion in the null space of both levels (V2 spans A2N1's row space)
+    damping = -opt.null_damping * dq
+    damping = damping - V2.T @ (V2 @ damping)
+    second = second + (damping if N1 is None else N1 @ damping)
+    peak = float(np.abs(second).max())
+    if peak > opt.max_task_accel:
+        second *= opt.max_task_accel / peak
+    return second + first
