@@ -65,15 +65,33 @@ def physical_targets(targets: JointTargets) -> tuple[np.ndarray, np.ndarray]:
     return jaco2.model_to_physical_deg(targets.q), torques
 
 
-def reading_from_physical(position_deg, velocity_dps, torque_nm, current_a, temperature_c, mode, fault,
-                          stamp_ns: int) -> JointReading:
-    """A reading from the actuators' own values (physical degrees and signs): the one conversion both the bus
-    link and the in-process simulated arm use."""
-    return JointReading(q=jaco2.physical_deg_to_model(position_deg), dq=jaco2.physical_rate_to_model(velocity_dps),
-                        tau=jaco2.SIGN * np.asarray(torque_nm, dtype=float),
-                        current_a=jaco2.SIGN * np.asarray(current_a, dtype=float),
-                        temperature_c=np.asarray(temperature_c, dtype=float),
-                        mode=np.asarray(mode, dtype=int), fault=np.asarray(fault, dtype=int), stamp_ns=int(stamp_ns))
+@dataclass
+class ActuatorValues:
+    """What the seven actuators report for one cycle (the 0x15-0x17 replies), in their own units and signs:
+    physical degrees and deg/s, N·m, A, °C, and per actuator the mode (0 position, 1 torque) and the fault code.
+    The emulated firmware produces them (float64), the bus link decodes them (float32 on the wire)."""
+
+    position_deg: np.ndarray
+    velocity_dps: np.ndarray
+    torque_nm: np.ndarray
+    current_a: np.ndarray
+    temperature_c: np.ndarray
+    mode: np.ndarray
+    fault: np.ndarray
+    #: the cycle's time on the arm's timeline (an emulated arm), or when the replies came (a real one)
+    stamp_ns: int = 0
+
+
+def reading_from_physical(values: ActuatorValues) -> JointReading:
+    """A reading in model units from the actuators' own values: the one conversion both the bus link and the
+    in-process simulated arm use."""
+    return JointReading(q=jaco2.physical_deg_to_model(values.position_deg),
+                        dq=jaco2.physical_rate_to_model(values.velocity_dps),
+                        tau=jaco2.SIGN * np.asarray(values.torque_nm, dtype=float),
+                        current_a=jaco2.SIGN * np.asarray(values.current_a, dtype=float),
+                        temperature_c=np.asarray(values.temperature_c, dtype=float),
+                        mode=np.asarray(values.mode, dtype=int), fault=np.asarray(values.fault, dtype=int),
+                        stamp_ns=int(values.stamp_ns))
 
 
 class RobotHardware(Protocol):

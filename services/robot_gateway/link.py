@@ -8,7 +8,6 @@ unexpected reply, a NACK or an actuator error report is counted and raised as :c
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 from typing import Callable, Optional
 
 import numpy as np
@@ -17,8 +16,8 @@ from protocol import rs485 as r
 from services.model import jaco2
 from services.runtime.metrics import Counters
 from services.robot.rs485_bus import BusError, RS485Bus
-from services.robot.hardware import HardwareError, JointReading, JointTargets, physical_targets, \
-    reading_from_physical
+from services.robot.hardware import (ActuatorValues, HardwareError, JointReading, JointTargets, physical_targets,
+                                     reading_from_physical)
 
 
 class LinkError(RuntimeError):
@@ -29,20 +28,6 @@ _REPORT_ERROR, _NACK = int(r.Command.REPORT_ERROR), int(r.Command.NACK)
 #: the replies to a 0x14 are 0x15, 0x16, 0x17: their kind is the command id minus this
 _FIRST_REPLY = int(r.Command.SEND_ALL_VALUES_1)
 _REPLY_NAMES = ("SEND_ALL_VALUES_1", "SEND_ALL_VALUES_2", "SEND_ALL_VALUES_3")
-
-
-@dataclass
-class ActuatorReading:
-    position_deg: np.ndarray
-    velocity_dps: np.ndarray
-    torque_nm: np.ndarray
-    current_a: np.ndarray
-    temperature_c: np.ndarray
-    #: per actuator: mode (0 position, 1 torque) and fault code, from the 0x17 replies
-    mode: np.ndarray
-    fault: np.ndarray
-    #: the replies' stamp (the newest): the arm's cycle on an emulated arm, the receive time on a real one
-    stamp_ns: int = 0
 
 
 class ActuatorLink:
@@ -145,7 +130,7 @@ class ActuatorLink:
         out[self._by_address(replies)] = replies["data"][:, 0]
         return out
 
-    def command(self, positions_deg, torques_nm=None) -> ActuatorReading:
+    def command(self, positions_deg, torques_nm=None) -> ActuatorValues:
         """One 0x14 to every actuator (position targets, or safety references with torques in torque mode);
         returns what the 0x15-0x17 replies say."""
         self.send_command(positions_deg, torques_nm, drain=True)
@@ -167,7 +152,7 @@ class ActuatorLink:
         except BusError as exc:
             raise LinkError(f"bus failure: {exc}") from exc
 
-    def collect_command(self, deadline: float) -> ActuatorReading:
+    def collect_command(self, deadline: float) -> ActuatorValues:
         """The replies to a 0x14 batch, waiting until ``deadline`` (monotonic) at most."""
         table = self._collect_values(deadline)
         v1 = table[:, 0]["data"].astype(np.float64)
@@ -176,7 +161,7 @@ class ActuatorLink:
             self.counters.inc("link.bad_values")
             raise LinkError("an actuator reported a non-finite value")
         temperature = table[:, 1]["data"].view("<i2")[:, 3] * 0.01
-        return ActuatorReading(position_deg=v1[:, 1], velocity_dps=v1[:, 2], torque_nm=v1[:, 3], current_a=v1[:, 0],
+        return ActuatorValues(position_deg=v1[:, 1], velocity_dps=v1[:, 2], torque_nm=v1[:, 3], current_a=v1[:, 0],
                                temperature_c=temperature, mode=v3[:, 2], fault=v3[:, 3], stamp_ns=self.last_stamp_ns)
 
     def _collect_values(self, deadline: float) -> np.ndarray:
@@ -257,7 +242,7 @@ class LinkHardware:
         self._outstanding: Optional[float] = None
         #: the next exchange waits for its own replies (at start, after a failure, after a mode switch)
         self._resync = True
-        self._last: Optional[ActuatorReading] = None
+        self._last: Optional[ActuatorValues] = None
 
     def read(self) -> JointReading:
         """The joints' positions (a GET_ACTUAL_POSITION round), before the first exchange."""
@@ -266,8 +251,8 @@ class LinkHardware:
         except LinkError as exc:
             raise HardwareError(str(exc)) from exc
         zeros = np.zeros(len(positions))
-        return reading_from_physical(positions, zeros, zeros, zeros, zeros, zeros.astype(int), zeros.astype(int),
-                                     self.link.last_stamp_ns)
+        return reading_from_physical(ActuatorValues(positions, zeros, zeros, zeros, zeros, zeros.astype(int),
+                                                    zeros.astype(int), self.link.last_stamp_ns))
 
     def exchange(self, targets: JointTargets) -> JointReading:
         position_deg, torque_nm = physical_targets(targets)
@@ -290,11 +275,9 @@ class LinkHardware:
             self._outstanding, self._resync = None, True  # start afresh, after draining what is left
             raise HardwareError(str(exc)) from exc
         self._last = reading
-        return reading_from_physical(reading.position_deg, reading.velocity_dps, reading.torque_nm,
-                                     reading.current_a, reading.temperature_c, reading.mode.astype(int),
-                                     reading.fault.astype(int), reading.stamp_ns)
+        return reading_from_physical(reading)
 
-    def _collect_outstanding(self) -> Optional[ActuatorReading]:
+    def _collect_outstanding(self) -> Optional[ActuatorValues]:
         if self._outstanding is None:
             return None
         sent, self._outstanding = self._outstanding, None

@@ -24,7 +24,7 @@ import numpy as np
 
 from protocol import rs485 as r
 from services.runtime.metrics import Counters
-from services.robot_sim.firmware import ActuatorValues
+from services.robot.hardware import ActuatorValues
 from services.robot_sim.sim import Simulation
 
 

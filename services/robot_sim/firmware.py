@@ -41,7 +41,7 @@ import numpy as np
 
 from protocol import rs485 as r
 from services.model import jaco2
-from services.robot.hardware import CYCLE_S, EXTRAPOLATED_CYCLES
+from services.robot.hardware import CYCLE_S, EXTRAPOLATED_CYCLES, ActuatorValues
 from services.runtime.config import ConfigStruct
 from services.runtime.metrics import Counters
 
@@ -104,22 +104,6 @@ class Actuator:
     validated_s: float = -math.inf
     fault: r.ActuatorError = r.ActuatorError.NONE
     reported: set = field(default_factory=set)
-
-
-@dataclass
-class ActuatorValues:
-    """What the actuators report at a cycle boundary (their own units and signs), for every 0x15-0x17 reply of
-    that cycle: float64 here, float32 on the wire."""
-
-    position_deg: np.ndarray
-    velocity_dps: np.ndarray
-    torque_nm: np.ndarray
-    current_a: np.ndarray
-    temperature_c: np.ndarray
-    mode: np.ndarray
-    fault: np.ndarray
-    #: the boundary's time on the arm's timeline
-    stamp_ns: int
 
 
 class ActuatorFirmware:

@@ -13,9 +13,8 @@ import numpy as np
 
 from protocol import rs485 as r
 from services.model import jaco2
-from services.robot.hardware import HardwareError, JointReading, JointTargets, physical_targets, \
-    reading_from_physical
-from services.robot_sim.firmware import ActuatorValues
+from services.robot.hardware import (ActuatorValues, HardwareError, JointReading, JointTargets, physical_targets,
+                                     reading_from_physical)
 from services.robot_sim.sim import Simulation
 
 
@@ -26,10 +25,11 @@ def float32(values) -> np.ndarray:
 
 def reading_from_values(values: ActuatorValues, epoch_ns: int = 0) -> JointReading:
     """The reading the 0x15-0x17 replies of this cycle carry (float32 values, the 0x16 temperature in 0.01 °C)."""
-    return reading_from_physical(float32(values.position_deg), float32(values.velocity_dps),
-                                 float32(values.torque_nm), float32(values.current_a),
-                                 np.round(values.temperature_c / 0.01) * 0.01, values.mode, values.fault,
-                                 epoch_ns + values.stamp_ns)
+    return reading_from_physical(ActuatorValues(
+        position_deg=float32(values.position_deg), velocity_dps=float32(values.velocity_dps),
+        torque_nm=float32(values.torque_nm), current_a=float32(values.current_a),
+        temperature_c=np.round(values.temperature_c / 0.01) * 0.01, mode=values.mode, fault=values.fault,
+        stamp_ns=epoch_ns + values.stamp_ns))
 
 
 class SimulatedHardware:

@@ -33,11 +33,11 @@ from protocol.conventions import ClockMode
 from protocol.messages import SimClock, encode
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
-from services.robot.hardware import CYCLE_NS, CYCLE_S
+from services.robot.hardware import CYCLE_NS, CYCLE_S, ActuatorValues
 from services.robot.node import DSP_CYCLE_NS, RobotNode, RobotNodeConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig
 from services.robot_sim.camera import SimCamera
-from services.robot_sim.firmware import ActuatorConfig, ActuatorValues
+from services.robot_sim.firmware import ActuatorConfig
 from services.robot_sim.hardware import SimulatedHardware
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim import Simulation

@@ -14,9 +14,9 @@ import numpy as np
 
 from services.model import frames, jaco2
 from services.runtime.metrics import Counters
-from services.robot.hardware import CYCLE_NS
+from services.robot.hardware import CYCLE_NS, ActuatorValues
 from services.robot_sim import scene as scene_mod
-from services.robot_sim.firmware import ActuatorConfig, ActuatorFirmware, ActuatorValues
+from services.robot_sim.firmware import ActuatorConfig, ActuatorFirmware
 
 
 class Simulation:
