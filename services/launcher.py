@@ -84,10 +84,41 @@ def sim_profile(port: int) -> Profile:
 def gateway_profile(port: int, bus_port: int = BUS_HUB_PORT) -> Profile:
     """robot_sim's actuators on the hub's bus, robot_gateway in front of them; everything else as in ``sim``.
     Only the robot's side changes: vision, controller and safety run with exactly their ``sim`` configs."""
-    bus = ["bus.interface=mfvs_hub", f"bus.channel=127.0.0.1:{bus_port}"]
     pipeline = [_shipped(name) for name in SERVICES if name != "robot_sim"]
-    return Profile(router=ProfileRouter(port=port), bus_hub=ProfileBusHub(port=bus_port), services=[
-        *pipeline, _shipped("robot_sim", ["mode=actuator_bus", *bus]), _shipped("robot_gateway", bus)])
+    return Profile(router=ProfileRouter(port=port), bus_hub=ProfileBusHub(port=bus_port),
+                   services=[*pipeline, *gateway_robot_services(f"127.0.0.1:{bus_port}")])
+
+
+def gateway_robot_services(bus_channel: str, robot_sim_config: Optional[str] = None,
+                           robot_gateway_config: Optional[str] = None) -> list[ProfileService]:
+    """The gateway profile's robot side, defined once for `mfvs up --profile gateway`, `mfvs servo --profile
+    gateway`, the benchmarks and the tests (:class:`services.stack.RobotProcesses`): robot_sim's emulated
+    actuators on the CAN hub's bus at ``bus_channel``, robot_gateway in front of them (configs: the shipped ones
+    unless given)."""
+    bus = ["bus.interface=mfvs_hub", f"bus.channel={bus_channel}"]
+    return [ProfileService(name="robot_sim", config=robot_sim_config or _shipped("robot_sim").config,
+                           set=["mode=actuator_bus", *bus]),
+            ProfileService(name="robot_gateway", config=robot_gateway_config or _shipped("robot_gateway").config,
+                           set=bus)]
+
+
+def service_command(service: ProfileService, endpoint: Optional[str] = None, robot_id: Optional[str] = None,
+                    clock: Optional[str] = None) -> list[str]:
+    """The command line that runs one service of a profile (what is not given comes from its config file)."""
+    args = [sys.executable, "-m", f"services.{service.name}"]
+    if endpoint:
+        args += ["--connect", endpoint]
+    if robot_id:
+        args += ["--robot-id", robot_id]
+    if service.config:
+        args += ["--config", service.config]
+    if clock:
+        args += ["--clock", clock]
+    if service.zenoh_config:
+        args += ["--zenoh-config", service.zenoh_config]
+    for assignment in service.set:
+        args += ["--set", assignment]
+    return args
 
 
 def run_dir() -> Path:
@@ -116,14 +147,16 @@ def read_stack() -> Optional[dict]:
         return None
 
 
-def _spawn(args: list[str], log: Path, exit_file: Optional[Path] = None) -> subprocess.Popen:
+def spawn(args: list[str], log: Path, exit_file: Optional[Path] = None) -> subprocess.Popen:
+    """A service (or the router, or the hub) as a background process of its own session, logging to ``log``."""
     env = dict(os.environ)
     env.setdefault("MUJOCO_GL", "egl")
     if exit_file is not None:
         exit_file.unlink(missing_ok=True)
         env[EXIT_FILE_ENV] = str(exit_file)
-    out = log.open("ab")
-    return subprocess.Popen(args, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+    with log.open("ab") as out:  # the child keeps its own descriptor
+        return subprocess.Popen(args, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
 
 
 def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[int, str]:
@@ -148,28 +181,19 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
     processes = []
     children: list[subprocess.Popen] = []
     log = directory / "router.log"
-    children.append(_spawn(router_args, log))
+    children.append(spawn(router_args, log))
     processes.append({"name": "router", "pid": children[-1].pid, "log": str(log)})
     if profile.bus_hub is not None:
         log = directory / "bus_hub.log"
-        children.append(_spawn([sys.executable, "-m", "services.cli", "bus-hub", "--port", str(profile.bus_hub.port),
+        children.append(spawn([sys.executable, "-m", "services.cli", "bus-hub", "--port", str(profile.bus_hub.port),
                                 "--host", profile.bus_hub.host], log))
         processes.append({"name": "bus_hub", "pid": children[-1].pid, "log": str(log)})
     time.sleep(0.5)
     for service in profile.services:
-        module = f"services.{service.name}"
-        args = [sys.executable, "-m", module, "--connect", endpoint, "--robot-id", profile.robot_id]
-        if service.config:
-            args += ["--config", service.config]
-        if clock:
-            args += ["--clock", clock]
-        if service.zenoh_config:
-            args += ["--zenoh-config", service.zenoh_config]
-        for assignment in service.set:
-            args += ["--set", assignment]
+        args = service_command(service, endpoint, profile.robot_id, clock)
         log = directory / f"{service.name}.log"
         exit_file = directory / f"{service.name}.exit"
-        children.append(_spawn(args, log, exit_file))
+        children.append(spawn(args, log, exit_file))
         processes.append({"name": service.name, "pid": children[-1].pid, "log": str(log),
                           "exit_file": str(exit_file)})
     stack = {"endpoint": endpoint, "robot_id": profile.robot_id, "processes": processes, "started": time.time(),

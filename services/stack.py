@@ -32,6 +32,7 @@ from services.robot_gateway.link import ActuatorLink
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
+from services.launcher import gateway_robot_services, service_command, spawn
 from services.robot_sim.sim import Simulation
 from services.safety.service import SafetyConfig, SafetyService
 from services.vision.service import VisionConfig, VisionService
@@ -120,12 +121,11 @@ class RobotProcesses:
 
     def __enter__(self) -> "RobotProcesses":
         try:
-            bus = BusConfig(interface="mfvs_hub", channel=self._start_hub())
-            robot = msgspec.structs.replace(self.robot, mode="actuator_bus", bus=bus)
-            gateway = msgspec.structs.replace(self.gateway, bus=bus)
-            self._spawn(["-m", "services.robot_sim", "--config", self._write("robot_sim", robot)], "robot_sim")
-            self._spawn(["-m", "services.robot_gateway", "--config", self._write("robot_gateway", gateway)],
-                        "robot_gateway")
+            # the profile's robot side as `mfvs up --profile gateway` runs it, with these configs
+            services = gateway_robot_services(self._start_hub(), self._write("robot_sim", self.robot),
+                                              self._write("robot_gateway", self.gateway))
+            for service in services:
+                self.processes.append(spawn(service_command(service), self.logs / f"{service.name}.log"))
             self._wait_for_gateway()
         except BaseException:
             self.__exit__(None, None, None)
@@ -162,14 +162,6 @@ class RobotProcesses:
         path = self.logs / f"{name}.yaml"
         path.write_text(yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False))
         return str(path)
-
-    def _spawn(self, args: list[str], name: str) -> None:
-        log = open(self.logs / f"{name}.log", "ab")
-        env = dict(os.environ)
-        env.setdefault("MUJOCO_GL", "egl")
-        self.processes.append(subprocess.Popen([sys.executable, *args], cwd=REPO, stdout=log,
-                                               stderr=subprocess.STDOUT, env=env))
-        log.close()
 
     def alive(self) -> bool:
         return all(p.poll() is None for p in self.processes)
