@@ -70,7 +70,6 @@ class ControllerService(Service):
         super().__init__(config, **kw)
         self.config: ControllerConfig = config
         self.core = ControllerCore(config)
-        self.joint_output = self.core.joint_output
         self.lock = threading.Lock()
         self.robot_state: Optional[RobotState] = None
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
@@ -83,11 +82,11 @@ class ControllerService(Service):
         self.camera_in_ee: Optional[np.ndarray] = None
         self.last_status: Optional[ControllerStatus] = None
         #: the last features answered (realtime: a stopped task answers them again with zero at once)
-        self._last_features: Optional[tuple[Features, int]] = None
+        self._last_features: Optional[Features] = None
 
     def on_start(self) -> None:
         keys = self.keys
-        self.output_pub = self.publisher(keys.desired_joint_velocity if self.joint_output else keys.desired_twist,
+        self.output_pub = self.publisher(keys.desired_joint_velocity if self.core.joint_output else keys.desired_twist,
                                          "output")
         self.status_pub = self.publisher(keys.controller_status, "status")
         self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state", sim_stamped=True)
@@ -106,7 +105,7 @@ class ControllerService(Service):
     def start_task(self, request: TaskRequest) -> messages.TaskStatus:
         with self._iteration_lock:
             reply = self.core.start_task(request, self.clock.now_ns())
-        self.log.info("task: %s (%s%s)", reply.message, request.operator, f": {request.reason}" if request.reason else "")
+        self._log_task(reply, request)
         return reply
 
     def stop_task(self, request: TaskRequest) -> messages.TaskStatus:
@@ -117,11 +116,14 @@ class ControllerService(Service):
             if was_running and last is not None and not self.lockstep and self.session is not None:
                 # realtime: answer the last frame again, now with zero, so the arm starts braking at once
                 # rather than a frame and the pipeline later (lockstep answers the next tick's frame with zero)
-                features, _ = last
-                status, _ = self.compute(features)
-                self._publish(features, self.clock.now_ns(), status, None)
-        self.log.info("task: %s (%s%s)", reply.message, request.operator, f": {request.reason}" if request.reason else "")
+                status, _ = self.compute(last)
+                self._publish(last, self.clock.now_ns(), status, None)
+        self._log_task(reply, request)
         return reply
+
+    def _log_task(self, reply: messages.TaskStatus, request: TaskRequest) -> None:
+        why = f": {request.reason}" if request.reason else ""
+        self.log.info("task: %s (%s%s)", reply.message, request.operator, why)
 
     def _on_task_query(self, query: zenoh.Query) -> None:
         function = str(query.key_expr).rsplit("/", 1)[-1]
@@ -165,7 +167,7 @@ class ControllerService(Service):
         with self._iteration_lock:
             status, output = self.compute(features, state)
             self._publish(features, recv_ns, status, output)
-            self._last_features = (features, recv_ns)
+            self._last_features = features
 
     # ------------------------------------------------------------------ one iteration
     def compute(self, features: Features, state: Optional[RobotState] = None) -> tuple[ControllerStatus,
@@ -191,7 +193,7 @@ class ControllerService(Service):
     def _publish(self, features: Features, recv_ns: int, status: ControllerStatus,
                  output: Optional[LawOutput]) -> None:
         header: Header = self.header("output", source=features.header, recv_ns=recv_ns)
-        if self.joint_output:
+        if self.core.joint_output:
             dq = output.joint_velocities if output is not None else np.zeros(jaco2.N_JOINTS)
             self.output_pub.put(JointVelocity(header=header, velocities=dq.tolist()))
         else:

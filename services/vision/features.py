@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from protocol.messages import FeatureStatus
 from services.model import frames
 from services.model import tag as tags
 
@@ -132,11 +133,10 @@ def touches_border(corners_px: np.ndarray, width: int, height: int, margin_px: f
 
 @dataclass
 class Measurement:
-    """What one grayscale image says about the tag: a status (``protocol.messages.FeatureStatus`` values), a
-    reason when it is not ``ok``, and for ``ok`` or ``partial`` the features, their depths, the error against the
-    goal and the tag's pose."""
+    """What one grayscale image says about the tag: a status, a reason when it is not ``ok``, and for ``ok`` or
+    ``partial`` the features, their depths, the error against the goal and the tag's pose."""
 
-    status: str
+    status: FeatureStatus
     detail: str = ""
     #: the image was unusable or the pose implausible (counted as a rejection), rather than the tag out of view
     rejected: bool = False
@@ -154,18 +154,19 @@ def measure(gray: np.ndarray, detector: TagDetector, tag_id: int, size_m: float,
             border_margin_px: float = 0.0) -> Measurement:
     """Detect → normalise → pose → error for one image: vision's rules, with no zenoh, clock or lock."""
     if int(gray.max()) < min_peak_brightness:
-        return Measurement("invalid_image", "all-black image", rejected=True)
+        return Measurement(FeatureStatus.INVALID_IMAGE, "all-black image", rejected=True)
     detection = detector.find(gray, tag_id)
     if detection is None:
-        return Measurement("tag_lost", f"tag {tag_id} not in view")
+        return Measurement(FeatureStatus.TAG_LOST, f"tag {tag_id} not in view")
     points = normalize(detection.corners_px, K, distortion)
     R, t = tag_pose(detection.corners_px, K, distortion, size_m)
     depths = corners_in_camera(frames.homogeneous(R, t), size_m)[:, 2]
     if np.any(depths <= 0):
-        return Measurement("tag_lost", "implausible tag pose: a corner behind the camera", rejected=True)
+        return Measurement(FeatureStatus.TAG_LOST, "implausible tag pose: a corner behind the camera", rejected=True)
     error, norm = feature_error(points, goal_points)
     height, width = gray.shape[:2]
     partial = touches_border(detection.corners_px, width, height, border_margin_px)
-    return Measurement("partial" if partial else "ok", "tag touches the image border" if partial else "",
+    return Measurement(FeatureStatus.PARTIAL if partial else FeatureStatus.OK,
+                       "tag touches the image border" if partial else "",
                        points=points, depths=depths, error=error, error_norm=norm, pose=(R, t),
                        corners_px=detection.corners_px)

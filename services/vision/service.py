@@ -266,12 +266,12 @@ class VisionService(Service):
                                 F.camera_matrix(info.fx, info.fy, info.cx, info.cy),
                                 np.asarray(info.distortion, dtype=float), goal_points=self._goal_points(),
                                 min_peak_brightness=cfg.min_peak_brightness, border_margin_px=cfg.border_margin_px)
-        status = FeatureStatus(measurement.status)
+        status = measurement.status
         if measurement.rejected:
             self.refuse("image", measurement.detail)
         elif status is FeatureStatus.TAG_LOST:
             self.counters.inc("frames.tag_lost")
-        if measurement.points is not None or not measurement.rejected:
+        if not measurement.rejected:  # an unusable image says nothing about the view
             with self._lock:  # the last features seen (a goal taught from the current view uses them)
                 self._last_points, self._last_depths = measurement.points, measurement.depths
         if measurement.points is None:
