@@ -160,6 +160,8 @@ def test_estop_without_a_reachable_router_says_so_plainly(tmp_path):
     env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path))
     out = mfvs("estop", "--connect", f"tcp/127.0.0.1:{free_loopback_port()}", env=env, timeout=60)
     assert out.returncode == 2 and "e-stop NOT sent" in out.stderr and "Traceback" not in out.stderr
+    task = mfvs("task", "start", "--connect", f"tcp/127.0.0.1:{free_loopback_port()}", env=env, timeout=60)
+    assert task.returncode == 2 and "cannot reach the router" in task.stderr and "Traceback" not in task.stderr
 
 
 @pytest.mark.parametrize("tls", [False, True], ids=["acl", "tls"])
