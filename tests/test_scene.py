@@ -119,3 +119,37 @@ def test_target_below_the_floor_is_refused():
     cfg = SceneConfig(target=TargetConfig(pose_in_base=PoseConfig(xyz=(0.0, -0.6, -0.1))))
     with pytest.raises(ValueError, match="below the floor"):
         build_model(cfg)
+
+
+def test_camera_renders_in_its_own_process_the_frame_the_simulation_would():
+    """MuJoCo's renderer holds the interpreter lock for a whole frame (3-5 ms): in robot_sim's process it stalled
+    the emulated actuators' 2 ms loop every frame. The camera renders in a child process, bit for bit the image the
+    simulation renders itself, and the process ends with the camera."""
+    import os
+
+    from protocol.messages import Header
+    from services.robot_sim.camera import SimCamera
+
+    cfg = SceneConfig(target=TargetConfig(pose_in_camera=PoseConfig(xyz=(0.02, -0.01, 0.4), rpy_deg=(170, 5, 20))))
+    sim = Simulation(cfg)
+    images, failures = [], []
+    camera = SimCamera(sim, images.append, lambda *_, **kw: Header(**kw), lambda: failures.append(1))
+    camera.start()
+    try:
+        pid = camera.renderer_pid
+        assert pid is not None and pid != os.getpid()
+        sim.data.qpos[:] += 0.01  # a state of its own, not the initial one
+        done = camera.capture(stamp_ns=123)
+        assert done is not None and done.wait(30.0)
+        assert not failures and len(images) == 1
+        image = images[0]
+        assert image.header.source_stamp_ns == 123
+        pixels = np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.width, 3)
+        expected = sim.render()
+        assert np.array_equal(pixels, expected)
+        assert detect(pixels)[1] is not None  # the tag is in the frame: the comparison is not of two blank images
+    finally:
+        camera.stop()
+        sim.close()
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)

@@ -1,15 +1,23 @@
 """robot_sim's eye-in-hand camera: a frame is a snapshot of the simulated world taken at a cycle boundary (the
-arm's joints and the target), rendered in the camera's own thread (the EGL context belongs to it) from its own
-copy of the world, and published with the snapshot's time as its capture stamp.
+arm's joints and the target), rendered from its own copy of the world, and published with the snapshot's time as
+its capture stamp.
 
-Taking the snapshot costs the robot's loop a few copies; rendering (several ms) never holds it up, and nothing
-the loop does later can change a frame being rendered.
+The rendering runs in a process of its own (:class:`RenderProcess`). MuJoCo's Python renderer holds the
+interpreter lock for the whole frame (3-5 ms at 640×480 on llvmpipe, measured), and robot_sim's 2 ms loops share
+that lock: with the renderer in a thread, every frame stalled the emulated actuators for two cycles, which they
+then ran back to back with the host's frames of both lumped into one cycle (the arm took two reference steps in
+one cycle, twice the commanded speed, for as long). In a process the renderer has its own lock. The camera's
+thread here only hands it a snapshot and waits for the pixels (waiting releases the lock); taking the snapshot
+costs the robot's loop a few copies, and nothing the loop does later can change a frame being rendered.
 """
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
+import pickle
 import queue
+import signal
 import threading
 from dataclasses import dataclass
 from typing import Callable, Optional
@@ -24,6 +32,13 @@ from services.robot_sim.sim import Simulation
 
 log = logging.getLogger("mfvs.robot_sim.camera")
 
+#: how long the renderer's process may take to start (a spawned interpreter importing MuJoCo, an EGL context)
+RENDERER_START_TIMEOUT_S = 60.0
+
+
+class RenderError(RuntimeError):
+    """The renderer failed a frame, could not start, or its process is gone."""
+
 
 def normal_priority() -> None:
     """The calling thread back to normal scheduling (a thread of a realtime process inherits its priority)."""
@@ -32,6 +47,90 @@ def normal_priority() -> None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except (OSError, AttributeError):
         pass
+
+
+def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, height: int,
+                  realtime_priority: int) -> None:
+    """The renderer's process: a snapshot in (joint positions, target pose), its RGB pixels out, until the pipe
+    closes or a None comes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is robot_sim's to handle: it closes us
+    normal_priority()  # the renderer's threads (llvmpipe's) are created now and must not run at realtime priority
+    try:
+        data = mujoco.MjData(model)
+        renderer = mujoco.Renderer(model, height, width)
+        pixels = np.empty((height, width, 3), dtype=np.uint8)
+    except Exception as exc:  # no EGL, no display: say why, once
+        conn.send(f"no renderer: {exc}")
+        return
+    request_realtime(realtime_priority, "camera renderer")
+    conn.send("ready")
+    try:
+        while True:
+            try:
+                snapshot = conn.recv()
+            except EOFError:  # robot_sim is gone
+                return
+            if snapshot is None:
+                return
+            try:
+                data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = snapshot
+                mujoco.mj_forward(model, data)
+                renderer.update_scene(data, camera=camera_id)
+                renderer.render(out=pixels)
+            except Exception as exc:
+                conn.send(f"render failed: {exc}")
+                continue
+            conn.send_bytes(pixels.reshape(-1))  # flat: send_bytes counts the first dimension's items
+    finally:
+        renderer.close()
+
+
+class RenderProcess:
+    """Renders frames of ``model`` from ``camera_id`` in a child process: :meth:`render` blocks (without the
+    interpreter lock) until the frame's RGB bytes are back."""
+
+    def __init__(self, model: mujoco.MjModel, camera_id: int, width: int, height: int,
+                 realtime_priority: int = 0) -> None:
+        self.width, self.height = width, height
+        context = multiprocessing.get_context("spawn")  # no fork of a process with threads and realtime loops
+        self._conn, child = context.Pipe()
+        self._process = context.Process(target=_serve_frames, name="robot_sim-render", daemon=True,
+                                        args=(child, model, camera_id, width, height, realtime_priority))
+        self._process.start()
+        child.close()
+        if not self._conn.poll(RENDERER_START_TIMEOUT_S):
+            self.close()
+            raise RenderError(f"the renderer did not start within {RENDERER_START_TIMEOUT_S:.0f} s")
+        reply = self._conn.recv()
+        if reply != "ready":
+            self.close()
+            raise RenderError(str(reply))
+
+    @property
+    def pid(self) -> Optional[int]:
+        return self._process.pid
+
+    def render(self, qpos: np.ndarray, mocap_pos: np.ndarray, mocap_quat: np.ndarray) -> bytes:
+        """The frame's pixels (H×W×3 RGB, row-major bytes)."""
+        try:
+            self._conn.send((qpos, mocap_pos, mocap_quat))
+            reply = self._conn.recv_bytes()
+        except (EOFError, OSError) as exc:
+            raise RenderError(f"the renderer's process is gone ({exc})") from exc
+        if len(reply) != self.width * self.height * 3:
+            raise RenderError(str(pickle.loads(reply)))  # the renderer's reason, sent instead of a frame
+        return reply
+
+    def close(self) -> None:
+        try:
+            self._conn.send(None)
+        except (OSError, ValueError):
+            pass
+        self._process.join(timeout=10.0)
+        if self._process.is_alive():
+            self._process.kill()
+            self._process.join(timeout=5.0)
+        self._conn.close()
 
 
 @dataclass
@@ -47,9 +146,8 @@ class SimCamera:
     def __init__(self, sim: Simulation, publish: Callable[[Image], None], header: Callable[..., Header],
                  on_failure: Callable[[], None], realtime_priority: int = 0) -> None:
         self.sim = sim
-        #: the render thread's priority once its renderer exists (0: normal): just below the robot's loop, so that
-        #: it is not preempted while it holds the interpreter lock the loop needs; the renderer's own threads
-        #: (llvmpipe's) are created before, at normal priority, and keep it
+        #: the renderer's priority once it exists (0: normal), just below the robot's loop; the renderer's own
+        #: threads (llvmpipe's) are created before, at normal priority, and keep it
         self.realtime_priority = realtime_priority
         self._publish = publish
         self._header = header
@@ -57,21 +155,29 @@ class SimCamera:
         self._queue: queue.Queue = queue.Queue(maxsize=1)
         self._stopping = threading.Event()
         self._thread: Optional[threading.Thread] = None
+        self._renderer: Optional[RenderProcess] = None
         #: the last image published (published again when a lockstep answer is late)
         self.last_image: Optional[Image] = None
 
+    @property
+    def renderer_pid(self) -> Optional[int]:
+        return self._renderer.pid if self._renderer is not None else None
+
     def start(self) -> None:
-        """Start the render thread, and wait until its renderer exists: creating an EGL context holds the
-        interpreter lock for a long while, which must happen before the arm's loop runs, not during it."""
-        self._ready = threading.Event()
+        """Start the renderer's process and wait until it can render, before the arm's loop runs."""
+        cam = self.sim.scene.camera
+        try:
+            self._renderer = RenderProcess(self.sim.model, self.sim.camera_id, cam.width, cam.height,
+                                           self.realtime_priority)
+        except RenderError as exc:
+            log.error("camera: %s", exc)
+            self._on_failure()
         self._stopping.clear()
-        self._thread = threading.Thread(target=self._render_loop, name="robot_sim-render", daemon=True)
+        self._thread = threading.Thread(target=self._render_loop, name="robot_sim-camera", daemon=True)
         self._thread.start()
-        self._ready.wait(timeout=30.0)
 
     def stop(self) -> None:
-        # the loop must end before the process does: a thread still inside EGL while the interpreter tears down
-        # crashes it (a full queue once kept the stop sentinel out, and the join gave up)
+        # the loop ends before the process does (a full queue once kept the stop sentinel out, and the join gave up)
         self._stopping.set()
         try:
             self._queue.put_nowait(None)
@@ -80,7 +186,10 @@ class SimCamera:
         if self._thread is not None:
             self._thread.join(timeout=30.0)
             if self._thread.is_alive():
-                log.error("camera render thread did not stop within 30 s")
+                log.error("camera thread did not stop within 30 s")
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
 
     def capture(self, stamp_ns: int) -> Optional[threading.Event]:
         """Snapshot the world now for a frame stamped ``stamp_ns``; None when the renderer is still busy with the
@@ -95,47 +204,27 @@ class SimCamera:
         return done
 
     def _render_loop(self) -> None:
-        normal_priority()  # the renderer's threads are created now and must not run at realtime priority
-        model = self.sim.model
         cam = self.sim.scene.camera
-        data = mujoco.MjData(model)
-        renderer = None
-        try:
+        while not self._stopping.is_set():
             try:
-                renderer = mujoco.Renderer(model, cam.height, cam.width)
+                snapshot = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if snapshot is None:
+                return
+            try:
+                if self._renderer is None:
+                    raise RenderError("no renderer")
+                pixels = self._renderer.render(snapshot.qpos, snapshot.mocap_pos, snapshot.mocap_quat)
+                header = self._header("image", stamp_ns=snapshot.stamp_ns, source_stamp_ns=snapshot.stamp_ns)
+                image = Image(header=header, width=cam.width, height=cam.height, encoding=ImageEncoding.RGB8,
+                              data=pixels)
+                self.last_image = image
+                self._publish(image)
             except Exception:
                 self._on_failure()
             finally:
-                self._ready.set()
-            request_realtime(self.realtime_priority, "camera render thread")
-            while not self._stopping.is_set():
-                try:
-                    snapshot = self._queue.get(timeout=0.1)
-                except queue.Empty:
-                    continue
-                if snapshot is None:
-                    return
-                try:
-                    if renderer is None:
-                        raise RuntimeError("no renderer (EGL)")
-                    data.qpos[:] = snapshot.qpos
-                    data.mocap_pos[:] = snapshot.mocap_pos
-                    data.mocap_quat[:] = snapshot.mocap_quat
-                    mujoco.mj_forward(model, data)
-                    renderer.update_scene(data, camera=self.sim.camera_id)
-                    pixels = renderer.render()
-                    header = self._header("image", stamp_ns=snapshot.stamp_ns, source_stamp_ns=snapshot.stamp_ns)
-                    image = Image(header=header, width=cam.width, height=cam.height, encoding=ImageEncoding.RGB8,
-                                  data=pixels.tobytes())
-                    self.last_image = image
-                    self._publish(image)
-                except Exception:
-                    self._on_failure()
-                finally:
-                    snapshot.done.set()
-        finally:
-            if renderer is not None:
-                renderer.close()
+                snapshot.done.set()
 
     def info(self, header: Header) -> CameraInfo:
         return scene_mod.camera_info(self.sim.scene.camera, header)
