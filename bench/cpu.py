@@ -1,5 +1,5 @@
 """What each service costs per second of running: CPU (% of one core, user + system) and resident memory (MB) of
-every process of a stack, per profile, while it servos onto the tag (`mfvs up`, realtime, on free ports).
+every process of a stack (with its children), per profile, while it servos onto the tag (`mfvs up`, realtime, on free ports).
 
 ``python -m bench.cpu [--json] [--seconds S] [--profiles sim,gateway]`` or ``mfvs bench cpu``. ``--json`` prints
 ``{"profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb"}}, "total_cpu_pct", "total_rss_mb"}}}``.
@@ -19,19 +19,49 @@ from services.launcher import down, load_profile, read_stack, stack_task, up
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process so far (s), from /proc."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (robot_sim's camera renders in a child process: it is robot_sim's cost)."""
+    out, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        out.append(current)
+        try:
+            for task in os.listdir(f"/proc/{current}/task"):
+                with open(f"/proc/{current}/task/{task}/children") as f:
+                    todo += [int(child) for child in f.read().split()]
+        except OSError:
+            continue
+    return out
+
+
+def _cpu_seconds_of(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:  # ended meanwhile
+        return 0.0
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
+def _rss_mb_of(pid: int) -> float:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
     return 0.0
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time so far (s) of a process and its children, from /proc."""
+    return sum(_cpu_seconds_of(p) for p in process_tree(pid))
+
+
+def rss_mb(pid: int) -> float:
+    """Resident memory (MB) of a process and its children."""
+    return sum(_rss_mb_of(p) for p in process_tree(pid))
 
 
 def measure(profile_name: str, seconds: float, settle_s: float = 3.0) -> dict:

@@ -12,13 +12,13 @@ from hypothesis import strategies as st
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import ClockMode
-from services.runtime.transport import open_session
-from services.stack import LocalStack, StackConfig
+from services.controller.service import ControllerConfig, ControllerService
+from services.robot_sim.service import RobotSimConfig, robot_sim_service
+from services.runtime.transport import Router, open_session
+from services.safety.service import SafetyConfig, SafetyService
+from services.vision.service import VisionConfig, VisionService
 from tests.stack import KEYS, Recorder, wait_for
 from tests.test_fuzz_decode import MESSAGE_TYPES, pack, values
-
-SERVICES = ("safety", "vision", "controller", "robot")
-
 
 def rejects(payload: bytes, message_type) -> bool:
     try:
@@ -50,23 +50,38 @@ FUZZ = settings(max_examples=4, deadline=None, suppress_health_check=list(Health
 
 @pytest.fixture(scope="module")
 def stack():
-    config = StackConfig(clock=ClockMode.REALTIME)
-    with LocalStack(config) as running:
-        client = open_session(running.router.client_config())
-        states = Recorder(client, KEYS.robot_state, m.RobotState)
-        assert wait_for(lambda: len(states) > 20 and running.vision.counters.get("rejected.image") == 0)
-        services = {name: getattr(running, name) for name in SERVICES}
-        q0 = np.array(states.last().q)
-        yield client, services, states
-        # after all of it: every service runs, no handler failed, the e-stop is not latched, the arm has not moved
-        for name, service in services.items():
-            assert service.state == "running", name
-            assert service.counters.get("errors.handler") == 0, (name, service.counters.snapshot())
-        assert not services["safety"].core.estop_latched
-        assert not services["controller"].core.task.running
-        assert np.abs(np.array(states.last().q) - q0).max() < 1e-4
-        states.close()
-        client.close()
+    """The services in this process (their counters and declarations are what this test reads), each a separate
+    zenoh client of a real router, in realtime."""
+    with Router(port=0) as router:
+        client_config = router.client_config()
+        configs = {"safety": SafetyConfig(), "vision": VisionConfig(), "controller": ControllerConfig(),
+                   "robot": RobotSimConfig()}
+        for config in configs.values():
+            config.zenoh, config.clock = client_config, ClockMode.REALTIME
+        services = {}
+        try:
+            services["safety"] = SafetyService(configs["safety"]).start()
+            services["vision"] = VisionService(configs["vision"]).start()
+            services["controller"] = ControllerService(configs["controller"]).start()
+            services["robot"] = robot_sim_service(configs["robot"]).start()
+            client = open_session(client_config)
+            states = Recorder(client, KEYS.robot_state, m.RobotState)
+            assert wait_for(lambda: len(states) > 20 and services["vision"].counters.get("rejected.image") == 0)
+            q0 = np.array(states.last().q)
+            yield client, services, states
+            # after all of it: every service runs, no handler failed, the e-stop is not latched, the arm has not
+            # moved
+            for name, service in services.items():
+                assert service.state == "running", name
+                assert service.counters.get("errors.handler") == 0, (name, service.counters.snapshot())
+            assert not services["safety"].core.estop_latched
+            assert not services["controller"].core.task.running
+            assert np.abs(np.array(states.last().q) - q0).max() < 1e-4
+            states.close()
+            client.close()
+        finally:
+            for service in reversed(list(services.values())):
+                service.stop()
 
 
 def declared(services) -> tuple[dict, list[str]]:

@@ -220,3 +220,63 @@ def test_measure_is_vision_without_the_service():
     empty = F.measure(np.full_like(gray, 200), detector, 0, cfg.target.size_m, K, None, goal)
     assert empty.status == "tag_lost" and not empty.rejected and "not in view" in empty.detail
     assert F.measure(gray, detector, 7, cfg.target.size_m, K, None, goal).status == "tag_lost"  # another id
+
+
+def _frames_along_a_motion(n: int, rate_rad: float = 0.02):
+    """Grayscale frames of the camera turning and moving as the arm does between frames (a joint step each)."""
+    cfg = SceneConfig(target=TargetConfig(pose_in_camera=PoseConfig(xyz=(0.03, -0.02, 0.45), rpy_deg=(170, 8, 25))))
+    sim = Simulation(cfg)
+    out = []
+    try:
+        for k in range(n):
+            sim.data.qpos[:6] += rate_rad * np.array([1.0, -0.5, 0.5, 1.0, -1.0, 1.5]) * (1 if k else 0)
+            out.append(cv2.cvtColor(sim.render(), cv2.COLOR_RGB2GRAY))
+    finally:
+        sim.close()
+    return out
+
+
+def test_window_search_finds_exactly_the_full_frame_corners_along_a_motion():
+    detector = F.TagDetector()
+    tracker = F.TagTracker(detector, F.RoiConfig(full_frame_every=1000))
+    frames_ = _frames_along_a_motion(10)
+    moved = []
+    for gray in frames_:
+        full = detector.find(gray, 0)
+        tracked = tracker.find(gray, 0)
+        assert full is not None and tracked is not None
+        assert np.array_equal(tracked.corners_px, full.corners_px)
+        moved.append(full.corners_px)
+    assert tracker.searches == {"window": 9, "full": 1, "fallback": 0}
+    steps = np.abs(np.diff(np.array(moved), axis=0)).max(axis=(1, 2))
+    assert steps.min() > 2.0  # the tag really moved between frames (px): the window followed it
+
+
+def test_window_search_falls_back_and_re_detects_on_the_full_frame():
+    detector = F.TagDetector()
+    gray = _frames_along_a_motion(1)[0]
+    full = detector.find(gray, 0).corners_px
+    tracker = F.TagTracker(detector, F.RoiConfig(full_frame_every=3))
+    tracker.last_corners_px = full + np.array([300.0, 200.0])  # the tag "was" far from where it is now
+    assert np.array_equal(tracker.find(gray, 0).corners_px, full)
+    assert tracker.take_last_search() == "fallback" and tracker.take_last_search() == ""
+    searches = []
+    for _ in range(7):
+        tracker.find(gray, 0)
+        searches.append(tracker.take_last_search())
+    assert searches == ["window", "window", "window", "full", "window", "window", "window"]
+    assert tracker.find(np.zeros_like(gray), 0) is None and tracker.last_corners_px is None
+    assert tracker.window(gray.shape) is None  # lost: the next search is the full frame
+
+
+def test_window_is_the_last_box_with_its_margin_clipped_to_the_image():
+    tracker = F.TagTracker(F.TagDetector(), F.RoiConfig(margin_fraction=0.25, min_margin_px=48))
+    tracker.last_corners_px = np.array([[100.0, 100.0], [300.0, 100.0], [300.0, 300.0], [100.0, 300.0]])
+    assert tracker.window((480, 640)) == (50, 50, 351, 351)
+    tracker.last_corners_px = np.array([[10.0, 20.0], [40.0, 20.0], [40.0, 50.0], [10.0, 50.0]])
+    assert tracker.window((480, 640)) == (0, 0, 89, 99)
+    tracker.last_corners_px = np.array([[0.0, 0.0], [639.0, 0.0], [639.0, 479.0], [0.0, 479.0]])
+    assert tracker.window((480, 640)) is None  # the window would be the whole image
+    assert F.TagTracker(F.TagDetector(), F.RoiConfig(enabled=False)).window((480, 640)) is None
+    with pytest.raises(ValueError):
+        F.RoiConfig(full_frame_every=0)

@@ -73,6 +73,7 @@ class VisionConfig(ServiceConfig):
     tag: TagConfig = msgspec.field(default_factory=TagConfig)
     goal: GoalConfig = msgspec.field(default_factory=GoalConfig)
     refinement: F.Refinement = F.Refinement.APRILTAG_SUBPIX
+    roi: F.RoiConfig = msgspec.field(default_factory=F.RoiConfig)
     #: an image older than this (capture to processing, in the service's clock) gets status stale
     max_image_age_s: float = 0.25
     #: a tag whose corners come closer than this to the image border is reported as partial
@@ -105,6 +106,7 @@ class VisionService(Service):
         super().__init__(config, **kw)
         self.config: VisionConfig = config
         self.detector = F.TagDetector(config.tag.family, config.refinement)
+        self.tracker = F.TagTracker(self.detector, config.roi)
         self.goal = Goal.from_config(config.goal, config.tag.size_m)
         self._lock = threading.Lock()
         self._info: Optional[CameraInfo] = None
@@ -262,11 +264,14 @@ class VisionService(Service):
             reason = f"image is {image.width}x{image.height}, the camera info says {info.width}x{info.height}"
             self.refuse("image", reason)
             return self._answer(image, recv_ns, FeatureStatus.INVALID_IMAGE, reason)
-        measurement = F.measure(self._gray(image), self.detector, cfg.tag.id, cfg.tag.size_m,
+        measurement = F.measure(self._gray(image), self.tracker, cfg.tag.id, cfg.tag.size_m,
                                 F.camera_matrix(info.fx, info.fy, info.cx, info.cy),
                                 np.asarray(info.distortion, dtype=float), goal_points=self._goal_points(),
                                 min_peak_brightness=cfg.min_peak_brightness, border_margin_px=cfg.border_margin_px)
         status = measurement.status
+        search = self.tracker.take_last_search()
+        if search:
+            self.counters.inc(f"detect.{search}")
         if measurement.rejected:
             self.refuse("image", measurement.detail)
         elif status is FeatureStatus.TAG_LOST:
