@@ -98,6 +98,47 @@ class RouterProcess:
             self.process = None
 
 
+def write_config(directory: Path, name: str, config) -> str:
+    """``config`` as ``directory/name.yaml`` (what a service's ``--config`` reads); its path."""
+    path = directory / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False))
+    return str(path)
+
+
+def wait_alive(zenoh: ZenohConfig, robot_id: str, names, processes, timeout_s: float, logs: Path) -> None:
+    """Until every one of ``names`` has declared its liveliness (services declare it after their subscriptions);
+    raises if one of ``processes`` exits first or ``timeout_s`` passes."""
+    keys = Keys(robot_id)
+    session = open_session(zenoh)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            alive = {str(r.ok.key_expr).rsplit("/", 1)[-1]
+                     for r in session.liveliness().get(keys.liveliness_all, timeout=1.0) if r.ok}
+            if set(names) <= alive:
+                return
+            dead = [p.args for p in processes if p.poll() is not None]
+            if dead or time.monotonic() > deadline:
+                raise RuntimeError(f"the stack did not come up: {', '.join(sorted(set(names) - alive))} not alive "
+                                   f"(exited: {dead}; logs in {logs})")
+            time.sleep(0.1)
+    finally:
+        session.close()
+
+
+def stop_processes(processes) -> None:
+    """Terminate each of ``processes`` in order, waiting for it (killed after 20 s)."""
+    for process in processes:
+        process.terminate()
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        if process.stdout is not None:
+            process.stdout.close()
+
+
 class RobotProcesses:
     """The robot's side of the gateway profile as processes, as deployed: the CAN hub, robot_sim's emulated arm
     (``mode: actuator_bus``) and robot_gateway in front of it, clients of the router at ``zenoh``. A context
@@ -120,30 +161,17 @@ class RobotProcesses:
     def __enter__(self) -> "RobotProcesses":
         try:
             # the profile's robot side as `mfvs up --profile gateway` runs it, with these configs
-            services = gateway_robot_services(self._start_hub(), self._write("robot_sim", self.robot),
-                                              self._write("robot_gateway", self.gateway))
+            services = gateway_robot_services(self._start_hub(), write_config(self.logs, "robot_sim", self.robot),
+                                              write_config(self.logs, "robot_gateway", self.gateway))
             for service in services:
                 self.processes.append(spawn(service_command(service), self.logs / f"{service.name}.log"))
-            self._wait_for_gateway()
+            wait_alive(self.zenoh, self.robot.robot_id, ("robot_gateway",), self.processes, self.timeout_s,
+                       self.logs)
         except BaseException:
+            self._keep_files = True
             self.__exit__(None, None, None)
             raise
         return self
-
-    def _wait_for_gateway(self) -> None:
-        keys = Keys(self.robot.robot_id)
-        session = open_session(self.zenoh)
-        try:
-            deadline = time.monotonic() + self.timeout_s
-            while not list(session.liveliness().get(keys.liveliness("robot_gateway"), timeout=1.0)):
-                dead = [p.args for p in self.processes if p.poll() is not None]
-                if dead or time.monotonic() > deadline:
-                    self._keep_files = True
-                    raise RuntimeError(f"the gateway profile's robot did not come up (exited: {dead}; logs in "
-                                       f"{self.logs})")
-                time.sleep(0.2)
-        finally:
-            session.close()
 
     def _start_hub(self) -> str:
         """The CAN hub on a port it picks itself (no window for another program to take it); its channel."""
@@ -156,24 +184,11 @@ class RobotProcesses:
         except (ValueError, KeyError):
             raise RuntimeError(f"the CAN hub did not start (it said {line!r})") from None
 
-    def _write(self, name: str, config) -> str:
-        path = self.logs / f"{name}.yaml"
-        path.write_text(yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False))
-        return str(path)
-
     def alive(self) -> bool:
         return all(p.poll() is None for p in self.processes)
 
     def __exit__(self, *exc) -> None:
-        for process in reversed(self.processes):  # the gateway, then the actuators, then the hub
-            process.terminate()
-            try:
-                process.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
-            if process.stdout is not None:
-                process.stdout.close()
+        stop_processes(reversed(self.processes))  # the gateway, then the actuators, then the hub
         self.processes.clear()
         if not self._keep_files:
             self._files.cleanup()
@@ -247,29 +262,13 @@ class LocalStack:
         return self
 
     def _spawn(self, name: str, config) -> None:
-        path = self.logs / f"{name}.yaml"
-        path.write_text(yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False))
-        self.processes[name] = spawn(service_command(ProfileService(name=name, config=str(path))),
+        self.processes[name] = spawn(service_command(ProfileService(name=name, config=write_config(self.logs, name,
+                                                                                                   config))),
                                      self.logs / f"{name}.log")
 
     def _wait_alive(self, names) -> None:
-        """Until every one of ``names`` has declared its liveliness (after its subscriptions)."""
-        keys = Keys(self.config.robot.robot_id)
-        session = open_session(self.router.client_config())
-        try:
-            deadline = time.monotonic() + self.timeout_s
-            while True:
-                alive = {str(r.ok.key_expr).rsplit("/", 1)[-1]
-                         for r in session.liveliness().get(keys.liveliness_all, timeout=1.0) if r.ok}
-                if set(names) <= alive:
-                    return
-                dead = [name for name, p in self.processes.items() if p.poll() is not None]
-                if dead or time.monotonic() > deadline:
-                    raise RuntimeError(f"the stack did not come up: {', '.join(sorted(set(names) - alive))} not "
-                                       f"alive (exited: {dead}; logs in {self.logs})")
-                time.sleep(0.1)
-        finally:
-            session.close()
+        wait_alive(self.router.client_config(), self.config.robot.robot_id, names, self.processes.values(),
+                   self.timeout_s, self.logs)
 
     def robot_alive(self) -> bool:
         """The robot's processes still run."""
@@ -286,16 +285,9 @@ class LocalStack:
         if self.robot_processes is not None:
             self.robot_processes.__exit__(None, None, None)
             self.robot_processes = None
-        for name in ("robot_sim", *reversed(PIPELINE)):  # the robot first: it stops the arm while safety listens
-            process = self.processes.pop(name, None)
-            if process is None:
-                continue
-            process.terminate()
-            try:
-                process.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        # the robot first: it stops the arm while safety listens
+        stop_processes([self.processes.pop(name) for name in ("robot_sim", *reversed(PIPELINE))
+                        if name in self.processes])
         self.router.__exit__(None, None, None)
         if not self._keep_files:
             self._files.cleanup()

@@ -133,7 +133,6 @@ class TagTracker:
         roi = self.window(gray.shape)
         found = None
         if roi is not None:
-            x0, y0, x1, y1 = roi
             found = self.detector.find(gray, tag_id, roi=roi)
             self.last_search = "window" if found is not None else "fallback"
             self._since_full += 1
