@@ -41,6 +41,16 @@ class ClockMode(str, enum.Enum):
     LOCKSTEP = "lockstep"
 
 
+class ErrorRateSource(str, enum.Enum):
+    """Where the PD laws' ė (seed 000 eq. 21: the change of the feature error due to the camera's motion) comes from.
+    ``camera_motion``: L̂·J_c(q)·q̇, the camera's motion measured by the arm's joint velocities at the frame (no
+    differentiation, no filter lag, independent of the frames' spacing). ``frame_difference``: successive errors
+    differenced over their image stamps and low-pass filtered (needs no joint velocities)."""
+
+    CAMERA_MOTION = "camera_motion"
+    FRAME_DIFFERENCE = "frame_difference"
+
+
 class DepthSource(str, enum.Enum):
     """Which depth the interaction matrix uses (seed 000; ViSP's CURRENT/DESIRED/MEAN)."""
 

@@ -103,7 +103,8 @@ class ControllerCore:
             return zero(ControllerState.CONVERGED)
         inp = ServoInput(t_s=header.source_stamp_ns * 1e-9, points=np.array(features.points),
                          depths=np.array(features.depths), goal_points=np.array(features.goal_points),
-                         goal_depths=np.array(features.goal_depths), q=np.array(state.q), camera_in_ee=camera_in_ee)
+                         goal_depths=np.array(features.goal_depths), q=np.array(state.q), camera_in_ee=camera_in_ee,
+                         dq=np.array(state.dq))
         # the L̂ the law will invert, with the configured depth source
         L = ibvs.approximate_interaction_matrix(inp.points, inp.depths, inp.goal_points, inp.goal_depths,
                                                 cfg.control.depth)

@@ -84,6 +84,11 @@ class ErrorRate:
         return self.value
 
 
+def camera_motion_error_rate(L_hat: np.ndarray, J_camera: np.ndarray, dq) -> np.ndarray:
+    """ė due to the camera's own motion (seed 000 eq. 21's ė; eq. 2 with the camera twist J_c·q̇): L̂·J_c·q̇."""
+    return L_hat @ (J_camera @ np.asarray(dq, dtype=float))
+
+
 def pd_camera_twist(L_hat: np.ndarray, e, gain: float, kd: float, e_dot=None, target_term=None) -> np.ndarray:
     """Eq. 21 (eq. 19 with kd = 0): Vc = −λ L̂⁺ (e + (kd/λ) ė) − L̂⁺ ∂ê/∂t."""
     L_pinv = np.linalg.pinv(L_hat)

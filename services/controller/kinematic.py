@@ -37,6 +37,8 @@ class KinematicLoop:
     def __post_init__(self) -> None:
         self.kin = ArmKinematics()
         self.q = np.asarray(self.q0, dtype=float).copy()
+        #: the joints' velocity now: the last command, tracked ideally
+        self.dq = np.zeros_like(self.q)
         self.t = 1.0
 
     def observe(self) -> tuple[np.ndarray, np.ndarray]:
@@ -52,12 +54,14 @@ class KinematicLoop:
     def step(self) -> KinematicStep:
         points, depths = self.observe()
         inp = ServoInput(t_s=self.t, points=points, depths=depths, goal_points=self.goal_points,
-                         goal_depths=self.goal_depths, q=self.q.copy(), camera_in_ee=self.camera_in_ee)
+                         goal_depths=self.goal_depths, q=self.q.copy(), camera_in_ee=self.camera_in_ee,
+                         dq=self.dq.copy())
         output = self.law.step(inp)
         dq = output.joint_velocities
         if dq is None:
             raise TypeError("the kinematic loop runs joint-velocity laws")
         self.q = self.q + dq * self.period_s
+        self.dq = np.asarray(dq, dtype=float).copy()
         self.t += self.period_s
         return KinematicStep(self.q.copy(), points, depths, float(np.linalg.norm(inp.error)), output)
 

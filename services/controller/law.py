@@ -12,7 +12,7 @@ from typing import Optional
 import msgspec
 import numpy as np
 
-from protocol.conventions import AngularConvention, DepthSource
+from protocol.conventions import AngularConvention, DepthSource, ErrorRateSource
 from services.controller import ibvs
 from services.model import frames, jaco2
 from services.model.kinematics import ArmKinematics
@@ -41,9 +41,14 @@ class Gains(ConfigStruct):
 class LawConfig(ConfigStruct):
     gains: Gains = msgspec.field(default_factory=Gains)
     depth: DepthSource = DepthSource.CURRENT
-    #: time constant of the error-rate filter (s); 0 uses the raw difference of successive errors. About three
-    #: camera frames: the derivative term's gain on frame-to-frame corner noise (kd/τ) then stays near the
-    #: proportional gain λ0; with one frame (0.03 s) a realtime loop limit-cycles at ~1e-3 on 0.05 px of noise
+    #: where the derivative term's ė comes from (see ErrorRateSource). The frame difference lags by its filter and
+    #: by the frames' spacing: in realtime, with frames arriving unevenly, it sustained a limit cycle near
+    #: convergence (easy.yaml in realtime: 93, 258 and 96 iterations; with camera_motion 81, 79 and 79, lockstep 86)
+    error_rate: ErrorRateSource = ErrorRateSource.CAMERA_MOTION
+    #: time constant of the frame-difference filter (s); 0 uses the raw difference of successive errors. About
+    #: three camera frames: the derivative term's gain on frame-to-frame corner noise (kd/τ) then stays near the
+    #: proportional gain λ0; with one frame (0.03 s) a realtime loop limit-cycles at ~1e-3 on 0.05 px of noise.
+    #: The frame difference also estimates a moving target's own motion (``target_motion``)
     derivative_tau_s: float = 0.1
     #: estimate and compensate the target's own motion (∂ê/∂t of eq. 19/21) for moving targets
     target_motion: bool = False
@@ -64,6 +69,9 @@ class ServoInput:
     q: np.ndarray
     #: the camera's pose in the end-effector frame (4×4)
     camera_in_ee: np.ndarray
+    #: model joint velocities (rad/s) at the frame, as the arm measured them; None: not known (the PD laws then
+    #: difference successive frames for ė whatever ``error_rate`` says)
+    dq: Optional[np.ndarray] = None
 
     @property
     def error(self) -> np.ndarray:
@@ -104,15 +112,28 @@ class Law:
         return ibvs.approximate_interaction_matrix(inp.points, inp.depths, inp.goal_points, inp.goal_depths,
                                                    self.config.depth)
 
+    def _error_rates(self, inp: ServoInput, L: np.ndarray, J_c: Optional[np.ndarray] = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """(ė for the derivative term of eq. 21, ė differenced from the frames). The first is the change of the
+        error due to the camera's own motion, L̂·J_c(q)·q̇, when the configuration asks for it and the input
+        carries the arm's joint velocities; the second is what a moving target's estimate needs (eq. 19's ∂ê/∂t
+        is the measured rate less the camera's part), so it is kept up to date either way."""
+        measured = self.rate.update(inp.error, inp.t_s)
+        if self.config.error_rate is not ErrorRateSource.CAMERA_MOTION or inp.dq is None:
+            return measured, measured
+        if J_c is None:
+            J_c = self._camera_jacobian(inp.q, inp.camera_in_ee)[0]
+        return ibvs.camera_motion_error_rate(L, J_c, inp.dq), measured
+
     def _gain(self, e: np.ndarray, adaptive: bool) -> float:
         g = self.config.gains
         return ibvs.adaptive_gain(float(np.max(np.abs(e))), g.lambda0, g.lambda_inf, g.slope0) if adaptive \
             else g.lambda_
 
-    def _target_term(self, L: np.ndarray, e_dot: np.ndarray) -> Optional[np.ndarray]:
+    def _target_term(self, L: np.ndarray, measured_e_dot: np.ndarray) -> Optional[np.ndarray]:
         if not self.config.target_motion or self._last_camera_twist is None:
             return None
-        return ibvs.target_motion_term(e_dot, L, self._last_camera_twist)
+        return ibvs.target_motion_term(measured_e_dot, L, self._last_camera_twist)
 
     def _camera_jacobian(self, q, camera_in_ee) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(J_c, R_be, J_base): J_c maps joint velocities to the camera twist in the camera frame."""

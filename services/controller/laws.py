@@ -45,9 +45,9 @@ class CameraTwistLaw(Law):
     def camera_twist(self, inp: ServoInput) -> tuple[np.ndarray, float]:
         e = inp.error
         L = self._L(inp)
-        e_dot = self.rate.update(e, inp.t_s)
+        e_dot, measured_e_dot = self._error_rates(inp, L)
         gain = self._gain(e, adaptive=True)
-        Vc = ibvs.pd_camera_twist(L, e, gain, self.config.gains.kd, e_dot, self._target_term(L, e_dot))
+        Vc = ibvs.pd_camera_twist(L, e, gain, self.config.gains.kd, e_dot, self._target_term(L, measured_e_dot))
         self._last_camera_twist = Vc
         return Vc, gain
 
@@ -75,13 +75,13 @@ class JointLaw(Law):
     def step(self, inp: ServoInput) -> LawOutput:
         e = inp.error
         L = self._L(inp)
-        e_dot = self.rate.update(e, inp.t_s)
         gain = self._gain(e, self.adaptive)
         J_c, _, _ = self._camera_jacobian(inp.q, inp.camera_in_ee)
+        e_dot, measured_e_dot = self._error_rates(inp, L, J_c)
         xi = ibvs.joint_limit_task(inp.q, self.lower, self.upper, self.config.joint_limit_gain)
         kd = self.config.gains.kd if self.derivative else 0.0
         drive_e = e
-        target = self._target_term(L, e_dot)
+        target = self._target_term(L, measured_e_dot)
         if target is not None:
             drive_e = e + target / gain
         dq = ibvs.joint_law(L, J_c, drive_e, gain, kd, e_dot, xi)
