@@ -135,7 +135,7 @@ def test_lockstep_publishes_frames_with_capture_stamps(start_robot, client):
     periods = np.diff(stamps)
     assert np.all(np.abs(periods - 1e9 / 30) <= 10_000_000)  # frames fall on the cycle at or after 1/30 s
     assert frame_timeouts == 0
-    assert images[0].width == 640 and images[0].height == 480 and images[0].encoding is m.ImageEncoding.RGB8
+    assert images[0].width == 640 and images[0].height == 480 and images[0].encoding is m.ImageEncoding.MONO8  # robot_sim.yaml default
     replies = list(client.get(KEYS.camera_info))
     info = m.decode(replies[0].ok.payload.to_bytes(), m.CameraInfo)
     assert (info.fx, info.fy, info.cx, info.cy) == (615.0, 615.0, 319.5, 239.5)

@@ -13,7 +13,7 @@ def detect(image, family="tag36h11"):
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
     detector = cv2.aruco.ArucoDetector(tags.dictionary(family), params)
-    corners, ids, _ = detector.detectMarkers(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY))
+    corners, ids, _ = detector.detectMarkers(image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY))
     return corners, ids
 
 
@@ -121,16 +121,18 @@ def test_target_below_the_floor_is_refused():
         build_model(cfg)
 
 
-def test_camera_renders_in_its_own_process_the_frame_the_simulation_would():
+@pytest.mark.parametrize("encoding", ["rgb8", "mono8"])
+def test_camera_renders_in_its_own_process_the_frame_the_simulation_would(encoding):
     """MuJoCo's renderer holds the interpreter lock for a whole frame (3-5 ms): in robot_sim's process it stalled
     the emulated actuators' 2 ms loop every frame. The camera renders in a child process, bit for bit the image the
-    simulation renders itself, and the process ends with the camera."""
+    simulation renders itself (grey: as vision converts it), and the process ends with the camera."""
     import os
 
-    from protocol.messages import Header
+    from protocol.messages import CHANNELS, Header, ImageEncoding
     from services.robot_sim.camera import SimCamera
 
-    cfg = SceneConfig(target=TargetConfig(pose_in_camera=PoseConfig(xyz=(0.02, -0.01, 0.4), rpy_deg=(170, 5, 20))))
+    cfg = SceneConfig(camera=CameraConfig(encoding=ImageEncoding(encoding)),
+                      target=TargetConfig(pose_in_camera=PoseConfig(xyz=(0.02, -0.01, 0.4), rpy_deg=(170, 5, 20))))
     sim = Simulation(cfg)
     images, failures = [], []
     camera = SimCamera(sim, images.append, lambda *_, **kw: Header(**kw), lambda: failures.append(1))
@@ -144,8 +146,12 @@ def test_camera_renders_in_its_own_process_the_frame_the_simulation_would():
         assert not failures and len(images) == 1
         image = images[0]
         assert image.header.source_stamp_ns == 123
-        pixels = np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.width, 3)
+        assert image.encoding is ImageEncoding(encoding)
+        pixels = np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.width, -1).squeeze()
+        assert pixels.size == image.height * image.width * CHANNELS[image.encoding]
         expected = sim.render()
+        if image.encoding is ImageEncoding.MONO8:
+            expected = cv2.cvtColor(expected, cv2.COLOR_RGB2GRAY)
         assert np.array_equal(pixels, expected)
         assert detect(pixels)[1] is not None  # the tag is in the frame: the comparison is not of two blank images
     finally:

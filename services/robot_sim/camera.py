@@ -22,10 +22,11 @@ import threading
 from dataclasses import dataclass
 from typing import Callable, Optional
 
+import cv2
 import mujoco
 import numpy as np
 
-from protocol.messages import CameraInfo, Header, Image, ImageEncoding
+from protocol.messages import CHANNELS, CameraInfo, Header, Image, ImageEncoding
 from services.robot.pacing import request_realtime
 from services.robot_sim import scene as scene_mod
 from services.robot_sim.sim import Simulation
@@ -50,9 +51,9 @@ def normal_priority() -> None:
 
 
 def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, height: int,
-                  realtime_priority: int) -> None:
-    """The renderer's process: a snapshot in (joint positions, target pose), its RGB pixels out, until the pipe
-    closes or a None comes."""
+                  realtime_priority: int, encoding: ImageEncoding = ImageEncoding.RGB8) -> None:
+    """The renderer's process: a snapshot in (joint positions, target pose), its pixels out (RGB, or grey as
+    vision's own conversion gives it), until the pipe closes or a None comes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is robot_sim's to handle: it closes us
     normal_priority()  # the renderer's threads (llvmpipe's) are created now and must not run at realtime priority
     try:
@@ -77,10 +78,11 @@ def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, heigh
                 mujoco.mj_forward(model, data)
                 renderer.update_scene(data, camera=camera_id)
                 renderer.render(out=pixels)
+                out = cv2.cvtColor(pixels, cv2.COLOR_RGB2GRAY) if encoding is ImageEncoding.MONO8 else pixels
             except Exception as exc:
                 conn.send(f"render failed: {exc}")
                 continue
-            conn.send_bytes(pixels.reshape(-1))  # flat: send_bytes counts the first dimension's items
+            conn.send_bytes(out.reshape(-1))  # flat: send_bytes counts the first dimension's items
     finally:
         renderer.close()
 
@@ -90,12 +92,13 @@ class RenderProcess:
     interpreter lock) until the frame's RGB bytes are back."""
 
     def __init__(self, model: mujoco.MjModel, camera_id: int, width: int, height: int,
-                 realtime_priority: int = 0) -> None:
-        self.width, self.height = width, height
+                 realtime_priority: int = 0, encoding: ImageEncoding = ImageEncoding.RGB8) -> None:
+        self.width, self.height, self.encoding = width, height, encoding
         context = multiprocessing.get_context("spawn")  # no fork of a process with threads and realtime loops
         self._conn, child = context.Pipe()
         self._process = context.Process(target=_serve_frames, name="robot_sim-render", daemon=True,
-                                        args=(child, model, camera_id, width, height, realtime_priority))
+                                        args=(child, model, camera_id, width, height, realtime_priority,
+                                              encoding))
         self._process.start()
         child.close()
         if not self._conn.poll(RENDERER_START_TIMEOUT_S):
@@ -111,13 +114,13 @@ class RenderProcess:
         return self._process.pid
 
     def render(self, qpos: np.ndarray, mocap_pos: np.ndarray, mocap_quat: np.ndarray) -> bytes:
-        """The frame's pixels (H×W×3 RGB, row-major bytes)."""
+        """The frame's pixels (H×W×3 RGB or H×W grey, row-major bytes)."""
         try:
             self._conn.send((qpos, mocap_pos, mocap_quat))
             reply = self._conn.recv_bytes()
         except (EOFError, OSError) as exc:
             raise RenderError(f"the renderer's process is gone ({exc})") from exc
-        if len(reply) != self.width * self.height * 3:
+        if len(reply) != self.width * self.height * CHANNELS[self.encoding]:
             raise RenderError(str(pickle.loads(reply)))  # the renderer's reason, sent instead of a frame
         return reply
 
@@ -168,7 +171,7 @@ class SimCamera:
         cam = self.sim.scene.camera
         try:
             self._renderer = RenderProcess(self.sim.model, self.sim.camera_id, cam.width, cam.height,
-                                           self.realtime_priority)
+                                           self.realtime_priority, cam.encoding)
         except RenderError as exc:
             log.error("camera: %s", exc)
             self._on_failure()
@@ -217,7 +220,7 @@ class SimCamera:
                     raise RenderError("no renderer")
                 pixels = self._renderer.render(snapshot.qpos, snapshot.mocap_pos, snapshot.mocap_quat)
                 header = self._header("image", stamp_ns=snapshot.stamp_ns, source_stamp_ns=snapshot.stamp_ns)
-                image = Image(header=header, width=cam.width, height=cam.height, encoding=ImageEncoding.RGB8,
+                image = Image(header=header, width=cam.width, height=cam.height, encoding=cam.encoding,
                               data=pixels)
                 self.last_image = image
                 self._publish(image)

@@ -12,7 +12,7 @@ import msgspec
 import mujoco
 import numpy as np
 
-from protocol.messages import CameraInfo, Header, Pose
+from protocol.messages import CameraInfo, Header, ImageEncoding, Pose
 from services.model import frames, jaco2
 from services.model import tag as tags
 from services.runtime.config import ConfigStruct, PoseConfig
@@ -33,8 +33,8 @@ def _default_camera_in_ee() -> PoseConfig:
 
 
 class CameraConfig(ConfigStruct):
-    """Pinhole camera like a RealSense D415 colour stream. cx/cy default to the image centre in OpenCV pixel
-    coordinates ((width−1)/2, (height−1)/2)."""
+    """Pinhole camera like a RealSense D415 colour stream, published grey by default (``encoding``). cx/cy default
+    to the image centre in OpenCV pixel coordinates ((width−1)/2, (height−1)/2)."""
 
     width: int = 640
     height: int = 480
@@ -44,8 +44,13 @@ class CameraConfig(ConfigStruct):
     cy: Optional[float] = None
     rate_hz: float = 30.0
     camera_in_ee: PoseConfig = msgspec.field(default_factory=_default_camera_in_ee)
+    #: what the camera publishes: rgb8, or mono8 (the detector's input: a third of the bytes to copy, send and
+    #: decode, converted as vision would convert rgb8, so the corners are the same to the bit)
+    encoding: ImageEncoding = ImageEncoding.MONO8
 
     def __post_init__(self) -> None:
+        if self.encoding is ImageEncoding.BGR8:
+            raise ValueError("camera encoding must be rgb8 or mono8")
         if not (8 <= self.width <= 4096 and 8 <= self.height <= 4096):
             raise ValueError("camera width and height must be within 8..4096 pixels")
         if not (self.fx > 0 and self.fy > 0 and math.isfinite(self.fx) and math.isfinite(self.fy)):

@@ -136,7 +136,8 @@ class CommandChecker:
         base[:3], zones = filter_velocity(lim.zones, p, base[:3], lim.zone_filter, dt)
         decision.limits += [f"zone:{z}" for z in zones]
         # joints: predicted through the Jacobian
-        dq = np.linalg.pinv(J) @ base
+        J_pinv = np.linalg.pinv(J)
+        dq = J_pinv @ base
         scale = 1.0
         ratio = float(np.max(np.abs(dq) / self.max_joint_speed))
         if ratio > 1.0:
@@ -148,7 +149,7 @@ class CommandChecker:
         base *= scale
         decision.twist = frames.mixed_from_base_twist(base, R, angular)
         self.last_twist_base = base
-        self.last_dq = np.linalg.pinv(J) @ base
+        self.last_dq = J_pinv @ base
         return decision
 
     def _joint_limit_scale(self, q, dq, decision: Decision) -> float:
