@@ -132,6 +132,20 @@ def test_pd_laws_take_e_dot_from_the_measured_joint_velocities(name, rng):
     assert not np.allclose(outputs[ErrorRateSource.FRAME_DIFFERENCE, 0.55], outputs[ErrorRateSource.FRAME_DIFFERENCE, 0.0])
 
 
+def test_features_after_camera_motion_are_the_projection_from_the_moved_camera(rng):
+    """Points seen from camera pose A, carried to pose B, against projecting the same 3-D points from B."""
+    for _ in range(10):
+        P_a = np.column_stack([rng.uniform(-0.2, 0.2, 4), rng.uniform(-0.2, 0.2, 4), rng.uniform(0.3, 1.0, 4)])
+        R = frames.quat_wxyz_to_matrix(frames.matrix_to_quat_wxyz(
+            PoseConfig(xyz=(0, 0, 0), rpy_deg=tuple(rng.uniform(-8, 8, 3))).matrix()[:3, :3]))
+        b_in_a = frames.homogeneous(R, rng.uniform(-0.03, 0.03, 3))
+        points, depths = ibvs.features_after_camera_motion(project(P_a), P_a[:, 2], b_in_a)
+        P_b = (np.linalg.inv(b_in_a) @ np.column_stack([P_a, np.ones(4)]).T).T[:, :3]
+        assert np.allclose(points, project(P_b), atol=1e-12) and np.allclose(depths, P_b[:, 2], atol=1e-12)
+    same, depth = ibvs.features_after_camera_motion(project(P_a), P_a[:, 2], np.eye(4))
+    assert np.allclose(same, project(P_a)) and np.allclose(depth, P_a[:, 2])
+
+
 def late_uneven_loop(source: ErrorRateSource, seed: int, max_iterations: int = 400) -> int | None:
     """Iterations for adaptive-pd-joint to bring ‖e‖ under 5e-5 when frames come 30-100 ms apart, each command
     takes effect 100-200 ms after its frame (a loaded host's pipeline) and the corners carry 2e-5 of noise, as a

@@ -405,3 +405,16 @@ def test_a_loop_below_its_rate_or_overrunning_is_degraded_in_status(router, hz, 
             assert wait_for(lambda: condition()["condition"] == "healthy", timeout=5)  # not grown since
     finally:
         service.stop()
+
+
+def test_state_history_finds_the_state_of_a_frame():
+    from services.runtime.state_history import StateHistory
+
+    history: StateHistory[str] = StateHistory(size=3)
+    assert history.at_capture(100) is None and history.for_input(100) == (None, False)
+    for stamp in (10, 20, 30, 40):  # 10 falls out: three are kept
+        history.add(stamp, f"s{stamp}")
+    assert history.at_capture(35) == "s30" and history.at_capture(40) == "s40" and history.at_capture(99) == "s40"
+    assert history.at_capture(15) is None  # older than every state kept: not guessed
+    assert history.for_input(30) == ("s30", True) and history.for_input(25) == ("s30", True)
+    assert history.for_input(45) == (None, False)  # lockstep: the frame's tick has not arrived yet

@@ -73,7 +73,10 @@ class ControllerCore:
 
     # ------------------------------------------------------------------ one iteration
     def step(self, features: Features, state: Optional[RobotState], camera_in_ee: Optional[np.ndarray],
-             now_ns: int) -> Step:
+             now_ns: int, capture_state: Optional[RobotState] = None) -> Step:
+        """``state``: the arm's state the law uses (realtime: the latest; lockstep: the frame's tick's).
+        ``capture_state``: the state when the frame was taken, when it is older than ``state`` (realtime); with
+        ``latency_compensation`` the features are carried from that configuration to ``state``'s."""
         cfg = self.config
         header = features.header
 
@@ -101,8 +104,11 @@ class ControllerCore:
         self.iteration += 1
         if features.error_norm < cfg.convergence_error_norm:
             return zero(ControllerState.CONVERGED)
-        inp = ServoInput(t_s=header.source_stamp_ns * 1e-9, points=np.array(features.points),
-                         depths=np.array(features.depths), goal_points=np.array(features.goal_points),
+        points, depths = np.array(features.points), np.array(features.depths)
+        if cfg.latency_compensation and capture_state is not None and capture_state is not state:
+            points, depths = self.features_now(points, depths, capture_state.q, state.q, camera_in_ee)
+        inp = ServoInput(t_s=header.source_stamp_ns * 1e-9, points=points,
+                         depths=depths, goal_points=np.array(features.goal_points),
                          goal_depths=np.array(features.goal_depths), q=np.array(state.q), camera_in_ee=camera_in_ee,
                          dq=np.array(state.dq))
         # the L̂ the law will invert, with the configured depth source
@@ -121,6 +127,17 @@ class ControllerCore:
             return zero(ControllerState.ILL_CONDITIONED, "the law produced a non-finite output", reset=True)
         saturated = saturate(output, cfg.limits, self.joint_output)
         return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated)
+
+
+    def features_now(self, points: np.ndarray, depths: np.ndarray, q_capture, q_now, camera_in_ee: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's features carried from the arm's configuration when it was taken to the latest one: the
+        camera's motion in between, by forward kinematics, applied to the points at their depths (a static target).
+        What the image pipeline took (capture, detection, transport) then does not act as delay in the loop."""
+        kin = self.law.kin
+        camera_then = frames.homogeneous(*kin.pose(q_capture)) @ camera_in_ee
+        camera_now = frames.homogeneous(*kin.pose(q_now)) @ camera_in_ee
+        return ibvs.features_after_camera_motion(points, depths, np.linalg.inv(camera_then) @ camera_now)
 
 
 def saturate(output: LawOutput, limits: OutputLimits, joint_output: bool) -> bool:

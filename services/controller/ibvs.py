@@ -84,6 +84,17 @@ class ErrorRate:
         return self.value
 
 
+def features_after_camera_motion(points, depths, camera_b_in_a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The normalised points and depths that camera pose A saw, as seen from pose B (``camera_b_in_a``: B's pose
+    in A's frame, 4×4) for a static scene: P_B = R_abᵀ (P_A − t_ab), reprojected."""
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    depths = np.asarray(depths, dtype=float).reshape(-1)
+    P_a = np.column_stack([points * depths[:, None], depths])
+    R, t = camera_b_in_a[:3, :3], camera_b_in_a[:3, 3]
+    P_b = (P_a - t) @ R
+    return P_b[:, :2] / P_b[:, 2:3], P_b[:, 2].copy()
+
+
 def camera_motion_error_rate(L_hat: np.ndarray, J_camera: np.ndarray, dq) -> np.ndarray:
     """ė due to the camera's own motion (seed 000 eq. 21's ė; eq. 2 with the camera twist J_c·q̇): L̂·J_c·q̇."""
     return L_hat @ (J_camera @ np.asarray(dq, dtype=float))

@@ -51,6 +51,11 @@ class ControllerConfig(ServiceConfig):
     max_input_age_s: float = 0.15
     #: the robot state used by the law must be this fresh
     state_budget_s: float = 0.15
+    #: realtime: carry each frame's features from the arm's configuration when it was taken to its latest measured
+    #: one (forward kinematics; a static target) before the law, so that the image pipeline's delay (30-90 ms on a
+    #: loaded host) does not act as delay in the visual loop. Lockstep answers each frame at its own tick: nothing
+    #: to carry. A departure from seed 000, whose loop is stated without its latency
+    latency_compensation: bool = True
     #: condition number of L̂ above which the law's output is not trusted
     max_condition_number: float = 1e5
     limits: OutputLimits = msgspec.field(default_factory=OutputLimits)
@@ -157,28 +162,32 @@ class ControllerService(Service):
             self.camera_in_ee = T
 
     def _on_features(self, features: Features, recv_ns: int) -> None:
-        state = None
+        state = capture_state = None
         if self.lockstep:  # the law uses the arm as it was when the frame was taken
             with self.lock:
                 state, ready = self.states.for_input(features.header.source_stamp_ns)
                 if not ready:
                     self._waiting.append((features, recv_ns))
                     return
+        else:
+            with self.lock:
+                capture_state = self.states.at_capture(features.header.source_stamp_ns)
         with self._iteration_lock:
-            status, output = self.compute(features, state)
+            status, output = self.compute(features, state, capture_state)
             self._publish(features, recv_ns, status, output)
             self._last_features = features
 
     # ------------------------------------------------------------------ one iteration
-    def compute(self, features: Features, state: Optional[RobotState] = None) -> tuple[ControllerStatus,
-                                                                                       Optional[LawOutput]]:
+    def compute(self, features: Features, state: Optional[RobotState] = None,
+                capture_state: Optional[RobotState] = None) -> tuple[ControllerStatus, Optional[LawOutput]]:
         """The law's output for one features message, or None (zero output) with the reason in the status.
-        ``state``: the robot state to use (default: the latest)."""
+        ``state``: the robot state to use (default: the latest); ``capture_state``: the one when the frame was
+        taken (realtime)."""
         with self.lock:
             camera_in_ee = self.camera_in_ee
             if state is None:
                 state = self.robot_state
-        step = self.core.step(features, state, camera_in_ee, self.clock.now_ns())
+        step = self.core.step(features, state, camera_in_ee, self.clock.now_ns(), capture_state)
         output = step.output
         figures = {}
         if output is not None:

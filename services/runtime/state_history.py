@@ -24,6 +24,12 @@ class StateHistory(Generic[S]):
         if stamp_ns >= self.latest_stamp:
             self.latest, self.latest_stamp = state, stamp_ns
 
+    def at_capture(self, source_stamp_ns: int) -> Optional[S]:
+        """Realtime: the state the arm was in when the frame captured at ``source_stamp_ns`` was taken (the newest
+        at or before it), or None when every state kept is later."""
+        before = [stamp for stamp in self._states if stamp <= source_stamp_ns]
+        return self._states[max(before)] if before else None
+
     def for_input(self, source_stamp_ns: int) -> tuple[Optional[S], bool]:
         """(state, ready) for an input derived from the frame captured at ``source_stamp_ns``: the state of that
         tick when it is here; not ready while no state of that tick or later has arrived; the first later one
