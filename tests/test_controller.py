@@ -164,8 +164,8 @@ def test_the_core_answers_without_a_service():
     core.start_task(m.TaskRequest(operator="test"), now)
     step = core.step(f, helper.robot_state, helper.camera_in_ee, now)
     assert step.kind is m.ControllerState.CONVERGING and step.iteration == 1 and step.output.twist is not None
-    late = core.step(f, helper.robot_state, helper.camera_in_ee, now + 200_000_000)  # 200 ms later: stale
-    assert late.kind is m.ControllerState.STALE_INPUT and late.output is None and "200 ms old" in late.detail
+    late = core.step(f, helper.robot_state, helper.camera_in_ee, now + 300_000_000)  # 300 ms later: stale
+    assert late.kind is m.ControllerState.STALE_INPUT and late.output is None and "300 ms old" in late.detail
     assert core.step(f, None, helper.camera_in_ee, now).detail == "no fresh robot state"
 
 
