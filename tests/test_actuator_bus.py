@@ -256,3 +256,46 @@ def test_garbled_frames_are_rejected_and_counted_without_disturbing_the_loop(rig
 def test_unsupported_commands_get_a_nack(rig):
     (nack,) = rig.request(r.RS485Message(r.Command.KP_GAIN, 0, 0x14))
     assert nack.command is r.Command.NACK and nack.source == 0x14
+
+
+def test_host_cycles_split_what_a_stalled_loop_finds_queued():
+    from services.robot_sim.arm_on_bus import host_cycles
+
+    addresses = list(r.ACTUATOR_ADDRESSES)
+    first = r.position_torque_records(addresses, np.full(7, 1.0), np.zeros(7))
+    second = r.position_torque_records(addresses, np.full(7, 2.0), np.zeros(7))
+    other = r.to_records([r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, addresses[0])])
+    cycles = host_cycles(np.concatenate([first, other, second]))
+    assert [len(c) for c in cycles] == [8, 7]
+    assert np.all(cycles[0]["data"][:7, 0] == 1.0) and cycles[0]["command"][7] == r.Command.GET_ACTUAL_POSITION
+    assert np.all(cycles[1]["data"][:, 0] == 2.0)
+    assert [len(c) for c in host_cycles(first)] == [7] and [len(c) for c in host_cycles(r.records(0))] == [0]
+
+
+def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
+    """A stalled emulated arm finds two cycles' targets queued: each of the two boundaries it then runs takes its
+    own (the real actuators, never stalled, took them one cycle apart); taken together the newest would win and
+    the arm would make two cycles' motion in one."""
+    from services.robot_sim.arm_on_bus import ArmOnBus
+
+    channel = f"test-bus-{next(_channels)}"
+    sim = Simulation(render=False)
+    host, device_bus = RS485Bus(BusConfig(channel=channel)), RS485Bus(BusConfig(channel=channel))
+    try:
+        arm = ArmOnBus(sim, device_bus)
+        addresses = list(r.ACTUATOR_ADDRESSES)
+        start = jaco2.model_to_physical_deg(sim.q)
+        for k in (1, 2):
+            host.send_batch(r.position_torque_records(addresses, start + 0.01 * k, np.zeros(7)))
+        taken = []
+        for _ in range(2):
+            assert arm._serve(0.0, one_cycle=True) == 7
+            taken.append([a.pending[0] for a in sim.firmware.actuators])
+            arm._cycle()
+        assert np.allclose(taken[0], start + 0.01, atol=1e-4) and np.allclose(taken[1], start + 0.02, atol=1e-4)
+        assert arm.backlog == [] and arm.counters.get("frames.held_for_catch_up") == 1
+        assert not sim.firmware.counters.get("frames.superseded")
+    finally:
+        host.close()
+        device_bus.close()
+        sim.close()

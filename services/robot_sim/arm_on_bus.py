@@ -37,6 +37,22 @@ from services.robot_sim.sim import Simulation
 
 #: a loop this many cycles late runs them back to back; a longer stall is dropped
 MAX_CATCH_UP_CYCLES = 50
+
+
+def host_cycles(batch: np.ndarray) -> list[np.ndarray]:
+    """A batch of messages split into the host's cycles, in order: a second position command (0x14) for the same
+    actuator starts the next cycle; any other message stays with the cycle it came in. What a stalled loop
+    finds queued for several cycles, each of which the real actuators would have taken at its own boundary."""
+    commands = batch["command"] == rs485.Command.POSITION_AND_TORQUE_COMMAND
+    cycle_of = np.zeros(len(batch), dtype=int)
+    seen: dict[int, int] = {}
+    current = 0
+    for i, (is_command, destination) in enumerate(zip(commands.tolist(), batch["destination"].tolist())):
+        if is_command:
+            current = seen.get(destination, 0)
+            seen[destination] = current + 1
+        cycle_of[i] = current
+    return [batch[cycle_of == k] for k in range(int(cycle_of.max(initial=0)) + 1)]
 #: the emulated actuators' loop runs this much above the configured realtime priority
 ACTUATOR_PRIORITY_ABOVE = 5
 
@@ -82,6 +98,8 @@ class ArmOnBus:
         #: realtime: how far the host's frames arrive from mid-cycle (the lock to the host)
         self.phase_error = DurationStats()
         self.received_at = 0.0
+        #: realtime: host cycles found queued after a stall, each waiting for its own boundary (:meth:`_serve`)
+        self.backlog: list[np.ndarray] = []
         #: held while a boundary runs: tests and benchmarks read the simulation between cycles under it
         self.lock = threading.Lock()
         self.finished = threading.Event()
@@ -134,16 +152,26 @@ class ArmOnBus:
             except BusError:
                 pass  # counted by the bus; the host times out and holds the arm
 
-    def _serve(self, timeout_s: float) -> int:
+    def _serve(self, timeout_s: float, one_cycle: bool = False) -> int:
         """Receive what comes within ``timeout_s`` and answer it; how many commands (0x14) it held (-1: nothing
-        came). :attr:`received_at` is when it came (monotonic)."""
-        try:
-            batch, _ = self.bus.recv_batch(max(0.0, timeout_s))
-        except BusError:  # counted by the bus; the actuators keep their last command (torque mode times out)
-            time.sleep(min(max(0.0, timeout_s), 0.01))
-            return -1
-        if len(batch) == 0:
-            return -1
+        came). :attr:`received_at` is when it came (monotonic). ``one_cycle`` (the loop catching up after a
+        stall): only the first host cycle of what is queued; the later ones wait in :attr:`backlog` for their own
+        boundaries, which is where the real actuators, never stalled, took them (taken together, the newest would
+        win and the arm would make two cycles' motion in one)."""
+        if self.backlog:
+            batch = self.backlog.pop(0)
+        else:
+            try:
+                batch, _ = self.bus.recv_batch(max(0.0, timeout_s))
+            except BusError:  # counted by the bus; the actuators keep their last command (torque mode times out)
+                time.sleep(min(max(0.0, timeout_s), 0.01))
+                return -1
+            if len(batch) == 0:
+                return -1
+            if one_cycle:
+                batch, *self.backlog = host_cycles(batch)
+                if self.backlog:
+                    self.counters.inc("frames.held_for_catch_up", len(self.backlog))
         self.received_at = time.monotonic()
         with self.lock:
             self._send(self.device.receive_batch(batch))
@@ -176,8 +204,11 @@ class ArmOnBus:
         locked = False
         while not self._done():
             first_command, commands = None, 0
-            while True:  # serve the bus until the boundary (only what is queued, when the loop is late)
-                received = self._serve(boundary - time.monotonic())
+            catching_up = time.monotonic() >= boundary
+            while True:  # serve the bus until the boundary (when the loop is late: one host cycle of what is queued)
+                received = self._serve(boundary - time.monotonic(), one_cycle=catching_up)
+                if catching_up:
+                    break
                 if received < 0:
                     if time.monotonic() >= boundary:
                         break
@@ -190,6 +221,8 @@ class ArmOnBus:
                 self.counters.inc("cycles.dropped", behind)
                 self._set_epoch(self.epoch_ns + behind * CYCLE_NS)
                 boundary += behind * CYCLE_S
+                if self.backlog:  # the dropped cycles' commands: the next boundary takes the newest
+                    self.backlog = [np.concatenate(self.backlog)]
             elif behind > 0:
                 self.counters.inc("cycles.late")
             self._cycle()
