@@ -183,6 +183,11 @@ class ServoResult:
     plots: list = field(default_factory=list)
     law: str = ""
     wall_time_s: float = 0.0
+    #: from the first frame the law acted on to the last frame answered (the arm's clock): with
+    #: ``frames_answered``, what separates a loop that moves differently from one that sees fewer frames
+    servo_time_s: float = 0.0
+    #: frames the controller answered in that time, whatever the answer (stale, lost and converged included)
+    frames_answered: int = 0
     #: the largest of each law figure over the run (e.g. smc's max_phi.fov, and its band)
     law_figures: dict = field(default_factory=dict)
 
@@ -193,7 +198,9 @@ class ServoResult:
             "min_manipulability": self.min_manipulability,
             "max_joint_limit_violation_deg": self.max_joint_limit_violation_deg,
             "max_linear_speed_mps": self.max_linear_speed_mps, "trajectory_log": self.trajectory_log,
-            "plots": self.plots, "law": self.law, "wall_time_s": self.wall_time_s, "law_figures": self.law_figures,
+            "plots": self.plots, "law": self.law, "wall_time_s": self.wall_time_s,
+            "servo_time_s": self.servo_time_s, "frames_answered": self.frames_answered,
+            "law_figures": self.law_figures,
         }
 
 
@@ -367,6 +374,8 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         over = np.maximum(q_all[:, limited] - upper[limited], lower[limited] - q_all[:, limited])
         violation = max(0.0, float(np.degrees(over.max())))
     speeds = [float(np.linalg.norm((kin.jacobian_base(s.q) @ np.asarray(s.dq))[:3])) for s in states]
+    acted = [r for r in records if r.status == "converging"]
+    answered = [r for r in records if acted and r.stamp_ns >= acted[0].stamp_ns]
     result = ServoResult(
         converged=status == "converged",
         iterations=max((r.iteration for r in records), default=0),
@@ -378,6 +387,8 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         max_linear_speed_mps=max(speeds, default=0.0),
         law=scenario.law,
         wall_time_s=round(wall, 3),
+        servo_time_s=round((answered[-1].stamp_ns - answered[0].stamp_ns) * 1e-9, 3) if answered else 0.0,
+        frames_answered=len(answered),
         law_figures=_law_figures(records),
     )
     if out_dir is not None:

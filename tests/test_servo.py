@@ -31,6 +31,9 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     assert 0 < result.max_linear_speed_mps <= 0.15 * 1.05  # the controller's and safety's limit
     lines = Path(result.trajectory_log).read_text().splitlines()
     assert len(lines) >= result.iterations
+    # lockstep: a frame every 1/30 s of the arm's time, each answered, from the first the law acted on
+    assert result.frames_answered == result.iterations
+    assert result.servo_time_s == pytest.approx((result.frames_answered - 1) / 30.0, abs=0.011)
     first = json.loads(lines[0])
     assert {"iteration", "error_norm", "points", "command", "q"} <= set(first)
     assert all(Path(p).stat().st_size > 1000 for p in result.plots) and len(result.plots) == 3
@@ -73,7 +76,8 @@ def test_mfvs_servo_command_prints_the_result_fields(tmp_path):
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout.strip().splitlines()[-1])
     expected = {"converged", "iterations", "final_error_norm", "status", "min_manipulability",
-                "max_joint_limit_violation_deg", "max_linear_speed_mps", "trajectory_log", "plots"}
+                "max_joint_limit_violation_deg", "max_linear_speed_mps", "trajectory_log", "plots", "servo_time_s",
+                "frames_answered"}
     assert expected <= set(result) and result["converged"] is True
     assert (tmp_path / "result.json").exists()
     bad = tmp_path / "bad.yaml"
