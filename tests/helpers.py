@@ -44,3 +44,70 @@ class CpuLoad:
             process.kill()
             process.wait(timeout=5)
         self._procs.clear()
+
+
+#: seed 000 Table 2's goal: the square ±0.1666 (normalised) at 0.2888 m
+GOAL_SQUARE = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
+
+
+def tag_corners_seen(q, tag_in_base: np.ndarray, camera_in_ee: np.ndarray, kin: ArmKinematics | None = None,
+                     size_m: float = 0.0962) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised corners and depths of the tag at ``tag_in_base`` from the camera at configuration q (the model's
+    kinematics, exact projection)."""
+    from services.model import frames
+    from services.model import tag as tags
+
+    camera = frames.homogeneous(*(kin or ArmKinematics()).pose(q)) @ camera_in_ee
+    T = np.linalg.inv(camera) @ tag_in_base
+    corners = (T[:3, :3] @ tags.corners_in_tag(size_m).T).T + T[:3, 3]
+    return corners[:, :2] / corners[:, 2:3], corners[:, 2]
+
+
+def iterations_in_a_late_loop(law, tag_in_camera: np.ndarray, camera_in_ee: np.ndarray, *, seed: int,
+                              image_delay_s: float = 0.0, command_delay_s: tuple[float, float] = (0.04, 0.04),
+                              frame_gaps: dict[float, float] | None = None, noise: float = 1e-5, carry=None,
+                              max_iterations: int = 400) -> int | None:
+    """A joint-velocity law in a realtime-like loop without services: from HOME, the tag at ``tag_in_camera``;
+    frames taken ``frame_gaps`` apart (gap: probability), each answered ``image_delay_s`` after its capture
+    (detection and transport) with the arm's state then, the command moving the arm ``command_delay_s`` (a
+    uniform range) after the answer, corners with ``noise``. ``carry(points, depths, q_capture, q_now)`` is
+    applied to the frame before the law when given. The iterations to ‖e‖ < 5e-5, or None within
+    ``max_iterations``."""
+    from services.controller.law import ServoInput
+    from services.model import frames
+
+    gaps = frame_gaps or {0.03: 0.5, 0.04: 0.4, 0.07: 0.1}
+    rng = np.random.default_rng(seed)
+    kin = ArmKinematics()
+    tag_in_base = frames.homogeneous(*kin.pose(jaco2.HOME)) @ camera_in_ee @ tag_in_camera
+    q, t = jaco2.HOME.copy(), 0.0
+    commands = [(0.0, np.zeros(jaco2.N_JOINTS))]  # (moving the arm from, joint velocities)
+
+    def in_effect(at: float) -> np.ndarray:
+        return [dq for start, dq in commands if start <= at][-1]
+
+    events, capture_t = [], 0.0  # (time, 0 capture | 1 answer, frame)
+    for k in range(max_iterations):
+        events += [(capture_t, 0, k), (capture_t + image_delay_s, 1, k)]
+        capture_t += rng.choice(list(gaps), p=list(gaps.values()))
+    taken, iteration = {}, 0
+    for when, kind, k in sorted(events):
+        while t < when - 1e-12:
+            step = min(0.002, when - t)
+            q, t = q + in_effect(t) * step, t + step
+        if kind == 0:
+            points, depths = tag_corners_seen(q, tag_in_base, camera_in_ee, kin)
+            taken[k] = (points + rng.normal(scale=noise, size=points.shape), depths, q.copy())
+            continue
+        points, depths, q_capture = taken.pop(k)
+        if np.linalg.norm(points - GOAL_SQUARE) < 5e-5:
+            return iteration + 1
+        iteration += 1
+        if carry is not None:
+            points, depths = carry(points, depths, q_capture, q)
+        dq = law.step(ServoInput(t_s=t, points=points, depths=depths, goal_points=GOAL_SQUARE,
+                                 goal_depths=np.full(4, 0.2888), q=q.copy(), camera_in_ee=camera_in_ee,
+                                 dq=in_effect(t).copy())).joint_velocities
+        dq = dq / max(1.0, float(np.max(np.abs(dq) / (jaco2.MAX_SPEED * 0.8))))
+        commands.append((t + rng.uniform(*command_delay_s), dq))
+    return None

@@ -7,12 +7,12 @@ import pytest
 from protocol import messages as m
 from protocol.conventions import AngularConvention
 from services.model import frames, jaco2
-from services.model import tag as tags
 from services.model.kinematics import ArmKinematics
 from services.controller.core import ControllerCore
-from services.controller.law import LawConfig, ServoInput
+from services.controller.law import LawConfig
 from services.controller.service import ControllerConfig, ControllerService
 from services.robot_sim.scene import CameraConfig
+from tests.helpers import iterations_in_a_late_loop, tag_corners_seen
 
 GOAL = [(-0.1666, -0.1666), (0.1666, -0.1666), (0.1666, 0.1666), (-0.1666, 0.1666)]
 
@@ -176,14 +176,6 @@ def robot_state(q, dq=None, stamp_ns=None):
                         control_mode=m.ControlMode.IDLE)
 
 
-def seen_from(q, tag_in_base, camera_in_ee):
-    """The tag's corners and depths from the camera at configuration q (the model's kinematics)."""
-    camera = frames.homogeneous(*ArmKinematics().pose(q)) @ camera_in_ee
-    T = np.linalg.inv(camera) @ tag_in_base
-    corners = (T[:3, :3] @ tags.corners_in_tag(0.0962).T).T + T[:3, 3]
-    return corners[:, :2] / corners[:, 2:3], corners[:, 2]
-
-
 @pytest.mark.parametrize("compensate", [True, False])
 def test_realtime_carries_the_frame_to_the_arms_latest_configuration(compensate):
     """Latency compensation: a frame taken at q_then, answered when the arm is at q_now, gives the law's output
@@ -196,7 +188,7 @@ def test_realtime_carries_the_frame_to_the_arms_latest_configuration(compensate)
     now = time.time_ns()
 
     def features_at(q):
-        points, depths = seen_from(q, tag_in_base, camera_in_ee)
+        points, depths = tag_corners_seen(q, tag_in_base, camera_in_ee)
         e = (points - np.array(GOAL)).reshape(-1)
         header = m.Header(stamp_ns=now, source_stamp_ns=now - 100_000_000)
         return m.Features(header=header, status=m.FeatureStatus.OK, points=[tuple(p) for p in points],
@@ -220,45 +212,15 @@ def test_realtime_carries_the_frame_to_the_arms_latest_configuration(compensate)
 
 def iterations_with_a_late_image_pipeline(image_delay_s: float, compensate: bool, seed: int) -> int | None:
     """adaptive-pd-joint from one start, frames every 30-70 ms, each answered ``image_delay_s`` after its capture
-    (detection and transport on a loaded host), its command moving the arm 40 ms later; the iterations to
-    ‖e‖ < 5e-5 (None: not within 400)."""
-    rng = np.random.default_rng(seed)
-    kin = ArmKinematics()
+    (detection and transport on a loaded host), its command moving the arm 40 ms later, the frame carried to the
+    arm's configuration then by the controller's own ``features_now`` when ``compensate``."""
     camera_in_ee = CameraConfig().camera_in_ee.matrix()
     core = ControllerCore(ControllerConfig(law="adaptive-pd-joint", control=LawConfig(joint_limit_gain=0.0)))
     tag = frames.homogeneous(np.diag([1.0, -1.0, -1.0]), [0.03, -0.02, 0.42])
-    tag_in_base = frames.homogeneous(*kin.pose(jaco2.HOME)) @ camera_in_ee @ tag
-    goal = np.array(GOAL)
-    q, t = jaco2.HOME.copy(), 0.0
-    commands = [(0.0, np.zeros(7))]  # (moving the arm from, joint velocities)
-
-    def in_effect(at: float) -> np.ndarray:
-        return [dq for start, dq in commands if start <= at][-1]
-
-    events, capture_t = [], 0.0  # (time, 0 capture | 1 answer, frame)
-    for k in range(400):
-        events += [(capture_t, 0, k), (capture_t + image_delay_s, 1, k)]
-        capture_t += rng.choice([0.03, 0.04, 0.07], p=[0.5, 0.4, 0.1])
-    taken, iteration = {}, 0
-    for when, kind, k in sorted(events):
-        while t < when - 1e-12:
-            step = min(0.002, when - t)
-            q, t = q + in_effect(t) * step, t + step
-        if kind == 0:
-            points, depths = seen_from(q, tag_in_base, camera_in_ee)
-            taken[k] = (points + rng.normal(scale=1e-5, size=points.shape), depths, q.copy())
-            continue
-        points, depths, q_capture = taken.pop(k)
-        if np.linalg.norm(points - goal) < 5e-5:
-            return iteration + 1
-        iteration += 1
-        if compensate:
-            points, depths = core.features_now(points, depths, q_capture, q, camera_in_ee)
-        dq = core.law.step(ServoInput(t_s=t, points=points, depths=depths, goal_points=goal,
-                                      goal_depths=np.full(4, 0.2888), q=q.copy(), camera_in_ee=camera_in_ee,
-                                      dq=in_effect(t).copy())).joint_velocities
-        commands.append((t + 0.04, dq / max(1.0, float(np.max(np.abs(dq) / (jaco2.MAX_SPEED * 0.8))))))
-    return None
+    carry = (lambda points, depths, q_capture, q_now: core.features_now(points, depths, q_capture, q_now,
+                                                                         camera_in_ee)) if compensate else None
+    return iterations_in_a_late_loop(core.law, tag, camera_in_ee, seed=seed, image_delay_s=image_delay_s,
+                                     carry=carry)
 
 
 def test_latency_compensation_makes_the_loop_indifferent_to_the_image_pipelines_delay():

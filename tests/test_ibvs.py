@@ -7,12 +7,12 @@ import pytest
 
 from protocol.conventions import AngularConvention, DepthSource, ErrorRateSource
 from services.model import frames, jaco2
-from services.model import tag as tags
 from services.runtime.config import PoseConfig
 from services.model.kinematics import ArmKinematics
 from services.controller import ibvs
 from services.controller.law import Gains, LawConfig, ServoInput
 from services.controller.laws import make_law
+from tests.helpers import iterations_in_a_late_loop, tag_corners_seen
 
 CAMERA_IN_EE = PoseConfig(xyz=(0.065, 0.0, -0.02), rpy_deg=(0.0, 0.0, 90.0)).matrix()
 
@@ -86,15 +86,6 @@ def test_pd_law_decays_the_error_exponentially_when_it_can():
     assert np.allclose(Vc_pd, -np.linalg.pinv(L) @ (2.0 * e + 0.5 * e_dot))
 
 
-def tag_corners_seen(kin, q, tag_in_base):
-    """Normalised corners and depths of the 9.62 cm tag ``tag_in_base`` from the camera at configuration q."""
-    R, p = kin.pose(q)
-    T_be = frames.homogeneous(R, p)
-    T_ct = np.linalg.inv(T_be @ CAMERA_IN_EE) @ tag_in_base
-    corners = (T_ct[:3, :3] @ tags.corners_in_tag(0.0962).T).T + T_ct[:3, 3]
-    return project(corners), corners[:, 2]
-
-
 def test_camera_motion_error_rate_is_the_features_rate_along_a_joint_motion(rng):
     """L̂·J_c·q̇ (eq. 21's ė due to the camera's motion) against the corners' own change when the joints move."""
     kin = ArmKinematics()
@@ -104,12 +95,12 @@ def test_camera_motion_error_rate_is_the_features_rate_along_a_joint_motion(rng)
     for _ in range(5):
         q = jaco2.HOME + rng.uniform(-0.05, 0.05, jaco2.N_JOINTS)
         dq = rng.normal(scale=0.2, size=jaco2.N_JOINTS)
-        points, depths = tag_corners_seen(kin, q, tag_in_base)
+        points, depths = tag_corners_seen(q, tag_in_base, CAMERA_IN_EE, kin)
         L = ibvs.interaction_matrix(points, depths)
         J_c = law._camera_jacobian(q, CAMERA_IN_EE)[0]
         h = 1e-6
-        s_dot = (tag_corners_seen(kin, q + h * dq, tag_in_base)[0]
-                 - tag_corners_seen(kin, q - h * dq, tag_in_base)[0]) / (2 * h)
+        s_dot = (tag_corners_seen(q + h * dq, tag_in_base, CAMERA_IN_EE, kin)[0]
+                 - tag_corners_seen(q - h * dq, tag_in_base, CAMERA_IN_EE, kin)[0]) / (2 * h)
         assert np.allclose(ibvs.camera_motion_error_rate(L, J_c, dq), s_dot.reshape(-1), atol=1e-6)
 
 
@@ -146,37 +137,14 @@ def test_features_after_camera_motion_are_the_projection_from_the_moved_camera(r
     assert np.allclose(same, project(P_a)) and np.allclose(depth, P_a[:, 2])
 
 
-def late_uneven_loop(source: ErrorRateSource, seed: int, max_iterations: int = 400) -> int | None:
+def late_uneven_loop(source: ErrorRateSource, seed: int) -> int | None:
     """Iterations for adaptive-pd-joint to bring ‖e‖ under 5e-5 when frames come 30-100 ms apart, each command
     takes effect 100-200 ms after its frame (a loaded host's pipeline) and the corners carry 2e-5 of noise, as a
     realtime stack on two busy cores sees them; None if it does not."""
-    rng = np.random.default_rng(seed)
-    kin = ArmKinematics()
     law = make_law("adaptive-pd-joint", LawConfig(error_rate=source, joint_limit_gain=0.0))
     tag = PoseConfig(xyz=(0.03, -0.02, 0.42), rpy_deg=(175.0, 4.0, 15.0)).matrix()
-    tag_in_base = frames.homogeneous(*kin.pose(jaco2.HOME)) @ CAMERA_IN_EE @ tag
-    goal = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
-    q, t, step_s = jaco2.HOME.copy(), 0.0, 0.002
-    commands = [(0.0, np.zeros(jaco2.N_JOINTS))]  # (in effect from, joint velocities)
-
-    def in_effect(at: float) -> np.ndarray:
-        return [dq for start, dq in commands if start <= at][-1]
-
-    for iteration in range(1, max_iterations + 1):
-        points, depths = tag_corners_seen(kin, q, tag_in_base)
-        inp = ServoInput(t_s=t, points=points + rng.normal(scale=2e-5, size=points.shape), depths=depths,
-                         goal_points=goal, goal_depths=np.full(4, 0.2888), q=q.copy(), camera_in_ee=CAMERA_IN_EE,
-                         dq=in_effect(t).copy())
-        if np.linalg.norm(inp.error) < 5e-5:
-            return iteration
-        dq = law.step(inp).joint_velocities
-        dq = dq / max(1.0, float(np.max(np.abs(dq) / (jaco2.MAX_SPEED * 0.8))))
-        commands.append((t + rng.uniform(0.1, 0.2), dq))
-        frame_end = t + rng.choice([0.03, 0.04, 0.07, 0.1], p=[0.45, 0.35, 0.15, 0.05])
-        while t < frame_end - 1e-12:
-            h = min(step_s, frame_end - t)
-            q, t = q + in_effect(t) * h, t + h
-    return None
+    return iterations_in_a_late_loop(law, tag, CAMERA_IN_EE, seed=seed, command_delay_s=(0.1, 0.2), noise=2e-5,
+                                     frame_gaps={0.03: 0.45, 0.04: 0.35, 0.07: 0.15, 0.1: 0.05})
 
 
 def test_camera_motion_e_dot_keeps_a_late_uneven_loop_converging_steadily():

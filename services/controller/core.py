@@ -128,7 +128,6 @@ class ControllerCore:
         saturated = saturate(output, cfg.limits, self.joint_output)
         return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated)
 
-
     def features_now(self, points: np.ndarray, depths: np.ndarray, q_capture, q_now, camera_in_ee: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:
         """The frame's features carried from the arm's configuration when it was taken to the latest one: the

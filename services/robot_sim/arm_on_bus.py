@@ -38,6 +38,9 @@ from services.robot_sim.sim import Simulation
 #: a loop this many cycles late runs them back to back; a longer stall is dropped
 MAX_CATCH_UP_CYCLES = 50
 
+#: the emulated actuators' loop runs this much above the configured realtime priority
+ACTUATOR_PRIORITY_ABOVE = 5
+
 
 def host_cycles(batch: np.ndarray) -> list[np.ndarray]:
     """A batch of messages split into the host's cycles, in order: a second position command (0x14) for the same
@@ -53,8 +56,6 @@ def host_cycles(batch: np.ndarray) -> list[np.ndarray]:
             seen[destination] = current + 1
         cycle_of[i] = current
     return [batch[cycle_of == k] for k in range(int(cycle_of.max(initial=0)) + 1)]
-#: the emulated actuators' loop runs this much above the configured realtime priority
-ACTUATOR_PRIORITY_ABOVE = 5
 
 
 class BusSyncConfig(ConfigStruct):
