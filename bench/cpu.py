@@ -2,7 +2,8 @@
 every process of a stack (with its children), per profile, while it servos onto the tag (`mfvs up`, realtime, on free ports).
 
 ``python -m bench.cpu [--json] [--seconds S] [--profiles sim,gateway]`` or ``mfvs bench cpu``. ``--json`` prints
-``{"profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb"}}, "total_cpu_pct", "total_rss_mb"}}}``.
+``{"profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb", "threads": {name: cpu_pct}}}, "total_cpu_pct",
+"total_rss_mb"}}}``; ``--threads`` also prints each process's threads by their kernel names.
 """
 from __future__ import annotations
 
@@ -15,8 +16,11 @@ import time
 from services.runtime.transport import free_loopback_port
 from protocol import messages as m
 from services.launcher import down, load_profile, read_stack, stack_task, up
+from services.robot.pacing import normal_priority, request_realtime
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+#: the reader's SCHED_FIFO priority, above every loop of a stack (robot loops 40-45)
+READER_PRIORITY = 90
 
 
 def process_tree(pid: int) -> list[int]:
@@ -59,6 +63,27 @@ def cpu_seconds(pid: int) -> float:
     return sum(_cpu_seconds_of(p) for p in process_tree(pid))
 
 
+def thread_cpu_seconds(pid: int) -> dict[str, float]:
+    """User + system CPU time so far (s) per kernel thread name (``comm``) of a process and its children: the
+    services name their loops (services/runtime/threads.py); zenoh's threads carry their own names."""
+    out: dict[str, float] = {}
+    for process in process_tree(pid):
+        try:
+            tasks = os.listdir(f"/proc/{process}/task")
+        except OSError:
+            continue
+        for task in tasks:
+            try:
+                with open(f"/proc/{process}/task/{task}/stat") as f:
+                    head, tail = f.read().rsplit(")", 1)
+            except OSError:
+                continue
+            fields = tail.split()
+            name = head.split("(", 1)[1]
+            out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+    return out
+
+
 def rss_mb(pid: int) -> float:
     """Resident memory (MB) of a process and its children."""
     return sum(_rss_mb_of(p) for p in process_tree(pid))
@@ -75,13 +100,24 @@ def measure(profile_name: str, seconds: float, settle_s: float = 3.0) -> dict:
         try:
             time.sleep(settle_s)  # past start-up (imports, first frames)
             processes = {p["name"]: p["pid"] for p in read_stack()["processes"]}
-            before = {name: cpu_seconds(pid) for name, pid in processes.items()}
-            start = time.monotonic()
+            # readings above the stack's realtime loops (after `up`: its processes must not inherit this), each
+            # with its own clock: a reader that waits between one process and the next would count the wait as CPU
+            request_realtime(READER_PRIORITY, "bench cpu's reader")
+            before = {name: (time.monotonic(), cpu_seconds(pid), thread_cpu_seconds(pid))
+                      for name, pid in processes.items()}
             time.sleep(seconds)
-            elapsed = time.monotonic() - start
-            result = {name: {"cpu_pct": round(100.0 * (cpu_seconds(pid) - before[name]) / elapsed, 1),
-                             "rss_mb": round(rss_mb(pid), 1)} for name, pid in processes.items()}
+            result = {}
+            for name, pid in processes.items():
+                start, cpu_before, threads_before = before[name]
+                cpu_after, threads_after = cpu_seconds(pid), thread_cpu_seconds(pid)
+                elapsed = time.monotonic() - start
+                threads = {thread: round(100.0 * (cpu - threads_before.get(thread, 0.0)) / elapsed, 1)
+                           for thread, cpu in threads_after.items()}
+                result[name] = {"cpu_pct": round(100.0 * (cpu_after - cpu_before) / elapsed, 1),
+                                "rss_mb": round(rss_mb(pid), 1),
+                                "threads": dict(sorted(threads.items(), key=lambda kv: -kv[1]))}
         finally:
+            normal_priority()
             down()
     return {"processes": result, "total_cpu_pct": round(sum(r["cpu_pct"] for r in result.values()), 1),
             "total_rss_mb": round(sum(r["rss_mb"] for r in result.values()), 1)}
@@ -92,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--seconds", type=float, default=8.0, help="measured time per profile (default 8)")
     parser.add_argument("--profiles", default="sim,gateway", help="comma-separated profiles (default sim,gateway)")
+    parser.add_argument("--threads", action="store_true",
+                        help="also each process's threads (by kernel name) costing 1 %% of a core or more")
     args = parser.parse_args(argv)
     results = {name: measure(name, args.seconds) for name in args.profiles.split(",") if name}
     if args.json:
@@ -101,6 +139,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: {r['total_cpu_pct']:.0f} % of a core, {r['total_rss_mb']:.0f} MB")
         for process, figures in sorted(r["processes"].items(), key=lambda kv: -kv[1]["cpu_pct"]):
             print(f"  {process:14s} {figures['cpu_pct']:5.1f} %  {figures['rss_mb']:6.0f} MB")
+            if args.threads:
+                for thread, pct in figures["threads"].items():
+                    if pct >= 1.0:
+                        print(f"      {thread:16s} {pct:5.1f} %")
     return 0
 
 

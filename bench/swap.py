@@ -1,7 +1,8 @@
 """The swap, measured: servo scenarios through robot_sim's own DSP and through robot_gateway on the RS-485 bus,
 several runs each, with the iterations to converge, the final error, the peak measured end-effector speed
-(J(q)·dq of every robot state), the wall time of every run, and the servo time and frames answered (a profile
-whose loop moves alike but sees fewer frames converges in the same time with fewer iterations).
+(J(q)·dq of every robot state), the wall time of every run, the servo time and frames answered (a profile whose
+loop moves alike but sees fewer frames converges in the same time with fewer iterations), and where the frames
+that became no iteration were lost.
 
 Profiles: ``sim-lockstep`` and ``gateway-lockstep`` (deterministic: one run each, and they must agree exactly),
 ``sim-realtime`` and ``gateway-realtime`` (the gateway's iterations should be within 10 % of the sim's).
@@ -39,7 +40,7 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str]) -> dic
                          "final_error_norm": result.final_error_norm,
                          "peak_speed_mps": round(result.max_linear_speed_mps, 4),
                          "wall_time_s": result.wall_time_s, "servo_time_s": result.servo_time_s,
-                         "frames_answered": result.frames_answered})
+                         "frames_answered": result.frames_answered, "frames_lost": result.frames_lost})
         converged = [row["iterations"] for row in rows if row["converged"]]
         results[name] = {
             "runs": rows, "converged": f"{len(converged)}/{len(rows)}",
@@ -87,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
             timing = ", ".join(f"{row['servo_time_s']:.2f} s/{row['frames_answered']}" for row in r["runs"])
             print(f"  {'':17s} servo time / frames answered: {timing}", flush=True)
+            lost = "; ".join(", ".join(f"{k} {v}" for k, v in row["frames_lost"].items()) or "-" for row in r["runs"])
+            print(f"  {'':17s} frames lost: {lost}", flush=True)
         for clock, c in result["comparison"].items():
             print(f"  {clock}: gateway/sim iterations {c['gateway_over_sim']} (worst run {c['worst_gateway_over_sim']})",
                   flush=True)

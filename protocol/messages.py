@@ -41,19 +41,35 @@ class ProtocolError(ValueError):
 
 
 def _non_finite_path(value: Any, path: str) -> Optional[str]:
-    if isinstance(value, float):
+    """The path of the first NaN or infinity in ``value`` (None: there is none). Every message is checked on
+    decode, so a list of numbers is summed first (one C loop; a sum is finite when every term is, and a
+    non-finite or overflowing sum sends it to the item-by-item search); paths are built only on the way to a
+    bad number."""
+    kind = type(value)
+    if kind is float:
         return None if math.isfinite(value) else path
-    if isinstance(value, (list, tuple)):
+    if kind is list or kind is tuple:
+        if not value:
+            return None
+        try:
+            if math.isfinite(sum(value)):
+                return None
+        except TypeError:  # not all numbers: nested lists, tuples, structs or strings
+            pass
         for i, item in enumerate(value):
-            bad = _non_finite_path(item, f"{path}[{i}]")
-            if bad is not None:
-                return bad
-    elif isinstance(value, dict):
+            if type(item) in _SCALARS_WITHOUT_FLOATS:
+                continue
+            if _non_finite_path(item, "") is not None:
+                return _non_finite_path(item, f"{path}[{i}]")
+        return None
+    if kind is dict:
         for k, item in value.items():
-            bad = _non_finite_path(item, f"{path}.{k}")
-            if bad is not None:
-                return bad
+            if _non_finite_path(item, "") is not None:
+                return _non_finite_path(item, f"{path}.{k}")
     return None
+
+
+_SCALARS_WITHOUT_FLOATS = (int, bool, str, bytes, type(None))
 
 
 class Message(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):

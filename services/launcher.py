@@ -34,7 +34,7 @@ import msgspec
 from protocol import messages as m
 from protocol.keys import Keys
 from services.runtime.config import ConfigStruct, load_config
-from services.runtime.service import EXIT_FILE_ENV
+from services.runtime.service import EXIT_FILE_ENV, query_health
 from services.runtime.transport import ZenohConfig, file_endpoints, open_session
 
 REPO = Path(__file__).resolve().parents[1]
@@ -287,14 +287,7 @@ def status(endpoint: str, robot_id: str = "jaco", liveliness_only: bool = False,
                                                                                          timeout=2.0) if r.ok]
         result: dict = {name: None for name in alive}
         if not liveliness_only:
-            for reply in session.get(keys.health_all, timeout=2.0):
-                if reply.ok is None:
-                    continue
-                try:
-                    health = m.decode(reply.ok.payload.to_bytes(), m.ServiceHealth)
-                except m.ProtocolError:
-                    continue
-                result[health.service] = health
+            result.update(query_health(session, keys))
         return result
     finally:
         session.close()

@@ -25,6 +25,7 @@ from protocol.keys import Keys
 from services.model import jaco2
 from services.runtime.config import ConfigError, ConfigStruct, PoseConfig, load_config
 from services.model.kinematics import ArmKinematics, manipulability
+from services.runtime.service import query_health
 from services.runtime.transport import open_session
 from services.controller.law import Gains, LawConfig
 from services.controller.laws import JOINT_LAWS, LAW_NAMES
@@ -188,6 +189,10 @@ class ServoResult:
     servo_time_s: float = 0.0
     #: frames the controller answered in that time, whatever the answer (stale, lost and converged included)
     frames_answered: int = 0
+    #: frames that never became an iteration, by where they were lost (the services' counters over the run):
+    #: ``camera.dropped`` (the renderer still busy with the last one), ``vision.skipped`` (a newer frame came
+    #: before vision took it), ``vision.stale`` (older than vision's image budget)
+    frames_lost: dict = field(default_factory=dict)
     #: the largest of each law figure over the run (e.g. smc's max_phi.fov, and its band)
     law_figures: dict = field(default_factory=dict)
 
@@ -200,7 +205,7 @@ class ServoResult:
             "max_linear_speed_mps": self.max_linear_speed_mps, "trajectory_log": self.trajectory_log,
             "plots": self.plots, "law": self.law, "wall_time_s": self.wall_time_s,
             "servo_time_s": self.servo_time_s, "frames_answered": self.frames_answered,
-            "law_figures": self.law_figures,
+            "frames_lost": self.frames_lost, "law_figures": self.law_figures,
         }
 
 
@@ -274,6 +279,19 @@ class _Watcher:
     def close(self) -> None:
         for sub in self._subs:
             sub.undeclare()
+
+
+#: (service, counter) → the name ``ServoResult.frames_lost`` gives it
+FRAME_LOSS_COUNTERS = {("robot_sim", "frames.dropped"): "camera.dropped", ("vision", "frames.skipped"): "vision.skipped",
+                       ("vision", "frames.stale"): "vision.stale"}
+
+
+def _frames_lost(session, keys: Keys) -> dict:
+    """Where frames were lost, from the services' health counters (every run starts a new stack: a counter is
+    the run's). A service that does not answer is left out."""
+    health = query_health(session, keys)
+    return {name: health[service].errors.get(counter, 0)
+            for (service, counter), name in FRAME_LOSS_COUNTERS.items() if service in health}
 
 
 def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim") -> ServoResult:
@@ -360,6 +378,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                         "converging", "converged")) for r in records), timeout=2.0)  # the law answers those
                 for record in records:
                     _fill_inputs(record, watcher)
+            frames_lost = _frames_lost(session, Keys(config.robot.robot_id))
         finally:
             watcher.close()
             session.close()
@@ -389,6 +408,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         wall_time_s=round(wall, 3),
         servo_time_s=round((answered[-1].stamp_ns - answered[0].stamp_ns) * 1e-9, 3) if answered else 0.0,
         frames_answered=len(answered),
+        frames_lost=frames_lost,
         law_figures=_law_figures(records),
     )
     if out_dir is not None:

@@ -182,3 +182,14 @@ def test_numpy_values_encode_as_plain_numbers():
 
     pose = m.Pose(xyz=tuple(np.array([0.1, 0.2, 0.3])), quat_wxyz=(np.float64(1.0), 0.0, 0.0, 0.0))
     assert msgpack.unpackb(m.encode(pose)) == {"xyz": [0.1, 0.2, 0.3], "quat_wxyz": [1.0, 0.0, 0.0, 0.0]}
+
+
+def test_the_non_finite_check_names_the_first_bad_number_and_passes_huge_finite_ones():
+    # a list is summed first: huge finite numbers overflow the sum, and must still pass
+    assert m._non_finite_path([1e308, 1e308, -1e308], "v") is None
+    assert m._non_finite_path([(0.0, 1.0), (2.0, math.inf)], "points") == "points[1][1]"
+    assert m._non_finite_path({"a": [1.0], "b": [0.0, [1.0, -math.inf]]}, "d") == "d.b[1][1]"
+    assert m._non_finite_path(["text", 3, True, None], "mixed") is None
+    assert m._non_finite_path([math.inf, -math.inf], "opposite") == "opposite[0]"  # inf - inf is NaN, not 0
+    huge = m.JointVelocity(header=m.Header(), velocities=[1e308] * 7)  # finite: accepted
+    assert huge.velocities[0] == 1e308

@@ -73,3 +73,57 @@ def test_replies_of_the_next_cycle_that_come_early_are_kept_for_it():
         second = link.collect_command(time.monotonic() + 1.0)  # from what the first read kept
         assert second.stamp_ns >= first.stamp_ns > 0
         assert link.counters.get("link.unexpected") == 0 and link.counters.get("link.timeouts") == 0
+
+
+class _QueuedBus:
+    """A bus whose receive hands out prepared batches, one per call (the link's collection logic, without time)."""
+
+    def __init__(self, batches):
+        from services.runtime.metrics import Counters
+        self.batches = list(batches)
+        self.counters = Counters()
+
+    def recv_batch(self, timeout):
+        if not self.batches:
+            return r.records(0), np.zeros(0, dtype=np.int64)
+        batch = self.batches.pop(0)
+        return batch, np.arange(len(batch), dtype=np.int64) + 1000
+
+
+def _replies(addresses, order, extra=()):
+    """The 0x15-0x17 of each address, in ``order`` (indices into the 3·n list), the joint's index in data[1]."""
+    batch = r.records(3 * len(addresses))
+    for j, address in enumerate(addresses):
+        for kind in range(3):
+            row = batch[3 * j + kind]
+            row["source"], row["destination"] = address, r.HOST_ADDRESS
+            row["command"] = int(r.Command.SEND_ALL_VALUES_1) + kind
+            row["data"] = (kind, float(j), 0.0, 0.0)
+    return np.concatenate([batch[list(order)], *extra]) if extra else batch[list(order)]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_whole_reply_set_in_any_order_is_taken_at_once_and_the_same_as_one_by_one(seed):
+    addresses = list(r.ACTUATOR_ADDRESSES)
+    order = np.random.default_rng(seed).permutation(3 * len(addresses))
+    next_cycle = _replies(addresses, range(3))  # the next request's first replies, already here
+    whole = ActuatorLink(_QueuedBus([_replies(addresses, order, extra=[next_cycle])]), addresses)
+    table = whole._collect_values(time.monotonic() + 1.0)
+    # the same replies split in two batches take the message-by-message path
+    split = _replies(addresses, order)
+    piecewise = ActuatorLink(_QueuedBus([split[:5], split[5:]]), addresses)
+    assert np.array_equal(table, piecewise._collect_values(time.monotonic() + 1.0))
+    assert np.array_equal(table["data"][:, :, 1], np.repeat(np.arange(len(addresses))[:, None], 3, axis=1))
+    assert whole.last_stamp_ns == 1000 + 3 * len(addresses) - 1
+    assert np.array_equal(whole._carry[0], next_cycle)  # kept for the next collection
+
+
+def test_a_duplicate_reply_in_a_full_batch_is_counted_not_taken():
+    addresses = list(r.ACTUATOR_ADDRESSES)
+    n = 3 * len(addresses)
+    duplicated = _replies(addresses, [0] + list(range(n - 1)))  # the first twice, the last one missing ...
+    late = _replies(addresses, [n - 1])  # ... comes in the next batch
+    link = ActuatorLink(_QueuedBus([duplicated, late]), addresses)
+    table = link._collect_values(time.monotonic() + 1.0)
+    assert link.counters.get("link.unexpected") == 1
+    assert np.array_equal(table, _replies(addresses, range(n)).reshape(len(addresses), 3))

@@ -418,3 +418,17 @@ def test_state_history_finds_the_state_of_a_frame():
     assert history.at_capture(15) is None  # older than every state kept: not guessed
     assert history.for_input(30) == ("s30", True) and history.for_input(25) == ("s30", True)
     assert history.for_input(45) == (None, False)  # lockstep: the frame's tick has not arrived yet
+
+
+def test_threads_carry_their_names_to_the_kernel():
+    import threading
+    from services.runtime.threads import start_thread
+
+    seen = {}
+
+    def record():
+        with open(f"/proc/self/task/{threading.get_native_id()}/comm") as f:
+            seen["comm"] = f.read().strip()
+
+    start_thread(record, "mfvs-test-named-thread").join(timeout=5.0)
+    assert seen["comm"] == "mfvs-test-named"  # the kernel keeps the first 15 bytes

@@ -34,6 +34,8 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     # lockstep: a frame every 1/30 s of the arm's time, each answered, from the first the law acted on
     assert result.frames_answered == result.iterations
     assert result.servo_time_s == pytest.approx((result.frames_answered - 1) / 30.0, abs=0.011)
+    # ... and none lost on the way: lockstep waits for every frame's answer
+    assert result.frames_lost == {"camera.dropped": 0, "vision.skipped": 0, "vision.stale": 0}
     first = json.loads(lines[0])
     assert {"iteration", "error_norm", "points", "command", "q"} <= set(first)
     assert all(Path(p).stat().st_size > 1000 for p in result.plots) and len(result.plots) == 3
@@ -77,7 +79,7 @@ def test_mfvs_servo_command_prints_the_result_fields(tmp_path):
     result = json.loads(out.stdout.strip().splitlines()[-1])
     expected = {"converged", "iterations", "final_error_norm", "status", "min_manipulability",
                 "max_joint_limit_violation_deg", "max_linear_speed_mps", "trajectory_log", "plots", "servo_time_s",
-                "frames_answered"}
+                "frames_answered", "frames_lost"}
     assert expected <= set(result) and result["converged"] is True
     assert (tmp_path / "result.json").exists()
     bad = tmp_path / "bad.yaml"

@@ -63,6 +63,7 @@ from services.robot.kinova_api import KinovaApi
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
 from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
 from services.runtime.service import Service, ServiceConfig, query_argument
+from services.runtime.threads import start_thread
 from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import CYCLES_PER_DSP, RobotCore
 from services.robot.hardware import (CYCLE_NS, CYCLE_S, EXTRAPOLATED_CYCLES, HardwareError, JointReading,
@@ -264,8 +265,7 @@ class RobotNode(Service):
         except BaseException:
             self.hardware.close()
             raise
-        self._thread = threading.Thread(target=self._run, name=f"{self.name}-loop", daemon=True)
-        self._thread.start()
+        self._thread = start_thread(self._run, f"{self.name}-loop")
 
     def make_dsp(self):
         """What interprets robot commands: the emulated Kinova DSP (an arm behind Kinova's SDK has its own)."""
@@ -423,8 +423,7 @@ class RobotNode(Service):
         self.declare_loop("bus_cycle", 1.0 / self.cycle_s, self.OVERRUNS)
         if self.cycle_s < self.config.dsp.cycle_s:
             self.declare_loop("cycle", 1.0 / self.config.dsp.cycle_s)
-        self._dsp_thread = threading.Thread(target=self._dsp_worker, name=f"{self.name}-dsp", daemon=True)
-        self._dsp_thread.start()
+        self._dsp_thread = start_thread(self._dsp_worker, f"{self.name}-dsp")
         if request_realtime(self.config.realtime_priority, f"{self.name} bus loop"):
             self.counters.inc("realtime_priority.granted")
         self.on_loop_start()

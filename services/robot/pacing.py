@@ -87,3 +87,12 @@ def request_realtime(priority: int, what: str) -> bool:
         log.warning("%s: realtime priority %d refused (%s); running at normal priority", what, priority, exc)
         return False
     return True
+
+
+def normal_priority() -> None:
+    """The calling thread back to normal scheduling (a thread of a realtime process inherits its priority)."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass

@@ -180,6 +180,13 @@ class ActuatorLink:
             else:
                 batch, stamps = self._receive(deadline, lambda: [f"0x{self.addresses[j]:02X}:{_REPLY_NAMES[k]}"
                                                                  for j, k in zip(*np.nonzero(~got))])
+            if missing == 3 * n and self._whole_reply_set(batch, n):  # the usual cycle: one vectorised take
+                head = batch[: 3 * n]
+                table[joint_of[head["source"]], head["command"] - _FIRST_REPLY] = head
+                self.last_stamp_ns = int(stamps[: 3 * n].max())
+                if len(batch) > 3 * n:
+                    self._carry = (batch[3 * n :], stamps[3 * n :])
+                return table
             commands, sources = batch["command"].tolist(), batch["source"].tolist()
             for k, (command, source) in enumerate(zip(commands, sources)):
                 if not missing:
@@ -196,6 +203,19 @@ class ActuatorLink:
                 missing -= 1
                 self.last_stamp_ns = max(self.last_stamp_ns, int(stamps[k]))
         return table
+
+    def _whole_reply_set(self, batch: np.ndarray, n: int) -> bool:
+        """Whether ``batch`` starts with the 0x15, 0x16 and 0x17 of each of the ``n`` actuators, once each and
+        nothing else among them (no report, no NACK): then :meth:`_collect_values` takes them at once, and
+        anything else goes through its message-by-message path, which counts and reports."""
+        if len(batch) < 3 * n:
+            return False
+        head = batch[: 3 * n]
+        joints = self._joint_of[head["source"]]
+        kinds = head["command"].astype(np.int64) - _FIRST_REPLY
+        if (joints < 0).any() or (kinds < 0).any() or (kinds > 2).any():
+            return False
+        return len(np.unique(joints * 3 + kinds)) == 3 * n
 
     def switch_to_torque(self, expected_torques_nm) -> None:
         """The torque-mode handshake for every actuator: validation of the expected torques, then the switch."""

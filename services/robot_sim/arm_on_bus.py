@@ -28,6 +28,7 @@ import numpy as np
 from protocol import rs485
 from services.runtime.config import ConfigStruct
 from services.runtime.metrics import Counters, DurationStats, LoopTimer
+from services.runtime.threads import start_thread
 from services.robot.rs485_bus import BusError, RS485Bus
 from services.robot.hardware import CYCLE_NS, CYCLE_S
 from services.robot.node import DSP_CYCLE_NS, LockstepConfig
@@ -109,8 +110,7 @@ class ArmOnBus:
         self._last_tick: Optional[int] = None
 
     def start(self) -> "ArmOnBus":
-        self._thread = threading.Thread(target=self.run, name="robot_sim-bus", daemon=True)
-        self._thread.start()
+        self._thread = start_thread(self.run, "robot_sim-bus")
         return self
 
     def stop(self, close_bus: bool = True) -> None:

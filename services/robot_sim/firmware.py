@@ -123,6 +123,8 @@ class ActuatorFirmware:
         self.by_address = {a.address: a for a in self.actuators}
         self._mass = np.zeros((model.nv, model.nv))
         self._friction = model.dof_damping[: self.n].copy()
+        #: physical degrees (the bus's unit) to the model's radians, sign included
+        self._deg_to_model = jaco2.SIGN * (math.pi / 180.0)
         #: the current cycle boundary's time (s) on the arm's timeline
         self.now_s = 0.0
         #: reports raised at a boundary (joint limits) for the bus to carry: (address, error)
@@ -310,28 +312,29 @@ class ActuatorFirmware:
         return self._segment_arrays
 
     def apply(self, t_s: float) -> None:
-        """The actuators' torques for the physics step starting at ``t_s`` (the arm's timeline)."""
+        """The actuators' torques for the physics step starting at ``t_s`` (the arm's timeline). Runs every physics
+        step (1 kHz): a handful of whole-array operations, no per-joint Python."""
         d = self.data
         n = self.n
         q, dq = d.qpos[:n], d.qvel[:n]
         gravity = d.qfrc_bias[:n]  # at rest this is the gravity torque; it also cancels Coriolis terms
         mujoco.mj_fullM(self.model, d, self._mass)
-        inertia = np.diag(self._mass)[:n]
-        kp, kd = inertia * SERVO_BANDWIDTH_RPS**2, inertia * 2.0 * SERVO_BANDWIDTH_RPS
+        inertia = self._mass.diagonal()[:n]
         torque_mode, torque_nm, start_deg, rate_dps, accel_dps2, taken_s, last_deg = self._segments()
         # follow the reference (_reference_deg, for all seven at once), with the inertia, friction and gravity its
         # motion needs as feed-forward (the segment's change of rate during the cycle it was taken in)
         ahead = t_s - taken_s
         started = ahead >= 0.0
-        reference_deg = np.where(started, start_deg + rate_dps * np.clip(ahead, 0.0, GOES_ON_S), last_deg)
-        moving = started & (ahead < GOES_ON_S - 1e-9)
-        rate = jaco2.SIGN * np.radians(np.where(moving, rate_dps, 0.0))
-        in_first_cycle = started & (ahead < CYCLE_S - 1e-9) & ~torque_mode
-        accel = np.where(in_first_cycle, jaco2.SIGN * np.radians(accel_dps2), 0.0)
-        target = jaco2.SIGN * np.radians(reference_deg)
-        tau = gravity + self._friction * rate + kp * (target - q) + kd * (rate - dq)
+        reference_deg = np.where(started, start_deg + rate_dps * np.minimum(np.maximum(ahead, 0.0), GOES_ON_S),
+                                 last_deg)
+        rate = self._deg_to_model * np.where(started & (ahead < GOES_ON_S - 1e-9), rate_dps, 0.0)
+        tau = gravity + self._friction * rate + inertia * (
+            SERVO_BANDWIDTH_RPS**2 * (self._deg_to_model * reference_deg - q)
+            + 2.0 * SERVO_BANDWIDTH_RPS * (rate - dq))
         if torque_mode.any():
             commanded = jaco2.SIGN * torque_nm + (gravity if self.config.gravity_compensation else 0.0)
             tau = np.where(torque_mode, commanded, tau)
-        tau = tau + self._mass[:n, :n] @ accel
-        d.ctrl[:n] = np.clip(tau, -self.torque_limit, self.torque_limit)
+        in_first_cycle = started & (ahead < CYCLE_S - 1e-9) & ~torque_mode
+        if in_first_cycle.any():
+            tau += self._mass[:n, :n] @ np.where(in_first_cycle, self._deg_to_model * accel_dps2, 0.0)
+        np.clip(tau, -self.torque_limit, self.torque_limit, out=d.ctrl[:n])

@@ -32,6 +32,7 @@ from services.runtime.clock import SimulatedClock, WallClock, make_clock
 from services.runtime.config import ConfigStruct
 from services.runtime.logs import RateLimitedLogger
 from services.runtime.metrics import Counters, Rates
+from services.runtime.threads import start_thread
 from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session
 
 M = TypeVar("M", bound=msgspec.Struct)
@@ -75,6 +76,21 @@ class DeclaredInput:
     key: str
     message_type: type
     stream: str
+
+
+def query_health(session: zenoh.Session, keys: Keys, timeout_s: float = 2.0) -> dict[str, ServiceHealth]:
+    """Every service's health that answers on ``keys.health_all`` within ``timeout_s``, by service name (an
+    answer that does not decode is left out)."""
+    found = {}
+    for reply in session.get(keys.health_all, timeout=timeout_s):
+        if reply.ok is None:
+            continue
+        try:
+            health = decode(reply.ok.payload.to_bytes(), ServiceHealth)
+        except ProtocolError:
+            continue
+        found[health.service] = health
+    return found
 
 
 def query_argument(query: zenoh.Query, function: str, message_type: type[M] | None) -> M | None:
@@ -151,11 +167,8 @@ class Service:
                 self.queryable(self.keys.health(self.name), self._answer_health)
                 self._health_publisher = self.session.declare_publisher(self.keys.health(self.name))
                 self._declared.append(self._health_publisher)
-                self._health_thread = threading.Thread(
-                    target=self._health_loop, name=f"{self.name}-health", daemon=True
-                )
                 self.state = "running"
-                self._health_thread.start()
+                self._health_thread = start_thread(self._health_loop, f"{self.name}-health")
             except BaseException:
                 self._teardown()
                 self.state = "failed"

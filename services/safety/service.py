@@ -29,6 +29,7 @@ from protocol.conventions import ClockMode
 from protocol.messages import EStop, JointVelocity, RobotState, SafetyStatus, Twist
 from services.robot.pacing import request_realtime
 from services.runtime.service import Service, ServiceConfig
+from services.runtime.threads import start_thread
 from services.safety.checks import SafetyLimits
 from services.safety.core import Action, Count, HeldCommand, Refused, SafetyCore, Send
 
@@ -74,8 +75,7 @@ class SafetyService(Service):
         self.subscribe(keys.estop, EStop, self._on_estop, "estop")
         self._declared.append(self.session.liveliness().declare_subscriber(
             keys.liveliness_all, self._on_liveliness, history=True))
-        self._thread = threading.Thread(target=self._loop, name="safety-loop", daemon=True)
-        self._thread.start()
+        self._thread = start_thread(self._loop, "safety-loop")
 
     def on_stop(self) -> None:
         # leave the arm stopping rather than holding a last command for the watchdog's grace

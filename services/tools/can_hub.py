@@ -28,6 +28,7 @@ from typing import Optional
 import can
 
 from services.runtime.metrics import Counters
+from services.runtime.threads import start_thread
 
 log = logging.getLogger("mfvs.can_hub")
 
@@ -61,6 +62,21 @@ def encode_frame(message: can.Message) -> bytes:
     flags = ((FLAG_EXTENDED if message.is_extended_id else 0) | (FLAG_FD if message.is_fd else 0)
              | (FLAG_BRS if message.bitrate_switch else 0))
     return HEADER.pack(message.arbitration_id, flags, len(data), float(message.timestamp or 0.0)) + data
+
+
+def complete_frames(buffer: bytearray) -> tuple[int, int]:
+    """How many bytes at the start of ``buffer`` are complete frames, and how many frames that is (a frame's
+    length is checked, its bytes are not copied: the hub forwards them as they came)."""
+    offset, count, size = 0, 0, len(buffer)
+    while size - offset >= HEADER.size:
+        length = buffer[offset + 5]
+        if length > MAX_DATA:
+            raise ValueError(f"frame length {length} > {MAX_DATA}")
+        end = offset + HEADER.size + length
+        if end > size:
+            break
+        offset, count = end, count + 1
+    return offset, count
 
 
 def split_frames(buffer: bytearray) -> list[bytes]:
@@ -243,13 +259,15 @@ class HubBus(can.BusABC):
 
 
 class _Node:
-    __slots__ = ("sock", "address", "inbox", "outbox")
+    __slots__ = ("sock", "address", "inbox", "outbox", "writing")
 
     def __init__(self, sock: socket.socket, address) -> None:
         self.sock = sock
         self.address = address
         self.inbox = bytearray()
         self.outbox = bytearray()
+        #: registered for EVENT_WRITE (its outbox did not all go)
+        self.writing = False
 
 
 class CanHub:
@@ -292,8 +310,7 @@ class CanHub:
 
     def start(self) -> "CanHub":
         self.bind()
-        self._thread = threading.Thread(target=self._run, name="can-hub", daemon=True)
-        self._thread.start()
+        self._thread = start_thread(self._run, "can-hub")
         return self
 
     def serve_forever(self) -> None:
@@ -376,18 +393,19 @@ class CanHub:
             return
         node.inbox += chunk
         try:
-            frames = split_frames(node.inbox)
+            end, count = complete_frames(node.inbox)
         except ValueError as exc:
             self.counters.inc("bad_frames")
             self._drop(node, f"malformed frame: {exc}")
             return
-        if not frames:
+        if not count:
             return
-        payload = b"".join(frames)
-        self.counters.inc("frames", len(frames))
+        payload = bytes(node.inbox[:end])
+        del node.inbox[:end]
+        self.counters.inc("frames", count)
         for other in list(self._nodes.values()):
             if other is not node:
-                self._queue(other, payload, len(frames))
+                self._queue(other, payload, count)
 
     def _queue(self, node: _Node, payload: bytes, count: int) -> None:
         if len(node.outbox) + len(payload) > MAX_BACKLOG_BYTES:
@@ -407,8 +425,11 @@ class CanHub:
             self._drop(node, str(exc))
             return
         del node.outbox[:sent]
-        events = selectors.EVENT_READ | (selectors.EVENT_WRITE if node.outbox else 0)
-        self._selector.modify(node.sock, events, "node")
+        writing = bool(node.outbox)
+        if writing != node.writing:  # a system call only when the interest changes (not per relayed batch)
+            node.writing = writing
+            events = selectors.EVENT_READ | (selectors.EVENT_WRITE if writing else 0)
+            self._selector.modify(node.sock, events, "node")
 
     def _drop(self, node: _Node, why: str) -> None:
         self._nodes.pop(node.sock, None)

@@ -35,6 +35,7 @@ from services.model import frames
 from services.model import tag as tags
 from services.runtime.config import ConfigStruct, PoseConfig
 from services.runtime.service import Service, ServiceConfig, query_argument
+from services.runtime.threads import start_thread
 from services.vision import features as F
 
 #: seed 000 Table 2's desired square (±0.1666 at 0.2888 m), in this project's corner order
@@ -126,8 +127,7 @@ class VisionService(Service):
         self.subscribe(keys.vision_goal, VisionGoal, lambda goal, _: self.set_goal(goal), "goal")
         self.queryable(keys.vision_api("set_goal"), self._on_set_goal_query)
         self.queryable(keys.vision_api("get_goal"), self._on_get_goal_query)
-        self._worker = threading.Thread(target=self._work, name="vision-worker", daemon=True)
-        self._worker.start()
+        self._worker = start_thread(self._work, "vision-worker")
         self._request_camera_info()
 
     def on_stop(self) -> None:
