@@ -111,3 +111,50 @@ def test_the_link_survives_a_hub_restart():
             assert runner._thread.is_alive()
     finally:
         hub.close()
+
+
+def _wire(frames):
+    return bytearray(b"".join(HEADER.pack(i, 0x02, len(d), t) + bytes(d) for i, t, d in frames))
+
+
+def test_the_block_parse_agrees_with_the_frame_by_frame_one_on_mixed_traffic():
+    from services.tools.can_hub import complete_frames, split_frames, uniform_frames
+
+    twenty = [(0x10 + k, 0.5 * k, bytes([k]) * 20) for k in range(21)]
+    mixed = twenty[:5] + [(0x30, 0.0, b"\x07" * 8)] + twenty[5:]
+    buffer = _wire(mixed) + _wire([(0x11, 0.0, bytes(20))])[:-3]  # and a frame cut short
+    records = uniform_frames(buffer, 20)
+    assert [(int(i), float(t), bytes(d)) for i, t, d in zip(records["arbitration_id"], records["timestamp"],
+                                                              records["data"])] == twenty[:5]
+    end, count = complete_frames(buffer)
+    assert count == len(mixed) and end == len(_wire(mixed))
+    assert split_frames(bytearray(buffer)) == [bytes(_wire([f])) for f in mixed]
+    assert len(uniform_frames(bytearray(_wire([(0x30, 0.0, b"\x07" * 8)]) + _wire(twenty)), 20)) == 0
+
+
+def test_blocks_of_frames_cross_the_hub_in_order_and_other_sizes_are_counted_out(hub):
+    a, b = node(hub), node(hub)
+    try:
+        assert wait_for(lambda: hub.counters.get("nodes") == 2)
+        data = bytes(range(20)) * 21
+        a.send_block(list(range(0x10, 0x10 + 21)), data, 20, timestamp=12.5)
+        a.send(frame(0x40, b"\x09" * 8))  # another size between two blocks
+        a.send_block([0x10], bytes([200]) * 20, 20)
+        ids, stamps, got, dropped = [], [], b"", 0
+        deadline = time.monotonic() + 2.0
+        while len(ids) < 22 and time.monotonic() < deadline:
+            i, t, d, n = b.recv_block(0.2, 20)
+            ids += list(i)
+            stamps += list(t)
+            got += d
+            dropped += n
+        assert ids == list(range(0x10, 0x10 + 21)) + [0x10] and dropped == 1
+        assert got == data + bytes([200]) * 20
+        assert stamps[:21] == [12.5] * 21 and stamps[21] == 0.0
+        # a single-frame receive and a block receive share one stream, in order
+        a.send_block([0x21, 0x22], bytes(40), 20)
+        assert b.recv(2.0).arbitration_id == 0x21
+        assert list(b.recv_block(2.0, 20)[0]) == [0x22]
+    finally:
+        a.shutdown()
+        b.shutdown()

@@ -56,6 +56,8 @@ class RS485Bus:
             options.setdefault("preserve_timestamps", True)  # the sender's stamps (the emulated arm's timeline)
         self._bus = can.Bus(interface=self.config.interface, channel=self.config.channel, fd=True, **options)
         self._raw = hasattr(self._bus, "send_raw") and hasattr(self._bus, "recv_raw")
+        #: the interface moves a batch as one block of equal-sized frames (mfvs_hub): no Python object per frame
+        self._block = hasattr(self._bus, "send_block") and hasattr(self._bus, "recv_block")
         self._pending: collections.deque[tuple[RS485Message, int]] = collections.deque()
         self.last_error = ""
 
@@ -72,6 +74,12 @@ class RS485Bus:
             return
         timestamp = stamp_ns * 1e-9
         raw = batch.tobytes()
+        if self._block:
+            try:
+                self._bus.send_block(batch["destination"], raw, MESSAGE_SIZE, timestamp)
+            except can.CanError as exc:
+                raise self._failed(exc) from exc
+            return
         payloads = [raw[i : i + MESSAGE_SIZE] for i in range(0, len(raw), MESSAGE_SIZE)]
         ids = batch["destination"].tolist()
         try:
@@ -94,6 +102,11 @@ class RS485Bus:
         two arrays, empty when nothing came. Invalid frames are counted and dropped; a failing bus raises
         :class:`BusError`."""
         try:
+            if self._block:
+                ids, seconds, data, dropped = self._bus.recv_block(timeout, MESSAGE_SIZE)
+                if dropped:
+                    self._reject(dropped, "frame of another length")
+                return self._validated(np.frombuffer(data, dtype=MESSAGE_DTYPE), seconds)
             if self._raw:
                 items = self._bus.recv_raw(timeout)
             else:
@@ -117,7 +130,12 @@ class RS485Bus:
                 return _NO_MESSAGES, _NO_STAMPS
             items = good
         batch = np.frombuffer(b"".join([data for _, _, data in items]), dtype=MESSAGE_DTYPE)
-        seconds = np.array([timestamp for _, timestamp, _ in items])
+        return self._validated(batch, np.array([timestamp for _, timestamp, _ in items]))
+
+    def _validated(self, batch: np.ndarray, seconds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The batch's messages with a known command, and their stamps (ns; a frame without one: now)."""
+        if len(batch) == 0:
+            return _NO_MESSAGES, _NO_STAMPS
         stamps = np.where(seconds > 0, np.rint(seconds * 1e9), time.time_ns()).astype(np.int64)
         known = known_commands(batch)
         if not np.all(known):
