@@ -25,7 +25,7 @@ from services.controller import ibvs
 from services.controller.law import ConstraintAbort, LawOutput, ServoInput
 from services.controller.laws import JOINT_LAWS, make_law
 from services.controller.task import Task
-from services.model import frames, jaco2
+from services.model import frames, jaco2, saturation
 from services.runtime.config import ConfigStruct
 
 
@@ -143,15 +143,11 @@ def saturate(output: LawOutput, limits: OutputLimits, joint_output: bool) -> boo
     """Scale the law's output down to the limits (in place): joint velocities uniformly to the joints' speed
     scale, a twist's linear and angular parts each to their speed; whether anything was scaled."""
     if joint_output:
-        ratio = float(np.max(np.abs(output.joint_velocities) / (jaco2.MAX_SPEED * limits.joint_speed_scale)))
-        if ratio > 1.0:
-            output.joint_velocities = output.joint_velocities / ratio
-            return True
-        return False
+        output.joint_velocities, ratio = saturation.limit_uniformly(
+            output.joint_velocities, jaco2.MAX_SPEED * limits.joint_speed_scale)
+        return ratio > 1.0
     saturated = False
     for part, vmax in ((slice(0, 3), limits.max_linear_speed_mps), (slice(3, 6), limits.max_angular_speed_rps)):
-        speed = float(np.linalg.norm(output.twist[part]))
-        if speed > vmax:
-            output.twist[part] *= vmax / speed
-            saturated = True
+        output.twist[part], speed = saturation.limit_norm(output.twist[part], vmax)
+        saturated = saturated or speed > vmax
     return saturated

@@ -36,7 +36,7 @@ import numpy as np
 from protocol import kinova
 from protocol.conventions import AngularConvention, Frame
 from protocol.messages import CommandMode, ControlMode, Header, RobotCommand
-from services.model import frames, jaco2
+from services.model import frames, jaco2, saturation
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics, manipulability
 from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
@@ -363,14 +363,11 @@ class KinovaDSP:
         out = np.array(twist, dtype=float, copy=True)
         for part, vmax, amax in ((slice(0, 3), max_lin, cfg.linear_accel_mps2),
                                  (slice(3, 6), max_ang, cfg.angular_accel_rps2)):
-            speed = np.linalg.norm(out[part])
+            out[part], speed = saturation.limit_norm(out[part], vmax)
             if speed > vmax:
-                out[part] *= vmax / speed
                 self._flag("speed")
-            step = out[part] - self._twist_prev[part]
-            size = np.linalg.norm(step)
-            if size > amax * dt:
-                out[part] = self._twist_prev[part] + step * (amax * dt / size)
+            out[part], cut = saturation.limit_norm_change(self._twist_prev[part], out[part], amax * dt)
+            if cut:
                 self._flag("acceleration")
         return out
 
@@ -419,14 +416,12 @@ class KinovaDSP:
     def _joint(self, q, dq_desired, dt, max_speed, uniform: bool = False) -> np.ndarray:
         """Joint speed (uniform scaling keeps a Cartesian direction), joint acceleration, joint limits."""
         dq = np.array(dq_desired, dtype=float, copy=True)
-        ratio = np.max(np.abs(dq) / max_speed)
+        limited, ratio = saturation.limit_uniformly(dq, max_speed)
         if ratio > 1.0:
-            dq = dq / ratio if uniform else np.clip(dq, -max_speed, max_speed)
+            dq = limited if uniform else np.clip(dq, -max_speed, max_speed)
             self._flag("speed")
-        step = dq - self._dq_prev
-        step_ratio = np.max(np.abs(step) / (self._joint_accel * dt))
-        if step_ratio > 1.0:
-            dq = self._dq_prev + step / step_ratio
+        dq, cut = saturation.limit_change_uniformly(self._dq_prev, dq, self._joint_accel * dt)
+        if cut:
             self._flag("acceleration")
         return self._joint_limits(q, dq, dt)
 

@@ -13,7 +13,7 @@ import msgspec
 import numpy as np
 
 from protocol.conventions import AngularConvention, Frame
-from services.model import frames, jaco2
+from services.model import frames, jaco2, saturation
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics
 from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
@@ -118,19 +118,17 @@ class CommandChecker:
         # speeds
         for part, vmax, name in ((slice(0, 3), lim.max_linear_speed_mps, "linear_speed"),
                                  (slice(3, 6), lim.max_angular_speed_rps, "angular_speed")):
-            speed = float(np.linalg.norm(base[part]))
+            limited, speed = saturation.limit_norm(base[part], vmax)
             if speed > vmax:
                 if lim.over_limit == "refuse":
                     return Decision(refusal=f"{name}: {speed:.3f} over the limit {vmax:.3f}", limits=[name])
-                base[part] *= vmax / speed
+                base[part] = limited
                 decision.limits.append(name)
         # accelerations, from the last forwarded twist
         for part, amax, name in ((slice(0, 3), lim.max_linear_accel_mps2, "linear_accel"),
                                  (slice(3, 6), lim.max_angular_accel_rps2, "angular_accel")):
-            step = base[part] - self.last_twist_base[part]
-            size = float(np.linalg.norm(step))
-            if size > amax * dt:
-                base[part] = self.last_twist_base[part] + step * (amax * dt / size)
+            base[part], cut = saturation.limit_norm_change(self.last_twist_base[part], base[part], amax * dt)
+            if cut:
                 decision.limits.append(name)
         # workspace zones: remove motion into a zone
         base[:3], zones = filter_velocity(lim.zones, p, base[:3], lim.zone_filter, dt)
@@ -139,7 +137,7 @@ class CommandChecker:
         J_pinv = np.linalg.pinv(J)
         dq = J_pinv @ base
         scale = 1.0
-        ratio = float(np.max(np.abs(dq) / self.max_joint_speed))
+        ratio = saturation.over_limit_ratio(dq, self.max_joint_speed)
         if ratio > 1.0:
             if lim.over_limit == "refuse":
                 return Decision(refusal=f"joint_speed: {ratio:.2f}× the joint speed limit", limits=["joint_speed"])
@@ -172,27 +170,25 @@ class CommandChecker:
         q = np.asarray(q, dtype=float)
         dq = np.array(dq, dtype=float, copy=True)
         decision = Decision()
-        ratio = float(np.max(np.abs(dq) / self.max_joint_speed))
+        limited, ratio = saturation.limit_uniformly(dq, self.max_joint_speed)
         if ratio > 1.0:
             if lim.over_limit == "refuse":
                 return Decision(refusal=f"joint_speed: {ratio:.2f}× the joint speed limit", limits=["joint_speed"])
-            dq /= ratio
+            dq = limited
             decision.limits.append("joint_speed")
-        step = dq - self.last_dq
-        step_ratio = float(np.max(np.abs(step) / (self.max_joint_accel * dt)))
-        if step_ratio > 1.0:
-            dq = self.last_dq + step / step_ratio
+        dq, cut = saturation.limit_change_uniformly(self.last_dq, dq, self.max_joint_accel * dt)
+        if cut:
             decision.limits.append("joint_accel")
         dq *= self._joint_limit_scale(q, dq, decision)
         R, p, J = self.kin.pose_and_jacobian(q)
         twist = J @ dq
         for part, vmax, name in ((slice(0, 3), lim.max_linear_speed_mps, "linear_speed"),
                                  (slice(3, 6), lim.max_angular_speed_rps, "angular_speed")):
-            speed = float(np.linalg.norm(twist[part]))
+            _, speed = saturation.limit_norm(twist[part], vmax)
             if speed > vmax:
                 if lim.over_limit == "refuse":
                     return Decision(refusal=f"{name}: {speed:.3f} over the limit {vmax:.3f}", limits=[name])
-                dq *= vmax / speed
+                dq = dq * (vmax / speed)  # the joint motion scaled as its twist part is
                 twist = J @ dq
                 decision.limits.append(name)
         _, zones = filter_velocity(lim.zones, p, twist[:3], lim.zone_filter, dt)
