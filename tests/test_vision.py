@@ -280,3 +280,20 @@ def test_window_is_the_last_box_with_its_margin_clipped_to_the_image():
     assert F.TagTracker(F.TagDetector(), F.RoiConfig(enabled=False)).window((480, 640)) is None
     with pytest.raises(ValueError):
         F.RoiConfig(full_frame_every=0)
+
+
+def test_the_vision_core_needs_no_service_and_takes_time_from_its_caller():
+    from services.vision.core import VisionCore
+
+    image, _, _, cfg = render(POSES[1])
+    core = VisionCore(VisionConfig())
+    info = camera_info(cfg.camera, m.Header())
+    captured = 5_000_000_000  # any clock: the core reads none of its own
+    fresh = core.process(image_message(image, captured), info, now_ns=captured + 100_000_000)
+    assert fresh.status is m.FeatureStatus.OK and fresh.counts == ["detect.full"] and not fresh.refusal
+    assert np.allclose(core.last_points, fresh.measurement.points)
+    late = core.process(image_message(image, captured + 1), info, now_ns=captured + 1 + 260_000_000)
+    assert late.status is m.FeatureStatus.STALE and late.counts == ["frames.stale"] and late.measurement is None
+    again = core.process(image_message(image, captured), info, now_ns=captured)
+    assert again.status is m.FeatureStatus.STALE and "not newer" in again.refusal
+    assert core.goal_from(m.VisionGoal(header=m.Header(), teach=True)).description == "teach"

@@ -8,6 +8,10 @@ comes is answered with ``stale`` and no features; unusable images with ``invalid
 
 Images are processed in a worker thread, newest first: if images arrive faster than they are processed, the
 older waiting one is dropped (counted as ``frames.skipped``), so features are never late by a queue.
+
+The rules (order, age, camera info, size, then detect → normalise → pose → error; the goal) are
+:class:`services.vision.core.VisionCore`'s; this service decodes, hands it the image with the time, counts what it
+says and publishes.
 """
 from __future__ import annotations
 
@@ -15,15 +19,12 @@ import threading
 from typing import Optional
 
 import msgspec
-import numpy as np
 import zenoh
 
 from protocol.messages import (
     CameraInfo,
     Features,
-    FeatureStatus,
     Image,
-    ImageEncoding,
     Pose,
     ProtocolError,
     VisionGoal,
@@ -37,6 +38,7 @@ from services.runtime.config import ConfigStruct, PoseConfig
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import start_thread
 from services.vision import features as F
+from services.vision.core import VisionCore
 
 #: seed 000 Table 2's desired square (±0.1666 at 0.2888 m), in this project's corner order
 TABLE2_GOAL = ((-0.1666, -0.1666), (0.1666, -0.1666), (0.1666, 0.1666), (-0.1666, 0.1666))
@@ -83,22 +85,6 @@ class VisionConfig(ServiceConfig):
     min_peak_brightness: int = 16
 
 
-class Goal:
-    """The current goal: desired points and depths (4 each)."""
-
-    def __init__(self, points: np.ndarray, depths: np.ndarray, description: str) -> None:
-        self.points = np.asarray(points, dtype=float).reshape(-1, 2)
-        self.depths = np.asarray(depths, dtype=float).reshape(-1)
-        self.description = description
-
-    @classmethod
-    def from_config(cls, goal: GoalConfig, size_m: float) -> "Goal":
-        if goal.camera_in_tag is not None:
-            points, depths = F.goal_from_camera_in_tag(goal.camera_in_tag.matrix(), size_m)
-            return cls(points, depths, "camera_in_tag")
-        return cls(np.array(goal.features), np.full(4, goal.depth_m), "features")
-
-
 class VisionService(Service):
     name = "vision"
 
@@ -106,16 +92,13 @@ class VisionService(Service):
         config = config or VisionConfig()
         super().__init__(config, **kw)
         self.config: VisionConfig = config
-        self.detector = F.TagDetector(config.tag.family, config.refinement)
-        self.tracker = F.TagTracker(self.detector, config.roi)
-        self.goal = Goal.from_config(config.goal, config.tag.size_m)
+        self.core = VisionCore(config)
+        #: the core's: held while it processes an image or changes the goal (queries wait one frame at most)
+        self._core_lock = threading.Lock()
         self._lock = threading.Lock()
         self._info: Optional[CameraInfo] = None
         self._pending: Optional[tuple[Image, int]] = None
         self._wake = threading.Condition(self._lock)
-        self._last_points: Optional[np.ndarray] = None
-        self._last_depths: Optional[np.ndarray] = None
-        self._last_capture_ns = -1
         self._worker: Optional[threading.Thread] = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -141,7 +124,7 @@ class VisionService(Service):
             return False, "worker stopped"
         if self._info is None:
             return False, "no camera info yet"
-        return True, f"goal from {self.goal.description}"
+        return True, f"goal from {self.core.goal.description}"
 
     # ------------------------------------------------------------------ inputs
     def _request_camera_info(self) -> None:
@@ -175,26 +158,12 @@ class VisionService(Service):
     # ------------------------------------------------------------------ goal
     def set_goal(self, goal: VisionGoal) -> VisionGoalReply:
         try:
-            if goal.teach:
-                with self._lock:
-                    points, depths = self._last_points, self._last_depths
-                if points is None:
-                    raise ValueError("teach needs the tag in view: no current features")
-                new = Goal(points, depths, "teach")
-            elif goal.camera_in_tag is not None:
-                T = frames.homogeneous(frames.quat_wxyz_to_matrix(goal.camera_in_tag.quat_wxyz),
-                                       goal.camera_in_tag.xyz)
-                points, depths = F.goal_from_camera_in_tag(T, self.config.tag.size_m)
-                new = Goal(points, depths, "camera_in_tag")
-            else:
-                if len(goal.features) != 4:
-                    raise ValueError(f"the tag gives 4 points, the goal has {len(goal.features)}")
-                new = Goal(np.array(goal.features), np.full(4, goal.depth_m), "features")
+            with self._core_lock:
+                new = self.core.goal_from(goal)
+                self.core.goal = new
         except ValueError as exc:
             self.refuse("goal", str(exc))
             return VisionGoalReply(ok=False, message=str(exc))
-        with self._lock:
-            self.goal = new
         self.log.info("goal set from %s", new.description)
         return VisionGoalReply(ok=True, goal_points=[tuple(p) for p in new.points], goal_depths=new.depths.tolist())
 
@@ -213,8 +182,8 @@ class VisionService(Service):
             self.refuse("api", str(exc))
             query.reply(query.key_expr, encode(VisionGoalReply(ok=False, message=str(exc)[:256])))
             return
-        with self._lock:
-            goal = self.goal
+        with self._core_lock:
+            goal = self.core.goal
         query.reply(query.key_expr, encode(VisionGoalReply(
             ok=True, message=goal.description, goal_points=[tuple(p) for p in goal.points],
             goal_depths=goal.depths.tolist())))
@@ -236,72 +205,27 @@ class VisionService(Service):
                 self.limited_log.error("processing", "vision: processing an image failed")
                 self.log.debug("processing failure", exc_info=True)
 
-    def _answer(self, image: Image, recv_ns: int, status: FeatureStatus, detail: str = "", **fields) -> Features:
-        header = self.header("features", source=image.header, recv_ns=recv_ns)
-        with self._lock:
-            goal = self.goal
-        return Features(header=header, status=status, tag_id=self.config.tag.id, detail=detail,
-                        goal_points=[tuple(p) for p in goal.points], goal_depths=goal.depths.tolist(), **fields)
-
     def process(self, image: Image, recv_ns: int) -> Features:
         """Features for one image (also usable without zenoh: ``recv_ns`` is when the image arrived)."""
-        cfg = self.config
-        capture = image.header.source_stamp_ns or image.header.stamp_ns
         with self._lock:
             info = self._info
-        if capture <= self._last_capture_ns:
-            self.refuse("image", f"image captured at {capture} is not newer than the last one processed")
-            return self._answer(image, recv_ns, FeatureStatus.STALE, "out-of-order image")
-        self._last_capture_ns = capture
-        age_s = (self.clock.now_ns() - capture) * 1e-9
-        if age_s > cfg.max_image_age_s:
-            self.counters.inc("frames.stale")
-            return self._answer(image, recv_ns, FeatureStatus.STALE, f"image is {age_s * 1e3:.0f} ms old")
-        if info is None:
-            self.refuse("image", "no camera info yet")
-            return self._answer(image, recv_ns, FeatureStatus.INVALID_IMAGE, "no camera info yet")
-        if (image.width, image.height) != (info.width, info.height):
-            reason = f"image is {image.width}x{image.height}, the camera info says {info.width}x{info.height}"
-            self.refuse("image", reason)
-            return self._answer(image, recv_ns, FeatureStatus.INVALID_IMAGE, reason)
-        measurement = F.measure(self._gray(image), self.tracker, cfg.tag.id, cfg.tag.size_m,
-                                F.camera_matrix(info.fx, info.fy, info.cx, info.cy),
-                                np.asarray(info.distortion, dtype=float), goal_points=self._goal_points(),
-                                min_peak_brightness=cfg.min_peak_brightness, border_margin_px=cfg.border_margin_px)
-        status = measurement.status
-        search = self.tracker.take_last_search()
-        if search:
-            self.counters.inc(f"detect.{search}")
-        if measurement.rejected:
-            self.refuse("image", measurement.detail)
-        elif status is FeatureStatus.TAG_LOST:
-            self.counters.inc("frames.tag_lost")
-        if not measurement.rejected:  # an unusable image says nothing about the view
-            with self._lock:  # the last features seen (a goal taught from the current view uses them)
-                self._last_points, self._last_depths = measurement.points, measurement.depths
-        if measurement.points is None:
-            return self._answer(image, recv_ns, status, measurement.detail)
+        with self._core_lock:
+            outcome = self.core.process(image, info, self.clock.now_ns())
+            goal = self.core.goal
+        if outcome.refusal:
+            self.refuse("image", outcome.refusal)
+        for name in outcome.counts:
+            self.counters.inc(name)
+        header = self.header("features", source=image.header, recv_ns=recv_ns)
+        answer = dict(header=header, status=outcome.status, tag_id=self.config.tag.id, detail=outcome.detail,
+                      goal_points=[tuple(p) for p in goal.points], goal_depths=goal.depths.tolist())
+        measurement = outcome.measurement
+        if measurement is None or measurement.points is None:
+            return Features(**answer)
         R, t = measurement.pose
-        return self._answer(
-            image, recv_ns, status, measurement.detail, points=[tuple(p) for p in measurement.points],
-            depths=measurement.depths.tolist(), error=measurement.error.tolist(), error_norm=measurement.error_norm,
+        return Features(
+            **answer, points=[tuple(p) for p in measurement.points], depths=measurement.depths.tolist(),
+            error=measurement.error.tolist(), error_norm=measurement.error_norm,
             tag_pose_in_camera=Pose(xyz=tuple(t), quat_wxyz=tuple(frames.matrix_to_quat_wxyz(R))),
             corners_px=[tuple(c) for c in measurement.corners_px],
         )
-
-    def _goal_points(self) -> np.ndarray:
-        with self._lock:
-            return self.goal.points
-
-    @staticmethod
-    def _gray(image: Image) -> np.ndarray:
-        import cv2
-
-        pixels = np.frombuffer(image.data, dtype=np.uint8)
-        if image.encoding is ImageEncoding.MONO8:
-            return pixels.reshape(image.height, image.width)
-        rgb = pixels.reshape(image.height, image.width, 3)
-        code = cv2.COLOR_RGB2GRAY if image.encoding is ImageEncoding.RGB8 else cv2.COLOR_BGR2GRAY
-        return cv2.cvtColor(rgb, code)
-
-
