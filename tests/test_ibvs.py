@@ -245,7 +245,7 @@ def test_unknown_law_is_refused():
 
 def test_target_motion_term_reduces_the_tracking_lag():
     """A target moving at constant velocity: estimating ∂ê/∂t (eq. 19/21) shrinks the steady tracking error."""
-    from services.controller.kinematic import KinematicLoop
+    from tests.kinematic_loop import KinematicLoop
 
     T_be = jaco2.dh_forward_kinematics(jaco2.HOME)
     tag = PoseConfig(xyz=(0.0, 0.0, 0.2888), rpy_deg=(180.0, 0.0, 0.0)).matrix()

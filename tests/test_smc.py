@@ -7,7 +7,7 @@ import pytest
 
 from services.model import jaco2
 from services.runtime.config import PoseConfig
-from services.controller.kinematic import KinematicLoop
+from tests.kinematic_loop import KinematicLoop
 from services.controller.law import ConstraintAbort, ServoInput
 from services.controller.laws import make_law
 from services.controller.smc import GRADIENT_ERROR_SIGNS

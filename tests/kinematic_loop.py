@@ -1,5 +1,5 @@
-"""A kinematic closed loop for control laws: ideal joint-velocity tracking and exact projection of the tag
-corners, no rendering, no services. For unit tests and fast experiments; the real loop is ``mfvs servo``."""
+"""A kinematic closed loop for control laws, a test rig: ideal joint-velocity tracking and exact projection of the
+tag corners, no rendering, no services. The real loop is ``mfvs servo``."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
