@@ -59,5 +59,11 @@ class DepthSource(str, enum.Enum):
     MEAN = "mean"
 
 
+#: How old an image may be (its capture to now) and still be acted on, along the whole visual path: vision answers
+#: an older one with ``stale``, the controller outputs zero for features from it, safety stops a command derived
+#: from it. One budget, each service's default (a deployment may tighten one service's). With latency compensation
+#: an image's age is no loop delay; 0.15 s turned a loaded host's late frames into stops.
+IMAGE_AGE_BUDGET_S = 0.25
+
 #: Euler angles in files and at the Kinova boundary are XYZ: R = Rx(r)·Ry(p)·Rz(y).
 EULER_SEQUENCE = "xyz"

@@ -38,3 +38,13 @@ def test_shipped_config_is_the_defaults_with_every_key(service):
     assert load_config(shipped, config_type) == config_type()
     missing = key_paths(msgspec.to_builtins(config_type())) - key_paths(read_yaml(shipped))
     assert not missing, f"{shipped.name} does not show {sorted(missing)}"
+
+
+def test_the_visual_path_shares_one_image_budget():
+    from protocol.conventions import IMAGE_AGE_BUDGET_S
+    from services.controller.service import ControllerConfig
+    from services.safety.checks import SafetyLimits
+    from services.vision.service import VisionConfig
+
+    assert VisionConfig().max_image_age_s == ControllerConfig().max_input_age_s == SafetyLimits().image_budget_s \
+        == IMAGE_AGE_BUDGET_S

@@ -20,7 +20,7 @@ import msgspec
 import numpy as np
 import zenoh
 
-from protocol.conventions import ClockMode, Frame
+from protocol.conventions import IMAGE_AGE_BUDGET_S, ClockMode, Frame
 from protocol.messages import (
     CameraInfo,
     ControllerStatus,
@@ -47,11 +47,9 @@ class ControllerConfig(ServiceConfig):
     control: LawConfig = msgspec.field(default_factory=LawConfig)
     #: ‖e‖ below this is converged (seed 000: 5e-5)
     convergence_error_norm: float = 5e-5
-    #: features whose image is older than this (to the controller's clock) are stale: zero output. As vision's and
-    #: safety's image budgets; with latency compensation an image's age no longer acts as loop delay, and the
-    #: former 0.15 s turned a loaded host's late frames into stops (gateway profile, table2: 1-41 stale frames of
-    #: 114-124 a run, with 0.25 s 0-8)
-    max_input_age_s: float = 0.25
+    #: features whose image is older than this (to the controller's clock) are stale: zero output (the visual
+    #: path's one budget; 0.15 s gave 1-41 stale frames of 114-124 a run through the gateway, 0.25 s 0-8)
+    max_input_age_s: float = IMAGE_AGE_BUDGET_S
     #: the robot state used by the law must be this fresh
     state_budget_s: float = 0.15
     #: realtime: carry each frame's features from the arm's configuration when it was taken to its latest measured

@@ -12,7 +12,7 @@ from typing import Literal, Optional
 import msgspec
 import numpy as np
 
-from protocol.conventions import AngularConvention, Frame
+from protocol.conventions import IMAGE_AGE_BUDGET_S, AngularConvention, Frame
 from services.model import frames, jaco2, saturation
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics
@@ -25,7 +25,7 @@ class SafetyLimits(ConfigStruct):
     #: a desired command older than this (its stamp to now) is stale
     command_budget_s: float = 0.1
     #: a command derived from an image older than this (capture to now) is stale
-    image_budget_s: float = 0.25
+    image_budget_s: float = IMAGE_AGE_BUDGET_S
     #: the robot state used for the joint and zone checks must be this fresh
     state_budget_s: float = 0.1
     #: an input stamped further ahead of safety's clock than this is refused (clock skew between hosts, no more)

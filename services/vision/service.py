@@ -21,6 +21,7 @@ from typing import Optional
 import msgspec
 import zenoh
 
+from protocol.conventions import IMAGE_AGE_BUDGET_S
 from protocol.messages import (
     CameraInfo,
     Features,
@@ -78,7 +79,7 @@ class VisionConfig(ServiceConfig):
     refinement: F.Refinement = F.Refinement.APRILTAG_SUBPIX
     roi: F.RoiConfig = msgspec.field(default_factory=F.RoiConfig)
     #: an image older than this (capture to processing, in the service's clock) gets status stale
-    max_image_age_s: float = 0.25
+    max_image_age_s: float = IMAGE_AGE_BUDGET_S
     #: a tag whose corners come closer than this to the image border is reported as partial
     border_margin_px: float = 2.0
     #: an image whose brightest pixel is below this is refused as all black (lens covered, camera fault)
