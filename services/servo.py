@@ -23,7 +23,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, DepthSource
 from protocol.keys import Keys
 from services.model import jaco2
-from services.runtime.config import ConfigError, ConfigStruct, PoseConfig, load_config
+from services.runtime.config import ConfigError, ConfigStruct, load_config
 from services.model.kinematics import ArmKinematics, manipulability
 from services.runtime.service import query_health
 from services.runtime.transport import open_session
@@ -35,9 +35,7 @@ from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
 from services.stack import LocalStack, StackConfig
-from services.vision.service import TABLE2_DEPTH, TABLE2_GOAL, GoalConfig, TagConfig, VisionConfig
-
-Vec3 = tuple[float, float, float]
+from services.vision.service import GoalConfig, TagConfig, VisionConfig
 
 
 class ScenarioRobot(ConfigStruct):
@@ -45,28 +43,6 @@ class ScenarioRobot(ConfigStruct):
     initial_joints_deg: list[float] = msgspec.field(default_factory=lambda: jaco2.HOME_DEG.tolist())
     #: the convention the simulated DSP reads for Cartesian angular velocity
     angular_convention: AngularConvention = AngularConvention.SEED000
-
-
-class ScenarioMotion(ConfigStruct):
-    velocity_mps: Vec3 = (0.0, 0.0, 0.0)
-
-
-class ScenarioTarget(ConfigStruct):
-    family: str = "tag36h11"
-    id: int = 0
-    size_m: float = 0.0962
-    pose_in_base: Optional[PoseConfig] = None
-    #: default: 0.5 m ahead of the camera, squarely facing it
-    pose_in_camera: Optional[PoseConfig] = None
-    motion: ScenarioMotion = msgspec.field(default_factory=ScenarioMotion)
-
-
-class ScenarioGoal(ConfigStruct):
-    """Default: seed 000 Table 2's square (±0.1666 at 0.2888 m)."""
-
-    features: Optional[list[tuple[float, float]]] = msgspec.field(default_factory=lambda: list(TABLE2_GOAL))
-    depth_m: Optional[float] = TABLE2_DEPTH
-    camera_in_tag: Optional[PoseConfig] = None
 
 
 class ScenarioConvergence(ConfigStruct):
@@ -78,29 +54,22 @@ class ScenarioConvergence(ConfigStruct):
             raise ValueError("convergence needs error_norm > 0 and max_iterations >= 1")
 
 
-class ScenarioCamera(ConfigStruct):
-    width: int = 640
-    height: int = 480
-    fx: float = 615.0
-    fy: float = 615.0
-    cx: Optional[float] = None
-    cy: Optional[float] = None
-
-    def __post_init__(self) -> None:
-        if not (self.fx > 0 and self.fy > 0):
-            raise ValueError("camera fx and fy must be positive")
-
-
 class Scenario(ConfigStruct):
+    """A servo task: the start, the goal, the law and when to stop. The target and the camera are robot_sim's
+    scene configs and the goal is vision's, as they are (one set of keys and checks, not a copy)."""
+
     robot: ScenarioRobot = msgspec.field(default_factory=ScenarioRobot)
-    target: ScenarioTarget = msgspec.field(default_factory=ScenarioTarget)
-    goal: ScenarioGoal = msgspec.field(default_factory=ScenarioGoal)
+    #: the tag, and where it is (default: 0.5 m ahead of the camera, squarely facing it), as robot_sim's scene
+    target: TargetConfig = msgspec.field(default_factory=TargetConfig)
+    #: vision's goal (default: seed 000 Table 2's square, ±0.1666 at 0.2888 m; camera_in_tag with features: null)
+    goal: GoalConfig = msgspec.field(default_factory=GoalConfig)
     law: str = "adaptive-pd-mixed"
     gains: Gains = msgspec.field(default_factory=Gains)
     #: depth in the interaction matrix: current, goal or mean
     depth: DepthSource = DepthSource.CURRENT
     convergence: ScenarioConvergence = msgspec.field(default_factory=ScenarioConvergence)
-    camera: ScenarioCamera = msgspec.field(default_factory=ScenarioCamera)
+    #: robot_sim's camera (intrinsics, rate, mount, encoding)
+    camera: CameraConfig = msgspec.field(default_factory=CameraConfig)
     clock: ClockMode = ClockMode.LOCKSTEP
     #: law-specific options (smc, manipulability)
     law_options: dict = msgspec.field(default_factory=dict)
@@ -127,19 +96,12 @@ def load_scenario(path) -> Scenario:
 
 def stack_config(scenario: Scenario) -> StackConfig:
     s = scenario
-    camera = CameraConfig(width=s.camera.width, height=s.camera.height, fx=s.camera.fx, fy=s.camera.fy,
-                          cx=s.camera.cx, cy=s.camera.cy, rate_hz=30.0)
-    target = TargetConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m,
-                          pose_in_base=s.target.pose_in_base, pose_in_camera=s.target.pose_in_camera,
-                          velocity_mps=s.target.motion.velocity_mps)
-    robot = RobotSimConfig(scene=SceneConfig(initial_joints_deg=list(s.robot.initial_joints_deg), camera=camera,
-                                             target=target))
+    robot = RobotSimConfig(scene=SceneConfig(initial_joints_deg=list(s.robot.initial_joints_deg), camera=s.camera,
+                                             target=s.target))
     robot.dsp.angular_convention = s.robot.angular_convention
-    goal = GoalConfig(features=s.goal.features if s.goal.camera_in_tag is None else None,
-                      depth_m=s.goal.depth_m if s.goal.camera_in_tag is None else None,
-                      camera_in_tag=s.goal.camera_in_tag)
-    vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m), goal=goal)
-    control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.motion.velocity_mps),
+    vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m),
+                          goal=s.goal)
+    control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.velocity_mps),
                         robot_convention=s.robot.angular_convention)
     controller = ControllerConfig(law=s.law, control=control, convergence_error_norm=s.convergence.error_norm,
                                   options=dict(s.law_options))

@@ -71,6 +71,22 @@ def test_scenario_validation_names_the_bad_field(tmp_path):
     assert config_from_text("{}", Scenario) == Scenario()
 
 
+def test_a_scenario_s_target_camera_and_goal_are_the_services_own_configs():
+    from services.servo import stack_config
+    scenario = config_from_text("""
+target: {id: 3, size_m: 0.05, pose_in_camera: {xyz: [0, 0, 0.4], rpy_deg: [180, 0, 0]}, velocity_mps: [0.01, 0, 0]}
+camera: {width: 320, height: 240, fx: 300.0, fy: 300.0, rate_hz: 15.0}
+goal: {features: null, depth_m: null, camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}
+""", Scenario)
+    config = stack_config(scenario)
+    assert config.robot.scene.target == scenario.target and config.robot.scene.camera.rate_hz == 15.0
+    assert config.vision.goal == scenario.goal and config.vision.tag.id == 3 and config.vision.tag.size_m == 0.05
+    assert config.controller.control.target_motion  # a moving target turns the law's ∂ê/∂t term on
+    with pytest.raises(ConfigError) as err:  # the goal's rules are vision's
+        config_from_text("goal: {camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
+    assert "exactly one" in str(err.value)
+
+
 def test_mfvs_servo_command_prints_the_result_fields(tmp_path):
     mfvs = str(Path(sys.executable).parent / "mfvs")
     out = subprocess.run([mfvs, "servo", "--scenario", str(EASY), "--json", "--out", str(tmp_path)],
