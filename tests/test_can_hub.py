@@ -158,3 +158,30 @@ def test_blocks_of_frames_cross_the_hub_in_order_and_other_sizes_are_counted_out
     finally:
         a.shutdown()
         b.shutdown()
+
+
+def test_the_rs485_transport_over_the_hub_refuses_garbled_frames_on_its_block_path(hub):
+    import struct
+
+    from services.robot.rs485_bus import RS485Bus
+
+    sender = RS485Bus(BusConfig(interface="mfvs_hub", channel=hub.channel))
+    receiver = RS485Bus(BusConfig(interface="mfvs_hub", channel=hub.channel))
+    try:
+        assert receiver._block  # the path under test
+        assert wait_for(lambda: hub.counters.get("nodes") == 2)
+        sender.send_raw(bytes(19), 0x10)  # truncated
+        sender.send_raw(struct.pack("<hBB", 0x77, 0, 0x10) + bytes(16), 0x10)  # unknown command
+        sender.send_raw(bytes(64), 0x10)  # too long
+        good = r.RS485Message(r.Command.GET_ACTUAL_POSITION, 0, 0x10)
+        sender.send_all([good, good], stamp_ns=123_000_000_000)
+        got = []
+        deadline = time.monotonic() + 2.0
+        while len(got) < 2 and time.monotonic() < deadline:
+            batch, stamps = receiver.recv_batch(0.2)
+            got += list(zip(r.from_records(batch), stamps.tolist()))
+        assert [(message, stamp) for message, stamp in got] == [(good, 123_000_000_000)] * 2
+        assert receiver.counters.get("bus.rejected") == 3
+    finally:
+        sender.close()
+        receiver.close()
