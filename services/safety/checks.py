@@ -79,6 +79,11 @@ class Decision:
         return self.refusal is not None
 
 
+def _over_speed(name: str, speed: float, limit: float) -> "Decision":
+    """The refusal of a command over a speed limit (``over_limit: refuse``)."""
+    return Decision(refusal=f"{name}: {speed:.3f} over the limit {limit:.3f}", limits=[name])
+
+
 class CommandChecker:
     """Checks desired commands against the limits, the robot's state and the workspace zones."""
 
@@ -91,6 +96,9 @@ class CommandChecker:
         self.limited = np.isfinite(self.lower)
         self.max_joint_speed = jaco2.MAX_SPEED * limits.joint_speed_scale
         self.max_joint_accel = math.radians(limits.max_joint_accel_dps2)
+        #: a base twist's parts, their speed limits and the names a limited or refused command gives them
+        self.speed_limits = ((slice(0, 3), limits.max_linear_speed_mps, "linear_speed"),
+                             (slice(3, 6), limits.max_angular_speed_rps, "angular_speed"))
         #: the last base-frame twist (or joint velocities) forwarded, for the acceleration limits
         self.last_twist_base = np.zeros(6)
         self.last_dq = np.zeros(jaco2.N_JOINTS)
@@ -116,12 +124,11 @@ class CommandChecker:
         decision = Decision()
 
         # speeds
-        for part, vmax, name in ((slice(0, 3), lim.max_linear_speed_mps, "linear_speed"),
-                                 (slice(3, 6), lim.max_angular_speed_rps, "angular_speed")):
+        for part, vmax, name in self.speed_limits:
             limited, speed = saturation.limit_norm(base[part], vmax)
             if speed > vmax:
                 if lim.over_limit == "refuse":
-                    return Decision(refusal=f"{name}: {speed:.3f} over the limit {vmax:.3f}", limits=[name])
+                    return _over_speed(name, speed, vmax)
                 base[part] = limited
                 decision.limits.append(name)
         # accelerations, from the last forwarded twist
@@ -182,12 +189,11 @@ class CommandChecker:
         dq *= self._joint_limit_scale(q, dq, decision)
         R, p, J = self.kin.pose_and_jacobian(q)
         twist = J @ dq
-        for part, vmax, name in ((slice(0, 3), lim.max_linear_speed_mps, "linear_speed"),
-                                 (slice(3, 6), lim.max_angular_speed_rps, "angular_speed")):
+        for part, vmax, name in self.speed_limits:
             _, speed = saturation.limit_norm(twist[part], vmax)
             if speed > vmax:
                 if lim.over_limit == "refuse":
-                    return Decision(refusal=f"{name}: {speed:.3f} over the limit {vmax:.3f}", limits=[name])
+                    return _over_speed(name, speed, vmax)
                 dq = dq * (vmax / speed)  # the joint motion scaled as its twist part is
                 twist = J @ dq
                 decision.limits.append(name)
