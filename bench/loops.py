@@ -38,10 +38,11 @@ class _StandInPipeline:
         ]
 
     def _answer(self, stamp: int) -> None:
-        with self.lock:
+        with self.lock:  # numbered and sent in one step: the tick's and the frame's callbacks run on two threads,
+            # and a number sent after a higher one is refused as a replay
             self.seq += 1
             header = m.Header(seq=self.seq, stamp_ns=stamp, source_stamp_ns=self.frame_stamp)
-        self.publisher.put(m.encode(m.RobotCommand(header=header, mode=m.CommandMode.STOP)))
+            self.publisher.put(m.encode(m.RobotCommand(header=header, mode=m.CommandMode.STOP)))
 
     def _on_tick(self, sample) -> None:
         self._answer(m.decode(sample.payload.to_bytes(), m.SimClock).sim_time_ns)
