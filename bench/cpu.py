@@ -38,13 +38,20 @@ def process_tree(pid: int) -> list[int]:
     return out
 
 
-def _cpu_seconds_of(pid: int) -> float:
+def _stat_cpu(stat_path: str) -> tuple[str, float]:
+    """The name and user + system CPU time (s) in a /proc ``stat`` file, a process's or a thread's (("", 0)
+    when it ended meanwhile)."""
     try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-    except OSError:  # ended meanwhile
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+        with open(stat_path) as f:
+            head, tail = f.read().rsplit(")", 1)
+    except OSError:
+        return "", 0.0
+    fields = tail.split()
+    return head.split("(", 1)[1], (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+def _cpu_seconds_of(pid: int) -> float:
+    return _stat_cpu(f"/proc/{pid}/stat")[1]
 
 
 def _rss_mb_of(pid: int) -> float:
@@ -73,14 +80,9 @@ def thread_cpu_seconds(pid: int) -> dict[str, float]:
         except OSError:
             continue
         for task in tasks:
-            try:
-                with open(f"/proc/{process}/task/{task}/stat") as f:
-                    head, tail = f.read().rsplit(")", 1)
-            except OSError:
-                continue
-            fields = tail.split()
-            name = head.split("(", 1)[1]
-            out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+            name, seconds = _stat_cpu(f"/proc/{process}/task/{task}/stat")
+            if name:
+                out[name] = out.get(name, 0.0) + seconds
     return out
 
 

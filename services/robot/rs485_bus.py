@@ -103,7 +103,7 @@ class RS485Bus:
         :class:`BusError`."""
         try:
             if self._block:
-                ids, seconds, data, dropped = self._bus.recv_block(timeout, MESSAGE_SIZE)
+                _, seconds, data, dropped = self._bus.recv_block(timeout, MESSAGE_SIZE)
                 if dropped:
                     self._reject(dropped, "frame of another length")
                 return self._validated(np.frombuffer(data, dtype=MESSAGE_DTYPE), seconds)

@@ -190,7 +190,7 @@ class CommandChecker:
         R, p, J = self.kin.pose_and_jacobian(q)
         twist = J @ dq
         for part, vmax, name in self.speed_limits:
-            _, speed = saturation.limit_norm(twist[part], vmax)
+            speed = float(np.linalg.norm(twist[part]))
             if speed > vmax:
                 if lim.over_limit == "refuse":
                     return _over_speed(name, speed, vmax)

@@ -108,18 +108,13 @@ def complete_frames(buffer: bytearray) -> tuple[int, int]:
 
 def split_frames(buffer: bytearray) -> list[bytes]:
     """Remove and return the complete frames at the start of ``buffer`` (as wire bytes)."""
-    frames = []
-    offset = 0
-    while len(buffer) - offset >= HEADER.size:
-        length = buffer[offset + 5]
-        if length > MAX_DATA:
-            raise ValueError(f"frame length {length} > {MAX_DATA}")
-        end = offset + HEADER.size + length
-        if end > len(buffer):
-            break
-        frames.append(bytes(buffer[offset:end]))
-        offset = end
-    del buffer[:offset]
+    end, _ = complete_frames(buffer)  # checked there: every length up to ``end`` is valid
+    frames, offset = [], 0
+    while offset < end:
+        stop = offset + HEADER.size + buffer[offset + 5]
+        frames.append(bytes(buffer[offset:stop]))
+        offset = stop
+    del buffer[:end]
     return frames
 
 

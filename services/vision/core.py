@@ -24,11 +24,20 @@ class Goal:
         self.description = description
 
     @classmethod
+    def from_camera_in_tag(cls, camera_in_tag: np.ndarray, size_m: float) -> "Goal":
+        """What the camera would see with this pose (4×4) in the tag's frame."""
+        points, depths = F.goal_from_camera_in_tag(camera_in_tag, size_m)
+        return cls(points, depths, "camera_in_tag")
+
+    @classmethod
+    def from_features(cls, features, depth_m: float) -> "Goal":
+        return cls(np.array(features), np.full(4, depth_m), "features")
+
+    @classmethod
     def from_config(cls, goal, size_m: float) -> "Goal":
         if goal.camera_in_tag is not None:
-            points, depths = F.goal_from_camera_in_tag(goal.camera_in_tag.matrix(), size_m)
-            return cls(points, depths, "camera_in_tag")
-        return cls(np.array(goal.features), np.full(4, goal.depth_m), "features")
+            return cls.from_camera_in_tag(goal.camera_in_tag.matrix(), size_m)
+        return cls.from_features(goal.features, goal.depth_m)
 
 
 @dataclass
@@ -105,9 +114,9 @@ class VisionCore:
                 raise ValueError("teach needs the tag in view: no current features")
             return Goal(self.last_points, self.last_depths, "teach")
         if goal.camera_in_tag is not None:
-            T = frames.homogeneous(frames.quat_wxyz_to_matrix(goal.camera_in_tag.quat_wxyz), goal.camera_in_tag.xyz)
-            points, depths = F.goal_from_camera_in_tag(T, self.config.tag.size_m)
-            return Goal(points, depths, "camera_in_tag")
+            pose = goal.camera_in_tag
+            return Goal.from_camera_in_tag(frames.homogeneous(frames.quat_wxyz_to_matrix(pose.quat_wxyz), pose.xyz),
+                                           self.config.tag.size_m)
         if len(goal.features) != 4:
             raise ValueError(f"the tag gives 4 points, the goal has {len(goal.features)}")
-        return Goal(np.array(goal.features), np.full(4, goal.depth_m), "features")
+        return Goal.from_features(goal.features, goal.depth_m)
