@@ -4,7 +4,7 @@ loop (bench/command_source.py, at realtime priority as safety runs) commanding a
 
 Per run: how well the arm tracked the commanded end-effector velocity (the mean velocity over the commanded
 motion, from the poses, against the commanded one; and the largest instantaneous deviation), the measured peak
-speed against the commanded peak and safety's limit, and how the bus kept time (late and missed cycles per
+speed against the commanded peak and the arm's limit, and how the bus kept time (late and missed cycles per
 second, the gateway's loop work and exchange times, the arm's lock to the host).
 
 ``python -m bench.gateway [--json] [--load N] [--seconds S] [--runs R]`` or ``mfvs bench gateway``. ``--load``:
@@ -26,7 +26,7 @@ from protocol import messages as m
 from protocol.keys import Keys
 from services.model.kinematics import ArmKinematics
 from services.runtime.transport import open_session
-from services.safety.checks import SafetyLimits
+from services.model.limits import arm_limits
 from services.stack import RobotProcesses, RouterProcess
 
 REPO = Path(__file__).resolve().parents[1]
@@ -55,7 +55,7 @@ def _health(client, keys: Keys, name: str):
 def run_once(load: int, seconds: float) -> dict:
     keys = Keys()
     kin = ArmKinematics()
-    limit = SafetyLimits().max_linear_speed_mps
+    limit = arm_limits().linear_speed_mps
     with RouterProcess() as router, RobotProcesses(router.client_config()):
         client = open_session(router.client_config())
         states: list[m.RobotState] = []

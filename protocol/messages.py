@@ -403,6 +403,20 @@ class LoopTiming(Message):
     missed_per_s: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
 
 
+class MotionLimits(Message):
+    """The speed and acceleration limits the robot applies now (its DSP's configuration, or the arm's own): the
+    one place they are set. The controller saturates its output to them and safety checks against them (or
+    stricter limits of its own site configuration). The angular speed is of the end effector's angular velocity."""
+
+    linear_speed_mps: Positive
+    angular_speed_rps: Positive
+    #: each joint's speed limit (model rad/s)
+    joint_speed_rps: Annotated[list[Positive], msgspec.Meta(min_length=N_JOINTS, max_length=N_JOINTS)]
+    linear_accel_mps2: Positive
+    angular_accel_rps2: Positive
+    joint_accel_rps2: Positive
+
+
 class RobotState(Message):
     header: Header
     #: model joint angles (rad), velocities (rad/s), torques (N·m)
@@ -419,6 +433,8 @@ class RobotState(Message):
     #: header (with trace) of the command applied in the last DSP cycle, the robot's hop appended
     applied_command: Optional[Header] = None
     timing: LoopTiming = msgspec.field(default_factory=LoopTiming)
+    #: the limits the robot applies (None: not declared; readers then take the arm description's maxima)
+    limits: Optional[MotionLimits] = None
 
 
 class TorqueCommand(Message):

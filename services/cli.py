@@ -216,11 +216,75 @@ def _cmd_servo(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(result.to_json()), flush=True)
     else:
-        print(f"{result.status}: {result.iterations} iterations, final ‖e‖ = {result.final_error_norm:.3e}, "
+        final = "none (no tag)" if result.final_error_norm is None else f"{result.final_error_norm:.3e}"
+        print(f"{result.status}: {result.iterations} iterations, final ‖e‖ = {final}, "
               f"max speed {result.max_linear_speed_mps:.3f} m/s, min manipulability {result.min_manipulability:.4f}")
+        if result.detail:
+            print(result.detail)
         if result.trajectory_log:
             print(f"log: {result.trajectory_log}; plots: {', '.join(result.plots)}")
     return 0 if result.converged else 1
+
+
+def _experiment_progress(name: str, quiet: bool):
+    def progress(label: str, result) -> None:
+        final = "–" if result.final_error_norm is None else f"{result.final_error_norm:.2e}"
+        print(f"  {name} {label:22s} {result.status:14s} {result.iterations:5d} iterations  final ‖e‖ {final}  "
+              f"({result.wall_time_s:.0f} s)", file=sys.stderr if quiet else sys.stdout, flush=True)
+    return progress
+
+
+def _print_experiment(output: dict) -> None:
+    print(f"{output['title']} ({output['experiment']}; paper: {output['paper']})")
+    for row in output["runs"]:
+        final = "–" if row["final_error_norm"] is None else f"{row['final_error_norm']:.2e}"
+        extra = f"  failure: {row['failure']}" if row["failure"] else ""
+        print(f"  {row['label']:22s} {row['status']:14s} {row['iterations']:5d} iterations  final ‖e‖ {final}{extra}")
+    print("summary: " + json.dumps(output["summary"]))
+    if output["report"]:
+        print(f"report: {output['report']}")
+
+
+def _cmd_experiment(args: argparse.Namespace) -> int:
+    from services.experiments import EXPERIMENTS, run_experiment
+    from services.runtime.config import ConfigError
+
+    if args.name not in EXPERIMENTS:
+        print(f"mfvs experiment: unknown experiment {args.name!r}; known: {', '.join(EXPERIMENTS)}", file=sys.stderr)
+        return 2
+    if args.profile not in ("sim", "gateway"):
+        print(f"mfvs experiment: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
+        return 2
+    try:
+        output = run_experiment(args.name, args.scenario, args.out, _experiment_progress(args.name, args.json),
+                                profile=args.profile)
+    except ConfigError as exc:
+        print(f"mfvs experiment: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(output), flush=True)
+    else:
+        _print_experiment(output)
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from services.experiments import run_experiment
+
+    out = Path(args.out).resolve()
+    print(f"mfvs demo: seed 000's Part A and Table 3 on the emulated JACO-2 (MuJoCo, the real services, lockstep); "
+          f"figures and reports go to {out}", flush=True)
+    reports = []
+    for name in ("part-a", "table3"):
+        print(f"{name}:", flush=True)
+        output = run_experiment(name, None, out / name, _experiment_progress(name, False))
+        _print_experiment(output)
+        reports.append(output["report"])
+    print(f"\ndone. Open {reports[0]} and {reports[1]} (figures beside them: errors.png, features.png and each "
+          f"run's own folder).")
+    return 0
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
@@ -342,6 +406,24 @@ def build_parser() -> argparse.ArgumentParser:
     servo.add_argument("--json", action="store_true", help="print one JSON object with the result")
     servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
     servo.set_defaults(func=_cmd_servo)
+
+    experiment = sub.add_parser("experiment", help="reproduce one of seed 000's experiments (table3, part-a, "
+                                                   "part-b, part-c, part-d) and report it beside the paper")
+    experiment.add_argument("name", help="table3, part-a, part-b, part-c or part-d")
+    experiment.add_argument("--scenario", default=None,
+                            help="the same comparison from this scenario's start and goal (its law and gains are "
+                                 "replaced by the experiment's)")
+    experiment.add_argument("--out", default=None, help="directory for the runs' logs, the figures and report.md")
+    experiment.add_argument("--json", action="store_true", help="print one JSON object with the runs and summary")
+    experiment.add_argument("--profile", default="sim", help="sim (default) or gateway (robot_gateway over the "
+                                                             "RS-485 bus; lockstep gives the same numbers)")
+    experiment.set_defaults(func=_cmd_experiment)
+
+    demo = sub.add_parser("demo", help="for a new user: run part-a and table3 with a line per run, write the "
+                                       "figures and reports, say where to look")
+    demo.add_argument("--out", default="mfvs-demo", help="directory for the figures and reports (default: "
+                                                         "./mfvs-demo)")
+    demo.set_defaults(func=_cmd_demo)
 
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")

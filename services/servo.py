@@ -20,11 +20,12 @@ import msgspec
 import numpy as np
 
 from protocol import messages as m
-from protocol.conventions import AngularConvention, ClockMode, DepthSource
+from protocol.conventions import ClockMode, DepthSource
 from protocol.keys import Keys
 from services.model import jaco2
 from services.runtime.config import ConfigError, ConfigStruct, load_config
 from services.model.kinematics import ArmKinematics, manipulability
+from services.robot.zones import nearest_zone
 from services.runtime.service import query_health
 from services.runtime.transport import open_session
 from services.controller.law import Gains, LawConfig
@@ -32,6 +33,7 @@ from services.controller.laws import JOINT_LAWS, LAW_NAMES
 from services.controller.service import ControllerConfig
 from services.controller.task_client import start_task
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig
+from services.robot.dsp import DSPConfig
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
 from services.stack import LocalStack, StackConfig
@@ -41,8 +43,9 @@ from services.vision.service import GoalConfig, TagConfig, VisionConfig
 class ScenarioRobot(ConfigStruct):
     #: physical angles (deg), as GetAngularPosition reports them
     initial_joints_deg: list[float] = msgspec.field(default_factory=lambda: jaco2.HOME_DEG.tolist())
-    #: the convention the simulated DSP reads for Cartesian angular velocity
-    angular_convention: AngularConvention = AngularConvention.SEED000
+    #: the arm's DSP as robot_sim's config has it: the convention it reads for Cartesian angular velocity (the
+    #: controller and safety are set to the same), its speed limits, its velocity dead-band, its zones
+    dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
 
 
 class ScenarioConvergence(ConfigStruct):
@@ -96,17 +99,17 @@ def load_scenario(path) -> Scenario:
 
 def stack_config(scenario: Scenario) -> StackConfig:
     s = scenario
+    convention = s.robot.dsp.angular_convention
     robot = RobotSimConfig(scene=SceneConfig(initial_joints_deg=list(s.robot.initial_joints_deg), camera=s.camera,
-                                             target=s.target))
-    robot.dsp.angular_convention = s.robot.angular_convention
+                                             target=s.target), dsp=s.robot.dsp)
     vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m),
                           goal=s.goal)
     control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.velocity_mps),
-                        robot_convention=s.robot.angular_convention)
+                        robot_convention=convention)
     controller = ControllerConfig(law=s.law, control=control, convergence_error_norm=s.convergence.error_norm,
                                   options=dict(s.law_options))
     safety = SafetyConfig()
-    safety.limits.robot_convention = s.robot.angular_convention
+    safety.limits.robot_convention = convention
     return StackConfig(clock=s.clock, robot=robot, vision=vision, controller=controller, safety=safety)
 
 
@@ -131,13 +134,21 @@ class Iteration:
     manipulability: float
     ee_speed_mps: float
     notes: dict = field(default_factory=dict)
+    #: the end effector's measured angular speed (rad/s) at the frame's tick
+    ee_angular_speed_rps: float = 0.0
+    #: what shaped the arm's motion at the frame's tick (the robot state's faults: the DSP's active limits, e.g.
+    #: joint_limit, singularity, zone:base, dead_band, speed)
+    robot_faults: list = field(default_factory=list)
+    #: the end effector's signed distance to the nearest protection zone of the arm's DSP (m; inside: negative)
+    zone_distance_m: Optional[float] = None
 
 
 @dataclass
 class ServoResult:
     converged: bool
     iterations: int
-    final_error_norm: float
+    #: the last error the law acted on; None when the tag was never seen (``detail`` says why)
+    final_error_norm: Optional[float]
     status: str
     min_manipulability: float
     max_joint_limit_violation_deg: float
@@ -157,6 +168,19 @@ class ServoResult:
     frames_lost: dict = field(default_factory=dict)
     #: the largest of each law figure over the run (e.g. smc's max_phi.fov, and its band)
     law_figures: dict = field(default_factory=dict)
+    #: why the run ended as it did, in words (empty when it converged)
+    detail: str = ""
+    #: the first and the largest error the law acted on
+    initial_error_norm: Optional[float] = None
+    max_error_norm: Optional[float] = None
+    #: iterations at whose tick each of the arm's limits shaped its motion (robot state faults)
+    robot_limits_hit: dict = field(default_factory=dict)
+    #: the closest the end effector came to a protection zone (m; negative: inside)
+    min_zone_distance_m: Optional[float] = None
+    #: what safety did: its states seen (counts of status messages), its last refusal, a protective stop's reason
+    safety: dict = field(default_factory=dict)
+    #: the speed limits the robot declared (MotionLimits as a dict)
+    robot_limits: Optional[dict] = None
 
     def to_json(self) -> dict:
         return {
@@ -167,7 +191,10 @@ class ServoResult:
             "max_linear_speed_mps": self.max_linear_speed_mps, "trajectory_log": self.trajectory_log,
             "plots": self.plots, "law": self.law, "wall_time_s": self.wall_time_s,
             "servo_time_s": self.servo_time_s, "frames_answered": self.frames_answered,
-            "frames_lost": self.frames_lost, "law_figures": self.law_figures,
+            "frames_lost": self.frames_lost, "law_figures": self.law_figures, "detail": self.detail,
+            "initial_error_norm": self.initial_error_norm, "max_error_norm": self.max_error_norm,
+            "robot_limits_hit": self.robot_limits_hit, "min_zone_distance_m": self.min_zone_distance_m,
+            "safety": self.safety, "robot_limits": self.robot_limits,
         }
 
 
@@ -184,6 +211,11 @@ class _Watcher:
         self.state_at: dict[int, m.RobotState] = {}
         self.latest_state_stamp = -1
         self.safety: Optional[m.SafetyStatus] = None
+        #: safety's statuses by state, its limits seen, its last refusal and what a latched stop said
+        self.safety_states: dict[str, int] = {}
+        self.safety_limits: dict[str, int] = {}
+        self.safety_refusal = ""
+        self.safety_stop = ""
         self.states: list[m.RobotState] = []
         output_key = keys.desired_joint_velocity if joint_output else keys.desired_twist
         output_type = m.JointVelocity if joint_output else m.Twist
@@ -237,6 +269,17 @@ class _Watcher:
     def _on_safety(self, status):
         with self.lock:
             self.safety = status
+            self.safety_states[status.state.value] = self.safety_states.get(status.state.value, 0) + 1
+            for name in status.active_limits:
+                self.safety_limits[name] = self.safety_limits.get(name, 0) + 1
+            self.safety_refusal = status.last_refusal or self.safety_refusal
+            if status.state is m.SafetyState.ESTOP and not self.safety_stop:
+                self.safety_stop = status.last_refusal or "latched stop"
+
+    def safety_summary(self) -> dict:
+        with self.lock:
+            return {"states": dict(self.safety_states), "limits": dict(self.safety_limits),
+                    "last_refusal": self.safety_refusal, "protective_stop": self.safety_stop or None}
 
     def close(self) -> None:
         for sub in self._subs:
@@ -306,7 +349,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                     break
                 done = False
                 for st in new:
-                    record = _record(st, watcher, kin)
+                    record = _record(st, watcher, kin, scenario.robot.dsp.zones)
                     records.append(record)
                     if progress is not None:
                         progress(record)
@@ -341,6 +384,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                 for record in records:
                     _fill_inputs(record, watcher)
             frames_lost = _frames_lost(session, Keys(config.robot.robot_id))
+            safety = watcher.safety_summary()
         finally:
             watcher.close()
             session.close()
@@ -360,7 +404,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     result = ServoResult(
         converged=status == "converged",
         iterations=max((r.iteration for r in records), default=0),
-        final_error_norm=converging[-1].error_norm if converging else (records[-1].error_norm if records else 0.0),
+        final_error_norm=converging[-1].error_norm if converging else None,
         status=status,
         min_manipulability=min((r.manipulability for r in records if math.isfinite(r.manipulability)),
                                default=0.0),
@@ -372,7 +416,15 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         frames_answered=len(answered),
         frames_lost=frames_lost,
         law_figures=_law_figures(records),
+        initial_error_norm=converging[0].error_norm if converging else None,
+        max_error_norm=max(r.error_norm for r in converging) if converging else None,
+        robot_limits_hit=_limits_hit(records),
+        min_zone_distance_m=min((r.zone_distance_m for r in records if r.zone_distance_m is not None),
+                                default=None),
+        safety=safety,
+        robot_limits=msgspec.to_builtins(states[-1].limits) if states and states[-1].limits is not None else None,
     )
+    result.detail = _why(result, converging)
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -383,9 +435,44 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         result.trajectory_log = str(log)
         from services.plots import servo_plots
 
-        result.plots = [str(p) for p in servo_plots(records, scenario, out)]
+        result.plots = [str(p) for p in servo_plots(
+            records, out, law=scenario.law, goal=scenario.goal.features, camera=scenario.camera,
+            threshold=scenario.convergence.error_norm, robot_limits=result.robot_limits)]
         (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
     return result
+
+
+def _limits_hit(records: list[Iteration]) -> dict:
+    hits: dict[str, int] = {}
+    for record in records:
+        for name in record.robot_faults:
+            hits[name] = hits.get(name, 0) + 1
+    return hits
+
+
+def _why(result: ServoResult, converging: list[Iteration]) -> str:
+    """Why a run ended as it did, in words."""
+    stop = result.safety.get("protective_stop")
+    said = f"; safety latched a stop: {stop}" if stop else ""
+    if result.status == "converged":
+        return "" + said
+    if not converging:
+        return ("the tag was never seen: it is outside the camera's initial view, or too small or far to detect "
+                "(check target.pose_in_camera and the camera)" + said)
+    grew = f"‖e‖ from {result.initial_error_norm:.3g} up to {result.max_error_norm:.3g}"
+    if result.status == "diverged":
+        return f"the error grew ({grew}) and the tag left the image" + said
+    if result.status == "tag_lost":
+        return f"the tag left the image after {result.iterations} iterations ({grew})" + said
+    if result.status == "refused":
+        return f"safety refused the commands: {result.safety.get('last_refusal', '')}" + said
+    if result.status == "max_iterations":
+        return f"not converged after {result.iterations} iterations (‖e‖ = {result.final_error_norm:.3g})" + said
+    if result.status == "constraint_abort":
+        return "the law gave up: its constraints left no freedom for the task" + said
+    if result.status == "robot_stopped":
+        return "the robot stopped publishing its state" + said
+    return f"the run ended as {result.status}" + said
 
 
 def _law_figures(records: list[Iteration]) -> dict:
@@ -396,23 +483,26 @@ def _law_figures(records: list[Iteration]) -> dict:
     return figures
 
 
-def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics) -> Iteration:
+def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics, zones: list) -> Iteration:
     stamp = status.header.source_stamp_ns
     with watcher.lock:
         state = watcher.state_for_frame(stamp)
     q = list(state.q) if state is not None else []
-    manip, speed = math.nan, 0.0
+    manip, speed, angular_speed, zone_distance = math.nan, 0.0, 0.0, None
     if state is not None:
-        J = kin.jacobian_base(state.q)
+        _, p, J = kin.pose_and_jacobian(state.q)
         manip = manipulability(J)
-        speed = float(np.linalg.norm((J @ np.asarray(state.dq))[:3]))
+        twist = J @ np.asarray(state.dq)
+        speed, angular_speed = float(np.linalg.norm(twist[:3])), float(np.linalg.norm(twist[3:]))
+        zone_distance = nearest_zone(zones, p)[1] if zones else None
     record = Iteration(
         iteration=status.iteration, t_s=stamp * 1e-9, stamp_ns=stamp, status=status.status.value,
         error_norm=status.error_norm,
         points=[], error=[], command=[], command_kind="", q=q,
         gain=status.gain, saturated=status.saturated,
         camera_twist=list(status.camera_twist) if status.camera_twist is not None else None,
-        manipulability=manip, ee_speed_mps=speed, notes=dict(status.notes),
+        manipulability=manip, ee_speed_mps=speed, notes=dict(status.notes), ee_angular_speed_rps=angular_speed,
+        robot_faults=list(state.faults) if state is not None else [], zone_distance_m=zone_distance,
     )
     with watcher.lock:
         _fill_inputs(record, watcher)

@@ -8,6 +8,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention
 from services.model import frames, jaco2
 from services.model.kinematics import ArmKinematics
+from services.model.limits import arm_limits, stricter
 from services.controller.core import ControllerCore
 from services.controller.law import LawConfig
 from services.controller.service import ControllerConfig, ControllerService
@@ -28,7 +29,11 @@ def features(points=None, status=m.FeatureStatus.OK, age_s=0.0, depth=0.5):
                       goal_depths=[0.2888] * 4, error=e.tolist(), error_norm=float(np.linalg.norm(e)))
 
 
-def controller(law="adaptive-pd-mixed", with_state=True, started=True, **kw):
+#: limits a robot declares in its state, lower than the arm's maxima (the controller must read them there)
+DECLARED = stricter(arm_limits(), linear_speed_mps=0.15, angular_speed_rps=0.8, joint_speed_scale=0.8)
+
+
+def controller(law="adaptive-pd-mixed", with_state=True, started=True, limits=DECLARED, **kw):
     service = ControllerService(ControllerConfig(law=law, **kw))
     if started:
         service.start_task(m.TaskRequest(operator="test"))
@@ -36,7 +41,7 @@ def controller(law="adaptive-pd-mixed", with_state=True, started=True, **kw):
         service._on_state(m.RobotState(header=m.Header(stamp_ns=time.time_ns()), q=jaco2.HOME.tolist(),
                                        dq=[0.0] * 7, tau=[0.0] * 7,
                                        pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
-                                       control_mode=m.ControlMode.IDLE), 0)
+                                       control_mode=m.ControlMode.IDLE, limits=limits), 0)
     T = CameraConfig().camera_in_ee.matrix()
     service._on_camera_info(m.CameraInfo(header=m.Header(), width=640, height=480, fx=615.0, fy=615.0, cx=319.5,
                                          cy=239.5, camera_in_ee=m.Pose(xyz=tuple(T[:3, 3]), quat_wxyz=tuple(
@@ -70,17 +75,25 @@ def test_converged_below_the_threshold():
     assert status.status is m.ControllerState.CONVERGED and output is None
 
 
-def test_output_is_saturated_and_says_so():
-    service = controller()
-    status, output = service.compute(features(points=[(x * 0.2 + 0.3, y * 0.2) for x, y in GOAL], depth=1.5))
+FAR = [(x * 0.2 + 0.3, y * 0.2) for x, y in GOAL]
+
+
+@pytest.mark.parametrize("declared, linear, angular", [(DECLARED, 0.15, 0.8), (None, 0.2, 1.07)])
+def test_output_is_saturated_to_the_robots_declared_limits_and_says_so(declared, linear, angular):
+    """The limits are the robot's, from its state (none declared: the arm description's maxima); the angular
+    limit is on the end effector's angular velocity, as the robot measures it, whatever the rates' convention."""
+    status, output = controller(limits=declared).compute(features(points=FAR, depth=1.5))
     assert status.saturated
-    assert np.linalg.norm(output.twist[:3]) <= 0.15 + 1e-12 and np.linalg.norm(output.twist[3:]) <= 0.8 + 1e-12
+    omega = frames.omega_ee_from_angular(output.twist[3:], np.eye(3), AngularConvention.SEED000)
+    assert np.linalg.norm(output.twist[:3]) == pytest.approx(linear, rel=1e-9)
+    assert np.linalg.norm(omega) <= angular * (1 + 1e-9)
 
 
 def test_joint_law_output_is_saturated_per_joint_speed():
     service = controller("p-joint")
-    status, output = service.compute(features(points=[(x * 0.2 + 0.3, y * 0.2) for x, y in GOAL], depth=1.5))
-    assert np.all(np.abs(output.joint_velocities) <= jaco2.MAX_SPEED * 0.8 + 1e-12)
+    status, output = service.compute(features(points=FAR, depth=1.5))
+    assert np.all(np.abs(output.joint_velocities) <= np.asarray(DECLARED.joint_speed_rps) + 1e-12)
+    assert np.max(np.abs(output.joint_velocities) / DECLARED.joint_speed_rps) == pytest.approx(1.0)
 
 
 def test_degenerate_features_are_ill_conditioned():

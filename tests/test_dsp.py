@@ -8,7 +8,9 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from services.model import frames, jaco2
-from services.robot.dsp import CommandRefused, DSPConfig
+from services.model.kinematics import ArmKinematics
+from services.robot.dsp import CommandRefused, DeadBand, DSPConfig, KinovaDSP
+from services.robot.hardware import JointReading
 from services.robot.zones import BoxZone
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim_robot import SimulatedRobot
@@ -296,3 +298,52 @@ def test_emergency_stop_brakes_at_the_emergency_deceleration_along_the_path():
     # a new motion command after the e-stop moves the arm again
     run(sim, twist_command((0.05, 0, 0), (0, 0, 0)), 40)
     assert sim.ee_twist_base()[0] == pytest.approx(0.05, rel=0.02) and not sim.dsp.status.emergency_stop
+
+
+# ------------------------------------------------------------------------------------------ the dead-band
+def dsp_speed(command, band: DeadBand) -> np.ndarray:
+    """The end-effector twist (base) the DSP's first cycle asks of the arm at rest at home for ``command``."""
+    dsp = KinovaDSP(DSPConfig(dead_band=band))
+    dsp.submit(command)
+    dq = dsp.cycle(JointReading(q=jaco2.HOME.copy(), dq=np.zeros(7), tau=np.zeros(7)))
+    return dsp.kin.jacobian_base(jaco2.HOME) @ dq, dsp.status.active_limits
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.5, 0.9])
+def test_a_cartesian_command_below_the_dead_band_creeps_or_stops(fraction):
+    """Below the dead-band the arm creeps at (v/v_d)·v, or with a hard dead-band does not move; at or above it
+    the command is executed as it is. Linear and angular parts each have their own threshold."""
+    band = DeadBand(linear_mps=0.002, angular_rps=0.01)
+    v = 0.002 * fraction
+    twist, limits = dsp_speed(twist_command((v, 0.0, 0.0), (0.0, 0.0, 0.0)), band)
+    assert np.linalg.norm(twist[:3]) == pytest.approx(v * fraction, rel=1e-3) and "dead_band" in limits
+    twist, _ = dsp_speed(twist_command((v, 0.0, 0.0), (0.0, 0.0, 0.0)), DeadBand(linear_mps=0.002, shape="hard"))
+    assert np.allclose(twist, 0.0)
+    twist, limits = dsp_speed(twist_command((0.0, 0.0, 0.0), (0.0, 0.0, 0.01 * fraction)), band)
+    assert np.linalg.norm(twist[3:]) == pytest.approx(0.01 * fraction**2, rel=1e-2) and "dead_band" in limits
+    # a slow linear part rides along with an angular part above its dead-band: the whole command moves
+    twist, limits = dsp_speed(twist_command((v, 0.0, 0.0), (0.0, 0.0, 0.02)), band)
+    assert np.linalg.norm(twist[:3]) == pytest.approx(v, rel=1e-2) and "dead_band" not in limits
+
+
+def test_a_joint_command_is_judged_by_the_end_effector_motion_it_asks():
+    band = DeadBand(linear_mps=0.002, angular_rps=0.01)
+    J = ArmKinematics().jacobian_base(jaco2.HOME)
+    slow = np.linalg.pinv(J) @ np.array([0.001, 0.0, 0.0, 0.0, 0.0, 0.0])
+    twist, limits = dsp_speed(joint_command(slow), band)
+    assert np.linalg.norm(twist[:3]) == pytest.approx(0.0005, rel=1e-2) and "dead_band" in limits
+    twist, limits = dsp_speed(joint_command(4 * slow), band)
+    assert np.linalg.norm(twist[:3]) == pytest.approx(0.004, rel=1e-2) and "dead_band" not in limits
+    twist, _ = dsp_speed(joint_command(slow), DeadBand(linear_mps=0.0, angular_rps=0.0))
+    assert np.linalg.norm(twist[:3]) == pytest.approx(0.001, rel=1e-2)
+
+
+def test_the_dsp_declares_the_limits_it_applies():
+    dsp = KinovaDSP(DSPConfig(max_linear_speed_mps=0.15))
+    limits = dsp.motion_limits()
+    assert limits.linear_speed_mps == 0.15 and limits.angular_speed_rps == jaco2.MAX_ANGULAR_SPEED_RPS
+    assert np.allclose(limits.joint_speed_rps, jaco2.MAX_SPEED)
+    dsp.set_max_velocities(linear_mps=0.1, angular_rps=0.5)
+    assert (dsp.motion_limits().linear_speed_mps, dsp.motion_limits().angular_speed_rps) == (0.1, 0.5)
+    with pytest.raises(ValueError, match="dead_band"):
+        DeadBand(linear_mps=-1.0)

@@ -3,6 +3,7 @@ against its limits, with a margin, for longer than one state period (services.sa
 the service latches a protective stop on it."""
 import time
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -10,6 +11,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.model import jaco2
 from services.model.kinematics import ArmKinematics
+from services.model.limits import arm_limits, stricter
 from services.runtime.transport import open_session
 from services.safety.checks import MotionMonitor, SafetyLimits
 from services.safety.service import SafetyConfig, SafetyService
@@ -18,6 +20,10 @@ from tests.stack import KEYS, Recorder, wait_for
 PERIOD_NS = 10_000_000  # the robot state's period (100 Hz)
 KIN = ArmKinematics()
 Q = jaco2.HOME.copy()
+#: the limits the robot declares in its states (the monitor's reference)
+ROBOT = stricter(arm_limits(), linear_speed_mps=0.15, angular_speed_rps=0.8)
+#: a robot whose Cartesian limits are out of reach (only the joints' speeds count)
+JOINTS_ONLY = msgspec.structs.replace(arm_limits(), linear_speed_mps=100.0, angular_speed_rps=100.0)
 
 
 def dq_for_linear(speed_mps: float, direction=(1.0, 0.0, 0.0)) -> np.ndarray:
@@ -27,8 +33,8 @@ def dq_for_linear(speed_mps: float, direction=(1.0, 0.0, 0.0)) -> np.ndarray:
     return np.linalg.pinv(KIN.jacobian_base(Q)) @ twist
 
 
-def feed(monitor: MotionMonitor, dq, states: int, start_ns: int = 0) -> list:
-    return [monitor.observe(Q, dq, start_ns + i * PERIOD_NS) for i in range(states)]
+def feed(monitor: MotionMonitor, dq, states: int, start_ns: int = 0, robot=ROBOT) -> list:
+    return [monitor.observe(Q, dq, start_ns + i * PERIOD_NS, robot) for i in range(states)]
 
 
 def test_measured_speed_within_the_margin_never_trips():
@@ -42,22 +48,27 @@ def test_one_state_over_is_tolerated_two_in_a_row_trip():
     monitor = MotionMonitor(SafetyLimits())
     fast, slow = dq_for_linear(0.15 * 1.16, (0.3, -0.5, 0.8)), dq_for_linear(0.05)
     assert feed(monitor, fast, 1) == [None]
-    assert monitor.observe(Q, slow, PERIOD_NS) is None  # back under: the count starts again
-    assert monitor.observe(Q, fast, 2 * PERIOD_NS) is None
-    reason = monitor.observe(Q, fast, 3 * PERIOD_NS)
+    assert monitor.observe(Q, slow, PERIOD_NS, ROBOT) is None  # back under: the count starts again
+    assert monitor.observe(Q, fast, 2 * PERIOD_NS, ROBOT) is None
+    reason = monitor.observe(Q, fast, 3 * PERIOD_NS, ROBOT)
     assert reason is not None and "end-effector speed 0.174" in reason and "10 ms" in reason
 
 
 @pytest.mark.parametrize("joint", range(7))
 def test_a_joint_over_its_own_limit_trips(joint):
-    monitor = MotionMonitor(SafetyLimits(max_linear_speed_mps=100.0, max_angular_speed_rps=100.0))
+    monitor = MotionMonitor(SafetyLimits())
     dq = np.zeros(7)
     dq[joint] = jaco2.MAX_SPEED[joint] * 1.12
-    reasons = feed(monitor, dq, 2)
+    reasons = feed(monitor, dq, 2, robot=JOINTS_ONLY)
     assert reasons[0] is None and f"joint {joint + 1} speed" in reasons[1]
     dq[joint] = jaco2.MAX_SPEED[joint] * 1.05
-    assert feed(MotionMonitor(SafetyLimits(max_linear_speed_mps=100.0, max_angular_speed_rps=100.0)), dq, 20) \
-        == [None] * 20
+    assert feed(MotionMonitor(SafetyLimits()), dq, 20, robot=JOINTS_ONLY) == [None] * 20
+
+
+def test_a_site_limit_stricter_than_the_robots_is_watched_and_a_looser_one_is_not():
+    fast = dq_for_linear(0.12)
+    assert feed(MotionMonitor(SafetyLimits(max_linear_speed_mps=0.1)), fast, 2)[1] is not None
+    assert feed(MotionMonitor(SafetyLimits(max_linear_speed_mps=0.5)), dq_for_linear(0.15 * 1.2), 2)[1] is not None
 
 
 def test_angular_overspeed_trips():
@@ -79,12 +90,12 @@ def safety(router):
 def robot_state(dq, stamp_ns: int) -> bytes:
     return m.encode(m.RobotState(header=m.Header(stamp_ns=stamp_ns), q=Q.tolist(), dq=list(map(float, dq)),
                                  tau=[0.0] * 7, pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
-                                 control_mode=m.ControlMode.CARTESIAN_VELOCITY))
+                                 control_mode=m.ControlMode.CARTESIAN_VELOCITY, limits=ROBOT))
 
 
 def test_an_arm_faster_than_told_gets_a_latched_protective_stop(safety):
-    """A robot whose states say it moves 20 % over the linear limit (as the gateway's arm did before the emulated
-    arm kept its own time): safety stops it, counts the trip, says so in its status and health, and stays stopped
+    """A robot whose states say it moves 20 % over the linear limit they declare (as the gateway's arm did before
+    the emulated arm kept its own time): safety stops it, counts the trip, says so in its status and health, and stays stopped
     until an operator resets it."""
     service, client = safety
     commands = Recorder(client, KEYS.robot_command, m.RobotCommand)

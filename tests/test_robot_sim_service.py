@@ -11,6 +11,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
 from services.model import jaco2
+from services.robot.dsp import DSPConfig, motion_limits
 from services.runtime.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import next_seq, wait_for
@@ -118,6 +119,8 @@ def test_lockstep_velocity_command_moves_as_declared(robot, client):
     applied = [s.applied_command for s in window]
     assert all(a is not None and a.trace[-1].service == "robot_sim" for a in applied)
     assert all(s.angular_convention is AngularConvention.SEED000 for s in window)
+    # the limits its DSP applies, declared in every state (the controller and safety read them there)
+    assert all(s.limits == motion_limits(DSPConfig()) for s in window)
 
 
 def test_lockstep_publishes_frames_with_capture_stamps(start_robot, client):

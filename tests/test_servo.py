@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from services.runtime.config import ConfigError, config_from_text
+from services.robot.dsp import DSPConfig
 from services.servo import Scenario, load_scenario, run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -28,7 +29,7 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     assert result.final_error_norm < 5e-5
     assert 30 < result.iterations < 400
     assert result.max_joint_limit_violation_deg == 0.0
-    assert 0 < result.max_linear_speed_mps <= 0.15 * 1.05  # the controller's and safety's limit
+    assert 0 < result.max_linear_speed_mps <= DSPConfig().max_linear_speed_mps * 1.05  # the robot's, declared
     lines = Path(result.trajectory_log).read_text().splitlines()
     assert len(lines) >= result.iterations
     # lockstep: a frame every 1/30 s of the arm's time, each answered, from the first the law acted on
@@ -38,7 +39,8 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     assert result.frames_lost == {"camera.dropped": 0, "vision.skipped": 0, "vision.stale": 0}
     first = json.loads(lines[0])
     assert {"iteration", "error_norm", "points", "command", "q"} <= set(first)
-    assert all(Path(p).stat().st_size > 1000 for p in result.plots) and len(result.plots) == 3
+    assert [Path(p).name for p in result.plots] == ["features.png", "error.png", "velocities.png", "joints.png"]
+    assert all(Path(p).stat().st_size > 1000 for p in result.plots)
 
 
 def test_ee_frame_law_fails_on_the_same_start():
@@ -50,7 +52,12 @@ def test_ee_frame_law_fails_on_the_same_start():
 @pytest.mark.parametrize("law", ["p-joint", "adaptive-p-joint", "adaptive-pd-joint", "adaptive-pd-mixed",
                                  "mixed-jacobian-joint", "manipulability", "smc"])
 def test_every_law_converges_on_an_easy_start(law):
-    result = run(with_law(EASY, law))
+    scenario = with_law(EASY, law)
+    if law == "smc":
+        # seed 002's tracking law decays at √K0 = 2/s near the goal, where the arm's velocity dead-band slows every
+        # law: 1381 iterations (295 on an arm without one, dsp.dead_band off)
+        scenario.convergence.max_iterations = 2000
+    result = run(scenario)
     assert result.converged, (result.status, result.iterations, result.final_error_norm)
     assert result.max_joint_limit_violation_deg == 0.0
 
@@ -85,6 +92,24 @@ goal: {features: null, depth_m: null, camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg:
     with pytest.raises(ConfigError) as err:  # the goal's rules are vision's
         config_from_text("goal: {camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
     assert "exactly one" in str(err.value)
+
+
+def test_a_scenario_s_robot_dsp_is_robot_sims_one_config_for_the_whole_stack():
+    """The arm's DSP in a scenario (convention, limits, dead-band) is robot_sim's config as it is; the controller
+    and safety follow its convention and read its limits from the robot's states (no copies of the numbers)."""
+    from services.servo import stack_config
+    scenario = config_from_text("""
+robot: {dsp: {angular_convention: omega, max_linear_speed_mps: 0.1, dead_band: {linear_mps: 0.02, angular_rps: 0.1,
+                                                                            shape: hard}}}
+""", Scenario)
+    config = stack_config(scenario)
+    assert config.robot.dsp == scenario.robot.dsp and config.robot.dsp.dead_band.shape == "hard"
+    assert config.controller.control.robot_convention.value == "omega"
+    assert config.safety.limits.robot_convention.value == "omega"
+    assert config.safety.limits.max_linear_speed_mps is None  # safety reads the robot's, stricter only if told
+    with pytest.raises(ConfigError) as err:
+        config_from_text("robot: {dsp: {max_linear_speed_mps: 0.5}}", Scenario)
+    assert "max_linear_speed_mps" in str(err.value)
 
 
 def test_mfvs_servo_command_prints_the_result_fields(tmp_path):

@@ -3,7 +3,7 @@ camera mount, at a given time, what the law outputs, or why the output is zero.
 
 Never the last command: with no task running, on tag loss, stale input, an ill-conditioned interaction matrix, a
 law that gives up (a constraint abort, an Euler singularity, a non-finite output) the output is zero and the step
-says why. The law's output is saturated to the configured limits (``saturated``).
+says why. The law's output is saturated to the limits the robot declares in its state (``saturated``).
 """
 from __future__ import annotations
 
@@ -12,11 +12,13 @@ from typing import Optional
 
 import numpy as np
 
+from protocol.conventions import AngularConvention
 from protocol.messages import (
     USABLE_FEATURE_STATUSES,
     ControllerState,
     Features,
     FeatureStatus,
+    MotionLimits,
     RobotState,
     TaskRequest,
     TaskStatus,
@@ -25,14 +27,8 @@ from services.controller import ibvs
 from services.controller.law import ConstraintAbort, LawOutput, ServoInput
 from services.controller.laws import JOINT_LAWS, make_law
 from services.controller.task import Task
-from services.model import frames, jaco2, saturation
-from services.runtime.config import ConfigStruct
-
-
-class OutputLimits(ConfigStruct):
-    max_linear_speed_mps: float = 0.15
-    max_angular_speed_rps: float = 0.8
-    joint_speed_scale: float = 0.8
+from services.model import frames, saturation
+from services.model.limits import declared as declared_limits
 
 
 @dataclass
@@ -125,7 +121,7 @@ class ControllerCore:
         values = output.joint_velocities if self.joint_output else output.twist
         if values is None or not np.all(np.isfinite(values)):
             return zero(ControllerState.ILL_CONDITIONED, "the law produced a non-finite output", reset=True)
-        saturated = saturate(output, cfg.limits, self.joint_output)
+        saturated = saturate(output, declared_limits(state), self.joint_output, state, cfg.control.robot_convention)
         return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated)
 
     def features_now(self, points: np.ndarray, depths: np.ndarray, q_capture, q_now, camera_in_ee: np.ndarray
@@ -139,15 +135,20 @@ class ControllerCore:
         return ibvs.features_after_camera_motion(points, depths, np.linalg.inv(camera_then) @ camera_now)
 
 
-def saturate(output: LawOutput, limits: OutputLimits, joint_output: bool) -> bool:
-    """Scale the law's output down to the limits (in place): joint velocities uniformly to the joints' speed
-    scale, a twist's linear and angular parts each to their speed; whether anything was scaled."""
+def saturate(output: LawOutput, robot: MotionLimits, joint_output: bool, state: RobotState,
+             convention: AngularConvention) -> bool:
+    """Scale the law's output down to the robot's limits (in place): joint velocities uniformly to the joints'
+    speeds, a twist's linear part to the linear speed and its angular part (rates in the robot's convention) so
+    the end effector's angular velocity is within the angular speed, the way the robot measures it; whether
+    anything was scaled."""
     if joint_output:
-        output.joint_velocities, ratio = saturation.limit_uniformly(
-            output.joint_velocities, jaco2.MAX_SPEED * limits.joint_speed_scale)
+        output.joint_velocities, ratio = saturation.limit_uniformly(output.joint_velocities, robot.joint_speed_rps)
         return ratio > 1.0
-    saturated = False
-    for part, vmax in ((slice(0, 3), limits.max_linear_speed_mps), (slice(3, 6), limits.max_angular_speed_rps)):
-        output.twist[part], speed = saturation.limit_norm(output.twist[part], vmax)
-        saturated = saturated or speed > vmax
-    return saturated
+    twist = output.twist
+    twist[:3], linear = saturation.limit_norm(twist[:3], robot.linear_speed_mps)
+    pose = state.pose
+    R = frames.euler_xyz_to_matrix((pose.ThetaX, pose.ThetaY, pose.ThetaZ))
+    angular = float(np.linalg.norm(frames.omega_ee_from_angular(twist[3:], R, convention)))
+    if angular > robot.angular_speed_rps:
+        twist[3:] *= robot.angular_speed_rps / angular  # the rates are linear in ω: scaled as it is
+    return linear > robot.linear_speed_mps or angular > robot.angular_speed_rps

@@ -7,7 +7,8 @@ the features' source stamp and trace, and a ControllerStatus per iteration.
 Its rules are :class:`~services.controller.core.ControllerCore` (no zenoh, no locks, no clock): never the last
 command (with no task running, the controller comes up idle, on tag loss, stale input, an ill-conditioned
 interaction matrix or a constraint abort the output is zero and the status says why), and outputs saturated to the
-configured limits. This service pairs each features message with its robot state, calls the core and publishes.
+limits the robot declares in its state. This service pairs each features message with its robot state, calls the
+core and publishes.
 
 Queryables ``…/controller/api/{start_task,stop_task,get_task}`` (TaskRequest, TaskRequest, nothing → TaskStatus).
 """
@@ -37,7 +38,7 @@ from protocol import messages
 from services.model import frames, jaco2
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.state_history import StateHistory
-from services.controller.core import ControllerCore, OutputLimits
+from services.controller.core import ControllerCore
 from services.controller.law import LawConfig, LawOutput
 from services.controller.laws import LAW_NAMES
 
@@ -59,7 +60,6 @@ class ControllerConfig(ServiceConfig):
     latency_compensation: bool = True
     #: condition number of L̂ above which the law's output is not trusted
     max_condition_number: float = 1e5
-    limits: OutputLimits = msgspec.field(default_factory=OutputLimits)
     #: law-specific options (e.g. the smc or manipulability parameters)
     options: dict = msgspec.field(default_factory=dict)
 

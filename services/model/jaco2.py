@@ -75,6 +75,18 @@ LINK_NAMES = tuple(f"link_{i}" for i in range(1, N_JOINTS + 1))
 
 MAX_SPEED_DPS = np.array([j.max_speed_dps for j in JOINTS])
 MAX_SPEED = np.radians(MAX_SPEED_DPS)
+
+# The arm's Cartesian limits (shared/reference/kinova.md): the most Kinova's client configuration allows (product
+# sheet: 20 cm/s) and its acceleration limits. The robot node declares the limits it applies in every state
+# (``RobotState.limits``); the controller and safety read them there.
+#: Kinova's client configuration ranges for the maximum translation (m/s) and orientation (rad/s) velocity
+LINEAR_SPEED_RANGE = (0.04, 0.2)
+ANGULAR_SPEED_RANGE = (0.16, 1.07)
+MAX_LINEAR_SPEED_MPS = LINEAR_SPEED_RANGE[1]
+MAX_ANGULAR_SPEED_RPS = ANGULAR_SPEED_RANGE[1]
+LINEAR_ACCEL_MPS2 = 0.64
+ANGULAR_ACCEL_RPS2 = 2.75
+JOINT_ACCEL_DPS2 = 200.0
 MAX_TORQUE = np.array([j.max_torque_nm for j in JOINTS])
 CONTINUOUS = np.array([j.continuous for j in JOINTS])
 

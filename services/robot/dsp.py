@@ -26,6 +26,7 @@ measured joint state and writes the returned references to its actuators.
 from __future__ import annotations
 
 import collections
+import enum
 import math
 from dataclasses import dataclass, field
 from typing import Optional
@@ -35,26 +36,68 @@ import numpy as np
 
 from protocol import kinova
 from protocol.conventions import AngularConvention, Frame
-from protocol.messages import CommandMode, ControlMode, Header, RobotCommand
+from protocol.messages import CommandMode, ControlMode, Header, MotionLimits, RobotCommand
 from services.model import frames, jaco2, saturation
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics, manipulability
 from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
-# Kinova's client configuration ranges (shared/reference/kinova.md).
-LINEAR_SPEED_RANGE = (0.04, 0.2)
-ANGULAR_SPEED_RANGE = (0.16, 1.07)
+LINEAR_SPEED_RANGE, ANGULAR_SPEED_RANGE = jaco2.LINEAR_SPEED_RANGE, jaco2.ANGULAR_SPEED_RANGE
+
+
+class DeadBandShape(str, enum.Enum):
+    #: a command below the dead-band gives no motion at all; above it, the command as it is
+    HARD = "hard"
+    #: below the dead-band the arm moves at (v/v_d)·v: a tenth of the dead-band moves at a hundredth of it, so
+    #: practically nothing, yet the arm still creeps toward where it is told
+    CREEP = "creep"
+
+
+class DeadBand(ConfigStruct):
+    """The arm's velocity dead-band: a velocity command that asks the end effector to move slower than
+    ``linear_mps`` and turn slower than ``angular_rps`` gives (practically) no motion. Seed 000 (section 3.1) met
+    it on the JACO-2 near convergence ("it does not move for minimal Cartesian velocities computed by the control
+    law"), which is why its adaptive gain matters (Table 3: 446 → 189 iterations). It applies to Cartesian and joint
+    velocity commands alike, by the end-effector motion they ask for, and scales the whole command (its direction
+    kept). The defaults are not the values users report for the real arm (0.02 m/s, 0.1 rad/s): docs/robot.md says
+    why."""
+
+    #: 2 mm/s and 0.01 rad/s (the ratio of the reported 0.02 m/s and 0.1 rad/s, a tenth of their size): with them
+    #: Table 3's constant-gain joint law takes 497 iterations from examples/scenarios/table2.yaml (paper: 446),
+    #: 209 without
+    linear_mps: float = 2e-3
+    angular_rps: float = 1e-2
+    shape: DeadBandShape = DeadBandShape.CREEP
+
+    def __post_init__(self) -> None:
+        for name in ("linear_mps", "angular_rps"):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"dead_band.{name} must be zero (off) or positive")
+
+
+def dead_band(twist: np.ndarray, band: DeadBand) -> float:
+    """The factor a velocity command that asks for the end-effector ``twist`` [v; ω] is multiplied by: 1 when its
+    linear or its angular speed reaches its dead-band (a zero threshold is no dead-band); below both, 0 when hard,
+    else the larger of the two speeds as a fraction of its dead-band."""
+    ratios = [float(np.linalg.norm(twist[part])) / threshold
+              for (part, _), threshold in zip(saturation.TWIST_PARTS, (band.linear_mps, band.angular_rps))
+              if threshold > 0.0]
+    if not ratios or max(ratios) >= 1.0:
+        return 1.0
+    return 0.0 if DeadBandShape(band.shape) is DeadBandShape.HARD else max(ratios)
 
 
 class DSPConfig(ConfigStruct):
     cycle_s: float = 0.01
     #: how the angular part of a Cartesian velocity is read (ARCHITECTURE.md)
     angular_convention: AngularConvention = AngularConvention.SEED000
-    max_linear_speed_mps: float = 0.2
-    max_angular_speed_rps: float = 1.07
-    linear_accel_mps2: float = 0.64
-    angular_accel_rps2: float = 2.75
-    joint_accel_dps2: float = 200.0
+    max_linear_speed_mps: float = jaco2.MAX_LINEAR_SPEED_MPS
+    max_angular_speed_rps: float = jaco2.MAX_ANGULAR_SPEED_RPS
+    linear_accel_mps2: float = jaco2.LINEAR_ACCEL_MPS2
+    angular_accel_rps2: float = jaco2.ANGULAR_ACCEL_RPS2
+    joint_accel_dps2: float = jaco2.JOINT_ACCEL_DPS2
+    dead_band: DeadBand = msgspec.field(default_factory=DeadBand)
     #: fraction of the actuators' rated speeds (36/48 deg/s) the DSP may use
     joint_speed_scale: float = 1.0
     watchdog_cycles: int = 2
@@ -89,6 +132,18 @@ class DSPConfig(ConfigStruct):
             raise ValueError("joint_speed_scale must be within (0, 1]")
         if self.watchdog_cycles < 1:
             raise ValueError("watchdog_cycles must be at least 1")
+
+
+def motion_limits(config: DSPConfig, linear_speed_mps: float | None = None,
+                  angular_speed_rps: float | None = None) -> MotionLimits:
+    """The limits an arm with this DSP configuration applies (the Cartesian speeds as set at run time, when they
+    were: SetCartesianMaxVelocities)."""
+    return MotionLimits(
+        linear_speed_mps=config.max_linear_speed_mps if linear_speed_mps is None else linear_speed_mps,
+        angular_speed_rps=config.max_angular_speed_rps if angular_speed_rps is None else angular_speed_rps,
+        joint_speed_rps=(jaco2.MAX_SPEED * config.joint_speed_scale).tolist(),
+        linear_accel_mps2=config.linear_accel_mps2, angular_accel_rps2=config.angular_accel_rps2,
+        joint_accel_rps2=math.radians(config.joint_accel_dps2))
 
 
 class CommandRefused(ValueError):
@@ -285,11 +340,12 @@ class KinovaDSP:
         elif isinstance(segment, _CartesianVelocity):
             self.status.applied = segment.source
             twist_base = frames.base_twist_from_mixed(segment.twist, R, segment.convention)
+            twist_base = self._dead_band(twist_base, twist_base)
             dq = self._cartesian(q, p, J, twist_base, dt, self.max_linear, self.max_angular)
             self._moving_mode = ControlMode.CARTESIAN_VELOCITY
         elif isinstance(segment, _JointVelocity):
             self.status.applied = segment.source
-            dq = self._joint(q, segment.dq, dt, self._joint_max_speed)
+            dq = self._joint(q, self._dead_band(segment.dq, J @ segment.dq), dt, self._joint_max_speed)
             self._moving_mode = ControlMode.ANGULAR_VELOCITY
         elif isinstance(segment, _AngularPosition):
             speed = self._joint_max_speed if segment.max_speed is None else np.minimum(segment.max_speed,
@@ -320,6 +376,18 @@ class KinovaDSP:
         self._twist_prev = J @ dq
         self.status.mode = self._moving_mode if np.any(dq != 0.0) or self.fifo else ControlMode.IDLE
         return dq
+
+    def motion_limits(self) -> MotionLimits:
+        """The limits this DSP applies now (what the robot node declares in its states)."""
+        return motion_limits(self.config, self.max_linear, self.max_angular)
+
+    def _dead_band(self, command: np.ndarray, twist_base: np.ndarray) -> np.ndarray:
+        """``command`` (a twist or joint velocities) scaled by the dead-band of the end-effector motion it asks."""
+        factor = dead_band(twist_base, self.config.dead_band)
+        if factor < 1.0 and np.any(command):
+            self._flag("dead_band")
+            return command * factor
+        return command
 
     def _next_segment(self, q, R, p):
         """This cycle's segment; runs the watchdog for velocity commands."""

@@ -616,7 +616,7 @@ class RobotNode(Service):
             pose=KinovaPose(X=p[0], Y=p[1], Z=p[2], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2]),
             control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],
             watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
-            applied_command=self._applied, timing=self.timing(),
+            applied_command=self._applied, timing=self.timing(), limits=dsp.motion_limits(),
         ))
 
     def _publish_lowlevel(self) -> None:

@@ -23,9 +23,9 @@ import numpy as np
 
 from protocol import kinova
 from protocol.conventions import AngularConvention
-from protocol.messages import CommandMode, ControlMode, RobotCommand
+from protocol.messages import CommandMode, ControlMode, MotionLimits, RobotCommand
 from services.model import frames, jaco2
-from services.robot.dsp import CommandRefused, DSPConfig, DSPStatus
+from services.robot.dsp import CommandRefused, DSPConfig, DSPStatus, motion_limits
 from services.robot.hardware import JointReading
 
 KINOVA_SDK_LIBRARY = "Kinova.API.USBCommandLayerUbuntu.so"
@@ -236,6 +236,10 @@ class SdkArm:
         return self._state
 
     # ---- the DSP surface
+    def motion_limits(self) -> MotionLimits:
+        """The arm's own DSP applies its client configuration, which the gateway's config states."""
+        return motion_limits(self.config)
+
     def submit(self, command: RobotCommand) -> None:
         mode = CommandMode(command.mode)
         if mode is CommandMode.CARTESIAN_VELOCITY:

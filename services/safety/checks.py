@@ -13,7 +13,9 @@ import msgspec
 import numpy as np
 
 from protocol.conventions import IMAGE_AGE_BUDGET_S, AngularConvention, Frame
+from protocol.messages import MotionLimits
 from services.model import frames, jaco2, saturation
+from services.model.limits import stricter
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics
 from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
@@ -30,13 +32,15 @@ class SafetyLimits(ConfigStruct):
     state_budget_s: float = 0.1
     #: an input stamped further ahead of safety's clock than this is refused (clock skew between hosts, no more)
     future_skew_s: float = 0.05
-    max_linear_speed_mps: float = 0.15
-    max_angular_speed_rps: float = 0.8
-    max_linear_accel_mps2: float = 0.64
-    max_angular_accel_rps2: float = 2.75
-    #: fraction of the actuators' rated joint speeds a command may ask for
-    joint_speed_scale: float = 0.9
-    max_joint_accel_dps2: float = 200.0
+    #: the speed and acceleration limits are the robot's own, as it declares them in its state
+    #: (``RobotState.limits``); a value set here is a stricter site limit (it never loosens the robot's)
+    max_linear_speed_mps: Optional[float] = None
+    max_angular_speed_rps: Optional[float] = None
+    max_linear_accel_mps2: Optional[float] = None
+    max_angular_accel_rps2: Optional[float] = None
+    #: fraction of the robot's joint speeds a command may ask for
+    joint_speed_scale: float = 1.0
+    max_joint_accel_dps2: Optional[float] = None
     #: what to do with a command over a speed limit: scale it down to the limit, or refuse it (stop)
     over_limit: Literal["clamp", "refuse"] = "clamp"
     #: joint limits are predicted this far ahead, and kept this far inside
@@ -52,16 +56,27 @@ class SafetyLimits(ConfigStruct):
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=lambda: ZoneFilterConfig(margin_m=0.02))
 
     def __post_init__(self) -> None:
-        for name in ("command_budget_s", "image_budget_s", "state_budget_s", "future_skew_s",
-                     "max_linear_speed_mps", "max_angular_speed_rps", "max_linear_accel_mps2", "max_angular_accel_rps2",
-                     "max_joint_accel_dps2", "joint_horizon_s", "measured_overspeed_s"):
+        for name in ("command_budget_s", "image_budget_s", "state_budget_s", "future_skew_s", "joint_horizon_s",
+                     "measured_overspeed_s", *SITE_LIMITS):
             value = getattr(self, name)
-            if not (value > 0 and math.isfinite(value)):
+            if value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive")
         if not 0 < self.joint_speed_scale <= 1:
             raise ValueError("joint_speed_scale must be within (0, 1]")
         if not 0 <= self.measured_speed_margin <= 1:
             raise ValueError("measured_speed_margin must be within [0, 1]")
+
+
+#: the limits a site may set stricter than the robot's
+SITE_LIMITS = ("max_linear_speed_mps", "max_angular_speed_rps", "max_linear_accel_mps2", "max_angular_accel_rps2",
+               "max_joint_accel_dps2")
+
+
+def effective_limits(site: SafetyLimits, robot: MotionLimits) -> MotionLimits:
+    """The robot's declared limits, or the site's where they are stricter."""
+    return stricter(robot, site.max_linear_speed_mps, site.max_angular_speed_rps, site.joint_speed_scale,
+                           site.max_linear_accel_mps2, site.max_angular_accel_rps2,
+                           None if site.max_joint_accel_dps2 is None else math.radians(site.max_joint_accel_dps2))
 
 
 @dataclass
@@ -94,11 +109,6 @@ class CommandChecker:
         margin = math.radians(limits.joint_limit_margin_deg)
         self.lower_soft, self.upper_soft = self.lower + margin, self.upper - margin
         self.limited = np.isfinite(self.lower)
-        self.max_joint_speed = jaco2.MAX_SPEED * limits.joint_speed_scale
-        self.max_joint_accel = math.radians(limits.max_joint_accel_dps2)
-        #: a base twist's parts, their speed limits and the names a limited or refused command gives them
-        self.speed_limits = ((slice(0, 3), limits.max_linear_speed_mps, "linear_speed"),
-                             (slice(3, 6), limits.max_angular_speed_rps, "angular_speed"))
         #: the last base-frame twist (or joint velocities) forwarded, for the acceleration limits
         self.last_twist_base = np.zeros(6)
         self.last_dq = np.zeros(jaco2.N_JOINTS)
@@ -109,8 +119,17 @@ class CommandChecker:
         self.last_dq = np.zeros(jaco2.N_JOINTS)
 
     # ------------------------------------------------------------------ twists
-    def check_twist(self, frame: Frame, angular: AngularConvention, twist, q, dt: float) -> Decision:
+    @staticmethod
+    def speed_limits(robot: MotionLimits) -> tuple:
+        """A base twist's parts, their speed limits and the names a limited or refused command gives them."""
+        return ((slice(0, 3), robot.linear_speed_mps, "linear_speed"),
+                (slice(3, 6), robot.angular_speed_rps, "angular_speed"))
+
+    def check_twist(self, frame: Frame, angular: AngularConvention, twist, q, dt: float,
+                    robot: MotionLimits) -> Decision:
+        """``robot``: the limits the robot declares (:func:`services.model.limits.declared`)."""
         lim = self.limits
+        robot = effective_limits(lim, robot)
         if frame is not Frame.MIXED or angular is not lim.robot_convention:
             return Decision(refusal=f"convention: the robot takes mixed twists with '{lim.robot_convention.value}' "
                                     f"angular velocity, this one is {frame.value}/{angular.value}",
@@ -124,7 +143,7 @@ class CommandChecker:
         decision = Decision()
 
         # speeds
-        for part, vmax, name in self.speed_limits:
+        for part, vmax, name in self.speed_limits(robot):
             limited, speed = saturation.limit_norm(base[part], vmax)
             if speed > vmax:
                 if lim.over_limit == "refuse":
@@ -132,8 +151,8 @@ class CommandChecker:
                 base[part] = limited
                 decision.limits.append(name)
         # accelerations, from the last forwarded twist
-        for part, amax, name in ((slice(0, 3), lim.max_linear_accel_mps2, "linear_accel"),
-                                 (slice(3, 6), lim.max_angular_accel_rps2, "angular_accel")):
+        for part, amax, name in ((slice(0, 3), robot.linear_accel_mps2, "linear_accel"),
+                                 (slice(3, 6), robot.angular_accel_rps2, "angular_accel")):
             base[part], cut = saturation.limit_norm_change(self.last_twist_base[part], base[part], amax * dt)
             if cut:
                 decision.limits.append(name)
@@ -144,7 +163,7 @@ class CommandChecker:
         J_pinv = np.linalg.pinv(J)
         dq = J_pinv @ base
         scale = 1.0
-        ratio = saturation.over_limit_ratio(dq, self.max_joint_speed)
+        ratio = saturation.over_limit_ratio(dq, robot.joint_speed_rps)
         if ratio > 1.0:
             if lim.over_limit == "refuse":
                 return Decision(refusal=f"joint_speed: {ratio:.2f}× the joint speed limit", limits=["joint_speed"])
@@ -172,24 +191,26 @@ class CommandChecker:
         return scale
 
     # ------------------------------------------------------------------ joint velocities
-    def check_joint_velocity(self, dq, q, dt: float) -> Decision:
+    def check_joint_velocity(self, dq, q, dt: float, robot: MotionLimits) -> Decision:
+        """``robot``: the limits the robot declares (:func:`services.model.limits.declared`)."""
         lim = self.limits
+        robot = effective_limits(lim, robot)
         q = np.asarray(q, dtype=float)
         dq = np.array(dq, dtype=float, copy=True)
         decision = Decision()
-        limited, ratio = saturation.limit_uniformly(dq, self.max_joint_speed)
+        limited, ratio = saturation.limit_uniformly(dq, robot.joint_speed_rps)
         if ratio > 1.0:
             if lim.over_limit == "refuse":
                 return Decision(refusal=f"joint_speed: {ratio:.2f}× the joint speed limit", limits=["joint_speed"])
             dq = limited
             decision.limits.append("joint_speed")
-        dq, cut = saturation.limit_change_uniformly(self.last_dq, dq, self.max_joint_accel * dt)
+        dq, cut = saturation.limit_change_uniformly(self.last_dq, dq, robot.joint_accel_rps2 * dt)
         if cut:
             decision.limits.append("joint_accel")
         dq *= self._joint_limit_scale(q, dq, decision)
         R, p, J = self.kin.pose_and_jacobian(q)
         twist = J @ dq
-        for part, vmax, name in self.speed_limits:
+        for part, vmax, name in self.speed_limits(robot):
             speed = float(np.linalg.norm(twist[part]))
             if speed > vmax:
                 if lim.over_limit == "refuse":
@@ -220,10 +241,6 @@ class MotionMonitor:
     def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics | None = None) -> None:
         self.limits = limits
         self.kin = kinematics or ArmKinematics()
-        margin = 1.0 + limits.measured_speed_margin
-        self.linear_limit = limits.max_linear_speed_mps * margin
-        self.angular_limit = limits.max_angular_speed_rps * margin
-        self.joint_limit = jaco2.MAX_SPEED * margin
         self._since: Optional[int] = None
         #: the largest measured speeds so far, as fractions of their limits (without the margin)
         self.peak_ratio = {"linear": 0.0, "angular": 0.0, "joint": 0.0}
@@ -233,23 +250,28 @@ class MotionMonitor:
         twist = self.kin.jacobian_base(np.asarray(q, dtype=float)) @ np.asarray(dq, dtype=float)
         return float(np.linalg.norm(twist[:3])), float(np.linalg.norm(twist[3:])), np.abs(np.asarray(dq, float))
 
-    def observe(self, q, dq, stamp_ns: int) -> Optional[str]:
+    def observe(self, q, dq, stamp_ns: int, robot: MotionLimits) -> Optional[str]:
+        """``robot``: the limits the robot declares in the state that measured ``q`` and ``dq``."""
         lim = self.limits
+        robot = effective_limits(lim, robot)
+        margin = 1.0 + lim.measured_speed_margin
+        joint_limits = np.asarray(robot.joint_speed_rps)
         linear, angular, joints = self.speeds(q, dq)
         self.peak_linear_mps = max(self.peak_linear_mps, linear)
-        ratios = {"linear": linear / lim.max_linear_speed_mps, "angular": angular / lim.max_angular_speed_rps,
-                  "joint": float(np.max(joints / jaco2.MAX_SPEED))}
+        ratios = {"linear": linear / robot.linear_speed_mps, "angular": angular / robot.angular_speed_rps,
+                  "joint": float(np.max(joints / joint_limits))}
         for name, ratio in ratios.items():
             self.peak_ratio[name] = max(self.peak_ratio[name], ratio)
         over = []
-        if linear > self.linear_limit:
-            over.append(f"end-effector speed {linear:.3f} m/s over {lim.max_linear_speed_mps:.3f}")
-        if angular > self.angular_limit:
-            over.append(f"end-effector angular speed {angular:.3f} rad/s over {lim.max_angular_speed_rps:.3f}")
-        fast = np.flatnonzero(joints > self.joint_limit)
+        if ratios["linear"] > margin:
+            over.append(f"end-effector speed {linear:.3f} m/s over {robot.linear_speed_mps:.3f}")
+        if ratios["angular"] > margin:
+            over.append(f"end-effector angular speed {angular:.3f} rad/s over {robot.angular_speed_rps:.3f}")
+        fast = np.flatnonzero(joints > joint_limits * margin)
         if len(fast):
             i = int(fast[0])
-            over.append(f"joint {i + 1} speed {np.degrees(joints[i]):.1f} deg/s over {jaco2.MAX_SPEED_DPS[i]:.0f}")
+            over.append(f"joint {i + 1} speed {np.degrees(joints[i]):.1f} deg/s over "
+                        f"{np.degrees(joint_limits[i]):.0f}")
         if not over:
             self._since = None
             return None

@@ -30,6 +30,7 @@ from protocol.messages import (
     SafetyState,
     Twist,
 )
+from services.model.limits import declared as declared_limits
 from services.runtime.state_history import StateHistory
 from services.safety.checks import CommandChecker, Decision, MotionMonitor, SafetyLimits
 
@@ -46,12 +47,13 @@ class HeldCommand:
     def source(self) -> Header:
         return self.twist.header if self.twist is not None else self.joint.header
 
-    def check(self, checker: CommandChecker, q, dt: float) -> Decision:
-        """Check the command against the joint angles ``q``."""
+    def check(self, checker: CommandChecker, state: RobotState, dt: float) -> Decision:
+        """Check the command against the robot's ``state``: its joint angles and the limits it declares."""
+        q, robot = np.asarray(state.q, dtype=float), declared_limits(state)
         if self.twist is not None:
             t = self.twist
-            return checker.check_twist(t.frame, t.angular, (*t.linear, *t.rotational), q, dt)
-        return checker.check_joint_velocity(self.joint.velocities, q, dt)
+            return checker.check_twist(t.frame, t.angular, (*t.linear, *t.rotational), q, dt, robot)
+        return checker.check_joint_velocity(self.joint.velocities, q, dt, robot)
 
 
 @dataclass
@@ -125,7 +127,7 @@ class SafetyCore:
         self.robot_state = state
         self.states.add(stamp, state)
         out: list[Action] = []
-        overspeed = self.monitor.observe(state.q, state.dq, stamp)
+        overspeed = self.monitor.observe(state.q, state.dq, stamp, declared_limits(state))
         if overspeed is not None:
             out += self._protective_stop(overspeed)
         if self.lockstep:
@@ -204,10 +206,10 @@ class SafetyCore:
         reason = self.input_problem(held.source, now_ns)
         if reason is not None:
             return None, reason
-        q = self._fresh_q(now_ns, state)
-        if q is None:
+        state = self._fresh_state(now_ns, state)
+        if state is None:
             return None, "robot_state: no fresh robot state to check the command against"
-        decision = held.check(self.checker, q, self.dt)
+        decision = held.check(self.checker, state, self.dt)
         if decision.refused:
             self.active_limits = list(decision.limits)
             return None, decision.refusal
@@ -239,14 +241,12 @@ class SafetyCore:
                     f"'{lim.robot_convention.value}'")
         return None
 
-    def _fresh_q(self, now_ns: int, state: Optional[RobotState] = None) -> Optional[np.ndarray]:
-        if state is None:
-            if self.robot_state is None:
-                return None
-            state = self.robot_state
-        if (now_ns - state.header.stamp_ns) * 1e-9 > self.limits.state_budget_s:
+    def _fresh_state(self, now_ns: int, state: Optional[RobotState] = None) -> Optional[RobotState]:
+        """``state`` (default: the latest) when it is within the state budget, else None."""
+        state = state if state is not None else self.robot_state
+        if state is None or (now_ns - state.header.stamp_ns) * 1e-9 > self.limits.state_budget_s:
             return None
-        return np.asarray(state.q, dtype=float)
+        return state
 
     # ------------------------------------------------------------------ output
     def _refuse(self, reason: str) -> Refused:
