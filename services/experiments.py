@@ -174,9 +174,11 @@ def _part_a_summary(rows: dict) -> dict:
 def _joint_vs_mixed_summary(rows: dict) -> dict:
     joint, mixed = rows["adaptive-pd-joint"], rows["adaptive-pd-mixed"]
     return {
-        "joint_converged": joint["converged"], "joint_failure": joint["failure"],
+        "joint_converged": joint["converged"], "joint_iterations": joint["iterations"],
+        "joint_failure": joint["failure"],
         "joint_limits_met": joint["limits_met"],
-        "mixed_converged": mixed["converged"], "mixed_failure": mixed["failure"],
+        "mixed_converged": mixed["converged"], "mixed_iterations": mixed["iterations"],
+        "mixed_failure": mixed["failure"],
         "mixed_limits_met": mixed["limits_met"],
         "min_zone_distance_m": {label: row["min_zone_distance_m"] for label, row in rows.items()},
         "as_in_paper": mixed["converged"] and not joint["converged"],
@@ -207,6 +209,12 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
                "(47 iterations)", "table2.yaml",
                [RunSpec("ee-frame", "ee-frame", PROPOSED), RunSpec("adaptive-pd-mixed", "adaptive-pd-mixed", PROPOSED)],
                _part_a_summary),
+    Experiment("part-b", "Part B: the arm outstretched, near the workspace's boundary",
+               "the joint law fails near the 25th iteration (joint limits, singularity: abrupt joint velocities); the "
+               "mixed law converges smoothly", "part_b.yaml", _joint_and_mixed(), _joint_vs_mixed_summary),
+    Experiment("part-c", "Part C: near the base, where the straight path crosses the protection zone",
+               "the mixed law converges, gliding over the base's safety zone (the features take a curved route)",
+               "part_c.yaml", _joint_and_mixed(), _joint_vs_mixed_summary, zone_distance=True),
     Experiment("part-d", "Part D: the mixed twist realised in joint space (eq. 26)",
                "converges in 154 iterations with a wavy image trajectory (the mixed Cartesian law: 79)",
                "table2.yaml", [RunSpec("mixed-jacobian-joint", "mixed-jacobian-joint", PROPOSED),

@@ -240,7 +240,7 @@ def comparison_plots(runs: dict[str, list], out_dir: Path, *, title: str, thresh
         ax.axhline(0.0, color="tab:red", ls="--", lw=1, label="zone boundary")
         ax.set_xlabel("time (s)")
         ax.set_ylabel("distance to the zone (m)")
-        ax.set_title(f"{title}: end effector to the base protection zone", fontsize=10)
+        ax.set_title("end effector to the nearest protection zone", fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
         _save(fig, out_dir / "zone_distance.png", paths)

@@ -44,7 +44,8 @@ class ScenarioRobot(ConfigStruct):
     #: physical angles (deg), as GetAngularPosition reports them
     initial_joints_deg: list[float] = msgspec.field(default_factory=lambda: jaco2.HOME_DEG.tolist())
     #: the arm's DSP as robot_sim's config has it: the convention it reads for Cartesian angular velocity (the
-    #: controller and safety are set to the same), its speed limits, its velocity dead-band, its zones
+    #: controller and safety are set to the same), its speed limits, its velocity dead-band, its protection zones
+    #: (safety guards the same zones)
     dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
 
 
@@ -110,6 +111,7 @@ def stack_config(scenario: Scenario) -> StackConfig:
                                   options=dict(s.law_options))
     safety = SafetyConfig()
     safety.limits.robot_convention = convention
+    safety.limits.zones = list(s.robot.dsp.zones)  # the arm's protection zones are the site's: safety guards them too
     return StackConfig(clock=s.clock, robot=robot, vision=vision, controller=controller, safety=safety)
 
 

@@ -48,3 +48,10 @@ def test_the_visual_path_shares_one_image_budget():
 
     assert VisionConfig().max_image_age_s == ControllerConfig().max_input_age_s == SafetyLimits().image_budget_s \
         == IMAGE_AGE_BUDGET_S
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "examples" / "scenarios").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_example_scenario_loads_with_what_the_services_check_of_it(path):
+    from services.servo import load_scenario
+
+    load_scenario(path)
