@@ -13,7 +13,7 @@ apt_packages=(
     python3 python3-venv python3-pip
     # headless OpenGL through EGL on Mesa (llvmpipe on machines without a GPU)
     libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0 libglx-mesa0
-    # the tests build a stand-in for Kinova's SDK library (tests/fake_kinova_sdk) to test the ctypes backend
+    # the tests build a stand-in for Kinova's SDK library (tests/services/robot_gateway/fake_kinova_sdk) to test the ctypes backend
     gcc libc6-dev
 )
 if [[ "${MFVS_SKIP_APT:-0}" != 1 ]]; then

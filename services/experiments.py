@@ -227,8 +227,7 @@ def _copy(scenario: Scenario) -> Scenario:
 
 
 def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_dir: Optional[str | Path] = None,
-                   progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
-                   max_iterations: Optional[int] = None) -> dict:
+                   progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim") -> dict:
     """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal); ``progress(label, result)``
     after each run. Returns ``{"experiment", "title", "paper", "scenario", "runs": [...], "summary": {...},
     "report", "plots"}``."""
@@ -239,8 +238,6 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
     base = load_scenario(path)
     base.clock = ClockMode.LOCKSTEP  # every experiment is a function of its scenario
     base.law_options = {}
-    if max_iterations is not None:
-        base.convergence.max_iterations = max_iterations
     rows: dict[str, dict] = {}
     trajectories: dict[str, list[dict]] = {}
     with tempfile.TemporaryDirectory(prefix=f"mfvs-{name}-") as scratch:
@@ -248,8 +245,7 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
         for spec in experiment.runs:
             scenario = _copy(base)
             scenario.law, scenario.gains = spec.law, spec.gains
-            result = run(scenario, root / spec.label if out_dir is not None else Path(scratch) / spec.label,
-                         profile=profile)
+            result = run(scenario, root / spec.label, profile=profile, plots=out_dir is not None)
             records = [json.loads(line) for line in Path(result.trajectory_log).read_text().splitlines()]
             trajectories[spec.label] = records
             rows[spec.label] = _row(spec, result, records)

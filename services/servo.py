@@ -301,10 +301,12 @@ def _frames_lost(session, keys: Keys) -> dict:
             for (service, counter), name in FRAME_LOSS_COUNTERS.items() if service in health}
 
 
-def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim") -> ServoResult:
+def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim",
+        plots: bool = True) -> ServoResult:
     """Run the scenario through a local stack; ``progress(iteration_record)`` is called per iteration. The gateway
     profile drives the simulated arm through robot_gateway and its RS-485 bus (the hub, robot_sim's actuators and
-    the gateway as processes), in the scenario's clock mode."""
+    the gateway as processes), in the scenario's clock mode. With ``out_dir`` the trajectory log, the result and
+    (unless ``plots`` is false) the figures are written there."""
     config = stack_config(scenario)
     config.profile = profile
     joint_output = config.controller.law in JOINT_LAWS
@@ -437,7 +439,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         result.trajectory_log = str(log)
         from services.plots import servo_plots
 
-        result.plots = [str(p) for p in servo_plots(
+        result.plots = [] if not plots else [str(p) for p in servo_plots(
             records, out, law=scenario.law, goal=scenario.goal.features, camera=scenario.camera,
             threshold=scenario.convergence.error_norm, robot_limits=result.robot_limits)]
         (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")

@@ -1,8 +1,13 @@
 """Shared test helpers: random configurations and reference kinematics through Pinocchio."""
+from pathlib import Path
+
 import numpy as np
 
 from services.model import jaco2
 from services.model.kinematics import ArmKinematics
+
+#: the repository's root (the tests sit in folders that mirror the code's)
+REPO = Path(__file__).resolve().parents[1]
 
 
 def random_q(rng, margin_deg: float = 2.0) -> np.ndarray:

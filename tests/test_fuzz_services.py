@@ -18,7 +18,7 @@ from services.runtime.transport import Router, open_session
 from services.safety.service import SafetyConfig, SafetyService
 from services.vision.service import VisionConfig, VisionService
 from tests.stack import KEYS, Recorder, wait_for
-from tests.test_fuzz_decode import MESSAGE_TYPES, pack, values
+from tests.protocol.test_messages_fuzz import MESSAGE_TYPES, pack, values
 
 def rejects(payload: bytes, message_type) -> bool:
     try:

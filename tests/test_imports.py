@@ -2,8 +2,8 @@
 import hides inside a function to dodge one (every import statement counts, wherever it stands)."""
 import ast
 from pathlib import Path
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("protocol", "services", "bench")
 
 

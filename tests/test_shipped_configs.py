@@ -11,8 +11,8 @@ from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
 from services.vision.service import VisionConfig
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 SHIPPED = {
     "robot_sim": RobotSimConfig, "vision": VisionConfig, "controller": ControllerConfig, "safety": SafetyConfig,
     "robot_gateway": GatewayConfig,

@@ -101,6 +101,10 @@ class DSPConfig(ConfigStruct):
     #: fraction of the actuators' rated speeds (36/48 deg/s) the DSP may use
     joint_speed_scale: float = 1.0
     watchdog_cycles: int = 2
+    #: a velocity command takes effect this many cycles later than the next one (the command-to-motion delay of
+    #: the arm's USB link and firmware; not measured on a JACO-2: 0 by default). A stop acts at once and drops the
+    #: velocity commands still on their way
+    command_delay_cycles: int = 0
     #: joints stop this far inside their limits
     joint_limit_margin_deg: float = 2.0
     #: damped least squares: the damping reaches this value as the smallest singular value of J goes to 0 ...
@@ -132,6 +136,8 @@ class DSPConfig(ConfigStruct):
             raise ValueError("joint_speed_scale must be within (0, 1]")
         if self.watchdog_cycles < 1:
             raise ValueError("watchdog_cycles must be at least 1")
+        if not 0 <= self.command_delay_cycles <= 100:
+            raise ValueError("command_delay_cycles must be within [0, 100]")
 
 
 def motion_limits(config: DSPConfig, linear_speed_mps: float | None = None,
@@ -222,6 +228,8 @@ class KinovaDSP:
         self._moving_mode = ControlMode.IDLE
         #: emergency braking in progress: [scale, joint velocities at the trigger, scale rate (1/s)]
         self._braking: Optional[list] = None
+        #: velocity commands on their way (command_delay_cycles): (the cycle they take effect in, segment)
+        self._delayed: collections.deque = collections.deque()
 
     # ------------------------------------------------------------------------------ commands (mfvs path)
     def submit(self, command: RobotCommand) -> None:
@@ -232,6 +240,7 @@ class KinovaDSP:
             return
         if command.mode is CommandMode.STOP:
             self._direct = None
+            self._delayed.clear()
             self._last_velocity = None
             self._missed = self.config.watchdog_cycles  # stop now, without the watchdog's grace
             self.fifo.clear()
@@ -248,12 +257,20 @@ class KinovaDSP:
             segment = _CartesianVelocity(np.array([*twist.linear, *twist.rotational]), twist.angular, command.header)
         else:
             segment = _JointVelocity(np.asarray(command.joint_velocities, dtype=float), command.header)
+        if self.config.command_delay_cycles:
+            self._delayed.append((self.status.cycles + 1 + self.config.command_delay_cycles, segment))
+            return
+        self._take(segment)
+
+    def _take(self, segment) -> None:
+        """A velocity command takes effect (in the coming cycle): it erases the FIFO and ends any braking."""
         self.fifo.clear()
         self._direct = segment
         self._braking = None
 
     def _begin_emergency_stop(self) -> None:
         self._direct = None
+        self._delayed.clear()
         self._last_velocity = None
         self._missed = self.config.watchdog_cycles
         self.fifo.clear()
@@ -302,6 +319,7 @@ class KinovaDSP:
     def erase_all_trajectories(self) -> None:
         self.fifo.clear()
         self._direct = None
+        self._delayed.clear()
         self._last_velocity = None
         self._missed = self.config.watchdog_cycles
 
@@ -392,6 +410,8 @@ class KinovaDSP:
     def _next_segment(self, q, R, p):
         """This cycle's segment; runs the watchdog for velocity commands."""
         cfg = self.config
+        while self._delayed and self._delayed[0][0] <= self.status.cycles:
+            self._take(self._delayed.popleft()[1])
         if self._direct is not None:
             segment, self._direct = self._direct, None
             self._last_velocity, self._missed = segment, 0

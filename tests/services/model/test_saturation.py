@@ -5,6 +5,7 @@ from hypothesis import given, strategies as st
 from hypothesis.extra.numpy import arrays
 
 from services.model import saturation
+from tests.helpers import REPO
 
 finite = st.floats(-10.0, 10.0, allow_nan=False)
 vectors = arrays(np.float64, 3, elements=finite)
@@ -56,7 +57,7 @@ def test_limit_change_uniformly_meets_every_element_s_change_limit(previous, v, 
 def test_the_controller_safety_and_the_dsp_saturate_through_it():
     """One saturation: no other module scales a velocity to a limit by hand."""
     from pathlib import Path
-    root = Path(__file__).resolve().parents[1] / "services"
+    root = REPO / "services"
     for path in ("controller/core.py", "safety/checks.py", "robot/dsp.py"):
         text = (root / path).read_text()
         assert "saturation." in text, path

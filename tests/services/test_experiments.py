@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from services.experiments import EXPERIMENTS, TABLE3_PAPER, improvement_pct, run_experiment, straightness
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 MFVS = str(Path(sys.executable).parent / "mfvs")
 ROW_KEYS = {"label", "law", "converged", "iterations", "status", "final_error_norm", "failure", "limits_met",
             "min_zone_distance_m", "straightness", "detail"}

@@ -13,10 +13,10 @@ from services.controller.laws import make_law
 from services.controller.smc import GRADIENT_ERROR_SIGNS
 from services.robot_sim.scene import CameraConfig
 from services.servo import load_scenario, run
+from tests.helpers import REPO
 
 T_EC = CameraConfig().camera_in_ee.matrix()
 GOAL = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
-REPO = Path(__file__).resolve().parents[1]
 
 
 def hand_input(points, q=None):

@@ -17,8 +17,8 @@ from services.model.kinematics import ArmKinematics
 from services.safety.service import SafetyConfig
 from services.runtime.transport import open_session
 from tests.stack import KEYS, Recorder, wait_for
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 
 PIPELINE = textwrap.dedent("""
     import sys, time

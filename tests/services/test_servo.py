@@ -9,8 +9,8 @@ import pytest
 from services.runtime.config import ConfigError, config_from_text
 from services.robot.dsp import DSPConfig
 from services.servo import Scenario, load_scenario, run
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 TABLE2 = REPO / "examples" / "scenarios" / "table2.yaml"
 EASY = REPO / "examples" / "scenarios" / "easy.yaml"
 

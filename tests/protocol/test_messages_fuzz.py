@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from protocol import kinova
 from protocol import messages as m
+from tests.helpers import REPO
 
 MESSAGE_TYPES = sorted({cls for module in (m, kinova) for _, cls in inspect.getmembers(module, inspect.isclass)
                         if issubclass(cls, m.Message) and cls is not m.Message}, key=lambda c: c.__name__)
@@ -96,7 +97,7 @@ def test_every_wire_type_has_its_decoder_before_any_thread_decodes():
               "missing = sorted(t.__name__ for t in types if t not in m._decoders)\n"
               "print(len(types), missing)")
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
-                         cwd=Path(__file__).resolve().parents[1])
+                         cwd=REPO)
     assert out.returncode == 0, out.stderr
     count, missing = out.stdout.split(" ", 1)
     assert int(count) > 30 and missing.strip() == "[]", out.stdout

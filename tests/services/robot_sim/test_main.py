@@ -12,8 +12,8 @@ from protocol import messages as m
 from protocol.keys import Keys
 from services.runtime.transport import open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "services" / "robot_sim" / "robot_sim.yaml"
 KEYS = Keys()
 

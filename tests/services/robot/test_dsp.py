@@ -347,3 +347,22 @@ def test_the_dsp_declares_the_limits_it_applies():
     assert (dsp.motion_limits().linear_speed_mps, dsp.motion_limits().angular_speed_rps) == (0.1, 0.5)
     with pytest.raises(ValueError, match="dead_band"):
         DeadBand(linear_mps=-1.0)
+
+
+def test_a_command_to_motion_delay_holds_velocity_commands_and_never_a_stop():
+    """command_delay_cycles: a velocity command moves the arm that many cycles later than the next one; a stop acts
+    at once and drops the commands still on their way."""
+    reading = JointReading(q=jaco2.HOME.copy(), dq=np.zeros(7), tau=np.zeros(7))
+    for delay in (0, 3):
+        dsp = KinovaDSP(DSPConfig(command_delay_cycles=delay, dead_band=DeadBand(linear_mps=0, angular_rps=0)))
+        moving = []
+        for cycle in range(8):
+            dsp.submit(twist_command((0.05, 0.0, 0.0), (0.0, 0.0, 0.0)))
+            moving.append(bool(np.any(dsp.cycle(reading))))
+        assert moving == [False] * delay + [True] * (8 - delay)
+    dsp = KinovaDSP(DSPConfig(command_delay_cycles=3))
+    dsp.submit(twist_command((0.05, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    dsp.submit(m.RobotCommand(header=m.Header(), mode=m.CommandMode.STOP))
+    assert not any(np.any(dsp.cycle(reading)) for _ in range(6))
+    with pytest.raises(ValueError, match="command_delay_cycles"):
+        DSPConfig(command_delay_cycles=-1)

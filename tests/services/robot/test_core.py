@@ -1,6 +1,6 @@
 """The robot node's rules running in the gateway, over the RS-485 link to robot_sim's actuators (in-process bus, no
 zenoh): a mixed-frame velocity command moves the end effector as it does in robot_sim. The arm runs a cycle per
-exchange here (lockstep), so the figures are exact; tests/test_gateway.py runs both sides in realtime, as
+exchange here (lockstep), so the figures are exact; tests/services/robot_gateway/test_service.py runs both sides in realtime, as
 processes."""
 import numpy as np
 import pytest

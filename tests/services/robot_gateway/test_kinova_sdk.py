@@ -1,5 +1,5 @@
 """robot_gateway's kinova_sdk backend against a stand-in for Kinova's USB command layer with the same C ABI
-(tests/fake_kinova_sdk, compiled here): struct layouts, commands forwarded as SendBasicTrajectory points, state
+(tests/services/robot_gateway/fake_kinova_sdk, compiled here): struct layouts, commands forwarded as SendBasicTrajectory points, state
 read back, the Kinova API answered by the library, and clear failures."""
 import ctypes
 import ctypes.util

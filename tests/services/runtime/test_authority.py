@@ -18,8 +18,8 @@ from services.runtime.authority import DEFAULT_SERVICES, write_deployment
 from services.runtime.transport import Router, ZenohConfig, free_loopback_port, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import KEYS, Recorder, next_seq, wait_for
+from tests.helpers import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 def velocity_command(stamp=0):
@@ -32,7 +32,7 @@ def velocity_command(stamp=0):
 INTRUDER = textwrap.dedent("""
     import sys, time
     from services.runtime.transport import ZenohConfig, open_session
-    from tests.test_authority import velocity_command
+    from tests.services.runtime.test_authority import velocity_command
     endpoint, config_file, key = sys.argv[1:4]
     session = open_session(ZenohConfig(connect=[endpoint], config_file=config_file))
     publisher = session.declare_publisher(key)

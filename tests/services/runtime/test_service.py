@@ -21,8 +21,8 @@ from services.runtime.metrics import Counters, RateMeter
 from services.runtime.service import Service, ServiceConfig
 from services.runtime.transport import Router, ZenohConfig, open_session, to_zenoh_config
 from tests.stack import wait_for
+from tests.helpers import REPO
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 

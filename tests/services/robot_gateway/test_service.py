@@ -17,10 +17,9 @@ from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses, RouterProcess
-from tests.helpers import CpuLoad
+from tests.helpers import REPO, CpuLoad
 from tests.stack import KEYS, Recorder, wait_for
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 def test_same_keys_and_same_motion_as_robot_sim():
@@ -120,7 +119,7 @@ def test_servo_runs_through_the_gateway_profile():
 
     from services.servo import load_scenario, run
 
-    scenario = load_scenario(Path(__file__).resolve().parents[1] / "examples" / "scenarios" / "table2_qvga.yaml")
+    scenario = load_scenario(REPO / "examples" / "scenarios" / "table2_qvga.yaml")
     result = run(scenario, profile="gateway")
     assert result.converged, (result.status, result.iterations, result.final_error_norm)
     assert result.iterations < 300  # generous against 134-136 measured
