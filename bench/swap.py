@@ -23,8 +23,6 @@ from services.servo import load_scenario, run
 SCENARIOS = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
 PROFILES = {"sim-lockstep": ("sim", ClockMode.LOCKSTEP), "gateway-lockstep": ("gateway", ClockMode.LOCKSTEP),
             "sim-realtime": ("sim", ClockMode.REALTIME), "gateway-realtime": ("gateway", ClockMode.REALTIME)}
-#: the speed limit safety applies to commands (safety.yaml), to compare the measured peak with
-LINEAR_SPEED_LIMIT_MPS = 0.15
 
 
 def measure_scenario(scenario_path: Path, runs: int, profiles: list[str]) -> dict:
@@ -39,6 +37,8 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str]) -> dic
             rows.append({"converged": result.converged, "status": result.status, "iterations": result.iterations,
                          "final_error_norm": result.final_error_norm,
                          "peak_speed_mps": round(result.max_linear_speed_mps, 4),
+                         # the limit the robot declared in its states, to compare the measured peak with
+                         "speed_limit_mps": (result.robot_limits or {}).get("linear_speed_mps"),
                          "wall_time_s": result.wall_time_s, "servo_time_s": result.servo_time_s,
                          "frames_answered": result.frames_answered, "frames_lost": result.frames_lost})
         converged = [row["iterations"] for row in rows if row["converged"]]
@@ -47,6 +47,7 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str]) -> dic
             "iterations_median": statistics.median(converged) if converged else None,
             "iterations_min": min(converged, default=None), "iterations_max": max(converged, default=None),
             "peak_speed_mps": max(row["peak_speed_mps"] for row in rows),
+            "speed_limit_mps": min((row["speed_limit_mps"] for row in rows if row["speed_limit_mps"]), default=None),
         }
     comparison = {}
     for clock in ("lockstep", "realtime"):
@@ -84,7 +85,8 @@ def main(argv: list[str] | None = None) -> int:
             runs = ", ".join(f"{row['iterations']}{'' if row['converged'] else ' (' + row['status'] + ')'}"
                              for row in r["runs"])
             print(f"  {name:17s} converged {r['converged']}, iterations median {r['iterations_median']} "
-                  f"(runs: {runs}), peak speed {r['peak_speed_mps']:.3f} m/s (limit {LINEAR_SPEED_LIMIT_MPS})",
+                  f"(runs: {runs}), peak speed {r['peak_speed_mps']:.3f} m/s (the robot's limit "
+                  f"{r['speed_limit_mps']} m/s)",
                   flush=True)
             timing = ", ".join(f"{row['servo_time_s']:.2f} s/{row['frames_answered']}" for row in r["runs"])
             print(f"  {'':17s} servo time / frames answered: {timing}", flush=True)
