@@ -63,7 +63,7 @@ from services.robot.kinova_api import KinovaApi
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
 from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
 from services.runtime.service import Service, ServiceConfig, query_argument
-from services.runtime.threads import start_thread
+from services.runtime.threads import run_loop, start_thread
 from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import CYCLES_PER_DSP, RobotCore
 from services.robot.hardware import (CYCLE_NS, CYCLE_S, EXTRAPOLATED_CYCLES, HardwareError, JointReading,
@@ -403,17 +403,12 @@ class RobotNode(Service):
         return taken
 
     def _run(self) -> None:
-        try:
-            if self.lockstep:
-                while not self.done():
-                    self.bus_cycle()
-            else:
-                self._run_realtime()
-        except Exception:
-            self.log.exception("robot loop failed")
-            self.counters.inc("errors.loop")
-        finally:
-            self.finished.set()
+        run_loop(self._run_lockstep if self.lockstep else self._run_realtime, "robot loop", self.log, self.counters,
+                 self.finished)
+
+    def _run_lockstep(self) -> None:
+        while not self.done():
+            self.bus_cycle()
 
     #: counters whose growth means the robot's own loop did not keep up (mfvs status shows it degraded); the
     #: cycles the arm ran without a frame for other reasons (transport jitter) are in the missed rate only

@@ -28,7 +28,7 @@ import numpy as np
 from protocol import rs485
 from services.runtime.config import ConfigStruct
 from services.runtime.metrics import Counters, DurationStats, LoopTimer
-from services.runtime.threads import start_thread
+from services.runtime.threads import run_loop, start_thread
 from services.robot.rs485_bus import BusError, RS485Bus
 from services.robot.hardware import CYCLE_NS, CYCLE_S
 from services.robot.node import DSP_CYCLE_NS, LockstepConfig
@@ -129,16 +129,8 @@ class ArmOnBus:
         return self._stop.is_set() or (limit > 0 and self.sim.time_ns >= limit * 1e9)
 
     def run(self) -> None:
-        try:
-            if self.config.lockstep:
-                self._run_lockstep()
-            else:
-                self._run_realtime()
-        except Exception:
-            self.log.exception("actuator loop failed")
-            self.counters.inc("errors.loop")
-        finally:
-            self.finished.set()
+        run_loop(self._run_lockstep if self.config.lockstep else self._run_realtime, "actuator loop", self.log,
+                 self.counters, self.finished)
 
     def _set_epoch(self, epoch_ns: int) -> None:
         self.epoch_ns = epoch_ns

@@ -36,3 +36,15 @@ def start_thread(target: Callable[[], object], name: str, daemon: bool = True) -
     thread = threading.Thread(target=named_target, name=name, daemon=daemon)
     thread.start()
     return thread
+
+
+def run_loop(body: Callable[[], object], what: str, log, counters, finished: threading.Event) -> None:
+    """Run a service's loop ``body`` to its end: a failure is logged (``what`` failed) and counted
+    (``errors.loop``), never raised into the thread, and ``finished`` is set however it ends."""
+    try:
+        body()
+    except Exception:
+        log.exception(f"{what} failed")
+        counters.inc("errors.loop")
+    finally:
+        finished.set()
