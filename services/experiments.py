@@ -90,16 +90,13 @@ def straightness(records: list[dict]) -> Optional[float]:
 
 
 def limits_met(result: ServoResult) -> dict:
-    """What the arm's and safety's limits did in a run, by cause (the arm's: joint_limit, singularity, zone,
-    speed, acceleration, dead_band; safety's, prefixed): at how many iterations' ticks each shaped the motion."""
+    """What the arm's limits did in a run, by cause (joint_limit, singularity, zone, speed, acceleration,
+    dead_band): at how many iterations' ticks each shaped the motion. (Safety's refusals are in the run's status
+    and ``last_refusal``, frame by frame; its status messages come at their own rate and are not counted here.)"""
     met: dict[str, int] = {}
     for name, count in result.robot_limits_hit.items():
         cause = "zone" if name.startswith("zone:") else name
         met[cause] = met.get(cause, 0) + count
-    for name, count in result.safety.get("limits", {}).items():
-        cause = "zone" if name.startswith("zone:") else name
-        if cause in ("joint_limit", "zone"):
-            met[f"safety.{cause}"] = met.get(f"safety.{cause}", 0) + count
     return met
 
 
@@ -110,9 +107,9 @@ def failure(result: ServoResult) -> Optional[str]:
         return None
     if result.safety.get("protective_stop"):
         return "protective_stop"
-    refusal = result.safety.get("last_refusal", "") if result.status == "refused" else ""
+    refusal = result.last_refusal if result.status == "refused" else ""
     met = limits_met(result)
-    if "zone" in refusal or (result.status == "refused" and "safety.zone" in met):
+    if "zone" in refusal:
         return "zone"
     if "joint_limit" in refusal or "joint_limit" in met:
         return "joint_limit"

@@ -143,6 +143,8 @@ class Iteration:
     robot_faults: list = field(default_factory=list)
     #: the end effector's signed distance to the nearest protection zone of the arm's DSP (m; inside: negative)
     zone_distance_m: Optional[float] = None
+    #: safety's answer to the law's command for this frame, when it refused it: why (empty: approved, or no command)
+    safety_refusal: str = ""
 
 
 @dataclass
@@ -179,7 +181,10 @@ class ServoResult:
     robot_limits_hit: dict = field(default_factory=dict)
     #: the closest the end effector came to a protection zone (m; negative: inside)
     min_zone_distance_m: Optional[float] = None
-    #: what safety did: its states seen (counts of status messages), its last refusal, a protective stop's reason
+    #: why safety refused the last frame's command it refused (per frame, as ``Iteration.safety_refusal``)
+    last_refusal: str = ""
+    #: what safety's status said over the run (published at its own rate, so counts vary run to run): its states
+    #: seen, the limits it named, its last refusal, a protective stop's reason
     safety: dict = field(default_factory=dict)
     #: the speed limits the robot declared (MotionLimits as a dict)
     robot_limits: Optional[dict] = None
@@ -196,7 +201,7 @@ class ServoResult:
             "frames_lost": self.frames_lost, "law_figures": self.law_figures, "detail": self.detail,
             "initial_error_norm": self.initial_error_norm, "max_error_norm": self.max_error_norm,
             "robot_limits_hit": self.robot_limits_hit, "min_zone_distance_m": self.min_zone_distance_m,
-            "safety": self.safety, "robot_limits": self.robot_limits,
+            "last_refusal": self.last_refusal, "safety": self.safety, "robot_limits": self.robot_limits,
         }
 
 
@@ -213,6 +218,8 @@ class _Watcher:
         self.state_at: dict[int, m.RobotState] = {}
         self.latest_state_stamp = -1
         self.safety: Optional[m.SafetyStatus] = None
+        #: safety's answer to each frame's command, by the frame's stamp
+        self.answers: dict[int, m.RobotCommand] = {}
         #: safety's statuses by state, its limits seen, its last refusal and what a latched stop said
         self.safety_states: dict[str, int] = {}
         self.safety_limits: dict[str, int] = {}
@@ -227,6 +234,7 @@ class _Watcher:
             session.declare_subscriber(output_key, self._typed(output_type, self._on_output)),
             session.declare_subscriber(keys.robot_state, self._typed(m.RobotState, self._on_state)),
             session.declare_subscriber(keys.safety_status, self._typed(m.SafetyStatus, self._on_safety)),
+            session.declare_subscriber(keys.robot_command, self._typed(m.RobotCommand, self._on_command)),
         ]
 
     @staticmethod
@@ -267,6 +275,17 @@ class _Watcher:
             before = [s for s in self.state_at if s <= stamp_ns]
             state = self.state_at[max(before)] if before else self.state
         return state
+
+    def _on_command(self, command):
+        with self.lock:  # the first command derived from a frame is safety's answer to it (later ones resend it)
+            self.answers.setdefault(command.header.source_stamp_ns, command)
+            self.lock.notify_all()
+
+    def answer_for_frame(self, stamp_ns: int, timeout_s: float) -> Optional[m.RobotCommand]:
+        """Safety's answer to the command derived from frame ``stamp_ns`` (in lockstep there is exactly one, sent
+        before the robot's next tick; wait for it). Call with :attr:`lock` held."""
+        self.lock.wait_for(lambda: stamp_ns in self.answers, timeout=timeout_s)
+        return self.answers.get(stamp_ns)
 
     def _on_safety(self, status):
         with self.lock:
@@ -340,6 +359,8 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
             seen = 0
             initial_error = None
             lost_streak = 0
+            # lockstep: safety answers each frame before the robot's next tick, so the answer always comes
+            answer_timeout_s = 2.0 if scenario.clock is ClockMode.LOCKSTEP else 0.3
             refused_streak = 0
             while time.monotonic() - started < scenario.timeout_s:
                 with watcher.lock:
@@ -353,7 +374,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                     break
                 done = False
                 for st in new:
-                    record = _record(st, watcher, kin, scenario.robot.dsp.zones)
+                    record = _record(st, watcher, kin, scenario.robot.dsp.zones, answer_timeout_s)
                     records.append(record)
                     if progress is not None:
                         progress(record)
@@ -364,9 +385,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                     lost_streak = lost_streak + 1 if st.status is m.ControllerState.TAG_LOST else 0
                     if st.status is m.ControllerState.CONVERGING:
                         initial_error = st.error_norm if initial_error is None else initial_error
-                    safety = watcher.safety
-                    refused_streak = refused_streak + 1 if (safety is not None and safety.state is
-                                                            m.SafetyState.REFUSING) else 0
+                    refused_streak = refused_streak + 1 if record.safety_refusal else 0
                     if lost_streak >= scenario.tag_lost_iterations:
                         grew = initial_error is not None and max(
                             r.error_norm for r in records if r.status == "converging") > 2.0 * initial_error
@@ -426,6 +445,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         min_zone_distance_m=min((r.zone_distance_m for r in records if r.zone_distance_m is not None),
                                 default=None),
         safety=safety,
+        last_refusal=next((r.safety_refusal for r in reversed(records) if r.safety_refusal), ""),
         robot_limits=msgspec.to_builtins(states[-1].limits) if states and states[-1].limits is not None else None,
     )
     result.detail = _why(result, converging)
@@ -469,7 +489,7 @@ def _why(result: ServoResult, converging: list[Iteration]) -> str:
     if result.status == "tag_lost":
         return f"the tag left the image after {result.iterations} iterations ({grew})" + said
     if result.status == "refused":
-        return f"safety refused the commands: {result.safety.get('last_refusal', '')}" + said
+        return f"safety refused the commands: {result.last_refusal}" + said
     if result.status == "max_iterations":
         return f"not converged after {result.iterations} iterations (‖e‖ = {result.final_error_norm:.3g})" + said
     if result.status == "constraint_abort":
@@ -487,10 +507,16 @@ def _law_figures(records: list[Iteration]) -> dict:
     return figures
 
 
-def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics, zones: list) -> Iteration:
+def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics, zones: list,
+            answer_timeout_s: float) -> Iteration:
     stamp = status.header.source_stamp_ns
+    refusal = ""
     with watcher.lock:
         state = watcher.state_for_frame(stamp)
+        if status.status is m.ControllerState.CONVERGING:  # the law commanded: safety answers this frame
+            answer = watcher.answer_for_frame(stamp, answer_timeout_s)
+            if answer is not None and answer.mode in (m.CommandMode.STOP, m.CommandMode.EMERGENCY_STOP):
+                refusal = answer.reason or answer.mode.value
     q = list(state.q) if state is not None else []
     manip, speed, angular_speed, zone_distance = math.nan, 0.0, 0.0, None
     if state is not None:
@@ -507,6 +533,7 @@ def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics, z
         camera_twist=list(status.camera_twist) if status.camera_twist is not None else None,
         manipulability=manip, ee_speed_mps=speed, notes=dict(status.notes), ee_angular_speed_rps=angular_speed,
         robot_faults=list(state.faults) if state is not None else [], zone_distance_m=zone_distance,
+        safety_refusal=refusal,
     )
     with watcher.lock:
         _fill_inputs(record, watcher)
