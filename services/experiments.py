@@ -115,9 +115,7 @@ def failure(result: ServoResult) -> Optional[str]:
         return "joint_limit"
     if "singularity" in met or result.min_manipulability < SINGULAR_MANIPULABILITY:
         return "singularity"
-    if result.status in ("tag_lost", "diverged"):
-        return result.status
-    return result.status
+    return result.status  # tag_lost, diverged, max_iterations, ...
 
 
 def _row(spec: RunSpec, result: ServoResult, records: list[dict]) -> dict:

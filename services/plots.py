@@ -32,9 +32,12 @@ def _as_dicts(records: Iterable) -> list[dict]:
     return [r if isinstance(r, dict) else dict(r.__dict__) for r in records]
 
 
-def _times(records: list[dict]) -> np.ndarray:
+def _times(records: list[dict], origin_ns: Optional[int] = None) -> np.ndarray:
+    """The records' arm time (s) from ``origin_ns`` (default: the first record's stamp)."""
     stamps = np.array([r["stamp_ns"] for r in records], dtype=float)
-    return (stamps - stamps[0]) * 1e-9 if len(stamps) else stamps
+    if not len(stamps):
+        return stamps
+    return (stamps - (stamps[0] if origin_ns is None else origin_ns)) * 1e-9
 
 
 def _iteration_axis(ax, times: np.ndarray, iterations: np.ndarray) -> None:
@@ -131,7 +134,7 @@ def servo_plots(records, out_dir: Path, *, law: str, goal=None, camera=None, thr
 
     commands = [r for r in seen if r["command"]]
     if commands:
-        tc = (np.array([r["stamp_ns"] for r in commands], dtype=float) - seen[0]["stamp_ns"]) * 1e-9
+        tc = _times(commands, seen[0]["stamp_ns"])
         values = np.array([r["command"] for r in commands])
         fig, (first, second) = plt.subplots(2, 1, figsize=(6.0, 6.0), sharex=True)
         if values.shape[1] == 7:
@@ -169,7 +172,7 @@ def servo_plots(records, out_dir: Path, *, law: str, goal=None, camera=None, thr
 
     with_q = [r for r in seen if len(r["q"]) == 7]
     if with_q:
-        tq = (np.array([r["stamp_ns"] for r in with_q], dtype=float) - seen[0]["stamp_ns"]) * 1e-9
+        tq = _times(with_q, seen[0]["stamp_ns"])
         q_deg = np.array([jaco2.model_to_physical_deg(r["q"]) for r in with_q])
         limited = [i for i, j in enumerate(jaco2.JOINTS) if not j.continuous]
         fig, axes = plt.subplots(len(limited) + 2, 1, figsize=(6.0, 8.5), sharex=True)

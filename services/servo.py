@@ -217,7 +217,6 @@ class _Watcher:
         #: the robot's states by stamp, to log each iteration with the state of its frame's tick
         self.state_at: dict[int, m.RobotState] = {}
         self.latest_state_stamp = -1
-        self.safety: Optional[m.SafetyStatus] = None
         #: safety's answer to each frame's command, by the frame's stamp
         self.answers: dict[int, m.RobotCommand] = {}
         #: safety's statuses by state, its limits seen, its last refusal and what a latched stop said
@@ -289,7 +288,6 @@ class _Watcher:
 
     def _on_safety(self, status):
         with self.lock:
-            self.safety = status
             self.safety_states[status.state.value] = self.safety_states.get(status.state.value, 0) + 1
             for name in status.active_limits:
                 self.safety_limits[name] = self.safety_limits.get(name, 0) + 1

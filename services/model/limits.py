@@ -14,12 +14,16 @@ from protocol.messages import MotionLimits, RobotState
 from services.model import jaco2
 
 
-def arm_limits() -> MotionLimits:
-    """The most the JACO-2 allows (Kinova's client configuration ranges, the actuators' rated speeds)."""
-    return MotionLimits(linear_speed_mps=jaco2.MAX_LINEAR_SPEED_MPS, angular_speed_rps=jaco2.MAX_ANGULAR_SPEED_RPS,
-                        joint_speed_rps=jaco2.MAX_SPEED.tolist(), linear_accel_mps2=jaco2.LINEAR_ACCEL_MPS2,
-                        angular_accel_rps2=jaco2.ANGULAR_ACCEL_RPS2,
-                        joint_accel_rps2=math.radians(jaco2.JOINT_ACCEL_DPS2))
+def arm_limits(linear_speed_mps: float = jaco2.MAX_LINEAR_SPEED_MPS,
+               angular_speed_rps: float = jaco2.MAX_ANGULAR_SPEED_RPS, joint_speed_scale: float = 1.0,
+               linear_accel_mps2: float = jaco2.LINEAR_ACCEL_MPS2, angular_accel_rps2: float = jaco2.ANGULAR_ACCEL_RPS2,
+               joint_accel_dps2: float = jaco2.JOINT_ACCEL_DPS2) -> MotionLimits:
+    """The limits of a JACO-2 set to these values (its DSP's configuration); by default the most it allows
+    (Kinova's client configuration ranges, the actuators' rated speeds)."""
+    return MotionLimits(linear_speed_mps=linear_speed_mps, angular_speed_rps=angular_speed_rps,
+                        joint_speed_rps=(jaco2.MAX_SPEED * joint_speed_scale).tolist(),
+                        linear_accel_mps2=linear_accel_mps2, angular_accel_rps2=angular_accel_rps2,
+                        joint_accel_rps2=math.radians(joint_accel_dps2))
 
 
 _ARM_LIMITS = arm_limits()

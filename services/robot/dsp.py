@@ -40,6 +40,7 @@ from protocol.messages import CommandMode, ControlMode, Header, MotionLimits, Ro
 from services.model import frames, jaco2, saturation
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics, manipulability
+from services.model.limits import arm_limits
 from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
 LINEAR_SPEED_RANGE, ANGULAR_SPEED_RANGE = jaco2.LINEAR_SPEED_RANGE, jaco2.ANGULAR_SPEED_RANGE
@@ -144,12 +145,10 @@ def motion_limits(config: DSPConfig, linear_speed_mps: float | None = None,
                   angular_speed_rps: float | None = None) -> MotionLimits:
     """The limits an arm with this DSP configuration applies (the Cartesian speeds as set at run time, when they
     were: SetCartesianMaxVelocities)."""
-    return MotionLimits(
-        linear_speed_mps=config.max_linear_speed_mps if linear_speed_mps is None else linear_speed_mps,
-        angular_speed_rps=config.max_angular_speed_rps if angular_speed_rps is None else angular_speed_rps,
-        joint_speed_rps=(jaco2.MAX_SPEED * config.joint_speed_scale).tolist(),
-        linear_accel_mps2=config.linear_accel_mps2, angular_accel_rps2=config.angular_accel_rps2,
-        joint_accel_rps2=math.radians(config.joint_accel_dps2))
+    return arm_limits(config.max_linear_speed_mps if linear_speed_mps is None else linear_speed_mps,
+                      config.max_angular_speed_rps if angular_speed_rps is None else angular_speed_rps,
+                      config.joint_speed_scale, config.linear_accel_mps2, config.angular_accel_rps2,
+                      config.joint_accel_dps2)
 
 
 class CommandRefused(ValueError):

@@ -75,8 +75,8 @@ SITE_LIMITS = ("max_linear_speed_mps", "max_angular_speed_rps", "max_linear_acce
 def effective_limits(site: SafetyLimits, robot: MotionLimits) -> MotionLimits:
     """The robot's declared limits, or the site's where they are stricter."""
     return stricter(robot, site.max_linear_speed_mps, site.max_angular_speed_rps, site.joint_speed_scale,
-                           site.max_linear_accel_mps2, site.max_angular_accel_rps2,
-                           None if site.max_joint_accel_dps2 is None else math.radians(site.max_joint_accel_dps2))
+                    site.max_linear_accel_mps2, site.max_angular_accel_rps2,
+                    None if site.max_joint_accel_dps2 is None else math.radians(site.max_joint_accel_dps2))
 
 
 @dataclass
