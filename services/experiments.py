@@ -1,25 +1,35 @@
-"""``mfvs experiment NAME``: seed 000's experiments, each a comparison of laws from one start, run through the real
-services in lockstep (so every run, and every rerun, is the same to the bit), reported beside the paper.
+"""``mfvs experiment NAME``: the seed papers' experiments, each a comparison of runs from one start, run through
+the real services in lockstep (so every run, and every rerun, is the same to the bit), reported beside the paper.
 
-=========  ================================================================================================
-table3     Table 3: the four laws with the paper's gains; iterations to ‖e‖ < 5e-5, beside 446/189/114/79
-part-a     Part A: the end-effector twist sent as if it were mixed (the conventional mistake) diverges; the
-           mixed law converges
-part-b     Part B: an outstretched start near the workspace's boundary: the joint law against the mixed law
-part-c     Part C: a start whose straight-line motion would pass through the base's protection zone
-part-d     Part D: the mixed twist realised in joint space through Jm⁺ (eq. 26); iterations, straightness
-=========  ================================================================================================
+================  ========================================================================================
+table3            seed 000 Table 3: the four laws with the paper's gains; iterations to ‖e‖ < 5e-5, beside
+                  446/189/114/79
+part-a            seed 000 Part A: the end-effector twist sent as if it were mixed (the conventional mistake)
+                  diverges; the mixed law converges
+part-b            seed 000 Part B: an outstretched start near the workspace's boundary: joint law against mixed
+part-c            seed 000 Part C: a start whose straight-line motion would pass through the base's zone
+part-d            seed 000 Part D: the mixed twist realised in joint space through Jm⁺ (eq. 26)
+constraints       seed 002 section 9.1-like: one task in which every constraint type binds (field of view,
+                  occlusion, joint range, joint speed, a forbidden sphere), with exact gradients and with 30 %
+                  gradient error (eq. 49): max φ against the chattering band T_s·u⁺ (eq. 43), time active
+tracking-region   seed 004: a target moving at 10 cm/s, tracked on two translational axes without the
+                  manipulability term and on four axes with it: distance tracked before failure, its cause
+================  ========================================================================================
 
 Each experiment has a default start (``examples/scenarios/``); ``--scenario`` runs the same comparison from a
-user's start and goal, with each run's law and gains the experiment's own. The result is one JSON shape for every
-experiment (:func:`run_experiment`); with an output directory each run's log and figures go in a folder of their
-own, and the comparison's figures and a ``report.md`` beside them.
+user's start and goal. Seed 000's experiments replace the scenario's law, gains and law options by each run's own;
+``constraints`` keeps the scenario's constraints (they are the case) and sets only the gradient error, and
+``tracking-region`` keeps its tuning and sets only the axes and, for the baseline, S = 0. The result is one JSON
+shape for every experiment (:func:`run_experiment`); with an output directory each run's log and figures go in a
+folder of their own, and the comparison's figures and a ``report.md`` beside them.
 """
 from __future__ import annotations
 
+import hashlib
 import json
+import statistics
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -28,7 +38,8 @@ import numpy as np
 
 from protocol.conventions import ClockMode
 from services.controller.law import Gains
-from services.plots import comparison_plots
+from services.model import jaco2
+from services.plots import comparison_plots, constraint_plots, tracking_plots
 from services.servo import Scenario, ServoResult, load_scenario, run
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "examples" / "scenarios"
@@ -50,7 +61,9 @@ SINGULAR_MANIPULABILITY = 0.01
 class RunSpec:
     label: str
     law: str
-    gains: Gains
+    gains: Gains = field(default_factory=Gains)
+    #: law options set over the scenario's (or over none, for an experiment that replaces them)
+    options: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -61,9 +74,16 @@ class Experiment:
     paper: str
     scenario: str
     runs: list[RunSpec]
-    #: the summary of the runs (label → run row): what the paper reports, as figures
-    summarize: Callable[[dict], dict]
+    #: the summary of the runs (label → run row, label → trajectory records): what the paper reports, as figures
+    summarize: Callable[[dict, dict], dict]
     zone_distance: bool = False
+    seed: str = "000"
+    #: the scenario's law options are the case (its constraints, its tuning): runs set theirs over them
+    keep_law_options: bool = False
+    #: figures of one run beyond the common row (scenario as run, result, trajectory records) → row fields
+    run_figures: Optional[Callable[[Scenario, ServoResult, list], dict]] = None
+    #: the experiment's own figures (trajectories, rows, out dir, base scenario) → paths
+    figures: Optional[Callable[[dict, dict, Path, Scenario], list]] = None
 
 
 def improvement_pct(better: Optional[int], baseline: Optional[int]) -> Optional[float]:
@@ -134,11 +154,12 @@ def _row(spec: RunSpec, result: ServoResult, records: list[dict]) -> dict:
         "straightness": straightness(records),
         "servo_time_s": result.servo_time_s,
         "gains": msgspec.to_builtins(spec.gains),
+        "options": dict(spec.options),
     }
 
 
 # ------------------------------------------------------------------------------------------------ summaries
-def _table3_summary(rows: dict) -> dict:
+def _table3_summary(rows: dict, trajectories: dict) -> dict:
     iterations = {law: rows[law]["iterations"] if rows[law]["converged"] else None for law in TABLE3_PAPER}
     ordered = [iterations[law] for law in TABLE3_PAPER]
     in_order = all(v is not None for v in ordered) and all(a > b for a, b in zip(ordered, ordered[1:]))
@@ -154,7 +175,7 @@ def _table3_summary(rows: dict) -> dict:
     }
 
 
-def _part_a_summary(rows: dict) -> dict:
+def _part_a_summary(rows: dict, trajectories: dict) -> dict:
     ee, mixed = rows["ee-frame"], rows["adaptive-pd-mixed"]
     ee_failed = not ee["converged"]
     return {
@@ -166,7 +187,7 @@ def _part_a_summary(rows: dict) -> dict:
     }
 
 
-def _joint_vs_mixed_summary(rows: dict) -> dict:
+def _joint_vs_mixed_summary(rows: dict, trajectories: dict) -> dict:
     joint, mixed = rows["adaptive-pd-joint"], rows["adaptive-pd-mixed"]
     return {
         "joint_converged": joint["converged"], "joint_iterations": joint["iterations"],
@@ -180,7 +201,7 @@ def _joint_vs_mixed_summary(rows: dict) -> dict:
     }
 
 
-def _part_d_summary(rows: dict) -> dict:
+def _part_d_summary(rows: dict, trajectories: dict) -> dict:
     d, mixed = rows["mixed-jacobian-joint"], rows["adaptive-pd-mixed"]
     return {
         "converged": d["converged"], "iterations": d["iterations"], "paper_iterations": 154,
@@ -188,6 +209,134 @@ def _part_d_summary(rows: dict) -> dict:
         "mixed_iterations": mixed["iterations"], "paper_mixed_iterations": 79,
         "slower_than_mixed": bool(d["converged"] and mixed["converged"] and d["iterations"] > mixed["iterations"]),
     }
+
+
+# ------------------------------------------------------------------------------------------------ seed 002
+#: seed 002 eq. 49's error in the robustness runs
+GRADIENT_ERROR = 0.3
+
+
+def constraint_figures(records: list[dict]) -> dict:
+    """Per constraint type, from the sliding-mode law's notes of every iteration: the largest φ and the band
+    T_s·u⁺ (eq. 43) it is held to (the median over the run; T_s is the frame period), whether every iteration's
+    φ stayed within that iteration's band, the largest σ (the constraint itself, exact under gradient error) and
+    the time the type was active (s)."""
+    notes = [r["notes"] for r in records if r.get("notes")]
+    kinds = sorted({key.split(".", 1)[1] for n in notes for key in n if key.startswith("max_phi.")})
+    out = {}
+    for kind in kinds:
+        steps = [n for n in notes if f"max_phi.{kind}" in n]
+        phis = [n[f"max_phi.{kind}"] for n in steps]
+        bands = [n[f"band.{kind}"] for n in steps]
+        out[kind] = {
+            "max_phi": round(max(phis), 6), "band": round(statistics.median(bands), 6),
+            "held": all(phi <= band for phi, band in zip(phis, bands)),
+            "max_sigma": round(max(n[f"max_sigma.{kind}"] for n in steps), 6),
+            "active_s": round(sum(n.get("Ts", 0.0) for n in steps if n.get(f"active.{kind}", 0) > 0), 3),
+        }
+    return out
+
+
+def _constraints_run(scenario: Scenario, result: ServoResult, records: list[dict]) -> dict:
+    periods = [r["notes"]["Ts"] for r in records if r.get("notes", {}).get("Ts")]
+    return {"constraints": constraint_figures(records),
+            "gradient_error": scenario.law_options.get("gradient_error", 0.0),
+            "law_rate_hz": round(1.0 / statistics.median(periods), 2) if periods else None}
+
+
+def _trajectory_digest(records: list[dict]) -> str:
+    """A fingerprint of a run's joint trajectory (two runs differ when theirs do)."""
+    return hashlib.sha1(json.dumps([r["q"] for r in records]).encode()).hexdigest()[:16]
+
+
+def _constraints_summary(rows: dict, trajectories: dict) -> dict:
+    exact, erroneous = rows["exact-gradients"], rows["gradient-error-30"]
+    kinds = sorted(set(exact["constraints"]) | set(erroneous["constraints"]))
+
+    def every(row, test):
+        return all(k in row["constraints"] and test(row["constraints"][k]) for k in kinds)
+
+    return {
+        "held": every(exact, lambda c: c["held"]) and every(erroneous, lambda c: c["held"]),
+        "held_by_run": {label: {k: c["held"] for k, c in row["constraints"].items()} for label, row in rows.items()},
+        "sigma_within_band": {label: every(row, lambda c: c["max_sigma"] <= c["band"]) for label, row in rows.items()},
+        "every_type_active": {label: every(row, lambda c: c["active_s"] > 0) for label, row in rows.items()},
+        "never_active": {label: [k for k in kinds if row["constraints"].get(k, {}).get("active_s", 0) == 0]
+                         for label, row in rows.items()},
+        "completed": {label: row["converged"] for label, row in rows.items()},
+        "runs_differ": _trajectory_digest(trajectories["exact-gradients"])
+        != _trajectory_digest(trajectories["gradient-error-30"]),
+        "law_rate_hz": exact["law_rate_hz"],
+        "paper": "every constraint fulfilled (max φ ≤ 0 up to the chattering band T_s·u⁺), also with 30 % "
+                 "gradient error; up to three constraints active at a time",
+    }
+
+
+def _constraints_figures(trajectories: dict, rows: dict, out: Path, base: Scenario) -> list:
+    return constraint_plots(trajectories, out, law_options=base.law_options, camera=base.camera,
+                            goal=base.goal.features)
+
+
+# ------------------------------------------------------------------------------------------------ seed 004
+#: seed 004: two-axis tracking without avoidance lost the target after 0.94 m; four axes with avoidance tracked
+#: the whole 5 m of the lab ("an approximate ten fold increase")
+TRACKING_PAPER = {"baseline_distance_m": 0.94, "full_distance_m": 5.0, "ratio": 10.0}
+#: the window before a run's end in which its failure's cause is looked for (s)
+FAILURE_WINDOW_S = 1.0
+
+
+def joint_limit_margins_deg(q) -> np.ndarray:
+    """Each limited joint's distance to its nearer limit (deg) at configuration ``q`` (model radians)."""
+    lower, upper = jaco2.model_limits()
+    limited = np.isfinite(lower)
+    q = np.asarray(q, dtype=float)[limited]
+    return np.degrees(np.minimum(q - lower[limited], upper[limited] - q))
+
+
+def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) -> dict:
+    """How far the target travelled while it was tracked, why tracking ended, and how close the arm came to a
+    singularity and to its joint limits."""
+    speed = float(np.linalg.norm(scenario.target.velocity_mps))
+    seen = [r for r in records if len(r["points"]) == 4 and r["status"] in ("converging", "converged")]
+    start_ns = records[0]["stamp_ns"] if records else 0
+    tracked_s = (seen[-1]["stamp_ns"] - start_ns) * 1e-9 if seen else 0.0
+    end_ns = records[-1]["stamp_ns"] if records else 0
+    window = [r for r in records if (end_ns - r["stamp_ns"]) * 1e-9 <= FAILURE_WINDOW_S]
+    margins = [float(joint_limit_margins_deg(r["q"]).min()) for r in records if r.get("q")]
+    faults = {fault for r in window for fault in r.get("robot_faults", [])}
+    if result.status == "max_iterations":
+        failure = None  # the target's path ended with the target still tracked
+    elif "joint_limit" in faults or any(float(joint_limit_margins_deg(r["q"]).min()) < 1.0 for r in window):
+        failure = "joint_limit"
+    elif "singularity" in faults or any(r["manipulability"] < SINGULAR_MANIPULABILITY for r in window):
+        failure = "singularity"
+    else:
+        failure = result.status
+    w_primes = [r["notes"]["w_prime"] for r in records if "w_prime" in r.get("notes", {})]
+    return {"distance_m": round(speed * tracked_s, 3), "tracked_s": round(tracked_s, 2),
+            "target_speed_mps": round(speed, 4), "failure": failure,
+            "ended": "path_end" if failure is None else "failed",
+            "min_w_prime": min(w_primes) if w_primes else None,
+            "min_joint_margin_deg": round(min(margins), 2) if margins else None}
+
+
+def _tracking_summary(rows: dict, trajectories: dict) -> dict:
+    baseline, full = rows["two-axis"], rows["four-axis-avoidance"]
+    ratio = round(full["distance_m"] / baseline["distance_m"], 2) if baseline["distance_m"] > 0 else None
+    return {
+        "distance_ratio": ratio,
+        "distance_m": {label: row["distance_m"] for label, row in rows.items()},
+        "failure": {label: row["failure"] for label, row in rows.items()},
+        "min_w_prime": {label: row["min_w_prime"] for label, row in rows.items()},
+        "min_joint_margin_deg": {label: row["min_joint_margin_deg"] for label, row in rows.items()},
+        "full_reached_path_end": full["failure"] is None,
+        "paper": dict(TRACKING_PAPER),
+    }
+
+
+def _tracking_figures(trajectories: dict, rows: dict, out: Path, base: Scenario) -> list:
+    return tracking_plots(trajectories, out, scenario=base,
+                          failures={label: row["failure"] for label, row in rows.items()})
 
 
 def _joint_and_mixed(gains: Gains = TABLE3_GAINS["adaptive-pd-joint"]) -> list[RunSpec]:
@@ -214,6 +363,24 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
                "converges in 154 iterations with a wavy image trajectory (the mixed Cartesian law: 79)",
                "table2.yaml", [RunSpec("mixed-jacobian-joint", "mixed-jacobian-joint", PROPOSED),
                                RunSpec("adaptive-pd-mixed", "adaptive-pd-mixed", PROPOSED)], _part_d_summary),
+    Experiment("constraints", "Seed 002: every constraint type held by the sliding-mode law, with and without "
+               "gradient error",
+               "all the constraints fulfilled (max φ ≤ 0 up to the chattering band), also with 30 % gradient "
+               "error (eq. 49)", "constraints.yaml",
+               [RunSpec("exact-gradients", "smc", options={"gradient_error": 0.0}),
+                RunSpec("gradient-error-30", "smc", options={"gradient_error": GRADIENT_ERROR})],
+               _constraints_summary, seed="002", keep_law_options=True, run_figures=_constraints_run,
+               figures=_constraints_figures),
+    Experiment("tracking-region", "Seed 004: the tracking region grown by singularity and joint-limit avoidance",
+               "two-axis tracking failed after 0.94 m (joint limit, singularity); four-axis tracking with the "
+               "manipulability term followed the target over the lab's whole 5 m: about ten-fold",
+               "tracking_region.yaml",
+               [RunSpec("two-axis", "manipulability",
+                        options={"tracking_axes": ["vx", "vy"], "avoidance_axes": [], "S": 0.0}),
+                RunSpec("four-axis-avoidance", "manipulability",
+                        options={"tracking_axes": ["vx", "vy", "wx", "wy"], "avoidance_axes": ["vx", "vy"]})],
+               _tracking_summary, seed="004", keep_law_options=True, run_figures=_tracking_run,
+               figures=_tracking_figures),
 )}
 
 
@@ -232,7 +399,8 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
     path = Path(scenario_path) if scenario_path is not None else SCENARIOS / experiment.scenario
     base = load_scenario(path)
     base.clock = ClockMode.LOCKSTEP  # every experiment is a function of its scenario
-    base.law_options = {}
+    if not experiment.keep_law_options:
+        base.law_options = {}
     rows: dict[str, dict] = {}
     trajectories: dict[str, list[dict]] = {}
     with tempfile.TemporaryDirectory(prefix=f"mfvs-{name}-") as scratch:
@@ -240,21 +408,26 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
         for spec in experiment.runs:
             scenario = _copy(base)
             scenario.law, scenario.gains = spec.law, spec.gains
+            scenario.law_options = {**scenario.law_options, **spec.options}
             result = run(scenario, root / spec.label, profile=profile, plots=out_dir is not None)
             records = [json.loads(line) for line in Path(result.trajectory_log).read_text().splitlines()]
             trajectories[spec.label] = records
             rows[spec.label] = _row(spec, result, records)
+            if experiment.run_figures is not None:
+                rows[spec.label].update(experiment.run_figures(scenario, result, records))
             rows[spec.label]["plots"] = result.plots if out_dir is not None else []
             if progress is not None:
                 progress(spec.label, result)
-        output = {"experiment": name, "title": experiment.title, "paper": experiment.paper, "scenario": str(path),
-                  "profile": profile, "runs": list(rows.values()), "summary": experiment.summarize(rows),
-                  "report": None, "plots": []}
+        output = {"experiment": name, "seed": experiment.seed, "title": experiment.title,
+                  "paper": experiment.paper, "scenario": str(path), "profile": profile, "runs": list(rows.values()),
+                  "summary": experiment.summarize(rows, trajectories), "report": None, "plots": []}
         if out_dir is not None:
             out = Path(out_dir)
             plots = comparison_plots(trajectories, out, title=experiment.title,
                                      threshold=base.convergence.error_norm, zone_distance=experiment.zone_distance,
                                      goal=base.goal.features, camera=base.camera)
+            if experiment.figures is not None:
+                plots += experiment.figures(trajectories, rows, out, base)
             output["plots"] = [str(p) for p in plots]
             report = out / "report.md"
             report.write_text(report_markdown(output, out))
@@ -281,7 +454,7 @@ def report_markdown(output: dict, out_dir: Path) -> str:
     name = output["experiment"]
     lines = [f"# {output['title']}", "",
              f"`mfvs experiment {name}` from `{output['scenario']}` ({output['profile']} profile, lockstep: the "
-             "same run every time).", "", f"**Seed 000 reports:** {output['paper']}.", ""]
+             "same run every time).", "", f"**Seed {output['seed']} reports:** {output['paper']}.", ""]
     if name == "table3":
         summary = output["summary"]
         lines += ["| law | gains | iterations | paper | ratio to paper |", "|---|---|---|---|---|"]
@@ -294,6 +467,24 @@ def report_markdown(output: dict, out_dir: Path) -> str:
         lines += ["", f"adaptive-pd-mixed took **{_cell(summary['improvement_pct'])} %** fewer iterations than "
                       f"adaptive-pd-joint (paper: {summary['paper_improvement_pct']} %); in the paper's order: "
                       f"{_cell(summary['in_paper_order'])}.", ""]
+    if name == "constraints":
+        lines += ["| run | constraint | max φ | band T_s·u⁺ | held | max σ | active (s) |", "|---|---|---|---|---|---|---|"]
+        for row in output["runs"]:
+            for kind, c in row["constraints"].items():
+                lines.append(f"| {row['label']} | {kind} | {_cell(c['max_phi'])} | {_cell(c['band'])} | "
+                             f"{_cell(c['held'])} | {_cell(c['max_sigma'])} | {_cell(c['active_s'])} |")
+        summary = output["summary"]
+        lines += ["", f"Held in both runs: **{_cell(summary['held'])}**; every type active: "
+                      f"{_cell(summary['every_type_active'])}; the two runs differ: {_cell(summary['runs_differ'])}; "
+                      f"the law ran at {_cell(summary['law_rate_hz'])} Hz.", ""]
+    if name == "tracking-region":
+        lines += ["| run | distance tracked (m) | failure | min w'(q) | min joint-limit margin (deg) |",
+                  "|---|---|---|---|---|"]
+        for row in output["runs"]:
+            lines.append(f"| {row['label']} | {_cell(row['distance_m'])} | {row['failure'] or 'none (path end)'} | "
+                         f"{_cell(row['min_w_prime'])} | {_cell(row['min_joint_margin_deg'])} |")
+        lines += ["", f"Ratio of distances: **{_cell(output['summary']['distance_ratio'])}** (paper: about "
+                      f"{TRACKING_PAPER['ratio']:g}, 0.94 m against the lab's whole 5 m).", ""]
     columns = ("label", "converged", "iterations", "status", "final_error_norm", "error_growth", "failure",
                "limits_met", "min_manipulability", "min_zone_distance_m", "straightness")
     lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]

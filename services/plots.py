@@ -248,3 +248,151 @@ def comparison_plots(runs: dict[str, list], out_dir: Path, *, title: str, thresh
         ax.legend(fontsize=8)
         _save(fig, out_dir / "zone_distance.png", paths)
     return paths
+
+
+# ------------------------------------------------------------------------------------------------ seed 002
+def _limits_y(ax, values: np.ndarray, band: float) -> None:
+    """φ can sit far below 0 while inactive: show the neighbourhood of the band, not the whole range."""
+    finite = values[np.isfinite(values)]
+    if not len(finite):
+        return
+    reach = max(20.0 * band, 0.5 * float(np.ptp(finite[finite > -1e3])) if np.any(finite > -1e3) else 1.0, 1e-6)
+    ax.set_ylim(max(float(finite.min()), -reach), max(float(finite.max()), 2.0 * band) + 0.1 * reach)
+
+
+def constraint_plots(runs: dict[str, list], out_dir: Path, *, law_options: dict, camera=None, goal=None) -> list[Path]:
+    """Seed 002's figures for runs of the sliding-mode law (label → trajectory records): each constraint type's
+    largest φ over time against its chattering band T_s·u⁺ with the time it was active marked (like the paper's
+    Fig. 11), and the features in the image with the field of view's hyperellipse and the occlusion regions."""
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    paths: list[Path] = []
+    runs = {label: [r for r in _as_dicts(records) if r.get("notes")] for label, records in runs.items()}
+    kinds = sorted({k.split(".", 1)[1] for records in runs.values() for r in records for k in r["notes"]
+                    if k.startswith("max_phi.")})
+    if not kinds:
+        return paths
+    fig, axes = plt.subplots(len(kinds), 1, figsize=(9.0, 2.3 * len(kinds)), sharex=True, squeeze=False)
+    for ax, kind in zip(axes[:, 0], kinds):
+        every = []
+        for index, (label, records) in enumerate(runs.items()):
+            steps = [r for r in records if f"max_phi.{kind}" in r["notes"]]
+            if not steps:
+                continue
+            t = _times(steps, records[0]["stamp_ns"])
+            phi = np.array([r["notes"][f"max_phi.{kind}"] for r in steps])
+            band = np.array([r["notes"][f"band.{kind}"] for r in steps])
+            active = np.array([r["notes"].get(f"active.{kind}", 0) > 0 for r in steps])
+            colour = f"C{index}"
+            ax.plot(t, phi, lw=1.2, color=colour, label=f"{label}: max φ")
+            ax.plot(t, band, ls="--", lw=1.0, color=colour, alpha=0.7, label=f"{label}: band T_s·u⁺")
+            ax.plot(t[active], phi[active], "|", color=colour, ms=7, label=f"{label}: active")
+            every.extend([*phi, *band])
+        ax.axhline(0.0, color="0.3", lw=0.8)
+        _limits_y(ax, np.array(every), float(np.median(every)) if every else 0.0)
+        ax.set_ylabel(f"φ {kind}")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=3, loc="lower right")
+    axes[0, 0].set_title("constraint functions against their chattering bands (eq. 43)", fontsize=10)
+    axes[-1, 0].set_xlabel("time (s)")
+    _save(fig, out_dir / "constraints.png", paths)
+
+    fig, axes = plt.subplots(1, len(runs), figsize=(5.0 * len(runs), 4.4), squeeze=False)
+    goal = None if goal is None else np.asarray(goal, dtype=float)
+    for ax, (label, records) in zip(axes[0], runs.items()):
+        features_plot(ax, records, goal, camera, label)
+        _constraint_regions(ax, law_options, camera)
+    _save(fig, out_dir / "constraint_image.png", paths)
+    return paths
+
+
+def _constraint_regions(ax, law_options: dict, camera) -> None:
+    """The field of view's hyperellipse and the occlusion regions, as the sliding-mode law sees them."""
+    from services.controller.smc import SmcOptions
+
+    options = SmcOptions.from_dict({k: v for k, v in law_options.items() if k in ("fov", "occlusions")})
+    angle = np.linspace(0.0, 2.0 * np.pi, 400)
+
+    def superellipse(centre, semi_axes, n):
+        c, s = np.cos(angle), np.sin(angle)
+        return (centre[0] + semi_axes[0] * np.sign(c) * np.abs(c) ** (2.0 / n),
+                centre[1] + semi_axes[1] * np.sign(s) * np.abs(s) ** (2.0 / n))
+
+    if options.fov is not None:
+        fov = options.fov
+        if camera is not None:
+            fov.width, fov.height, fov.fx, fov.fy = camera.width, camera.height, camera.fx, camera.fy
+        ax.plot(*superellipse((0.0, 0.0), fov.semi_axes, fov.exponent), ":", color="tab:red", lw=1.0,
+                label="field of view (margin)")
+    for k, occlusion in enumerate(options.occlusions):
+        x, y = superellipse(occlusion.centre, occlusion.semi_axes, occlusion.exponent)
+        ax.fill(x, y, color="0.5", alpha=0.35, label="occlusion" if k == 0 else None)
+    ax.legend(fontsize=7, loc="best")
+
+
+# ------------------------------------------------------------------------------------------------ seed 004
+def tracking_plots(runs: dict[str, list], out_dir: Path, *, scenario, failures: dict) -> list[Path]:
+    """Seed 004's figures (label → trajectory records): the modified manipulability w'(q) and Yoshikawa's w over
+    time, the joints' margin to their limits, and a top view of the target's path and the end effector's."""
+    from services.model.kinematics import ArmKinematics
+    from services.robot_sim.scene import target_in_base
+    from services.servo import stack_config
+
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    paths: list[Path] = []
+    runs = {label: _as_dicts(records) for label, records in runs.items() if records}
+    if not runs:
+        return paths
+    lower, upper = jaco2.model_limits()
+    limited = np.isfinite(lower)
+    fig, (w_ax, margin_ax) = plt.subplots(2, 1, figsize=(9.0, 6.0), sharex=True)
+    for index, (label, records) in enumerate(runs.items()):
+        colour = f"C{index}"
+        t = _times(records, 0)
+        w_prime = np.array([r["notes"].get("w_prime", np.nan) for r in records])
+        w = np.array([r["manipulability"] for r in records])
+        w_ax.semilogy(t, np.maximum(w_prime, 1e-12), color=colour, lw=1.3, label=f"{label}: w'(q)")
+        w_ax.semilogy(t, np.maximum(w, 1e-12) ** 2, color=colour, lw=1.0, ls="--", label=f"{label}: w² (Yoshikawa)")
+        q = np.array([r["q"] for r in records])
+        margin = np.degrees(np.minimum(q[:, limited] - lower[limited], upper[limited] - q[:, limited])).min(axis=1)
+        margin_ax.plot(t, margin, color=colour, lw=1.3, label=f"{label} ({failures.get(label) or 'path end'})")
+    w_ax.set_ylabel("manipulability")
+    w_ax.legend(fontsize=7, ncol=2)
+    w_ax.grid(alpha=0.3, which="both")
+    w_ax.set_title("configuration while tracking", fontsize=10)
+    margin_ax.axhline(0.0, color="tab:red", ls="--", lw=1)
+    margin_ax.set_ylabel("nearest joint limit (deg)")
+    margin_ax.set_xlabel("time (s)")
+    margin_ax.legend(fontsize=7)
+    margin_ax.grid(alpha=0.3)
+    _save(fig, out_dir / "manipulability.png", paths)
+
+    kin = ArmKinematics()
+    start = target_in_base(stack_config(scenario).robot.scene)[:3, 3]
+    velocity = np.asarray(scenario.target.velocity_mps, dtype=float)
+    fig, ax = plt.subplots(figsize=(6.4, 6.0))
+    end_s = max(_times(records, 0)[-1] for records in runs.values())
+    target = start + np.outer(np.linspace(0.0, end_s, 50), velocity)
+    ax.plot(target[:, 0], target[:, 1], "-", color="0.3", lw=2.0, label="target")
+    for index, (label, records) in enumerate(runs.items()):
+        ee = np.array([kin.pose(np.asarray(r["q"]))[1] for r in records])
+        colour = f"C{index}"
+        ax.plot(ee[:, 0], ee[:, 1], "-", color=colour, lw=1.3, label=f"{label}: end effector")
+        tracked = [r for r in records if len(r["points"]) == 4]
+        if tracked:
+            t_end = tracked[-1]["stamp_ns"] * 1e-9
+            at = start + velocity * t_end
+            ax.plot(*at[:2], "X", color=colour, ms=10, label=f"{label}: last tracked ({failures.get(label) or 'path end'})")
+    reach = np.linspace(0.0, 2.0 * np.pi, 200)
+    ax.plot(jaco2.STRAIGHT_REACH * np.cos(reach), jaco2.STRAIGHT_REACH * np.sin(reach), ":", color="0.5",
+            label="arm's straight reach")
+    ax.plot(0.0, 0.0, "k^", ms=8, label="base")
+    ax.set_xlabel("x (m, base)")
+    ax.set_ylabel("y (m, base)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+    ax.set_title("top view: the target's path and the end effector's", fontsize=10)
+    _save(fig, out_dir / "tracking_paths.png", paths)
+    return paths

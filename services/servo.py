@@ -108,11 +108,24 @@ def stack_config(scenario: Scenario) -> StackConfig:
     control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.velocity_mps),
                         robot_convention=convention)
     controller = ControllerConfig(law=s.law, control=control, convergence_error_norm=s.convergence.error_norm,
-                                  options=dict(s.law_options))
+                                  options=law_options(s))
     safety = SafetyConfig()
     safety.limits.robot_convention = convention
     safety.limits.zones = list(s.robot.dsp.zones)  # the arm's protection zones are the site's: safety guards them too
     return StackConfig(clock=s.clock, robot=robot, vision=vision, controller=controller, safety=safety)
+
+
+def law_options(scenario: Scenario) -> dict:
+    """The scenario's law options, with what the law needs of the scene that the scenario already says once: the
+    sliding-mode law's field of view is the scenario camera's image (unless the options give one), its first
+    sampling time the camera's period."""
+    options = dict(scenario.law_options)
+    if scenario.law == "smc" and options.get("fov", {}) is not None:
+        camera = scenario.camera
+        options["fov"] = {"width": camera.width, "height": camera.height, "fx": camera.fx, "fy": camera.fy,
+                          **options.get("fov", {})}
+        options.setdefault("nominal_period_s", 1.0 / camera.rate_hz)
+    return options
 
 
 @dataclass

@@ -1,6 +1,5 @@
 """Each service's shipped YAML is its documentation: it must load to exactly the code's defaults and show every
 key (a key missing from the file would be an undocumented setting)."""
-from pathlib import Path
 
 import msgspec
 import pytest

@@ -4,7 +4,6 @@ message of the asked type or raises ProtocolError: no other exception may reach 
 import inspect
 import subprocess
 import sys
-from pathlib import Path
 
 import msgpack
 import msgspec

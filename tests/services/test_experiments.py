@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 
 from services.experiments import EXPERIMENTS, TABLE3_PAPER, improvement_pct, run_experiment, straightness
-from tests.helpers import REPO
 
 MFVS = str(Path(sys.executable).parent / "mfvs")
 ROW_KEYS = {"label", "law", "converged", "iterations", "status", "final_error_norm", "failure", "limits_met",

@@ -56,7 +56,6 @@ def test_limit_change_uniformly_meets_every_element_s_change_limit(previous, v, 
 
 def test_the_controller_safety_and_the_dsp_saturate_through_it():
     """One saturation: no other module scales a velocity to a limit by hand."""
-    from pathlib import Path
     root = REPO / "services"
     for path in ("controller/core.py", "safety/checks.py", "robot/dsp.py"):
         text = (root / path).read_text()
