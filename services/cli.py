@@ -407,12 +407,14 @@ def build_parser() -> argparse.ArgumentParser:
     servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
     servo.set_defaults(func=_cmd_servo)
 
-    experiment = sub.add_parser("experiment", help="reproduce one of seed 000's experiments (table3, part-a, "
-                                                   "part-b, part-c, part-d) and report it beside the paper")
-    experiment.add_argument("name", help="table3, part-a, part-b, part-c or part-d")
+    experiment = sub.add_parser("experiment", help="reproduce one of the seed papers' experiments (seed 000: "
+                                                   "table3, part-a, part-b, part-c, part-d; seed 002: constraints; "
+                                                   "seed 004: tracking-region) and report it beside the paper")
+    experiment.add_argument("name", help="table3, part-a, part-b, part-c, part-d, constraints or tracking-region")
     experiment.add_argument("--scenario", default=None,
-                            help="the same comparison from this scenario's start and goal (its law and gains are "
-                                 "replaced by the experiment's)")
+                            help="the same comparison from this scenario's start and goal (seed 000: its law and "
+                                 "gains are replaced by the experiment's; constraints: its constraints are the "
+                                 "case; tracking-region: its target motion and weights are the case)")
     experiment.add_argument("--out", default=None, help="directory for the runs' logs, the figures and report.md")
     experiment.add_argument("--json", action="store_true", help="print one JSON object with the runs and summary")
     experiment.add_argument("--profile", default="sim", help="sim (default) or gateway (robot_gateway over the "

@@ -310,14 +310,34 @@ def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) 
         failure = "joint_limit"
     elif "singularity" in faults or any(r["manipulability"] < SINGULAR_MANIPULABILITY for r in window):
         failure = "singularity"
+    elif seen and _beyond_vision(seen[-1]["points"], scenario.camera.fx):
+        failure = "vision_range"  # too small or too oblique to detect: where seed 004's own runs ended too
     else:
-        failure = result.status
+        failure = "tag_left_image" if result.status in ("tag_lost", "diverged") else result.status
     w_primes = [r["notes"]["w_prime"] for r in records if "w_prime" in r.get("notes", {})]
+    last_sides = _tag_sides_px(seen[-1]["points"], scenario.camera.fx) if seen else None
     return {"distance_m": round(speed * tracked_s, 3), "tracked_s": round(tracked_s, 2),
             "target_speed_mps": round(speed, 4), "failure": failure,
             "ended": "path_end" if failure is None else "failed",
             "min_w_prime": min(w_primes) if w_primes else None,
-            "min_joint_margin_deg": round(min(margins), 2) if margins else None}
+            "min_joint_margin_deg": round(min(margins), 2) if margins else None,
+            "last_tag_side_px": None if last_sides is None else round(float(last_sides.mean()), 1)}
+
+
+#: a tag whose sides are shorter than this in the image, or foreshortened below this ratio (about 60° from
+#: facing the camera), is at the edge of what vision detects reliably
+VISION_MIN_SIDE_PX = 30.0
+VISION_MIN_FORESHORTENING = 0.5
+
+
+def _tag_sides_px(points, fx: float) -> np.ndarray:
+    corners = np.asarray(points, dtype=float)
+    return fx * np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)
+
+
+def _beyond_vision(points, fx: float) -> bool:
+    sides = _tag_sides_px(points, fx)
+    return bool(sides.mean() < VISION_MIN_SIDE_PX or sides.min() / sides.max() < VISION_MIN_FORESHORTENING)
 
 
 def _tracking_summary(rows: dict, trajectories: dict) -> dict:

@@ -7,12 +7,23 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
-from services.experiments import EXPERIMENTS, TABLE3_PAPER, improvement_pct, run_experiment, straightness
+from services.experiments import (EXPERIMENTS, SCENARIOS, TABLE3_PAPER, improvement_pct, run_experiment,
+                                  straightness)
 
 MFVS = str(Path(sys.executable).parent / "mfvs")
 ROW_KEYS = {"label", "law", "converged", "iterations", "status", "final_error_norm", "failure", "limits_met",
             "min_zone_distance_m", "straightness", "detail"}
+
+
+def shortened(scenario_file: str, tmp_path: Path, max_iterations: int) -> Path:
+    """A copy of a shipped scenario that stops after ``max_iterations`` (the default test run's quick checks)."""
+    scenario = yaml.safe_load((SCENARIOS / scenario_file).read_text())
+    scenario["convergence"]["max_iterations"] = max_iterations
+    path = tmp_path / f"short_{scenario_file}"
+    path.write_text(yaml.safe_dump(scenario))
+    return path
 
 
 def check_shape(output: dict, name: str) -> None:

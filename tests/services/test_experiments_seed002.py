@@ -4,11 +4,9 @@ import json
 import subprocess
 
 import pytest
-import yaml
 
 from services.experiments import constraint_figures, run_experiment
-from tests.helpers import REPO
-from tests.services.test_experiments import MFVS, check_shape
+from tests.services.test_experiments import MFVS, check_shape, shortened
 
 KINDS = {"fov", "occlusion", "joint_range", "joint_speed", "sphere"}
 
@@ -39,10 +37,7 @@ def test_the_figures_of_each_constraint_type():
 def test_every_constraint_type_binds_and_holds_in_the_first_eleven_seconds(tmp_path):
     """The default test run's check: the shipped case, cut at 1100 iterations (11 s at 100 Hz), in which every
     type has bound in both runs."""
-    scenario = yaml.safe_load((REPO / "examples" / "scenarios" / "constraints.yaml").read_text())
-    scenario["convergence"]["max_iterations"] = 1100
-    path = tmp_path / "constraints_short.yaml"
-    path.write_text(yaml.safe_dump(scenario))
+    path = shortened("constraints.yaml", tmp_path, 1100)
     output = run_experiment("constraints", path)
     check_shape(output, "constraints")
     assert [row["gradient_error"] for row in output["runs"]] == [0.0, 0.3]
