@@ -40,7 +40,8 @@ from protocol.conventions import ClockMode
 from services.controller.law import Gains
 from services.model import jaco2
 from services.plots import comparison_plots, constraint_plots, tracking_plots
-from services.servo import Scenario, ServoResult, load_scenario, run
+from services.robot_sim.scene import target_in_base
+from services.servo import Scenario, ServoResult, load_scenario, run, stack_config
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "examples" / "scenarios"
 
@@ -355,7 +356,8 @@ def _tracking_summary(rows: dict, trajectories: dict) -> dict:
 
 
 def _tracking_figures(trajectories: dict, rows: dict, out: Path, base: Scenario) -> list:
-    return tracking_plots(trajectories, out, scenario=base,
+    start = target_in_base(stack_config(base).robot.scene)[:3, 3]
+    return tracking_plots(trajectories, out, target_start=start, target_velocity=base.target.velocity_mps,
                           failures={label: row["failure"] for label, row in rows.items()})
 
 

@@ -331,12 +331,12 @@ def _constraint_regions(ax, law_options: dict, camera) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ seed 004
-def tracking_plots(runs: dict[str, list], out_dir: Path, *, scenario, failures: dict) -> list[Path]:
+def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target_velocity,
+                   failures: dict) -> list[Path]:
     """Seed 004's figures (label → trajectory records): the modified manipulability w'(q) and Yoshikawa's w over
-    time, the joints' margin to their limits, and a top view of the target's path and the end effector's."""
+    time, the joints' margin to their limits, and a top view of the target's path (from ``target_start`` at the
+    arm's time 0, at ``target_velocity``, base frame) and the end effector's."""
     from services.model.kinematics import ArmKinematics
-    from services.robot_sim.scene import target_in_base
-    from services.servo import stack_config
 
     plt = _pyplot()
     out_dir = Path(out_dir)
@@ -369,8 +369,8 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, scenario, failures: 
     _save(fig, out_dir / "manipulability.png", paths)
 
     kin = ArmKinematics()
-    start = target_in_base(stack_config(scenario).robot.scene)[:3, 3]
-    velocity = np.asarray(scenario.target.velocity_mps, dtype=float)
+    start = np.asarray(target_start, dtype=float)
+    velocity = np.asarray(target_velocity, dtype=float)
     fig, ax = plt.subplots(figsize=(6.4, 6.0))
     end_s = max(_times(records, 0)[-1] for records in runs.values())
     target = start + np.outer(np.linspace(0.0, end_s, 50), velocity)
