@@ -103,8 +103,8 @@ def stack_config(scenario: Scenario) -> StackConfig:
     convention = s.robot.dsp.angular_convention
     robot = RobotSimConfig(scene=SceneConfig(initial_joints_deg=list(s.robot.initial_joints_deg), camera=s.camera,
                                              target=s.target), dsp=s.robot.dsp)
-    vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m),
-                          goal=s.goal)
+    vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m,
+                                        layout=s.target.layout), goal=s.goal)
     control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.velocity_mps),
                         robot_convention=convention)
     controller = ControllerConfig(law=s.law, control=control, convergence_error_norm=s.convergence.error_norm,

@@ -83,6 +83,9 @@ class TargetConfig(ConfigStruct):
     pose_in_camera: Optional[PoseConfig] = None
     #: constant velocity of the target in the base frame (seed 004's moving target)
     velocity_mps: Vec3 = (0.0, 0.0, 0.0)
+    #: which image the tag carries: official (as printed from AprilRobotics/apriltag-imgs) or opencv (OpenCV's
+    #: drawing); vision is told the same (services.model.tag)
+    layout: tags.TagLayout = tags.TagLayout.OFFICIAL
 
     def __post_init__(self) -> None:
         if self.family not in tags.FAMILIES:
@@ -163,7 +166,7 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
                        contype=0, conaffinity=0)
 
     # AprilTag target: a thin box whose +z face carries the tag upright (texture top = tag +y).
-    image = tags.tag_image(cfg.target.id, cfg.target.family)
+    image = tags.tag_image(cfg.target.id, cfg.target.family, layout=cfg.target.layout)
     rgb = np.repeat(image[:, :, None], 3, axis=2)
     texture = spec.add_texture(name="tag", type=mujoco.mjtTexture.mjTEXTURE_2D, width=rgb.shape[1],
                                height=rgb.shape[0], nchannel=3)

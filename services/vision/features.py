@@ -50,8 +50,11 @@ class TagDetector:
     """Detects tags of one family in grayscale images."""
 
     def __init__(self, family: str = "tag36h11", refinement: Refinement | str = Refinement.APRILTAG_SUBPIX,
-                 subpix_window: int = 3) -> None:
+                 subpix_window: int = 3, layout: tags.TagLayout | str = tags.TagLayout.OFFICIAL) -> None:
         self.refinement = Refinement(refinement)
+        self.family = family
+        #: which image of the tag is printed: the corners come in that image's order (services.model.tag)
+        self.layout = tags.TagLayout(layout)
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = _ARUCO_METHOD[self.refinement]
         params.cornerRefinementWinSize = subpix_window
@@ -70,6 +73,8 @@ class TagDetector:
             if self.refinement is Refinement.APRILTAG_SUBPIX:
                 w = self._subpix_window
                 c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (w, w), (-1, -1), _SUBPIX_CRITERIA).reshape(4, 2)
+            if self.layout is tags.TagLayout.OFFICIAL:
+                c = tags.official_order(c, self.family)
             out.append(Detection(int(tag_id), c.astype(float)))
         return out
 

@@ -51,6 +51,9 @@ class TagConfig(ConfigStruct):
     id: int = 0
     #: edge of the black square (m)
     size_m: float = 0.0962
+    #: which image is printed: official (AprilRobotics/apriltag-imgs, the one to print) or opencv (OpenCV's
+    #: drawing, turned); the corners and the tag's pose follow that image's upright
+    layout: tags.TagLayout = tags.TagLayout.OFFICIAL
 
     def __post_init__(self) -> None:
         if self.family not in tags.FAMILIES:
