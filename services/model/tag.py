@@ -81,6 +81,11 @@ def official_order(corners_opencv: np.ndarray, family: str = "tag36h11") -> np.n
     return np.roll(np.asarray(corners_opencv), -opencv_turns(family), axis=0)
 
 
+def opencv_order(corners_official: np.ndarray, family: str = "tag36h11") -> np.ndarray:
+    """The inverse of :func:`official_order`: corners in the official image's order → in OpenCV's."""
+    return np.roll(np.asarray(corners_official), opencv_turns(family), axis=0)
+
+
 def tag_image(tag_id: int, family: str = "tag36h11", px_per_cell: int = 32,
               layout: TagLayout | str = TagLayout.OFFICIAL) -> np.ndarray:
     """Upright grayscale image of the tag with its white quiet zone (uint8, square), as ``layout`` draws it."""

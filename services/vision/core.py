@@ -67,7 +67,8 @@ def gray_of(image: Image) -> np.ndarray:
 class VisionCore:
     def __init__(self, config) -> None:
         self.config = config
-        self.detector = F.TagDetector(config.tag.family, config.refinement, layout=config.tag.layout)
+        self.detector = F.TagDetector(config.tag.family, config.refinement, layout=config.tag.layout,
+                                      backend=config.detector)
         self.tracker = F.TagTracker(self.detector, config.roi)
         self.goal = Goal.from_config(config.goal, config.tag.size_m)
         #: the last features seen in a usable image (what a taught goal takes)

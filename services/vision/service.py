@@ -79,6 +79,8 @@ class GoalConfig(ConfigStruct):
 class VisionConfig(ServiceConfig):
     tag: TagConfig = msgspec.field(default_factory=TagConfig)
     goal: GoalConfig = msgspec.field(default_factory=GoalConfig)
+    #: the detector: aruco (OpenCV, with ``refinement``) or apriltag (the AprilTag project's, accurate to 3 m)
+    detector: F.Backend = F.Backend.ARUCO
     refinement: F.Refinement = F.Refinement.APRILTAG_SUBPIX
     roi: F.RoiConfig = msgspec.field(default_factory=F.RoiConfig)
     #: an image older than this (capture to processing, in the service's clock) gets status stale

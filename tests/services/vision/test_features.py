@@ -236,8 +236,11 @@ def _frames_along_a_motion(n: int, rate_rad: float = 0.02):
     return out
 
 
-def test_window_search_finds_exactly_the_full_frame_corners_along_a_motion():
-    detector = F.TagDetector()
+@pytest.mark.parametrize("backend, tolerance_px", [("aruco", 0.0), ("apriltag", 0.1)])
+def test_window_search_finds_the_full_frame_corners_along_a_motion(backend, tolerance_px):
+    """aruco's corners in the window are the full frame's to the bit; the AprilTag library's thresholds in tiles
+    of the image it is given, so its corners may move, within 0.1 px."""
+    detector = F.TagDetector(backend=backend)
     tracker = F.TagTracker(detector, F.RoiConfig(full_frame_every=1000))
     frames_ = _frames_along_a_motion(10)
     moved = []
@@ -245,7 +248,7 @@ def test_window_search_finds_exactly_the_full_frame_corners_along_a_motion():
         full = detector.find(gray, 0)
         tracked = tracker.find(gray, 0)
         assert full is not None and tracked is not None
-        assert np.array_equal(tracked.corners_px, full.corners_px)
+        assert np.abs(tracked.corners_px - full.corners_px).max() <= tolerance_px
         moved.append(full.corners_px)
     assert tracker.searches == {"window": 9, "full": 1, "fallback": 0}
     steps = np.abs(np.diff(np.array(moved), axis=0)).max(axis=(1, 2))
@@ -282,11 +285,12 @@ def test_window_is_the_last_box_with_its_margin_clipped_to_the_image():
         F.RoiConfig(full_frame_every=0)
 
 
-def test_the_vision_core_needs_no_service_and_takes_time_from_its_caller():
+@pytest.mark.parametrize("backend", ["aruco", "apriltag"])
+def test_the_vision_core_needs_no_service_and_takes_time_from_its_caller(backend):
     from services.vision.core import VisionCore
 
     image, _, _, cfg = render(POSES[1])
-    core = VisionCore(VisionConfig())
+    core = VisionCore(VisionConfig(detector=backend))
     info = camera_info(cfg.camera, m.Header())
     captured = 5_000_000_000  # any clock: the core reads none of its own
     fresh = core.process(image_message(image, captured), info, now_ns=captured + 100_000_000)
