@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import os
+import re
 import signal
 import sys
 import threading
@@ -30,11 +32,17 @@ def _cmd_router(args: argparse.Namespace) -> int:
     from services.runtime.config import ConfigError
 
     port = args.port if args.port is not None or args.config else 7447  # a config's own endpoint wins
+    import zenoh
+
     try:
         router = Router(port=port, host=args.host, config_file=args.config).start()
     except ConfigError as exc:
         print(f"mfvs router: {exc}", file=sys.stderr)
         return 2
+    except zenoh.ZError as exc:
+        reason = "the port is in use (another router?): pick another with --port" if "in use" in str(exc) else exc
+        print(f"mfvs router: cannot listen on {args.host}:{port}: {reason}", file=sys.stderr)
+        return 1
     with router:
         print(json.dumps({"router": router.endpoint, "zid": router.zid}), flush=True)
         stop.wait()
@@ -250,7 +258,10 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     from services.runtime.config import ConfigError
 
     if args.name not in EXPERIMENTS:
-        print(f"mfvs experiment: unknown experiment {args.name!r}; known: {', '.join(EXPERIMENTS)}", file=sys.stderr)
+        close = difflib.get_close_matches(args.name, list(EXPERIMENTS), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        print(f"mfvs experiment: unknown experiment {args.name!r}{hint}; known: {', '.join(EXPERIMENTS)}",
+              file=sys.stderr)
         return 2
     if args.profile not in ("sim", "gateway"):
         print(f"mfvs experiment: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
@@ -351,13 +362,26 @@ def _add_connection_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for confirmation")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with the closest command or choice offered when one is mistyped."""
+
+    def error(self, message: str):
+        wrong = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if wrong:
+            choices = re.findall(r"'([^']*)'", wrong.group(2))
+            close = difflib.get_close_matches(wrong.group(1), choices, n=1)
+            if close:
+                message += f"; did you mean '{close[0]}'?"
+        super().error(message)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="mfvs",
         description="Mixed-frame visual servoing for assistive robot arms (Kinova JACO-2) over Eclipse Zenoh.",
     )
     parser.add_argument("--version", action="version", version=f"mfvs {_version()}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
 
     router = sub.add_parser("router", help="run a zenoh router in the foreground until SIGTERM/SIGINT")
     router.add_argument("--port", type=int, default=None,

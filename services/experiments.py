@@ -41,7 +41,7 @@ from services.controller.law import Gains
 from services.model import jaco2
 from services.plots import comparison_plots, constraint_plots, tracking_plots
 from services.robot_sim.scene import target_in_base
-from services.servo import Scenario, ServoResult, load_scenario, run, stack_config
+from services.servo import Scenario, ServoResult, load_scenario, read_log, run, stack_config
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "examples" / "scenarios"
 
@@ -432,7 +432,7 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
             scenario.law, scenario.gains = spec.law, spec.gains
             scenario.law_options = {**scenario.law_options, **spec.options}
             result = run(scenario, root / spec.label, profile=profile, plots=out_dir is not None)
-            records = [json.loads(line) for line in Path(result.trajectory_log).read_text().splitlines()]
+            records = read_log(result.trajectory_log)
             trajectories[spec.label] = records
             rows[spec.label] = _row(spec, result, records)
             if experiment.run_figures is not None:

@@ -12,7 +12,7 @@ import json
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Optional
 
@@ -113,6 +113,40 @@ def stack_config(scenario: Scenario) -> StackConfig:
     safety.limits.robot_convention = convention
     safety.limits.zones = list(s.robot.dsp.zones)  # the arm's protection zones are the site's: safety guards them too
     return StackConfig(clock=s.clock, robot=robot, vision=vision, controller=controller, safety=safety)
+
+
+def _json_safe(value):
+    """``value`` with every non-finite float as None: the log is JSON, which has no NaN or Infinity."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def write_log(records: list[Iteration], path) -> Path:
+    """The trajectory log: one strict-JSON object per iteration (a missing measurement is null)."""
+    path = Path(path)
+    with path.open("w") as f:
+        for record in records:
+            f.write(json.dumps(_json_safe(record.__dict__), allow_nan=False) + "\n")
+    return path
+
+
+def read_log(path) -> list[dict]:
+    """A run's trajectory log (one JSON object per iteration), with the null of a missing measurement (no arm
+    state, no error: JSON has no NaN) read back as NaN in the float fields, so the numbers stay numbers."""
+    floats = [f.name for f in fields(Iteration) if f.type == "float"]
+    records = []
+    for line in Path(path).read_text().splitlines():
+        record = json.loads(line)
+        for name in floats:
+            if record.get(name, 0.0) is None:
+                record[name] = math.nan
+        records.append(record)
+    return records
 
 
 def law_options(scenario: Scenario) -> dict:
@@ -463,10 +497,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        log = out / "trajectory.jsonl"
-        with log.open("w") as f:
-            for r in records:
-                f.write(json.dumps(r.__dict__) + "\n")
+        log = write_log(records, out / "trajectory.jsonl")
         result.trajectory_log = str(log)
         from services.plots import servo_plots
 

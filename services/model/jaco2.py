@@ -241,10 +241,23 @@ def urdf() -> str:
 # ------------------------------------------------------------------------------------------------ loaders
 
 
+def mujoco_module():
+    """The mujoco module, its warnings sent to the ``mujoco`` logger: MuJoCo's own handler writes them into a
+    MUJOCO_LOG.TXT in whatever directory the process was started from."""
+    import logging
+
+    import mujoco
+
+    if mujoco.get_mju_user_warning() is None:
+        log = logging.getLogger("mujoco")
+        mujoco.set_mju_user_warning(lambda message: log.warning("MuJoCo: %s", message))
+    return mujoco
+
+
 def mujoco_spec():
     """A MuJoCo MjSpec of the arm (from :func:`urdf`): continuous joints unlimited, rotor inertia and joint
     friction as :data:`ARMATURE` and :data:`DAMPING`, no contacts. Scenes add to it."""
-    import mujoco
+    mujoco = mujoco_module()
 
     spec = mujoco.MjSpec.from_string(urdf())
     for i, spec_joint in enumerate(JOINTS):

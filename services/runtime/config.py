@@ -6,12 +6,15 @@ defaults; unknown keys, wrong types and out-of-range values raise a :class:`Conf
 """
 from __future__ import annotations
 
+import difflib
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any, TypeVar
 
 import msgspec
+import msgspec.inspect
 import yaml
 
 from protocol.messages import validation_error_path
@@ -89,9 +92,37 @@ def config_from_mapping(data: Any, config_type: type[T], name: str = "<mapping>"
         return msgspec.convert(data, config_type, strict=False)
     except msgspec.ValidationError as exc:
         path, reason = validation_error_path(exc)
+        reason += _did_you_mean(config_type, path, reason)
         if section:
             path = f"{section}.{path}" if path else section
         raise ConfigError(name, reason, path) from None
+
+
+def _did_you_mean(config_type: type, path: str, reason: str) -> str:
+    """For an unknown key, the closest known key at that place (a mistyped key otherwise gets only a refusal)."""
+    unknown = re.search(r"unknown field `([^`]+)`", reason)
+    if unknown is None:
+        return ""
+    info = msgspec.inspect.type_info(config_type)
+    for part in path.split(".")[:-1]:
+        info = _struct_of(info)
+        field = next((f for f in info.fields if f.encode_name == part), None) if info is not None else None
+        if field is None:
+            return ""
+        info = field.type
+    info = _struct_of(info)
+    names = [f.encode_name for f in info.fields] if info is not None else []
+    close = difflib.get_close_matches(unknown.group(1), names, n=1)
+    return f" (did you mean `{close[0]}`?)" if close else ""
+
+
+def _struct_of(info):
+    """The struct type behind an Optional (or any union holding one struct), or None."""
+    if isinstance(info, msgspec.inspect.StructType):
+        return info
+    if isinstance(info, msgspec.inspect.UnionType):
+        return next((t for t in info.types if isinstance(t, msgspec.inspect.StructType)), None)
+    return None
 
 
 def apply_override(data: dict, assignment: str, name: str = "--set") -> None:

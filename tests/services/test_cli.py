@@ -35,7 +35,29 @@ def test_no_command_prints_help_and_fails():
 
 def test_unknown_command_is_refused():
     out = run("fly")
-    assert out.returncode == 2 and "invalid choice" in out.stderr
+    assert out.returncode == 2 and "invalid choice" in out.stderr and "did you mean" not in out.stderr
+
+
+def test_a_mistyped_command_or_choice_gets_the_closest_one():
+    out = run("servoo")
+    assert out.returncode == 2 and "did you mean 'servo'?" in out.stderr
+    out = run("task", "strat")
+    assert out.returncode == 2 and "did you mean 'start'?" in out.stderr
+    out = run("experiment", "tabel3")
+    assert out.returncode == 2 and "did you mean 'table3'?" in out.stderr
+
+
+def test_a_router_on_a_busy_port_says_so_without_a_traceback():
+    first = subprocess.Popen([mfvs_executable(), "router", "--port", "0"], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        port = json.loads(first.stdout.readline())["router"].rsplit(":", 1)[1]
+        out = run("router", "--port", port)
+        assert out.returncode == 1 and "Traceback" not in out.stderr
+        assert f"cannot listen on 127.0.0.1:{port}" in out.stderr and "in use" in out.stderr
+    finally:
+        first.kill()
+        first.wait(timeout=10)
 
 
 def test_model_info_and_urdf():

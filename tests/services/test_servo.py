@@ -1,5 +1,6 @@
 """Closed-loop servo tasks through `mfvs servo`'s runner: all services over a real router, lockstep."""
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -8,7 +9,7 @@ import pytest
 
 from services.runtime.config import ConfigError, config_from_text
 from services.robot.dsp import DSPConfig
-from services.servo import Scenario, load_scenario, run
+from services.servo import Iteration, Scenario, load_scenario, read_log, run, write_log
 from tests.helpers import REPO
 
 TABLE2 = REPO / "examples" / "scenarios" / "table2.yaml"
@@ -39,6 +40,8 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     assert result.frames_lost == {"camera.dropped": 0, "vision.skipped": 0, "vision.stale": 0}
     first = json.loads(lines[0])
     assert {"iteration", "error_norm", "points", "command", "q"} <= set(first)
+    for line in lines:  # strict JSON: a missing measurement is null, not NaN
+        json.loads(line, parse_constant=lambda name: pytest.fail(f"{name} in the log"))
     assert [Path(p).name for p in result.plots] == ["features.png", "error.png", "velocities.png", "joints.png"]
     assert all(Path(p).stat().st_size > 1000 for p in result.plots)
 
@@ -129,8 +132,24 @@ def test_mfvs_servo_command_prints_the_result_fields(tmp_path):
     assert out.returncode == 2 and "camera" in out.stderr
 
 
+def test_the_log_is_strict_json_and_reads_back_its_missing_measurements_as_nan(tmp_path):
+    """An iteration without an arm state has no manipulability: null in the file (JSON has no NaN), NaN again when
+    read, and a zone distance that was None stays None."""
+    blank = dict(points=[], error=[], command=[], command_kind="", q=[], gain=1.0, saturated=False, camera_twist=None,
+                 ee_speed_mps=0.0)
+    records = [Iteration(iteration=1, t_s=0.1, stamp_ns=100, status="tag_lost", error_norm=math.nan,
+                         manipulability=math.nan, **blank),
+               Iteration(iteration=2, t_s=0.2, stamp_ns=200, status="converging", error_norm=0.5,
+                         manipulability=0.03, zone_distance_m=0.2, notes={"w": 0.1}, **blank)]
+    path = write_log(records, tmp_path / "trajectory.jsonl")
+    assert "NaN" not in path.read_text() and json.loads(path.read_text().splitlines()[0])["manipulability"] is None
+    first, second = read_log(path)
+    assert math.isnan(first["manipulability"]) and math.isnan(first["error_norm"]) and first["zone_distance_m"] is None
+    assert second["manipulability"] == 0.03 and second["zone_distance_m"] == 0.2 and second["notes"] == {"w": 0.1}
+
+
 def trajectory(result) -> list[dict]:
-    return [json.loads(line) for line in Path(result.trajectory_log).read_text().splitlines()]
+    return read_log(result.trajectory_log)
 
 
 def test_lockstep_is_bit_identical_run_to_run_and_through_the_gateway(tmp_path):

@@ -163,3 +163,19 @@ def test_home_euler_is_away_from_the_representation_singularity(arm):
     R, _ = arm.pose(jaco2.HOME)
     pitch = frames.matrix_to_euler_xyz(R)[1]
     assert abs(math.degrees(pitch)) < 80
+
+
+def test_mujoco_warnings_go_to_the_log_not_to_a_file_in_the_working_directory(tmp_path, monkeypatch, caplog):
+    """MuJoCo's own warning handler writes MUJOCO_LOG.TXT wherever the process runs; ours logs instead."""
+    import logging
+
+    mujoco = jaco2.mujoco_module()
+    monkeypatch.chdir(tmp_path)
+    model = mujoco.MjModel.from_xml_string('<mujoco><worldbody><body><joint/><geom size="0.1"/></body>'
+                                           '</worldbody></mujoco>')
+    data = mujoco.MjData(model)
+    data.qpos[0] = float("nan")
+    with caplog.at_level(logging.WARNING, logger="mujoco"):
+        mujoco.mj_step(model, data)
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    assert any("Nan, Inf or huge value" in r.getMessage() for r in caplog.records)
