@@ -249,6 +249,9 @@ def _print_experiment(output: dict) -> None:
         extra = f"  failure: {row['failure']}" if row["failure"] else ""
         print(f"  {row['label']:22s} {row['status']:14s} {row['iterations']:5d} iterations  final ‖e‖ {final}{extra}")
     print("summary: " + json.dumps(output["summary"]))
+    if not output["repeatable"]:
+        print("not repeatable: the arm went on without the pipeline's answer at some ticks (a loaded host); "
+              "a rerun may differ")
     if output["report"]:
         print(f"report: {output['report']}")
 

@@ -235,6 +235,10 @@ class ServoResult:
     safety: dict = field(default_factory=dict)
     #: the speed limits the robot declared (MotionLimits as a dict)
     robot_limits: Optional[dict] = None
+    #: ticks at which the robot node's lockstep wait for the pipeline ran out and the arm went on without its
+    #: answer: a host too loaded for the wait (``lockstep.frame_timeout_s``); the run is then not a function of its
+    #: scenario alone, and a rerun may differ
+    lockstep_timeouts: int = 0
 
     def to_json(self) -> dict:
         return {
@@ -249,6 +253,7 @@ class ServoResult:
             "initial_error_norm": self.initial_error_norm, "max_error_norm": self.max_error_norm,
             "robot_limits_hit": self.robot_limits_hit, "min_zone_distance_m": self.min_zone_distance_m,
             "last_refusal": self.last_refusal, "safety": self.safety, "robot_limits": self.robot_limits,
+            "lockstep_timeouts": self.lockstep_timeouts,
         }
 
 
@@ -357,12 +362,20 @@ FRAME_LOSS_COUNTERS = {("robot_sim", "frames.dropped"): "camera.dropped", ("visi
                        ("vision", "frames.stale"): "vision.stale"}
 
 
-def _frames_lost(session, keys: Keys) -> dict:
+#: the robot node's lockstep waits that ran out (wall time): the arm went on without the pipeline's answer
+LOCKSTEP_TIMEOUT_COUNTERS = ("lockstep.timeouts.frame", "lockstep.timeouts.cycle")
+
+
+def _frames_lost(session, keys: Keys) -> tuple[dict, int]:
     """Where frames were lost, from the services' health counters (every run starts a new stack: a counter is
-    the run's). A service that does not answer is left out."""
+    the run's; a service that does not answer is left out), and how many times the robot node's lockstep wait ran
+    out."""
     health = query_health(session, keys)
-    return {name: health[service].errors.get(counter, 0)
+    lost = {name: health[service].errors.get(counter, 0)
             for (service, counter), name in FRAME_LOSS_COUNTERS.items() if service in health}
+    timeouts = sum(health[service].errors.get(counter, 0) for service in ("robot_sim", "robot_gateway")
+                   if service in health for counter in LOCKSTEP_TIMEOUT_COUNTERS)
+    return lost, timeouts
 
 
 def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim",
@@ -451,7 +464,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                         "converging", "converged")) for r in records), timeout=2.0)  # the law answers those
                 for record in records:
                     _fill_inputs(record, watcher)
-            frames_lost = _frames_lost(session, Keys(config.robot.robot_id))
+            frames_lost, lockstep_timeouts = _frames_lost(session, Keys(config.robot.robot_id))
             safety = watcher.safety_summary()
         finally:
             watcher.close()
@@ -483,6 +496,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         servo_time_s=round((answered[-1].stamp_ns - answered[0].stamp_ns) * 1e-9, 3) if answered else 0.0,
         frames_answered=len(answered),
         frames_lost=frames_lost,
+        lockstep_timeouts=lockstep_timeouts,
         law_figures=_law_figures(records),
         initial_error_norm=converging[0].error_norm if converging else None,
         max_error_norm=max(r.error_norm for r in converging) if converging else None,

@@ -28,6 +28,7 @@ def shortened(scenario_file: str, tmp_path: Path, max_iterations: int) -> Path:
 
 def check_shape(output: dict, name: str) -> None:
     assert output["experiment"] == name and isinstance(output["summary"], dict)
+    assert output["repeatable"] and all(row["lockstep_timeouts"] == 0 for row in output["runs"])
     assert [row["label"] for row in output["runs"]] == [spec.label for spec in EXPERIMENTS[name].runs]
     for row in output["runs"]:
         assert ROW_KEYS <= set(row)

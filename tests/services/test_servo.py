@@ -38,6 +38,7 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     assert result.servo_time_s == pytest.approx((result.frames_answered - 1) / 30.0, abs=0.011)
     # ... and none lost on the way: lockstep waits for every frame's answer
     assert result.frames_lost == {"camera.dropped": 0, "vision.skipped": 0, "vision.stale": 0}
+    assert result.lockstep_timeouts == 0  # every tick waited for its answer: a function of the scenario
     first = json.loads(lines[0])
     assert {"iteration", "error_norm", "points", "command", "q"} <= set(first)
     for line in lines:  # strict JSON: a missing measurement is null, not NaN
