@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import statistics
 import tempfile
 from dataclasses import dataclass, field
@@ -287,14 +288,6 @@ TRACKING_PAPER = {"baseline_distance_m": 0.94, "full_distance_m": 5.0, "ratio": 
 FAILURE_WINDOW_S = 1.0
 
 
-def joint_limit_margins_deg(q) -> np.ndarray:
-    """Each limited joint's distance to its nearer limit (deg) at configuration ``q`` (model radians)."""
-    lower, upper = jaco2.model_limits()
-    limited = np.isfinite(lower)
-    q = np.asarray(q, dtype=float)[limited]
-    return np.degrees(np.minimum(q - lower[limited], upper[limited] - q))
-
-
 def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) -> dict:
     """How far the target travelled while it was tracked, why tracking ended, and how close the arm came to a
     singularity and to its joint limits."""
@@ -304,11 +297,11 @@ def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) 
     tracked_s = (seen[-1]["stamp_ns"] - start_ns) * 1e-9 if seen else 0.0
     end_ns = records[-1]["stamp_ns"] if records else 0
     window = [r for r in records if (end_ns - r["stamp_ns"]) * 1e-9 <= FAILURE_WINDOW_S]
-    margins = [float(joint_limit_margins_deg(r["q"]).min()) for r in records if r.get("q")]
+    nearest = {id(r): float(jaco2.limit_margins_deg(r["q"]).min()) for r in records if r.get("q")}
     faults = {fault for r in window for fault in r.get("robot_faults", [])}
     if result.status == "max_iterations":
         failure = None  # the target's path ended with the target still tracked
-    elif "joint_limit" in faults or any(float(joint_limit_margins_deg(r["q"]).min()) < 1.0 for r in window):
+    elif "joint_limit" in faults or any(nearest.get(id(r), math.inf) < 1.0 for r in window):
         failure = "joint_limit"
     elif "singularity" in faults or any(r["manipulability"] < SINGULAR_MANIPULABILITY for r in window):
         failure = "singularity"
@@ -322,7 +315,7 @@ def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) 
             "target_speed_mps": round(speed, 4), "failure": failure,
             "ended": "path_end" if failure is None else "failed",
             "min_w_prime": min(w_primes) if w_primes else None,
-            "min_joint_margin_deg": round(min(margins), 2) if margins else None,
+            "min_joint_margin_deg": round(min(nearest.values()), 2) if nearest else None,
             "last_tag_side_px": None if last_sides is None else round(float(last_sides.mean()), 1)}
 
 

@@ -344,8 +344,6 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target
     runs = {label: _as_dicts(records) for label, records in runs.items() if records}
     if not runs:
         return paths
-    lower, upper = jaco2.model_limits()
-    limited = np.isfinite(lower)
     fig, (w_ax, margin_ax) = plt.subplots(2, 1, figsize=(9.0, 6.0), sharex=True)
     for index, (label, records) in enumerate(runs.items()):
         colour = f"C{index}"
@@ -354,8 +352,7 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target
         w = np.array([r["manipulability"] for r in records])
         w_ax.semilogy(t, np.maximum(w_prime, 1e-12), color=colour, lw=1.3, label=f"{label}: w'(q)")
         w_ax.semilogy(t, np.maximum(w, 1e-12) ** 2, color=colour, lw=1.0, ls="--", label=f"{label}: w² (Yoshikawa)")
-        q = np.array([r["q"] for r in records])
-        margin = np.degrees(np.minimum(q[:, limited] - lower[limited], upper[limited] - q[:, limited])).min(axis=1)
+        margin = jaco2.limit_margins_deg(np.array([r["q"] for r in records])).min(axis=1)
         margin_ax.plot(t, margin, color=colour, lw=1.3, label=f"{label} ({failures.get(label) or 'path end'})")
     w_ax.set_ylabel("manipulability")
     w_ax.legend(fontsize=7, ncol=2)

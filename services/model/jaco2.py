@@ -139,6 +139,15 @@ def model_limits() -> tuple[np.ndarray, np.ndarray]:
 HOME = physical_deg_to_model(HOME_DEG)
 
 
+def limit_margins_deg(q) -> np.ndarray:
+    """Each limited joint's distance to its nearer limit (deg), at one configuration (model radians) or at a stack
+    of them (…×7 → …×limited joints)."""
+    lower, upper = model_limits()
+    limited = np.isfinite(lower)
+    q = np.asarray(q, dtype=float)[..., limited]
+    return np.degrees(np.minimum(q - lower[limited], upper[limited] - q))
+
+
 # ------------------------------------------------------------------------------------------------ reference FK
 
 

@@ -89,13 +89,14 @@ class TagDetector:
         #: which image of the tag is printed: the corners come in that image's order (services.model.tag)
         self.layout = tags.TagLayout(layout)
         self.backend = Backend(backend)
+        self._subpix_window = subpix_window
         if self.backend is Backend.APRILTAG:
             # one thread: the services share two cores; no decimation by default: a 3-m tag is 20 px wide
             self._apriltag = _apriltag_detector(family, quad_decimate)
+            return
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = _ARUCO_METHOD[self.refinement]
         params.cornerRefinementWinSize = subpix_window
-        self._subpix_window = subpix_window
         self._detector = cv2.aruco.ArucoDetector(tags.dictionary(family), params)
 
     def detect(self, gray: np.ndarray, roi: tuple[int, int, int, int] | None = None) -> list[Detection]:
