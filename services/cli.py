@@ -454,6 +454,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                          "./mfvs-demo)")
     demo.set_defaults(func=_cmd_demo)
 
+    from services.calibration.cli import add_parser as add_calibrate
+
+    add_calibrate(sub)
+
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")
     estop.add_argument("--operator", default="mfvs-cli", help="who is asking (logged by safety)")

@@ -39,7 +39,7 @@ from services.runtime.transport import ZenohConfig, file_endpoints, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICES = ("safety", "vision", "controller", "robot_sim")
-KNOWN_SERVICES = (*SERVICES, "robot_gateway")
+KNOWN_SERVICES = (*SERVICES, "robot_gateway", "camera")
 BUS_HUB_PORT = 7448
 
 
@@ -348,4 +348,7 @@ def load_profile(name_or_path: str, port: int, bus_port: int = BUS_HUB_PORT) -> 
         return sim_profile(port)
     if name_or_path == "gateway":
         return gateway_profile(port, bus_port)
+    shipped = REPO / "deploy" / "profiles" / f"{name_or_path}.yaml"
+    if "/" not in name_or_path and not name_or_path.endswith(".yaml") and shipped.is_file():
+        return load_config(shipped, Profile)
     return load_config(name_or_path, Profile)

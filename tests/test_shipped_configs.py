@@ -5,6 +5,7 @@ import msgspec
 import pytest
 
 from services.runtime.config import load_config, read_yaml
+from services.camera.service import CameraConfig
 from services.controller.service import ControllerConfig
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig
@@ -14,7 +15,7 @@ from tests.helpers import REPO
 
 SHIPPED = {
     "robot_sim": RobotSimConfig, "vision": VisionConfig, "controller": ControllerConfig, "safety": SafetyConfig,
-    "robot_gateway": GatewayConfig,
+    "robot_gateway": GatewayConfig, "camera": CameraConfig,
 }
 
 

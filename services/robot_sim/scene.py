@@ -14,6 +14,7 @@ import numpy as np
 
 from protocol.messages import CameraInfo, Header, ImageEncoding, Pose
 from services.model import frames, jaco2
+from services.model.board import BoardConfig, board_image
 from services.model import tag as tags
 from services.runtime.config import ConfigStruct, PoseConfig
 
@@ -48,6 +49,9 @@ class CameraConfig(ConfigStruct):
     #: what the camera publishes: rgb8, or mono8 (the detector's input: a third of the bytes to copy, send and
     #: decode, converted as vision would convert rgb8, so the corners are the same to the bit)
     encoding: ImageEncoding = ImageEncoding.MONO8
+    #: false: no rendering, no images and no camera info from robot_sim (the camera service publishes them: a real
+    #: camera beside the emulated arm; realtime only, as the camera service is)
+    enabled: bool = True
 
     def __post_init__(self) -> None:
         if self.encoding is ImageEncoding.BGR8:
@@ -86,6 +90,9 @@ class TargetConfig(ConfigStruct):
     #: which image the tag carries: official (as printed from AprilRobotics/apriltag-imgs) or opencv (OpenCV's
     #: drawing); vision is told the same (services.model.tag)
     layout: tags.TagLayout = tags.TagLayout.OFFICIAL
+    #: a ChArUco calibration board instead of the tag (`mfvs calibrate --simulate`); family, id, size_m and layout
+    #: are then unused
+    board: Optional[BoardConfig] = None
 
     def __post_init__(self) -> None:
         if self.family not in tags.FAMILIES:
@@ -165,8 +172,13 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
         world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.05], material="floor",
                        contype=0, conaffinity=0)
 
-    # AprilTag target: a thin box whose +z face carries the tag upright (texture top = tag +y).
-    image = tags.tag_image(cfg.target.id, cfg.target.family, layout=cfg.target.layout)
+    # AprilTag target: a thin box whose +z face carries the tag upright (texture top = tag +y); or a board.
+    if cfg.target.board is not None:
+        image = board_image(cfg.target.board)
+        half_x, half_y = (side / 2.0 for side in cfg.target.board.size_m)
+    else:
+        image = tags.tag_image(cfg.target.id, cfg.target.family, layout=cfg.target.layout)
+        half_x = half_y = tags.printed_edge(cfg.target.size_m) / 2.0
     rgb = np.repeat(image[:, :, None], 3, axis=2)
     texture = spec.add_texture(name="tag", type=mujoco.mjtTexture.mjTEXTURE_2D, width=rgb.shape[1],
                                height=rgb.shape[0], nchannel=3)
@@ -178,9 +190,8 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
         raise ValueError(f"the target's centre is {-T_bt[2, 3]:.3f} m below the floor; move it or disable the floor")
     target = world.add_body(name=TAG_BODY, mocap=True, pos=T_bt[:3, 3].tolist(),
                             quat=frames.matrix_to_quat_wxyz(T_bt[:3, :3]).tolist())
-    half = tags.printed_edge(cfg.target.size_m) / 2.0
     thickness = 0.002
-    target.add_geom(name="tag", type=mujoco.mjtGeom.mjGEOM_BOX, size=[half, half, thickness / 2],
+    target.add_geom(name="tag", type=mujoco.mjtGeom.mjGEOM_BOX, size=[half_x, half_y, thickness / 2],
                     pos=[0.0, 0.0, -thickness / 2], material="tag", contype=0, conaffinity=0)
 
     # Eye-in-hand camera with exact intrinsics: MuJoCo's principal_pixel is the offset of the image centre from

@@ -70,11 +70,18 @@ class _SimulationOutputs:
         self.frame: Optional[tuple[int, threading.Event]] = None
         self._next_info = 0.0
 
+    @property
+    def renders(self) -> bool:
+        """Whether this camera publishes at all (``scene.camera.enabled``; false: a camera service does)."""
+        return self.config.scene.camera.enabled
+
     def declare(self) -> None:
         service, keys = self.service, self.service.keys
+        self.clock_pub = service.publisher(keys.clock, "clock")
+        if not self.renders:
+            return
         self.image_pub = service.publisher(keys.camera_image, "image")
         self.info_pub = service.publisher(keys.camera_info, "camera_info")
-        self.clock_pub = service.publisher(keys.clock, "clock")
         service.queryable(keys.camera_info, self._on_info_query)
         self.camera = SimCamera(self.sim, self.image_pub.put, service.header, self._render_failed,
                                 realtime_priority=max(0, self.config.realtime_priority - 1)
@@ -95,7 +102,7 @@ class _SimulationOutputs:
 
     def at_boundary(self, sim_time_ns: int) -> None:
         """A cycle boundary, before physics moves on: take the camera frame due at this DSP tick."""
-        if sim_time_ns % DSP_CYCLE_NS or not self.sim.frame_due():
+        if not self.renders or sim_time_ns % DSP_CYCLE_NS or not self.sim.frame_due():
             return
         self.sim.mark_frame()
         stamp = self.epoch_ns + sim_time_ns
@@ -123,7 +130,7 @@ class _SimulationOutputs:
 
     def retry(self, tick_ns: int) -> None:
         """The answer to this tick is late: the frame and the tick again."""
-        image = self.camera.last_image
+        image = self.camera.last_image if self.camera is not None else None
         if self.frame is not None and self.frame[0] == tick_ns and image is not None:
             self.image_pub.put(image)
         self.clock_pub.put(SimClock(header=self.service.header("clock", stamp_ns=tick_ns), sim_time_ns=tick_ns,
@@ -132,7 +139,7 @@ class _SimulationOutputs:
 
     def _camera_info_now_and_then(self) -> None:
         now = time.monotonic()
-        if now >= self._next_info:
+        if self.renders and now >= self._next_info:
             self.info_pub.put(self.camera.info(self.service.header("camera_info")))
             self._next_info = now + self.config.camera_info_period_s
 

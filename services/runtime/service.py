@@ -435,7 +435,13 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
         request_realtime(priority, f"{service_type.name} process")
     code = 1
     try:
-        code = service_type(config).run()
+        try:
+            service = service_type(config)
+        except (ValueError, OSError) as exc:  # what the config names cannot be had: a file, a device
+            print(f"{service_type.name}: {exc}", file=sys.stderr)
+            code = 2
+            return code
+        code = service.run()
         return code
     finally:
         _record_exit(code)

@@ -144,6 +144,53 @@ def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
     assert down.returncode == 0 and "stopped 7 processes" in down.stdout
 
 
+def test_real_arm_profile_runs_the_gateway_with_the_camera_service(tmp_path):
+    """`mfvs up --profile real-arm` as shipped (its dry run: the emulated bus, a video file as the camera), on
+    ports of its own: the camera service is the only camera (robot_sim renders nothing), vision measures the tag in
+    the video through the calibration's lens model, robot_gateway is the robot."""
+    import yaml
+
+    from protocol import messages as m
+    from protocol.keys import Keys
+    from services.launcher import REPO
+    from services.runtime.transport import ZenohConfig, open_session
+
+    env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path))
+    port, bus_port = free_loopback_port(), free_loopback_port()
+    text = (REPO / "deploy" / "profiles" / "real-arm.yaml").read_text()
+    profile = yaml.safe_load(text.replace("127.0.0.1:7448", f"127.0.0.1:{bus_port}"))
+    profile["router"]["port"], profile["bus_hub"]["port"] = port, bus_port
+    (tmp_path / "real-arm.yaml").write_text(yaml.safe_dump(profile))
+    out = mfvs("up", "--profile", str(tmp_path / "real-arm.yaml"), env=env)
+    try:
+        assert out.returncode == 0, out.stderr
+        session = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+        keys = Keys()
+        features, images = [], []
+        session.declare_subscriber(keys.features, lambda s: features.append(m.decode(s.payload.to_bytes(),
+                                                                                      m.Features)))
+        session.declare_subscriber(keys.camera_image, lambda s: images.append(m.decode(s.payload.to_bytes(),
+                                                                                      m.Image).header))
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and sum(f.status is m.FeatureStatus.OK for f in features) < 30:
+            time.sleep(0.5)
+        time.sleep(1.5)
+        status = json.loads(mfvs("status", "--json", env=env).stdout)
+        session.close()
+        assert sum(f.status is m.FeatureStatus.OK for f in features) >= 30, [f.detail for f in features[-3:]]
+        assert images and {h.trace[0].service for h in images} == {"camera"}  # the only camera on the keys
+        services = {s["name"]: s for s in status["services"]}
+        assert set(services) == {"robot_sim", "robot_gateway", "vision", "controller", "safety", "camera"}
+        assert all(s["condition"] in ("healthy", "degraded") for s in services.values()), \
+            {name: (s["condition"], s["degraded"], s["errors"]) for name, s in services.items()}
+        assert services["camera"]["rates_hz"]["pub.image"] > 15  # 30 Hz asked; generous
+        assert "pub.image" not in services["robot_sim"]["rates_hz"]
+        assert services["robot_gateway"]["rates_hz"]["pub.state"] > 50
+    finally:
+        down = mfvs("down", env=env)
+    assert down.returncode == 0 and "stopped 8 processes" in down.stdout
+
+
 def test_shipped_profile_files_are_the_built_in_profiles():
     """deploy/profiles/*.yaml are the built-in profiles spelled out (for users to copy and change)."""
     from services.runtime.config import load_config

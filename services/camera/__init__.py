@@ -1,0 +1,1 @@
+"""camera: a real camera, a video file or a folder of images on the camera keys, with its calibration."""
