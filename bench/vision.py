@@ -1,7 +1,9 @@
 """Vision benchmark: AprilTag detection and full feature extraction time per frame, on frames rendered by
-robot_sim at 640×480 and 1280×720.
+robot_sim at 640×480 and 1280×720; and the corners' error against distance and motion blur through a webcam-like
+camera (robot_sim's ``imaging``: read noise, JPEG, the blur of the tag's motion over the exposure), for each
+detector.
 
-``python -m bench.vision [--json] [--frames N]`` or ``mfvs bench vision``.
+``python -m bench.vision [--json] [--frames N] [--seeds N]`` or ``mfvs bench vision``.
 """
 from __future__ import annotations
 
@@ -10,10 +12,13 @@ import json
 import time
 
 import cv2
+import mujoco
 import numpy as np
 
 from protocol import messages as m
 from services.runtime.config import PoseConfig
+from services.model import tag as tags
+from services.robot_sim.imaging import ImagingConfig, expose, motion_blur, target_corners_px
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, camera_info
 from services.robot_sim.sim import Simulation
 from services.vision.features import RoiConfig, TagDetector, TagTracker
@@ -65,25 +70,92 @@ def measure(camera: CameraConfig, frames: int) -> dict:
             "process_ms": _percentiles(process_ms)}
 
 
-def run(frames: int = 100) -> dict:
-    return {name: measure(camera, frames) for name, camera in CAMERAS.items()}
+DISTANCES_M = (0.3, 0.6, 1.0, 1.5, 2.0)
+BLURS_PX = (0.0, 3.0, 6.0, 12.0)
+
+
+def corner_accuracy(seeds: int = 4, imaging: ImagingConfig | None = None) -> list[dict]:
+    """Per detector, distance and blur: how often the tag is found and how far its corners are from the pinhole
+    projection of MuJoCo's pose in the middle of the exposure (px: median and worst over ``seeds`` noise draws).
+    The blur is the tag sliding across the image by ``blur`` px during the exposure."""
+    imaging = imaging or ImagingConfig()
+    rows = []
+    detectors = {"aruco": TagDetector(), "apriltag": TagDetector(backend="apriltag")}
+    for distance in DISTANCES_M:
+        cfg = SceneConfig(floor=False, target=TargetConfig(pose_in_camera=PoseConfig(xyz=(0.0, 0.0, distance),
+                                                                        rpy_deg=(200.0, 10.0, 15.0))))
+        sim = Simulation(cfg)
+        K = cfg.camera.matrix()
+        T0 = sim.target_pose()
+        try:
+            for blur in BLURS_PX:
+                travel = blur * distance / cfg.camera.fx  # metres across the view for a blur of that many px
+
+                def place(s):
+                    T = T0.copy()
+                    T[:3, 3] += sim.camera_pose()[:3, 0] * travel * (s - 0.5)  # along the camera's x
+                    sim.set_target_pose(T)
+                    mujoco.mj_forward(sim.model, sim.data)
+
+                place(0.0)
+                start = target_corners_px(sim.model, sim.data, sim.camera_id, K)
+                place(0.5)
+                T_ct = np.linalg.inv(sim.camera_pose()) @ sim.target_pose()
+                corners = (T_ct[:3, :3] @ tags.corners_in_tag(cfg.target.size_m).T).T + T_ct[:3, 3]
+                truth = (K @ (corners / corners[:, 2:3]).T).T[:, :2]
+                place(1.0)
+                end = target_corners_px(sim.model, sim.data, sim.camera_id, K)
+                gray = motion_blur(cv2.cvtColor(sim.render(), cv2.COLOR_RGB2GRAY), end, start, imaging.blur_samples)
+                frames = [expose(gray, imaging, seed) for seed in range(1, seeds + 1)]
+                for name, detector in detectors.items():
+                    errors = []
+                    for frame in frames:
+                        found = detector.find(frame, 0)
+                        if found is not None:
+                            errors.append(float(np.linalg.norm(found.corners_px - truth, axis=1).max()))
+                    rows.append({"detector": name, "distance_m": distance, "blur_px": blur,
+                                 "tag_px": round(float(np.ptp(truth[:, 0])), 1), "found": len(errors) / len(frames),
+                                 "median_px": round(float(np.median(errors)), 2) if errors else None,
+                                 "worst_px": round(max(errors), 2) if errors else None})
+        finally:
+            sim.close()
+    return rows
+
+
+def run(frames: int = 100, seeds: int = 4) -> dict:
+    return {"timing": {name: measure(camera, frames) for name, camera in CAMERAS.items()},
+            "corners": corner_accuracy(seeds)}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mfvs bench vision", description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--frames", type=int, default=100, help="frames timed per resolution")
+    parser.add_argument("--seeds", type=int, default=4, help="noise draws per distance and blur")
     args = parser.parse_args(argv)
-    result = run(args.frames)
+    result = run(args.frames, args.seeds)
     if args.json:
         print(json.dumps(result))
     else:
-        for name, r in result.items():
+        for name, r in result["timing"].items():
             d, w, p = r["detect_ms"], r["window_ms"], r["process_ms"]
             print(f"{name}: detection on the full frame {d['p50']:.2f} ms p50, {d['p99']:.2f} ms p99; in the window "
                   f"around the last corners {w['p50']:.2f} ms p50, {w['p99']:.2f} ms p99; the service's features "
                   f"(grayscale, window detection, refinement, pose, error) {p['p50']:.2f} ms p50, {p['p99']:.2f} ms "
                   f"p99 ({d['n']} frames)")
+        webcam = ImagingConfig()
+        print(f"\ncorner error (px, worst corner) against the mid-exposure truth, through a webcam-like camera "
+              f"(noise σ {webcam.noise_sigma}, JPEG {webcam.jpeg_quality}), median / worst of {args.seeds} draws; "
+              "- : not found")
+        for detector in ("aruco", "apriltag"):
+            print(f"{detector:>9}  distance  tag px " + "".join(f"  blur {b:>4.0f} px" for b in BLURS_PX))
+            for distance in DISTANCES_M:
+                cells = [r for r in result["corners"] if r["detector"] == detector and r["distance_m"] == distance]
+                line = "".join(f"  {c['median_px']:>5.2f}/{c['worst_px']:<5.2f}" if c["median_px"] is not None
+                               else "  " + "-".center(11) for c in cells)
+                found = min(c["found"] for c in cells)
+                print(f"{'':>9}  {distance:>6.1f} m  {cells[0]['tag_px']:>6.0f}{line}"
+                      + ("" if found == 1.0 else f"   (found in {found:.0%} at worst)"))
     return 0
 
 

@@ -30,7 +30,9 @@ from protocol.messages import CHANNELS, CameraInfo, Header, Image, ImageEncoding
 from services.model import jaco2
 from services.robot.pacing import normal_priority, request_realtime
 from services.runtime.threads import name_os_thread, start_thread
+from services.robot_sim import imaging as imaging_mod
 from services.robot_sim import scene as scene_mod
+from services.robot_sim.imaging import ImagingConfig
 from services.robot_sim.sim import Simulation
 
 log = logging.getLogger("mfvs.robot_sim.camera")
@@ -44,9 +46,11 @@ class RenderError(RuntimeError):
 
 
 def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, height: int,
-                  realtime_priority: int, encoding: ImageEncoding = ImageEncoding.RGB8) -> None:
-    """The renderer's process: a snapshot in (joint positions, target pose), its pixels out (RGB, or grey as
-    vision's own conversion gives it), until the pipe closes or a None comes."""
+                  realtime_priority: int, encoding: ImageEncoding = ImageEncoding.RGB8,
+                  imaging: Optional[ImagingConfig] = None, camera_matrix: Optional[np.ndarray] = None) -> None:
+    """The renderer's process: a snapshot in (joint positions, target pose; the same at the exposure's start, or
+    None; the frame's stamp), its pixels out (RGB, or grey as vision's own conversion gives it), through the
+    camera's imperfections when it has them, until the pipe closes or a None comes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is robot_sim's to handle: it closes us
     name_os_thread("robot_sim-render")
     jaco2.mujoco_module()  # a spawned interpreter: its MuJoCo warnings to the log too, not to MUJOCO_LOG.TXT
@@ -76,11 +80,20 @@ def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, heigh
             if snapshot is None:
                 return
             try:
-                data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = snapshot
+                qpos, mocap_pos, mocap_quat, start, stamp_ns = snapshot
+                data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = qpos, mocap_pos, mocap_quat
                 mujoco.mj_forward(model, data)
                 renderer.update_scene(data, camera=camera_id)
                 renderer.render(out=pixels)
                 out = cv2.cvtColor(pixels, cv2.COLOR_RGB2GRAY) if encoding is ImageEncoding.MONO8 else pixels
+                if imaging is not None:
+                    if start is not None:
+                        corners_end = imaging_mod.target_corners_px(model, data, camera_id, camera_matrix)
+                        data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = start
+                        mujoco.mj_kinematics(model, data)
+                        corners_start = imaging_mod.target_corners_px(model, data, camera_id, camera_matrix)
+                        out = imaging_mod.motion_blur(out, corners_end, corners_start, imaging.blur_samples)
+                    out = imaging_mod.expose(out, imaging, stamp_ns)
             except Exception as exc:
                 conn.send(f"render failed: {exc}")
                 continue
@@ -94,13 +107,14 @@ class RenderProcess:
     interpreter lock) until the frame's RGB bytes are back."""
 
     def __init__(self, model: mujoco.MjModel, camera_id: int, width: int, height: int,
-                 realtime_priority: int = 0, encoding: ImageEncoding = ImageEncoding.RGB8) -> None:
+                 realtime_priority: int = 0, encoding: ImageEncoding = ImageEncoding.RGB8,
+                 imaging: Optional[ImagingConfig] = None, camera_matrix: Optional[np.ndarray] = None) -> None:
         self.width, self.height, self.encoding = width, height, encoding
         context = multiprocessing.get_context("spawn")  # no fork of a process with threads and realtime loops
         self._conn, child = context.Pipe()
         self._process = context.Process(target=_serve_frames, name="robot_sim-render", daemon=True,
                                         args=(child, model, camera_id, width, height, realtime_priority,
-                                              encoding))
+                                              encoding, imaging, camera_matrix))
         self._process.start()
         child.close()
         if not self._conn.poll(RENDERER_START_TIMEOUT_S):
@@ -115,10 +129,12 @@ class RenderProcess:
     def pid(self) -> Optional[int]:
         return self._process.pid
 
-    def render(self, qpos: np.ndarray, mocap_pos: np.ndarray, mocap_quat: np.ndarray) -> bytes:
-        """The frame's pixels (H×W×3 RGB or H×W grey, row-major bytes)."""
+    def render(self, qpos: np.ndarray, mocap_pos: np.ndarray, mocap_quat: np.ndarray, start=None,
+               stamp_ns: int = 0) -> bytes:
+        """The frame's pixels (H×W×3 RGB or H×W grey, row-major bytes); ``start``: the world at the exposure's
+        start (qpos, mocap_pos, mocap_quat) for the motion blur, ``stamp_ns`` the frame's (its noise's seed)."""
         try:
-            self._conn.send((qpos, mocap_pos, mocap_quat))
+            self._conn.send((qpos, mocap_pos, mocap_quat, start, stamp_ns))
             reply = self._conn.recv_bytes()
         except (EOFError, OSError) as exc:
             raise RenderError(f"the renderer's process is gone ({exc})") from exc
@@ -145,6 +161,8 @@ class Snapshot:
     mocap_pos: np.ndarray
     mocap_quat: np.ndarray
     done: threading.Event
+    #: the world when the shutter opened (qpos, mocap_pos, mocap_quat), for the motion blur; None without one
+    start: Optional[tuple] = None
 
 
 class SimCamera:
@@ -173,7 +191,7 @@ class SimCamera:
         cam = self.sim.scene.camera
         try:
             self._renderer = RenderProcess(self.sim.model, self.sim.camera_id, cam.width, cam.height,
-                                           self.realtime_priority, cam.encoding)
+                                           self.realtime_priority, cam.encoding, cam.imaging, cam.matrix())
         except RenderError as exc:
             log.error("camera: %s", exc)
             self._on_failure()
@@ -200,7 +218,11 @@ class SimCamera:
         last one (the frame is dropped)."""
         d = self.sim.data
         done = threading.Event()
-        snapshot = Snapshot(stamp_ns, d.qpos.copy(), d.mocap_pos.copy(), d.mocap_quat.copy(), done)
+        imaging = self.sim.scene.camera.imaging
+        start = None
+        if imaging is not None and imaging.exposure_s > 0:
+            start = self.sim.world_at(self.sim.time_ns - int(imaging.exposure_s * 1e9))
+        snapshot = Snapshot(stamp_ns, d.qpos.copy(), d.mocap_pos.copy(), d.mocap_quat.copy(), done, start)
         try:
             self._queue.put_nowait(snapshot)
         except queue.Full:
@@ -219,7 +241,8 @@ class SimCamera:
             try:
                 if self._renderer is None:
                     raise RenderError("no renderer")
-                pixels = self._renderer.render(snapshot.qpos, snapshot.mocap_pos, snapshot.mocap_quat)
+                pixels = self._renderer.render(snapshot.qpos, snapshot.mocap_pos, snapshot.mocap_quat,
+                                               snapshot.start, snapshot.stamp_ns)
                 header = self._header("image", stamp_ns=snapshot.stamp_ns, source_stamp_ns=snapshot.stamp_ns)
                 image = Image(header=header, width=cam.width, height=cam.height, encoding=cam.encoding,
                               data=pixels)

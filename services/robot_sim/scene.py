@@ -15,6 +15,7 @@ import numpy as np
 from protocol.messages import CameraInfo, Header, ImageEncoding, Pose
 from services.model import frames, jaco2
 from services.model.board import BoardConfig, board_image
+from services.robot_sim.imaging import ImagingConfig
 from services.model import tag as tags
 from services.runtime.config import ConfigStruct, PoseConfig
 
@@ -52,6 +53,10 @@ class CameraConfig(ConfigStruct):
     #: false: no rendering, no images and no camera info from robot_sim (the camera service publishes them: a real
     #: camera beside the emulated arm; realtime only, as the camera service is)
     enabled: bool = True
+    #: a camera as imperfect as a real one (noise, motion blur over the exposure, JPEG; services/robot_sim/imaging.py);
+    #: null: the ideal camera (noiseless, instantaneous), which the seed papers' experiments and thresholds assume;
+    #: ``{}``: a common USB webcam's defaults
+    imaging: Optional[ImagingConfig] = None
 
     def __post_init__(self) -> None:
         if self.encoding is ImageEncoding.BGR8:

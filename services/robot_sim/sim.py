@@ -9,6 +9,10 @@ at or after their nominal times.
 """
 from __future__ import annotations
 
+import collections
+import math
+from typing import Optional
+
 import mujoco
 import numpy as np
 
@@ -16,6 +20,7 @@ from services.model import frames, jaco2
 from services.runtime.metrics import Counters
 from services.robot.hardware import CYCLE_NS, ActuatorValues
 from services.robot_sim import scene as scene_mod
+from services.robot_sim.imaging import expose
 from services.robot_sim.firmware import ActuatorConfig, ActuatorFirmware
 
 
@@ -44,6 +49,11 @@ class Simulation:
         self._camera_id = self.model.camera(scene_mod.CAMERA_NAME).id
         self._renderer = None
         self._render_enabled = render
+        imaging = self.scene.camera.imaging
+        #: the world at each of the last cycle boundaries, as long back as the camera's exposure (motion blur)
+        self._history: Optional[collections.deque] = None
+        if imaging is not None and imaging.exposure_s > 0:
+            self._history = collections.deque(maxlen=int(math.ceil(imaging.exposure_s * 1e9 / self.cycle_ns)) + 2)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -100,7 +110,22 @@ class Simulation:
         """The cycle boundary: the actuators take the commands of the cycle before; returns what they report for
         this cycle (its stamp is the boundary's time)."""
         self.firmware.begin_cycle(self.time_ns * 1e-9)
+        if self._history is not None:
+            d = self.data
+            self._history.append((self.time_ns, d.qpos.copy(), d.mocap_pos.copy(), d.mocap_quat.copy()))
         return self.firmware.values(self.time_ns)
+
+    def world_at(self, time_ns: int) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The joints and the target (qpos, mocap_pos, mocap_quat) at the last cycle boundary at or before
+        ``time_ns`` that is still remembered (the camera's exposure back), or None when nothing is."""
+        if not self._history:
+            return None
+        chosen = self._history[0]
+        for entry in self._history:
+            if entry[0] > time_ns:
+                break
+            chosen = entry
+        return chosen[1], chosen[2], chosen[3]
 
     def end_cycle(self) -> None:
         """Physics to the next boundary."""
@@ -146,7 +171,8 @@ class Simulation:
         self._renderer.update_scene(self.data, camera=self._camera_id)
         image = self._renderer.render().copy()
         self.mark_frame()
-        return image
+        imaging = self.scene.camera.imaging
+        return image if imaging is None else expose(image, imaging, self.time_ns)
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -47,6 +47,21 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     assert all(Path(p).stat().st_size > 1000 for p in result.plots)
 
 
+def test_through_a_webcam_like_camera_the_law_converges_to_its_noise_floor_and_repeats(tmp_path):
+    """robot_sim's imaging (noise, the blur of the motion over the exposure, JPEG) in lockstep: converges to the
+    example's 5e-4 (the webcam's noise floor is about 2e-4), and the noise is the frame's: the run repeats to the
+    bit."""
+    webcam = REPO / "examples" / "scenarios" / "table2_webcam.yaml"
+    first = run(load_scenario(webcam), tmp_path / "a")
+    assert first.converged and first.final_error_norm < 5e-4 and first.lockstep_timeouts == 0
+    second = run(load_scenario(webcam), tmp_path / "b")
+    assert Path(first.trajectory_log).read_bytes() == Path(second.trajectory_log).read_bytes()
+    ideal = run(load_scenario(TABLE2), tmp_path / "ideal")
+    ideal_log = [json.loads(line)["error_norm"] for line in Path(ideal.trajectory_log).read_text().splitlines()]
+    webcam_log = [json.loads(line)["error_norm"] for line in Path(first.trajectory_log).read_text().splitlines()]
+    assert webcam_log[:first.iterations] != ideal_log[:first.iterations]  # the camera's imperfections are there
+
+
 def test_ee_frame_law_fails_on_the_same_start():
     result = run(with_law(TABLE2, "ee-frame"))
     assert not result.converged
