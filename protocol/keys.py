@@ -117,6 +117,12 @@ class Keys:
         return self._k("robot/api/*")
 
     @property
+    def robot_check_arm(self) -> str:
+        """The commissioning check (ArmCheckRequest → ArmCheckReply): the robot node moves each joint a little and
+        compares the arm's own Cartesian report with the arm description (`mfvs check arm`)."""
+        return self._k("robot/check/arm")
+
+    @property
     def lowlevel_command(self) -> str:
         return self._k("robot/lowlevel/command")
 

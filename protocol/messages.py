@@ -314,6 +314,8 @@ class ControllerState(str, enum.Enum):
     CONSTRAINT_ABORT = "constraint_abort"
     #: no task is running (the stack comes up so): zero output until someone starts one
     IDLE = "idle"
+    #: the arm has not passed the commissioning check (`mfvs check arm`) and it is not waived: zero output
+    ARM_NOT_CHECKED = "arm_not_checked"
 
 
 class TaskState(str, enum.Enum):
@@ -417,6 +419,17 @@ class MotionLimits(Message):
     joint_accel_rps2: Positive
 
 
+class ArmCheckState(str, enum.Enum):
+    """Whether the arm description agrees with the arm (the commissioning check, `mfvs check arm`)."""
+
+    NEVER = "never"
+    RUNNING = "running"
+    PASSED = "passed"
+    FAILED = "failed"
+    #: not checked, by a setting (a simulated arm, which is its description; an arm the check cannot see)
+    WAIVED = "waived"
+
+
 class RobotState(Message):
     header: Header
     #: model joint angles (rad), velocities (rad/s), torques (N·m)
@@ -435,6 +448,55 @@ class RobotState(Message):
     timing: LoopTiming = msgspec.field(default_factory=LoopTiming)
     #: the limits the robot applies (None: not declared; readers then take the arm description's maxima)
     limits: Optional[MotionLimits] = None
+    #: the end effector as the arm itself reports it (its own kinematics: Kinova's DSP through the SDK, the
+    #: simulator's physics); None where ``pose`` is all there is (the description's kinematics of q: RS-485)
+    arm_pose: Optional[KinovaPose] = None
+    #: the commissioning check's verdict on this arm; the controller starts tasks only when passed or waived
+    arm_check: ArmCheckState = ArmCheckState.NEVER
+
+
+class ArmCheckRequest(Message):
+    """Run the commissioning check: each joint in turn moves by ``step_deg`` at ``speed_dps`` and back."""
+
+    header: Header
+    #: the check moves the arm: the caller says it is clear to (`mfvs check arm --yes`)
+    confirm: bool = False
+    joints: Annotated[list[Annotated[int, msgspec.Meta(ge=1, le=N_JOINTS)]],
+                      msgspec.Meta(min_length=1, max_length=N_JOINTS)] = msgspec.field(
+        default_factory=lambda: list(range(1, N_JOINTS + 1)))
+    step_deg: Annotated[float, msgspec.Meta(ge=1.0, le=10.0)] = 5.0
+    speed_dps: Annotated[float, msgspec.Meta(ge=1.0, le=10.0)] = 5.0
+    operator: Annotated[str, msgspec.Meta(max_length=64)] = ""
+
+
+class JointCheck(Message):
+    joint: int
+    #: how far the joint moved, by its own report (deg)
+    moved_deg: float
+    #: ok: the arm moved as the description predicts; reversed: as it predicts for the joint turning the other way;
+    #: disagrees: neither
+    direction: Annotated[str, msgspec.Meta(max_length=16)]
+    #: the arm's motion against the description's (end effector: mm and deg)
+    motion_error_mm: float
+    motion_error_deg: float
+    passed: bool
+    detail: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    #: the joint's zero against the description's, where the poses disagree at rest (deg; fitted over the samples)
+    zero_offset_deg: float = 0.0
+
+
+class ArmCheckReply(Message):
+    ok: bool
+    passed: bool = False
+    state: ArmCheckState = ArmCheckState.NEVER
+    message: Annotated[str, msgspec.Meta(max_length=512)] = ""
+    joints: Annotated[list[JointCheck], msgspec.Meta(max_length=N_JOINTS)] = []
+    #: the arm's pose against the description's at the start (mm, deg)
+    static_error_mm: float = 0.0
+    static_error_deg: float = 0.0
+    #: where the static error is a constant turn of the end-effector frame (the arm's frame in the description's)
+    ee_frame_rotation_deg: float = 0.0
+    ee_frame_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
 
 class TorqueCommand(Message):

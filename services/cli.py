@@ -455,8 +455,10 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     from services.calibration.cli import add_parser as add_calibrate
+    from services.check import add_parser as add_check
 
     add_calibrate(sub)
+    add_check(sub, _add_connection_options, _operator_session)
 
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")

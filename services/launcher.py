@@ -96,10 +96,12 @@ def gateway_robot_services(bus_channel: str, robot_sim_config: Optional[str] = N
     actuators on the CAN hub's bus at ``bus_channel``, robot_gateway in front of them (configs: the shipped ones
     unless given)."""
     bus = ["bus.interface=mfvs_hub", f"bus.channel={bus_channel}"]
+    # the arm behind this bus is robot_sim's emulation of the description itself: its check is waived (and an
+    # RS-485 bus carries no Cartesian report the check could compare with)
     return [ProfileService(name="robot_sim", config=robot_sim_config or _shipped("robot_sim").config,
                            set=["mode=actuator_bus", *bus]),
             ProfileService(name="robot_gateway", config=robot_gateway_config or _shipped("robot_gateway").config,
-                           set=bus)]
+                           set=[*bus, "arm_check.waived=true"])]
 
 
 def service_command(service: ProfileService, endpoint: Optional[str] = None, robot_id: Optional[str] = None,

@@ -15,6 +15,7 @@ import numpy as np
 from protocol.conventions import AngularConvention
 from protocol.messages import (
     USABLE_FEATURE_STATUSES,
+    ArmCheckState,
     ControllerState,
     Features,
     FeatureStatus,
@@ -43,6 +44,15 @@ class Step:
     saturated: bool = False
 
 
+#: the commissioning check's states in which the controller moves the arm
+ARM_CHECK_OK = frozenset({ArmCheckState.PASSED, ArmCheckState.WAIVED})
+
+
+def arm_not_checked(state: RobotState) -> str:
+    return (f"the arm's commissioning check is {state.arm_check.value}: the arm description may not match the arm "
+            "(run `mfvs check arm`; a simulated arm waives it: arm_check.waived)")
+
+
 class ControllerCore:
     def __init__(self, config) -> None:
         """``config``: the service's :class:`~services.controller.service.ControllerConfig` (the law, its options,
@@ -54,7 +64,11 @@ class ControllerCore:
         self.iteration = 0
 
     # ------------------------------------------------------------------ the task
-    def start_task(self, request: TaskRequest, now_ns: int) -> TaskStatus:
+    def start_task(self, request: TaskRequest, now_ns: int, state: Optional[RobotState] = None) -> TaskStatus:
+        """Start a task, unless the arm (by its latest ``state``) has failed or never passed its commissioning
+        check and is not waived."""
+        if state is not None and state.arm_check not in ARM_CHECK_OK:
+            return self.task.status(False, arm_not_checked(state))
         was_running = self.task.running
         reply = self.task.start(request, now_ns)
         if not was_running:  # a new task: the law's memory and the iteration count start afresh
@@ -91,6 +105,8 @@ class ControllerCore:
             return zero(ControllerState.STALE_INPUT, f"image is {age * 1e3:.0f} ms old", reset=True)
         if state is None or (now_ns - state.header.stamp_ns) * 1e-9 > cfg.state_budget_s:
             return zero(ControllerState.STALE_INPUT, "no fresh robot state")
+        if state.arm_check not in ARM_CHECK_OK:
+            return zero(ControllerState.ARM_NOT_CHECKED, arm_not_checked(state), reset=True)
         if camera_in_ee is None:
             return zero(ControllerState.STALE_INPUT, "no camera info (camera-in-end-effector transform)")
         if state.angular_convention is not cfg.control.robot_convention and not self.joint_output:

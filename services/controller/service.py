@@ -109,8 +109,10 @@ class ControllerService(Service):
 
     # ------------------------------------------------------------------ the task
     def start_task(self, request: TaskRequest) -> messages.TaskStatus:
+        with self.lock:
+            state = self.robot_state
         with self._iteration_lock:
-            reply = self.core.start_task(request, self.clock.now_ns())
+            reply = self.core.start_task(request, self.clock.now_ns(), state)
         self._log_task(reply, request)
         return reply
 

@@ -44,6 +44,9 @@ class JointReading:
     #: when the reading was taken: on the emulated arm's own timeline (robot_sim), or on the host's clock when
     #: the bus gives no better (a real arm); 0 when unknown
     stamp_ns: int = 0
+    #: the end effector's pose (4×4, base frame) as the arm itself reports it (Kinova's DSP through the SDK, the
+    #: simulator's physics), when it does: an RS-485 bus carries joints only
+    arm_pose: Optional[np.ndarray] = None
 
     def faults(self) -> list[str]:
         return [f"actuator {i + 1}: fault {int(code)}" for i, code in enumerate(self.fault) if code]

@@ -2,8 +2,10 @@
 robot_gateway's actuators on a bus), and the robot's one loop.
 
 On zenoh: robot commands in (``…/robot/command``, from safety), the Kinova API as queryables
-(``…/robot/api/<Function>``), the robot state out at every DSP cycle (100 Hz), and the low-level torque API
-(``…/robot/lowlevel/*``, 500 Hz, realtime only).
+(``…/robot/api/<Function>``), the robot state out at every DSP cycle (100 Hz), the low-level torque API
+(``…/robot/lowlevel/*``, 500 Hz, realtime only), and the commissioning check (``…/robot/check/arm``,
+:mod:`services.robot.arm_check`): while it runs, the node moves the arm itself, joint by joint, and holds safety's
+commands (an emergency stop ends the check and stops the arm); its verdict goes out in every state.
 
 The loop: every bus cycle it exchanges targets with the hardware (:class:`~services.robot.hardware.RobotHardware`)
 and steps low-level control; every fifth cycle, the DSP cycle: publish the state, take the latest command, run
@@ -44,6 +46,10 @@ from protocol import kinova
 from protocol.conventions import ClockMode
 from protocol.messages import (
     ActuatorMode,
+    ArmCheckReply,
+    ArmCheckRequest,
+    ArmCheckState,
+    CommandMode,
     Header,
     KinovaPose,
     LoopTiming,
@@ -56,6 +62,7 @@ from protocol.messages import (
     missing_fields,
 )
 from services.model import frames
+from services.robot import arm_check
 from services.runtime.config import ConfigStruct
 from services.robot.dsp import DSPConfig, KinovaDSP
 from services.model.kinematics import ArmKinematics
@@ -108,6 +115,8 @@ class RobotNodeConfig(ServiceConfig):
     admission: AdmissionConfig = msgspec.field(default_factory=AdmissionConfig)
     #: the low-level torque API's watchdog and release (services.robot.lowlevel)
     lowlevel: LowLevelConfig = msgspec.field(default_factory=LowLevelConfig)
+    #: the commissioning check's verdict: kept where, or waived (services.robot.arm_check)
+    arm_check: arm_check.ArmCheckConfig = msgspec.field(default_factory=arm_check.ArmCheckConfig)
     #: after this many consecutive failed exchanges the node reports itself unhealthy and refuses motion
     max_bus_errors: int = 5
     #: realtime: SCHED_FIFO priority of the robot's process where the OS grants it (0: normal scheduling), above
@@ -119,6 +128,11 @@ class RobotNodeConfig(ServiceConfig):
             raise ValueError("max_bus_errors must be at least 1")
         if not 0 <= self.realtime_priority <= 99:
             raise ValueError("realtime_priority must be within 0..99 (SCHED_FIFO)")
+
+
+def _kinova_pose(T: np.ndarray) -> KinovaPose:
+    euler = frames.matrix_to_euler_xyz(T[:3, :3])
+    return KinovaPose(X=T[0, 3], Y=T[1, 3], Z=T[2, 3], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2])
 
 
 class _CoreView:
@@ -144,7 +158,11 @@ class _CoreView:
         return self.core.q_ref.copy()
 
     def ee_pose(self) -> np.ndarray:
-        return frames.homogeneous(*self.kin.pose(self.core.reading.q))
+        """GetCartesianPosition: the arm's own report where it gives one, else the description's kinematics."""
+        reading = self.core.reading
+        if reading.arm_pose is not None:
+            return reading.arm_pose
+        return frames.homogeneous(*self.kin.pose(reading.q))
 
 
 class _TorqueJoints:
@@ -221,6 +239,11 @@ class RobotNode(Service):
         self._late = RateMeter()
         self._missed = RateMeter()
         self._cycles = RateMeter()
+        #: the commissioning check: its state and why, a request waiting for the loop, the run under way
+        self.arm_check_state, self.arm_check_detail = arm_check.load_verdict(config.arm_check)
+        self._check_request: Optional[tuple[ArmCheckRequest, Future]] = None
+        self._check_run: Optional[tuple[arm_check.ArmCheckRun, Future]] = None
+        self._state_before_check = (self.arm_check_state, self.arm_check_detail)
 
     # ------------------------------------------------------------------ what a robot service provides
     def open_hardware(self) -> tuple[RobotHardware, JointReading]:
@@ -258,6 +281,7 @@ class RobotNode(Service):
             self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
             self.subscribe(keys.lowlevel_command, TorqueCommand, self._on_torque, "lowlevel_command")
             self.queryable(keys.robot_api_all, self._on_api)
+            self.queryable(keys.robot_check_arm, self._on_arm_check)
             # who is alive: lockstep waits for its answerers; a sender's new session restarts its numbering
             self._declared.append(self.session.liveliness().declare_subscriber(
                 keys.liveliness_all, self._on_liveliness, history=True))
@@ -378,6 +402,87 @@ class RobotNode(Service):
         except Exception as exc:  # the loop died or timed out: the caller gets Kinova's unknown error
             reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR), message=f"not executed: {exc}")
         query.reply(query.key_expr, encode(reply))
+
+    def _on_arm_check(self, query: zenoh.Query) -> None:
+        """Run the commissioning check (the reply comes when it is over: a minute or two)."""
+        try:
+            request = query_argument(query, "arm_check", ArmCheckRequest)
+        except ProtocolError as exc:
+            self.refuse("arm_check", str(exc))
+            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.arm_check_state,
+                                                             message=str(exc)[:512])))
+            return
+        reason = ""
+        if not request.confirm:
+            reason = (f"the check moves joints {request.joints} by {request.step_deg}° each, at {request.speed_dps}°/s, "
+                      "and back: confirm that the arm is clear to (mfvs check arm --yes)")
+        elif self.core.torque_mode:
+            reason = "low-level torque control owns the arm"
+        future: Future = Future()
+        if not reason:
+            with self.command_cond:
+                if self._check_request is not None or self._check_run is not None:
+                    reason = "a check is already running"
+                else:
+                    self._check_request = (request, future)
+                    self.command_cond.notify_all()
+        if reason:
+            self.refuse("arm_check", reason)
+            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.arm_check_state, message=reason)))
+            return
+        self.log.info("commissioning check requested by %s: joints %s, %.1f° at %.1f°/s", request.operator or "?",
+                      request.joints, request.step_deg, request.speed_dps)
+        try:
+            reply = future.result(timeout=900.0)
+        except Exception as exc:
+            reply = ArmCheckReply(ok=False, state=self.arm_check_state, message=f"the check did not finish: {exc}")
+        query.reply(query.key_expr, encode(reply))
+
+    def _arm_check_command(self, tick_ns: int, taken, reading: JointReading):
+        """At a DSP tick: start a requested check, or step the one running. Returns the command the DSP takes:
+        the check's own while it runs (safety's held, an emergency stop ending the check), else ``taken``."""
+        if self._check_request is not None and self._check_run is None:
+            with self.command_cond:
+                (request, future), self._check_request = self._check_request, None
+            plan = arm_check.ArmCheckPlan(joints=tuple(request.joints), step_deg=request.step_deg,
+                                          speed_dps=request.speed_dps)
+            try:
+                run = arm_check.ArmCheckRun(plan, reading.q, tick_ns * 1e-9)
+            except ValueError as exc:
+                future.set_result(ArmCheckReply(ok=False, state=self.arm_check_state, message=str(exc)))
+                return taken
+            self.core.dsp.erase_all_trajectories()
+            self._check_run = (run, future)
+            self._state_before_check = (self.arm_check_state, self.arm_check_detail)
+            self.arm_check_state = ArmCheckState.RUNNING
+        if self._check_run is None:
+            return taken
+        run, future = self._check_run
+        if taken is not None and taken[0].mode is CommandMode.EMERGENCY_STOP:
+            run.abort("an emergency stop ended the check")
+        elif taken is not None:
+            self.counters.inc("arm_check.commands_held")
+        velocity = run.step(tick_ns * 1e-9, reading.q, reading.dq, reading.arm_pose)
+        if velocity is None:
+            self._finish_arm_check(run, future)
+            return taken
+        header = self.header("arm_check", stamp_ns=tick_ns)
+        return RobotCommand(header=header, mode=CommandMode.JOINT_VELOCITY, joint_velocities=velocity.tolist(),
+                            reason="commissioning check"), tick_ns
+
+    def _finish_arm_check(self, run: "arm_check.ArmCheckRun", future: Future) -> None:
+        reply = arm_check.analyse(run.samples, failure=run.failure)
+        self._check_run = None
+        if not reply.ok:  # the check could not judge: the arm's verdict is what it was before
+            self.arm_check_state, self.arm_check_detail = self._state_before_check
+            reply = msgspec.structs.replace(reply, state=self.arm_check_state)
+        else:
+            self.arm_check_state, self.arm_check_detail = reply.state, reply.message
+            arm_check.save_verdict(self.config.arm_check, reply, time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+        self.counters.inc(f"arm_check.{reply.state.value}")
+        (self.log.info if reply.passed else self.log.warning)("commissioning check: %s: %s", reply.state.value,
+                                                             reply.message)
+        future.set_result(reply)
 
     # ------------------------------------------------------------------ the loop thread
     def run_api_calls(self) -> None:
@@ -541,9 +646,12 @@ class RobotNode(Service):
         else:
             taken = self.take_command()
         self.run_api_calls()
+        taken = self._arm_check_command(tick_ns, taken, reading)
         if self.consecutive_errors >= self.config.max_bus_errors:
             taken = None  # no motion on a failing bus
             self.core.dsp.erase_all_trajectories()
+            if self._check_run is not None:
+                self._check_run[0].abort("the bus is failing")
         dq_ref, refusal = self.core.dsp_plan(taken[0] if taken is not None else None, reading)
         with self._core_lock:
             self.core.take_plan(dq_ref)
@@ -612,6 +720,8 @@ class RobotNode(Service):
             control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],
             watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
             applied_command=self._applied, timing=self.timing(), limits=dsp.motion_limits(),
+            arm_pose=_kinova_pose(reading.arm_pose) if reading.arm_pose is not None else None,
+            arm_check=self.arm_check_state,
         ))
 
     def _publish_lowlevel(self) -> None:

@@ -55,10 +55,16 @@ class ActuatorConfig(ConfigStruct):
     validation_tolerance_nm: float = 2.0
     validation_tolerance_fraction: float = 0.2
     validation_lifetime_s: float = 1.0
+    #: joints (1-7) whose actuator turns the other way from the arm description, about the home angle (where the
+    #: two agree): an emulated arm that disagrees with its description, as the JACO-2's joint 1 may with a
+    #: kinova-ros-like one (`mfvs check arm --simulate --mirror-joint N`); empty for an arm that agrees
+    mirrored_joints: list[int] = msgspec.field(default_factory=list)
 
     def __post_init__(self) -> None:
         if len(self.addresses) != jaco2.N_JOINTS or len(set(self.addresses)) != jaco2.N_JOINTS:
             raise ValueError(f"addresses must be {jaco2.N_JOINTS} distinct bus addresses")
+        if any(not 1 <= j <= jaco2.N_JOINTS for j in self.mirrored_joints):
+            raise ValueError(f"mirrored_joints are joint numbers 1..{jaco2.N_JOINTS}")
         if not 0 < self.torque_timeout_s:
             raise ValueError("torque_timeout_s must be positive")
 
@@ -123,8 +129,14 @@ class ActuatorFirmware:
         self.by_address = {a.address: a for a in self.actuators}
         self._mass = np.zeros((model.nv, model.nv))
         self._friction = model.dof_damping[: self.n].copy()
-        #: physical degrees (the bus's unit) to the model's radians, sign included
-        self._deg_to_model = jaco2.SIGN * (math.pi / 180.0)
+        # the actuators' encoders and motors against the model's joints: model = _pivot_model + _deg_to_model·deg
+        # (physical degrees, the bus's unit, to the model's radians, sign included); a mirrored joint turns the other
+        # way about its home angle
+        direction = np.array([-1.0 if i + 1 in self.config.mirrored_joints else 1.0 for i in range(self.n)])
+        self._deg_to_model = jaco2.SIGN * direction * (math.pi / 180.0)
+        self._pivot_model = jaco2.SIGN * np.radians(jaco2.HOME_DEG * (1.0 - direction))
+        #: an actuator's torque (its sign) to the model's joint torque
+        self._torque_sign = jaco2.SIGN * direction
         #: the current cycle boundary's time (s) on the arm's timeline
         self.now_s = 0.0
         #: reports raised at a boundary (joint limits) for the bus to carry: (address, error)
@@ -134,12 +146,20 @@ class ActuatorFirmware:
         self.hold_all()
 
     # ------------------------------------------------------------------ state in actuator units
+    def model_from_physical_deg(self, position_deg) -> np.ndarray:
+        """The model's joint angles (rad) at these actuator angles (physical degrees)."""
+        return self._pivot_model + self._deg_to_model * np.asarray(position_deg, dtype=float)
+
+    def physical_deg(self, q) -> np.ndarray:
+        """What the actuators' encoders read (physical degrees) at these model angles."""
+        return (np.asarray(q, dtype=float) - self._pivot_model) / self._deg_to_model
+
     def values(self, stamp_ns: int) -> ActuatorValues:
         d = self.data
         q, dq = d.qpos[: self.n], d.qvel[: self.n]
-        torque = jaco2.SIGN * d.actuator_force[: self.n]
+        torque = self._torque_sign * d.actuator_force[: self.n]
         return ActuatorValues(
-            position_deg=jaco2.model_to_physical_deg(q), velocity_dps=jaco2.model_rate_to_physical(dq),
+            position_deg=self.physical_deg(q), velocity_dps=dq / self._deg_to_model,
             torque_nm=torque, current_a=torque / TORQUE_PER_AMPERE,
             temperature_c=np.full(self.n, ACTUATOR_TEMPERATURE_C),
             mode=np.array([int(a.mode) for a in self.actuators]),
@@ -153,7 +173,7 @@ class ActuatorFirmware:
         return a.last_target_deg, a.torque_nm
 
     def position_deg(self, i: int) -> float:
-        return math.degrees(jaco2.SIGN[i] * float(self.data.qpos[i]))
+        return float((self.data.qpos[i] - self._pivot_model[i]) / self._deg_to_model[i])
 
     def hold_all(self) -> None:
         """Every actuator in position mode, holding where its joint is (at start and after a reset)."""
@@ -183,7 +203,7 @@ class ActuatorFirmware:
     def validate_torque(self, i: int, expected_nm: float) -> bool:
         cfg = self.config
         a = self.actuators[i]
-        measured = float(jaco2.SIGN[i] * self.data.actuator_force[i])
+        measured = float(self._torque_sign[i] * self.data.actuator_force[i])
         ok = math.isfinite(expected_nm) and abs(expected_nm - measured) <= max(
             cfg.validation_tolerance_nm, cfg.validation_tolerance_fraction * abs(measured))
         if ok:
@@ -329,10 +349,10 @@ class ActuatorFirmware:
                                  last_deg)
         rate = self._deg_to_model * np.where(started & (ahead < GOES_ON_S - 1e-9), rate_dps, 0.0)
         tau = gravity + self._friction * rate + inertia * (
-            SERVO_BANDWIDTH_RPS**2 * (self._deg_to_model * reference_deg - q)
+            SERVO_BANDWIDTH_RPS**2 * (self._pivot_model + self._deg_to_model * reference_deg - q)
             + 2.0 * SERVO_BANDWIDTH_RPS * (rate - dq))
         if torque_mode.any():
-            commanded = jaco2.SIGN * torque_nm + (gravity if self.config.gravity_compensation else 0.0)
+            commanded = self._torque_sign * torque_nm + (gravity if self.config.gravity_compensation else 0.0)
             tau = np.where(torque_mode, commanded, tau)
         in_first_cycle = started & (ahead < CYCLE_S - 1e-9) & ~torque_mode
         if in_first_cycle.any():

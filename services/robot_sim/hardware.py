@@ -45,7 +45,9 @@ class SimulatedHardware:
 
     def read(self) -> JointReading:
         """The joints now, without a cycle (at start)."""
-        return reading_from_values(self.sim.firmware.values(self.sim.time_ns), self.epoch_ns)
+        reading = reading_from_values(self.sim.firmware.values(self.sim.time_ns), self.epoch_ns)
+        reading.arm_pose = self.sim.ee_pose()
+        return reading
 
     def exchange(self, targets: JointTargets) -> JointReading:
         position_deg, torque_nm = physical_targets(targets)
@@ -54,11 +56,16 @@ class SimulatedHardware:
         for i in range(jaco2.N_JOINTS):
             firmware.command(i, float(position_deg[i]), float(torque_nm[i]))
         values = self.sim.begin_cycle()
+        # the physical arm's own report, whatever its description says (MuJoCo's last kinematics: a physics step,
+        # 1 ms, behind a moving arm, as a real arm's report lags its joints)
+        arm_pose = self.sim.ee_pose()
         firmware.reports.clear()  # the faults are in the values; a bus would carry them as REPORT_ERROR too
         if self.on_boundary is not None:
             self.on_boundary(values)
         self.sim.end_cycle()
-        return reading_from_values(values, self.epoch_ns)
+        reading = reading_from_values(values, self.epoch_ns)
+        reading.arm_pose = arm_pose
+        return reading
 
     def enter_torque_mode(self, expected_torques: np.ndarray) -> None:
         firmware = self.sim.firmware

@@ -31,6 +31,7 @@ import zenoh
 
 from protocol.conventions import ClockMode
 from protocol.messages import SimClock, encode
+from services.robot.arm_check import ArmCheckConfig
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
 from services.robot.hardware import CYCLE_NS, CYCLE_S, ActuatorValues
@@ -45,6 +46,9 @@ from services.robot_sim.sim import Simulation
 #: simulated time in lockstep starts here, so that a stamp of 0 always means "none" (no source image)
 LOCKSTEP_EPOCH_NS = 1_000_000_000
 class RobotSimConfig(RobotNodeConfig):
+    #: a simulated arm is its description (MuJoCo builds it from the same one): the check is waived unless its
+    #: actuators are told to disagree (actuators.mirrored_joints)
+    arm_check: ArmCheckConfig = msgspec.field(default_factory=lambda: ArmCheckConfig(waived=True))
     scene: SceneConfig = msgspec.field(default_factory=SceneConfig)
     #: the emulated actuators' firmware
     actuators: ActuatorConfig = msgspec.field(default_factory=ActuatorConfig)
@@ -56,6 +60,12 @@ class RobotSimConfig(RobotNodeConfig):
     mode: Literal["api", "actuator_bus"] = "api"
     bus: BusConfig = msgspec.field(default_factory=BusConfig)
     bus_sync: BusSyncConfig = msgspec.field(default_factory=BusSyncConfig)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.actuators.mirrored_joints and self.arm_check.waived:
+            raise ValueError("actuators.mirrored_joints makes the arm disagree with its description: the check "
+                             "cannot be waived (arm_check.waived: false)")
 
 
 class _SimulationOutputs:

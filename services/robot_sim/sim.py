@@ -59,7 +59,7 @@ class Simulation:
     # ------------------------------------------------------------------ state
     def reset(self, joints_deg=None) -> None:
         mujoco.mj_resetData(self.model, self.data)
-        q = jaco2.physical_deg_to_model(self.scene.initial_joints_deg if joints_deg is None else joints_deg)
+        q = self.firmware.model_from_physical_deg(self.scene.initial_joints_deg if joints_deg is None else joints_deg)
         self.data.qpos[: jaco2.N_JOINTS] = q
         self.data.mocap_pos[self._mocap] = self._target_start
         mujoco.mj_forward(self.model, self.data)

@@ -33,7 +33,8 @@ def features(points=None, status=m.FeatureStatus.OK, age_s=0.0, depth=0.5):
 DECLARED = stricter(arm_limits(), linear_speed_mps=0.15, angular_speed_rps=0.8, joint_speed_scale=0.8)
 
 
-def controller(law="adaptive-pd-mixed", with_state=True, started=True, limits=DECLARED, **kw):
+def controller(law="adaptive-pd-mixed", with_state=True, started=True, limits=DECLARED,
+               arm_check=m.ArmCheckState.WAIVED, **kw):
     service = ControllerService(ControllerConfig(law=law, **kw))
     if started:
         service.start_task(m.TaskRequest(operator="test"))
@@ -41,7 +42,7 @@ def controller(law="adaptive-pd-mixed", with_state=True, started=True, limits=DE
         service._on_state(m.RobotState(header=m.Header(stamp_ns=time.time_ns()), q=jaco2.HOME.tolist(),
                                        dq=[0.0] * 7, tau=[0.0] * 7,
                                        pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
-                                       control_mode=m.ControlMode.IDLE, limits=limits), 0)
+                                       control_mode=m.ControlMode.IDLE, limits=limits, arm_check=arm_check), 0)
     T = CameraConfig().camera_in_ee.matrix()
     service._on_camera_info(m.CameraInfo(header=m.Header(), width=640, height=480, fx=615.0, fy=615.0, cx=319.5,
                                          cy=239.5, camera_in_ee=m.Pose(xyz=tuple(T[:3, 3]), quat_wxyz=tuple(
@@ -100,6 +101,15 @@ def test_degenerate_features_are_ill_conditioned():
     same = [(0.01, 0.01)] * 4
     status, output = controller().compute(features(points=same))
     assert status.status is m.ControllerState.ILL_CONDITIONED and output is None
+
+
+@pytest.mark.parametrize("check", [m.ArmCheckState.NEVER, m.ArmCheckState.FAILED, m.ArmCheckState.RUNNING])
+def test_an_arm_that_has_not_passed_its_commissioning_check_is_not_commanded(check):
+    status, output = controller(arm_check=check).compute(features())
+    assert status.status is m.ControllerState.ARM_NOT_CHECKED and output is None
+    assert f"commissioning check is {check.value}" in status.detail and "mfvs check arm" in status.detail
+    refused = controller(arm_check=check, started=False)
+    assert not refused.start_task(m.TaskRequest(operator="test")).ok
 
 
 def test_a_robot_reading_another_convention_is_not_commanded():
@@ -186,7 +196,7 @@ def robot_state(q, dq=None, stamp_ns=None):
     return m.RobotState(header=m.Header(stamp_ns=stamp_ns or time.time_ns()), q=list(q),
                         dq=list(dq if dq is not None else np.zeros(7)), tau=[0.0] * 7,
                         pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
-                        control_mode=m.ControlMode.IDLE)
+                        control_mode=m.ControlMode.IDLE, arm_check=m.ArmCheckState.WAIVED)
 
 
 @pytest.mark.parametrize("compensate", [True, False])

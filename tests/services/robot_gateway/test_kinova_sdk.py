@@ -153,3 +153,25 @@ def test_a_failing_init_stops_the_start_with_the_sdk_code(router, library, fake)
     with pytest.raises(SdkError, match="InitAPI returned 1015"):
         robot_gateway_service(GatewayConfig(zenoh=router.client_config(), backend="kinova_sdk",
                                           sdk_library=library)).start()
+
+
+def test_the_commissioning_check_runs_through_the_sdk_against_kinovas_own_report(gateway, fake):
+    """Behind the SDK the arm's own Cartesian report is Kinova's DSP's: it goes out in the state, and the check
+    moves the joint through the SDK and compares with it. The stand-in reports a pose that neither matches the
+    description nor follows the joints: the check fails and says why."""
+    from services.check import request_check
+
+    client, service = gateway
+    states = Recorder(client, KEYS.robot_state, m.RobotState)
+    assert wait_for(lambda: len(states) > 5)
+    reported = service.sdk.checked("GetCartesianPosition").Coordinates
+    assert states.last().arm_pose is not None and states.last().arm_pose.Z == pytest.approx(reported.Z, abs=1e-6)
+    assert states.last().arm_check is m.ArmCheckState.NEVER  # a real arm's check is not waived by default
+    before = fake.FakeCount(b"points")
+    reply = request_check(client, KEYS, m.ArmCheckRequest(header=m.Header(), confirm=True, joints=[1]),
+                          timeout_s=60.0)
+    assert reply.ok and not reply.passed and reply.state is m.ArmCheckState.FAILED
+    assert fake.FakeCount(b"points") > before  # the joint moved through the SDK's trajectory points
+    assert reply.joints[0].direction == "disagrees" and abs(reply.joints[0].moved_deg) > 4.0
+    assert reply.static_error_mm > 100.0  # the stand-in's pose is not the description's
+    assert wait_for(lambda: states.last().arm_check is m.ArmCheckState.FAILED, timeout=5.0)
