@@ -304,6 +304,10 @@ class RobotNode(Service):
         """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
 
     def on_stop(self) -> None:
+        for pending in (self._check_request, self._check_run):
+            if pending is not None and not pending[1].done():
+                pending[1].set_result(ArmCheckReply(ok=False, state=self.arm_check_state,
+                                                    message="the robot stopped before the check ended"))
         with self.command_cond:
             self.command_cond.notify_all()
         with self._dsp_cond:
@@ -432,11 +436,19 @@ class RobotNode(Service):
             return
         self.log.info("commissioning check requested by %s: joints %s, %.1f° at %.1f°/s", request.operator or "?",
                       request.joints, request.step_deg, request.speed_dps)
+        # the reply goes when the check is over: this callback returns now, so that zenoh goes on delivering the
+        # session's other messages meanwhile (an emergency stop among them); the query is kept until then
+        future.add_done_callback(lambda done: self._reply_arm_check(query, done))
+
+    def _reply_arm_check(self, query: zenoh.Query, done: Future) -> None:
         try:
-            reply = future.result(timeout=900.0)
+            reply = done.result()
         except Exception as exc:
             reply = ArmCheckReply(ok=False, state=self.arm_check_state, message=f"the check did not finish: {exc}")
-        query.reply(query.key_expr, encode(reply))
+        try:
+            query.reply(query.key_expr, encode(reply))
+        finally:
+            query.drop()  # the final answer: the caller's get ends here
 
     def _arm_check_command(self, tick_ns: int, taken, reading: JointReading):
         """At a DSP tick: start a requested check, or step the one running. Returns the command the DSP takes:
