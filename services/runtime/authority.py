@@ -48,10 +48,18 @@ class Deployment:
     tls: bool
 
 
-#: what each identity may publish (put/delete): every key that can cause motion has exactly one writer
-def writes(keys: Keys) -> dict[str, list[str]]:
+def _camera_keys(keys: Keys) -> list[str]:
+    return [keys.camera_image, keys.camera_info]
+
+
+#: what each identity may publish (put/delete): every key that can cause motion has exactly one writer. The camera
+#: keys are robot_sim's, or, in a deployment with the ``camera`` identity (a real camera, `services/camera`), the
+#: camera service's alone (robot_sim then renders nothing: scene.camera.enabled false)
+def writes(keys: Keys, services=DEFAULT_SERVICES) -> dict[str, list[str]]:
+    camera = "camera" in services
     return {
-        "robot_sim": [keys.camera_image, keys.camera_info, keys.clock, keys.robot_state, keys.lowlevel_state],
+        "robot_sim": ([] if camera else _camera_keys(keys)) + [keys.clock, keys.robot_state, keys.lowlevel_state],
+        "camera": _camera_keys(keys) if camera else [],
         "robot_gateway": [keys.robot_state, keys.lowlevel_state],
         "vision": [keys.features],
         "controller": [keys.desired_twist, keys.desired_joint_velocity, keys.controller_status],
@@ -69,9 +77,10 @@ READ_API_FUNCTIONS = sorted(set(kinova.API_FUNCTIONS) - kinova.MUTATING_API_FUNC
 def queries(keys: Keys) -> dict[str, list[str]]:
     """What each identity may query, beyond what everyone may (:func:`everyone_queries`)."""
     return {"safety": sorted(keys.robot_api(f) for f in kinova.MUTATING_API_FUNCTIONS),
-            # the person starts and stops the servo task (the stack comes up idle)
+            # the person starts and stops the servo task (the stack comes up idle), and runs the commissioning check
+            # (the robot moves itself for it, at their confirmation)
             "operator": [keys.vision_api("set_goal"), keys.controller_api(m.START_TASK),
-                         keys.controller_api(m.STOP_TASK)]}
+                         keys.controller_api(m.STOP_TASK), keys.robot_check_arm]}
 
 
 def everyone_queries(keys: Keys) -> list[str]:
@@ -79,9 +88,12 @@ def everyone_queries(keys: Keys) -> list[str]:
                                                               keys.controller_api(m.GET_TASK), keys.health_all]
 
 
-def queryables(keys: Keys) -> dict[str, list[str]]:
+def queryables(keys: Keys, services=DEFAULT_SERVICES) -> dict[str, list[str]]:
     """Who may answer which queries (a rogue queryable could answer in a robot's name)."""
-    return {"robot_sim": [keys.robot_api_all], "robot_gateway": [keys.robot_api_all],
+    camera = "camera" in services
+    robot = [keys.robot_api_all, keys.robot_check_arm]
+    return {"robot_sim": robot + ([] if camera else [keys.camera_info]), "robot_gateway": robot,
+            "camera": [keys.camera_info] if camera else [],
             "vision": [keys.vision_api("set_goal"), keys.vision_api("get_goal")],
             "controller": [keys.controller_api(f) for f in m.TASK_FUNCTIONS]}
 
@@ -96,7 +108,7 @@ def access_control(services, match: str) -> dict:
     open: the robot must receive safety's commands."""
     services = list(services)
     keys = Keys.all_robots()
-    write, query, answer = writes(keys), queries(keys), queryables(keys)
+    write, query, answer = writes(keys, services), queries(keys), queryables(keys, services)
     rules = [
         {"id": "egress", "permission": "allow", "flows": ["egress"], "messages": _ALL_MESSAGES, "key_exprs": ["**"]},
         {"id": "subscribe_and_reply", "permission": "allow", "flows": ["ingress"],

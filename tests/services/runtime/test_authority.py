@@ -327,3 +327,43 @@ def test_without_the_acl_the_robot_still_drops_commands_on_a_wildcard(router, ke
         client.close()
     finally:
         robot.stop()
+
+
+def test_with_a_camera_identity_the_camera_keys_are_its_alone_and_the_operator_may_check_the_arm(tmp_path):
+    """A real-arm deployment (`mfvs authority init --services ...,camera`): the camera service is the camera keys'
+    one writer and robot_sim is no longer one; the operator may ask the robot for its commissioning check, which
+    only a robot may answer."""
+    port = free_loopback_port()
+    deployment = write_deployment(tmp_path, port=port, services=("robot_sim", "camera", "operator", "vision"))
+    with Router(port=port, config_file=deployment.router_config):
+        listener = session_as(deployment, "vision")
+        seen = []
+        listener.declare_subscriber(KEYS.camera_image, lambda s: seen.append(s.payload.to_bytes()))
+        time.sleep(0.3)
+        for identity in ("robot_sim", "camera", "operator"):
+            session = session_as(deployment, identity)
+            time.sleep(0.2)
+            session.put(KEYS.camera_image, identity.encode())
+            time.sleep(0.2)
+            session.close()
+        assert wait_for(lambda: seen == [b"camera"], timeout=3.0), seen
+        robot = session_as(deployment, "robot_sim")
+        answered = []
+        queryable = robot.declare_queryable(KEYS.robot_check_arm, lambda q: (answered.append(1), q.reply(
+            q.key_expr, m.encode(m.ArmCheckReply(ok=False, message="test")))))
+        time.sleep(0.3)
+        for identity, expected in (("vision", 0), ("operator", 1)):
+            session = session_as(deployment, identity)
+            replies = [r for r in session.get(KEYS.robot_check_arm, timeout=2.0) if r.ok is not None]
+            assert len(replies) == expected, identity
+            session.close()
+        rogue = session_as(deployment, "camera")  # a camera may not answer in the robot's name
+        rogue.declare_queryable(KEYS.robot_check_arm, lambda q: q.reply(q.key_expr, b"rogue"))
+        time.sleep(0.3)
+        operator = session_as(deployment, "operator")
+        payloads = [r.ok.payload.to_bytes() for r in operator.get(KEYS.robot_check_arm, timeout=2.0)
+                    if r.ok is not None]
+        assert b"rogue" not in payloads and len(payloads) == 1
+        for s in (operator, rogue, robot, listener):
+            s.close()
+        queryable  # kept declared until here
