@@ -140,14 +140,18 @@ def stop_processes(processes) -> None:
 
 
 class RobotProcesses:
-    """The robot's side of the gateway profile as processes, as deployed: the CAN hub, robot_sim's emulated arm
-    (``mode: actuator_bus``) and robot_gateway in front of it, clients of the router at ``zenoh``. A context
-    manager; the start fails (keeping the logs, whose directory it names) if the gateway does not come up."""
+    """The robot's side of a profile as processes, as deployed, clients of the router at ``zenoh``: for the
+    gateway profile the CAN hub, robot_sim's emulated arm (``mode: actuator_bus``) and robot_gateway in front of
+    it; for the sim profile robot_sim alone. A context manager; the start fails (keeping the logs, whose directory
+    it names) if the robot does not come up."""
 
     def __init__(self, zenoh: ZenohConfig, robot: RobotSimConfig | None = None,
                  gateway: GatewayConfig | None = None, clock: ClockMode = ClockMode.REALTIME,
-                 timeout_s: float = 60.0) -> None:
+                 timeout_s: float = 60.0, profile: str = "gateway") -> None:
+        if profile not in ("gateway", "sim"):
+            raise ValueError(f"unknown robot profile {profile!r} (gateway or sim)")
         robot = robot or RobotSimConfig()
+        self.profile = profile
         self.zenoh, self.clock, self.timeout_s = zenoh, ClockMode(clock), timeout_s
         self.robot = msgspec.structs.replace(robot, zenoh=zenoh, clock=self.clock)
         self.gateway = msgspec.structs.replace(
@@ -160,12 +164,16 @@ class RobotProcesses:
 
     def __enter__(self) -> "RobotProcesses":
         try:
-            # the profile's robot side as `mfvs up --profile gateway` runs it, with these configs
-            services = gateway_robot_services(self._start_hub(), write_config(self.logs, "robot_sim", self.robot),
-                                              write_config(self.logs, "robot_gateway", self.gateway))
+            # the profile's robot side as `mfvs up --profile gateway` (or sim) runs it, with these configs
+            robot_sim_config = write_config(self.logs, "robot_sim", self.robot)
+            if self.profile == "sim":
+                services = [ProfileService(name="robot_sim", config=robot_sim_config)]
+            else:
+                services = gateway_robot_services(self._start_hub(), robot_sim_config,
+                                                  write_config(self.logs, "robot_gateway", self.gateway))
             for service in services:
                 self.processes.append(spawn(service_command(service), self.logs / f"{service.name}.log"))
-            wait_alive(self.zenoh, self.robot.robot_id, ("robot_gateway",), self.processes, self.timeout_s,
+            wait_alive(self.zenoh, self.robot.robot_id, (services[-1].name,), self.processes, self.timeout_s,
                        self.logs)
         except BaseException:
             self._keep_files = True

@@ -21,7 +21,6 @@ import time
 from typing import Literal, Optional
 
 import msgspec
-import numpy as np
 
 from protocol import kinova
 from protocol import rs485 as r
