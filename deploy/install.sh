@@ -2,9 +2,11 @@
 # Installs mfvs on a fresh Debian 12 (bookworm) machine or container:
 #   - system packages: Python 3.11 with venv, and EGL/Mesa for headless MuJoCo rendering (MUJOCO_GL=egl);
 #   - a virtual environment in .venv with mfvs (editable) and its test dependencies;
-#   - the `mfvs` command on PATH (a link in /usr/local/bin as root, else ~/.local/bin).
+#   - the `mfvs` command on PATH (a link in /usr/local/bin as root, else ~/.local/bin), to this checkout's.
 # Re-running it is safe. Environment: PYTHON (default python3), MFVS_SKIP_APT=1 to skip the system packages,
-# MFVS_BIN_DIR to choose where the `mfvs` link goes.
+# MFVS_BIN_DIR to choose where the `mfvs` link goes (`none`: no link; CI passes a throwaway directory, so that a
+# clone it deletes afterwards does not leave the machine's `mfvs` pointing at nothing). A link to another
+# checkout is replaced with a line saying which; a file that is not a link is left alone.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -35,8 +37,11 @@ bin_dir=${MFVS_BIN_DIR:-}
 if [[ -z "$bin_dir" ]]; then
     if [[ $(id -u) -eq 0 ]]; then bin_dir=/usr/local/bin; else bin_dir="$HOME/.local/bin"; fi
 fi
-mkdir -p "$bin_dir"
-ln -sf "$root/.venv/bin/mfvs" "$bin_dir/mfvs"
+if [[ "$bin_dir" == none ]]; then
+    echo "no mfvs link (MFVS_BIN_DIR=none): run $root/.venv/bin/mfvs"
+else
+    bash deploy/link_mfvs.sh "$bin_dir" "$root/.venv/bin/mfvs"
+fi
 
 MUJOCO_GL=egl .venv/bin/python - <<'PY'
 import mujoco
@@ -47,4 +52,4 @@ renderer.render()
 renderer.close()
 print("mfvs installed; headless MuJoCo rendering (EGL) works")
 PY
-echo "mfvs is at $bin_dir/mfvs; run the tests with: .venv/bin/python -m pytest"
+echo "run the tests with: .venv/bin/python -m pytest"

@@ -220,7 +220,8 @@ def _cmd_servo(args: argparse.Namespace) -> int:
         if not args.json:
             print(f"iteration {record.iteration:4d}  {record.status:12s}  ‖e‖ = {record.error_norm:.3e}", flush=True)
 
-    result = run(scenario, Path(args.out) if args.out else None, progress, profile=args.profile)
+    result = run(scenario, Path(args.out) if args.out else None, progress, profile=args.profile,
+                 record=Path(args.record) if args.record else None)
     if args.json:
         print(json.dumps(result.to_json()), flush=True)
     else:
@@ -231,14 +232,30 @@ def _cmd_servo(args: argparse.Namespace) -> int:
             print(result.detail)
         if result.trajectory_log:
             print(f"log: {result.trajectory_log}; plots: {', '.join(result.plots)}")
+        if args.record:
+            print(f"recording: {args.record} (mfvs replay {args.record}; open it in Foxglove)")
     return 0 if result.converged else 1
 
 
 def _experiment_progress(name: str, quiet: bool):
+    """After each run a line (on stderr with --json); during it, on a terminal, a progress line."""
+    from services.runtime.progress import ProgressLine
+
+    line: dict = {}
+
+    def on_iteration(label: str, scenario, record) -> None:
+        if line.get("label") != label:
+            line.update(label=label, bar=ProgressLine(f"{name} {label}", scenario.convergence.error_norm,
+                                                      scenario.convergence.max_iterations, enabled=not quiet))
+        line["bar"].update(record.iteration, record.error_norm)
+
     def progress(label: str, result) -> None:
+        if line.get("label") == label:
+            line["bar"].done()
         final = "–" if result.final_error_norm is None else f"{result.final_error_norm:.2e}"
         print(f"  {name} {label:22s} {result.status:14s} {result.iterations:5d} iterations  final ‖e‖ {final}  "
               f"({result.wall_time_s:.0f} s)", file=sys.stderr if quiet else sys.stdout, flush=True)
+    progress.on_iteration = on_iteration
     return progress
 
 
@@ -270,8 +287,9 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
         print(f"mfvs experiment: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
         return 2
     try:
-        output = run_experiment(args.name, args.scenario, args.out, _experiment_progress(args.name, args.json),
-                                profile=args.profile)
+        progress = _experiment_progress(args.name, args.json)
+        output = run_experiment(args.name, args.scenario, args.out, progress, profile=args.profile,
+                                on_iteration=progress.on_iteration)
     except ConfigError as exc:
         print(f"mfvs experiment: {exc}", file=sys.stderr)
         return 2
@@ -293,7 +311,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     reports = []
     for name in ("part-a", "table3"):
         print(f"{name}:", flush=True)
-        output = run_experiment(name, None, out / name, _experiment_progress(name, False))
+        progress = _experiment_progress(name, False)
+        output = run_experiment(name, None, out / name, progress, on_iteration=progress.on_iteration)
         _print_experiment(output)
         reports.append(output["report"])
     print(f"\ndone. Open {reports[0]} and {reports[1]} (figures beside them: errors.png, features.png and each "
@@ -432,6 +451,8 @@ def build_parser() -> argparse.ArgumentParser:
                             "processes; in lockstep the same run to the bit)")
     servo.add_argument("--json", action="store_true", help="print one JSON object with the result")
     servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
+    servo.add_argument("--record", metavar="FILE.mcap", help="record every topic of the run into this MCAP file "
+                       "(as `mfvs record` does)")
     servo.set_defaults(func=_cmd_servo)
 
     experiment = sub.add_parser("experiment", help="reproduce one of the seed papers' experiments (seed 000: "
@@ -457,8 +478,11 @@ def build_parser() -> argparse.ArgumentParser:
     from services.calibration.cli import add_parser as add_calibrate
     from services.check import add_parser as add_check
 
+    from services.observe.cli import add_parsers as add_observe
+
     add_calibrate(sub)
     add_check(sub, _add_connection_options, _operator_session)
+    add_observe(sub, _add_connection_options, _operator_session)
 
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")

@@ -405,9 +405,10 @@ def _copy(scenario: Scenario) -> Scenario:
 
 
 def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_dir: Optional[str | Path] = None,
-                   progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim") -> dict:
+                   progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
+                   on_iteration: Optional[Callable[[str, Scenario, object], None]] = None) -> dict:
     """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal); ``progress(label, result)``
-    after each run. Returns ``{"experiment", "title", "paper", "scenario", "runs": [...], "summary": {...},
+    after each run, ``on_iteration(label, scenario, iteration_record)`` during it. Returns ``{"experiment", "title", "paper", "scenario", "runs": [...], "summary": {...},
     "report", "plots"}``."""
     if name not in EXPERIMENTS:
         raise KeyError(f"unknown experiment {name!r}; known: {', '.join(EXPERIMENTS)}")
@@ -425,7 +426,9 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
             scenario = _copy(base)
             scenario.law, scenario.gains = spec.law, spec.gains
             scenario.law_options = {**scenario.law_options, **spec.options}
-            result = run(scenario, root / spec.label, profile=profile, plots=out_dir is not None)
+            each = None if on_iteration is None else (
+                lambda record, label=spec.label, s=scenario: on_iteration(label, s, record))
+            result = run(scenario, root / spec.label, each, profile=profile, plots=out_dir is not None)
             records = read_log(result.trajectory_log)
             trajectories[spec.label] = records
             rows[spec.label] = _row(spec, result, records)

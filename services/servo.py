@@ -37,6 +37,7 @@ from services.robot.dsp import DSPConfig
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
 from services.stack import LocalStack, StackConfig
+from services.runtime.jsonsafe import json_safe
 from services.vision.service import GoalConfig, TagConfig, VisionConfig
 
 
@@ -115,23 +116,12 @@ def stack_config(scenario: Scenario) -> StackConfig:
     return StackConfig(clock=s.clock, robot=robot, vision=vision, controller=controller, safety=safety)
 
 
-def _json_safe(value):
-    """``value`` with every non-finite float as None: the log is JSON, which has no NaN or Infinity."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
-
-
 def write_log(records: list[Iteration], path) -> Path:
     """The trajectory log: one strict-JSON object per iteration (a missing measurement is null)."""
     path = Path(path)
     with path.open("w") as f:
         for record in records:
-            f.write(json.dumps(_json_safe(record.__dict__), allow_nan=False) + "\n")
+            f.write(json.dumps(json_safe(record.__dict__), allow_nan=False) + "\n")
     return path
 
 
@@ -379,11 +369,12 @@ def _frames_lost(session, keys: Keys) -> tuple[dict, int]:
 
 
 def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim",
-        plots: bool = True) -> ServoResult:
+        plots: bool = True, record: Optional[Path] = None) -> ServoResult:
     """Run the scenario through a local stack; ``progress(iteration_record)`` is called per iteration. The gateway
     profile drives the simulated arm through robot_gateway and its RS-485 bus (the hub, robot_sim's actuators and
     the gateway as processes), in the scenario's clock mode. With ``out_dir`` the trajectory log, the result and
-    (unless ``plots`` is false) the figures are written there."""
+    (unless ``plots`` is false) the figures are written there; with ``record`` every topic of the stack, from
+    before the robot's first message, goes into that MCAP file (``mfvs record``'s)."""
     config = stack_config(scenario)
     config.profile = profile
     joint_output = config.controller.law in JOINT_LAWS
@@ -398,6 +389,10 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         keys = Keys(config.robot.robot_id)
         observer["session"] = open_session(stack.router.client_config())
         observer["watcher"] = _Watcher(observer["session"], keys, joint_output)
+        if record is not None:
+            from services.observe.record import Recorder
+
+            observer["recorder"] = Recorder(observer["session"], keys, record)
         # the stack comes up idle; the task starts before the robot's clock does, so lockstep stays exact
         started = start_task(observer["session"], keys, operator="mfvs servo", reason=f"{scenario.law} scenario")
         if started.state is not m.TaskState.RUNNING:
@@ -409,6 +404,8 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     except BaseException:
         if observer:
             observer["watcher"].close()
+            if "recorder" in observer:
+                observer["recorder"].close()
             observer["session"].close()
         raise
     try:
@@ -468,6 +465,8 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
             safety = watcher.safety_summary()
         finally:
             watcher.close()
+            if "recorder" in observer:
+                observer["recorder"].close()
             session.close()
     finally:
         stack_context.__exit__(None, None, None)

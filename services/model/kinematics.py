@@ -40,6 +40,13 @@ class ArmKinematics:
         J = pin.getFrameJacobian(self.model, self.data, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
         return M.rotation.copy(), M.translation.copy(), J.copy()
 
+    def link_poses(self, q) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """(R, p) in the base frame of every link of the description (base_link, link_0 … link_7, end_effector),
+        for drawing the arm."""
+        pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
+        return {frame.name: (self.data.oMf[i].rotation.copy(), self.data.oMf[i].translation.copy())
+                for i, frame in enumerate(self.model.frames) if frame.type == pin.FrameType.BODY}
+
     def gravity(self, q) -> np.ndarray:
         """Joint torques that hold the arm still against gravity (N·m)."""
         return pin.computeGeneralizedGravity(self.model, self.data, np.asarray(q, dtype=float)).copy()

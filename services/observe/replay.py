@@ -1,0 +1,231 @@
+"""``mfvs replay``: a recording's payloads published back onto zenoh, byte for byte, so that vision, the controller
+and safety run on a recorded session.
+
+With its original timing (``--rate`` scales it), or in lockstep: as fast as the consumers answer, each camera
+frame published only once every answering key (the features, the controller's output) has answered the frame
+before it. A replay never moves an arm: the keys that command one (robot commands, torque commands, the e-stop)
+are never published, and robot states are refused while a robot is alive on the stack.
+"""
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Optional
+
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from protocol import messages as m
+from protocol.keys import Keys
+from protocol.topics import UnknownTopic, key_pattern, resolve, topic_of
+from services.observe.foxglove_view import RAW_ENCODING, RAW_TYPE
+
+#: what a replay never publishes: these move an arm
+COMMAND_TYPES = (m.RobotCommand, m.TorqueCommand, m.EStop)
+#: nor this: a recorded service's health would stand in for the live one's
+NOT_REPLAYED = COMMAND_TYPES + (m.ServiceHealth,)
+#: the services that are a robot (a replayed robot state beside one would be a second robot)
+ROBOT_SERVICES = ("robot_sim", "robot_gateway")
+#: how long lockstep waits for a frame's answers before going on (counted as unanswered)
+ANSWER_TIMEOUT_S = 5.0
+
+
+@dataclass(frozen=True)
+class Recorded:
+    """One recorded payload: the key it came on (below the robot's prefix), its type's name, when it was received
+    (ns) and its bytes."""
+
+    suffix: str
+    type_name: str
+    log_time: int
+    payload: bytes
+
+
+def _suffix(key: str) -> str:
+    return key.split("/", 2)[2]
+
+
+def read_recording(path, patterns=None, keys: Optional[Keys] = None) -> Iterator[Recorded]:
+    """The raw payloads of an ``mfvs record`` file in receive order, of the keys ``patterns`` select (all when
+    None). Raises ValueError for a file that is not MCAP or holds no mfvs payloads."""
+    keys = keys or Keys()
+    selectors = [key_pattern(resolve(p, keys).replace(keys.prefix, "mfvs/*", 1)) for p in patterns or ["**"]]
+    found = False
+    with open(path, "rb") as stream:
+        try:
+            reader = make_reader(stream)
+            for _schema, channel, message in reader.iter_messages(log_time_order=True):
+                if channel.message_encoding != RAW_ENCODING or RAW_TYPE not in channel.metadata:
+                    continue
+                found = True
+                if any(s.match(channel.topic) for s in selectors):
+                    yield Recorded(_suffix(channel.topic), channel.metadata[RAW_TYPE], message.log_time,
+                                   bytes(message.data))
+        except (McapError, ValueError, EOFError, KeyError, struct.error) as exc:
+            raise ValueError(f"{path}: not a readable MCAP recording ({type(exc).__name__}: {exc})") from None
+    if not found:
+        raise ValueError(f"{path}: no mfvs payloads in this file (was it written by `mfvs record`?)")
+
+
+def replayable(recorded: Recorded) -> bool:
+    try:
+        return topic_of(f"mfvs/jaco/{recorded.suffix}").message_type not in NOT_REPLAYED
+    except UnknownTopic:
+        return False
+
+
+def _stamp(recorded: Recorded) -> int:
+    """The header's stamp of a recorded payload (every topic's message has a header)."""
+    kind = topic_of(f"mfvs/jaco/{recorded.suffix}").message_type
+    header = m.decode(recorded.payload, kind).header
+    return header.source_stamp_ns if kind in (m.Features, m.Twist, m.JointVelocity, m.ControllerStatus) \
+        else header.stamp_ns
+
+
+def lockstep_order(inputs: list[Recorded], answers: list[Recorded]) -> list[Recorded]:
+    """A lockstep recording in the order the run had: the inputs of each tick (by their simulated stamps, in
+    receive order within a tick), then the answers to that tick's frame, then the next tick's. Receive order alone
+    is not that order: a frame of a megabyte may reach the recorder after the features a service derived from it."""
+    keyed = [((_stamp(r), 0, i), r) for i, r in enumerate(inputs)]
+    keyed += [((_stamp(r), 1, i), r) for i, r in enumerate(answers)]
+    return [r for _, r in sorted(keyed, key=lambda item: item[0])]
+
+
+@dataclass
+class ReplayReport:
+    published: dict = field(default_factory=dict)
+    not_replayed: int = 0
+    frames: int = 0
+    unanswered: int = 0
+    #: the source stamps of the first frames left unanswered (ns)
+    unanswered_stamps: list = field(default_factory=list)
+    seconds: float = 0.0
+
+
+class _Answers:
+    """The source stamps each answering key has answered (lockstep)."""
+
+    def __init__(self, session, keys: Keys, answer_keys) -> None:
+        self.cond = threading.Condition()
+        self.seen: dict[str, set] = {k: set() for k in answer_keys}
+        self.types = {k: topic_of(k).message_type for k in answer_keys}
+        self._subscribers = [session.declare_subscriber(k, self._on_sample) for k in answer_keys]
+
+    def _on_sample(self, sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            message = m.decode(sample.payload.to_bytes(), self.types[key])
+        except (m.ProtocolError, KeyError):
+            return
+        with self.cond:
+            self.seen[key].add(message.header.source_stamp_ns)
+            self.cond.notify_all()
+
+    def wait(self, stamp_ns: int, timeout_s: float, keys=None) -> bool:
+        """Until each of ``keys`` (default all) has answered the frame stamped ``stamp_ns``."""
+        chosen = [self.seen[k] for k in (keys if keys is not None else self.seen)]
+        with self.cond:
+            return self.cond.wait_for(lambda: all(stamp_ns in s for s in chosen), timeout_s)
+
+    def close(self) -> None:
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
+
+
+def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep: bool = False,
+           answer_patterns=("vision/features",), alive=None, progress=None) -> ReplayReport:
+    """Publish the recording at ``path`` under ``keys``'s prefix. ``alive``: the services alive on the stack
+    (for the robot check; looked up when None). ``progress(report)`` after each camera frame."""
+    if rate <= 0:
+        raise ValueError("--rate must be positive")
+    messages = list(read_recording(path, patterns, keys))
+    report = ReplayReport()
+    commands = [r for r in messages if not replayable(r)]
+    report.not_replayed = len(commands)
+    messages = [r for r in messages if replayable(r)]
+    if not messages:
+        raise ValueError(f"{path}: nothing to replay on the chosen keys")
+    if alive is None:
+        alive = [str(r.ok.key_expr).rsplit("/", 1)[-1]
+                 for r in session.liveliness().get(keys.liveliness_all, timeout=1.0) if r.ok]
+    robots = sorted(set(alive) & set(ROBOT_SERVICES))
+    if robots and any(r.suffix == _suffix(keys.robot_state) for r in messages):
+        raise ValueError(f"{', '.join(robots)} is running on this stack: replaying robot states beside a robot "
+                         f"would give the stack two arms (stop it, or leave robot/state out with --keys)")
+    image_suffix = _suffix(keys.camera_image)
+    answers = None
+    # lockstep: where the recording holds the answers too, each is a point to wait at (the fresh consumer's answer
+    # to the same frame), so that what follows an answer in the recording (the next clock ticks) follows it in the
+    # replay; an answer key the recording lacks is waited for before the next frame
+    sync: dict[str, str] = {}
+    if lockstep:
+        answer_keys = [resolve(p, keys) for p in answer_patterns]
+        for key in answer_keys:
+            topic_of(key)  # a typo says so before anything is published
+        answer_suffixes = {_suffix(k): k for k in answer_keys}
+        if answer_suffixes.keys() & {r.suffix for r in messages}:
+            raise ValueError("the answering keys are the consumers' to publish: leave them out of --keys")
+        answers = _Answers(session, keys, answer_keys)
+        recorded_answers = list(read_recording(path, list(answer_suffixes), keys))
+        sync = {suffix: key for suffix, key in answer_suffixes.items()
+                if any(r.suffix == suffix for r in recorded_answers)}
+        messages = lockstep_order(messages, [r for r in recorded_answers if r.suffix in sync])
+    unsynced = [key for suffix, key in (answer_suffixes.items() if lockstep else ()) if suffix not in sync]
+    publishers = {}
+    unanswered: set[int] = set()
+    try:
+        start = time.monotonic()
+        first = messages[0].log_time
+        last_frame: Optional[int] = None
+        for recorded in messages:
+            if recorded.suffix in sync:
+                key = sync[recorded.suffix]
+                stamp = m.decode(recorded.payload, answers.types[key]).header.source_stamp_ns
+                if stamp not in unanswered and not answers.wait(stamp, ANSWER_TIMEOUT_S, [key]):
+                    unanswered.add(stamp)
+                continue
+            is_frame = recorded.suffix == image_suffix
+            if lockstep:
+                if is_frame and last_frame is not None and unsynced:
+                    if not answers.wait(last_frame, ANSWER_TIMEOUT_S, unsynced):
+                        unanswered.add(last_frame)
+            else:
+                delay = start + (recorded.log_time - first) / 1e9 / rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            publisher = publishers.get(recorded.suffix)
+            if publisher is None:
+                publisher = publishers[recorded.suffix] = session.declare_publisher(f"{keys.prefix}/{recorded.suffix}")
+            publisher.put(recorded.payload)
+            report.published[recorded.suffix] = report.published.get(recorded.suffix, 0) + 1
+            if is_frame:
+                report.frames += 1
+                last_frame = m.decode(recorded.payload, m.Image).header.stamp_ns
+                if progress is not None:
+                    progress(report)
+        if lockstep and last_frame is not None and not answers.wait(last_frame, ANSWER_TIMEOUT_S):
+            unanswered.add(last_frame)
+        report.unanswered = len(unanswered)
+        report.unanswered_stamps = sorted(unanswered)[:20]
+        report.seconds = time.monotonic() - start
+    finally:
+        if answers is not None:
+            answers.close()
+        for publisher in publishers.values():
+            publisher.undeclare()
+    return report
+
+
+def recording_summary(path) -> dict:
+    """Channels and message counts of an MCAP file (any, not only mfvs's), from its summary."""
+    with open(Path(path), "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    if summary is None:
+        raise ValueError(f"{path}: no summary section (was the recording closed?)")
+    counts = summary.statistics.channel_message_counts if summary.statistics else {}
+    return {channel.topic: {"messages": counts.get(cid, 0), "encoding": channel.message_encoding,
+                            "schema": summary.schemas[channel.schema_id].name if channel.schema_id else None}
+            for cid, channel in summary.channels.items()}

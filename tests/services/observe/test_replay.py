@@ -1,0 +1,120 @@
+"""A lockstep servo task recorded with `mfvs servo --record` (the MCAP file holds the payloads and the viewer's
+channels), then its camera stream replayed into a fresh vision and controller, which answer it with the same
+features and twists."""
+import msgspec
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from protocol.conventions import ClockMode
+from protocol.keys import Keys
+from services.controller.service import ControllerService
+from services.controller.task_client import start_task
+from services.observe.replay import read_recording, recording_summary, replay
+from services.runtime.transport import Router, open_session
+from services.servo import load_scenario, run, stack_config
+from services.vision.service import VisionService
+from tests.helpers import REPO
+from tests.services.observe.mcap_files import read_mcap
+from tests.stack import Recorder
+
+KEYS = Keys()
+EASY = REPO / "examples" / "scenarios" / "easy.yaml"
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    path = tmp_path_factory.mktemp("recording") / "run.mcap"
+    scenario = load_scenario(EASY)
+    result = run(scenario, record=path, plots=False)
+    assert result.converged
+    return scenario, result, path
+
+
+def by_source(messages) -> dict:
+    return {msg.header.source_stamp_ns: msg for msg in messages}
+
+
+def test_the_recording_holds_the_payloads_and_the_viewer_channels(recorded):
+    _, result, path = recorded
+    content = read_mcap(path)
+    counts = {topic: len(rows) for topic, rows in content.items()}
+    for key in (KEYS.camera_image, KEYS.camera_info, KEYS.robot_state, KEYS.robot_command, KEYS.features,
+                KEYS.desired_twist, KEYS.controller_status, KEYS.clock):
+        assert counts.get(key, 0) > 0, (key, counts)
+    # every frame twice: byte for byte, and as the viewer's JPEG; its corners once per features message
+    assert counts["/view/camera/image"] == counts[KEYS.camera_image]
+    assert counts["/view/camera/annotations"] == counts[KEYS.features] >= result.iterations
+    assert counts["/view/robot/joints"] == counts[KEYS.robot_state]
+    assert counts["/view/twist"] == counts[KEYS.desired_twist]
+    assert content[KEYS.robot_state][0][0] == "mfvs.RobotState" and content["/tf"][0][0] == "foxglove.FrameTransforms"
+    # the raw channels are the stack's payloads: they decode as what they are
+    states = [m.decode(payload, m.RobotState) for _, _, payload in content[KEYS.robot_state]]
+    assert states[-1].header.stamp_ns > states[0].header.stamp_ns
+    summary = recording_summary(path)
+    assert summary[KEYS.camera_image]["messages"] == counts[KEYS.camera_image]
+    assert summary["/view/camera/annotations"]["schema"] == "foxglove.ImageAnnotations"
+
+
+def test_the_camera_stream_replayed_into_a_fresh_vision_and_controller_gives_the_same_features_and_twists(recorded):
+    scenario, result, path = recorded
+    recorded_features = by_source(m.decode(p, m.Features) for p in _payloads(path, "vision/features"))
+    recorded_twists = by_source(m.decode(p, m.Twist) for p in _payloads(path, "controller/twist"))
+    config = stack_config(scenario)
+    with Router(port=0) as router:
+        zenoh = router.client_config()
+        vision = VisionService(msgspec.structs.replace(config.vision, zenoh=zenoh, clock=ClockMode.LOCKSTEP)).start()
+        controller = ControllerService(msgspec.structs.replace(config.controller, zenoh=zenoh,
+                                                               clock=ClockMode.LOCKSTEP)).start()
+        session = open_session(zenoh)
+        try:
+            features = Recorder(session, KEYS.features, m.Features)
+            twists = Recorder(session, KEYS.desired_twist, m.Twist)
+            assert start_task(session, KEYS, operator="test", reason="replay").state is m.TaskState.RUNNING
+            report = replay(session, path, KEYS, ["camera/*", "robot/state", "sim/clock"], lockstep=True,
+                            answer_patterns=["vision/features", "controller/twist"])
+            replayed_features, replayed_twists = by_source(features.snapshot()), by_source(twists.snapshot())
+        finally:
+            session.close()
+            controller.stop()
+            vision.stop()
+    # the recording may end with a frame whose answers came after it stopped: the replay answers that one too
+    assert report.unanswered == 0 and report.frames - len(recorded_features) in (0, 1)
+    assert len(recorded_features) >= result.iterations
+    assert report.not_replayed == 0  # none selected: the inputs only
+    assert set(recorded_features) <= set(replayed_features)
+    for stamp, old in recorded_features.items():
+        new = replayed_features[stamp]
+        assert new.status == old.status
+        assert np.array_equal(new.points, old.points) and np.array_equal(new.error, old.error)
+    assert set(recorded_twists) <= set(replayed_twists)
+    for stamp, old in recorded_twists.items():
+        new = replayed_twists[stamp]
+        assert np.allclose(new.linear + new.rotational, old.linear + old.rotational, rtol=0, atol=1e-12)
+
+
+def test_a_replay_never_publishes_commands_and_refuses_a_second_arm(recorded):
+    _, _, path = recorded
+    assert not any(r.suffix in ("robot/command", "safety/estop") for r in read_recording(path, ["robot/state"]))
+    with Router(port=0) as router:
+        session = open_session(router.client_config())
+        try:
+            commands = Recorder(session, KEYS.robot_command, m.RobotCommand)
+            report = replay(session, path, KEYS, ["robot/command", "controller/status"], rate=50.0, alive=[])
+            assert report.not_replayed > 0 and "robot/command" not in report.published
+            assert report.published["controller/status"] > 0 and len(commands) == 0
+            with pytest.raises(ValueError, match="two arms"):
+                replay(session, path, KEYS, ["robot/state"], alive=["robot_sim", "vision"])
+        finally:
+            session.close()
+
+
+def test_a_file_that_is_no_recording_says_so(tmp_path):
+    bad = tmp_path / "notes.mcap"
+    bad.write_bytes(b"not an mcap file at all")
+    with pytest.raises(ValueError, match="not a readable MCAP recording"):
+        list(read_recording(bad))
+
+
+def _payloads(path, suffix: str) -> list[bytes]:
+    return [r.payload for r in read_recording(path, [suffix])]
