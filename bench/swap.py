@@ -18,6 +18,7 @@ import statistics
 from pathlib import Path
 
 from protocol.conventions import ClockMode
+from services.runtime.progress import ProgressLine
 from services.servo import load_scenario, run
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
@@ -25,7 +26,8 @@ PROFILES = {"sim-lockstep": ("sim", ClockMode.LOCKSTEP), "gateway-lockstep": ("g
             "sim-realtime": ("sim", ClockMode.REALTIME), "gateway-realtime": ("gateway", ClockMode.REALTIME)}
 
 
-def measure_scenario(scenario_path: Path, runs: int, profiles: list[str]) -> dict:
+def measure_scenario(scenario_path: Path, runs: int, profiles: list[str], quiet: bool = False) -> dict:
+    """Each profile's runs of one scenario; on a terminal (unless ``quiet``) a progress line during each run."""
     results = {}
     for name in profiles:
         profile, clock = PROFILES[name]
@@ -33,7 +35,11 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str]) -> dic
         for _ in range(1 if clock is ClockMode.LOCKSTEP else runs):  # lockstep repeats itself exactly
             scenario = load_scenario(scenario_path)
             scenario.clock = clock
-            result = run(scenario, profile=profile)
+            line = ProgressLine(f"{scenario_path.stem} {name}", scenario.convergence.error_norm,
+                                scenario.convergence.max_iterations, enabled=not quiet)
+            result = run(scenario, progress=lambda record: line.update(record.iteration, record.error_norm),
+                         profile=profile)
+            line.done()
             rows.append({"converged": result.converged, "status": result.status, "iterations": result.iterations,
                          "final_error_norm": result.final_error_norm,
                          "peak_speed_mps": round(result.max_linear_speed_mps, 4),
@@ -76,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     scenarios = args.scenario or sorted(SCENARIOS.glob("*.yaml"))
     results = []
     for path in scenarios:
-        result = measure_scenario(path, args.runs, profiles)
+        result = measure_scenario(path, args.runs, profiles, quiet=args.json)
         results.append(result)
         if args.json:
             continue

@@ -6,7 +6,7 @@ import sys
 import time
 
 from protocol.keys import Keys
-from protocol.topics import UnknownTopic
+from protocol.topics import UnknownTopic, matching
 
 
 def add_parsers(sub, add_connection_options, operator_session) -> None:
@@ -63,25 +63,37 @@ def add_parsers(sub, add_connection_options, operator_session) -> None:
 
 
 def _guarded(func):
-    """A bad key or file is one line on stderr and exit 2, not a traceback."""
+    """A bad key or file, or a router that is not there, is one line on stderr and exit 2, not a traceback."""
     def run(args) -> int:
+        from services.cli import _stack_connection
+
+        _stack_connection(args)  # the robot id and the router from the running stack, where not given
         try:
             return func(args)
         except (UnknownTopic, ValueError, OSError) as exc:
             print(f"mfvs {args.command}: {exc}", file=sys.stderr)
             return 2
+        except Exception as exc:
+            if type(exc).__name__ != "ZError":
+                raise
+            print(f"mfvs {args.command}: cannot reach the stack's router at {args.connect} (is the stack up? "
+                  f"`mfvs up`, or --connect): {str(exc).split('  at ')[0]}", file=sys.stderr)
+            return 2
     return run
 
 
-def _session(args):
-    session = args.operator_session(args)
-    return session, Keys(args.robot_id)
+def _session(args, patterns=()):
+    """A session to the stack, once the keys ``patterns`` name are known to be topics."""
+    keys = Keys(args.robot_id)
+    for pattern in patterns:
+        matching(pattern, keys)
+    return args.operator_session(args), keys
 
 
 def _cmd_echo(args) -> int:
     from services.observe.introspect import echo
 
-    session, keys = _session(args)
+    session, keys = _session(args, [args.key])
     try:
         return echo(session, keys, args.key, as_json_lines=args.json, count=args.count, seconds=args.seconds)
     finally:
@@ -91,7 +103,7 @@ def _cmd_echo(args) -> int:
 def _cmd_hz(args) -> int:
     from services.observe.introspect import hz
 
-    session, keys = _session(args)
+    session, keys = _session(args, [args.key])
     try:
         reports = hz(session, keys, args.key, seconds=args.seconds, window=args.window, as_json_lines=args.json)
     finally:
@@ -127,7 +139,7 @@ def _wait(seconds) -> None:
 def _cmd_record(args) -> int:
     from services.observe.record import Recorder
 
-    session, keys = _session(args)
+    session, keys = _session(args, args.keys)
     try:
         with Recorder(session, keys, args.out, args.keys, view=not args.raw_only) as recorder:
             if not args.json:
@@ -153,7 +165,10 @@ def _cmd_replay(args) -> int:
         if not args.json and sys.stderr.isatty():
             print(f"\r  {report.frames} frames replayed", end="", file=sys.stderr, flush=True)
 
-    session, keys = _session(args)
+    from services.observe.replay import read_recording
+
+    next(iter(read_recording(args.file, args.keys, Keys(args.robot_id))), None)  # a file that is no recording
+    session, keys = _session(args, [*(args.keys or []), *(args.answers if args.lockstep else [])])
     try:
         report = replay(session, args.file, keys, args.keys, rate=args.rate, lockstep=args.lockstep,
                         answer_patterns=args.answers, progress=progress)
