@@ -535,6 +535,13 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # `mfvs status | head -2`: the reader left; nothing more to say, and no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except Exception as exc:
+        if type(exc).__name__ != "ZError":  # zenoh's: no router where the command looked for the stack
+            raise
+        where = getattr(args, "connect", None) or "the stack's endpoint"
+        print(f"mfvs {args.command}: cannot reach the stack's router at {where} (is the stack up? `mfvs up`, or "
+              f"--connect): {str(exc).split('  at ')[0]}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
