@@ -482,7 +482,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_calibrate(sub)
     add_check(sub, _add_connection_options, _operator_session)
-    add_observe(sub, _add_connection_options, _operator_session)
+    add_observe(sub, _add_connection_options, _operator_session, _stack_connection)
 
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")

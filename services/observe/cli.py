@@ -9,12 +9,14 @@ from protocol.keys import Keys
 from protocol.topics import UnknownTopic, matching
 
 
-def add_parsers(sub, add_connection_options, operator_session) -> None:
-    """``operator_session(args)``: a session to the stack's router (it fills in args.robot_id)."""
+def add_parsers(sub, add_connection_options, operator_session, stack_connection) -> None:
+    """``stack_connection(args)`` fills in the router and the robot id from the running stack where the command
+    line did not; ``operator_session(args)`` opens a session to that router."""
     def command(name: str, help: str, func):
         parser = sub.add_parser(name, help=help)
         add_connection_options(parser)
-        parser.set_defaults(func=_guarded(func), operator_session=operator_session)
+        parser.set_defaults(func=_guarded(func), operator_session=operator_session,
+                            stack_connection=stack_connection)
         return parser
 
     echo = command("echo", "print each message on a key, decoded (a line each, or --json)", _cmd_echo)
@@ -65,9 +67,7 @@ def add_parsers(sub, add_connection_options, operator_session) -> None:
 def _guarded(func):
     """A bad key or file is one line on stderr and exit 2, not a traceback (no router: services.cli.main)."""
     def run(args) -> int:
-        from services.cli import _stack_connection
-
-        _stack_connection(args)  # the robot id and the router from the running stack, where not given
+        args.stack_connection(args)
         try:
             return func(args)
         except (UnknownTopic, ValueError, OSError) as exc:
