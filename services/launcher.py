@@ -34,7 +34,7 @@ import msgspec
 from protocol import messages as m
 from protocol.keys import Keys
 from services.runtime.config import ConfigStruct, load_config
-from services.runtime.service import EXIT_FILE_ENV, query_health
+from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health
 from services.runtime.transport import ZenohConfig, file_endpoints, open_session
 
 REPO = Path(__file__).resolve().parents[1]
@@ -285,8 +285,7 @@ def status(endpoint: str, robot_id: str = "jaco", liveliness_only: bool = False,
     keys = Keys(robot_id)
     session = open_session(ZenohConfig(connect=[endpoint], config_file=zenoh_config))
     try:
-        alive = [str(r.ok.key_expr).rsplit("/", 1)[-1] for r in session.liveliness().get(keys.liveliness_all,
-                                                                                         timeout=2.0) if r.ok]
+        alive = alive_services(session, keys, timeout_s=2.0)
         result: dict = {name: None for name in alive}
         if not liveliness_only:
             result.update(query_health(session, keys))

@@ -23,6 +23,7 @@ import yaml
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
 from services.robot.rs485_bus import BusConfig, RS485Bus
+from services.runtime.service import alive_services
 from services.runtime.transport import ZenohConfig, open_session
 from services.controller.service import ControllerConfig
 from services.robot.pacing import SWITCH_INTERVAL_S
@@ -113,8 +114,7 @@ def wait_alive(zenoh: ZenohConfig, robot_id: str, names, processes, timeout_s: f
     try:
         deadline = time.monotonic() + timeout_s
         while True:
-            alive = {str(r.ok.key_expr).rsplit("/", 1)[-1]
-                     for r in session.liveliness().get(keys.liveliness_all, timeout=1.0) if r.ok}
+            alive = set(alive_services(session, keys))
             if set(names) <= alive:
                 return
             dead = [p.args for p in processes if p.poll() is not None]

@@ -106,7 +106,8 @@ def _cmd_hz(args) -> int:
 
 
 def _cmd_keys(args) -> int:
-    from services.observe.introspect import alive_services, discover, keys_table
+    from services.observe.introspect import discover, keys_table
+    from services.runtime.service import alive_services
 
     session, keys = _session(args)
     try:

@@ -13,7 +13,7 @@ import sys
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
 import msgspec
@@ -28,30 +28,25 @@ SUMMARY_ITEMS = 8
 
 
 # ------------------------------------------------------------------------------------------------ summaries
-def _short(value, depth: int = 0):
+def _short(value):
     """A message's fields, made short for one line: bytes as their length, long lists cut, floats to 4 digits."""
     if isinstance(value, (bytes, bytearray, memoryview)):
         return f"<{len(value)} bytes>"
     if isinstance(value, float):
         return value if not math.isfinite(value) else float(f"{value:.4g}")
     if isinstance(value, dict):
-        return {k: _short(v, depth + 1) for k, v in value.items()}
+        return {k: _short(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        items = [_short(v, depth + 1) for v in value[:SUMMARY_ITEMS]]
+        items = [_short(v) for v in value[:SUMMARY_ITEMS]]
         if len(value) > SUMMARY_ITEMS:
             items.append(f"…{len(value) - SUMMARY_ITEMS} more")
         return items
     return value
 
 
-def builtins(message) -> dict:
-    """The message as plain data (enums as their values, bytes kept)."""
-    return msgspec.to_builtins(message, enc_hook=repr)
-
-
 def summary(message) -> str:
     """One line: the fields that say most, the header's stamps and trace folded to a few characters."""
-    data = builtins(_without_bytes(message))
+    data = msgspec.to_builtins(_without_bytes(message), enc_hook=repr)
     header = data.pop("header", None)
     parts = []
     if header:
@@ -96,14 +91,14 @@ class RateStats:
     """Arrivals of one key (monotonic seconds), over the last ``window`` of them."""
 
     window: int = 1000
-    arrivals: deque = field(default_factory=deque)
     count: int = 0
+
+    def __post_init__(self) -> None:
+        self.arrivals: deque = deque(maxlen=self.window)
 
     def add(self, t_s: float) -> None:
         self.arrivals.append(t_s)
         self.count += 1
-        while len(self.arrivals) > self.window:
-            self.arrivals.popleft()
 
     def report(self) -> Optional[dict]:
         """rate (Hz), period mean/min/max and jitter (the periods' standard deviation), ms; None below 2 arrivals."""
@@ -285,11 +280,6 @@ def discover(session, keys: Keys, seconds: float = 2.0) -> list[dict]:
                          "bytes_per_message": entry["bytes"] // max(1, entry["stats"].count),
                          "undecodable": entry["undecodable"]})
     return rows
-
-
-def alive_services(session, keys: Keys) -> list[str]:
-    return sorted(str(r.ok.key_expr).rsplit("/", 1)[-1]
-                  for r in session.liveliness().get(keys.liveliness_all, timeout=1.0) if r.ok)
 
 
 def keys_table(rows: list[dict], services: list[str], seconds: float) -> str:

@@ -22,6 +22,7 @@ from protocol import messages as m
 from protocol.keys import Keys
 from protocol.topics import UnknownTopic, key_pattern, resolve, topic_of
 from services.observe.foxglove_view import RAW_ENCODING, RAW_TYPE
+from services.runtime.service import alive_services
 
 #: what a replay never publishes: these move an arm
 COMMAND_TYPES = (m.RobotCommand, m.TorqueCommand, m.EStop)
@@ -149,8 +150,7 @@ def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep
     if not messages:
         raise ValueError(f"{path}: nothing to replay on the chosen keys")
     if alive is None:
-        alive = [str(r.ok.key_expr).rsplit("/", 1)[-1]
-                 for r in session.liveliness().get(keys.liveliness_all, timeout=1.0) if r.ok]
+        alive = alive_services(session, keys)
     robots = sorted(set(alive) & set(ROBOT_SERVICES))
     if robots and any(r.suffix == _suffix(keys.robot_state) for r in messages):
         raise ValueError(f"{', '.join(robots)} is running on this stack: replaying robot states beside a robot "

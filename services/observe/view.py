@@ -9,10 +9,10 @@ import threading
 
 import foxglove
 
-from protocol import messages as m
 from protocol.keys import Keys
 from services.observe.foxglove_view import VIEW
 from services.runtime.jsonsafe import json_safe
+from services.runtime.service import query_health
 from services.observe.record import ALL, Tap
 
 DEFAULT_PORT = 8765
@@ -47,20 +47,12 @@ class Viewer(Tap):
 
     def _poll_health(self) -> None:
         while not self._stop.wait(HEALTH_PERIOD_S):
-            services = {}
             try:
-                for reply in self._session.get(self._keys.health_all, timeout=0.8):
-                    if reply.ok is None:
-                        continue
-                    try:
-                        health = m.decode(reply.ok.payload.to_bytes(), m.ServiceHealth)
-                    except m.ProtocolError:
-                        continue
-                    services[health.service] = {"healthy": health.healthy, "state": health.state,
-                                                "rates_hz": dict(health.rates_hz), "degraded": list(health.degraded),
-                                                "detail": health.detail}
+                found = query_health(self._session, self._keys, timeout_s=0.8)
             except Exception:  # the session is closing
                 return
+            services = {name: {"healthy": h.healthy, "state": h.state, "rates_hz": dict(h.rates_hz),
+                               "degraded": list(h.degraded), "detail": h.detail} for name, h in found.items()}
             if not self._stop.is_set():
                 self.health.log(json_safe({"services": services,
                                             "unhealthy": sorted(k for k, v in services.items()

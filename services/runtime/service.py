@@ -93,6 +93,12 @@ def query_health(session: zenoh.Session, keys: Keys, timeout_s: float = 2.0) -> 
     return found
 
 
+def alive_services(session: zenoh.Session, keys: Keys, timeout_s: float = 1.0) -> list[str]:
+    """The services whose liveliness tokens the router knows now, by name."""
+    return sorted(str(r.ok.key_expr).rsplit("/", 1)[-1]
+                  for r in session.liveliness().get(keys.liveliness_all, timeout=timeout_s) if r.ok)
+
+
 def query_argument(query: zenoh.Query, function: str, message_type: type[M] | None) -> M | None:
     """A query's argument: a ``message_type`` decoded from its payload; for a function without an argument
     (``message_type`` None), nothing, and a payload is an error (garbage must not run such a function). Raises
