@@ -3,8 +3,10 @@
 what the core returns (publish, count, log).
 
 It takes desired twists and joint velocities from the controller, checks each one (services.safety.checks),
-holds the latest approved command and resends it every control cycle while it is fresh, and otherwise commands
-a stop, saying why. It watches a latched emergency stop (``…/safety/estop``: any operator tool engages it, only
+holds the latest approved command and resends it one control period after the last command went out while it is
+fresh, and otherwise commands a stop, saying why. (A resend is due a period after any send, not on a free-running
+grid: a resend between a new command and the robot's next tick would stand in for it there, its trace saying the
+command waited in safety.) It watches a latched emergency stop (``…/safety/estop``: any operator tool engages it, only
 an explicit reset releases it) and the liveliness of the upstream services and of the robot.
 
 Clock modes: in realtime the 100 Hz resend runs on wall time. In lockstep safety answers every robot state (the
@@ -63,6 +65,8 @@ class SafetyService(Service):
         #: one input at a time through the core (zenoh's threads, and the resend loop)
         self.lock = threading.Lock()
         self._thread: Optional[threading.Thread] = None
+        #: realtime: when the next resend is due (time.monotonic(); each command sent moves it a period on)
+        self._resend_due = 0.0
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -148,6 +152,7 @@ class SafetyService(Service):
         if command.twist is not None:
             command.twist.header = header
         self.command_pub.put(command)
+        self._resend_due = time.monotonic() + 1.0 / self.config.rate_hz
 
     def _loop(self) -> None:
         if not self.lockstep:
@@ -156,25 +161,25 @@ class SafetyService(Service):
         status_period = 1.0 / self.config.status_rate_hz
         next_status = time.monotonic()
         period = 1.0 / self.config.rate_hz
-        next_cycle = time.monotonic()
+        self._resend_due = time.monotonic()
         while not self.stop_requested:
             now = time.monotonic()
-            if not self.lockstep and now >= next_cycle:
+            due = self._resend_due
+            if not self.lockstep and now >= due:
+                if now - due > period:  # a resend missed its deadline (the robot's watchdog is two)
+                    self.counters.inc("cycles.late")
                 try:
                     self._cycle()
                 except Exception:
                     self.counters.inc("errors.cycle")
                     self.limited_log.error("cycle", "safety cycle failed")
                     self.log.debug("cycle failure", exc_info=True)
-                next_cycle += period
-                if next_cycle < now - period:  # a resend missed its deadline (the robot's watchdog is two)
-                    self.counters.inc("cycles.late")
-                if next_cycle < now - 5 * period:
-                    next_cycle = now + period
+                if self._resend_due <= now:  # nothing went out: try again a period on
+                    self._resend_due = now + period
             if now >= next_status:
                 self.status_pub.put(self.status_message())
                 next_status = now + status_period
-            wake = next_status if self.lockstep else min(next_cycle, next_status)
+            wake = next_status if self.lockstep else min(self._resend_due, next_status)
             time.sleep(max(0.0, min(wake - time.monotonic(), 0.05)))
 
     def status_message(self) -> SafetyStatus:
