@@ -25,13 +25,11 @@ import numpy as np
 from protocol.messages import RobotCommand
 from services.model import jaco2
 from services.robot.dsp import CommandRefused, KinovaDSP
-from services.robot.hardware import CYCLE_S, JointReading, JointTargets
+from services.robot.hardware import CYCLE_S, CYCLES_PER_DSP, JointReading, JointTargets
 
 #: a reference further than this from the measured angle is pulled back (no wind-up against a torque limit or a
 #: joint the arm cannot move)
 MAX_TRACKING_ERROR = math.radians(3.0)
-#: the DSP runs every this many bus cycles (10 ms)
-CYCLES_PER_DSP = 5
 #: the joints keep the DSP's last velocities at most this many bus cycles without a new DSP cycle (two DSP
 #: periods); then they hold where they are: a DSP that stopped deciding must not leave the arm moving
 MAX_CYCLES_WITHOUT_DSP = 2 * CYCLES_PER_DSP

@@ -18,6 +18,9 @@ from services.model import jaco2
 #: the actuators' bus cycle (500 Hz)
 CYCLE_S = 0.002
 CYCLE_NS = 2_000_000
+#: the DSP (the arm's 100 Hz high-level loop) runs every this many bus cycles (10 ms)
+CYCLES_PER_DSP = 5
+DSP_CYCLE_NS = CYCLE_NS * CYCLES_PER_DSP
 #: cycles an actuator goes on along its last target's rate when no target comes, before it holds (robot_sim's
 #: firmware emulates one, as servo drives commonly do; the real actuators' behaviour is not public)
 EXTRAPOLATED_CYCLES = 1
@@ -104,6 +107,10 @@ class RobotHardware(Protocol):
     #: cycles it was late for back to back (the arm's time is the node's). A remote arm keeps its own time: a late
     #: cycle is skipped and counted, never sent as a burst of targets (which the arm would follow faster).
     simulated_in_process: bool
+    #: True when the readings are stamped on the arm's own timeline, whose 10 ms grid is the arm's DSP cycle (the
+    #: emulated actuators', whose camera is triggered on it): the robot node then runs its DSP when a reading's
+    #: stamp crosses that grid, in phase with the camera. False (a real arm: receive times): every fifth cycle.
+    arm_timeline: bool
 
     def exchange(self, targets: JointTargets) -> JointReading:
         """Send this cycle's targets, return the joints' state (raises :class:`HardwareError`)."""

@@ -72,9 +72,9 @@ from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
 from services.robot.admission import AdmissionConfig, CommandAdmission
-from services.robot.core import CYCLES_PER_DSP, RobotCore
-from services.robot.hardware import (CYCLE_NS, CYCLE_S, EXTRAPOLATED_CYCLES, HardwareError, JointReading,
-                                     RobotHardware)
+from services.robot.core import RobotCore
+from services.robot.hardware import (CYCLE_NS, CYCLE_S, CYCLES_PER_DSP, DSP_CYCLE_NS, EXTRAPOLATED_CYCLES,
+                                     HardwareError, JointReading, RobotHardware)
 from services.robot.pacing import CyclePacer, request_realtime
 
 #: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
@@ -82,7 +82,6 @@ from services.robot.pacing import CyclePacer, request_realtime
 MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})
 #: an in-process simulated arm runs at most this many late cycles back to back (0.1 s), then drops the stall
 MAX_CATCH_UP_CYCLES = 50
-DSP_CYCLE_NS = CYCLE_NS * CYCLES_PER_DSP
 
 
 class LockstepConfig(ConfigStruct):
@@ -225,6 +224,9 @@ class RobotNode(Service):
         self._last_refusal = ""
         self._refusal_cycles = 0
         self._exchanges = 0
+        #: arm-timeline DSP ticks: the grid period (stamp // DSP cycle) and the exchange of the last tick
+        self._last_dsp_period: Optional[int] = None
+        self._last_dsp_index = 0
         self._dsp_stale_seen = 0
         self._last_stamp: Optional[int] = None
         self.consecutive_errors = 0
@@ -646,7 +648,21 @@ class RobotNode(Service):
     def _is_dsp_tick(self, index: int, reading: Optional[JointReading]) -> bool:
         if self.lockstep and reading is not None and reading.stamp_ns > 0:
             return reading.stamp_ns % DSP_CYCLE_NS == 0  # the simulator's 10 ms grid
-        return index % CYCLES_PER_DSP == 0
+        if not self.hardware.arm_timeline:
+            return index % CYCLES_PER_DSP == 0
+        # on the arm's grid, in phase with its camera: the first reading at or past each 10 ms line (a lost
+        # reading is no tick, unless a whole DSP cycle of exchanges passed without one: the state goes on)
+        if reading is not None and reading.stamp_ns > 0:
+            period = reading.stamp_ns // DSP_CYCLE_NS
+            tick = self._last_dsp_period is None or period > self._last_dsp_period
+            if self._last_dsp_period is None and reading.stamp_ns % DSP_CYCLE_NS:
+                tick = False  # joined mid-cycle: the first tick is at the next line
+            self._last_dsp_period = period
+        else:
+            tick = index - self._last_dsp_index >= CYCLES_PER_DSP
+        if tick:
+            self._last_dsp_index = index
+        return tick
 
     def dsp_tick(self, tick_ns: int, reading: JointReading) -> None:
         """One DSP cycle on the reading of the tick at ``tick_ns``."""

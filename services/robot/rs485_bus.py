@@ -36,6 +36,11 @@ _NO_MESSAGES = np.zeros(0, dtype=MESSAGE_DTYPE)
 _NO_STAMPS = np.zeros(0, dtype=np.int64)
 
 
+#: the interfaces that carry the sender's stamps (mfvs_hub, mfvs_local: mfvs's own; virtual: with
+#: ``preserve_timestamps``); a real interface stamps each frame when it receives it
+SENDER_STAMPED_INTERFACES = frozenset({"mfvs_hub", "mfvs_local", "virtual"})
+
+
 class BusConfig(ConfigStruct):
     interface: str = "virtual"
     channel: str = "mfvs-rs485"
@@ -59,6 +64,8 @@ class RS485Bus:
         #: the interface moves a batch as one block of equal-sized frames (mfvs_hub): no Python object per frame
         self._block = hasattr(self._bus, "send_block") and hasattr(self._bus, "recv_block")
         self._pending: collections.deque[tuple[RS485Message, int]] = collections.deque()
+        #: the frames' stamps are the sender's (robot_sim's emulated actuators: their own timeline), not receive times
+        self.arm_timeline = self.config.interface in SENDER_STAMPED_INTERFACES
         self.last_error = ""
 
     def _failed(self, exc: can.CanError) -> BusError:

@@ -257,6 +257,8 @@ class LinkHardware:
 
     def __init__(self, link: ActuatorLink, pipelined: bool = True) -> None:
         self.link = link
+        #: the replies carry the emulated arm's own stamps (the bus says whether its interface keeps them)
+        self.arm_timeline = link.bus.arm_timeline
         self.pipelined = pipelined
         #: when the request whose replies are still to be collected went out (None: none is)
         self._outstanding: Optional[float] = None

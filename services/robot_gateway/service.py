@@ -131,6 +131,7 @@ class _NoJoints:
     joint-level exchange and no low-level torque API through the USB layer."""
 
     simulated_in_process = False
+    arm_timeline = False
 
     def __init__(self, sdk: KinovaSdk) -> None:
         self.sdk = sdk

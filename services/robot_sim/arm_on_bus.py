@@ -31,7 +31,8 @@ from services.runtime.metrics import Counters, DurationStats, LoopTimer
 from services.runtime.threads import run_loop, start_thread
 from services.robot.rs485_bus import BusError, RS485Bus
 from services.robot.hardware import CYCLE_NS, CYCLE_S
-from services.robot.node import DSP_CYCLE_NS, LockstepConfig
+from services.robot.hardware import CYCLES_PER_DSP, DSP_CYCLE_NS
+from services.robot.node import LockstepConfig
 from services.robot.pacing import request_realtime
 from services.robot_sim.bus_device import ActuatorBusDevice
 from services.robot_sim.sim import Simulation
@@ -70,6 +71,16 @@ class BusSyncConfig(ConfigStruct):
     def __post_init__(self) -> None:
         if not (0.0 <= self.gain <= 1.0 and 0.0 <= self.max_step_s < CYCLE_S / 4):
             raise ValueError("bus sync needs 0 <= gain <= 1 and 0 <= max_step_s < a quarter cycle")
+
+
+def _start_on_the_grid(sim_time_ns: int) -> int:
+    """The epoch of a timeline starting about now at ``sim_time_ns``, waited for so that the arm's 10 ms grid
+    (its DSP ticks, its camera's trigger) falls on multiples of 10 ms of the stamps, where the robot node finds it
+    (services.robot.node: arm_timeline)."""
+    now = time.time_ns()
+    epoch = now - sim_time_ns + (-(now - sim_time_ns)) % DSP_CYCLE_NS
+    time.sleep(max(0.0, (epoch + sim_time_ns - time.time_ns()) * 1e-9))
+    return epoch
 
 
 @dataclass
@@ -191,7 +202,7 @@ class ArmOnBus:
         priority = min(99, self.config.realtime_priority + ACTUATOR_PRIORITY_ABOVE) if self.config.realtime_priority else 0
         if request_realtime(priority, "emulated actuators"):
             self.counters.inc("realtime_priority.granted")
-        self._set_epoch(time.time_ns() - self.sim.time_ns)  # the arm's time starts now, as wall time does
+        self._set_epoch(_start_on_the_grid(self.sim.time_ns))  # the arm's time starts now, as wall time does
         sync = self.config.sync
         boundary = time.monotonic() + CYCLE_S
         locked = False
@@ -211,6 +222,7 @@ class ArmOnBus:
                 commands += received
             behind = int((time.monotonic() - boundary) / CYCLE_S)
             if behind > MAX_CATCH_UP_CYCLES:  # a stall too long to catch up: drop it, the stamps skip it
+                behind = -(-behind // CYCLES_PER_DSP) * CYCLES_PER_DSP  # whole DSP cycles: the grid stays put
                 self.counters.inc("cycles.dropped", behind)
                 self._set_epoch(self.epoch_ns + behind * CYCLE_NS)
                 boundary += behind * CYCLE_S

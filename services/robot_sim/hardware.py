@@ -34,6 +34,8 @@ def reading_from_values(values: ActuatorValues, epoch_ns: int = 0) -> JointReadi
 
 class SimulatedHardware:
     simulated_in_process = True
+    #: the exchanges are the arm's cycles one for one: every fifth is on its grid
+    arm_timeline = False
 
     def __init__(self, sim: Simulation, epoch_ns: int = 0,
                  on_boundary: Optional[Callable[[ActuatorValues], None]] = None) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 from protocol.messages import CameraInfo, Header, ImageEncoding, Pose
 from services.model import frames, jaco2
 from services.model.board import BoardConfig, board_image
+from services.robot.hardware import CYCLE_NS, DSP_CYCLE_NS
 from services.robot_sim.imaging import ImagingConfig
 from services.model import tag as tags
 from services.runtime.config import ConfigStruct, PoseConfig
@@ -27,6 +28,8 @@ MUJOCO_FROM_OPTICAL = frames.rot_x(math.pi)
 CAMERA_NAME = "eye_in_hand"
 FLOOR_RGBA = [0.44, 0.44, 0.4, 1.0]
 TAG_BODY = "target"
+#: where in the DSP's 10 ms cycle the camera may be triggered: at a bus cycle's boundary, where the world is
+TRIGGER_OFFSETS_MS = tuple(range(0, DSP_CYCLE_NS // 1_000_000, CYCLE_NS // 1_000_000))
 
 
 def _default_camera_in_ee() -> PoseConfig:
@@ -57,8 +60,16 @@ class CameraConfig(ConfigStruct):
     #: null: the ideal camera (noiseless, instantaneous), which the seed papers' experiments and thresholds assume;
     #: ``{}``: a common USB webcam's defaults
     imaging: Optional[ImagingConfig] = None
+    #: realtime: the camera is triggered this long after the arm's 10 ms DSP tick (a whole number of 2 ms bus
+    #: cycles below 10), as a hardware-triggered camera wired to the robot's controller is: a command derived from
+    #: the frame should reach the DSP just before a tick, or it waits a whole cycle for the next (docs/latency.md).
+    #: Lockstep takes each frame at a tick and answers it there, whatever this says.
+    trigger_offset_ms: int = 2
 
     def __post_init__(self) -> None:
+        if self.trigger_offset_ms not in TRIGGER_OFFSETS_MS:
+            raise ValueError(f"camera trigger_offset_ms must be one of {TRIGGER_OFFSETS_MS} (a whole number of "
+                             f"2 ms bus cycles after the 10 ms DSP tick), not {self.trigger_offset_ms}")
         if self.encoding is ImageEncoding.BGR8:
             raise ValueError("camera encoding must be rgb8 or mono8")
         if not (8 <= self.width <= 4096 and 8 <= self.height <= 4096):

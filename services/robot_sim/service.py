@@ -34,8 +34,8 @@ from protocol.messages import SimClock, encode
 from services.robot.arm_check import ArmCheckConfig
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
-from services.robot.hardware import CYCLE_NS, CYCLE_S, ActuatorValues
-from services.robot.node import DSP_CYCLE_NS, RobotNode, RobotNodeConfig
+from services.robot.hardware import CYCLE_NS, CYCLE_S, DSP_CYCLE_NS, ActuatorValues
+from services.robot.node import RobotNode, RobotNodeConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig
 from services.robot_sim.camera import SimCamera
 from services.robot_sim.firmware import ActuatorConfig
@@ -75,6 +75,8 @@ class _SimulationOutputs:
         self.service, self.sim, self.config = service, sim, config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
         self.epoch_ns = epoch_ns
+        #: realtime: frames are taken this long after a DSP tick (the camera's trigger); lockstep: at the tick
+        self.trigger_offset_ns = 0 if self.lockstep else config.scene.camera.trigger_offset_ms * 1_000_000
         self.camera: Optional[SimCamera] = None
         #: the frame taken at the last DSP tick: (capture stamp, rendered event)
         self.frame: Optional[tuple[int, threading.Event]] = None
@@ -112,7 +114,7 @@ class _SimulationOutputs:
 
     def at_boundary(self, sim_time_ns: int) -> None:
         """A cycle boundary, before physics moves on: take the camera frame due at this DSP tick."""
-        if not self.renders or sim_time_ns % DSP_CYCLE_NS or not self.sim.frame_due():
+        if not self.renders or (sim_time_ns - self.trigger_offset_ns) % DSP_CYCLE_NS or not self.sim.frame_due():
             return
         self.sim.mark_frame()
         stamp = self.epoch_ns + sim_time_ns

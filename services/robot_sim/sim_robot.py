@@ -9,7 +9,8 @@ import numpy as np
 
 from protocol.messages import RobotCommand
 from services.robot.dsp import DSPConfig, KinovaDSP
-from services.robot.core import CYCLES_PER_DSP, Refusal, RobotCore
+from services.robot.core import Refusal, RobotCore
+from services.robot.hardware import CYCLES_PER_DSP
 from services.robot_sim.firmware import ActuatorConfig
 from services.robot_sim.hardware import SimulatedHardware
 from services.robot_sim.scene import SceneConfig

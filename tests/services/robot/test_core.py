@@ -8,7 +8,8 @@ import pytest
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from services.robot.dsp import KinovaDSP
-from services.robot.core import CYCLES_PER_DSP, RobotCore
+from services.robot.core import RobotCore
+from services.robot.hardware import CYCLES_PER_DSP
 from services.robot.hardware import HardwareError
 from services.robot_gateway.link import LinkHardware
 from services.stack import simulated_link

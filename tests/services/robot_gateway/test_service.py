@@ -11,7 +11,7 @@ from protocol import messages as m
 from protocol.conventions import ClockMode
 from services.model import jaco2
 from services.model.kinematics import ArmKinematics
-from services.robot.core import CYCLES_PER_DSP
+from services.robot.hardware import CYCLES_PER_DSP
 from services.robot.hardware import CYCLE_S
 from services.robot.rs485_bus import BusConfig
 from services.runtime.transport import open_session
