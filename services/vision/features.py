@@ -28,9 +28,13 @@ class Backend(str, enum.Enum):
 
 
 class Refinement(str, enum.Enum):
-    """Corner refinement. ``apriltag_subpix`` (default): aruco's AprilTag refinement, then OpenCV's sub-pixel
-    corner search; on rendered frames its corners are within 0.35 px of the true projection, against 0.6-0.9 px
-    for aruco's AprilTag refinement alone."""
+    """Corner refinement. With ``aruco``: ``apriltag_subpix`` (its default): aruco's AprilTag refinement, then
+    OpenCV's sub-pixel corner search; on rendered frames its corners are within 0.35 px of the true projection,
+    against 0.6-0.9 px for aruco's AprilTag refinement alone. With ``apriltag``: ``subpix`` (or
+    ``apriltag_subpix``): the library's quads, then the same sub-pixel search, which lands on aruco's
+    ``apriltag_subpix`` corners (within 0.001 px where aruco's are good) in a quarter of the time; ``none`` (or
+    ``apriltag``, its default): the library's corners as they come (closest to the truth far away and tilted, but
+    at close range their errors are uneven enough to tilt a frontal tag's pose by 4°: docs/vision.md)."""
 
     APRILTAG_SUBPIX = "apriltag_subpix"
     APRILTAG = "apriltag"
@@ -81,16 +85,23 @@ class Detection:
 class TagDetector:
     """Detects tags of one family in grayscale images; corners in the printed image's order (``layout``)."""
 
-    def __init__(self, family: str = "tag36h11", refinement: Refinement | str = Refinement.APRILTAG_SUBPIX,
+    def __init__(self, family: str = "tag36h11", refinement: Refinement | str | None = None,
                  subpix_window: int = 3, layout: tags.TagLayout | str = tags.TagLayout.OFFICIAL,
                  backend: Backend | str = Backend.ARUCO, quad_decimate: float = 1.0) -> None:
+        self.backend = Backend(backend)
+        if refinement is None:  # each backend's own
+            refinement = Refinement.APRILTAG if self.backend is Backend.APRILTAG else Refinement.APRILTAG_SUBPIX
         self.refinement = Refinement(refinement)
         self.family = family
         #: which image of the tag is printed: the corners come in that image's order (services.model.tag)
         self.layout = tags.TagLayout(layout)
-        self.backend = Backend(backend)
         self._subpix_window = subpix_window
+        #: the sub-pixel corner search after detection
+        self._subpix = self.refinement is Refinement.APRILTAG_SUBPIX or (
+            self.backend is Backend.APRILTAG and self.refinement is Refinement.SUBPIX)
         if self.backend is Backend.APRILTAG:
+            if self.refinement is Refinement.CONTOUR:
+                raise ValueError("refinement contour is aruco's; the apriltag detector takes subpix or none")
             # one thread: the services share two cores; no decimation by default: a 3-m tag is 20 px wide
             self._apriltag = _apriltag_detector(family, quad_decimate)
             return
@@ -104,27 +115,34 @@ class TagDetector:
         x0, y0 = (0, 0) if roi is None else roi[:2]
         window = gray if roi is None else gray[y0 : roi[3], x0 : roi[2]]
         if self.backend is Backend.APRILTAG:
-            return self._detect_apriltag(window, x0, y0)
+            return self._detect_apriltag(window, x0, y0, gray)
         corners, ids, _ = self._detector.detectMarkers(window)
         if ids is None:
             return []
         out = []
         for tag_corners, tag_id in zip(corners, ids.ravel(), strict=True):
             c = (tag_corners.reshape(4, 2) + np.array([x0, y0], dtype=np.float32)).astype(np.float32)
-            if self.refinement is Refinement.APRILTAG_SUBPIX:
-                w = self._subpix_window
-                c = cv2.cornerSubPix(gray, c.reshape(-1, 1, 2), (w, w), (-1, -1), _SUBPIX_CRITERIA).reshape(4, 2)
+            if self._subpix:
+                c = self._refined(gray, c)
             if self.layout is tags.TagLayout.OFFICIAL:
                 c = tags.official_order(c, self.family)
             out.append(Detection(int(tag_id), c.astype(float)))
         return out
 
-    def _detect_apriltag(self, window: np.ndarray, x0: int, y0: int) -> list[Detection]:
+    def _refined(self, gray: np.ndarray, corners: np.ndarray) -> np.ndarray:
+        """OpenCV's sub-pixel corner search from ``corners`` (4×2), on the whole image."""
+        w = self._subpix_window
+        start = np.asarray(corners, dtype=np.float32).reshape(-1, 1, 2)
+        return cv2.cornerSubPix(gray, start, (w, w), (-1, -1), _SUBPIX_CRITERIA).reshape(4, 2)
+
+    def _detect_apriltag(self, window: np.ndarray, x0: int, y0: int, gray: np.ndarray) -> list[Detection]:
         out = []
         for found in self._apriltag.detect(np.ascontiguousarray(window, dtype=np.uint8)):
             # AprilTag's corners go counter-clockwise from the official image's bottom-left, in coordinates whose
             # pixel centres are at +0.5 (OpenCV's are at the pixel index)
             c = np.asarray(found.corners, dtype=float)[[3, 2, 1, 0]] + np.array([x0 - 0.5, y0 - 0.5])
+            if self._subpix:
+                c = self._refined(gray, c).astype(float)
             if self.layout is tags.TagLayout.OPENCV:
                 c = tags.opencv_order(c, self.family)
             out.append(Detection(int(found.tag_id), c))
