@@ -20,6 +20,9 @@ class Topic:
     message_type: type
     #: who publishes it, as the architecture's contracts say
     publisher: str
+    #: on the path from a frame to the arm's motion, or its stop: sent at once and ahead of the rest (images, status)
+    #: in every queue on the way (services.runtime.transport.publisher_options)
+    control_path: bool = False
 
 
 def topics(keys: Keys) -> list[Topic]:
@@ -27,17 +30,17 @@ def topics(keys: Keys) -> list[Topic]:
     return [
         Topic(keys.camera_image, m.Image, "robot_sim or camera"),
         Topic(keys.camera_info, m.CameraInfo, "robot_sim or camera"),
-        Topic(keys.features, m.Features, "vision"),
+        Topic(keys.features, m.Features, "vision", control_path=True),
         Topic(keys.vision_goal, m.VisionGoal, "operator"),
-        Topic(keys.desired_twist, m.Twist, "controller"),
-        Topic(keys.desired_joint_velocity, m.JointVelocity, "controller"),
+        Topic(keys.desired_twist, m.Twist, "controller", control_path=True),
+        Topic(keys.desired_joint_velocity, m.JointVelocity, "controller", control_path=True),
         Topic(keys.controller_status, m.ControllerStatus, "controller"),
-        Topic(keys.robot_command, m.RobotCommand, "safety"),
+        Topic(keys.robot_command, m.RobotCommand, "safety", control_path=True),
         Topic(keys.safety_status, m.SafetyStatus, "safety"),
-        Topic(keys.estop, m.EStop, "operator"),
-        Topic(keys.robot_state, m.RobotState, "robot_sim or robot_gateway"),
-        Topic(keys.lowlevel_command, m.TorqueCommand, "a low-level client"),
-        Topic(keys.lowlevel_state, m.LowLevelState, "robot_sim or robot_gateway"),
+        Topic(keys.estop, m.EStop, "operator", control_path=True),
+        Topic(keys.robot_state, m.RobotState, "robot_sim or robot_gateway", control_path=True),
+        Topic(keys.lowlevel_command, m.TorqueCommand, "a low-level client", control_path=True),
+        Topic(keys.lowlevel_state, m.LowLevelState, "robot_sim or robot_gateway", control_path=True),
         Topic(keys.clock, m.SimClock, "robot_sim"),
         # one key per service (a wildcard here); each service also answers a query on its own
         Topic(keys.health_all, m.ServiceHealth, "every service, 1 Hz"),
@@ -65,7 +68,8 @@ def topic_of(key: str) -> Topic:
     found = table.get(suffix) or next((t for pattern, t in table.items()
                                        if "*" in pattern and key_pattern(pattern).match(suffix)), None)
     if found is not None:
-        return Topic(key if "*" not in robot_id else found.key, found.message_type, found.publisher)
+        return Topic(key if "*" not in robot_id else found.key, found.message_type, found.publisher,
+                     found.control_path)
     close = difflib.get_close_matches(suffix, list(table), n=1)
     hint = f"; did you mean {ROOT}/{robot_id}/{close[0]}?" if close else f"; the topics: {', '.join(sorted(table))}"
     raise UnknownTopic(f"{key!r} is no topic of the stack{hint}")

@@ -329,7 +329,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"mfvs up: {exc}", file=sys.stderr)
         return 2
-    code, message = up(profile, args.clock, args.wait)
+    code, message = up(profile, args.clock, args.wait, args.host)
     print(message, file=sys.stderr if code else sys.stdout)
     return code
 
@@ -434,6 +434,9 @@ def build_parser() -> argparse.ArgumentParser:
     up_cmd.add_argument("--port", type=int, default=7447, help="router port (sim and gateway profiles)")
     up_cmd.add_argument("--bus-port", type=int, default=7448, help="CAN hub port (gateway profile)")
     up_cmd.add_argument("--wait", type=float, default=60.0, help="seconds to wait for every service")
+    up_cmd.add_argument("--host", default=None,
+                        help="in a profile across computers (deploy/profiles/multi-host.yaml), which one this is: "
+                             "start only its part")
     up_cmd.set_defaults(func=_cmd_up)
     down_cmd = sub.add_parser("down", help="stop the stack `mfvs up` started")
     down_cmd.set_defaults(func=_cmd_down)

@@ -45,6 +45,8 @@ BUS_HUB_PORT = 7448
 
 class ProfileService(ConfigStruct):
     name: str
+    #: the computer it runs on, in a profile that spans several (`mfvs up --host NAME` starts that host's part)
+    host: Optional[str] = None
     config: Optional[str] = None
     zenoh_config: Optional[str] = None
     #: config overrides, each ``dotted.key=value`` (the service's ``--set``)
@@ -54,6 +56,10 @@ class ProfileService(ConfigStruct):
 class ProfileRouter(ConfigStruct):
     port: int = 7447
     config: Optional[str] = None
+    #: the computer it runs on, in a profile that spans several
+    host: Optional[str] = None
+    #: where the services (on every host) reach it, and where it listens (unless its config says)
+    address: str = "127.0.0.1"
 
 
 class ProfileBusHub(ConfigStruct):
@@ -71,6 +77,33 @@ class Profile(ConfigStruct):
         unknown = [s.name for s in self.services if s.name not in KNOWN_SERVICES]
         if unknown:
             raise ValueError(f"unknown services {unknown}; known: {', '.join(KNOWN_SERVICES)}")
+        placed = [s.host is not None for s in self.services] + [self.router.host is not None]
+        if any(placed) and not all(placed):
+            raise ValueError("a profile that names hosts names one for the router and for every service")
+        if self.hosts and self.bus_hub is not None:
+            raise ValueError("the CAN hub is a one-host loopback bus: not in a profile across hosts")
+
+    @property
+    def hosts(self) -> list[str]:
+        """The computers it spans, the router's first ([] for a one-host profile)."""
+        named = [self.router.host] + [s.host for s in self.services]
+        return list(dict.fromkeys(h for h in named if h is not None))
+
+    def endpoint(self) -> str:
+        """Where every service reaches the router."""
+        return f"tcp/{self.router.address}:{self.router.port}"
+
+    def part(self, host: Optional[str]) -> tuple[bool, list[ProfileService]]:
+        """(whether this host runs the router, the services it runs); ValueError when ``host`` does not fit the
+        profile (a profile across hosts needs one of its hosts; a one-host profile, none)."""
+        if not self.hosts:
+            if host is not None:
+                raise ValueError("this profile runs on one computer: no --host (it names no hosts)")
+            return True, list(self.services)
+        if host not in self.hosts:
+            raise ValueError(f"this profile spans {', '.join(self.hosts)}: say which this computer is (--host)"
+                             if host is None else f"no host {host!r} in this profile ({', '.join(self.hosts)})")
+        return self.router.host == host, [s for s in self.services if s.host == host]
 
 
 def _shipped(name: str, overrides: list[str] | None = None) -> ProfileService:
@@ -161,20 +194,27 @@ def spawn(args: list[str], log: Path, exit_file: Optional[Path] = None) -> subpr
                                 start_new_session=True)
 
 
-def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[int, str]:
-    """Start the stack; returns (exit code, message)."""
+def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0, host: Optional[str] = None) -> tuple[int, str]:
+    """Start the stack, or on a profile across hosts this host's part of it (``host``); returns (exit code,
+    message)."""
+    try:
+        runs_router, services = profile.part(host)
+    except ValueError as exc:
+        return 2, str(exc)
     current = read_stack()
     if current and any(_alive(p["pid"]) for p in current["processes"]):
         return 1, f"a stack is already up (router {current['endpoint']}); run `mfvs down` first"
     directory = run_dir()
-    endpoint = f"tcp/127.0.0.1:{profile.router.port}"
+    endpoint = profile.endpoint()
     router_args = [sys.executable, "-m", "services.cli", "router"]
     listen = file_endpoints(profile.router.config, "listen") if profile.router.config else []
     if listen:  # the router's config says where it listens (and whether over TLS)
-        endpoint = listen[0]
+        scheme = listen[0].split("/", 1)[0]
+        # across hosts the services reach it at its address (the file must listen there, or on 0.0.0.0)
+        endpoint = f"{scheme}/{profile.router.address}:{profile.router.port}" if profile.hosts else listen[0]
         router_args += ["--config", profile.router.config]
     else:
-        router_args += ["--port", str(profile.router.port)]
+        router_args += ["--port", str(profile.router.port), "--host", profile.router.address]
         if profile.router.config:
             router_args += ["--config", profile.router.config]
     # behind an authority router, the launcher's own checks (and `status`, `estop`) need an identity: the
@@ -182,16 +222,17 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
     observer = _observer_config(profile)
     processes = []
     children: list[subprocess.Popen] = []
-    log = directory / "router.log"
-    children.append(spawn(router_args, log))
-    processes.append({"name": "router", "pid": children[-1].pid, "log": str(log)})
+    if runs_router:
+        log = directory / "router.log"
+        children.append(spawn(router_args, log))
+        processes.append({"name": "router", "pid": children[-1].pid, "log": str(log)})
     if profile.bus_hub is not None:
         log = directory / "bus_hub.log"
         children.append(spawn([sys.executable, "-m", "services.cli", "bus-hub", "--port", str(profile.bus_hub.port),
                                 "--host", profile.bus_hub.host], log))
         processes.append({"name": "bus_hub", "pid": children[-1].pid, "log": str(log)})
     time.sleep(0.5)
-    for service in profile.services:
+    for service in services:
         args = service_command(service, endpoint, profile.robot_id, clock)
         log = directory / f"{service.name}.log"
         exit_file = directory / f"{service.name}.exit"
@@ -199,10 +240,10 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
         processes.append({"name": service.name, "pid": children[-1].pid, "log": str(log),
                           "exit_file": str(exit_file)})
     stack = {"endpoint": endpoint, "robot_id": profile.robot_id, "processes": processes, "started": time.time(),
-             "zenoh_config": observer}
+             "zenoh_config": observer, "host": host}
     (directory / "stack.json").write_text(json.dumps(stack, indent=2))
-    # wait until every service announces itself
-    names = {s.name for s in profile.services}
+    # wait until every service of this host announces itself (the router may be another host's, and later)
+    names = {s.name for s in services}
     deadline = time.monotonic() + wait_s
     alive: set[str] = set()
     while time.monotonic() < deadline:
@@ -216,7 +257,9 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0) -> tuple[in
         except Exception:
             alive = set()
         if names <= alive:
-            return 0, f"stack up: router {endpoint}, services {', '.join(sorted(names))} (logs in {directory})"
+            where = f"host {host}: " if host else ""
+            return 0, (f"{where}stack up: router {endpoint}, services {', '.join(sorted(names))} "
+                       f"(logs in {directory})")
         time.sleep(0.5)
     down()
     return 1, f"services not alive after {wait_s:g} s: {', '.join(sorted(names - alive))}"

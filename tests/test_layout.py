@@ -1,5 +1,6 @@
 """Tests mirror the modules they test: ``tests/<package path>/test_<module>[_<aspect>].py`` tests
-``<package path>/<module>.py`` (or a script, ``.sh``; ``test_main`` tests ``__main__.py``); at the top of tests/ only the tests that cross
+``<package path>/<module>.py`` (or a script, ``.sh``; a deployment file, ``.yaml`` with ``-`` for ``_``; a folder of
+them, such as deploy/systemd; ``test_main`` tests ``__main__.py``); at the top of tests/ only the tests that cross
 the whole stack."""
 from tests.helpers import REPO
 
@@ -24,6 +25,8 @@ def test_every_test_file_sits_where_its_module_does():
         package = REPO.joinpath(*relative.parts[:-1])
         stem = module_of(relative.name)
         candidates = [stem] + [stem.rsplit("_", k)[0] for k in (1, 2) if "_" in stem]
-        if not any((package / f"{name}{suffix}").is_file() for name in candidates for suffix in (".py", ".sh")):
+        files = [package / f"{name}{suffix}" for name in candidates for suffix in (".py", ".sh")]
+        files += [package / f"{name.replace('_', '-')}.yaml" for name in candidates]
+        if not any(f.is_file() for f in files) and not any((package / name).is_dir() for name in candidates):
             orphans.append(f"{relative}: no module {stem}.py in {package.relative_to(REPO)}")
     assert not orphans, orphans

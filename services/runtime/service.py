@@ -33,7 +33,7 @@ from services.runtime.config import ConfigStruct
 from services.runtime.logs import RateLimitedLogger
 from services.runtime.metrics import Counters, Rates
 from services.runtime.threads import start_thread
-from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session
+from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session, publisher_options
 
 M = TypeVar("M", bound=msgspec.Struct)
 
@@ -285,6 +285,7 @@ class Service:
 
     def publisher(self, key: str, stream: str, **options) -> TypedPublisher:
         assert self.session is not None, "publisher() belongs in on_start()"
+        options = {**publisher_options(key), **options}
         typed = TypedPublisher(self.session.declare_publisher(key, **options), self.rates, f"pub.{stream}")
         self._declared.append(typed)
         return typed

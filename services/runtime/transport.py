@@ -115,6 +115,19 @@ class GuardedPublisher:
                 self._publisher.undeclare()
 
 
+def publisher_options(key: str) -> dict:
+    """zenoh's publisher options for a key: a control-path topic (protocol.topics: features, twists, commands,
+    e-stop, states) goes out at once rather than batched (``express``) and at a priority above the images, so a
+    300-kB frame queued in a session or the router never holds a command back; anything else, zenoh's defaults."""
+    from protocol.topics import UnknownTopic, topic_of
+
+    try:
+        control_path = topic_of(key).control_path
+    except UnknownTopic:
+        return {}
+    return {"express": True, "priority": zenoh.Priority.INTERACTIVE_HIGH} if control_path else {}
+
+
 def free_loopback_port(host: str = "127.0.0.1") -> int:
     """A TCP port that is free on the loopback interface right now."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:

@@ -1,6 +1,7 @@
 """The topic table: every published key has its type, and a key on a command line is resolved or refused with
 what it might have been."""
 import pytest
+import zenoh
 
 from protocol import messages as m
 from protocol.keys import Keys
@@ -52,3 +53,16 @@ def test_a_pattern_that_selects_nothing_says_so():
         matching("mfvs/other/**", Keys("jaco"))
     with pytest.raises(UnknownTopic, match="not an mfvs key"):
         topic_of("foo/bar")
+
+
+def test_the_control_path_goes_out_at_once_and_ahead_of_the_images():
+    from services.runtime.transport import publisher_options
+
+    keys = Keys()
+    for key in (keys.features, keys.desired_twist, keys.desired_joint_velocity, keys.robot_command, keys.estop,
+                keys.robot_state, keys.lowlevel_command, keys.lowlevel_state):
+        options = publisher_options(key)
+        assert options["express"] is True and options["priority"] == zenoh.Priority.INTERACTIVE_HIGH, key
+    for key in (keys.camera_image, keys.camera_info, keys.controller_status, keys.health("vision")):
+        assert publisher_options(key) == {}, key
+    assert publisher_options("somebody/else") == {}

@@ -249,3 +249,29 @@ def test_up_behind_an_authority_router_and_estop_through_it(tmp_path, tls):
     finally:
         down = mfvs("down", env=env)
     assert down.returncode == 0
+
+
+def test_a_profile_across_hosts_starts_one_host_part_at_a_time(tmp_path):
+    from services.launcher import load_profile
+
+    profile = load_profile("multi-host", 7447)
+    assert profile.hosts == ["robot", "vision", "safety"]
+    assert profile.endpoint() == "tcp/192.168.10.1:7447"
+    runs_router, services = profile.part("vision")
+    assert not runs_router and [s.name for s in services] == ["vision", "controller"]
+    runs_router, services = profile.part("robot")
+    assert runs_router and [s.name for s in services] == ["robot_sim"]
+    with pytest.raises(ValueError, match="say which this computer is"):
+        profile.part(None)
+    with pytest.raises(ValueError, match="no host 'kitchen'"):
+        profile.part("kitchen")
+    with pytest.raises(ValueError, match="runs on one computer"):
+        load_profile("sim", 7447).part("robot")
+    half = tmp_path / "half.yaml"
+    half.write_text("router: {port: 7447}\nservices:\n  - {name: vision, host: vision}\n")
+    with pytest.raises(Exception, match="names one for the router and for every service"):
+        load_profile(str(half), 7447)
+    env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path))
+    out = mfvs("up", "--profile", "multi-host", env=env)
+    assert out.returncode == 2 and "say which this computer is (--host)" in out.stderr
+    assert not (tmp_path / "stack.json").exists()

@@ -1,0 +1,78 @@
+"""Computers on one machine: Linux network namespaces, each with one veth pair into a bridge that lives in a
+namespace of its own (the test never touches the host's own interfaces), addressed 10.<net>.0.<n>/24. Root only;
+:func:`unavailable` says why they cannot be had."""
+from __future__ import annotations
+
+import os
+import subprocess
+from dataclasses import dataclass, field
+
+
+def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    return subprocess.run(["ip", *args], capture_output=True, text=True, check=check)
+
+
+def unavailable() -> str:
+    """Why network namespaces cannot be created here ("" when they can)."""
+    if os.geteuid() != 0:
+        return "network namespaces need root"
+    probe = f"mfvs-probe-{os.getpid()}"
+    try:
+        made = _ip("netns", "add", probe, check=False)
+    except FileNotFoundError:
+        return "no `ip` command (iproute2)"
+    if made.returncode != 0:
+        return f"`ip netns add` failed: {made.stderr.strip()}"
+    _ip("netns", "del", probe, check=False)
+    return ""
+
+
+@dataclass
+class Lab:
+    """Named hosts joined by a switch. ``address(name)`` is a host's address; ``run(name, args)`` runs a command
+    in it; :meth:`link` takes a host's link down or up (a cable pulled)."""
+
+    hosts: list[str]
+    net: int = 77
+    tag: str = field(default_factory=lambda: str(os.getpid()))
+
+    def ns(self, host: str) -> str:
+        return f"mfvs-{host}-{self.tag}"
+
+    @property
+    def switch(self) -> str:
+        return f"mfvs-switch-{self.tag}"
+
+    def address(self, host: str) -> str:
+        return f"10.{self.net}.0.{self.hosts.index(host) + 1}"
+
+    def __enter__(self) -> "Lab":
+        try:
+            _ip("netns", "add", self.switch)
+            _ip("-n", self.switch, "link", "add", "br0", "type", "bridge")
+            _ip("-n", self.switch, "link", "set", "br0", "up")
+            for i, host in enumerate(self.hosts):
+                ns = self.ns(host)
+                _ip("netns", "add", ns)
+                _ip("-n", ns, "link", "set", "lo", "up")
+                _ip("-n", ns, "link", "add", "eth0", "type", "veth", "peer", "name", f"port{i}",
+                    "netns", self.switch)
+                _ip("-n", self.switch, "link", "set", f"port{i}", "master", "br0", "up")
+                _ip("-n", ns, "addr", "add", f"{self.address(host)}/24", "dev", "eth0")
+                _ip("-n", ns, "link", "set", "eth0", "up")
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for host in self.hosts:
+            _ip("netns", "del", self.ns(host), check=False)
+        _ip("netns", "del", self.switch, check=False)
+
+    def command(self, host: str, args: list[str]) -> list[str]:
+        return ["ip", "netns", "exec", self.ns(host), *args]
+
+    def link(self, host: str, up: bool) -> None:
+        """The host's cable in (up) or out: its port on the switch."""
+        _ip("-n", self.switch, "link", "set", f"port{self.hosts.index(host)}", "up" if up else "down")
