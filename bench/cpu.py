@@ -10,12 +10,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import tempfile
 import time
 
 from services.runtime.transport import free_loopback_port
-from protocol import messages as m
-from services.launcher import down, load_profile, read_stack, stack_task, up
+from bench.stack import servoing_stack
+from services.launcher import load_profile, read_stack
 from services.robot.pacing import normal_priority, request_realtime
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
@@ -92,13 +91,7 @@ def rss_mb(pid: int) -> float:
 
 
 def measure(profile_name: str, seconds: float, settle_s: float = 3.0) -> dict:
-    with tempfile.TemporaryDirectory(prefix="mfvs-bench-cpu-") as run_dir:
-        os.environ["MFVS_RUN_DIR"] = run_dir
-        profile = load_profile(profile_name, free_loopback_port(), free_loopback_port())
-        code, message = up(profile, "realtime")
-        if code != 0:
-            raise RuntimeError(message)
-        stack_task(m.START_TASK, operator="bench cpu")  # a servoing stack, not an idle one
+    with servoing_stack(load_profile(profile_name, free_loopback_port(), free_loopback_port()), "bench cpu"):
         try:
             time.sleep(settle_s)  # past start-up (imports, first frames)
             processes = {p["name"]: p["pid"] for p in read_stack()["processes"]}
@@ -120,7 +113,6 @@ def measure(profile_name: str, seconds: float, settle_s: float = 3.0) -> dict:
                                 "threads": dict(sorted(threads.items(), key=lambda kv: -kv[1]))}
         finally:
             normal_priority()
-            down()
     return {"processes": result, "total_cpu_pct": round(sum(r["cpu_pct"] for r in result.values()), 1),
             "total_rss_mb": round(sum(r["rss_mb"] for r in result.values()), 1)}
 

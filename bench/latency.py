@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import tempfile
 import time
 
 import numpy as np
@@ -22,7 +20,8 @@ import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
 from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
-from services.launcher import down, load_profile, stack_task, up
+from bench.stack import servoing_stack
+from services.launcher import load_profile
 
 
 def _stats(values_ms: list[float]) -> dict:
@@ -74,32 +73,18 @@ def with_overrides(profile, assignments: list[str]):
 
 
 def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None = None) -> dict:
-    previous = os.environ.get("MFVS_RUN_DIR")
-    with tempfile.TemporaryDirectory(prefix="mfvs-latency-") as directory:
-        os.environ["MFVS_RUN_DIR"] = directory
-        port = free_loopback_port()
-        try:
-            code, message = up(with_overrides(load_profile(profile, port, free_loopback_port()), overrides or []),
-                               "realtime")
-            if code:
-                raise RuntimeError(message)
-            stack_task(m.START_TASK, operator="bench latency")  # the stack comes up idle
-            session = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
-            states: list[m.RobotState] = []
-            session.declare_subscriber(Keys().robot_state,
-                                       lambda s: states.append(m.decode(s.payload.to_bytes(), m.RobotState)))
-            time.sleep(START_S)
-            start = len(states)
-            time.sleep(seconds)
-            window = states[start:]
-            first_second = states[:start]
-            session.close()
-        finally:
-            down()
-            if previous is None:
-                os.environ.pop("MFVS_RUN_DIR", None)
-            else:
-                os.environ["MFVS_RUN_DIR"] = previous
+    stack = with_overrides(load_profile(profile, free_loopback_port(), free_loopback_port()), overrides or [])
+    with servoing_stack(stack, "bench latency") as endpoint:
+        session = open_session(ZenohConfig(connect=[endpoint]))
+        states: list[m.RobotState] = []
+        session.declare_subscriber(Keys().robot_state,
+                                   lambda s: states.append(m.decode(s.payload.to_bytes(), m.RobotState)))
+        time.sleep(START_S)
+        start = len(states)
+        time.sleep(seconds)
+        window = states[start:]
+        first_second = states[:start]
+        session.close()
     result = analyse(window)
     result["start"] = analyse(first_second)
     result["seconds"] = seconds

@@ -366,7 +366,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
-              "rs485": "bench.rs485", "swap": "bench.swap", "cpu": "bench.cpu", "gateway": "bench.gateway"}
+              "rs485": "bench.rs485", "swap": "bench.swap", "cpu": "bench.cpu", "gateway": "bench.gateway",
+              "load": "bench.load"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -517,7 +518,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="loops: robot_sim loop rate, jitter, lockstep speed; vision: detection time per frame; "
                        "laws: µs per control-law iteration; latency: capture → applied, per hop; "
                        "rs485: actuator bus cycle and request→reply latency; swap: iterations to converge through "
-                       "robot_sim and through robot_gateway")
+                       "robot_sim and through robot_gateway; cpu: CPU and memory per service; gateway: tracking "
+                       "under load; load: the robot state's period while a flood hits an unrelated key")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)
