@@ -20,7 +20,7 @@ import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
 from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
-from bench.stack import servoing_stack
+from bench.stack import servoing_stack, with_overrides
 from services.launcher import load_profile
 
 
@@ -57,19 +57,6 @@ def analyse(states: list[m.RobotState]) -> dict:
             hops.setdefault(hop.service, []).append((hop.pub_ns - hop.recv_ns) / 1e6)
             previous_name, previous_pub = hop.service, hop.pub_ns
     return {"e2e_ms": _stats(e2e), "hops": {name: _stats(values) for name, values in hops.items()}}
-
-
-def with_overrides(profile, assignments: list[str]):
-    """The profile with ``SERVICE:KEY=VALUE`` assignments added to each named service's ``--set``."""
-    for assignment in assignments:
-        name, sep, setting = assignment.partition(":")
-        services = [s for s in profile.services if s.name == name]
-        if not sep or "=" not in setting or not services:
-            known = ", ".join(s.name for s in profile.services)
-            raise ValueError(f"--set {assignment!r}: give SERVICE:KEY=VALUE with a service of the profile ({known})")
-        for service in services:
-            service.set.append(setting)
-    return profile
 
 
 def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None = None) -> dict:

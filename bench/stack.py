@@ -30,3 +30,16 @@ def servoing_stack(profile: Profile, operator: str) -> Iterator[str]:
                 os.environ.pop("MFVS_RUN_DIR", None)
             else:
                 os.environ["MFVS_RUN_DIR"] = previous
+
+
+def with_overrides(profile, assignments: list[str]):
+    """The profile with ``SERVICE:KEY=VALUE`` assignments added to each named service's ``--set``."""
+    for assignment in assignments:
+        name, sep, setting = assignment.partition(":")
+        services = [s for s in profile.services if s.name == name]
+        if not sep or "=" not in setting or not services:
+            known = ", ".join(s.name for s in profile.services)
+            raise ValueError(f"--set {assignment!r}: give SERVICE:KEY=VALUE with a service of the profile ({known})")
+        for service in services:
+            service.set.append(setting)
+    return profile

@@ -342,6 +342,20 @@ def _cmd_down(args: argparse.Namespace) -> int:
     return code
 
 
+def _restarts(entry: dict) -> str:
+    if not entry.get("restarts"):
+        return ""
+    return f"  restarted {entry['restarts']}× (last {entry['restarted_ago_s']:.0f} s ago)"
+
+
+def _cmd_restart(args: argparse.Namespace) -> int:
+    from services.launcher import restart
+
+    code, message = restart(args.name)
+    print(message, file=sys.stderr if code else sys.stdout)
+    return code
+
+
 def _cmd_status(args: argparse.Namespace) -> int:
     from services.launcher import read_stack, status_json
 
@@ -353,13 +367,14 @@ def _cmd_status(args: argparse.Namespace) -> int:
         print(json.dumps(report))
     else:
         router = report["router"]
-        print(f"router {router['endpoint']}: {'reachable' if router['reachable'] else 'NOT reachable'}")
+        print(f"router {router['endpoint']}: {'reachable' if router['reachable'] else 'NOT reachable'}"
+              f"{_restarts(router)}")
         for s in report["services"]:
             rates = ", ".join(f"{k} {v:.1f} Hz" for k, v in sorted(s["rates_hz"].items()))
             errors = ", ".join(f"{k} {v}" for k, v in sorted(s["errors"].items())) or "no errors"
             condition = s["condition"].upper() if s["condition"] != "healthy" else "healthy"
             why = f" ({'; '.join(s['degraded'])})" if s["degraded"] else ""
-            print(f"  {s['name']:12s} pid {s['pid']}  {condition}{why}  {rates}; {errors}")
+            print(f"  {s['name']:12s} pid {s['pid']}  {condition}{why}{_restarts(s)}  {rates}; {errors}")
             if s["name"] in ("safety", "controller") or s["condition"] in ("dead", "not responding"):
                 print(f"  {'':12s} {s['detail']}")  # the e-stop, the task's state, or how it ended
     return 0 if report["router"]["reachable"] else 1
@@ -367,7 +382,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
               "rs485": "bench.rs485", "swap": "bench.swap", "cpu": "bench.cpu", "gateway": "bench.gateway",
-              "load": "bench.load"}
+              "load": "bench.load", "soak": "bench.soak"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -441,6 +456,10 @@ def build_parser() -> argparse.ArgumentParser:
     up_cmd.set_defaults(func=_cmd_up)
     down_cmd = sub.add_parser("down", help="stop the stack `mfvs up` started")
     down_cmd.set_defaults(func=_cmd_down)
+    restart_cmd = sub.add_parser("restart", help="restart one process of the stack `mfvs up` started (a service, "
+                                 "the router) with its command line, as its systemd unit would")
+    restart_cmd.add_argument("name", help="the process's name in `mfvs status` (vision, safety, router, ...)")
+    restart_cmd.set_defaults(func=_cmd_restart)
     status_cmd = sub.add_parser("status", help="health, rates and error counters of the running services")
     status_cmd.add_argument("--json", action="store_true", help="print one JSON object")
     status_cmd.add_argument("--connect", default=None, help="router endpoint (default: the stack's)")
@@ -519,7 +538,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "laws: µs per control-law iteration; latency: capture → applied, per hop; "
                        "rs485: actuator bus cycle and request→reply latency; swap: iterations to converge through "
                        "robot_sim and through robot_gateway; cpu: CPU and memory per service; gateway: tracking "
-                       "under load; load: the robot state's period while a flood hits an unrelated key")
+                       "under load; load: the robot state's period while a flood hits an unrelated key; "
+                       "soak: servo tasks back to back through random faults, and the unsafe events")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)

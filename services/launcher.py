@@ -20,6 +20,7 @@ once a task is started (``mfvs task start``, :func:`stack_task`). Profiles:
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -163,13 +164,19 @@ def run_dir() -> Path:
 
 
 def _alive(pid: int) -> bool:
+    """Whether the process runs: a zombie (dead, not yet reaped by the process that started it, as when `up` ran
+    in this one) is not."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         return True
-    return True
+    try:
+        # the state follows the command name, which is in parentheses and may hold anything
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
 
 
 def read_stack() -> Optional[dict]:
@@ -225,12 +232,13 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0, host: Optio
     if runs_router:
         log = directory / "router.log"
         children.append(spawn(router_args, log))
-        processes.append({"name": "router", "pid": children[-1].pid, "log": str(log)})
+        processes.append({"name": "router", "pid": children[-1].pid, "log": str(log), "args": router_args})
     if profile.bus_hub is not None:
         log = directory / "bus_hub.log"
-        children.append(spawn([sys.executable, "-m", "services.cli", "bus-hub", "--port", str(profile.bus_hub.port),
-                                "--host", profile.bus_hub.host], log))
-        processes.append({"name": "bus_hub", "pid": children[-1].pid, "log": str(log)})
+        hub_args = [sys.executable, "-m", "services.cli", "bus-hub", "--port", str(profile.bus_hub.port),
+                    "--host", profile.bus_hub.host]
+        children.append(spawn(hub_args, log))
+        processes.append({"name": "bus_hub", "pid": children[-1].pid, "log": str(log), "args": hub_args})
     time.sleep(0.5)
     for service in services:
         args = service_command(service, endpoint, profile.robot_id, clock)
@@ -238,10 +246,10 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0, host: Optio
         exit_file = directory / f"{service.name}.exit"
         children.append(spawn(args, log, exit_file))
         processes.append({"name": service.name, "pid": children[-1].pid, "log": str(log),
-                          "exit_file": str(exit_file)})
+                          "exit_file": str(exit_file), "args": args})
     stack = {"endpoint": endpoint, "robot_id": profile.robot_id, "processes": processes, "started": time.time(),
              "zenoh_config": observer, "host": host}
-    (directory / "stack.json").write_text(json.dumps(stack, indent=2))
+    _write_stack(stack)
     # wait until every service of this host announces itself (the router may be another host's, and later)
     names = {s.name for s in services}
     deadline = time.monotonic() + wait_s
@@ -323,6 +331,45 @@ def down(timeout_s: float = 15.0) -> tuple[int, str]:
     return 0, f"stopped {len(ordered)} processes"
 
 
+def restart(name: str, timeout_s: float = 10.0) -> tuple[int, str]:
+    """Restart one process of the running stack (a service, the router, the hub) with the command line it was
+    started with, as its systemd unit would: ended first if it still runs (SIGTERM, a stopped one woken to hear it,
+    SIGKILL after ``timeout_s``). The run directory remembers how often and when (`mfvs status` shows it)."""
+    stack = read_stack()
+    if stack is None:
+        return 1, f"no stack in {run_dir()} (mfvs up)"
+    process = next((p for p in stack["processes"] if p["name"] == name), None)
+    if process is None:
+        return 2, f"no {name} in this stack ({', '.join(p['name'] for p in stack['processes'])})"
+    if "args" not in process:
+        return 1, f"{name} was started by an older mfvs: its command line is not known (mfvs down; mfvs up)"
+    pid = process["pid"]
+    if _alive(pid):
+        for sig in (signal.SIGTERM, signal.SIGCONT):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, sig)
+        deadline = time.monotonic() + timeout_s
+        while _alive(pid) and time.monotonic() < deadline:
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(pid, os.WNOHANG)
+            time.sleep(0.05)
+        if _alive(pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    exit_file = Path(process["exit_file"]) if process.get("exit_file") else None
+    child = spawn(process["args"], Path(process["log"]), exit_file)
+    process.update(pid=child.pid, restarts=process.get("restarts", 0) + 1, restarted=time.time())
+    _write_stack(stack)
+    return 0, f"{name} restarted (pid {child.pid})"
+
+
+def _write_stack(stack: dict) -> None:
+    path = run_dir() / "stack.json"
+    tmp = path.with_name("stack.json.tmp")
+    tmp.write_text(json.dumps(stack, indent=2))
+    tmp.replace(path)
+
+
 def status(endpoint: str, robot_id: str = "jaco", liveliness_only: bool = False, zenoh_config: str | None = None):
     """Service name → health (ServiceHealth or None when only liveliness is known)."""
     keys = Keys(robot_id)
@@ -340,7 +387,12 @@ def status(endpoint: str, robot_id: str = "jaco", liveliness_only: bool = False,
 def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -> dict:
     stack = read_stack() or {"processes": []}
     pids = {p["name"]: p["pid"] for p in stack["processes"]}
-    router: dict = {"endpoint": endpoint, "pid": pids.get("router"), "reachable": False}
+    restarts = {p["name"]: {"restarts": p.get("restarts", 0),
+                            "restarted_ago_s": round(time.time() - p["restarted"], 1) if p.get("restarted") else None}
+                for p in stack["processes"]}
+    no_restarts = {"restarts": 0, "restarted_ago_s": None}
+    router: dict = {"endpoint": endpoint, "pid": pids.get("router"), "reachable": False,
+                    **restarts.get("router", no_restarts)}
     services = []
     try:
         found = status(endpoint, robot_id, zenoh_config=zenoh_config)
@@ -361,6 +413,7 @@ def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -
             "state": health.state if health else "unknown",
             "rates_hz": dict(health.rates_hz) if health else {}, "errors": dict(health.errors) if health else {},
             "degraded": list(health.degraded) if health else [], "detail": health.detail if health else "",
+            **restarts.get(name, no_restarts),
         })
     # what the run directory started and the bus does not know: dead (with its exit code when it left one), or
     # running but silent
@@ -376,6 +429,7 @@ def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -
             "exit_code": None if alive else exit_code, "rates_hz": {}, "errors": {}, "degraded": [],
             "detail": "" if alive else ("killed (no exit code)" if exit_code is None else f"exit code {exit_code}")
                       + f"; log {process.get('log', '')}",
+            **restarts.get(name, no_restarts),
         })
     return {"router": router, "services": services}
 

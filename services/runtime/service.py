@@ -33,6 +33,7 @@ from services.runtime.config import ConfigStruct
 from services.runtime.logs import RateLimitedLogger
 from services.runtime.metrics import Counters, Rates
 from services.runtime.threads import start_thread
+from services.runtime.faults import FaultInjector
 from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session, publisher_options
 
 M = TypeVar("M", bound=msgspec.Struct)
@@ -44,19 +45,34 @@ class ServiceConfig(ConfigStruct):
     zenoh: ZenohConfig = msgspec.field(default_factory=ZenohConfig)
     health_period_s: float = 1.0
     log_level: str = "info"
+    #: a fault plan to inject into this service's outputs (drop, delay per key; services/runtime/faults.py), reread
+    #: when it changes: for tests and soaks, never for a robot in service
+    faults_file: str | None = None
 
 
 class TypedPublisher:
     """A zenoh publisher that takes messages, encodes them, and counts what it sends. Safe to use from callback
-    threads while the service stops (see GuardedPublisher)."""
+    threads while the service stops (see GuardedPublisher). With a :class:`FaultInjector`, what it sends may be
+    dropped or held back as the injector's plan says."""
 
-    def __init__(self, publisher: zenoh.Publisher, rates: Rates, name: str) -> None:
+    def __init__(self, publisher: zenoh.Publisher, rates: Rates, name: str, key: str = "", stream: str = "",
+                 faults: FaultInjector | None = None) -> None:
         self._publisher = GuardedPublisher(publisher)
         self._rates = rates
         self._name = name
+        self._key = key
+        self._stream = stream
+        self._faults = faults
 
     def put(self, message: msgspec.Struct) -> None:
-        if self._publisher.put(encode(message)):
+        payload = encode(message)
+        if self._faults is None:
+            self._put_now(payload)
+        else:
+            self._faults.send(self._key, self._stream, self._put_now, payload)
+
+    def _put_now(self, payload: bytes) -> None:
+        if self._publisher.put(payload):
             self._rates.tick(self._name)
 
     @property
@@ -145,6 +161,7 @@ class Service:
         self._loops: dict[str, tuple[float, tuple[str, ...]]] = {}
         self._overruns_seen: dict[str, int] = {}
         self._degraded: list[str] = []
+        self._faults: FaultInjector | None = None
 
     # ------------------------------------------------------------------ hooks
     def on_start(self) -> None:
@@ -165,6 +182,8 @@ class Service:
             self.state = "starting"
             self._started_monotonic = time.monotonic()
             self.session = open_session(self.config.zenoh)
+            if self.config.faults_file:
+                self._faults = FaultInjector(self.config.faults_file, self.counters, self.log, self.name)
             try:
                 if isinstance(self.clock, SimulatedClock) and self.follows_sim_clock:
                     self.subscribe(self.keys.clock, SimClock, self._on_sim_clock, "sim_clock")
@@ -206,6 +225,9 @@ class Service:
     def _teardown(self) -> None:
         if self._health_thread is not None and self._health_thread is not threading.current_thread():
             self._health_thread.join(timeout=2.0)
+        if self._faults is not None:
+            self._faults.close()
+            self._faults = None
         # inputs first (subscribers, queryables), then outputs, so no callback publishes on an undeclared publisher
         ordered = [e for e in reversed(self._declared) if not isinstance(e, TypedPublisher)] + \
                   [e for e in reversed(self._declared) if isinstance(e, TypedPublisher)]
@@ -286,7 +308,8 @@ class Service:
     def publisher(self, key: str, stream: str, **options) -> TypedPublisher:
         assert self.session is not None, "publisher() belongs in on_start()"
         options = {**publisher_options(key), **options}
-        typed = TypedPublisher(self.session.declare_publisher(key, **options), self.rates, f"pub.{stream}")
+        typed = TypedPublisher(self.session.declare_publisher(key, **options), self.rates, f"pub.{stream}", key,
+                               stream, self._faults)
         self._declared.append(typed)
         return typed
 

@@ -74,6 +74,21 @@ def test_up_status_down(tmp_path):
         assert services["controller"]["condition"] == "dead" and "killed" in services["controller"]["detail"]
         assert services["vision"]["condition"] == "dead" and services["vision"]["exit_code"] == 0
         assert "DEAD" in mfvs("status", env=env).stdout
+        # `mfvs restart` brings one back with its command line, and the status says it was restarted
+        again = mfvs("restart", "controller", env=env)
+        assert again.returncode == 0 and "controller restarted" in again.stdout, again.stderr
+        stack = json.loads((tmp_path / "stack.json").read_text())
+        pids = {p["name"]: p["pid"] for p in stack["processes"]}
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            services = {s["name"]: s for s in json.loads(mfvs("status", "--json", env=env).stdout)["services"]}
+            if services["controller"]["condition"] not in ("dead", "not responding"):
+                break
+            time.sleep(1.0)
+        assert services["controller"]["pid"] == pids["controller"] and services["controller"]["restarts"] == 1
+        assert "restarted 1×" in mfvs("status", env=env).stdout
+        unknown = mfvs("restart", "planner", env=env)
+        assert unknown.returncode == 2 and "no planner in this stack" in unknown.stderr
     finally:
         down = mfvs("down", env=env)
     assert down.returncode == 0 and "stopped 5 processes" in down.stdout
