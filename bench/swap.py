@@ -63,7 +63,18 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str], quiet:
             comparison[clock] = {"gateway_over_sim": round(gateway["iterations_median"] / sim["iterations_median"], 3),
                                  # the run farthest from the sim's median, either way
                                  "worst_gateway_over_sim": round(max(ratios, key=lambda r: abs(r - 1.0)), 3)}
-    return {"scenario": str(scenario_path), "profiles": results, "comparison": comparison}
+    # what the host's timing costs: realtime against the lockstep run of the same profile (issue 17: within 10 %)
+    realtime_over_lockstep = {}
+    for profile in ("sim", "gateway"):
+        lockstep, realtime = results.get(f"{profile}-lockstep"), results.get(f"{profile}-realtime")
+        if lockstep and realtime and lockstep["iterations_median"] and realtime["iterations_median"]:
+            ratios = [row["iterations"] / lockstep["iterations_median"] for row in realtime["runs"]
+                      if row["converged"]]
+            realtime_over_lockstep[profile] = {
+                "median": round(realtime["iterations_median"] / lockstep["iterations_median"], 3),
+                "worst": round(max(ratios, key=lambda r: abs(r - 1.0)), 3) if ratios else None}
+    return {"scenario": str(scenario_path), "profiles": results, "comparison": comparison,
+            "realtime_over_lockstep": realtime_over_lockstep}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -101,6 +112,13 @@ def main(argv: list[str] | None = None) -> int:
         for clock, c in result["comparison"].items():
             print(f"  {clock}: gateway/sim iterations {c['gateway_over_sim']} (worst run {c['worst_gateway_over_sim']})",
                   flush=True)
+        for profile, c in result["realtime_over_lockstep"].items():
+            print(f"  {profile}: realtime/lockstep iterations {c['median']} (worst run {c['worst']})", flush=True)
+    if not args.json:
+        outside = [f"{Path(r['scenario']).stem} {profile} {c['worst']}" for r in results
+                   for profile, c in r["realtime_over_lockstep"].items()
+                   if c["worst"] is not None and abs(c["worst"] - 1.0) > 0.10]
+        print(f"realtime within 10 % of lockstep in every run: {'yes' if not outside else 'no: ' + ', '.join(outside)}")
     if args.json:
         print(json.dumps({"scenarios": results}))
     return 0
