@@ -24,7 +24,8 @@ from bench.stack import servoing_stack, with_overrides
 from services.launcher import load_profile
 
 
-def _stats(values_ms: list[float]) -> dict:
+def stats(values_ms: list[float]) -> dict:
+    """p50, p99, max (ms, rounded to µs) and how many."""
     if not values_ms:
         return {"p50": None, "p99": None, "max": None, "n": 0}
     v = np.sort(values_ms)
@@ -56,7 +57,7 @@ def analyse(states: list[m.RobotState]) -> dict:
             hops.setdefault(f"{previous_name}→{hop.service}", []).append((hop.recv_ns - previous_pub) / 1e6)
             hops.setdefault(hop.service, []).append((hop.pub_ns - hop.recv_ns) / 1e6)
             previous_name, previous_pub = hop.service, hop.pub_ns
-    return {"e2e_ms": _stats(e2e), "hops": {name: _stats(values) for name, values in hops.items()}}
+    return {"e2e_ms": stats(e2e), "hops": {name: stats(values) for name, values in hops.items()}}
 
 
 def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None = None) -> dict:

@@ -3,8 +3,9 @@ through vision), first as it is, then while another process floods an unrelated 
 ``--rate`` messages a second (small payloads, received by a subscriber of its own, so the router routes every one).
 
 For each phase it prints the robot loop's period (p50, p99, max of the states' own stamps: when the loop ran), the
-period at which a separate subscriber receives them (what every service sees), the robot loop's own account (bus cycles per second, late and missed cycles per second, from
-RobotState.timing) and, under flood, the rate the flood achieved.
+period at which a separate subscriber receives them (what every service sees) and how long after the loop's tick,
+the robot loop's own account (bus cycles per second, late and missed cycles per second, from RobotState.timing)
+and, under flood, the rate the flood achieved.
 
 ``python -m bench.load [--json] [--seconds S] [--rate N]`` or ``mfvs bench load``.
 """
@@ -20,6 +21,7 @@ import numpy as np
 
 from protocol import messages as m
 from protocol.keys import Keys
+from bench.latency import stats
 from bench.stack import servoing_stack
 from services.launcher import REPO, load_profile
 from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
@@ -55,28 +57,16 @@ sink.close()
 """
 
 
-def _period_stats(receipts_ns: list[int]) -> dict:
-    periods = np.diff(np.asarray(receipts_ns, dtype=np.int64)) / 1e6
-    if len(periods) == 0:
-        return {"p50": None, "p99": None, "max": None, "n": 0}
-    return {"p50": round(float(np.percentile(periods, 50)), 3), "p99": round(float(np.percentile(periods, 99)), 3),
-            "max": round(float(periods.max()), 3), "n": int(len(periods))}
-
-
-def _spread(values_ms: list[float]) -> dict:
-    if not values_ms:
-        return {"p50": None, "p99": None, "max": None}
-    v = np.asarray(values_ms)
-    return {"p50": round(float(np.percentile(v, 50)), 3), "p99": round(float(np.percentile(v, 99)), 3),
-            "max": round(float(v.max()), 3)}
+def _periods_ms(stamps_ns: list[int]) -> list[float]:
+    return list(np.diff(np.asarray(stamps_ns, dtype=np.int64)) / 1e6)
 
 
 def _phase(states: list[tuple[int, m.RobotState]]) -> dict:
     timing = [s.timing for _, s in states if s.timing is not None]
     return {
-        "state_period_ms": _period_stats([t for t, _ in states]),
-        "loop_period_ms": _period_stats([s.header.stamp_ns for _, s in states]),
-        "heard_after_ms": _spread([(t - s.header.stamp_ns) / 1e6 for t, s in states]),
+        "state_period_ms": stats(_periods_ms([t for t, _ in states])),
+        "loop_period_ms": stats(_periods_ms([s.header.stamp_ns for _, s in states])),
+        "heard_after_ms": stats([(t - s.header.stamp_ns) / 1e6 for t, s in states]),
         "loop_rate_hz": round(float(np.mean([t.rate_hz for t in timing])), 1) if timing else None,
         "late_per_s": round(float(np.mean([t.late_per_s for t in timing])), 2) if timing else None,
         "missed_per_s": round(float(np.mean([t.missed_per_s for t in timing])), 2) if timing else None,
@@ -120,10 +110,11 @@ def main(argv: list[str] | None = None) -> int:
         r = result[name]
         loop, heard = r["loop_period_ms"], r["state_period_ms"]
         extra = (f"; flood {r['sent_msg_s']} msg/s sent, {r['received_msg_s']} received" if name == "flood" else "")
+        after = r["heard_after_ms"]
         print(f"{name:6s} robot loop period p50 {loop['p50']} ms, p99 {loop['p99']} ms, max {loop['max']} ms; "
               f"states heard every p50 {heard['p50']} ms, p99 {heard['p99']} ms, max {heard['max']} ms "
-              f"({heard['n']}), {r['heard_after_ms']['p50']}/{r['heard_after_ms']['p99']} ms after the loop's tick; bus {r['loop_rate_hz']} cycles/s, late {r['late_per_s']}/s, "
-              f"missed {r['missed_per_s']}/s{extra}")
+              f"({heard['n']}), {after['p50']}/{after['p99']} ms after the loop's tick; bus {r['loop_rate_hz']} "
+              f"cycles/s, late {r['late_per_s']}/s, missed {r['missed_per_s']}/s{extra}")
     return 0
 
 

@@ -94,7 +94,6 @@ class StateRecord:
     joint_ratio: float  # the fastest joint's speed over its limit
     linear_limit_mps: float
     applied_stamp_ns: int
-    applied_seq: int
 
 
 @dataclass
@@ -172,12 +171,12 @@ class Soak:
         self.kinds = {k: KIND_WEIGHTS[k] for k in (kinds or KIND_WEIGHTS)}
         self.rng = random.Random(seed)
         self.kin = ArmKinematics()
-        self.judge = Judge.for_robot(AdmissionConfig(), DSPConfig())
+        self.dsp = DSPConfig()
+        self.judge = Judge.for_robot(AdmissionConfig(), self.dsp)
         self.lock = threading.Lock()
         self.operator = self.session_as("operator")
         self.commands: list[tuple[int, bytes]] = []  # (heard, payload) of safety's commands, for replays
         self.statuses: list[m.ControllerStatus] = []
-        self.stuck: list[str] = []
         self.safety_states: list[m.SafetyState] = []
         self.faults: dict[str, int] = {}
         self.recovered = 0
@@ -205,8 +204,8 @@ class Soak:
         joint_ratio = float(np.max(np.abs(state.dq) / np.asarray(limits.joint_speed_rps))) if limits else 0.0
         applied = state.applied_command
         record = StateRecord(state.header.stamp_ns, time.time_ns(), linear, joint_ratio,
-                             limits.linear_speed_mps if limits else DSPConfig().max_linear_speed_mps,
-                             applied.stamp_ns if applied else 0, applied.seq if applied else 0)
+                             limits.linear_speed_mps if limits else self.dsp.max_linear_speed_mps,
+                             applied.stamp_ns if applied else 0)
         with self.lock:
             self.judge.state(record)
             self.state_heard_ns = record.heard_ns
@@ -423,7 +422,7 @@ class Soak:
         return "confirmed" if confirmed else "not confirmed"
 
     # ------------------------------------------------------------------ recovery
-    def recover(self, fault: str, names: set[str]) -> float | None:
+    def recover(self, names: set[str]) -> float | None:
         """Seconds until every service is alive and the loop is in service again (:meth:`in_service`), None when
         that does not happen within RECOVERY_S."""
         start = time.monotonic()
@@ -478,7 +477,7 @@ def run(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None
                 next_report = start + 60.0
                 while time.monotonic() < deadline:
                     fault = soak.inject()
-                    took = soak.recover(fault, names)
+                    took = soak.recover(names)
                     log.append({"at_s": round(time.monotonic() - start, 1), "fault": fault,
                                 "recovery_s": None if took is None else round(took, 2),
                                 "controller": soak.statuses[-1].status.value if soak.statuses else None,

@@ -310,25 +310,29 @@ def down(timeout_s: float = 15.0) -> tuple[int, str]:
               [p for p in stack["processes"] if p["name"] in infrastructure]
     services = sum(p["name"] not in infrastructure for p in ordered)
     for group in (ordered[:services], ordered[services:]):
-        for proc in group:
-            if _alive(proc["pid"]):
-                try:
-                    os.kill(proc["pid"], signal.SIGTERM)
-                except ProcessLookupError:
-                    pass
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and any(_alive(p["pid"]) for p in group):
-            time.sleep(0.1)
-            for p in group:  # reap our children if we started them in this process
-                try:
-                    os.waitpid(p["pid"], os.WNOHANG)
-                except ChildProcessError:
-                    pass
-        for proc in group:
-            if _alive(proc["pid"]):
-                os.kill(proc["pid"], signal.SIGKILL)
+        _end([p["pid"] for p in group], timeout_s)
     (run_dir() / "stack.json").unlink(missing_ok=True)
     return 0, f"stopped {len(ordered)} processes"
+
+
+def _end(pids: list[int], timeout_s: float, wake: bool = False) -> None:
+    """SIGTERM to each process still running (and SIGCONT with ``wake``, so a stopped one hears it), reaping those
+    this process started, then SIGKILL to what still runs after ``timeout_s``."""
+    for pid in pids:
+        if _alive(pid):
+            for sig in (signal.SIGTERM, signal.SIGCONT) if wake else (signal.SIGTERM,):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, sig)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and any(_alive(pid) for pid in pids):
+        time.sleep(0.05)
+        for pid in pids:  # reap our children if we started them in this process
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(pid, os.WNOHANG)
+    for pid in pids:
+        if _alive(pid):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
 
 
 def restart(name: str, timeout_s: float = 10.0) -> tuple[int, str]:
@@ -343,19 +347,7 @@ def restart(name: str, timeout_s: float = 10.0) -> tuple[int, str]:
         return 2, f"no {name} in this stack ({', '.join(p['name'] for p in stack['processes'])})"
     if "args" not in process:
         return 1, f"{name} was started by an older mfvs: its command line is not known (mfvs down; mfvs up)"
-    pid = process["pid"]
-    if _alive(pid):
-        for sig in (signal.SIGTERM, signal.SIGCONT):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, sig)
-        deadline = time.monotonic() + timeout_s
-        while _alive(pid) and time.monotonic() < deadline:
-            with contextlib.suppress(ChildProcessError):
-                os.waitpid(pid, os.WNOHANG)
-            time.sleep(0.05)
-        if _alive(pid):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
+    _end([process["pid"]], timeout_s, wake=True)
     exit_file = Path(process["exit_file"]) if process.get("exit_file") else None
     child = spawn(process["args"], Path(process["log"]), exit_file)
     process.update(pid=child.pid, restarts=process.get("restarts", 0) + 1, restarted=time.time())

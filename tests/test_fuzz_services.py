@@ -215,6 +215,25 @@ def under(key: str, api_key: str) -> bool:
     return key.rsplit("/", 1)[0] == api_key.rsplit("/", 1)[0]
 
 
+def put_and_see_each_refused_once(client, services, key: str, batch: list[bytes]) -> None:
+    """Put every payload of ``batch`` on ``key``: each subscriber of the key counts each exactly once as rejected,
+    and no handler of any service fails."""
+    subscribers = [(name, f"rejected.{d.stream}") for name, service in services.items() for d in service.inputs
+                   if d.key == key]
+    before = {s: services[s[0]].counters.get(s[1]) for s in subscribers}
+    handler_errors = {name: service.counters.get("errors.handler") for name, service in services.items()}
+    for payload in batch:
+        client.put(key, payload)
+
+    def counted():
+        return {s: services[s[0]].counters.get(s[1]) - before[s] for s in subscribers}
+
+    assert wait_for(lambda: all(v >= len(batch) for v in counted().values()), timeout=10), (key, counted())
+    assert all(v == len(batch) for v in counted().values()), (key, counted())
+    assert {name: service.counters.get("errors.handler") for name, service in services.items()} == \
+        handler_errors, key
+
+
 @FUZZ
 @given(data=st.data())
 def test_every_subscriber_counts_each_malformed_payload_once(stack, data):
@@ -224,20 +243,7 @@ def test_every_subscriber_counts_each_malformed_payload_once(stack, data):
     for key, message_type in sorted(inputs.items()):
         batch = [p for p in data.draw(st.lists(payloads, min_size=3, max_size=8), label=key)
                  if rejects(p, message_type)]
-        subscribers = [(name, f"rejected.{d.stream}") for name, service in services.items() for d in service.inputs
-                       if d.key == key]
-        before = {s: services[s[0]].counters.get(s[1]) for s in subscribers}
-        handler_errors = {name: service.counters.get("errors.handler") for name, service in services.items()}
-        for payload in batch:
-            client.put(key, payload)
-
-        def counted():
-            return {s: services[s[0]].counters.get(s[1]) - before[s] for s in subscribers}
-
-        assert wait_for(lambda: all(v >= len(batch) for v in counted().values()), timeout=10), (key, counted())
-        assert all(v == len(batch) for v in counted().values()), (key, counted())
-        assert {name: service.counters.get("errors.handler") for name, service in services.items()} == \
-            handler_errors, key
+        put_and_see_each_refused_once(client, services, key, batch)
 
 
 @FUZZ
@@ -248,17 +254,7 @@ def test_every_subscriber_counts_each_real_message_made_wrong_once(stack, real_m
     for key, message_type in sorted(inputs.items()):
         batch = [p for p in data.draw(st.lists(made_wrong(real_messages[key]), min_size=3, max_size=8), label=key)
                  if rejects(p, message_type)]
-        subscribers = [(name, f"rejected.{d.stream}") for name, service in services.items() for d in service.inputs
-                       if d.key == key]
-        before = {s: services[s[0]].counters.get(s[1]) for s in subscribers}
-        for payload in batch:
-            client.put(key, payload)
-
-        def counted():
-            return {s: services[s[0]].counters.get(s[1]) - before[s] for s in subscribers}
-
-        assert wait_for(lambda: all(v >= len(batch) for v in counted().values()), timeout=10), (key, counted())
-        assert all(v == len(batch) for v in counted().values()), (key, counted())
+        put_and_see_each_refused_once(client, services, key, batch)
 
 
 def test_the_real_messages_made_wrong_are_refused_by_their_types(stack, real_messages):

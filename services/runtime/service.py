@@ -55,11 +55,11 @@ class TypedPublisher:
     threads while the service stops (see GuardedPublisher). With a :class:`FaultInjector`, what it sends may be
     dropped or held back as the injector's plan says."""
 
-    def __init__(self, publisher: zenoh.Publisher, rates: Rates, name: str, key: str = "", stream: str = "",
+    def __init__(self, publisher: zenoh.Publisher, rates: Rates, key: str, stream: str,
                  faults: FaultInjector | None = None) -> None:
         self._publisher = GuardedPublisher(publisher)
         self._rates = rates
-        self._name = name
+        self._name = f"pub.{stream}"
         self._key = key
         self._stream = stream
         self._faults = faults
@@ -308,8 +308,7 @@ class Service:
     def publisher(self, key: str, stream: str, **options) -> TypedPublisher:
         assert self.session is not None, "publisher() belongs in on_start()"
         options = {**publisher_options(key), **options}
-        typed = TypedPublisher(self.session.declare_publisher(key, **options), self.rates, f"pub.{stream}", key,
-                               stream, self._faults)
+        typed = TypedPublisher(self.session.declare_publisher(key, **options), self.rates, key, stream, self._faults)
         self._declared.append(typed)
         return typed
 

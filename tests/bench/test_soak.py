@@ -12,7 +12,7 @@ def records(speeds, applied_age_ms=10, start_ns=10**18):
     """States every 10 ms at these end-effector speeds, each applying a command ``applied_age_ms`` old."""
     return [StateRecord(stamp_ns=start_ns + i * 10 * MS, heard_ns=start_ns + i * 10 * MS + MS, linear_mps=v,
                         joint_ratio=0.3, linear_limit_mps=0.2,
-                        applied_stamp_ns=start_ns + (i * 10 - applied_age_ms) * MS, applied_seq=i)
+                        applied_stamp_ns=start_ns + (i * 10 - applied_age_ms) * MS)
             for i, v in enumerate(speeds)]
 
 
