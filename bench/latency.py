@@ -13,15 +13,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 
 import numpy as np
 
 from protocol import messages as m
 from protocol.keys import Keys
+from services.runtime.service import query_health
 from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
 from bench.stack import servoing_stack, with_overrides
 from services.launcher import load_profile
+from services.robot.node import ROBOT_SERVICES
 
 
 def stats(values_ms: list[float]) -> dict:
@@ -49,7 +52,7 @@ def analyse(states: list[m.RobotState]) -> dict:
     for capture, header in first.items():
         trace = header.trace
         names = [h.service for h in trace]
-        if names[-1] != "robot_sim" and names[-1] != "robot_gateway":
+        if names[-1] not in ROBOT_SERVICES:
             continue
         e2e.append((trace[-1].pub_ns - capture) / 1e6)
         previous_name, previous_pub = "capture", capture
@@ -72,10 +75,13 @@ def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None
         time.sleep(seconds)
         window = states[start:]
         first_second = states[:start]
+        robot_sim = query_health(session, Keys()).get("robot_sim")
         session.close()
     result = analyse(window)
     result["start"] = analyse(first_second)
     result["seconds"] = seconds
+    trigger = re.search(r"camera_trigger_ms=\S+ \([^)]*\)", robot_sim.detail) if robot_sim is not None else None
+    result["camera_trigger"] = trigger.group(0) if trigger else None
     result["profile"] = profile
     return result
 
@@ -100,6 +106,7 @@ def print_result(result: dict) -> None:
           f"max {e['max']} ms ({e['n']} frames)")
     for name, h in result["hops"].items():
         print(f"  {name:24s} p50 {h['p50']:8.3f} ms  p99 {h['p99']:8.3f} ms  max {h['max']:8.3f} ms")
+    print(f"  at the end: {result['camera_trigger']}")
     s = result["start"]["e2e_ms"]
     print(f"  the task's first second: p50 {s['p50']} ms, p99 {s['p99']} ms, max {s['max']} ms ({s['n']} frames)")
 

@@ -34,6 +34,7 @@ from services.controller.service import ControllerConfig
 from services.controller.task_client import start_task
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig
 from services.robot.dsp import DSPConfig
+from services.robot.node import ROBOT_SERVICES
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
 from services.stack import LocalStack, StackConfig
@@ -363,7 +364,7 @@ def _frames_lost(session, keys: Keys) -> tuple[dict, int]:
     health = query_health(session, keys)
     lost = {name: health[service].errors.get(counter, 0)
             for (service, counter), name in FRAME_LOSS_COUNTERS.items() if service in health}
-    timeouts = sum(health[service].errors.get(counter, 0) for service in ("robot_sim", "robot_gateway")
+    timeouts = sum(health[service].errors.get(counter, 0) for service in ROBOT_SERVICES
                    if service in health for counter in LOCKSTEP_TIMEOUT_COUNTERS)
     return lost, timeouts
 

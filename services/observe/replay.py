@@ -22,6 +22,7 @@ from protocol import messages as m
 from protocol.keys import Keys
 from protocol.topics import UnknownTopic, key_pattern, resolve, topic_of
 from services.observe.foxglove_view import RAW_ENCODING, RAW_TYPE
+from services.robot.node import ROBOT_SERVICES
 from services.runtime.service import alive_services
 
 #: what a replay never publishes: these move an arm
@@ -29,7 +30,6 @@ COMMAND_TYPES = (m.RobotCommand, m.TorqueCommand, m.EStop)
 #: nor this: a recorded service's health would stand in for the live one's
 NOT_REPLAYED = COMMAND_TYPES + (m.ServiceHealth,)
 #: the services that are a robot (a replayed robot state beside one would be a second robot)
-ROBOT_SERVICES = ("robot_sim", "robot_gateway")
 #: how long lockstep waits for a frame's answers before going on (counted as unanswered)
 ANSWER_TIMEOUT_S = 5.0
 

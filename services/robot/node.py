@@ -77,6 +77,9 @@ from services.robot.hardware import (CYCLE_NS, CYCLE_S, CYCLES_PER_DSP, DSP_CYCL
                                      HardwareError, JointReading, RobotHardware)
 from services.robot.pacing import CyclePacer, request_realtime
 
+#: the services that are a robot node (the last hop of every applied command's trace): robot_sim's api mode on the
+#: simulated arm, robot_gateway in front of the emulated bus or a real arm
+ROBOT_SERVICES = ("robot_sim", "robot_gateway")
 #: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
 #: in the DSP and run, unexpectedly, once torque control ends)
 MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})

@@ -6,7 +6,7 @@ target at its true size, and an eye-in-hand camera with exact pinhole intrinsics
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import Literal, Optional, Union
 
 import msgspec
 import mujoco
@@ -30,6 +30,9 @@ FLOOR_RGBA = [0.44, 0.44, 0.4, 1.0]
 TAG_BODY = "target"
 #: where in the DSP's 10 ms cycle the camera may be triggered: at a bus cycle's boundary, where the world is
 TRIGGER_OFFSETS_MS = tuple(range(0, DSP_CYCLE_NS // 1_000_000, CYCLE_NS // 1_000_000))
+#: ``trigger_offset_ms: auto`` starts here (the offset measured best on this kind of host when the pipeline takes
+#: under ~8 ms) and moves as the measured paths say (services/robot_sim/trigger_phase.py)
+AUTO_TRIGGER_START_MS = 2
 
 
 def _default_camera_in_ee() -> PoseConfig:
@@ -63,13 +66,14 @@ class CameraConfig(ConfigStruct):
     #: realtime: the camera is triggered this long after the arm's 10 ms DSP tick (a whole number of 2 ms bus
     #: cycles below 10), as a hardware-triggered camera wired to the robot's controller is: a command derived from
     #: the frame should reach the DSP just before a tick, or it waits a whole cycle for the next (docs/latency.md).
+    #: ``auto``: moved to where the commands' measured paths are applied soonest (trigger_phase.py).
     #: Lockstep takes each frame at a tick and answers it there, whatever this says.
-    trigger_offset_ms: int = 2
+    trigger_offset_ms: Union[int, Literal["auto"]] = "auto"
 
     def __post_init__(self) -> None:
-        if self.trigger_offset_ms not in TRIGGER_OFFSETS_MS:
-            raise ValueError(f"camera trigger_offset_ms must be one of {TRIGGER_OFFSETS_MS} (a whole number of "
-                             f"2 ms bus cycles after the 10 ms DSP tick), not {self.trigger_offset_ms}")
+        if self.trigger_offset_ms != "auto" and self.trigger_offset_ms not in TRIGGER_OFFSETS_MS:
+            raise ValueError(f"camera trigger_offset_ms must be auto or one of {TRIGGER_OFFSETS_MS} (a whole number "
+                             f"of 2 ms bus cycles after the 10 ms DSP tick), not {self.trigger_offset_ms}")
         if self.encoding is ImageEncoding.BGR8:
             raise ValueError("camera encoding must be rgb8 or mono8")
         if not (8 <= self.width <= 4096 and 8 <= self.height <= 4096):

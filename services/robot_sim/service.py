@@ -30,17 +30,18 @@ import msgspec
 import zenoh
 
 from protocol.conventions import ClockMode
-from protocol.messages import SimClock, encode
+from protocol.messages import RobotState, SimClock, encode
 from services.robot.arm_check import ArmCheckConfig
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
 from services.robot.hardware import CYCLE_NS, CYCLE_S, DSP_CYCLE_NS, ActuatorValues
-from services.robot.node import RobotNode, RobotNodeConfig
+from services.robot.node import ROBOT_SERVICES, RobotNode, RobotNodeConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig
 from services.robot_sim.camera import SimCamera
 from services.robot_sim.firmware import ActuatorConfig
 from services.robot_sim.hardware import SimulatedHardware
-from services.robot_sim.scene import SceneConfig
+from services.robot_sim.scene import AUTO_TRIGGER_START_MS, TRIGGER_OFFSETS_MS, SceneConfig
+from services.robot_sim.trigger_phase import TriggerPhase
 from services.robot_sim.sim import Simulation
 
 #: simulated time in lockstep starts here, so that a stamp of 0 always means "none" (no source image)
@@ -75,8 +76,12 @@ class _SimulationOutputs:
         self.service, self.sim, self.config = service, sim, config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
         self.epoch_ns = epoch_ns
-        #: realtime: frames are taken this long after a DSP tick (the camera's trigger); lockstep: at the tick
-        self.trigger_offset_ns = 0 if self.lockstep else config.scene.camera.trigger_offset_ms * 1_000_000
+        #: realtime: frames are taken this long after a DSP tick (the camera's trigger: fixed, or moved to where the
+        #: commands' measured paths are applied soonest); lockstep: at the tick
+        offset = config.scene.camera.trigger_offset_ms
+        auto = offset == "auto" and not self.lockstep
+        self.trigger = TriggerPhase(0 if self.lockstep else AUTO_TRIGGER_START_MS if auto else offset,
+                                    TRIGGER_OFFSETS_MS, auto, cycle_ms=DSP_CYCLE_NS / 1e6)
         self.camera: Optional[SimCamera] = None
         #: the frame taken at the last DSP tick: (capture stamp, rendered event)
         self.frame: Optional[tuple[int, threading.Event]] = None
@@ -95,6 +100,10 @@ class _SimulationOutputs:
         self.image_pub = service.publisher(keys.camera_image, "image")
         self.info_pub = service.publisher(keys.camera_info, "camera_info")
         service.queryable(keys.camera_info, self._on_info_query)
+        if self.trigger.auto:
+            # whichever robot node applies the commands (this process's, or robot_gateway's): the trace says when
+            # each reached it; decisions are made on this thread, the loop only reads the offset
+            service.subscribe(keys.robot_state, RobotState, self._on_robot_state, "robot_state")
         self.camera = SimCamera(self.sim, self.image_pub.put, service.header, self._render_failed,
                                 realtime_priority=max(0, self.config.realtime_priority - 1)
                                 if not self.lockstep else 0)
@@ -109,12 +118,34 @@ class _SimulationOutputs:
         self.service.counters.inc("errors.render")
         self.service.limited_log.error("render", "rendering failed")
 
+    def _on_robot_state(self, state: RobotState, recv_ns: int) -> None:
+        applied = state.applied_command
+        if applied is None or not applied.source_stamp_ns or not applied.trace:
+            return
+        robot_hop = applied.trace[-1]
+        if robot_hop.service not in ROBOT_SERVICES or not self.trigger.observe(
+                applied.source_stamp_ns, robot_hop.recv_ns, robot_hop.pub_ns):
+            return
+        change = self.trigger.update(time.monotonic_ns())
+        if change is not None:
+            self.service.counters.inc("camera.trigger_moves")
+            self.service.log.info(
+                "camera trigger moved from %d to %d ms after the DSP tick: capture to applied predicted %.1f ms on "
+                "average at the old offset, %.1f ms at the new one (%d commands; the robot takes commands %.1f ms "
+                "after its tick)", change.from_ms, change.to_ms, change.predicted_from_ms, change.predicted_to_ms,
+                change.samples, change.lag_ms)
+
+    def trigger_detail(self) -> str:
+        """The camera's trigger, for the health's detail (``mfvs status``, the latency benchmark)."""
+        how = "auto" if self.trigger.auto else "fixed"
+        return f"camera_trigger_ms={self.trigger.offset_ms} ({how}, moved {self.trigger.moves}x)"
+
     def _on_info_query(self, query: zenoh.Query) -> None:
         query.reply(self.service.keys.camera_info, encode(self.camera.info(self.service.header("camera_info"))))
 
     def at_boundary(self, sim_time_ns: int) -> None:
         """A cycle boundary, before physics moves on: take the camera frame due at this DSP tick."""
-        if not self.renders or (sim_time_ns - self.trigger_offset_ns) % DSP_CYCLE_NS or not self.sim.frame_due():
+        if not self.renders or (sim_time_ns - self.trigger.offset_ns) % DSP_CYCLE_NS or not self.sim.frame_due():
             return
         self.sim.mark_frame()
         stamp = self.epoch_ns + sim_time_ns
@@ -216,7 +247,8 @@ class RobotSimService(RobotNode):
 
     def check_health(self) -> tuple[bool, str]:
         ok, detail = super().check_health()
-        return ok, f"sim_time_s={self.sim.time_ns * 1e-9:.3f} {detail}"
+        trigger = self.outputs.trigger_detail() if self.outputs is not None else ""
+        return ok, f"sim_time_s={self.sim.time_ns * 1e-9:.3f} {trigger} {detail}"
 
 
 class ArmOnBusService(Service):
@@ -281,7 +313,7 @@ class ArmOnBusService(Service):
         stats, phase = self.arm.loop_timer.stats(), self.arm.phase_error.stats()
         return True, (f"sim_time_s={self.sim.time_ns * 1e-9:.3f} bus_cycle_rate_hz={stats['rate_hz']:.1f} "
                       f"jitter_ms_p99={stats['jitter_ms_p99']:.2f} host_phase_error_ms_p50={phase['p50_ms']:.2f} "
-                      f"p99={phase['p99_ms']:.2f}")
+                      f"p99={phase['p99_ms']:.2f} {self.outputs.trigger_detail()}")
 
 
 def robot_sim_service(config: RobotSimConfig | None = None, **kw) -> Service:

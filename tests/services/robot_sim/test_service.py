@@ -3,6 +3,7 @@ import threading
 import time
 
 import msgpack
+import msgspec
 import numpy as np
 import pytest
 
@@ -282,3 +283,43 @@ def test_lockstep_retries_a_tick_whose_answer_was_lost(robot, client):
     assert counters.get("lockstep.retries", 0) >= 5
     assert counters.get("lockstep.timeouts.cycle", 0) == 0
     assert states[-1].applied_command is not None
+
+
+def test_realtime_camera_trigger_moves_to_where_slow_commands_are_applied_soonest(router, client):
+    """robot_sim (realtime, ``trigger_offset_ms: auto``) told by the robot states that every command reaches the
+    robot 9.5 ms after its frame's capture and is applied at the second take after the tick (18.8 ms with the
+    camera 2 ms after the tick): it moves the camera to the tick itself (10.8 ms), and its frames follow."""
+    ticks, images, own_states = collect(client, KEYS.clock, m.SimClock), [], collect(client, KEYS.robot_state,
+                                                                                       m.RobotState)
+    state_pub = GuardedPublisher.declare(client, KEYS.robot_state)
+
+    def on_image(sample):
+        image = m.decode(sample.payload.to_bytes(), m.Image)
+        images.append(image.header.stamp_ns)
+        if not own_states:
+            return
+        capture = image.header.stamp_ns
+        hop = m.Hop(service="robot_gateway", recv_ns=capture + 9_500_000, pub_ns=capture + 18_800_000)
+        applied = m.Header(stamp_ns=capture, source_stamp_ns=capture, trace=[hop])
+        state_pub.put(m.encode(msgspec.structs.replace(own_states[-1], applied_command=applied)))
+
+    client.declare_subscriber(KEYS.camera_image, on_image)
+    config = RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config(), health_period_s=0.2)
+    assert config.scene.camera.trigger_offset_ms == "auto"
+    service = RobotSimService(config)
+    service.start()
+    try:
+        assert wait_for(lambda: len(images) >= 10 and ticks, timeout=30.0)
+
+        def phases_ms(stamps):
+            return {round((stamp - ticks[0].header.stamp_ns) % 10_000_000 / 1e6, 1) for stamp in stamps}
+
+        assert phases_ms(images[:5]) == {2.0}
+        assert wait_for(lambda: "camera_trigger_ms=0 (auto, moved 1x)" in service.health().detail, timeout=30.0)
+        moved_at = len(images)
+        assert wait_for(lambda: len(images) >= moved_at + 5, timeout=10.0)
+        assert phases_ms(images[moved_at + 1:]) == {0.0}
+        assert service.counters.get("camera.trigger_moves") == 1
+    finally:
+        service.stop()
+        state_pub.undeclare()
