@@ -30,8 +30,8 @@ FLOOR_RGBA = [0.44, 0.44, 0.4, 1.0]
 TAG_BODY = "target"
 #: where in the DSP's 10 ms cycle the camera may be triggered: at a bus cycle's boundary, where the world is
 TRIGGER_OFFSETS_MS = tuple(range(0, DSP_CYCLE_NS // 1_000_000, CYCLE_NS // 1_000_000))
-#: ``trigger_offset_ms: auto`` starts here (the offset measured best on this kind of host when the pipeline takes
-#: under ~8 ms) and moves as the measured paths say (services/robot_sim/trigger_phase.py)
+#: ``trigger_offset_ms: auto`` starts here (the default offset, measured best on this kind of host when the pipeline
+#: takes under ~8.5 ms) and moves as the measured paths say (services/robot_sim/trigger_phase.py)
 AUTO_TRIGGER_START_MS = 2
 
 
@@ -66,9 +66,10 @@ class CameraConfig(ConfigStruct):
     #: realtime: the camera is triggered this long after the arm's 10 ms DSP tick (a whole number of 2 ms bus
     #: cycles below 10), as a hardware-triggered camera wired to the robot's controller is: a command derived from
     #: the frame should reach the DSP just before a tick, or it waits a whole cycle for the next (docs/latency.md).
-    #: ``auto``: moved to where the commands' measured paths are applied soonest (trigger_phase.py).
+    #: ``auto``: moved to where the commands' measured paths are applied soonest (trigger_phase.py; not the
+    #: default: on this host it helps a slow pipeline and can cost the default camera its p99, docs/latency.md).
     #: Lockstep takes each frame at a tick and answers it there, whatever this says.
-    trigger_offset_ms: Union[int, Literal["auto"]] = "auto"
+    trigger_offset_ms: Union[int, Literal["auto"]] = 2
 
     def __post_init__(self) -> None:
         if self.trigger_offset_ms != "auto" and self.trigger_offset_ms not in TRIGGER_OFFSETS_MS:

@@ -130,15 +130,16 @@ class _SimulationOutputs:
         if change is not None:
             self.service.counters.inc("camera.trigger_moves")
             self.service.log.info(
-                "camera trigger moved from %d to %d ms after the DSP tick: capture to applied predicted %.1f ms on "
-                "average at the old offset, %.1f ms at the new one (%d commands; the robot takes commands %.1f ms "
+                "camera trigger moved from %d to %d ms after the DSP tick: capture to applied predicted %.1f ms "
+                "(median) at the old offset, %.1f ms at the new one (%d commands; the robot takes commands %.1f ms "
                 "after its tick)", change.from_ms, change.to_ms, change.predicted_from_ms, change.predicted_to_ms,
                 change.samples, change.lag_ms)
 
     def trigger_detail(self) -> str:
         """The camera's trigger, for the health's detail (``mfvs status``, the latency benchmark)."""
         how = "auto" if self.trigger.auto else "fixed"
-        return f"camera_trigger_ms={self.trigger.offset_ms} ({how}, moved {self.trigger.moves}x)"
+        return (f"camera_trigger_ms={self.trigger.offset_ms} ({how}, moved {self.trigger.moves}x, "
+                f"{self.trigger.inconsistent} decisions left to a model that missed)")
 
     def _on_info_query(self, query: zenoh.Query) -> None:
         query.reply(self.service.keys.camera_info, encode(self.camera.info(self.service.header("camera_info"))))
