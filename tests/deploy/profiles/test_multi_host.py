@@ -131,6 +131,8 @@ def test_a_task_converges_across_three_hosts(tmp_path):
 #: the robot's DSP stops a velocity command after this many 10-ms cycles without one (robot_sim.yaml), and brakes
 #: at its emergency deceleration from at most 0.2 m/s; the state is published every 10 ms
 REST_BUDGET_S = 0.5
+#: an observer on the robot's computer hears every state within this of its stamp, whatever happens to safety's link
+HEARD_WITHIN_S = 1.0
 #: a command older than this is never applied (services/robot/admission.py)
 MAX_COMMAND_AGE_S = 0.2
 
@@ -138,9 +140,13 @@ MAX_COMMAND_AGE_S = 0.2
 def test_a_cable_pulled_mid_motion_stops_the_arm_and_nothing_stale_moves_it_after(tmp_path):
     with netns.Lab(HOSTS) as lab, _stack_across(lab, tmp_path) as env:
         endpoint = f"tcp/{lab.address('robot')}:7447"
-        observer = subprocess.Popen(lab.command("robot", [sys.executable, "-c", OBSERVER, endpoint, "40"]),
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env("robot"),
-                                    cwd=REPO)
+        # to a file, not a pipe: a pipe nobody reads until the end fills in ~2.5 s and blocks the observer's
+        # callbacks, which then hears everything seconds late (it once passed for the router holding traffic back)
+        heard = tmp_path / "observer.jsonl"
+        with open(heard, "w") as out_file:
+            observer = subprocess.Popen(lab.command("robot", [sys.executable, "-c", OBSERVER, endpoint, "40"]),
+                                        stdout=out_file, stderr=subprocess.PIPE, text=True, env=env("robot"),
+                                        cwd=REPO)
         operator = _operator(lab, env, 35)
         time.sleep(2.5)  # the task is under way: the arm moves
         cut_ns = time.time_ns()
@@ -149,12 +155,14 @@ def test_a_cable_pulled_mid_motion_stops_the_arm_and_nothing_stale_moves_it_afte
         heal_ns = time.time_ns()
         lab.link("safety", up=True)
         out, err = operator.communicate(timeout=90)
-        states = [json.loads(line) for line in observer.communicate(timeout=90)[0].splitlines()]
+        observer.wait(timeout=90)
+        states = [json.loads(line) for line in heard.read_text().splitlines()]
     assert out, err
     result = json.loads(out)
-    # judged on the arm's own clock (the states' stamps): the router held every client's traffic back for about
-    # 5 s after the cut (zenoh 1.10, docs/deploy.md), so the observer heard them late, but the arm's own behaviour
-    # is in the states
+    # the router holds nobody's traffic behind the dead link: on the robot's computer the states are heard as they
+    # are published, cable out or not (7 ms at most in one run; a generous bound for a busy 2-core host)
+    assert max((s["wall"] - s["stamp"]) * 1e-9 for s in states) < HEARD_WITHIN_S
+    # judged on the arm's own clock (the states' stamps)
     moving = [s for s in states if s["stamp"] < cut_ns and s["dq"] > 0.02]
     assert moving, "the arm was not moving when the cable was pulled"
     during = [s for s in states if cut_ns + REST_BUDGET_S * 1e9 <= s["stamp"] < heal_ns]
