@@ -15,6 +15,13 @@ The faults, by kind (each drawn with its weight, then its victim and length at r
 * ``forge``: a fresh, fast command on the robot's command key from an identity that may not send it
 * ``wildcard``: a command put on ``<prefix>/robot/*``, which intersects the command key
 * ``estop``: the operator's e-stop for 1-2 s, then its reset
+* ``cable`` (``--hosts`` only): one computer's cable pulled for 0.5-3 s, then plugged back in
+
+With ``--hosts`` the stack runs across three computers, Linux network namespaces joined by a switch
+(services/tools/netns.py: robot with the router and robot_sim, vision with vision and the controller, safety), from
+the shipped multi-host profile with only the router's address and the access control filled in; the soak itself
+watches from the robot's computer, where the arm's states are heard whatever happens to the others' cables. Root
+only.
 
 Unsafe events (:class:`Judge`, on the arm's own clock: the robot states' stamps): a measured end-effector or joint
 speed over the robot's limit; a command applied older than the robot's admission allows; a replayed, forged or
@@ -24,7 +31,7 @@ whole again. Lost-state events: gaps over 100 ms in the robot states heard. A fa
 of its end, every service is alive and the loop is in service again: robot states and the controller's iterations
 heard, the controller servoing, safety passing its commands.
 
-``python -m bench.soak [--minutes N] [--seed S] [--json]`` or ``mfvs bench soak``.
+``python -m bench.soak [--minutes N] [--seed S] [--hosts] [--json]`` or ``mfvs bench soak``.
 """
 from __future__ import annotations
 
@@ -34,6 +41,7 @@ import json
 import os
 import random
 import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -42,6 +50,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from bench.stack import servoing_stack, with_overrides
 from protocol import messages as m
@@ -52,14 +61,21 @@ from services.launcher import load_profile, read_stack, restart
 from services.model.kinematics import ArmKinematics
 from services.robot.admission import AdmissionConfig
 from services.robot.dsp import DSPConfig
-from services.runtime.authority import write_deployment
+from services.runtime.authority import Deployment, write_deployment
 from services.runtime.faults import write_fault_plan
 from services.runtime.service import alive_services
 from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
+from services.tools import netns
 
 PIPELINE = ("vision", "controller", "safety")
 KIND_WEIGHTS = {"kill": 14, "stop": 10, "router": 4, "drop": 20, "delay": 14, "replay": 10, "forge": 10,
-                "wildcard": 10, "estop": 8}
+                "wildcard": 10, "estop": 8, "cable": 12}
+#: the kinds that need computers of their own (``--hosts``)
+ACROSS_HOSTS_KINDS = ("cable",)
+#: the computers of the ``--hosts`` soak, as the shipped multi-host profile names them
+HOSTS = ("robot", "vision", "safety")
+MFVS = str(Path(sys.executable).parent / "mfvs")
+REPO = Path(__file__).resolve().parents[1]
 #: the arm must be at rest this long after its command path is cut or the e-stop is engaged (the DSP's 20-ms
 #: watchdog or safety's 100-ms budget, a braking of at most 0.2 m/s at 1-2 m/s², generous for a shared machine)
 REST_S = 0.5
@@ -164,11 +180,52 @@ def goal_features(rng: random.Random) -> tuple[list[list[float]], float]:
     return [[cx + c * x - s * y, cy + s * x + c * y] for x, y in corners], depth
 
 
+class OneHost:
+    """The stack on this computer (`mfvs up`): its processes found and restarted through its run directory."""
+
+    cable_hosts: tuple[str, ...] = ()
+
+    def pid(self, name: str) -> int:
+        return next(p["pid"] for p in read_stack()["processes"] if p["name"] == name)
+
+    def restart(self, name: str) -> None:
+        code, message = restart(name)
+        if code:
+            raise RuntimeError(message)
+
+    def cable(self, host: str, plugged: bool) -> None:
+        raise RuntimeError("one computer has no cable to pull")
+
+
+class AcrossHosts:
+    """The stack across the computers of ``lab``, each with its own run directory (``run_dirs``); ``hosts_of``:
+    which computer runs each process."""
+
+    def __init__(self, lab: netns.Lab, run_dirs: dict[str, Path], hosts_of: dict[str, str]) -> None:
+        self.lab, self.run_dirs, self.hosts_of = lab, run_dirs, hosts_of
+        self.cable_hosts = tuple(run_dirs)
+
+    def pid(self, name: str) -> int:
+        stack = json.loads((self.run_dirs[self.hosts_of[name]] / "stack.json").read_text())
+        return next(p["pid"] for p in stack["processes"] if p["name"] == name)
+
+    def restart(self, name: str) -> None:
+        host = self.hosts_of[name]  # on its own computer, as its systemd unit would
+        out = subprocess.run(self.lab.command(host, [MFVS, "restart", name]), capture_output=True, text=True,
+                             timeout=60, env=dict(os.environ, MFVS_RUN_DIR=str(self.run_dirs[host])))
+        if out.returncode:
+            raise RuntimeError(f"mfvs restart {name} on {host}: {out.stdout}{out.stderr}")
+
+    def cable(self, host: str, plugged: bool) -> None:
+        self.lab.link(host, up=plugged)
+
+
 class Soak:
     def __init__(self, endpoint: str, deployment, run_dir: Path, seed: int, keys: Keys,
-                 kinds: list[str] | None = None) -> None:
+                 kinds: list[str] | None = None, placement: OneHost | AcrossHosts | None = None) -> None:
         self.endpoint, self.deployment, self.run_dir, self.keys = endpoint, deployment, run_dir, keys
-        self.kinds = {k: KIND_WEIGHTS[k] for k in (kinds or KIND_WEIGHTS)}
+        self.placement = placement or OneHost()
+        self.kinds = {k: KIND_WEIGHTS[k] for k in (kinds or applicable_kinds(self.placement))}
         self.rng = random.Random(seed)
         self.kin = ArmKinematics()
         self.dsp = DSPConfig()
@@ -275,9 +332,6 @@ class Soak:
         return task_started
 
     # ------------------------------------------------------------------ faults
-    def pid(self, name: str) -> int:
-        return next(p["pid"] for p in read_stack()["processes"] if p["name"] == name)
-
     def inject(self) -> str:
         kind = self.rng.choices(list(self.kinds), weights=list(self.kinds.values()))[0]
         detail = getattr(self, f"_fault_{kind}")()
@@ -294,17 +348,15 @@ class Soak:
     def _fault_kill(self) -> str:
         victim = self.rng.choice(PIPELINE)
         window = self._rest_window(f"{victim} killed")
-        os.kill(self.pid(victim), signal.SIGKILL)
+        os.kill(self.placement.pid(victim), signal.SIGKILL)
         time.sleep(self.rng.uniform(0.5, 2.0))
         window.end_ns = time.time_ns()
-        code, message = restart(victim)
-        if code:
-            raise RuntimeError(message)
+        self.placement.restart(victim)
         return victim
 
     def _fault_stop(self) -> str:
         victim = self.rng.choice(PIPELINE)
-        pid = self.pid(victim)
+        pid = self.placement.pid(victim)
         window = self._rest_window(f"{victim} stopped")
         os.kill(pid, signal.SIGSTOP)
         time.sleep(self.rng.uniform(0.3, 1.5))
@@ -314,13 +366,20 @@ class Soak:
 
     def _fault_router(self) -> str:
         window = self._rest_window("the router killed")
-        os.kill(self.pid("router"), signal.SIGKILL)
+        os.kill(self.placement.pid("router"), signal.SIGKILL)
         time.sleep(self.rng.uniform(1.0, 2.0))
         window.end_ns = time.time_ns()
-        code, message = restart("router")
-        if code:
-            raise RuntimeError(message)
+        self.placement.restart("router")
         return ""
+
+    def _fault_cable(self) -> str:
+        host = self.rng.choice(self.placement.cable_hosts)
+        window = self._rest_window(f"{host}'s cable pulled")
+        self.placement.cable(host, plugged=False)
+        time.sleep(self.rng.uniform(0.5, 3.0))
+        window.end_ns = time.time_ns()
+        self.placement.cable(host, plugged=True)
+        return host
 
     def _outputs(self) -> list[tuple[str, str]]:
         """(publishing service, key) of the control path's outputs."""
@@ -453,58 +512,58 @@ def soak_profile(port: int, deployment, faults_dir: Path):
     return profile
 
 
-def run(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None, kinds: list[str] | None = None,
-        progress=None) -> dict:
+def applicable_kinds(placement) -> list[str]:
+    """Every fault kind the placement can inject (a cable needs computers of its own)."""
+    return [k for k in KIND_WEIGHTS if placement.cable_hosts or k not in ACROSS_HOSTS_KINDS]
+
+
+def check_kinds(kinds: list[str] | None, hosts: bool) -> None:
     unknown = sorted(set(kinds or []) - set(KIND_WEIGHTS))
     if unknown:
         raise ValueError(f"unknown fault kinds {unknown}: {', '.join(KIND_WEIGHTS)}")
-    with tempfile.TemporaryDirectory(prefix="mfvs-soak-") as directory:
-        run_dir = Path(directory)
-        (run_dir / "faults").mkdir()
-        port = free_loopback_port()
-        deployment = write_deployment(run_dir / "authority", port=port,
-                                      services=("safety", "robot_sim", "vision", "controller", "operator"))
-        profile = with_overrides(soak_profile(port, deployment, run_dir / "faults"), overrides or [])
-        names = {s.name for s in profile.services}
-        with servoing_stack(profile, "bench soak") as endpoint:
-            soak = Soak(endpoint, deployment, run_dir, seed, Keys(profile.robot_id), kinds)
-            try:
-                start = time.monotonic()
-                deadline = start + minutes * 60.0
-                soak.next_task()
-                recoveries: list[float] = []
-                log: list[dict] = []
-                next_report = start + 60.0
-                while time.monotonic() < deadline:
-                    fault = soak.inject()
-                    took = soak.recover(names)
-                    log.append({"at_s": round(time.monotonic() - start, 1), "fault": fault,
-                                "recovery_s": None if took is None else round(took, 2),
-                                "controller": soak.statuses[-1].status.value if soak.statuses else None,
-                                "safety": soak.safety_states[-1].value if soak.safety_states else None})
-                    if took is None:
-                        soak.unrecovered.append(fault)
-                    else:
-                        soak.recovered += 1
-                        recoveries.append(took)
-                    quiet_until = time.monotonic() + soak.rng.uniform(0.5, 1.5)
-                    task_started = time.monotonic()
-                    while time.monotonic() < min(quiet_until, deadline):
-                        task_started = soak.tend_tasks(task_started)
-                        time.sleep(0.2)
-                    if progress is not None and time.monotonic() >= next_report:
-                        next_report += 60.0
-                        with soak.lock:
-                            unsafe = len(soak.judge.verdict()["unsafe_events"])
-                        progress(f"{(time.monotonic() - start) / 60:.0f} min: {sum(soak.faults.values())} faults, "
-                                 f"{soak.tasks_started} tasks, {unsafe} unsafe events")
-                time.sleep(1.0)  # the last states
+    if not hosts and set(kinds or []) & set(ACROSS_HOSTS_KINDS):
+        raise ValueError(f"{', '.join(ACROSS_HOSTS_KINDS)} faults need computers of their own: --hosts")
+
+
+def campaign(soak: Soak, names: set[str], minutes: float, progress=None) -> dict:
+    """Faults one after another for ``minutes``, each followed by its recovery and a quiet spell with tasks
+    tended; the result (what ``mfvs bench soak --json`` prints)."""
+    try:
+        start = time.monotonic()
+        deadline = start + minutes * 60.0
+        soak.next_task()
+        recoveries: list[float] = []
+        log: list[dict] = []
+        next_report = start + 60.0
+        while time.monotonic() < deadline:
+            fault = soak.inject()
+            took = soak.recover(names)
+            log.append({"at_s": round(time.monotonic() - start, 1), "fault": fault,
+                        "recovery_s": None if took is None else round(took, 2),
+                        "controller": soak.statuses[-1].status.value if soak.statuses else None,
+                        "safety": soak.safety_states[-1].value if soak.safety_states else None})
+            if took is None:
+                soak.unrecovered.append(fault)
+            else:
+                soak.recovered += 1
+                recoveries.append(took)
+            quiet_until = time.monotonic() + soak.rng.uniform(0.5, 1.5)
+            task_started = time.monotonic()
+            while time.monotonic() < min(quiet_until, deadline):
+                task_started = soak.tend_tasks(task_started)
+                time.sleep(0.2)
+            if progress is not None and time.monotonic() >= next_report:
+                next_report += 60.0
                 with soak.lock:
-                    verdict = soak.judge.verdict()
-            finally:
-                soak.close()
+                    unsafe = len(soak.judge.verdict()["unsafe_events"])
+                progress(f"{(time.monotonic() - start) / 60:.0f} min: {sum(soak.faults.values())} faults, "
+                         f"{soak.tasks_started} tasks, {unsafe} unsafe events")
+        time.sleep(1.0)  # the last states
+        with soak.lock:
+            verdict = soak.judge.verdict()
+    finally:
+        soak.close()
     return {
-        "minutes": minutes, "seed": seed,
         "tasks": {"started": soak.tasks_started, "converged": soak.tasks_converged},
         "faults": dict(sorted(soak.faults.items())), "faults_total": sum(soak.faults.values()),
         "recoveries": soak.recovered, "unrecovered": soak.unrecovered,
@@ -516,6 +575,98 @@ def run(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None
     }
 
 
+def run(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None, kinds: list[str] | None = None,
+        progress=None) -> dict:
+    """The soak on this computer."""
+    check_kinds(kinds, hosts=False)
+    with tempfile.TemporaryDirectory(prefix="mfvs-soak-") as directory:
+        run_dir = Path(directory)
+        (run_dir / "faults").mkdir()
+        port = free_loopback_port()
+        deployment = write_deployment(run_dir / "authority", port=port,
+                                      services=("safety", "robot_sim", "vision", "controller", "operator"))
+        profile = with_overrides(soak_profile(port, deployment, run_dir / "faults"), overrides or [])
+        names = {s.name for s in profile.services}
+        with servoing_stack(profile, "bench soak") as endpoint:
+            soak = Soak(endpoint, deployment, run_dir, seed, Keys(profile.robot_id), kinds)
+            result = campaign(soak, names, minutes, progress)
+    return {"minutes": minutes, "seed": seed, "hosts": False, **result}
+
+
+def hosts_profile(path: Path, lab: netns.Lab, deployment, faults_dir: Path, overrides: list[str]) -> dict:
+    """The shipped multi-host profile as a lab fills it in (the robot computer's address, access control), each
+    service reading its fault plan from ``faults_dir``, written to ``path``; which computer runs each process."""
+    profile = yaml.safe_load((REPO / "deploy" / "profiles" / "multi-host.yaml").read_text())
+    profile["router"].update(address=lab.address("robot"), config=str(deployment.router_config))
+    for service in profile["services"]:
+        service["zenoh_config"] = str(deployment.client_configs[service["name"]])
+        service["set"] = [f"faults_file={faults_dir / (service['name'] + '.yaml')}"] + [
+            o.partition(":")[2] for o in overrides if o.partition(":")[0] == service["name"]]
+    unknown = {o.partition(":")[0] for o in overrides} - {s["name"] for s in profile["services"]}
+    if unknown:
+        raise ValueError(f"--set: no service called {', '.join(sorted(unknown))} in the multi-host profile")
+    path.write_text(yaml.safe_dump(profile))
+    return {"router": profile["router"]["host"], **{s["name"]: s["host"] for s in profile["services"]}}
+
+
+def run_across_hosts(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None,
+                     kinds: list[str] | None = None, progress=None) -> dict:
+    """The soak with the stack across three computers (network namespaces), watched from the robot's."""
+    check_kinds(kinds, hosts=True)
+    why = netns.unavailable()
+    if why:
+        raise RuntimeError(f"--hosts needs network namespaces: {why}")
+    with tempfile.TemporaryDirectory(prefix="mfvs-soak-hosts-") as directory, netns.Lab(list(HOSTS)) as lab:
+        run_dir = Path(directory)
+        (run_dir / "faults").mkdir()
+        deployment = write_deployment(run_dir / "authority", host=lab.address("robot"), port=7447,
+                                      services=("safety", "robot_sim", "vision", "controller", "operator"))
+        profile_file = run_dir / "multi-host.yaml"
+        hosts_of = hosts_profile(profile_file, lab, deployment, run_dir / "faults", overrides or [])
+        run_dirs = {host: run_dir / host for host in HOSTS}
+        started = []
+        try:
+            for host in HOSTS:  # the router's computer first
+                out = subprocess.run(lab.command(host, [MFVS, "up", "--profile", str(profile_file), "--host", host,
+                                                        "--clock", "realtime"]), capture_output=True, text=True,
+                                     timeout=180, env=dict(os.environ, MFVS_RUN_DIR=str(run_dirs[host])), cwd=REPO)
+                started.append(host)
+                if out.returncode:
+                    raise RuntimeError(f"mfvs up on {host}: {out.stdout}{out.stderr}")
+            spec = {"endpoint": deployment.endpoint, "router_config": str(deployment.router_config),
+                    "client_configs": {k: str(v) for k, v in deployment.client_configs.items()},
+                    "run_dir": str(run_dir), "run_dirs": {h: str(d) for h, d in run_dirs.items()},
+                    "hosts_of": hosts_of, "lab": {"hosts": lab.hosts, "net": lab.net, "tag": lab.tag},
+                    "seed": seed, "minutes": minutes, "kinds": kinds}
+            (run_dir / "spec.json").write_text(json.dumps(spec))
+            # the soak watches from the robot's computer: its states are heard whatever happens to other cables
+            inside = subprocess.run(lab.command("robot", [sys.executable, "-m", "bench.soak", "--inside",
+                                                          str(run_dir / "spec.json")]),
+                                    stdout=subprocess.PIPE, text=True, cwd=REPO,
+                                    timeout=minutes * 60 + 600)
+            if inside.returncode not in (0, 1) or not inside.stdout.strip():
+                raise RuntimeError(f"the soak on the robot's computer failed (exit {inside.returncode})")
+            result = json.loads(inside.stdout.strip().splitlines()[-1])
+        finally:
+            for host in reversed(started):
+                subprocess.run(lab.command(host, [MFVS, "down"]), capture_output=True, timeout=60,
+                               env=dict(os.environ, MFVS_RUN_DIR=str(run_dirs[host])), cwd=REPO)
+    return result
+
+
+def run_inside(spec_file: str, progress=None) -> dict:
+    """The campaign of a ``--hosts`` soak, on the robot's computer (``run_across_hosts`` starts it there)."""
+    spec = json.loads(Path(spec_file).read_text())
+    lab = netns.Lab(**spec["lab"])  # the lab exists: only its cables are used
+    deployment = Deployment(Path(spec["router_config"]), {k: Path(v) for k, v in spec["client_configs"].items()},
+                            spec["endpoint"], tls=False)
+    placement = AcrossHosts(lab, {h: Path(d) for h, d in spec["run_dirs"].items()}, spec["hosts_of"])
+    soak = Soak(spec["endpoint"], deployment, Path(spec["run_dir"]), spec["seed"], Keys(), spec["kinds"], placement)
+    names = {name for name in spec["hosts_of"] if name != "router"}
+    return {"minutes": spec["minutes"], "seed": spec["seed"], "hosts": True,
+            **campaign(soak, names, spec["minutes"], progress)}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="mfvs bench soak", description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -524,18 +675,31 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="SERVICE:KEY=VALUE",
                         help="a service's config override (repeatable), e.g. robot_sim:admission.max_age_s=10 to "
                         "see that the soak catches a robot that admits stale commands")
-    parser.add_argument("--kinds", default=",".join(KIND_WEIGHTS),
-                        help=f"the fault kinds to draw from, comma-separated (default all: {','.join(KIND_WEIGHTS)})")
+    parser.add_argument("--kinds", default=None,
+                        help=f"the fault kinds to draw from, comma-separated (default all that apply: "
+                        f"{','.join(KIND_WEIGHTS)}; {','.join(ACROSS_HOSTS_KINDS)} with --hosts only)")
+    parser.add_argument("--hosts", action="store_true",
+                        help="the stack across three computers (network namespaces, root only), cables pulled too")
+    parser.add_argument("--inside", metavar="SPEC", help=argparse.SUPPRESS)  # run_across_hosts' own campaign
     args = parser.parse_args(argv)
-    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
-    if not kinds or set(kinds) - set(KIND_WEIGHTS):
-        parser.error(f"--kinds: choose among {', '.join(KIND_WEIGHTS)}")
-    result = run(args.minutes, args.seed, args.set, kinds,
-                 progress=lambda line: print(line, file=sys.stderr, flush=True))
+    progress = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
+    if args.inside:
+        result = run_inside(args.inside, progress)
+        print(json.dumps(result))
+        return 0 if result["unsafe_events"] == 0 else 1
+    kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds is not None else None
+    try:
+        if kinds is not None and not kinds:
+            raise ValueError("--kinds: name at least one")
+        check_kinds(kinds, args.hosts)
+    except ValueError as exc:
+        parser.error(str(exc))
+    result = (run_across_hosts if args.hosts else run)(args.minutes, args.seed, args.set, kinds, progress)
     if args.json:
         print(json.dumps(result))
         return 0 if result["unsafe_events"] == 0 else 1
-    print(f"{result['minutes']:g} min, seed {result['seed']}: {result['tasks']['started']} tasks "
+    where = "across three computers" if result["hosts"] else "on one computer"
+    print(f"{result['minutes']:g} min {where}, seed {result['seed']}: {result['tasks']['started']} tasks "
           f"({result['tasks']['converged']} converged), {result['faults_total']} faults "
           f"({', '.join(f'{k} {v}' for k, v in result['faults'].items())})")
     print(f"recovered {result['recoveries']} (p50 {result['recovery_s']['p50']} s, max {result['recovery_s']['max']} s)"

@@ -1,7 +1,14 @@
 """The soak's judge (bench/soak.py): each unsafe event it must see, and a clean run it must pass."""
 import random
 
-from bench.soak import REST_S, Judge, StateRecord, Window, goal_features
+
+import pytest
+import yaml
+
+from bench.soak import (ACROSS_HOSTS_KINDS, HOSTS, KIND_WEIGHTS, REST_S, AcrossHosts, Judge, OneHost, StateRecord,
+                        Window, applicable_kinds, check_kinds, goal_features, hosts_profile)
+from services.runtime.authority import write_deployment
+from services.tools import netns
 from services.robot.admission import AdmissionConfig
 from services.robot.dsp import DSPConfig
 
@@ -77,3 +84,32 @@ def test_goals_are_the_tag_square_at_a_reachable_depth():
         assert 0.25 <= depth <= 0.40 and len(corners) == 4
         side = ((corners[1][0] - corners[0][0]) ** 2 + (corners[1][1] - corners[0][1]) ** 2) ** 0.5
         assert abs(side * depth - 2 * 0.0481) < 1e-9
+
+
+def test_cables_are_pulled_only_across_hosts():
+    assert "cable" not in applicable_kinds(OneHost())
+    lab = netns.Lab(list(HOSTS), tag="unit")  # not entered: nothing is created
+    across = AcrossHosts(lab, {host: None for host in HOSTS}, {})
+    assert applicable_kinds(across) == list(KIND_WEIGHTS) and across.cable_hosts == HOSTS
+    with pytest.raises(ValueError, match="--hosts"):
+        check_kinds(list(ACROSS_HOSTS_KINDS), hosts=False)
+    with pytest.raises(ValueError, match="unknown"):
+        check_kinds(["kill", "meteor"], hosts=True)
+    check_kinds(["cable", "kill"], hosts=True)
+
+
+def test_the_hosts_profile_is_the_shipped_one_filled_in(tmp_path):
+    lab = netns.Lab(list(HOSTS), tag="unit")
+    deployment = write_deployment(tmp_path / "authority", host=lab.address("robot"),
+                                  services=("safety", "robot_sim", "vision", "controller", "operator"))
+    hosts_of = hosts_profile(tmp_path / "p.yaml", lab, deployment, tmp_path / "faults",
+                             ["robot_sim:dsp.watchdog_cycles=500"])
+    assert hosts_of == {"router": "robot", "robot_sim": "robot", "vision": "vision", "controller": "vision",
+                        "safety": "safety"}
+    profile = yaml.safe_load((tmp_path / "p.yaml").read_text())
+    assert profile["router"]["address"] == lab.address("robot")
+    robot_sim = next(s for s in profile["services"] if s["name"] == "robot_sim")
+    assert robot_sim["set"] == [f"faults_file={tmp_path / 'faults' / 'robot_sim.yaml'}", "dsp.watchdog_cycles=500"]
+    assert robot_sim["zenoh_config"] == str(deployment.client_configs["robot_sim"])
+    with pytest.raises(ValueError, match="no service called"):
+        hosts_profile(tmp_path / "q.yaml", lab, deployment, tmp_path / "faults", ["camera:x=1"])

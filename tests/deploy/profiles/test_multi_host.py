@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests import netns
+from services.tools import netns
 
 REPO = Path(__file__).resolve().parents[3]
 MFVS = str(Path(sys.executable).parent / "mfvs")

@@ -1,5 +1,5 @@
 """Computers on one machine: Linux network namespaces, each with one veth pair into a bridge that lives in a
-namespace of its own (the test never touches the host's own interfaces), addressed 10.<net>.0.<n>/24. Root only;
+namespace of its own (the host's own interfaces are never touched), addressed 10.<net>.0.<n>/24. Root only;
 :func:`unavailable` says why they cannot be had."""
 from __future__ import annotations
 
