@@ -29,7 +29,6 @@ from services.runtime.service import alive_services
 COMMAND_TYPES = (m.RobotCommand, m.TorqueCommand, m.EStop)
 #: nor this: a recorded service's health would stand in for the live one's
 NOT_REPLAYED = COMMAND_TYPES + (m.ServiceHealth,)
-#: the services that are a robot (a replayed robot state beside one would be a second robot)
 #: how long lockstep waits for a frame's answers before going on (counted as unanswered)
 ANSWER_TIMEOUT_S = 5.0
 
