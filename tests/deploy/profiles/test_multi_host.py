@@ -172,7 +172,10 @@ def test_a_cable_pulled_mid_motion_stops_the_arm_and_nothing_stale_moves_it_afte
     # nothing the link held back moves the arm after it heals: every command applied is fresh at its tick
     applied = [s for s in states if s["applied_stamp"]]
     assert max((s["stamp"] - s["applied_stamp"]) * 1e-9 for s in applied) <= MAX_COMMAND_AGE_S
-    assert not [s for s in applied if cut_ns + 0.1e9 < s["applied_stamp"] < heal_ns], "a command sent during the cut"
+    # what safety sent into the dead link arrives when TCP gets through again: only the last of it, stamped within the
+    # admission's age of the heal, may be fresh enough to apply then (a CI run applied one, a stop, arm at rest)
+    held = [s for s in applied if cut_ns + 0.1e9 < s["applied_stamp"] < heal_ns - MAX_COMMAND_AGE_S * 1e9]
+    assert not held, "a command held back by the dead link applied after it healed"
     # no jump: the end effector's speed stays within the DSP's limit (0.2 m/s) all along
     xyz = np.array([s["xyz"] for s in states])
     t = np.array([s["stamp"] for s in states]) * 1e-9
