@@ -7,15 +7,21 @@ that became no iteration were lost.
 Profiles: ``sim-lockstep`` and ``gateway-lockstep`` (deterministic: one run each, and they must agree exactly),
 ``sim-realtime`` and ``gateway-realtime`` (the gateway's iterations should be within 10 % of the sim's).
 
-``python -m bench.swap [--json] [--runs N] [--scenario FILE ...]`` or ``mfvs bench swap``; without ``--scenario``
-every file in ``examples/scenarios``.
+``python -m bench.swap [--json] [--runs N] [--scenario FILE ...] [--random-starts N [--seed S] [--base FILE]]`` or
+``mfvs bench swap``; without ``--scenario`` or ``--random-starts`` every file in ``examples/scenarios``.
+``--random-starts N`` makes N scenarios no one has seen from ``--base`` (table2 by default): the tag placed at random
+in front of the camera (:func:`random_start`), each written next to the results so a start can be run again.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import random
 import statistics
+import tempfile
 from pathlib import Path
+
+import yaml
 
 from protocol.conventions import ClockMode
 from services.runtime.progress import ProgressLine
@@ -24,6 +30,32 @@ from services.servo import load_scenario, run
 SCENARIOS = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
 PROFILES = {"sim-lockstep": ("sim", ClockMode.LOCKSTEP), "gateway-lockstep": ("gateway", ClockMode.LOCKSTEP),
             "sim-realtime": ("sim", ClockMode.REALTIME), "gateway-realtime": ("gateway", ClockMode.REALTIME)}
+
+
+def random_start(rng: random.Random) -> dict:
+    """A tag pose in the camera frame at the start (``target.pose_in_camera``) that a positioning task can begin
+    from: 0.42-0.60 m ahead, up to 8 cm off the optical axis sideways and 6 cm up or down, facing the camera within
+    10° and turned up to 45° about the optical axis, so that the whole tag is in view."""
+    return {"xyz": [round(rng.uniform(-0.08, 0.08), 4), round(rng.uniform(-0.06, 0.06), 4),
+                    round(rng.uniform(0.42, 0.60), 4)],
+            "rpy_deg": [round(180.0 + rng.uniform(-10.0, 10.0), 2), round(rng.uniform(-10.0, 10.0), 2),
+                        round(rng.uniform(-45.0, 45.0), 2)]}
+
+
+def random_scenarios(base: Path, count: int, seed: int, out_dir: Path) -> list[Path]:
+    """``count`` copies of the ``base`` scenario, each with a start from :func:`random_start`, in ``out_dir``."""
+    rng = random.Random(seed)
+    scenario = yaml.safe_load(base.read_text())
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i in range(count):
+        scenario.setdefault("target", {})["pose_in_camera"] = random_start(rng)
+        scenario["target"].pop("pose_in_base", None)
+        path = out_dir / f"{base.stem}_seed{seed}_start{i}.yaml"
+        path.write_text(f"# {base.name} from a random start (mfvs bench swap --random-starts, seed {seed})\n"
+                        + yaml.safe_dump(scenario, sort_keys=False))
+        paths.append(path)
+    return paths
 
 
 def measure_scenario(scenario_path: Path, runs: int, profiles: list[str], quiet: bool = False) -> dict:
@@ -85,12 +117,24 @@ def main(argv: list[str] | None = None) -> int:
                         help="scenario YAML, repeatable (default: every file in examples/scenarios)")
     parser.add_argument("--profiles", default=",".join(PROFILES),
                         help=f"comma-separated subset of {', '.join(PROFILES)}")
+    parser.add_argument("--random-starts", type=int, default=0, metavar="N",
+                        help="N scenarios from random starts (the tag placed at random) instead of the shipped ones")
+    parser.add_argument("--seed", type=int, default=1, help="the random starts' draws (default 1)")
+    parser.add_argument("--base", type=Path, default=SCENARIOS / "table2.yaml",
+                        help="the scenario the random starts vary (default examples/scenarios/table2.yaml)")
+    parser.add_argument("--keep", type=Path, metavar="DIR",
+                        help="write the random starts' scenario files here (default: a temporary directory)")
     args = parser.parse_args(argv)
     profiles = [p for p in args.profiles.split(",") if p]
     unknown = [p for p in profiles if p not in PROFILES]
     if unknown or args.runs < 1:
         parser.error(f"unknown profiles {unknown}" if unknown else "--runs must be at least 1")
-    scenarios = args.scenario or sorted(SCENARIOS.glob("*.yaml"))
+    if args.random_starts < 0:
+        parser.error("--random-starts must be at least 0")
+    starts_dir = (args.keep or Path(tempfile.mkdtemp(prefix="mfvs-starts-"))) if args.random_starts else None
+    scenarios = (args.scenario or []) + (random_scenarios(args.base, args.random_starts, args.seed, starts_dir)
+                                         if args.random_starts else [])
+    scenarios = scenarios or sorted(SCENARIOS.glob("*.yaml"))
     results = []
     for path in scenarios:
         result = measure_scenario(path, args.runs, profiles, quiet=args.json)
@@ -98,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.json:
             continue
         print(f"scenario {result['scenario']}")
+        if args.random_starts and Path(result["scenario"]).parent == starts_dir:
+            print(f"  start: tag at {load_scenario(Path(result['scenario'])).target.pose_in_camera} in the camera")
         for name, r in result["profiles"].items():
             runs = ", ".join(f"{row['iterations']}{'' if row['converged'] else ' (' + row['status'] + ')'}"
                              for row in r["runs"])
