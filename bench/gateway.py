@@ -85,8 +85,8 @@ def run_once(load: int, seconds: float) -> dict:
     p1 = np.array([steady[-1].pose.X, steady[-1].pose.Y, steady[-1].pose.Z])
     dt = (steady[-1].header.stamp_ns - steady[0].header.stamp_ns) * 1e-9
     mean_velocity = (p1 - p0) / dt
-    instant = np.array([(kin.jacobian_base(s.q) @ np.asarray(s.dq))[:3] for s in steady])
-    speeds = np.array([np.linalg.norm((kin.jacobian_base(s.q) @ np.asarray(s.dq))[:3]) for s in snapshot])
+    instant = np.array([kin.ee_velocity(s.q, s.dq) for s in steady])
+    speeds = np.array([kin.ee_speed(s.q, s.dq) for s in snapshot])
     return {
         "load": load,
         "mean_velocity_error_pct": round(100 * float(np.linalg.norm(mean_velocity - LINEAR) / np.linalg.norm(LINEAR)),

@@ -255,8 +255,7 @@ class Soak:
     # ------------------------------------------------------------------ what the arm does
     def _on_state(self, sample) -> None:
         state = m.decode(sample.payload.to_bytes(), m.RobotState)
-        J = self.kin.jacobian_base(state.q)
-        linear = float(np.linalg.norm((J @ np.asarray(state.dq))[:3]))
+        linear = self.kin.ee_speed(state.q, state.dq)
         limits = state.limits
         joint_ratio = float(np.max(np.abs(state.dq) / np.asarray(limits.joint_speed_rps))) if limits else 0.0
         applied = state.applied_command

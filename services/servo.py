@@ -479,7 +479,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         limited = np.isfinite(lower)
         over = np.maximum(q_all[:, limited] - upper[limited], lower[limited] - q_all[:, limited])
         violation = max(0.0, float(np.degrees(over.max())))
-    speeds = [float(np.linalg.norm((kin.jacobian_base(s.q) @ np.asarray(s.dq))[:3])) for s in states]
+    speeds = [kin.ee_speed(s.q, s.dq) for s in states]
     acted = [r for r in records if r.status == "converging"]
     answered = [r for r in records if acted and r.stamp_ns >= acted[0].stamp_ns]
     result = ServoResult(

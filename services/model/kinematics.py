@@ -31,6 +31,14 @@ class ArmKinematics:
         pin.updateFramePlacements(self.model, self.data)
         return pin.getFrameJacobian(self.model, self.data, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED).copy()
 
+    def ee_velocity(self, q, dq) -> np.ndarray:
+        """The end effector's linear velocity in the base frame (m/s): the first three rows of J(q)·dq."""
+        return (self.jacobian_base(q) @ np.asarray(dq, dtype=float))[:3]
+
+    def ee_speed(self, q, dq) -> float:
+        """The end effector's linear speed (m/s), as a robot state's joints say."""
+        return float(np.linalg.norm(self.ee_velocity(q, dq)))
+
     def pose_and_jacobian(self, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(R_be, p, J_base) in one pass."""
         q = np.asarray(q, dtype=float)

@@ -45,8 +45,6 @@ class SafetyConfig(ServiceConfig):
     upstream: list[str] = msgspec.field(default_factory=lambda: ["vision", "controller"])
     #: liveliness names of which one must be alive (the robot)
     robots: list[str] = msgspec.field(default_factory=lambda: ["robot_sim", "robot_gateway"])
-    #: the emergency deceleration the robot applies to an e-stop (documents the robot's setting; m/s²)
-    estop_decel_mps2: float = 1.5
     #: SCHED_FIFO priority of the safety process where the OS grants it (0: normal scheduling): its resends feed the
     #: robot's 20 ms watchdog, which must not trip because safety waited behind the rest of the host
     realtime_priority: int = 30

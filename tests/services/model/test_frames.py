@@ -177,6 +177,14 @@ def test_base_jacobian_against_finite_differences(arm, rng):
         assert np.allclose(V[:3], v, atol=1e-6) and np.allclose(V[3:], w_b, atol=1e-6)
 
 
+def test_end_effector_velocity_and_speed_against_finite_differences(arm, rng):
+    for q in configurations(rng, arm):
+        dq = rng.normal(size=7)
+        v, _, _, _ = fd_pose_rates(arm, q, dq)
+        assert np.allclose(arm.ee_velocity(q, dq), v, atol=1e-6)
+        assert arm.ee_speed(q, dq) == pytest.approx(np.linalg.norm(v), abs=1e-6)
+
+
 def test_euler_rate_jacobian_against_euler_angle_derivative(arm, rng):
     for q in configurations(rng, arm):
         dq = rng.normal(size=7)

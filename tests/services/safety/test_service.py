@@ -107,7 +107,7 @@ def test_estop_stops_within_v0_over_a_stop_and_stays_latched(harness):
                       if s.header.stamp_ns >= trigger_ns and "emergency_stop" in s.faults)
     assert braking_ns - trigger_ns <= 100_000_000
     after = t * 1e9 >= braking_ns
-    a_stop = h["safety"].config.estop_decel_mps2
+    a_stop = h["robot"].config.dsp.emergency_linear_decel_mps2  # the robot's braking, not safety's to set
     rest = next(ti for ti, s in zip(t[after], speeds[after], strict=True) if s < 1e-3)
     assert rest - braking_ns * 1e-9 <= v0 / a_stop + 0.030
     assert np.all(speeds[t >= rest] < 1e-3)  # and it stays at rest: latched

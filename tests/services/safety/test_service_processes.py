@@ -35,7 +35,7 @@ PIPELINE = textwrap.dedent("""
 
 
 def ee_speed(kin, state):
-    return float(np.linalg.norm((kin.jacobian_base(state.q) @ np.asarray(state.dq))[:3]))
+    return kin.ee_speed(state.q, state.dq)
 
 
 @contextlib.contextmanager
