@@ -137,8 +137,9 @@ class _SimulationOutputs:
 
     def trigger_detail(self) -> str:
         """The camera's trigger, for the health's detail (``mfvs status``, the latency benchmark)."""
-        how = "auto" if self.trigger.auto else "fixed"
-        return (f"camera_trigger_ms={self.trigger.offset_ms} ({how}, moved {self.trigger.moves}x, "
+        if not self.trigger.auto:
+            return f"camera_trigger_ms={self.trigger.offset_ms} (fixed)"
+        return (f"camera_trigger_ms={self.trigger.offset_ms} (auto, moved {self.trigger.moves}x, "
                 f"{self.trigger.inconsistent} decisions left to a model that missed)")
 
     def _on_info_query(self, query: zenoh.Query) -> None:

@@ -5,6 +5,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import textwrap
 import time
 
@@ -46,12 +47,13 @@ def arm_moving(router, safety_args=(), robot_args=()):
     client = open_session(router.client_config())
     states = Recorder(client, KEYS.robot_state, m.RobotState)
     env = dict(os.environ, MUJOCO_GL="egl")
+    # their logs to files, not pipes: a pipe nobody reads blocks its writer once full (docs/deploy.md)
     processes = [subprocess.Popen([sys.executable, "-m", f"services.{name}", "--clock", "realtime", "--connect",
                                    router.endpoint, *extra], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.PIPE, text=True)
+                                  stderr=tempfile.TemporaryFile(), text=True)
                  for name, extra in (("safety", safety_args), ("robot_sim", robot_args))]
     pipeline = subprocess.Popen([sys.executable, "-c", PIPELINE, router.endpoint], cwd=REPO, stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
+                                stderr=tempfile.TemporaryFile(), text=True)
     try:
         assert pipeline.stdout.readline().strip() == "ready"
         assert wait_for(lambda: len(states) > 50 and ee_speed(kin, states.last()) > 0.095, timeout=60)
