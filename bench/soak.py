@@ -74,8 +74,8 @@ KIND_WEIGHTS = {"kill": 14, "stop": 10, "router": 4, "drop": 20, "delay": 14, "r
 ACROSS_HOSTS_KINDS = ("cable",)
 #: the computers of the ``--hosts`` soak, as the shipped multi-host profile names them
 HOSTS = ("robot", "vision", "safety")
-MFVS = str(Path(sys.executable).parent / "mfvs")
-REPO = Path(__file__).resolve().parents[1]
+#: the identities the soak's access control knows: the stack's services and the operator
+IDENTITIES = ("safety", "robot_sim", "vision", "controller", "operator")
 #: the arm must be at rest this long after its command path is cut or the e-stop is engaged (the DSP's 20-ms
 #: watchdog or safety's 100-ms budget, a braking of at most 0.2 m/s at 1-2 m/s², generous for a shared machine)
 REST_S = 0.5
@@ -211,8 +211,7 @@ class AcrossHosts:
 
     def restart(self, name: str) -> None:
         host = self.hosts_of[name]  # on its own computer, as its systemd unit would
-        out = subprocess.run(self.lab.command(host, [MFVS, "restart", name]), capture_output=True, text=True,
-                             timeout=60, env=dict(os.environ, MFVS_RUN_DIR=str(self.run_dirs[host])))
+        out = self.lab.mfvs(host, self.run_dirs[host], ["restart", name])
         if out.returncode:
             raise RuntimeError(f"mfvs restart {name} on {host}: {out.stdout}{out.stderr}")
 
@@ -583,7 +582,7 @@ def run(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None
         (run_dir / "faults").mkdir()
         port = free_loopback_port()
         deployment = write_deployment(run_dir / "authority", port=port,
-                                      services=("safety", "robot_sim", "vision", "controller", "operator"))
+                                      services=IDENTITIES)
         profile = with_overrides(soak_profile(port, deployment, run_dir / "faults"), overrides or [])
         names = {s.name for s in profile.services}
         with servoing_stack(profile, "bench soak") as endpoint:
@@ -595,7 +594,7 @@ def run(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None
 def hosts_profile(path: Path, lab: netns.Lab, deployment, faults_dir: Path, overrides: list[str]) -> dict:
     """The shipped multi-host profile as a lab fills it in (the robot computer's address, access control), each
     service reading its fault plan from ``faults_dir``, written to ``path``; which computer runs each process."""
-    profile = yaml.safe_load((REPO / "deploy" / "profiles" / "multi-host.yaml").read_text())
+    profile = yaml.safe_load((netns.REPO / "deploy" / "profiles" / "multi-host.yaml").read_text())
     profile["router"].update(address=lab.address("robot"), config=str(deployment.router_config))
     for service in profile["services"]:
         service["zenoh_config"] = str(deployment.client_configs[service["name"]])
@@ -619,19 +618,11 @@ def run_across_hosts(minutes: float = 10.0, seed: int = 1, overrides: list[str] 
         run_dir = Path(directory)
         (run_dir / "faults").mkdir()
         deployment = write_deployment(run_dir / "authority", host=lab.address("robot"), port=7447,
-                                      services=("safety", "robot_sim", "vision", "controller", "operator"))
+                                      services=IDENTITIES)
         profile_file = run_dir / "multi-host.yaml"
         hosts_of = hosts_profile(profile_file, lab, deployment, run_dir / "faults", overrides or [])
-        run_dirs = {host: run_dir / host for host in HOSTS}
-        started = []
-        try:
-            for host in HOSTS:  # the router's computer first
-                out = subprocess.run(lab.command(host, [MFVS, "up", "--profile", str(profile_file), "--host", host,
-                                                        "--clock", "realtime"]), capture_output=True, text=True,
-                                     timeout=180, env=dict(os.environ, MFVS_RUN_DIR=str(run_dirs[host])), cwd=REPO)
-                started.append(host)
-                if out.returncode:
-                    raise RuntimeError(f"mfvs up on {host}: {out.stdout}{out.stderr}")
+        run_dirs = {host: run_dir / host for host in HOSTS}  # the router's computer first
+        with netns.stack_across(lab, profile_file, run_dirs, deployment.endpoint):
             spec = {"endpoint": deployment.endpoint, "router_config": str(deployment.router_config),
                     "client_configs": {k: str(v) for k, v in deployment.client_configs.items()},
                     "run_dir": str(run_dir), "run_dirs": {h: str(d) for h, d in run_dirs.items()},
@@ -641,15 +632,11 @@ def run_across_hosts(minutes: float = 10.0, seed: int = 1, overrides: list[str] 
             # the soak watches from the robot's computer: its states are heard whatever happens to other cables
             inside = subprocess.run(lab.command("robot", [sys.executable, "-m", "bench.soak", "--inside",
                                                           str(run_dir / "spec.json")]),
-                                    stdout=subprocess.PIPE, text=True, cwd=REPO,
+                                    stdout=subprocess.PIPE, text=True, cwd=netns.REPO,
                                     timeout=minutes * 60 + 600)
             if inside.returncode not in (0, 1) or not inside.stdout.strip():
                 raise RuntimeError(f"the soak on the robot's computer failed (exit {inside.returncode})")
             result = json.loads(inside.stdout.strip().splitlines()[-1])
-        finally:
-            for host in reversed(started):
-                subprocess.run(lab.command(host, [MFVS, "down"]), capture_output=True, timeout=60,
-                               env=dict(os.environ, MFVS_RUN_DIR=str(run_dirs[host])), cwd=REPO)
     return result
 
 

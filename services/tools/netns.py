@@ -1,11 +1,19 @@
 """Computers on one machine: Linux network namespaces, each with one veth pair into a bridge that lives in a
 namespace of its own (the host's own interfaces are never touched), addressed 10.<net>.0.<n>/24. Root only;
-:func:`unavailable` says why they cannot be had."""
+:func:`unavailable` says why they cannot be had. :func:`stack_across` brings a multi-host profile up on them, each
+computer with its own run directory, as `mfvs up --host` on real computers would."""
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
+
+MFVS = str(Path(sys.executable).parent / "mfvs")
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -73,6 +81,30 @@ class Lab:
     def command(self, host: str, args: list[str]) -> list[str]:
         return ["ip", "netns", "exec", self.ns(host), *args]
 
+    def mfvs(self, host: str, run_dir: Path, args: list[str], timeout_s: float = 60.0) -> subprocess.CompletedProcess:
+        """`mfvs ARGS` on ``host``, with that computer's run directory (where its stack is recorded)."""
+        return subprocess.run(self.command(host, [MFVS, *args]), capture_output=True, text=True, timeout=timeout_s,
+                              env=dict(os.environ, MFVS_RUN_DIR=str(run_dir)), cwd=REPO)
+
     def link(self, host: str, up: bool) -> None:
         """The host's cable in (up) or out: its port on the switch."""
         _ip("-n", self.switch, "link", "set", f"port{self.hosts.index(host)}", "up" if up else "down")
+
+
+@contextlib.contextmanager
+def stack_across(lab: Lab, profile_file: Path, run_dirs: dict[str, Path], router_endpoint: str) -> Iterator[None]:
+    """``mfvs up --profile FILE --host H --clock realtime`` on each computer of ``run_dirs`` in their order (the
+    router's first), each in its own run directory and each saying it reached ``router_endpoint``; ``mfvs down`` on
+    every one started, in reverse, at the end."""
+    started = []
+    try:
+        for host, run_dir in run_dirs.items():
+            out = lab.mfvs(host, run_dir, ["up", "--profile", str(profile_file), "--host", host, "--clock",
+                                           "realtime"], timeout_s=180)
+            started.append(host)
+            if out.returncode or f"host {host}: stack up: router {router_endpoint}" not in out.stdout:
+                raise RuntimeError(f"mfvs up on {host} (exit {out.returncode}): {out.stdout}{out.stderr}")
+        yield
+    finally:
+        for host in reversed(started):
+            lab.mfvs(host, run_dirs[host], ["down"])

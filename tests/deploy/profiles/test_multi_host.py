@@ -16,9 +16,8 @@ import pytest
 import yaml
 
 from services.tools import netns
+from services.tools.netns import MFVS, REPO
 
-REPO = Path(__file__).resolve().parents[3]
-MFVS = str(Path(sys.executable).parent / "mfvs")
 HOSTS = ["robot", "vision", "safety", "operator"]
 
 WHY = netns.unavailable()
@@ -86,20 +85,9 @@ def _stack_across(lab: netns.Lab, tmp_path: Path):
     a function giving each computer's environment (its own run directory)."""
     profile = _profile(tmp_path, lab.address("robot"))
     env = lambda host: dict(os.environ, MFVS_RUN_DIR=str(tmp_path / host))  # noqa: E731 (one per computer)
-    started = []
-    try:
-        for host in ("robot", "vision", "safety"):
-            out = subprocess.run(lab.command(host, [MFVS, "up", "--profile", str(profile), "--host", host,
-                                                    "--clock", "realtime"]),
-                                 capture_output=True, text=True, timeout=180, env=env(host), cwd=REPO)
-            started.append(host)
-            assert out.returncode == 0, (host, out.stdout, out.stderr)
-            assert f"host {host}: stack up: router tcp/{lab.address('robot')}:7447" in out.stdout
+    run_dirs = {host: tmp_path / host for host in ("robot", "vision", "safety")}
+    with netns.stack_across(lab, profile, run_dirs, f"tcp/{lab.address('robot')}:7447"):
         yield env
-    finally:
-        for host in reversed(started):
-            subprocess.run(lab.command(host, [MFVS, "down"]), capture_output=True, timeout=60, env=env(host),
-                           cwd=REPO)
 
 
 def _operator(lab: netns.Lab, env, wait_s: float) -> subprocess.Popen:
