@@ -119,8 +119,13 @@ PIPELINE_BUDGET_S = 0.150
 
 def rest_bound(v0: float, decel: float, reaction_s: float) -> float:
     """When an arm at ``v0`` that brakes at ``decel`` once the stop reaches the robot ``reaction_s`` after the
-    event is seen at rest: plus the DSP's next tick, the servo's settling and the state that shows it."""
-    return reaction_s + DSPConfig().cycle_s + v0 / decel + SERVO_SETTLE_S + STATE_PERIOD_S
+    event is seen at rest: plus the DSP's next tick, the servo's settling and the state that shows it. Until the
+    stop lands the arm follows its last command, which may still be speeding it up (at most at the DSP's
+    acceleration, to at most its top speed): it brakes from that speed, not from ``v0``."""
+    dsp = DSPConfig()
+    reaction_s += dsp.cycle_s
+    braking_from = min(v0 + dsp.linear_accel_mps2 * reaction_s, dsp.max_linear_speed_mps)
+    return reaction_s + braking_from / decel + SERVO_SETTLE_S + STATE_PERIOD_S
 
 
 def test_estop_in_realtime_stops_within_v0_over_a_stop(moving_arm):
