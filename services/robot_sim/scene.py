@@ -95,7 +95,8 @@ class CameraConfig(ConfigStruct):
         return np.array([[self.fx, 0.0, cx], [0.0, self.fy, cy], [0.0, 0.0, 1.0]])
 
 
-def _default_target_in_camera() -> PoseConfig:
+def default_target_in_camera() -> PoseConfig:
+    """The tag's pose when a scene gives none: 0.5 m ahead of the camera, squarely facing it."""
     return PoseConfig(xyz=(0.0, 0.0, 0.5), rpy_deg=(180.0, 0.0, 0.0))
 
 
@@ -153,7 +154,7 @@ def target_in_base(cfg: SceneConfig) -> np.ndarray:
     """The target's initial pose in the base frame (resolving pose_in_camera at the initial configuration)."""
     if cfg.target.pose_in_base is not None:
         return cfg.target.pose_in_base.matrix()
-    pose_in_camera = (cfg.target.pose_in_camera or _default_target_in_camera()).matrix()
+    pose_in_camera = (cfg.target.pose_in_camera or default_target_in_camera()).matrix()
     T_be = jaco2.dh_forward_kinematics(jaco2.physical_deg_to_model(cfg.initial_joints_deg))
     return T_be @ camera_in_ee(cfg) @ pose_in_camera
 
