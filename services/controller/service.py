@@ -89,6 +89,9 @@ class ControllerService(Service):
         self.last_status: Optional[ControllerStatus] = None
         #: the last features answered (realtime: a stopped task answers them again with zero at once)
         self._last_features: Optional[Features] = None
+        #: the frame (capture stamp) last answered and what was published for it: the same features again (a frame
+        #: robot_sim's lockstep retry delivered twice) get that answer again, with no second step of the law
+        self._last_answer: Optional[tuple[int, object, ControllerStatus]] = None
 
     def on_start(self) -> None:
         keys = self.keys
@@ -176,6 +179,12 @@ class ControllerService(Service):
             with self.lock:
                 capture_state = self.states.at_capture(features.header.source_stamp_ns)
         with self._iteration_lock:
+            answered = self._last_answer
+            if answered is not None and answered[0] == features.header.source_stamp_ns:
+                self.counters.inc("features.repeated")
+                self.output_pub.put(answered[1])
+                self.status_pub.put(answered[2])
+                return
             status, output = self.compute(features, state, capture_state)
             self._publish(features, recv_ns, status, output)
             self._last_features = features
@@ -207,10 +216,12 @@ class ControllerService(Service):
         header: Header = self.header("output", source=features.header, recv_ns=recv_ns)
         if self.core.joint_output:
             dq = output.joint_velocities if output is not None else np.zeros(jaco2.N_JOINTS)
-            self.output_pub.put(JointVelocity(header=header, velocities=dq.tolist()))
+            message = JointVelocity(header=header, velocities=dq.tolist())
         else:
             twist = output.twist if output is not None else np.zeros(6)
-            self.output_pub.put(Twist(header=header, frame=Frame.MIXED, angular=self.config.control.robot_convention,
-                                      linear=tuple(twist[:3]), rotational=tuple(twist[3:])))
+            message = Twist(header=header, frame=Frame.MIXED, angular=self.config.control.robot_convention,
+                            linear=tuple(twist[:3]), rotational=tuple(twist[3:]))
+        self.output_pub.put(message)
         self.status_pub.put(status)
         self.last_status = status
+        self._last_answer = (features.header.source_stamp_ns, message, status)

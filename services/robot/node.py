@@ -25,7 +25,9 @@ Clock modes:
   command derived from that frame. It waits only while a service that answers is alive (``lockstep.answered_by``,
   safety, which answers each robot state in lockstep): observers of the robot change nothing. The state (and the
   frame) are published again every ``lockstep.retry_s`` while it waits, since a message can be lost while routes
-  are still being set up.
+  are still being set up; on a starved host the answer may only be late, so vision and the controller answer a
+  frame they get again with the answer they gave it (one frame, one answer: a second, different one, such as
+  "out-of-order", would stand in for the first, reset the law and make the run differ from its replay).
 
 Subclasses open the hardware and say which frame, if any, was taken at a tick (robot_sim takes it;
 robot_gateway learns it from the simulator's clock).

@@ -7,7 +7,9 @@ trace. The status says at once when the tag is lost; an image older than ``max_i
 comes is answered with ``stale`` and no features; unusable images with ``invalid_image``.
 
 Images are processed in a worker thread, newest first: if images arrive faster than they are processed, the
-older waiting one is dropped (counted as ``frames.skipped``), so features are never late by a queue.
+older waiting one is dropped (counted as ``frames.skipped``), so features are never late by a queue. The same
+image again (robot_sim's lockstep retry) is answered with the features it got the first time
+(``frames.repeated``): one frame, one answer, however often it is delivered.
 
 The rules (order, age, camera info, size, then detect → normalise → pose → error; the goal) are
 :class:`services.vision.core.VisionCore`'s; this service decodes, hands it the image with the time, counts what it
@@ -107,6 +109,9 @@ class VisionService(Service):
         self._lock = threading.Lock()
         self._info: Optional[CameraInfo] = None
         self._pending: Optional[tuple[Image, int]] = None
+        #: the last image's capture stamp and the answer it got: the same image again (robot_sim's lockstep
+        #: retry, published while an answer down the pipeline is late) gets that answer again, not a second one
+        self._last_answer: Optional[tuple[int, Features]] = None
         self._wake = threading.Condition(self._lock)
         self._worker: Optional[threading.Thread] = None
 
@@ -215,7 +220,17 @@ class VisionService(Service):
                 self.log.debug("processing failure", exc_info=True)
 
     def process(self, image: Image, recv_ns: int) -> Features:
-        """Features for one image (also usable without zenoh: ``recv_ns`` is when the image arrived)."""
+        """Features for one image (also usable without zenoh: ``recv_ns`` is when the image arrived); the answer
+        already given when it is the last image again."""
+        capture = image.header.source_stamp_ns or image.header.stamp_ns
+        if self._last_answer is not None and self._last_answer[0] == capture:
+            self.counters.inc("frames.repeated")
+            return self._last_answer[1]
+        features = self._answer(image, recv_ns)
+        self._last_answer = (capture, features)
+        return features
+
+    def _answer(self, image: Image, recv_ns: int) -> Features:
         with self._lock:
             info = self._info
         with self._core_lock:

@@ -1,6 +1,7 @@
 """The controller service's decisions for one features message (no zenoh needed for compute())."""
 import time
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -257,3 +258,40 @@ def test_latency_compensation_makes_the_loop_indifferent_to_the_image_pipelines_
     assert None not in carried and None not in as_taken
     assert max(carried) <= 1.1 * min(carried), carried
     assert max(as_taken) > 1.2 * min(as_taken), as_taken  # the effect compensated is real in this loop
+
+
+def test_a_frame_delivered_twice_gets_the_same_answer_and_one_step_of_the_law(router):
+    """robot_sim's lockstep retry can deliver a frame's features twice: the controller publishes what it published
+    for them the first time (a stop since included), and the law steps once."""
+    from services.runtime.transport import open_session
+    from tests.stack import KEYS, Recorder, wait_for
+
+    service = controller(zenoh=router.client_config()).start()
+    client = open_session(router.client_config())
+    twists = Recorder(client, KEYS.desired_twist, m.Twist)
+    try:
+        time.sleep(0.5)  # the routes; then a fresh state again
+        service._on_state(msgspec.structs.replace(service.robot_state, header=m.Header(stamp_ns=time.time_ns())), 0)
+        first = features()
+        service._on_features(first, time.time_ns())
+        service._on_features(first, time.time_ns())
+        assert service.core.iteration == 1 and service.counters.get("features.repeated") == 1
+        service._on_features(features(), time.time_ns())  # a new frame steps the law
+        assert service.core.iteration == 2
+        assert wait_for(lambda: len(twists) == 3)
+        sent = twists.snapshot()
+        assert sent[0] == sent[1] and np.linalg.norm(sent[0].linear) > 0
+        # a task stopped answers the last frame again with zero: that is the answer a repeat gets from then on
+        service.stop_task(m.TaskRequest(operator="test"))
+        last = features()
+        service.start_task(m.TaskRequest(operator="test"))
+        service._on_features(last, time.time_ns())
+        service.stop_task(m.TaskRequest(operator="test"))
+        service._on_features(last, time.time_ns())
+        assert wait_for(lambda: len(twists) == 7)
+        sent = twists.snapshot()
+        assert np.linalg.norm(sent[4].linear) > 0 and sent[5] == sent[6] and not np.any(sent[6].linear)
+    finally:
+        twists.close()
+        client.close()
+        service.stop()

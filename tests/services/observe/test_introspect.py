@@ -76,15 +76,16 @@ def test_echo_prints_each_message_and_says_which_payload_did_not_decode(router):
     session = open_session(router.client_config())
     out, err = io.StringIO(), io.StringIO()
     try:
-        garbage = session.declare_publisher(KEYS.robot_state)
+        garbage, echoed = session.declare_publisher(KEYS.robot_state), threading.Event()
 
-        def spoil():
-            time.sleep(0.3)
-            garbage.put(b"\x93not a state")
+        def spoil():  # among the states, until the echo is done (once, at a fixed time, raced the 30th state)
+            while not echoed.wait(0.05):
+                garbage.put(b"\x93not a state")
 
         threading.Thread(target=spoil, daemon=True).start()
         with Publishing(session):
             code = introspect.echo(session, KEYS, "robot/state", count=30, seconds=10.0, out=out, err=err)
+        echoed.set()
         lines = out.getvalue().splitlines()
         assert code == 1 and len(lines) == 30 and all(line.startswith("stamp=") for line in lines)
         assert "mfvs/jaco/robot/state: undecodable RobotState payload" in err.getvalue()

@@ -89,7 +89,7 @@ def test_the_camera_stream_replayed_into_a_fresh_vision_and_controller_gives_the
     assert set(recorded_features) <= set(replayed_features)
     for stamp, old in recorded_features.items():
         new = replayed_features[stamp]
-        assert new.status == old.status
+        assert new.status == old.status, (stamp, new.detail, old.detail, sorted(recorded_features).index(stamp))
         assert np.array_equal(new.points, old.points) and np.array_equal(new.error, old.error)
     assert set(recorded_twists) <= set(replayed_twists)
     for stamp, old in recorded_twists.items():

@@ -154,6 +154,21 @@ def test_bad_images_are_refused_and_counted():
     assert service.counters.get("rejected.image") == 3  # black, wrong size, out of order
 
 
+def test_the_same_image_again_gets_the_same_answer():
+    """robot_sim's lockstep retry publishes a frame again while an answer is late: vision answers it with what it
+    answered the first time (not "out-of-order"), whichever of the two deliveries it happened to process."""
+    image, _, _, cfg = render(POSES[1])
+    service = vision_for(cfg)
+    t = time.time_ns()
+    first = service.process(image_message(image, t), t)
+    again = service.process(image_message(image, t), t + 5_000_000)
+    assert first.status is m.FeatureStatus.OK and again == first
+    assert service.counters.get("frames.repeated") == 1 and service.counters.get("rejected.image") == 0
+    assert service.process(image_message(image, t - 1000), t).status is m.FeatureStatus.STALE  # older: refused
+    newer = service.process(image_message(image, t + 1000), t + 1000)
+    assert newer.status is m.FeatureStatus.OK and newer.header.source_stamp_ns == t + 1000
+
+
 def test_goal_changes_at_run_time():
     image, _, T_ct, cfg = render(POSES[1])
     service = vision_for(cfg)
