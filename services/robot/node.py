@@ -89,6 +89,23 @@ MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})
 MAX_CATCH_UP_CYCLES = 50
 
 
+#: the DSP's plan must be ready this long before the next bus exchange: the command window ends there at the latest
+#: (the plan takes 0.2-0.4 ms; the rest is for a late wake-up of the DSP's thread: with 0.5 ms, one plan in about a
+#: thousand missed its exchange on this host)
+PLAN_MARGIN_S = 0.0007
+#: the longest command window: a bus cycle less the plan's margin
+MAX_COMMAND_WINDOW_S = CYCLE_S - PLAN_MARGIN_S
+
+
+def fresh(command: RobotCommand, last_source_ns: int) -> bool:
+    """A command the DSP does not wait past: a stop or an emergency stop, or one derived from a newer frame than the
+    last one taken (``last_source_ns``) or from no frame at all (an operator's or an API's)."""
+    if command.mode in (CommandMode.STOP, CommandMode.EMERGENCY_STOP):
+        return True
+    source = command.header.source_stamp_ns
+    return not source or source > last_source_ns
+
+
 class LockstepConfig(ConfigStruct):
     #: wall time to wait for the answer to a tick before running the DSP cycle without it
     cycle_timeout_s: float = 0.5
@@ -126,10 +143,19 @@ class RobotNodeConfig(ServiceConfig):
     #: realtime: SCHED_FIFO priority of the robot's process where the OS grants it (0: normal scheduling), above
     #: the router's and safety's (30). A robot's hardware loop must not wait behind the rest of the host
     realtime_priority: int = 40
+    #: realtime: after its tick's reading, the DSP waits up to this long for a command derived from a newer frame
+    #: than the last one it took, before it plans with what it has: a command that just missed the tick is then
+    #: applied at this tick rather than 10 ms later, with the same motion (the plan is first used at the next bus
+    #: exchange, 2 ms after the tick, either way). Never later than PLAN_MARGIN_S before that exchange; a stop is
+    #: never waited past. 0: plan at once
+    command_window_s: float = MAX_COMMAND_WINDOW_S
 
     def __post_init__(self) -> None:
         if self.max_bus_errors < 1:
             raise ValueError("max_bus_errors must be at least 1")
+        if not 0.0 <= self.command_window_s <= MAX_COMMAND_WINDOW_S:
+            raise ValueError(f"command_window_s must be within 0..{MAX_COMMAND_WINDOW_S} s: the DSP's plan is needed "
+                             f"at the next bus exchange, {CYCLE_S * 1e3:.0f} ms after its tick")
         if not 0 <= self.realtime_priority <= 99:
             raise ValueError("realtime_priority must be within 0..99 (SCHED_FIFO)")
 
@@ -219,6 +245,8 @@ class RobotNode(Service):
         #: how late the loop woke for its slots, and how long the DSP cycles took (realtime)
         self.wake_lag = DurationStats()
         self.dsp_time = DurationStats()
+        #: how long the DSP waited in its command window (realtime), apart from its own time above
+        self.command_wait = DurationStats()
         self._thread: Optional[threading.Thread] = None
         self._command: Optional[tuple[RobotCommand, int]] = None
         self.command_cond = threading.Condition()
@@ -240,7 +268,14 @@ class RobotNode(Service):
         self._answerers: set[str] = set()
         #: serialises the core between the bus loop and the DSP worker (realtime)
         self._core_lock = threading.Lock()
-        self._dsp_pending: Optional[tuple[int, JointReading]] = None
+        #: the tick handed to the DSP worker: its stamp, its reading, until when (monotonic) the DSP may wait for
+        #: a fresh command, and the exchanges done by then (a plan taken after another exchange is late)
+        self._dsp_pending: Optional[tuple[int, JointReading, float, int]] = None
+        #: the source stamp of the newest frame a command the DSP took was derived from
+        self._last_source_ns = 0
+        #: when the bus loop's current exchange was due (monotonic): the next is a cycle later
+        self._slot_start = time.monotonic()
+        self._waited_s = 0.0
         self._dsp_cond = threading.Condition()
         self._dsp_thread: Optional[threading.Thread] = None
         self._late = RateMeter()
@@ -332,13 +367,13 @@ class RobotNode(Service):
         if self.consecutive_errors >= self.config.max_bus_errors:
             return False, f"hardware failing: {self._bus_faults[:1]}"
         timing = self.timing()
-        work, exchange, lag, dsp = (self.work.stats(), self.exchange_time.stats(), self.wake_lag.stats(),
-                                    self.dsp_time.stats())
+        work, exchange, lag, dsp, wait = (self.work.stats(), self.exchange_time.stats(), self.wake_lag.stats(),
+                                          self.dsp_time.stats(), self.command_wait.stats())
         return True, (f"bus_rate_hz={timing.rate_hz:.1f} late_per_s={timing.late_per_s:.1f} "
                       f"missed_per_s={timing.missed_per_s:.1f} work_ms={work['p50_ms']:.2f}/{work['p99_ms']:.2f} "
                       f"exchange_ms={exchange['p50_ms']:.2f}/{exchange['p99_ms']:.2f} "
                       f"wake_lag_ms={lag['p50_ms']:.2f}/{lag['p99_ms']:.2f} dsp_ms={dsp['p50_ms']:.2f}/"
-                      f"{dsp['p99_ms']:.2f} (p50/p99)")
+                      f"{dsp['p99_ms']:.2f} command_wait_ms={wait['p50_ms']:.2f}/{wait['p99_ms']:.2f} (p50/p99)")
 
     def timing(self) -> LoopTiming:
         return LoopTiming(rate_hz=self._cycles.rate_hz(), late_per_s=self._late.rate_hz(),
@@ -521,9 +556,19 @@ class RobotNode(Service):
                 self.counters.inc("errors.api")
                 future.set_exception(exc)
 
-    def take_command(self) -> Optional[tuple[RobotCommand, int]]:
+    def take_command(self, wait_until: Optional[float] = None) -> Optional[tuple[RobotCommand, int]]:
+        """The command waiting, if any; with ``wait_until`` (monotonic) first wait until then for a :func:`fresh`
+        one, should the one waiting (or none) not be."""
         with self.command_cond:
+            while wait_until is not None and not (self._command is not None
+                                                  and fresh(self._command[0], self._last_source_ns)):
+                remaining = wait_until - time.monotonic()
+                if remaining <= 0.0 or self.done():
+                    break
+                self.command_cond.wait(remaining)
             taken, self._command = self._command, None
+            if taken is not None:
+                self._last_source_ns = max(self._last_source_ns, taken[0].header.source_stamp_ns)
         return taken
 
     def _run(self) -> None:
@@ -550,6 +595,7 @@ class RobotNode(Service):
         self.loop_timer = LoopTimer(self.cycle_s)
         while not self.done():
             slot = pacer.wait()
+            self._slot_start = time.monotonic() - slot.lag_s  # when this exchange was due
             self.wake_lag.add(slot.lag_s)
             if slot.late:
                 self.counters.inc("cycles.late")
@@ -619,7 +665,9 @@ class RobotNode(Service):
         with self._dsp_cond:
             if self._dsp_pending is not None:
                 self.counters.inc("dsp.overruns")  # the worker has not taken the last tick yet: this one is late
-            self._dsp_pending = (tick_ns, reading)
+            wait_until = min(time.monotonic() + self.config.command_window_s,
+                             self._slot_start + self.cycle_s - PLAN_MARGIN_S)
+            self._dsp_pending = (tick_ns, reading, wait_until, self._exchanges)
             self._dsp_cond.notify()
 
     def _dsp_worker(self) -> None:
@@ -630,10 +678,13 @@ class RobotNode(Service):
                 pending, self._dsp_pending = self._dsp_pending, None
             if pending is None:
                 continue
+            tick_ns, reading, wait_until, exchanges = pending
             try:
                 start = time.monotonic()
-                self.dsp_tick(*pending)
-                self.dsp_time.add(time.monotonic() - start)
+                self.dsp_tick(tick_ns, reading, wait_until if self.config.command_window_s > 0.0 else None)
+                self.dsp_time.add(time.monotonic() - start - self._waited_s)
+                if self._exchanges > exchanges:
+                    self.counters.inc("dsp.late_plans")  # the next exchange went out on the last cycle's plan
             except Exception:
                 self.counters.inc("errors.dsp")
                 self.limited_log.error("dsp", "%s: DSP cycle failed", self.name)
@@ -669,15 +720,20 @@ class RobotNode(Service):
             self._last_dsp_index = index
         return tick
 
-    def dsp_tick(self, tick_ns: int, reading: JointReading) -> None:
-        """One DSP cycle on the reading of the tick at ``tick_ns``."""
+    def dsp_tick(self, tick_ns: int, reading: JointReading, wait_until: Optional[float] = None) -> None:
+        """One DSP cycle on the reading of the tick at ``tick_ns`` (realtime: waiting for a fresh command until
+        ``wait_until``, see ``command_window_s``)."""
         self.rates.tick("cycle")
         self.publish_state(tick_ns, reading)
         frame_stamp = self.frame_at_tick(tick_ns)
         if self.lockstep and self._answerers:
             taken = self._wait_for_answer(tick_ns, frame_stamp, reading)
         else:
-            taken = self.take_command()
+            waiting = time.monotonic()
+            taken = self.take_command(wait_until)
+            self._waited_s = time.monotonic() - waiting
+            if wait_until is not None:
+                self.command_wait.add(self._waited_s)
         self.run_api_calls()
         taken = self._arm_check_command(tick_ns, taken, reading)
         if self.consecutive_errors >= self.config.max_bus_errors:

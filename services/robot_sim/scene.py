@@ -30,9 +30,17 @@ FLOOR_RGBA = [0.44, 0.44, 0.4, 1.0]
 TAG_BODY = "target"
 #: where in the DSP's 10 ms cycle the camera may be triggered: at a bus cycle's boundary, where the world is
 TRIGGER_OFFSETS_MS = tuple(range(0, DSP_CYCLE_NS // 1_000_000, CYCLE_NS // 1_000_000))
-#: ``trigger_offset_ms: auto`` starts here (the default offset, measured best on this kind of host when the pipeline
-#: takes under ~8.5 ms) and moves as the measured paths say (services/robot_sim/trigger_phase.py)
-AUTO_TRIGGER_START_MS = 2
+#: the trigger when ``trigger_offset_ms`` is null, by where the DSP that applies the commands runs (robot_sim's
+#: ``mode``), measured on this kind of host (docs/latency.md): robot_sim's own DSP takes a command ~0.7 ms after its
+#: tick, and one that comes up to 1.3 ms later in its command window, so a frame taken at the tick has 11 ms for its
+#: way there; robot_gateway's DSP runs on the tick's reading, which reaches it with the next bus exchange and some
+#: 4-5 ms after the tick, so a frame taken 2 ms after the tick has as long. ``auto`` starts there too.
+DEFAULT_TRIGGER_MS = {"api": 0, "actuator_bus": 2}
+
+
+def trigger_offset(camera: "CameraConfig", mode: str) -> Union[int, Literal["auto"]]:
+    """The camera's trigger offset (ms after the tick) as configured, or the mode's measured default when null."""
+    return DEFAULT_TRIGGER_MS[mode] if camera.trigger_offset_ms is None else camera.trigger_offset_ms
 
 
 def _default_camera_in_ee() -> PoseConfig:
@@ -65,15 +73,15 @@ class CameraConfig(ConfigStruct):
     imaging: Optional[ImagingConfig] = None
     #: realtime: the camera is triggered this long after the arm's 10 ms DSP tick (a whole number of 2 ms bus
     #: cycles below 10), as a hardware-triggered camera wired to the robot's controller is: a command derived from
-    #: the frame should reach the DSP just before a tick, or it waits a whole cycle for the next (docs/latency.md).
+    #: the frame should reach the DSP just before it plans, or it waits a whole cycle for the next
+    #: (docs/latency.md). null: the measured default for where the DSP runs (:data:`DEFAULT_TRIGGER_MS`).
     #: ``auto``: moved to where the commands' measured paths are applied soonest (trigger_phase.py; not the
-    #: default: on this host it helps a slow pipeline and can cost the default camera its p99, docs/latency.md).
-    #: Lockstep takes each frame at a tick and answers it there, whatever this says.
-    trigger_offset_ms: Union[int, Literal["auto"]] = 2
+    #: default, docs/latency.md). Lockstep takes each frame at a tick and answers it there, whatever this says.
+    trigger_offset_ms: Union[int, Literal["auto"], None] = None
 
     def __post_init__(self) -> None:
-        if self.trigger_offset_ms != "auto" and self.trigger_offset_ms not in TRIGGER_OFFSETS_MS:
-            raise ValueError(f"camera trigger_offset_ms must be auto or one of {TRIGGER_OFFSETS_MS} (a whole number "
+        if self.trigger_offset_ms not in ("auto", None) and self.trigger_offset_ms not in TRIGGER_OFFSETS_MS:
+            raise ValueError(f"camera trigger_offset_ms must be null, auto or one of {TRIGGER_OFFSETS_MS} (a whole number "
                              f"of 2 ms bus cycles after the 10 ms DSP tick), not {self.trigger_offset_ms}")
         if self.encoding is ImageEncoding.BGR8:
             raise ValueError("camera encoding must be rgb8 or mono8")

@@ -40,7 +40,7 @@ from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfi
 from services.robot_sim.camera import SimCamera
 from services.robot_sim.firmware import ActuatorConfig
 from services.robot_sim.hardware import SimulatedHardware
-from services.robot_sim.scene import AUTO_TRIGGER_START_MS, TRIGGER_OFFSETS_MS, SceneConfig
+from services.robot_sim.scene import DEFAULT_TRIGGER_MS, TRIGGER_OFFSETS_MS, SceneConfig, trigger_offset
 from services.robot_sim.trigger_phase import TriggerPhase
 from services.robot_sim.sim import Simulation
 
@@ -78,9 +78,9 @@ class _SimulationOutputs:
         self.epoch_ns = epoch_ns
         #: realtime: frames are taken this long after a DSP tick (the camera's trigger: fixed, or moved to where the
         #: commands' measured paths are applied soonest); lockstep: at the tick
-        offset = config.scene.camera.trigger_offset_ms
+        offset = trigger_offset(config.scene.camera, config.mode)
         auto = offset == "auto" and not self.lockstep
-        self.trigger = TriggerPhase(0 if self.lockstep else AUTO_TRIGGER_START_MS if auto else offset,
+        self.trigger = TriggerPhase(0 if self.lockstep else DEFAULT_TRIGGER_MS[config.mode] if auto else offset,
                                     TRIGGER_OFFSETS_MS, auto, cycle_ms=DSP_CYCLE_NS / 1e6)
         self.camera: Optional[SimCamera] = None
         #: the frame taken at the last DSP tick: (capture stamp, rendered event)

@@ -286,9 +286,10 @@ def test_lockstep_retries_a_tick_whose_answer_was_lost(robot, client):
 
 
 def test_realtime_camera_trigger_moves_to_where_slow_commands_are_applied_soonest(router, client):
-    """robot_sim (realtime, ``trigger_offset_ms: auto``) told by the robot states that every command reaches the
-    robot 9.5 ms after its frame's capture and is applied at the second take after the tick (18.8 ms with the
-    camera 2 ms after the tick): it moves the camera to the tick itself (10.8 ms), and its frames follow."""
+    """robot_sim (realtime, ``trigger_offset_ms: auto``, starting at its mode's default, the tick) told by the robot
+    states that every command reaches the robot 9.5 ms after its frame's capture and is applied 18.8 ms after it (a
+    DSP that takes its commands 8.8 ms after its tick): it moves the camera to 8 ms after the tick (10.8 ms), and
+    its frames follow."""
     ticks, images, own_states = collect(client, KEYS.clock, m.SimClock), [], collect(client, KEYS.robot_state,
                                                                                        m.RobotState)
     state_pub = GuardedPublisher.declare(client, KEYS.robot_state)
@@ -314,11 +315,11 @@ def test_realtime_camera_trigger_moves_to_where_slow_commands_are_applied_soones
         def phases_ms(stamps):
             return {round((stamp - ticks[0].header.stamp_ns) % 10_000_000 / 1e6, 1) for stamp in stamps}
 
-        assert phases_ms(images[:5]) == {2.0}
-        assert wait_for(lambda: "camera_trigger_ms=0 (auto, moved 1x," in service.health().detail, timeout=30.0)
+        assert phases_ms(images[:5]) == {0.0}
+        assert wait_for(lambda: "camera_trigger_ms=8 (auto, moved 1x," in service.health().detail, timeout=30.0)
         moved_at = len(images)
         assert wait_for(lambda: len(images) >= moved_at + 5, timeout=10.0)
-        assert phases_ms(images[moved_at + 1:]) == {0.0}
+        assert phases_ms(images[moved_at + 1:]) == {8.0}
         assert service.counters.get("camera.trigger_moves") == 1
     finally:
         service.stop()
