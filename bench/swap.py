@@ -146,9 +146,10 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str], quiet:
     for name in profiles:
         profile, clock = PROFILES[name]
         # lockstep repeats itself exactly: its spread comes from nudged starts, realtime's from the host
-        starts = [(0.0, 0.0, 0.0)] + (nudge_offsets(nudges) if clock is ClockMode.LOCKSTEP else [])
+        starts = ([(0.0, 0.0, 0.0)] + nudge_offsets(nudges) if clock is ClockMode.LOCKSTEP
+                  else [(0.0, 0.0, 0.0)] * runs)
         rows = []
-        for offset in starts if clock is ClockMode.LOCKSTEP else [(0.0, 0.0, 0.0)] * runs:
+        for offset in starts:
             scenario = load_scenario(scenario_path)
             scenario.clock = clock
             if any(offset):

@@ -275,7 +275,6 @@ class RobotNode(Service):
         self._last_source_ns = 0
         #: when the bus loop's current exchange was due (monotonic): the next is a cycle later
         self._slot_start = time.monotonic()
-        self._waited_s = 0.0
         self._dsp_cond = threading.Condition()
         self._dsp_thread: Optional[threading.Thread] = None
         self._late = RateMeter()
@@ -681,8 +680,8 @@ class RobotNode(Service):
             tick_ns, reading, wait_until, exchanges = pending
             try:
                 start = time.monotonic()
-                self.dsp_tick(tick_ns, reading, wait_until if self.config.command_window_s > 0.0 else None)
-                self.dsp_time.add(time.monotonic() - start - self._waited_s)
+                waited_s = self.dsp_tick(tick_ns, reading, wait_until)  # a window of 0 ends as it begins
+                self.dsp_time.add(time.monotonic() - start - waited_s)
                 if self._exchanges > exchanges:
                     self.counters.inc("dsp.late_plans")  # the next exchange went out on the last cycle's plan
             except Exception:
@@ -720,20 +719,21 @@ class RobotNode(Service):
             self._last_dsp_index = index
         return tick
 
-    def dsp_tick(self, tick_ns: int, reading: JointReading, wait_until: Optional[float] = None) -> None:
+    def dsp_tick(self, tick_ns: int, reading: JointReading, wait_until: Optional[float] = None) -> float:
         """One DSP cycle on the reading of the tick at ``tick_ns`` (realtime: waiting for a fresh command until
-        ``wait_until``, see ``command_window_s``)."""
+        ``wait_until``, see ``command_window_s``); how long it waited (s)."""
         self.rates.tick("cycle")
         self.publish_state(tick_ns, reading)
         frame_stamp = self.frame_at_tick(tick_ns)
+        waited_s = 0.0  # in the command window (realtime); lockstep waits for its answer instead
         if self.lockstep and self._answerers:
             taken = self._wait_for_answer(tick_ns, frame_stamp, reading)
         else:
             waiting = time.monotonic()
             taken = self.take_command(wait_until)
-            self._waited_s = time.monotonic() - waiting
+            waited_s = time.monotonic() - waiting
             if wait_until is not None:
-                self.command_wait.add(self._waited_s)
+                self.command_wait.add(waited_s)
         self.run_api_calls()
         taken = self._arm_check_command(tick_ns, taken, reading)
         if self.consecutive_errors >= self.config.max_bus_errors:
@@ -753,6 +753,7 @@ class RobotNode(Service):
                 self.refuse("command", refusal.reason)
                 self.counters.inc(f"refused.{refusal.kind}")
                 self._last_refusal, self._refusal_cycles = refusal.reason, 100
+        return waited_s
 
     # ------------------------------------------------------------------ lockstep
     def _answered(self, tick_ns: int, frame_stamp: Optional[int]) -> bool:
