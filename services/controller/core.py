@@ -153,18 +153,17 @@ class ControllerCore:
 
 def saturate(output: LawOutput, robot: MotionLimits, joint_output: bool, state: RobotState,
              convention: AngularConvention) -> bool:
-    """Scale the law's output down to the robot's limits (in place): joint velocities uniformly to the joints'
-    speeds, a twist's linear part to the linear speed and its angular part (rates in the robot's convention) so
-    the end effector's angular velocity is within the angular speed, the way the robot measures it; whether
-    anything was scaled."""
+    """Scale the law's output down to the robot's limits (in place) by one factor, so it keeps the direction the law
+    asked for: joint velocities to the joints' speeds; a twist so that its linear speed and the end effector's
+    angular speed (its rates in the robot's convention turned into ω, the way the robot measures it) are both
+    within their limits. Whether anything was scaled."""
     if joint_output:
         output.joint_velocities, ratio = saturation.limit_uniformly(output.joint_velocities, robot.joint_speed_rps)
         return ratio > 1.0
     twist = output.twist
-    twist[:3], linear = saturation.limit_norm(twist[:3], robot.linear_speed_mps)
     pose = state.pose
     R = frames.euler_xyz_to_matrix((pose.ThetaX, pose.ThetaY, pose.ThetaZ))
-    angular = float(np.linalg.norm(frames.omega_ee_from_angular(twist[3:], R, convention)))
-    if angular > robot.angular_speed_rps:
-        twist[3:] *= robot.angular_speed_rps / angular  # the rates are linear in ω: scaled as it is
-    return linear > robot.linear_speed_mps or angular > robot.angular_speed_rps
+    motion = np.concatenate([twist[:3], frames.omega_ee_from_angular(twist[3:], R, convention)])
+    output.twist, ratio = saturation.limit_twist(twist, robot.linear_speed_mps, robot.angular_speed_rps,
+                                                 judged_on=motion)
+    return ratio.over > 1.0

@@ -94,9 +94,13 @@ class Decision:
         return self.refusal is not None
 
 
-def _over_speed(name: str, speed: float, limit: float) -> "Decision":
-    """The refusal of a command over a speed limit (``over_limit: refuse``)."""
-    return Decision(refusal=f"{name}: {speed:.3f} over the limit {limit:.3f}", limits=[name])
+def _over_speed(ratio: saturation.TwistRatio, robot: MotionLimits) -> tuple[list[str], str]:
+    """The names of a twist's parts over their speed limits, and why (a clamp's record, or a refusal's reason)."""
+    over = [(name, part * limit, limit) for name, part, limit in
+            (("linear_speed", ratio.linear, robot.linear_speed_mps),
+             ("angular_speed", ratio.angular, robot.angular_speed_rps)) if part > 1.0]
+    return [name for name, _, _ in over], "; ".join(f"{name}: {speed:.3f} over the limit {limit:.3f}"
+                                                    for name, speed, limit in over)
 
 
 class CommandChecker:
@@ -119,12 +123,6 @@ class CommandChecker:
         self.last_dq = np.zeros(jaco2.N_JOINTS)
 
     # ------------------------------------------------------------------ twists
-    @staticmethod
-    def speed_limits(robot: MotionLimits) -> tuple:
-        """A base twist's parts, their speed limits and the names a limited or refused command gives them."""
-        return ((slice(0, 3), robot.linear_speed_mps, "linear_speed"),
-                (slice(3, 6), robot.angular_speed_rps, "angular_speed"))
-
     def check_twist(self, frame: Frame, angular: AngularConvention, twist, q, dt: float,
                     robot: MotionLimits) -> Decision:
         """``robot``: the limits the robot declares (:func:`services.model.limits.declared`)."""
@@ -142,20 +140,19 @@ class CommandChecker:
             return Decision(refusal=f"orientation: {exc}", limits=["euler_singularity"])
         decision = Decision()
 
-        # speeds
-        for part, vmax, name in self.speed_limits(robot):
-            limited, speed = saturation.limit_norm(base[part], vmax)
-            if speed > vmax:
-                if lim.over_limit == "refuse":
-                    return _over_speed(name, speed, vmax)
-                base[part] = limited
-                decision.limits.append(name)
-        # accelerations, from the last forwarded twist
-        for part, amax, name in ((slice(0, 3), robot.linear_accel_mps2, "linear_accel"),
-                                 (slice(3, 6), robot.angular_accel_rps2, "angular_accel")):
-            base[part], cut = saturation.limit_norm_change(self.last_twist_base[part], base[part], amax * dt)
-            if cut:
-                decision.limits.append(name)
+        # speeds: the whole twist by one factor (its direction kept), or refused
+        limited, ratio = saturation.limit_twist(base, robot.linear_speed_mps, robot.angular_speed_rps)
+        if ratio.over > 1.0:
+            over, why = _over_speed(ratio, robot)
+            if lim.over_limit == "refuse":
+                return Decision(refusal=why, limits=over)
+            base = limited
+            decision.limits += over
+        # accelerations, from the last forwarded twist: the change by one factor
+        base, cut = saturation.limit_twist_change(self.last_twist_base, base, robot.linear_accel_mps2 * dt,
+                                                  robot.angular_accel_rps2 * dt)
+        if cut:
+            decision.limits.append("acceleration")
         # workspace zones: remove motion into a zone
         base[:3], zones = filter_velocity(lim.zones, p, base[:3], lim.zone_filter, dt)
         decision.limits += [f"zone:{z}" for z in zones]
@@ -163,11 +160,12 @@ class CommandChecker:
         J_pinv = np.linalg.pinv(J)
         dq = J_pinv @ base
         scale = 1.0
-        ratio = saturation.over_limit_ratio(dq, robot.joint_speed_rps)
-        if ratio > 1.0:
+        joint_ratio = saturation.over_limit_ratio(dq, robot.joint_speed_rps)
+        if joint_ratio > 1.0:
             if lim.over_limit == "refuse":
-                return Decision(refusal=f"joint_speed: {ratio:.2f}× the joint speed limit", limits=["joint_speed"])
-            scale = 1.0 / ratio
+                return Decision(refusal=f"joint_speed: {joint_ratio:.2f}× the joint speed limit",
+                                limits=["joint_speed"])
+            scale = 1.0 / joint_ratio
             decision.limits.append("joint_speed")
         scale = min(scale, self._joint_limit_scale(q, dq * scale, decision) * scale)
         base *= scale
@@ -210,14 +208,13 @@ class CommandChecker:
         dq *= self._joint_limit_scale(q, dq, decision)
         R, p, J = self.kin.pose_and_jacobian(q)
         twist = J @ dq
-        for part, vmax, name in self.speed_limits(robot):
-            speed = float(np.linalg.norm(twist[part]))
-            if speed > vmax:
-                if lim.over_limit == "refuse":
-                    return _over_speed(name, speed, vmax)
-                dq = dq * (vmax / speed)  # the joint motion scaled as its twist part is
-                twist = J @ dq
-                decision.limits.append(name)
+        ratio = saturation.twist_ratio(twist, robot.linear_speed_mps, robot.angular_speed_rps)
+        if ratio.over > 1.0:
+            over, why = _over_speed(ratio, robot)
+            if lim.over_limit == "refuse":
+                return Decision(refusal=why, limits=over)
+            dq, twist = dq / ratio.over, twist / ratio.over  # the joint motion scaled as its twist is
+            decision.limits += over
         _, zones = filter_velocity(lim.zones, p, twist[:3], lim.zone_filter, dt)
         if zones:
             # joint motion cannot be bent along a zone's boundary: motion into a zone is refused

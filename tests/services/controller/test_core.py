@@ -10,8 +10,10 @@ from protocol.conventions import AngularConvention
 from services.model import frames, jaco2
 from services.model.kinematics import ArmKinematics
 from services.model.limits import arm_limits, stricter
-from services.controller.core import ControllerCore
-from services.controller.law import LawConfig
+from services.controller.core import ControllerCore, saturate
+from services.controller.law import LawOutput
+from services.controller.core import saturate
+from services.controller.law import LawConfig, LawOutput
 from services.controller.service import ControllerConfig, ControllerService
 from services.robot_sim.scene import CameraConfig
 from tests.helpers import iterations_in_a_late_loop, tag_corners_seen
@@ -89,6 +91,21 @@ def test_output_is_saturated_to_the_robots_declared_limits_and_says_so(declared,
     omega = frames.omega_ee_from_angular(output.twist[3:], np.eye(3), AngularConvention.SEED000)
     assert np.linalg.norm(output.twist[:3]) == pytest.approx(linear, rel=1e-9)
     assert np.linalg.norm(omega) <= angular * (1 + 1e-9)
+
+
+def test_a_saturated_twist_keeps_the_direction_the_law_asked_for():
+    """Issue 34: the linear part over its limit slows the angular part by the same factor; two robots declaring
+    different limits get the same direction."""
+    outputs = [controller(limits=declared).compute(features(points=FAR, depth=1.5))[1].twist
+               for declared in (DECLARED, None)]
+    assert np.linalg.norm(outputs[0]) < np.linalg.norm(outputs[1])
+    assert np.allclose(outputs[0] / np.linalg.norm(outputs[0]), outputs[1] / np.linalg.norm(outputs[1]))
+    state = m.RobotState(header=m.Header(), q=jaco2.HOME.tolist(), dq=[0.0] * 7, tau=[0.0] * 7,
+                         pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
+                         control_mode=m.ControlMode.IDLE)
+    output = LawOutput(twist=np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.3]))
+    assert saturate(output, arm_limits(), False, state, AngularConvention.SEED000)
+    assert np.allclose(output.twist, [0.2, 0.0, 0.0, 0.0, 0.0, 0.15])
 
 
 def test_joint_law_output_is_saturated_per_joint_speed():

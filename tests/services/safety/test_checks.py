@@ -13,7 +13,8 @@ from services.model import jaco2
 from services.model.kinematics import ArmKinematics
 from services.model.limits import arm_limits, stricter
 from services.runtime.transport import open_session
-from services.safety.checks import MotionMonitor, SafetyLimits
+from services.model import frames
+from services.safety.checks import CommandChecker, MotionMonitor, SafetyLimits
 from services.safety.service import SafetyConfig, SafetyService
 from tests.stack import KEYS, Recorder, wait_for
 
@@ -147,3 +148,18 @@ def test_safety_refuses_an_input_from_the_future(safety):
     assert wait_for(lambda: any(c.mode is m.CommandMode.CARTESIAN_VELOCITY for c in commands.snapshot()), timeout=5)
     for token in tokens:
         token.undeclare()
+
+
+@pytest.mark.parametrize("over_limit", ["clamp", "refuse"])
+def test_a_twist_over_one_speed_limit_is_scaled_as_a_whole_or_refused(over_limit):
+    """Issue 34: the linear part at 2× its limit, the angular within: clamped, the whole twist is halved (its
+    direction kept, as the law asked); refused, the reason names the part over."""
+    checker = CommandChecker(SafetyLimits(over_limit=over_limit, robot_convention=AngularConvention.OMEGA))
+    asked = np.array([0.0, -0.3, 0.0, 0.0, 0.0, 0.4])
+    decision = checker.check_twist(Frame.MIXED, AngularConvention.OMEGA, asked, Q, dt=1.0, robot=ROBOT)
+    if over_limit == "refuse":
+        assert decision.refused and decision.limits == ["linear_speed"]
+        assert "linear_speed: 0.300 over the limit 0.150" in decision.refusal
+        return
+    assert not decision.refused and "linear_speed" in decision.limits
+    assert np.allclose(decision.twist, asked / 2.0)
