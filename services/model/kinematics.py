@@ -18,6 +18,8 @@ class ArmKinematics:
         self.model = arm.model
         self.ee_frame_id = arm.ee_frame_id
         self.data = self.model.createData()
+        #: the length that puts translation and rotation in one unit (:func:`normalized_jacobian`): the arm's reach
+        self.characteristic_length_m = jaco2.STRAIGHT_REACH
 
     def pose(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(R_be, p) of the end effector in the base frame."""
@@ -65,3 +67,19 @@ def manipulability(J: np.ndarray) -> float:
     singularity)."""
     return float(np.prod(np.linalg.svd(J, compute_uv=False)))
 
+
+
+def normalized_jacobian(J: np.ndarray, length_m: float) -> np.ndarray:
+    """J with its linear rows divided by a characteristic length of the arm: every row then maps joint rates (rad/s)
+    to rad/s (a rotation, or a translation as the turn of the arm's length it amounts to), so its singular values
+    compare translation with rotation in one unit, and an arm scaled in size has the same ones at the same angles."""
+    Jn = np.array(J, dtype=float, copy=True)
+    Jn[:3] /= length_m
+    return Jn
+
+
+def singularity_measure(J: np.ndarray, length_m: float) -> float:
+    """How far the arm is from a singularity, without units: the smallest singular value of
+    :func:`normalized_jacobian` (0 at a singularity; the j2s7s300 at its home pose: 0.13). With every joint at
+    1 rad/s the end effector can move at least this fast in any direction, in rad/s or arm lengths per second."""
+    return float(np.linalg.svd(normalized_jacobian(J, length_m), compute_uv=False)[-1])

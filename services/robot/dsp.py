@@ -7,9 +7,11 @@ integrates into the actuators' position targets, reproducing the DSP's behaviour
 * a velocity command lasts one 10 ms cycle and must be resent; with no command for ``watchdog_cycles`` cycles
   the arm decelerates to rest within the acceleration limits;
 * speed limits (0.2 m/s, 1.07 rad/s by default, configurable within Kinova's client ranges), acceleration
-  limits (0.64 m/s², 2.75 rad/s², 200 deg/s²) and the actuators' joint speeds (36/48 deg/s);
-* Cartesian velocity resolved by damped least squares, with null-space motion away from joint limits and
-  singularities while the arm moves;
+  limits (0.64 m/s², 2.75 rad/s², 200 deg/s²) and the actuators' joint speeds (36/48 deg/s), each applied by one
+  factor on the whole motion, so a limited command keeps its direction;
+* Cartesian velocity resolved on the Jacobian with its rows in one unit; a redundant arm's self-motion (while it
+  moves) away from joint limits and, near a singularity, up the singularity measure; damped least squares only
+  where the arm is truly near one;
 * protection zones: the component of end-effector motion into a zone is removed, so it glides along the zone;
 * joint limits are never crossed: the speed toward a limit is capped so the joint can always stop before it;
 * the angular part of a Cartesian velocity is read in one configured convention; a command that declares
@@ -39,7 +41,7 @@ from protocol.conventions import AngularConvention, Frame
 from protocol.messages import CommandMode, ControlMode, Header, MotionLimits, RobotCommand
 from services.model import frames, jaco2, saturation
 from services.runtime.config import ConfigStruct
-from services.model.kinematics import ArmKinematics, manipulability
+from services.model.kinematics import ArmKinematics, normalized_jacobian, singularity_measure
 from services.model.limits import arm_limits
 from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
@@ -108,13 +110,20 @@ class DSPConfig(ConfigStruct):
     command_delay_cycles: int = 0
     #: joints stop this far inside their limits
     joint_limit_margin_deg: float = 2.0
-    #: damped least squares: the damping reaches this value as the smallest singular value of J goes to 0 ...
-    max_damping: float = 0.04
-    #: ... and is zero above this smallest singular value
-    singular_threshold: float = 0.06
-    #: null-space gains (while moving): away from joint limits, toward higher manipulability
+    #: singularities, judged by :func:`~services.model.kinematics.singularity_measure` (the smallest singular value
+    #: of J with its linear rows over the arm's reach: no units; 0.13 at the j2s7s300's home, 0.025 with its elbow
+    #: 10° from straight). Below ``avoid_singularity_below`` a redundant arm's self-motion climbs the measure
+    #: (null space, while moving), at full ``singularity_avoidance_gain`` from ``damp_singularity_below`` down;
+    #: the end effector's motion is not changed by it
+    avoid_singularity_below: float = 0.06
+    singularity_avoidance_gain: float = 0.6
+    #: only this near a singularity, where self-motion could not keep the arm away, is the motion resolved by
+    #: damped least squares, the damping reaching ``max_damping`` as the measure goes to 0 (our choice: no public
+    #: figure; docs/robot.md)
+    damp_singularity_below: float = 0.02
+    max_damping: float = 0.02
+    #: null-space gain (while moving) away from joint limits
     joint_limit_gain: float = 0.6
-    manipulability_gain: float = 0.6
     #: position trajectories: proportional gain (1/s) before the speed and acceleration profile
     position_gain: float = 3.0
     #: emergency stop: the end effector brakes along its path at these decelerations (whichever binds)
@@ -137,6 +146,12 @@ class DSPConfig(ConfigStruct):
             raise ValueError("joint_speed_scale must be within (0, 1]")
         if self.watchdog_cycles < 1:
             raise ValueError("watchdog_cycles must be at least 1")
+        if not 0.0 <= self.damp_singularity_below <= self.avoid_singularity_below < 1.0:
+            raise ValueError("the singularity thresholds need 0 <= damp_singularity_below <= avoid_singularity_below < 1")
+        for name in ("max_damping", "singularity_avoidance_gain", "joint_limit_gain"):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be zero or positive")
         if not 0 <= self.command_delay_cycles <= 100:
             raise ValueError("command_delay_cycles must be within [0, 100]")
 
@@ -446,17 +461,18 @@ class KinovaDSP:
         return error / distance * speed
 
     def _limit_twist(self, twist: np.ndarray, dt: float, max_lin: float, max_ang: float) -> np.ndarray:
+        """The speed and acceleration limits, each by one factor on the whole twist: Kinova documents a limit per
+        part (translation and orientation speeds) but not how a twist over one of them is brought within it, so
+        the emulated arm keeps the direction it was asked for."""
         cfg = self.config
-        out = np.array(twist, dtype=float, copy=True)
-        for part, vmax, amax in ((slice(0, 3), max_lin, cfg.linear_accel_mps2),
-                                 (slice(3, 6), max_ang, cfg.angular_accel_rps2)):
-            out[part], speed = saturation.limit_norm(out[part], vmax)
-            if speed > vmax:
-                self._flag("speed")
-            out[part], cut = saturation.limit_norm_change(self._twist_prev[part], out[part], amax * dt)
-            if cut:
-                self._flag("acceleration")
-        return out
+        out, ratio = saturation.limit_twist(np.asarray(twist, dtype=float), max_lin, max_ang)
+        if ratio.over > 1.0:
+            self._flag("speed")
+        out, cut = saturation.limit_twist_change(self._twist_prev, out, cfg.linear_accel_mps2 * dt,
+                                                 cfg.angular_accel_rps2 * dt)
+        if cut:
+            self._flag("acceleration")
+        return np.array(out, dtype=float, copy=True)
 
     def _cartesian(self, q, p, J, twist_base, dt, max_lin, max_ang) -> np.ndarray:
         cfg = self.config
@@ -464,41 +480,55 @@ class KinovaDSP:
         twist[:3], zones = filter_velocity(self.zones, p, twist[:3], cfg.zone_filter, dt)
         for name in zones:
             self._flag(f"zone:{name}")
-        U, s, Vt = np.linalg.svd(J)
-        sigma_min = s[-1]
+        # resolved on J with its rows in one unit (services.model.kinematics.normalized_jacobian): the same joint
+        # motion as J⁺ wherever the arm is not near a singularity, and a measure of how near it is
+        length = self.kin.characteristic_length_m
+        Jn = normalized_jacobian(J, length)
+        twist_n = twist.copy()
+        twist_n[:3] /= length
+        U, s, Vt = np.linalg.svd(Jn)
+        measure = s[-1]
         damping2 = 0.0
-        if sigma_min < cfg.singular_threshold:
-            damping2 = (1.0 - (sigma_min / cfg.singular_threshold) ** 2) * cfg.max_damping**2
+        if measure < cfg.damp_singularity_below:
+            damping2 = (1.0 - (measure / cfg.damp_singularity_below) ** 2) * cfg.max_damping**2
             self._flag("singularity")
-        dq = J.T @ np.linalg.solve(J @ J.T + damping2 * np.eye(6), twist)
+        dq = Jn.T @ np.linalg.solve(Jn @ Jn.T + damping2 * np.eye(6), twist_n)
         # self-motion away from joint limits and singularities, in proportion to how fast the end effector moves:
         # a fine approach stays fine (the joints never cancel each other's self-motion exactly, so self-motion
         # faster than the task itself shakes the end effector), and the arm at rest does not drift
         moving = min(1.0, np.linalg.norm(twist[:3]) / max_lin + np.linalg.norm(twist[3:]) / max_ang)
-        if moving > 0.0:
+        if moving > 0.0 and len(q) > 6:
             s_inv = np.where(s > 1e-6, 1.0 / np.maximum(s, 1e-12), 0.0)
-            J_pinv = Vt.T[:, :6] @ np.diag(s_inv) @ U.T
-            null = np.eye(jaco2.N_JOINTS) - J_pinv @ J
-            dq += moving * (null @ self._secondary_task(q, s))
+            Jn_pinv = Vt.T[:, :6] @ np.diag(s_inv) @ U.T
+            null = np.eye(len(q)) - Jn_pinv @ Jn
+            dq += moving * (null @ self._secondary_task(q, measure))
         return self._joint(q, dq, dt, self._joint_max_speed, uniform=True)
 
-    def _secondary_task(self, q, s) -> np.ndarray:
+    def _secondary_task(self, q, measure: float) -> np.ndarray:
+        """Joint rates the null space takes from: toward the middle of the joints' ranges, and, near a singularity,
+        up the gradient of the singularity measure's logarithm (a barrier: the nearer, the harder it pushes),
+        scaled by how near."""
         cfg = self.config
-        xi = np.zeros(jaco2.N_JOINTS)
+        xi = np.zeros(len(q))
         limited = self._limited
         xi[limited] = -cfg.joint_limit_gain * (q[limited] - self._mid[limited]) / self._half_range[limited]
-        if cfg.manipulability_gain > 0.0:
-            w0 = float(np.prod(s))  # manipulability() of this J, from the singular values already at hand
-            grad = np.zeros(jaco2.N_JOINTS)
-            h = 1e-5
-            for i in range(jaco2.N_JOINTS):
-                dq = np.zeros(jaco2.N_JOINTS)
-                dq[i] = h
-                grad[i] = (manipulability(self.kin.jacobian_base(q + dq)) - w0) / h
-            norm = np.linalg.norm(grad)
-            if norm > 1e-9:
-                xi += cfg.manipulability_gain * grad / norm * min(1.0, 0.02 / max(w0, 1e-6))
+        nearness = self._singularity_nearness(measure)
+        if nearness > 0.0 and cfg.singularity_avoidance_gain > 0.0:
+            length = self.kin.characteristic_length_m
+            h = 1e-6
+            grad_log = np.array([math.log(max(singularity_measure(self.kin.jacobian_base(q + h * e), length), 1e-12)
+                                          / max(measure, 1e-12)) / h for e in np.eye(len(q))])
+            xi += cfg.singularity_avoidance_gain * nearness * grad_log
+            self._flag("singularity_avoidance")
         return xi
+
+    def _singularity_nearness(self, measure: float) -> float:
+        """0 at or above ``avoid_singularity_below``, rising linearly to 1 at ``damp_singularity_below`` and below."""
+        cfg = self.config
+        if measure >= cfg.avoid_singularity_below:
+            return 0.0
+        span = cfg.avoid_singularity_below - cfg.damp_singularity_below
+        return 1.0 if span <= 0.0 else min(1.0, (cfg.avoid_singularity_below - measure) / span)
 
     def _joint(self, q, dq_desired, dt, max_speed, uniform: bool = False) -> np.ndarray:
         """Joint speed (uniform scaling keeps a Cartesian direction), joint acceleration, joint limits."""

@@ -159,6 +159,20 @@ def test_speed_limits_hold():
     assert "speed" in sim.dsp.status.active_limits
 
 
+def test_a_twist_over_one_speed_limit_keeps_its_direction():
+    """Linear 2.5× over its limit, angular well within: the whole motion slows by one factor (issue 34), so the
+    end effector turns at 0.4× the rate it was asked for, not the full rate with a cut translation."""
+    sim = make_sim(angular_convention=AngularConvention.OMEGA)
+    linear, omega_ee = np.array([0.0, 0.5, 0.0]), np.array([0.0, 0.0, 0.3])
+    trace = run(sim, twist_command(linear, omega_ee, AngularConvention.OMEGA), 60)
+    assert "speed" in sim.dsp.status.active_limits
+    asked = np.concatenate([linear, trace[0][2][:3, :3] @ omega_ee])
+    for _, twist_base, T in trace[40:]:
+        assert np.linalg.norm(twist_base[:3]) == pytest.approx(0.2, rel=0.02)
+        asked = np.concatenate([linear, T[:3, :3] @ omega_ee])  # ω is turned into the base frame as the arm turns
+        assert np.linalg.norm(twist_base - asked * 0.2 / 0.5) <= 0.02 * np.linalg.norm(asked * 0.2 / 0.5)
+
+
 @pytest.mark.parametrize("bad", [
     twist_command((0.05, 0, 0), (0, 0, 0.1), convention=AngularConvention.OMEGA),
     twist_command((0.05, 0, 0), (0, 0, 0.1), convention=AngularConvention.EULER_XYZ_RATES),
