@@ -286,6 +286,8 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     if args.profile not in ("sim", "gateway"):
         print(f"mfvs experiment: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
         return 2
+    if args.random_starts is not None:
+        return _random_starts_experiment(args)
     try:
         progress = _experiment_progress(args.name, args.json)
         output = run_experiment(args.name, args.scenario, args.out, progress, profile=args.profile,
@@ -297,6 +299,51 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
         print(json.dumps(output), flush=True)
     else:
         _print_experiment(output)
+    return 0
+
+
+def _random_starts_experiment(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from services.experiments import RANDOM_START_EXPERIMENTS, run_random_starts
+    from services.runtime.config import ConfigError
+
+    if args.name not in RANDOM_START_EXPERIMENTS:
+        print(f"mfvs experiment: --random-starts runs {', '.join(RANDOM_START_EXPERIMENTS)}, not {args.name}",
+              file=sys.stderr)
+        return 2
+    if args.random_starts < 1:
+        print("mfvs experiment: --random-starts needs at least 1 start", file=sys.stderr)
+        return 2
+    # the starts are written where they can be run again: beside the results, or in the working directory
+    starts_dir = (Path(args.out) / "starts" if args.out
+                  else Path("mfvs-random-starts") / f"{args.name}-seed{args.seed}")
+    progress = _experiment_progress(args.name, args.json)
+    try:
+        output = run_random_starts(args.name, args.random_starts, args.seed, args.scenario, args.out, starts_dir,
+                                   progress, profile=args.profile, on_iteration=progress.on_iteration)
+    except (ConfigError, ValueError) as exc:
+        print(f"mfvs experiment: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(output), flush=True)
+        return 0
+    summary = output["summary"]
+    print(f"{output['title']} (starts in {output['random_starts']['scenarios']})")
+    for law, figures in summary["laws"].items():
+        it = figures["iterations"]
+        quart = "–" if it["median"] is None else f"{it['q1']:.0f} / {it['median']:.0f} / {it['q3']:.0f}"
+        print(f"  {law:22s} converged {figures['converged']}/{summary['starts']}  iterations q1/median/q3 {quart}"
+              f"  (paper {figures['paper_iterations']})" + (f"  failures {figures['failures']}"
+                                                            if figures["failures"] else ""))
+    print(f"in the paper's order on {summary['fraction_in_paper_order']:.0%} of the starts; the mixed law "
+          f"≥ {summary['clearly_faster_pct']:g} % faster than adaptive-pd-joint on "
+          f"{summary['fraction_clearly_faster']:.0%}, median improvement {summary['median_improvement_pct']} % "
+          f"(paper {summary['paper_improvement_pct']} %), mixed failures {summary['proposed_failures']}")
+    for entry in summary["not_clearly_faster"]:
+        print(f"  start {entry['index']}: improvement {entry['improvement_pct']} %; shaped by {entry['shaped_by']}")
+    if output["report"]:
+        print(f"report: {output['report']}")
     return 0
 
 
@@ -490,6 +537,10 @@ def build_parser() -> argparse.ArgumentParser:
     experiment.add_argument("--json", action="store_true", help="print one JSON object with the runs and summary")
     experiment.add_argument("--profile", default="sim", help="sim (default) or gateway (robot_gateway over the "
                                                              "RS-485 bus; lockstep gives the same numbers)")
+    experiment.add_argument("--random-starts", type=int, default=None, metavar="N",
+                            help="table3 from N random Table-2-like starts (the tag placed at random around "
+                                 "--scenario's, or table2.yaml's), each written as a scenario file to run again")
+    experiment.add_argument("--seed", type=int, default=1, help="the random starts' draws (default 1)")
     experiment.set_defaults(func=_cmd_experiment)
 
     demo = sub.add_parser("demo", help="for a new user: run part-a and table3 with a line per run, write the "

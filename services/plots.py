@@ -393,3 +393,49 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target
     ax.set_title("top view: the target's path and the end effector's", fontsize=10)
     _save(fig, out_dir / "tracking_paths.png", paths)
     return paths
+
+
+def random_starts_plots(runs: list[dict], starts: list[dict], out_dir: Path, *, laws: list[str], paper: dict,
+                        clearly_faster_pct: float) -> list[Path]:
+    """Table 3 over random starts: each law's iterations to converge over the starts (a box per law, every start a
+    dot, the paper's count a red mark; failures counted under the box), and the mixed law's improvement over
+    adaptive-pd-joint start by start against the bar it should clear and the paper's."""
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    fig, (box, gain) = plt.subplots(1, 2, figsize=(12.0, 4.4), gridspec_kw={"width_ratios": [3, 2]})
+    data = [[r["iterations"] for r in runs if r["law"] == law and r["converged"]] for law in laws]
+    positions = np.arange(1, len(laws) + 1)
+    box.boxplot([d if d else [np.nan] for d in data], positions=positions, widths=0.5, showfliers=False)
+    for x, values in zip(positions, data):
+        jitter = np.linspace(-0.12, 0.12, len(values)) if len(values) > 1 else np.zeros(len(values))
+        box.plot(x + jitter, values, "o", ms=3, alpha=0.6, color="tab:blue")
+    box.plot(positions, [paper[law] for law in laws], "_", ms=22, mew=2.5, color="tab:red", label="paper (Table 3)")
+    for x, law in zip(positions, laws):
+        failed = sum(1 for r in runs if r["law"] == law and not r["converged"])
+        box.annotate(f"{failed} failed" if failed else "all converged", (x, 0), xycoords=("data", "axes fraction"),
+                     xytext=(0, 4), textcoords="offset points", ha="center", fontsize=7)
+    box.set_xticks(positions, laws, fontsize=8)
+    box.set_ylabel("iterations to ‖e‖ < 5e-5")
+    box.set_title(f"iterations over {len(starts)} random starts", fontsize=10)
+    box.legend(fontsize=8)
+    box.grid(alpha=0.3, axis="y")
+    values = [s["improvement_pct"] for s in starts]
+    colours = ["tab:green" if s["clearly_faster"] else "tab:red" for s in starts]
+    indices = [s["start"]["index"] for s in starts]
+    gain.bar(range(len(starts)), [v if v is not None else 0.0 for v in values], color=colours)
+    for i, v in enumerate(values):
+        if v is None:
+            gain.annotate("failed", (i, 0), ha="center", va="bottom", fontsize=7, rotation=90)
+    gain.axhline(clearly_faster_pct, color="tab:gray", ls="--", lw=1, label=f"{clearly_faster_pct:g} %")
+    paper_pct = 100.0 * (paper["adaptive-pd-joint"] - paper["adaptive-pd-mixed"]) / paper["adaptive-pd-joint"]
+    gain.axhline(paper_pct, color="tab:red", ls=":", lw=1, label=f"paper {paper_pct:.1f} %")
+    gain.set_xticks(range(len(starts)), indices, fontsize=7)
+    gain.set_xlabel("start")
+    gain.set_ylabel("adaptive-pd-mixed: fewer iterations than adaptive-pd-joint (%)")
+    gain.set_title("the mixed law's improvement, start by start", fontsize=10)
+    gain.legend(fontsize=8)
+    gain.grid(alpha=0.3, axis="y")
+    _save(fig, out_dir / "random_starts.png", paths)
+    return paths
