@@ -415,7 +415,7 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
     import argparse
     import sys
 
-    from services.runtime.config import ConfigError, apply_override, config_from_mapping, read_yaml
+    from services.runtime.config import ConfigError, config_from_mapping, config_mapping
     from services.runtime.logs import setup_logging
 
     parser = argparse.ArgumentParser(prog=f"python -m services.{service_type.name}", description=description)
@@ -431,11 +431,7 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
 
     faulthandler.enable()  # a crash in a native library (EGL, MuJoCo, zenoh) says where, on stderr (the log)
     try:
-        data = read_yaml(args.config) if args.config else {}
-        if not isinstance(data, dict):
-            raise ConfigError(args.config, "expected a mapping at the top level")
-        for assignment in args.set:
-            apply_override(data, assignment)
+        data = config_mapping(args.config, args.set)
         if args.clock:
             data["clock"] = args.clock
         if args.robot_id:

@@ -108,9 +108,15 @@ goal: {features: null, depth_m: null, camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg:
     assert config.robot.scene.target == scenario.target and config.robot.scene.camera.rate_hz == 15.0
     assert config.vision.goal == scenario.goal and config.vision.tag.id == 3 and config.vision.tag.size_m == 0.05
     assert config.controller.control.target_motion  # a moving target turns the law's ∂ê/∂t term on
+    # camera_in_tag alone is the goal (issue 34: the default features do not count as given)
+    alone = config_from_text("goal: {camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
+    assert alone.goal == scenario.goal and stack_config(alone).vision.goal.features is None
     with pytest.raises(ConfigError) as err:  # the goal's rules are vision's
-        config_from_text("goal: {camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
-    assert "exactly one" in str(err.value)
+        config_from_text("goal: {features: [[-0.1, -0.1], [0.1, -0.1], [0.1, 0.1], [-0.1, 0.1]], "
+                         "camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
+    assert "give the goal as features or camera_in_tag, exactly one" in str(err.value)
+    assert config_from_text("{}", Scenario).goal.features == [(-0.1666, -0.1666), (0.1666, -0.1666),
+                                                               (0.1666, 0.1666), (-0.1666, 0.1666)]
 
 
 def test_a_scenario_s_robot_dsp_is_robot_sims_one_config_for_the_whole_stack():
