@@ -433,7 +433,7 @@ def random_starts_plots(runs: list[dict], starts: list[dict], out_dir: Path, *, 
     gain.axhline(paper_pct, color="tab:red", ls=":", lw=1, label=f"paper {paper_pct:.1f} %")
     gain.set_xticks(range(len(starts)), indices, fontsize=7)
     gain.set_xlabel("start")
-    gain.set_ylabel("adaptive-pd-mixed: fewer iterations than adaptive-pd-joint (%)")
+    gain.set_ylabel("mixed law: fewer iterations than joint PD (%)")
     gain.set_title("the mixed law's improvement, start by start", fontsize=10)
     gain.legend(fontsize=8)
     gain.grid(alpha=0.3, axis="y")
