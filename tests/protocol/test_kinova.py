@@ -20,12 +20,23 @@ def test_error_codes_and_ranges():
     assert k.ErrorCode.NO_ERROR_KINOVA == 1
     assert k.ErrorCode.UNKNOWN_ERROR == 666
     assert k.ErrorCode.ERROR_RS485_TIMEOUT == 1020
-    assert k.ErrorCode.ERROR_COMMUNICATION_TIMEOUT == 1022
+    assert k.ErrorCode.ERROR_COMM_TIMEOUT == 1022  # the header's name
+    assert k.ErrorCode.ERROR_NO_DEVICE_FOUND == 1015 and k.ErrorCode.ERROR_LOAD_COMM_DLL == 2002
     assert k.ErrorCode.ERROR_INVALID_PARAM == 2100
     assert k.ErrorCode.ERROR_API_NOT_INITIALIZED == 2101
     assert k.ErrorCode.ERROR_NACK_RECEIVED == 9999
-    assert all(k.is_known_error_code(c) for c in (1, 666, 1001, 1015, 2001, 2015, 2100, 9999))
-    assert not any(k.is_known_error_code(c) for c in (0, 2, 1000, 1023, 2016, 2102, 10000))
+    # every code the headers define has its name: 1001-1022, 2001-2015, 2100-2102, 5001-5003
+    assert {int(c) for c in k.ErrorCode} == {1, 666, 9999, *range(1001, 1023), *range(2001, 2016),
+                                             *range(2100, 2103), *range(5001, 5004)}
+    assert all(k.is_known_error_code(c) for c in (1, 666, 1001, 1015, 2001, 2015, 2100, 2102, 5003, 9999))
+    assert not any(k.is_known_error_code(c) for c in (0, 2, 1000, 1023, 2016, 2103, 5004, 10000))
+    assert k.error_name(1015) == "ERROR_NO_DEVICE_FOUND" and "do not define" in k.error_name(1023)
+
+
+def test_hand_mode_has_the_headers_seven_values():
+    assert [(h.name, h.value) for h in k.HAND_MODE] == [
+        ("HAND_NOMOVEMENT", 0), ("POSITION_MODE", 1), ("VELOCITY_MODE", 2), ("NO_FINGER", 3), ("ONE_FINGER", 4),
+        ("TWO_FINGERS", 5), ("THREE_FINGERS", 6)]
 
 
 def test_zone_shapes_and_torque_switch_values():
