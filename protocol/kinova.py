@@ -9,7 +9,8 @@ against the headers with the C++ compiler where the SDK is present).
 from __future__ import annotations
 
 import enum
-from typing import Annotated
+import re
+from typing import Annotated, NamedTuple
 
 import msgspec
 
@@ -104,6 +105,61 @@ def error_name(code: int) -> str:
         return ErrorCode(code).name
     except ValueError:
         return "a code Kinova's headers do not define"
+
+
+class ModelCode(NamedTuple):
+    """A Kinova arm's model code, as Kinova writes it (j2n6s300, j2s7s300, m1n6s300): family (j JACO, m MICO,
+    r ROCO, c custom), version, wrist (s spherical, n non-spherical), joints, mode (s service, a assistive),
+    fingers, and two reserved digits."""
+
+    family: str
+    version: int
+    wrist: str
+    joints: int
+    mode: str
+    fingers: int
+
+    @property
+    def code(self) -> str:
+        return f"{self.family}{self.version}{self.wrist}{self.joints}{self.mode}{self.fingers}00"
+
+
+_MODEL_CODE = re.compile(r"([jmrc])([12])([sn])([467])([sa])([23])00")
+_WRISTS = {"s": "spherical", "n": "non-spherical"}
+_FAMILIES = {"j": "JACO", "m": "MICO", "r": "ROCO", "c": "custom"}
+
+
+def parse_model_code(text: str) -> ModelCode | None:
+    """The model code in ``text`` (case and surrounding blanks or NULs ignored), or None when it is not one."""
+    match = _MODEL_CODE.fullmatch(text.strip().strip("\0").strip().lower())
+    if match is None:
+        return None
+    family, version, wrist, joints, mode, fingers = match.groups()
+    return ModelCode(family, int(version), wrist, int(joints), mode, int(fingers))
+
+
+def arm_type_refusal(device_model: str, arm_name: str, n_joints: int) -> str | None:
+    """Why an arm that reports ``device_model`` must not be driven as the configured arm ``arm_name`` with
+    ``n_joints`` joints (None: it may). The joint count decides; where the configured name is a model code too,
+    the family, version and wrist must match as well (a j2s6s300 is not a j2n6s300: other kinematics). A model
+    the arm reports that is not a model code is refused: the joint count could not be checked."""
+    reported = parse_model_code(device_model)
+    if reported is None:
+        return (f"the arm reports its model as {device_model.strip()!r}, not a Kinova model code such as j2s7s300: "
+                f"its joint count cannot be checked against {arm_name} ({n_joints} joints)")
+    if reported.joints != n_joints:
+        return (f"the arm is a {reported.code} with {reported.joints} joints; the configured arm {arm_name} has "
+                f"{n_joints}")
+    configured = parse_model_code(arm_name)
+    if configured is None:
+        return None
+    if reported.wrist != configured.wrist:
+        return (f"the arm is a {reported.code} with a {_WRISTS[reported.wrist]} wrist; the configured arm {arm_name} "
+                f"has a {_WRISTS[configured.wrist]} one: other kinematics")
+    if (reported.family, reported.version) != (configured.family, configured.version):
+        return (f"the arm is a {reported.code} ({_FAMILIES[reported.family]} {reported.version}); the configured "
+                f"arm {arm_name} is a {_FAMILIES[configured.family]} {configured.version}: other kinematics")
+    return None
 
 
 class POSITION_TYPE(enum.IntEnum):

@@ -106,3 +106,23 @@ def test_angular_info_list_helpers():
     assert info.Actuator6 == 220.0 and info.as_list()[1] == 170.0
     with pytest.raises(ValueError):
         k.AngularInfo.from_list([0.0] * 6)
+
+
+def test_model_codes_parse_as_kinova_writes_them():
+    assert k.parse_model_code("j2n6s300") == k.ModelCode("j", 2, "n", 6, "s", 3)
+    assert k.parse_model_code(" J2S7S300\0\0") == k.ModelCode("j", 2, "s", 7, "s", 3)  # as a C char[20] may hold it
+    assert k.parse_model_code("m1n6s300").code == "m1n6s300"
+    assert all(k.parse_model_code(text) is None for text in ("", "JACO2", "j2n5s300", "j2x6s300", "j2n6s300x",
+                                                             "j2n6s399"))
+
+
+def test_an_arm_is_driven_only_as_the_arm_it_reports_itself_to_be():
+    assert k.arm_type_refusal("j2s7s300", "j2s7s300", 7) is None
+    assert k.arm_type_refusal("j2n6a200", "j2n6s300", 6) is None  # fingers and mode do not change the kinematics
+    assert k.arm_type_refusal("j2s7s300", "my-arm", 7) is None  # a configured name that is no code: joints decide
+    reason = k.arm_type_refusal("j2n6s300", "j2s7s300", 7)
+    assert "j2n6s300 with 6 joints" in reason and "j2s7s300 has 7" in reason
+    assert "wrist" in k.arm_type_refusal("j2s6s300", "j2n6s300", 6)
+    assert "MICO 1" in k.arm_type_refusal("m1n6s300", "j2n6s300", 6)
+    reason = k.arm_type_refusal("JACO2", "j2s7s300", 7)
+    assert "'JACO2'" in reason and "cannot be checked" in reason
