@@ -39,6 +39,11 @@ from services.runtime.transport import GuardedPublisher, ZenohConfig, open_sessi
 M = TypeVar("M", bound=msgspec.Struct)
 
 
+class StartupError(RuntimeError):
+    """A service cannot start for a reason its user can act on (a device or library missing, a refused arm): its
+    message is one line saying what to do. ``service_main`` prints it and exits 2, without a traceback."""
+
+
 class ServiceConfig(ConfigStruct):
     robot_id: str = "jaco"
     clock: ClockMode = ClockMode.REALTIME
@@ -467,13 +472,14 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
         try:
             service = service_type(config)
         except (ValueError, OSError) as exc:  # what the config names cannot be had: a file, a device
-            print(f"{service_type.name}: {exc}", file=sys.stderr)
-            code = 2
-            return code
+            raise StartupError(str(exc)) from exc
         code = service.run()
-        return code
+    except StartupError as exc:  # the service could not start, and says why in one line
+        print(f"{service_type.name}: {exc}", file=sys.stderr)
+        code = 2
     finally:
         _record_exit(code)
+    return code
 
 
 #: where a service started by ``mfvs up`` leaves its exit code, for ``mfvs status`` to report (a process killed
