@@ -333,3 +333,25 @@ def test_the_commissioning_check_runs_through_the_sdk_against_kinovas_own_report
     assert reply.joints[0].direction == "disagrees" and abs(reply.joints[0].moved_deg) > 4.0
     assert reply.static_error_mm > 100.0  # the stand-in's pose is not the description's
     assert wait_for(lambda: states.last().arm_check is m.ArmCheckState.FAILED, timeout=5.0)
+
+
+def test_a_slow_sdk_call_holds_no_zenoh_callback_and_what_waits_behind_it_times_out(gateway, fake):
+    """MoveHome takes 3 s in the SDK. The queryable hands it to the gateway's worker and returns (zenoh runs one
+    queryable's callbacks one after another: a callback that waited for the SDK would hold every later API query
+    until MoveHome ended, and the call behind it would then run late). A call queued behind it is answered as
+    timed out at its deadline, not run, and counted; MoveHome is answered when it ends."""
+    client, service = gateway
+    fake.FakeHomeDelayMs(3000)
+    start = time.monotonic()
+    home = client.get(KEYS.robot_api("MoveHome"), timeout=10.0)
+    assert wait_for(lambda: fake.FakeCount(b"homing") == 1, timeout=2.0)  # the worker is in the SDK call
+    service.api_calls.timeout_s = 0.5
+    queued = time.monotonic()
+    late = [m.decode(r.ok.payload.to_bytes(), kinova.ApiReply)
+            for r in client.get(KEYS.robot_api("GetAngularPosition"), timeout=10.0)]
+    assert late[0].code == kinova.ErrorCode.ERROR_COMM_TIMEOUT and "not run" in late[0].message
+    assert time.monotonic() - queued < 2.0 and time.monotonic() - start < 3.0  # at its deadline, before MoveHome
+    assert service.counters.get("api.timeouts") == 1
+    homed = [m.decode(r.ok.payload.to_bytes(), kinova.ApiReply) for r in home]
+    assert homed[0].code == kinova.ErrorCode.NO_ERROR_KINOVA and fake.FakeCount(b"homed") == 1
+    assert time.monotonic() - start >= 3.0

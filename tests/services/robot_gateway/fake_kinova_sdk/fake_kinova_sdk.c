@@ -56,7 +56,7 @@ static float angles[7] = {270.0f, 170.0f, 0.0f, 80.0f, 0.0f, 220.0f, 0.0f};
 static float rates[7] = {0};
 static CartesianInfo pose = {0.2f, -0.3f, 0.5f, 1.6f, 0.1f, -0.2f};
 static TrajectoryPoint last_point;
-static int points = 0, erased = 0, homed = 0;
+static int points = 0, erased = 0, homed = 0, homing = 0;
 static KinovaDevice devices[MAX_KINOVA_DEVICE];
 static int device_count = 1;
 static KinovaDevice active;
@@ -138,6 +138,7 @@ int API(SetCartesianControl)(void) { return initialized ? NO_ERROR_KINOVA : ERRO
 int API(SetAngularControl)(void) { return initialized ? NO_ERROR_KINOVA : ERROR_API_NOT_INITIALIZED; }
 int API(MoveHome)(void) {
     if (!initialized) return ERROR_API_NOT_INITIALIZED;
+    homing++;
     if (home_delay_ms) {  /* a slow SDK call, as a real one can be (the comm layer times out after 5 s) */
         struct timespec delay = {home_delay_ms / 1000, (home_delay_ms % 1000) * 1000000L};
         nanosleep(&delay, NULL);
@@ -177,7 +178,7 @@ int API(GetGlobalTrajectoryInfo)(TrajectoryFIFO *out) {
 /* test hooks */
 void FakeReset(void) {
     initialized = 0; init_code = NO_ERROR_KINOVA; fail_code = 0; home_delay_ms = 0;
-    points = erased = homed = 0; calls[0] = 0;
+    points = erased = homed = homing = 0; calls[0] = 0;
     memset(&active, 0, sizeof active);
     memset(devices, 0, sizeof devices);
     device_count = 1;
@@ -209,6 +210,7 @@ int FakeCount(const char *what) {
     if (!strcmp(what, "points")) return points;
     if (!strcmp(what, "erased")) return erased;
     if (!strcmp(what, "homed")) return homed;
+    if (!strcmp(what, "homing")) return homing;  /* MoveHome calls begun */
     if (!strcmp(what, "initialized")) return initialized;
     return -1;
 }
