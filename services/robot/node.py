@@ -2,8 +2,9 @@
 robot_gateway's actuators on a bus), and the robot's one loop.
 
 On zenoh: robot commands in (``…/robot/command``, from safety), the Kinova API as queryables
-(``…/robot/api/<Function>``), the robot state out at every DSP cycle (100 Hz), the low-level torque API
-(``…/robot/lowlevel/*``, 500 Hz, realtime only), and the commissioning check (``…/robot/check/arm``,
+(``…/robot/api/<Function>``, run and answered by the loop's worker, with a timeout: :mod:`services.robot.api_calls`),
+the robot state out at every DSP cycle (100 Hz), the low-level torque API (``…/robot/lowlevel/*``, 500 Hz,
+realtime only), and the commissioning check (``…/robot/check/arm``,
 :mod:`services.robot.arm_check`): while it runs, the node moves the arm itself, joint by joint, and holds safety's
 commands (an emergency stop ends the check and stops the arm); its verdict goes out in every state.
 

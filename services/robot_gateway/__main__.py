@@ -2,7 +2,7 @@
 import sys
 
 from services.runtime.service import service_main
-from services.robot_gateway.kinova_sdk import locate_command_layer, put_sdk_on_loader_path
+from services.robot_gateway.kinova_sdk import check_comm_layer, locate_command_layer, put_sdk_on_loader_path
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 
 
@@ -10,7 +10,9 @@ def gateway_process(config: GatewayConfig):
     """robot_gateway as its own process: with Kinova's SDK, its directory first goes on the loader's path (the
     command layer loads its comm layer by bare name), which may execute the process again."""
     if config.backend == "kinova_sdk":
-        put_sdk_on_loader_path(locate_command_layer(config.sdk_library, config.sdk_transport), config.sdk_transport)
+        command_layer = locate_command_layer(config.sdk_library, config.sdk_transport)
+        check_comm_layer(command_layer, config.sdk_transport)  # what is missing, said plainly (libusb, the file)
+        put_sdk_on_loader_path(command_layer, config.sdk_transport)
     return robot_gateway_service(config)
 
 

@@ -2,12 +2,14 @@
 (tests/services/robot_gateway/fake_kinova_sdk, compiled here, with a stub comm layer beside it as Kinova ships
 one): the start-up sequence Kinova's driver uses (recorded by the stand-in), commands forwarded as
 SendBasicTrajectory points, state read back, the Kinova API answered by the library, and one clear line for each
-way the start fails. Kinova's real library is checked against its headers in test_real_sdk.py; the stand-in cannot
-move a real arm, which is what it is for."""
+way the start fails. Kinova's real library is checked against its headers in test_kinova_sdk_real.py; the stand-in
+cannot move a real arm, which is what it is for."""
 import ctypes
 import ctypes.util
+import os
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -22,6 +24,7 @@ from services.runtime.transport import ZenohConfig, free_loopback_port, loopback
 from services.robot_gateway import kinova_sdk as sdk_mod
 from services.robot_gateway.kinova_sdk import ArmStartError, KinovaSdk
 from services.robot_gateway.service import GatewayConfig, SdkEthernetConfig, robot_gateway_service
+from tests.helpers import REPO
 from tests.stack import KEYS, Recorder, next_seq, wait_for
 
 SOURCE = Path(__file__).resolve().parent / "fake_kinova_sdk" / "fake_kinova_sdk.c"
@@ -172,6 +175,16 @@ def test_the_sdk_is_found_from_a_setting_or_the_environment(sdk_dir, tmp_path, m
     shutil.copy(usb, alone)  # the stand-in's command layer without its comm layer
     with pytest.raises(ArmStartError, match="comm layer is missing: USBCommandLayerUbuntu.so loads "
                                             "USBCommLayerUbuntu.so from beside it"):
+        KinovaSdk.find(str(alone))
+    # a comm layer whose libusb is not installed: a stub that needs a library that is not there
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    missing = tmp_path / "libusb-gone.so"
+    subprocess.run([compiler, "-shared", "-fPIC", "-x", "c", "-o", str(missing), "/dev/null"], check=True)
+    subprocess.run([compiler, "-shared", "-fPIC", "-x", "c", "-o", str(alone / "USBCommLayerUbuntu.so"), "/dev/null",
+                    "-x", "none", "-L", str(tmp_path), "-Wl,--no-as-needed", "-l:libusb-gone.so"], check=True)
+    missing.unlink()
+    with pytest.raises(ArmStartError, match="comm layer USBCommLayerUbuntu.so needs libusb-1.0.so.0: install "
+                                            "libusb-1.0-0"):
         KinovaSdk.find(str(alone))
 
 
@@ -355,3 +368,15 @@ def test_a_slow_sdk_call_holds_no_zenoh_callback_and_what_waits_behind_it_times_
     homed = [m.decode(r.ok.payload.to_bytes(), kinova.ApiReply) for r in home]
     assert homed[0].code == kinova.ErrorCode.NO_ERROR_KINOVA and fake.FakeCount(b"homed") == 1
     assert time.monotonic() - start >= 3.0
+
+
+def test_a_process_puts_the_sdk_on_its_loaders_path_by_running_again(sdk_dir):
+    """The command layer loads its comm layer by bare name and the loader reads LD_LIBRARY_PATH only at a process's
+    start: the process's entry runs itself again, once, with the SDK's folder on it, and then finds it."""
+    code = ("import os, sys; from pathlib import Path; from services.robot_gateway import kinova_sdk as k; "
+            f"print('run', flush=True); k.put_sdk_on_loader_path(Path({str(sdk_dir / 'USBCommandLayerUbuntu.so')!r})); "
+            "print(os.environ['LD_LIBRARY_PATH'], k.loader_finds('USBCommLayerUbuntu.so'))")
+    env = {k: v for k, v in os.environ.items() if k not in ("LD_LIBRARY_PATH", sdk_mod._REEXEC_ENV)}
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=REPO, env=env)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.splitlines() == ["run", "run", f"{sdk_dir} True"]  # ran twice, then found it

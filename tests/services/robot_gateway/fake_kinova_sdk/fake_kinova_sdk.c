@@ -4,7 +4,7 @@
  * SetActiveDevice taking their struct by value, getters filling a struct through a reference (a pointer).
  * It cannot move a real arm: velocity points move a pretend one by one 10 ms DSP cycle each. It records every call
  * in order (FakeCalls), so that tests check the start-up sequence; the Fake* functions let tests set it up and look
- * inside. Kinova's real library is checked against the headers themselves (test_real_sdk.py). */
+ * inside. Kinova's real library is checked against the headers themselves (test_kinova_sdk_real.py). */
 #include <stdio.h>
 #include <string.h>
 #include <time.h>
