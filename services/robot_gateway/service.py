@@ -17,8 +17,10 @@ until the bus answers again.
 """
 from __future__ import annotations
 
+import logging
 import threading
 import time
+from dataclasses import dataclass
 from typing import Literal, Optional
 
 import msgspec
@@ -162,21 +164,55 @@ class _NoJoints:
         self.session.close()
 
 
+@dataclass
+class SdkConnection:
+    """The arm opened through Kinova's SDK, with its first reading: what the kinova_sdk backend starts from."""
+
+    sdk: KinovaSdk
+    session: ArmSession
+    arm: SdkArm
+    first_reading: JointReading
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def connect_sdk_arm(config: GatewayConfig, sdk: Optional[KinovaSdk] = None,
+                    log: Optional[logging.Logger] = None) -> SdkConnection:
+    """Kinova's SDK found (unless given) and the arm opened and read once (:class:`ArmStartError` with one line
+    otherwise, the API closed again)."""
+    sdk = sdk or KinovaSdk.find(config.sdk_library, config.sdk_transport)
+    ethernet = config.sdk_ethernet if config.sdk_transport == "ethernet" else None
+    session = open_arm(sdk, serial=config.sdk_serial, arm_name=ARM_NAME, n_joints=jaco2.N_JOINTS,
+                       ethernet=ethernet, log=log)
+    try:
+        arm = SdkArm(sdk, config.dsp)
+        try:
+            reading = arm.read()
+        except SdkError as exc:
+            raise ArmStartError(f"the arm does not report its state: {exc}") from None
+    except BaseException:
+        session.close()
+        raise
+    return SdkConnection(sdk, session, arm, reading)
+
+
 class SdkGatewayService(RobotNode):
     """The robot node on an arm behind Kinova's SDK: every DSP cycle (10 ms) it reads the arm, publishes its state
-    and forwards the latest robot command to the arm's own DSP."""
+    and forwards the latest robot command to the arm's own DSP. It opens the arm in :meth:`start` before it joins
+    the network, unless it is given one already open (``connection``: the process's entry opens it first)."""
 
     name = "robot_gateway"
 
-    def __init__(self, config: GatewayConfig | None = None, **kw) -> None:
+    def __init__(self, config: GatewayConfig | None = None, connection: Optional[SdkConnection] = None,
+                 **kw) -> None:
         config = config or GatewayConfig(backend="kinova_sdk")
         super().__init__(config, **kw)
         self.config: GatewayConfig = config
+        self.connection = connection
         #: the library, found and loaded now so that a missing one fails before anything starts
-        self.sdk = KinovaSdk.find(config.sdk_library, config.sdk_transport)
-        self.arm: Optional[SdkArm] = None
-        self.arm_session: Optional[ArmSession] = None
-        self._first_reading: Optional[JointReading] = None
+        self.sdk = connection.sdk if connection else KinovaSdk.find(config.sdk_library, config.sdk_transport)
+        self.arm: Optional[SdkArm] = connection.arm if connection else None
         self.cycle_s = config.dsp.cycle_s
 
     def start(self) -> "SdkGatewayService":
@@ -184,26 +220,17 @@ class SdkGatewayService(RobotNode):
         says so, whatever the network)."""
         if self.state != "created":
             return super().start()  # refuses, saying why
-        self.arm_session = self.open_arm()
+        if self.connection is None:
+            self.connection = connect_sdk_arm(self.config, self.sdk, self.log)
+            self.arm = self.connection.arm
         try:
-            self.arm = SdkArm(self.sdk, self.config.dsp)
-            try:
-                self._first_reading = self.arm.read()
-            except SdkError as exc:
-                raise ArmStartError(f"the arm does not report its state: {exc}") from None
             return super().start()
         except BaseException:
-            self.arm_session.close()
+            self.connection.close()
             raise
 
-    def open_arm(self) -> ArmSession:
-        cfg = self.config
-        ethernet = cfg.sdk_ethernet if cfg.sdk_transport == "ethernet" else None
-        return open_arm(self.sdk, serial=cfg.sdk_serial, arm_name=ARM_NAME, n_joints=jaco2.N_JOINTS,
-                        ethernet=ethernet, log=self.log)
-
     def open_hardware(self):
-        return _NoJoints(self.arm_session), self._first_reading
+        return _NoJoints(self.connection.session), self.connection.first_reading
 
     def make_dsp(self):
         return self.arm
