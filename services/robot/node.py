@@ -2,8 +2,9 @@
 robot_gateway's actuators on a bus), and the robot's one loop.
 
 On zenoh: robot commands in (``…/robot/command``, from safety), the Kinova API as queryables
-(``…/robot/api/<Function>``), the robot state out at every DSP cycle (100 Hz), the low-level torque API
-(``…/robot/lowlevel/*``, 500 Hz, realtime only), and the commissioning check (``…/robot/check/arm``,
+(``…/robot/api/<Function>``, run and answered by the loop's worker, with a timeout: :mod:`services.robot.api_calls`),
+the robot state out at every DSP cycle (100 Hz), the low-level torque API (``…/robot/lowlevel/*``, 500 Hz,
+realtime only), and the commissioning check (``…/robot/check/arm``,
 :mod:`services.robot.arm_check`): while it runs, the node moves the arm itself, joint by joint, and holds safety's
 commands (an emergency stop ends the check and stops the arm); its verdict goes out in every state.
 
@@ -34,7 +35,6 @@ robot_gateway learns it from the simulator's clock).
 """
 from __future__ import annotations
 
-import queue
 import threading
 import time
 from concurrent.futures import Future
@@ -65,6 +65,7 @@ from protocol.messages import (
 )
 from services.model import frames
 from services.robot import arm_check
+from services.robot.api_calls import ApiCallQueue
 from services.runtime.config import ConfigStruct
 from services.robot.dsp import DSPConfig, KinovaDSP
 from services.model.kinematics import ArmKinematics
@@ -87,6 +88,8 @@ ROBOT_SERVICES = ("robot_sim", "robot_gateway")
 MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})
 #: an in-process simulated arm runs at most this many late cycles back to back (0.1 s), then drops the stall
 MAX_CATCH_UP_CYCLES = 50
+#: a Kinova API call not taken by the robot's worker within this long is answered as timed out, without being run
+API_TIMEOUT_S = 5.0
 
 
 #: the DSP's plan must be ready this long before the next bus exchange: the command window ends there at the latest
@@ -252,7 +255,9 @@ class RobotNode(Service):
         self.command_cond = threading.Condition()
         self.admission = CommandAdmission(config.admission)
         self.torque_admission = CommandAdmission(config.admission)
-        self._api_calls: queue.Queue = queue.Queue()
+        #: Kinova API calls from the robot/api/* queryable, run and answered by the worker (services.robot.api_calls)
+        self.api_calls = ApiCallQueue(API_TIMEOUT_S, on_timeout=lambda call: self.counters.inc("api.timeouts"))
+        self._api_timeouts_thread: Optional[threading.Thread] = None
         self._applied: Optional[Header] = None
         self._last_refusal = ""
         self._refusal_cycles = 0
@@ -331,6 +336,7 @@ class RobotNode(Service):
             self.hardware.close()
             raise
         self._thread = start_thread(self._run, f"{self.name}-loop")
+        self._api_timeouts_thread = start_thread(self._answer_api_timeouts, f"{self.name}-api-timeouts")
 
     def make_dsp(self):
         """What interprets robot commands: the emulated Kinova DSP (an arm behind Kinova's SDK has its own)."""
@@ -357,6 +363,9 @@ class RobotNode(Service):
             self._thread.join(timeout=5.0)
         if self._dsp_thread is not None:
             self._dsp_thread.join(timeout=5.0)
+        self.api_calls.close(f"{self.name} is stopping")
+        if self._api_timeouts_thread is not None:
+            self._api_timeouts_thread.join(timeout=5.0)
         if self.hardware is not None:
             self.hardware.close()
 
@@ -438,15 +447,29 @@ class RobotNode(Service):
             query.reply(query.key_expr, encode(kinova.ApiReply(
                 code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc)[:256])))
             return
-        future: Future = Future()
-        self._api_calls.put((function, argument, future))
+        # handed to the worker, which answers (this callback must not wait: its session delivers nothing meanwhile)
+        refusal = self.api_calls.submit(function, argument, lambda reply: self._answer_api(query, reply))
+        if refusal:
+            self.refuse("api", f"{function}: {refusal}")
+            self._answer_api(query, kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
+                                                    message=f"not run: {refusal}"))
+            return
         with self.command_cond:
-            self.command_cond.notify_all()
+            self.command_cond.notify_all()  # a DSP waiting for a command runs the call now
+
+    def _answer_api(self, query: zenoh.Query, reply: kinova.ApiReply) -> None:
         try:
-            reply = future.result(timeout=5.0)
-        except Exception as exc:  # the loop died or timed out: the caller gets Kinova's unknown error
-            reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR), message=f"not executed: {exc}")
-        query.reply(query.key_expr, encode(reply))
+            query.reply(query.key_expr, encode(reply))
+        except Exception:  # the session closed under it (the node stopping)
+            self.counters.inc("errors.api_reply")
+        finally:
+            query.drop()  # the final answer goes out now, not when the query is collected
+
+    def _answer_api_timeouts(self) -> None:
+        """Answer the API calls the worker did not take in time, even while it is held up (a slow SDK call)."""
+        while not self.stop_requested:
+            self.api_calls.wait_for_deadline(0.5)
+            self.api_calls.expire()
 
     def _on_arm_check(self, query: zenoh.Query) -> None:
         """Run the commissioning check (the reply comes when it is over: a minute or two)."""
@@ -539,21 +562,21 @@ class RobotNode(Service):
 
     # ------------------------------------------------------------------ the loop thread
     def run_api_calls(self) -> None:
-        while True:
-            try:
-                function, argument, future = self._api_calls.get_nowait()
-            except queue.Empty:
-                return
-            if function in MOTION_FUNCTIONS and self.core.torque_mode:
-                self.refuse("api", f"{function}: low-level torque control is active")
-                future.set_result(kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
-                                                  message="low-level torque control is active"))
-                continue
-            try:
-                future.set_result(self.api.call(function, argument))
-            except Exception as exc:
-                self.counters.inc("errors.api")
-                future.set_exception(exc)
+        """Run and answer the Kinova API calls waiting (on the worker, between DSP cycles)."""
+        while (call := self.api_calls.take()) is not None:
+            if call.function in MOTION_FUNCTIONS and self.core.torque_mode:
+                self.refuse("api", f"{call.function}: low-level torque control is active")
+                reply = kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                        message="low-level torque control is active")
+            else:
+                try:
+                    reply = self.api.call(call.function, call.argument)
+                except Exception as exc:
+                    self.counters.inc("errors.api")
+                    self.limited_log.error("api", "%s: %s failed: %s", self.name, call.function, exc)
+                    reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
+                                            message=f"{call.function} failed: {exc}"[:512])
+            self.api_calls.finish(call, reply)
 
     def take_command(self, wait_until: Optional[float] = None) -> Optional[tuple[RobotCommand, int]]:
         """The command waiting, if any; with ``wait_until`` (monotonic) first wait until then for a :func:`fresh`

@@ -6,9 +6,10 @@ hardware, so every other service sees the same robot:
   the emulated DSP itself at 100 Hz on top of its 500 Hz exchanges with the actuators. In lockstep it drives
   robot_sim's emulated actuators (``mode: actuator_bus``) cycle by cycle, and learns from the simulator's clock
   which tick carries a camera frame;
-* ``kinova_sdk`` backend (:class:`SdkGatewayService`): the arm through Kinova's USB command layer loaded with
-  ctypes (services.robot_gateway.kinova_sdk); the arm's own DSP interprets the commands, so the gateway forwards
-  them every 10 ms; no low-level torque API; realtime only.
+* ``kinova_sdk`` backend (:class:`SdkGatewayService`): the arm through Kinova's own SDK library (USB, or
+  Ethernet) loaded with ctypes (services.robot_gateway.kinova_sdk); the arm's own DSP interprets the commands, so
+  the gateway forwards them every 10 ms; no low-level torque API; realtime only. It opens the arm before it
+  connects to the router: a gateway that cannot reach its arm says so first (one line, exit 2).
 
 Bus failures (timeouts, NACKs, missing replies, garbled frames) are counted; the arm is held at its last measured
 angles, and after ``max_bus_errors`` consecutive failures the gateway reports itself unhealthy and refuses motion
@@ -16,13 +17,14 @@ until the bus answers again.
 """
 from __future__ import annotations
 
+import logging
 import threading
 import time
+from dataclasses import dataclass
 from typing import Literal, Optional
 
 import msgspec
 
-from protocol import kinova
 from protocol import rs485 as r
 from protocol.conventions import ClockMode
 from protocol.messages import SimClock
@@ -30,12 +32,19 @@ from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
 from services.robot.hardware import HardwareError, JointReading
 from services.robot.node import RobotNode, RobotNodeConfig
-from services.robot_gateway.kinova_sdk import KINOVA_SDK_LIBRARY, KinovaSdk, SdkArm, SdkError
+from services.model import jaco2
+from services.robot_gateway.kinova_sdk import (ArmSession, ArmStartError, KinovaSdk, SdkArm, SdkError,
+                                               SdkEthernetConfig, open_arm)
 from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
 
 
 #: stamps below this are simulated time (lockstep starts at 1 s); wall-clock stamps are about 1.7e18 ns
 SIMULATED_TIME_LIMIT_NS = 10**17
+
+
+#: the arm the gateway drives: the one description there is today (services/model/jaco2.py); the SDK backend refuses
+#: an arm that reports another model
+ARM_NAME = "j2s7s300"
 
 
 class GatewayConfig(RobotNodeConfig):
@@ -46,7 +55,12 @@ class GatewayConfig(RobotNodeConfig):
     link_timeout_s: float = 0.01
     #: at start, keep asking the actuators for their positions this long (an arm, or robot_sim, powering up)
     connect_timeout_s: float = 30.0
-    sdk_library: str = KINOVA_SDK_LIBRARY
+    #: Kinova's SDK: its directory or its command-layer file (null: $MFVS_KINOVA_SDK)
+    sdk_library: Optional[str] = None
+    #: the serial number of the arm to drive (null: the only one connected)
+    sdk_serial: Optional[str] = None
+    sdk_transport: Literal["usb", "ethernet"] = "usb"
+    sdk_ethernet: SdkEthernetConfig = msgspec.field(default_factory=SdkEthernetConfig)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -128,13 +142,14 @@ class RobotGatewayService(RobotNode):
 
 class _NoJoints:
     """The kinova_sdk backend's joints as the robot node sees them: the arm's own DSP drives them; there is no
-    joint-level exchange and no low-level torque API through the USB layer."""
+    joint-level exchange and no low-level torque API through the command layer. Closing it ends the arm's
+    session (trajectories erased, StopControlAPI, CloseAPI)."""
 
     simulated_in_process = False
     arm_timeline = False
 
-    def __init__(self, sdk: KinovaSdk) -> None:
-        self.sdk = sdk
+    def __init__(self, session: ArmSession) -> None:
+        self.session = session
 
     def exchange(self, targets):
         raise HardwareError("the kinova_sdk backend has no joint-level exchange")
@@ -146,35 +161,76 @@ class _NoJoints:
         pass
 
     def close(self) -> None:
-        self.sdk.action("CloseAPI")
+        self.session.close()
+
+
+@dataclass
+class SdkConnection:
+    """The arm opened through Kinova's SDK, with its first reading: what the kinova_sdk backend starts from."""
+
+    sdk: KinovaSdk
+    session: ArmSession
+    arm: SdkArm
+    first_reading: JointReading
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def connect_sdk_arm(config: GatewayConfig, sdk: Optional[KinovaSdk] = None,
+                    log: Optional[logging.Logger] = None) -> SdkConnection:
+    """Kinova's SDK found (unless given) and the arm opened and read once (:class:`ArmStartError` with one line
+    otherwise, the API closed again)."""
+    sdk = sdk or KinovaSdk.find(config.sdk_library, config.sdk_transport)
+    ethernet = config.sdk_ethernet if config.sdk_transport == "ethernet" else None
+    session = open_arm(sdk, serial=config.sdk_serial, arm_name=ARM_NAME, n_joints=jaco2.N_JOINTS,
+                       ethernet=ethernet, log=log)
+    try:
+        arm = SdkArm(sdk, config.dsp)
+        try:
+            reading = arm.read()
+        except SdkError as exc:
+            raise ArmStartError(f"the arm does not report its state: {exc}") from None
+    except BaseException:
+        session.close()
+        raise
+    return SdkConnection(sdk, session, arm, reading)
 
 
 class SdkGatewayService(RobotNode):
     """The robot node on an arm behind Kinova's SDK: every DSP cycle (10 ms) it reads the arm, publishes its state
-    and forwards the latest robot command to the arm's own DSP."""
+    and forwards the latest robot command to the arm's own DSP. It opens the arm in :meth:`start` before it joins
+    the network, unless it is given one already open (``connection``: the process's entry opens it first)."""
 
     name = "robot_gateway"
 
-    def __init__(self, config: GatewayConfig | None = None, **kw) -> None:
+    def __init__(self, config: GatewayConfig | None = None, connection: Optional[SdkConnection] = None,
+                 **kw) -> None:
         config = config or GatewayConfig(backend="kinova_sdk")
         super().__init__(config, **kw)
         self.config: GatewayConfig = config
-        #: the library, loaded now so that a missing one fails before anything starts
-        self.sdk = KinovaSdk(config.sdk_library)
-        self.arm: Optional[SdkArm] = None
+        self.connection = connection
+        #: the library, found and loaded now so that a missing one fails before anything starts
+        self.sdk = connection.sdk if connection else KinovaSdk.find(config.sdk_library, config.sdk_transport)
+        self.arm: Optional[SdkArm] = connection.arm if connection else None
         self.cycle_s = config.dsp.cycle_s
 
-    def open_hardware(self):
-        code = self.sdk.action("InitAPI")
-        if code != kinova.ErrorCode.NO_ERROR_KINOVA:
-            raise SdkError("InitAPI", code)
-        self.arm = SdkArm(self.sdk, self.config.dsp)
+    def start(self) -> "SdkGatewayService":
+        """Open the arm, then start the service (the router comes second: a gateway that cannot reach its arm
+        says so, whatever the network)."""
+        if self.state != "created":
+            return super().start()  # refuses, saying why
+        if self.connection is None:
+            self.connection = connect_sdk_arm(self.config, self.sdk, self.log)
+            self.arm = self.connection.arm
         try:
-            reading = self.arm.read()
+            return super().start()
         except BaseException:
-            self.sdk.action("CloseAPI")
+            self.connection.close()
             raise
-        return _NoJoints(self.sdk), reading
+
+    def open_hardware(self):
+        return _NoJoints(self.connection.session), self.connection.first_reading
 
     def make_dsp(self):
         return self.arm

@@ -1,4 +1,5 @@
 """The swap: robot_sim in actuator-bus mode plus robot_gateway offer the same zenoh robot as robot_sim alone."""
+import os
 import subprocess
 import sys
 import time
@@ -14,6 +15,7 @@ from services.model.kinematics import ArmKinematics
 from services.robot.hardware import CYCLES_PER_DSP
 from services.robot.hardware import CYCLE_S
 from services.robot.rs485_bus import BusConfig
+from services.runtime.service import StartupError
 from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
@@ -133,8 +135,15 @@ def test_without_actuators_the_gateway_does_not_start(router):
 
 
 def test_kinova_sdk_backend_fails_clearly_without_the_library():
-    with pytest.raises(RuntimeError, match="Kinova SDK library"):
+    with pytest.raises(StartupError, match="Kinova's SDK library is not where sdk_library says: no "
+                                           "/nonexistent/libkinova.so"):
         robot_gateway_service(GatewayConfig(backend="kinova_sdk", sdk_library="/nonexistent/libkinova.so"))
+    # as a process: one line, exit 2, no traceback
+    run = subprocess.run([sys.executable, "-m", "services.robot_gateway", "--set", "backend=kinova_sdk",
+                          "--set", "sdk_library=/nonexistent"], capture_output=True, text=True, timeout=60,
+                         cwd=REPO, env={k: v for k, v in os.environ.items() if k != "MFVS_KINOVA_SDK"})
+    assert run.returncode == 2 and run.stderr.strip().splitlines() == [
+        "robot_gateway: Kinova's SDK library is not where sdk_library says: no /nonexistent"]
     with pytest.raises(ValueError, match="realtime only"):
         GatewayConfig(backend="kinova_sdk", clock=ClockMode.LOCKSTEP)  # a real arm has no simulated clock
 
