@@ -234,9 +234,11 @@ class AngularInfo(Message):
 
     @classmethod
     def from_list(cls, values) -> "AngularInfo":
+        """One value per joint of the arm (1-7); the actuators an arm does not have read 0, as Kinova's SDK gives
+        them for a 6-DoF arm."""
         values = [float(v) for v in values]
-        if len(values) != MAX_ACTUATORS:
-            raise ValueError(f"AngularInfo needs {MAX_ACTUATORS} values, got {len(values)}")
+        if not 1 <= len(values) <= MAX_ACTUATORS:
+            raise ValueError(f"AngularInfo takes 1 to {MAX_ACTUATORS} values, got {len(values)}")
         return cls(**{f"Actuator{i + 1}": v for i, v in enumerate(values)})
 
 

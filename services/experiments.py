@@ -40,10 +40,11 @@ import numpy as np
 
 from protocol.conventions import ClockMode
 from services.controller.law import Gains
-from services.model import jaco2
+from services.model.arm import load_arm
 from services.plots import comparison_plots, constraint_plots, random_starts_plots, tracking_plots
 from services.robot_sim.scene import target_in_base
-from services.servo import Scenario, ServoResult, load_scenario, read_log, run, stack_config
+from services.runtime.config import ConfigError
+from services.servo import Scenario, ServoResult, load_scenario, on_arm, read_log, run, stack_config
 from services.starts import TABLE2_LIKE, Start, quartiles, write_starts
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "examples" / "scenarios"
@@ -142,7 +143,7 @@ def failure(result: ServoResult) -> Optional[str]:
     return result.status  # tag_lost, diverged, max_iterations, ...
 
 
-def _row(spec: RunSpec, result: ServoResult, records: list[dict]) -> dict:
+def _row(spec: RunSpec, result: ServoResult, records: list[dict], scenario_arm: str) -> dict:
     return {
         "label": spec.label, "law": spec.law, "converged": result.converged,
         "iterations": result.iterations, "status": result.status, "final_error_norm": result.final_error_norm,
@@ -161,6 +162,7 @@ def _row(spec: RunSpec, result: ServoResult, records: list[dict]) -> dict:
         "servo_time_s": result.servo_time_s,
         "lockstep_timeouts": result.lockstep_timeouts,
         "gains": msgspec.to_builtins(spec.gains),
+        "arm": scenario_arm,
         "options": dict(spec.options),
     }
 
@@ -301,7 +303,8 @@ def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) 
     tracked_s = (seen[-1]["stamp_ns"] - start_ns) * 1e-9 if seen else 0.0
     end_ns = records[-1]["stamp_ns"] if records else 0
     window = [r for r in records if (end_ns - r["stamp_ns"]) * 1e-9 <= FAILURE_WINDOW_S]
-    nearest = {id(r): float(jaco2.limit_margins_deg(r["q"]).min()) for r in records if r.get("q")}
+    arm = load_arm(scenario.robot.arm)
+    nearest = {id(r): float(arm.limit_margins_deg(r["q"]).min()) for r in records if r.get("q")}
     faults = {fault for r in window for fault in r.get("robot_faults", [])}
     if result.status == "max_iterations":
         failure = None  # the target's path ended with the target still tracked
@@ -354,8 +357,9 @@ def _tracking_summary(rows: dict, trajectories: dict) -> dict:
 
 
 def _tracking_figures(trajectories: dict, rows: dict, out: Path, base: Scenario) -> list:
-    start = target_in_base(stack_config(base).robot.scene)[:3, 3]
-    return tracking_plots(trajectories, out, target_start=start, target_velocity=base.target.velocity_mps,
+    arm = load_arm(base.robot.arm)
+    start = target_in_base(stack_config(base).robot.scene, arm)[:3, 3]
+    return tracking_plots(trajectories, out, arm=arm, target_start=start, target_velocity=base.target.velocity_mps,
                           failures={label: row["failure"] for label, row in rows.items()})
 
 
@@ -408,17 +412,30 @@ def _copy(scenario: Scenario) -> Scenario:
     return msgspec.convert(msgspec.to_builtins(scenario), Scenario)
 
 
+def default_scenario(experiment: "Experiment", arm: Optional[str] = None) -> Path:
+    """An experiment's own start: its scenario file, or the one written for ``arm`` beside it
+    (``<scenario>_<arm>.yaml``) where the shared one gives another arm's start."""
+    shared = SCENARIOS / experiment.scenario
+    own = SCENARIOS / f"{shared.stem}_{arm}.yaml"
+    return own if arm is not None and own.is_file() else shared
+
+
 def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_dir: Optional[str | Path] = None,
                    progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
-                   on_iteration: Optional[Callable[[str, Scenario, object], None]] = None) -> dict:
-    """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal); ``progress(label, result)``
-    after each run, ``on_iteration(label, scenario, iteration_record)`` during it. Returns ``{"experiment", "title", "paper", "scenario", "runs": [...], "summary": {...},
+                   on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
+                   arm: Optional[str] = None) -> dict:
+    """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal) on ``arm`` (None: the
+    scenario's); ``progress(label, result)`` after each run, ``on_iteration(label, scenario, iteration_record)``
+    during it. Returns ``{"experiment", "title", "paper", "scenario", "arm", "runs": [...], "summary": {...},
     "report", "plots"}``."""
     if name not in EXPERIMENTS:
         raise KeyError(f"unknown experiment {name!r}; known: {', '.join(EXPERIMENTS)}")
     experiment = EXPERIMENTS[name]
-    path = Path(scenario_path) if scenario_path is not None else SCENARIOS / experiment.scenario
-    base = load_scenario(path)
+    path = Path(scenario_path) if scenario_path is not None else default_scenario(experiment, arm)
+    try:
+        base = on_arm(load_scenario(path), arm, str(path))
+    except ValueError as exc:
+        raise ConfigError(str(path), str(exc)) from None
     base.clock = ClockMode.LOCKSTEP  # every experiment is a function of its scenario
     if not experiment.keep_law_options:
         base.law_options = {}
@@ -435,14 +452,15 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
             result = run(scenario, root / spec.label, each, profile=profile, plots=out_dir is not None)
             records = read_log(result.trajectory_log)
             trajectories[spec.label] = records
-            rows[spec.label] = _row(spec, result, records)
+            rows[spec.label] = _row(spec, result, records, scenario.robot.arm)
             if experiment.run_figures is not None:
                 rows[spec.label].update(experiment.run_figures(scenario, result, records))
             rows[spec.label]["plots"] = result.plots if out_dir is not None else []
             if progress is not None:
                 progress(spec.label, result)
         output = {"experiment": name, "seed": experiment.seed, "title": experiment.title,
-                  "paper": experiment.paper, "scenario": str(path), "profile": profile, "runs": list(rows.values()),
+                  "paper": experiment.paper, "scenario": str(path), "arm": base.robot.arm, "profile": profile,
+                  "runs": list(rows.values()),
                   "summary": experiment.summarize(rows, trajectories), "report": None, "plots": [],
                   # every run waited for every answer: the same numbers on a rerun (on this machine)
                   "repeatable": all(row["lockstep_timeouts"] == 0 for row in rows.values())}
@@ -526,7 +544,8 @@ def _random_starts_summary(starts: list[dict], runs: list[dict]) -> dict:
 def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str | Path] = None,
                       out_dir: Optional[str | Path] = None, starts_dir: Optional[str | Path] = None,
                       progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
-                      on_iteration: Optional[Callable[[str, Scenario, object], None]] = None) -> dict:
+                      on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
+                      arm: Optional[str] = None) -> dict:
     """Experiment ``name`` from ``count`` random starts drawn with ``seed`` (:mod:`services.starts`, the tag placed
     at random as in Table 2, around the base scenario's), each start's scenario written to ``starts_dir`` (default
     ``out_dir/starts``) so it can be run again with ``--scenario``. Every run carries ``start`` (which start it ran);
@@ -535,19 +554,19 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
     if name not in RANDOM_START_EXPERIMENTS:
         raise KeyError(f"--random-starts runs {', '.join(RANDOM_START_EXPERIMENTS)}, not {name!r}")
     experiment = EXPERIMENTS[name]
-    base = Path(base_path) if base_path is not None else SCENARIOS / experiment.scenario
+    base = Path(base_path) if base_path is not None else default_scenario(experiment, arm)
     if starts_dir is None:
         if out_dir is None:
             raise ValueError("random starts need a directory to write their scenarios to (out_dir or starts_dir)")
         starts_dir = Path(out_dir) / "starts"
-    starts = write_starts(base, count, seed, Path(starts_dir))
+    starts = write_starts(base, count, seed, Path(starts_dir), arm=arm)
     runs, per_start = [], []
     for start in starts:
         label = f"start{start.index}"
         output = run_experiment(
             name, start.scenario, None if out_dir is None else Path(out_dir) / label,
             None if progress is None else (lambda run_label, result: progress(f"{label} {run_label}", result)),
-            profile=profile,
+            profile=profile, arm=arm,
             on_iteration=None if on_iteration is None else (
                 lambda run_label, scenario, record: on_iteration(f"{label} {run_label}", scenario, record)))
         rows = {row["label"]: row for row in output["runs"]}
@@ -556,8 +575,8 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
             runs.append(row)
         per_start.append(_start_summary(start, rows) | {"repeatable": output["repeatable"]})
     result = {"experiment": name, "seed": experiment.seed, "title": f"{experiment.title}, over {count} random starts",
-              "paper": experiment.paper, "scenario": str(base), "profile": profile,
-              "random_starts": {"count": count, "seed": seed, "ranges": dataclasses.asdict(TABLE2_LIKE),
+              "paper": experiment.paper, "scenario": str(base), "arm": runs[0]["arm"] if runs else arm,
+              "profile": profile, "random_starts": {"count": count, "seed": seed, "ranges": dataclasses.asdict(TABLE2_LIKE),
                                 "scenarios": str(starts_dir)},
               "runs": runs, "starts": per_start, "summary": _random_starts_summary(per_start, runs),
               "repeatable": all(s["repeatable"] for s in per_start), "report": None, "plots": []}

@@ -206,6 +206,7 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0, host: Optio
     message)."""
     try:
         runs_router, services = profile.part(host)
+        arm = profile_arm(profile)
     except ValueError as exc:
         return 2, str(exc)
     current = read_stack()
@@ -287,6 +288,42 @@ def client_config(service: ProfileService) -> Optional[str]:
     except ConfigError:
         return None  # the service itself says what is wrong with its config
     return zenoh.get("config_file") if isinstance(zenoh, dict) else None
+
+
+#: the services that run on an arm description (the robot's declares it; the others check theirs against it)
+ARM_SERVICES = ("robot_sim", "robot_gateway", "controller", "safety")
+
+
+def service_setting(service: ProfileService, key: str):
+    """A top-level setting of a profile's service as it will run with it (its config file, then ``set:``), or None
+    where neither gives one (or its config cannot be read: the service says why when it starts)."""
+    try:
+        return config_mapping(service.config, service.set, f"{service.name}'s set").get(key)
+    except ConfigError:
+        return None
+
+
+def with_arm(profile: Profile, arm: str) -> Profile:
+    """The profile with every service that runs on an arm set to ``arm`` (`mfvs up --arm NAME`)."""
+    services = [msgspec.structs.replace(s, set=[*s.set, f"arm={arm}"]) if s.name in ARM_SERVICES else s
+                for s in profile.services]
+    return msgspec.structs.replace(profile, services=services)
+
+
+def profile_arm(profile: Profile) -> str:
+    """The one arm a profile runs (its robot's; the default arm where none is set); ValueError naming the services
+    when they do not agree (a controller or safety started for another arm than the robot's would do nothing)."""
+    from services.model.arm import DEFAULT_ARM, check_arm_name
+
+    arms = {s.name: service_setting(s, "arm") for s in profile.services if s.name in ARM_SERVICES}
+    robots = {name: arm or DEFAULT_ARM for name, arm in arms.items() if name in ("robot_sim", "robot_gateway")}
+    named = {**robots, **{name: arm for name, arm in arms.items() if arm is not None}}
+    if len(set(named.values())) > 1:
+        listed = ", ".join(f"{name} {arm}" for name, arm in named.items())
+        raise ValueError(f"the profile mixes arms ({listed}): one arm for the whole stack (mfvs up --arm NAME)")
+    arm = next(iter(named.values()), DEFAULT_ARM)
+    check_arm_name(arm)
+    return arm
 
 
 def _observer_config(profile: Profile) -> Optional[str]:

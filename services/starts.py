@@ -94,16 +94,19 @@ class Start:
 
 
 def write_starts(base: Path, count: int, seed: int, out_dir: Path, ranges: StartRanges = TABLE2_LIKE,
-                 command: str = "mfvs experiment table3 --random-starts") -> list[Start]:
-    """``count`` starts from ``seed``: copies of the ``base`` scenario file with the tag placed at random, written to
-    ``out_dir`` (``<base>_seed<S>_start<i>.yaml``). The same seed gives the same starts."""
-    from services.servo import load_scenario
+                 command: str = "mfvs experiment table3 --random-starts", arm: str | None = None) -> list[Start]:
+    """``count`` starts from ``seed``: copies of the ``base`` scenario file (on ``arm``, when given) with the tag
+    placed at random, written to ``out_dir`` (``<base>_seed<S>_start<i>.yaml``). The same seed gives the same
+    starts."""
+    from services.servo import load_scenario, on_arm
 
     if count < 1:
         raise ValueError("the number of random starts must be at least 1")
     rng = random.Random(seed)
-    scenario = load_scenario(base)
+    scenario = on_arm(load_scenario(base), arm, str(base))
     document = yaml.safe_load(Path(base).read_text()) or {}
+    if arm is not None:
+        document.setdefault("robot", {})["arm"] = arm
     out_dir.mkdir(parents=True, exist_ok=True)
     starts = []
     for index in range(count):
@@ -111,7 +114,8 @@ def write_starts(base: Path, count: int, seed: int, out_dir: Path, ranges: Start
         target = document.setdefault("target", {})
         target.pop("pose_in_base", None)
         target["pose_in_camera"] = {"xyz": list(pose.xyz), "rpy_deg": list(pose.rpy_deg)}
-        path = out_dir / f"{Path(base).stem}_seed{seed}_start{index}.yaml"
+        stem = Path(base).stem if arm is None or arm in Path(base).stem else f"{Path(base).stem}_{arm}"
+        path = out_dir / f"{stem}_seed{seed}_start{index}.yaml"
         path.write_text(f"# {Path(base).name} from a random start ({command} {count} --seed {seed}: start {index})\n"
                         + yaml.safe_dump(document, sort_keys=False))
         starts.append(Start(seed, index, pose, path))

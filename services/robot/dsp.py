@@ -39,13 +39,12 @@ import numpy as np
 from protocol import kinova
 from protocol.conventions import AngularConvention, Frame
 from protocol.messages import CommandMode, ControlMode, Header, MotionLimits, RobotCommand
-from services.model import frames, jaco2, saturation
+from services.model import frames, saturation
+from services.model.arm import ArmDescription
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics, normalized_jacobian, singularity_measure
 from services.model.limits import arm_limits
 from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
-
-LINEAR_SPEED_RANGE, ANGULAR_SPEED_RANGE = jaco2.LINEAR_SPEED_RANGE, jaco2.ANGULAR_SPEED_RANGE
 
 
 class DeadBandShape(str, enum.Enum):
@@ -95,11 +94,13 @@ class DSPConfig(ConfigStruct):
     cycle_s: float = 0.01
     #: how the angular part of a Cartesian velocity is read (ARCHITECTURE.md)
     angular_convention: AngularConvention = AngularConvention.SEED000
-    max_linear_speed_mps: float = jaco2.MAX_LINEAR_SPEED_MPS
-    max_angular_speed_rps: float = jaco2.MAX_ANGULAR_SPEED_RPS
-    linear_accel_mps2: float = jaco2.LINEAR_ACCEL_MPS2
-    angular_accel_rps2: float = jaco2.ANGULAR_ACCEL_RPS2
-    joint_accel_dps2: float = jaco2.JOINT_ACCEL_DPS2
+    #: the top translation (m/s) and orientation (rad/s) speeds, within the client configuration ranges of the arm's
+    #: description, and the accelerations; null: the arm's own (its description)
+    max_linear_speed_mps: Optional[float] = None
+    max_angular_speed_rps: Optional[float] = None
+    linear_accel_mps2: Optional[float] = None
+    angular_accel_rps2: Optional[float] = None
+    joint_accel_dps2: Optional[float] = None
     dead_band: DeadBand = msgspec.field(default_factory=DeadBand)
     #: fraction of the actuators' rated speeds (36/48 deg/s) the DSP may use
     joint_speed_scale: float = 1.0
@@ -134,13 +135,10 @@ class DSPConfig(ConfigStruct):
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=ZoneFilterConfig)
 
     def __post_init__(self) -> None:
-        if not LINEAR_SPEED_RANGE[0] <= self.max_linear_speed_mps <= LINEAR_SPEED_RANGE[1]:
-            raise ValueError(f"max_linear_speed_mps must be within Kinova's range {LINEAR_SPEED_RANGE} m/s")
-        if not ANGULAR_SPEED_RANGE[0] <= self.max_angular_speed_rps <= ANGULAR_SPEED_RANGE[1]:
-            raise ValueError(f"max_angular_speed_rps must be within Kinova's range {ANGULAR_SPEED_RANGE} rad/s")
-        for name in ("cycle_s", "linear_accel_mps2", "angular_accel_rps2", "joint_accel_dps2"):
+        for name in ("cycle_s", "max_linear_speed_mps", "max_angular_speed_rps", "linear_accel_mps2",
+                     "angular_accel_rps2", "joint_accel_dps2"):
             value = getattr(self, name)
-            if not (value > 0 and math.isfinite(value)):
+            if value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive")
         if not 0 < self.joint_speed_scale <= 1:
             raise ValueError("joint_speed_scale must be within (0, 1]")
@@ -156,11 +154,40 @@ class DSPConfig(ConfigStruct):
             raise ValueError("command_delay_cycles must be within [0, 100]")
 
 
-def motion_limits(config: DSPConfig, linear_speed_mps: float | None = None,
+def for_arm(config: DSPConfig, arm: ArmDescription) -> DSPConfig:
+    """``config`` with what it leaves to the arm filled in from ``arm``'s description, and checked against it (the
+    top speeds within the arm's client configuration ranges). Raises ValueError."""
+    def own(value: Optional[float], default: float) -> float:
+        return default if value is None else value
+
+    resolved = msgspec.structs.replace(
+        config, max_linear_speed_mps=own(config.max_linear_speed_mps, arm.max_linear_speed_mps),
+        max_angular_speed_rps=own(config.max_angular_speed_rps, arm.max_angular_speed_rps),
+        linear_accel_mps2=own(config.linear_accel_mps2, arm.linear_accel_mps2),
+        angular_accel_rps2=own(config.angular_accel_rps2, arm.angular_accel_rps2),
+        joint_accel_dps2=own(config.joint_accel_dps2, arm.joint_accel_dps2))
+    check_speeds(arm, resolved.max_linear_speed_mps, resolved.max_angular_speed_rps, ValueError,
+                 ("dsp.max_linear_speed_mps", "dsp.max_angular_speed_rps"))
+    return resolved
+
+
+def check_speeds(arm: ArmDescription, linear_mps: Optional[float], angular_rps: Optional[float],
+                 error: type[Exception], names: tuple[str, str] = ("max translation velocity",
+                                                                   "max orientation velocity")) -> None:
+    """Top speeds a client sets must be within the arm's client configuration ranges (SetCartesianMaxVelocities, a
+    DSP's config: ``names`` says what they are called there)."""
+    if linear_mps is not None and not arm.linear_speed_range_mps[0] <= linear_mps <= arm.linear_speed_range_mps[1]:
+        raise error(f"{names[0]} must be within the {arm.name}'s range {arm.linear_speed_range_mps} m/s")
+    if angular_rps is not None and not arm.angular_speed_range_rps[0] <= angular_rps <= arm.angular_speed_range_rps[1]:
+        raise error(f"{names[1]} must be within the {arm.name}'s range {arm.angular_speed_range_rps} rad/s")
+
+
+def motion_limits(config: DSPConfig, arm: ArmDescription, linear_speed_mps: float | None = None,
                   angular_speed_rps: float | None = None) -> MotionLimits:
-    """The limits an arm with this DSP configuration applies (the Cartesian speeds as set at run time, when they
+    """The limits ``arm`` with this DSP configuration applies (the Cartesian speeds as set at run time, when they
     were: SetCartesianMaxVelocities)."""
-    return arm_limits(config.max_linear_speed_mps if linear_speed_mps is None else linear_speed_mps,
+    config = for_arm(config, arm)
+    return arm_limits(arm, config.max_linear_speed_mps if linear_speed_mps is None else linear_speed_mps,
                       config.max_angular_speed_rps if angular_speed_rps is None else angular_speed_rps,
                       config.joint_speed_scale, config.linear_accel_mps2, config.angular_accel_rps2,
                       config.joint_accel_dps2)
@@ -217,9 +244,11 @@ class DSPStatus:
 
 
 class KinovaDSP:
-    def __init__(self, config: DSPConfig | None = None, kinematics: ArmKinematics | None = None) -> None:
-        self.config = config or DSPConfig()
-        self.kin = kinematics or ArmKinematics()
+    def __init__(self, config: DSPConfig, kinematics: ArmKinematics) -> None:
+        """``config`` as given (what it leaves to the arm is filled in from ``kinematics.arm``'s description)."""
+        self.kin = kinematics
+        self.arm = kinematics.arm
+        self.config = for_arm(config, self.arm)
         self.fifo: collections.deque = collections.deque()
         self.zones: list[Zone] = list(self.config.zones)
         self.max_linear = self.config.max_linear_speed_mps
@@ -228,16 +257,16 @@ class KinovaDSP:
         self._direct: Optional[object] = None
         self._last_velocity: Optional[object] = None
         self._missed = 0
-        self._dq_prev = np.zeros(jaco2.N_JOINTS)
+        self._dq_prev = np.zeros(self.arm.n_joints)
         self._twist_prev = np.zeros(6)
-        self._lower, self._upper = jaco2.model_limits()
+        self._lower, self._upper = self.arm.model_limits()
         margin = math.radians(self.config.joint_limit_margin_deg)
         self._lower_soft, self._upper_soft = self._lower + margin, self._upper - margin
         self._limited = np.isfinite(self._lower)
         lower = np.where(self._limited, self._lower, -1.0)
         upper = np.where(self._limited, self._upper, 1.0)
         self._mid, self._half_range = (lower + upper) / 2.0, (upper - lower) / 2.0
-        self._joint_max_speed = jaco2.MAX_SPEED * self.config.joint_speed_scale
+        self._joint_max_speed = self.arm.max_speed * self.config.joint_speed_scale
         self._joint_accel = math.radians(self.config.joint_accel_dps2)
         self._moving_mode = ControlMode.IDLE
         #: emergency braking in progress: [scale, joint velocities at the trigger, scale rate (1/s)]
@@ -270,6 +299,9 @@ class KinovaDSP:
                 )
             segment = _CartesianVelocity(np.array([*twist.linear, *twist.rotational]), twist.angular, command.header)
         else:
+            if len(command.joint_velocities) != self.arm.n_joints:
+                raise CommandRefused(f"this arm has {self.arm.n_joints} joints, the command "
+                                     f"{len(command.joint_velocities)} joint velocities")
             segment = _JointVelocity(np.asarray(command.joint_velocities, dtype=float), command.header)
         if self.config.command_delay_cycles:
             self._delayed.append((self.status.cycles + 1 + self.config.command_delay_cycles, segment))
@@ -304,14 +336,15 @@ class KinovaDSP:
             segment = _CartesianVelocity(np.array([c.X, c.Y, c.Z, c.ThetaX, c.ThetaY, c.ThetaZ]),
                                          self.config.angular_convention)
         elif kind == kinova.POSITION_TYPE.ANGULAR_VELOCITY:
-            segment = _JointVelocity(jaco2.physical_rate_to_model(position.Actuators.as_list()))
+            segment = _JointVelocity(self.arm.physical_rate_to_model(position.Actuators.as_list()[:self.arm.n_joints]))
         elif kind == kinova.POSITION_TYPE.ANGULAR_POSITION:
-            q = jaco2.physical_deg_to_model(position.Actuators.as_list())
+            q = self.arm.physical_deg_to_model(position.Actuators.as_list()[:self.arm.n_joints])
             if np.any(q < self._lower) or np.any(q > self._upper):
                 return kinova.ErrorCode.ERROR_INVALID_PARAM
             speed = None
             if limits is not None and limits.speedParameter1 > 0 and limits.speedParameter2 > 0:
-                speed = np.radians([limits.speedParameter1] * 3 + [limits.speedParameter2] * 4)
+                # speedParameter1: actuators 1-3, speedParameter2: the others (kinova.md)
+                speed = np.radians([limits.speedParameter1] * 3 + [limits.speedParameter2] * (self.arm.n_joints - 3))
             segment = _AngularPosition(q, speed)
         elif kind == kinova.POSITION_TYPE.CARTESIAN_POSITION:
             c = position.CartesianPosition
@@ -328,7 +361,7 @@ class KinovaDSP:
 
     def move_home(self) -> None:
         self.erase_all_trajectories()
-        self.fifo.append(_AngularPosition(jaco2.HOME.copy()))
+        self.fifo.append(_AngularPosition(self.arm.home.copy()))
 
     def erase_all_trajectories(self) -> None:
         self.fifo.clear()
@@ -338,13 +371,10 @@ class KinovaDSP:
         self._missed = self.config.watchdog_cycles
 
     def set_max_velocities(self, linear_mps: float | None = None, angular_rps: float | None = None) -> None:
+        check_speeds(self.arm, linear_mps, angular_rps, CommandRefused)
         if linear_mps is not None:
-            if not LINEAR_SPEED_RANGE[0] <= linear_mps <= LINEAR_SPEED_RANGE[1]:
-                raise CommandRefused(f"max translation velocity must be within {LINEAR_SPEED_RANGE} m/s")
             self.max_linear = min(linear_mps, self.config.max_linear_speed_mps)
         if angular_rps is not None:
-            if not ANGULAR_SPEED_RANGE[0] <= angular_rps <= ANGULAR_SPEED_RANGE[1]:
-                raise CommandRefused(f"max orientation velocity must be within {ANGULAR_SPEED_RANGE} rad/s")
             self.max_angular = min(angular_rps, self.config.max_angular_speed_rps)
 
     @property
@@ -411,7 +441,7 @@ class KinovaDSP:
 
     def motion_limits(self) -> MotionLimits:
         """The limits this DSP applies now (what the robot node declares in its states)."""
-        return motion_limits(self.config, self.max_linear, self.max_angular)
+        return motion_limits(self.config, self.arm, self.max_linear, self.max_angular)
 
     def _dead_band(self, command: np.ndarray, twist_base: np.ndarray) -> np.ndarray:
         """``command`` (a twist or joint velocities) scaled by the dead-band of the end-effector motion it asks."""
@@ -577,13 +607,13 @@ class KinovaDSP:
     def _stop(self, q, p, J, dt) -> np.ndarray:
         """Decelerate to rest within the acceleration limits of the mode the arm was moving in."""
         if not np.any(self._dq_prev):
-            return np.zeros(jaco2.N_JOINTS)
+            return np.zeros(self.arm.n_joints)
         if self._moving_mode in (ControlMode.CARTESIAN_VELOCITY, ControlMode.CARTESIAN_POSITION):
             dq = self._cartesian(q, p, J, np.zeros(6), dt, self.max_linear, self.max_angular)
         else:
-            dq = self._joint(q, np.zeros(jaco2.N_JOINTS), dt, self._joint_max_speed)
+            dq = self._joint(q, np.zeros(self.arm.n_joints), dt, self._joint_max_speed)
         if np.max(np.abs(dq)) < 1e-4:
-            dq = np.zeros(jaco2.N_JOINTS)
+            dq = np.zeros(self.arm.n_joints)
         return dq
 
     def _flag(self, name: str) -> None:

@@ -67,7 +67,8 @@ from services.model import frames
 from services.robot import arm_check
 from services.robot.api_calls import ApiCallQueue
 from services.runtime.config import ConfigStruct
-from services.robot.dsp import DSPConfig, KinovaDSP
+from services.model.arm import DEFAULT_ARM, load_arm
+from services.robot.dsp import DSPConfig, KinovaDSP, for_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.kinova_api import KinovaApi
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
@@ -133,6 +134,9 @@ class LockstepConfig(ConfigStruct):
 
 
 class RobotNodeConfig(ServiceConfig):
+    #: the arm (its description: services/model/arms/<arm>.yaml); the node declares it in every state, and the other
+    #: services run on it
+    arm: str = DEFAULT_ARM
     dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
     lockstep: LockstepConfig = msgspec.field(default_factory=LockstepConfig)
     #: which robot commands are applied at all: fresh, not from the future, in sequence per sender
@@ -154,6 +158,7 @@ class RobotNodeConfig(ServiceConfig):
     command_window_s: float = MAX_COMMAND_WINDOW_S
 
     def __post_init__(self) -> None:
+        for_arm(self.dsp, load_arm(self.arm))  # an unknown arm, or speeds outside its ranges, refused now
         if self.max_bus_errors < 1:
             raise ValueError("max_bus_errors must be at least 1")
         if not 0.0 <= self.command_window_s <= MAX_COMMAND_WINDOW_S:
@@ -231,9 +236,11 @@ class RobotNode(Service):
         super().__init__(config, **kw)
         self.config: RobotNodeConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
-        self.kin = ArmKinematics()
+        #: the arm this node runs (its description), declared in every state
+        self.arm = load_arm(config.arm)
+        self.kin = ArmKinematics(self.arm)
         #: the bus loop's own kinematics workspace (ArmKinematics is not thread-safe; the DSP worker uses ``kin``)
-        self.gravity_kin = ArmKinematics()
+        self.gravity_kin = ArmKinematics(self.arm)
         #: the loop's period: the bus cycle (a backend without a joint-level bus runs at its DSP's cycle)
         self.cycle_s = CYCLE_S
         self.hardware: Optional[RobotHardware] = None
@@ -286,7 +293,7 @@ class RobotNode(Service):
         self._missed = RateMeter()
         self._cycles = RateMeter()
         #: the commissioning check: its state and why, a request waiting for the loop, the run under way
-        self.arm_check_state, self.arm_check_detail = arm_check.load_verdict(config.arm_check)
+        self.arm_check_state, self.arm_check_detail = arm_check.load_verdict(config.arm_check, self.arm)
         self._check_request: Optional[tuple[ArmCheckRequest, Future]] = None
         self._check_run: Optional[tuple[arm_check.ArmCheckRun, Future]] = None
         self._state_before_check = (self.arm_check_state, self.arm_check_detail)
@@ -377,18 +384,32 @@ class RobotNode(Service):
         timing = self.timing()
         work, exchange, lag, dsp, wait = (self.work.stats(), self.exchange_time.stats(), self.wake_lag.stats(),
                                           self.dsp_time.stats(), self.command_wait.stats())
-        return True, (f"bus_rate_hz={timing.rate_hz:.1f} late_per_s={timing.late_per_s:.1f} "
+        return True, (f"{self.arm_summary()}; bus_rate_hz={timing.rate_hz:.1f} late_per_s={timing.late_per_s:.1f} "
                       f"missed_per_s={timing.missed_per_s:.1f} work_ms={work['p50_ms']:.2f}/{work['p99_ms']:.2f} "
                       f"exchange_ms={exchange['p50_ms']:.2f}/{exchange['p99_ms']:.2f} "
                       f"wake_lag_ms={lag['p50_ms']:.2f}/{lag['p99_ms']:.2f} dsp_ms={dsp['p50_ms']:.2f}/"
                       f"{dsp['p99_ms']:.2f} command_wait_ms={wait['p50_ms']:.2f}/{wait['p99_ms']:.2f} (p50/p99)")
+
+    def arm_summary(self) -> str:
+        """The arm this node runs, and what drives its joints (the first part of its health's detail)."""
+        return f"arm {self.arm.name}: {self.arm.n_joints} joints"
 
     def timing(self) -> LoopTiming:
         return LoopTiming(rate_hz=self._cycles.rate_hz(), late_per_s=self._late.rate_hz(),
                           missed_per_s=self._missed.rate_hz())
 
     # ------------------------------------------------------------------ inputs (zenoh threads)
+    def _wrong_joint_count(self, kind: str, values: Optional[list]) -> bool:
+        """A joint vector for another arm than this one: refused and counted (``refused.joint_count``)."""
+        if values is None or len(values) == self.arm.n_joints:
+            return False
+        self.counters.inc("refused.joint_count")
+        self.refuse(kind, f"{len(values)} joint values for the {self.arm.name}'s {self.arm.n_joints} joints")
+        return True
+
     def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
+        if self._wrong_joint_count("command", command.joint_velocities):
+            return
         with self.command_cond:
             rejection = self.admission.admit(command.header, recv_ns)
             if rejection is not None:
@@ -414,6 +435,8 @@ class RobotNode(Service):
                 self.command_cond.notify_all()
 
     def _on_torque(self, command: TorqueCommand, recv_ns: int) -> None:
+        if self._wrong_joint_count("lowlevel_command", command.torques):
+            return
         unavailable = self.lowlevel_unavailable()
         if unavailable:
             self.refuse("lowlevel_command", unavailable)
@@ -523,7 +546,7 @@ class RobotNode(Service):
             plan = arm_check.ArmCheckPlan(joints=tuple(request.joints), step_deg=request.step_deg,
                                           speed_dps=request.speed_dps)
             try:
-                run = arm_check.ArmCheckRun(plan, reading.q, tick_ns * 1e-9)
+                run = arm_check.ArmCheckRun(plan, self.arm, reading.q, tick_ns * 1e-9)
             except ValueError as exc:
                 future.set_result(ArmCheckReply(ok=False, state=self.arm_check_state, message=str(exc)))
                 return taken
@@ -547,14 +570,14 @@ class RobotNode(Service):
                             reason="commissioning check"), tick_ns
 
     def _finish_arm_check(self, run: "arm_check.ArmCheckRun", future: Future) -> None:
-        reply = arm_check.analyse(run.samples, failure=run.failure)
+        reply = arm_check.analyse(run.samples, self.arm.dh_forward_kinematics, failure=run.failure)
         self._check_run = None
         if not reply.ok:  # the check could not judge: the arm's verdict is what it was before
             self.arm_check_state, self.arm_check_detail = self._state_before_check
             reply = msgspec.structs.replace(reply, state=self.arm_check_state)
         else:
             self.arm_check_state, self.arm_check_detail = reply.state, reply.message
-            arm_check.save_verdict(self.config.arm_check, reply, time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+            arm_check.save_verdict(self.config.arm_check, self.arm, reply, time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         self.counters.inc(f"arm_check.{reply.state.value}")
         (self.log.info if reply.passed else self.log.warning)("commissioning check: %s: %s", reply.state.value,
                                                              reply.message)
@@ -827,7 +850,8 @@ class RobotNode(Service):
             faults.append(f"refused: {self._last_refusal}"[:120])
             self._refusal_cycles -= 1
         self.state_pub.put(RobotState(
-            header=self.header("state", stamp_ns=stamp_ns), q=reading.q.tolist(), dq=reading.dq.tolist(),
+            header=self.header("state", stamp_ns=stamp_ns), arm=self.arm.name, arm_digest=self.arm.digest,
+            q=reading.q.tolist(), dq=reading.dq.tolist(),
             tau=reading.tau.tolist(),
             pose=KinovaPose(X=p[0], Y=p[1], Z=p[2], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2]),
             control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],

@@ -52,7 +52,8 @@ import numpy as np
 from protocol import kinova
 from protocol.conventions import AngularConvention
 from protocol.messages import CommandMode, ControlMode, MotionLimits, RobotCommand
-from services.model import frames, jaco2
+from services.model import frames
+from services.model.arm import ArmDescription
 from services.robot.dsp import CommandRefused, DSPConfig, DSPStatus, motion_limits
 from services.robot.hardware import JointReading
 from services.runtime.config import ConfigStruct
@@ -622,14 +623,16 @@ class SdkArm:
     """The arm behind the SDK as the robot front end sees it: a RobotView (measured state, pose) and the DSP
     surface it drives (submit, erase, status, one cycle per 10 ms)."""
 
-    def __init__(self, sdk: KinovaSdk, config: DSPConfig) -> None:
+    def __init__(self, sdk: KinovaSdk, config: DSPConfig, arm: ArmDescription) -> None:
         self.sdk = sdk
         self.config = config
+        #: the arm's description (its joint count, signs and zeros: how GetAngularPosition's degrees map to the model)
+        self.arm = arm
         self.status = DSPStatus()
         self.fifo_count = 0
         self._pending: Optional[RobotCommand] = None
-        self._state = JointReading(q=np.zeros(jaco2.N_JOINTS), dq=np.zeros(jaco2.N_JOINTS),
-                                   tau=np.zeros(jaco2.N_JOINTS))
+        n = arm.n_joints
+        self._state = JointReading(q=np.zeros(n), dq=np.zeros(n), tau=np.zeros(n))
         self._pose = np.eye(4)
 
     # ---- RobotView
@@ -650,12 +653,13 @@ class SdkArm:
 
     def read(self) -> JointReading:
         """Read the arm (4 SDK calls); raises SdkError when one fails."""
-        angles = self.sdk.checked("GetAngularPosition").Actuators.as_list()
-        rates = self.sdk.checked("GetAngularVelocity").Actuators.as_list()
-        forces = self.sdk.checked("GetAngularForce").Actuators.as_list()
+        n, arm = self.arm.n_joints, self.arm  # AngularInfo carries 7 actuators: an arm with fewer reads 0 beyond
+        angles = self.sdk.checked("GetAngularPosition").Actuators.as_list()[:n]
+        rates = self.sdk.checked("GetAngularVelocity").Actuators.as_list()[:n]
+        forces = self.sdk.checked("GetAngularForce").Actuators.as_list()[:n]
         c = self.sdk.checked("GetCartesianPosition").Coordinates
-        self._state = JointReading(q=jaco2.physical_deg_to_model(angles), dq=jaco2.physical_rate_to_model(rates),
-                                   tau=jaco2.SIGN * np.asarray(forces, dtype=float), stamp_ns=time.time_ns())
+        self._state = JointReading(q=arm.physical_deg_to_model(angles), dq=arm.physical_rate_to_model(rates),
+                                   tau=arm.sign * np.asarray(forces, dtype=float), stamp_ns=time.time_ns())
         self._pose = frames.homogeneous(frames.euler_xyz_to_matrix([c.ThetaX, c.ThetaY, c.ThetaZ]),
                                         [c.X, c.Y, c.Z])
         self._state.arm_pose = self._pose  # Kinova's DSP's own kinematics: what the commissioning check compares
@@ -664,7 +668,7 @@ class SdkArm:
     # ---- the DSP surface
     def motion_limits(self) -> MotionLimits:
         """The arm's own DSP applies its client configuration, which the gateway's config states."""
-        return motion_limits(self.config)
+        return motion_limits(self.config, self.arm)
 
     def submit(self, command: RobotCommand) -> None:
         mode = CommandMode(command.mode)
@@ -686,7 +690,7 @@ class SdkArm:
         self.status.cycles += 1
         if command is None:
             self.status.mode = ControlMode.IDLE
-            return np.zeros(jaco2.N_JOINTS)
+            return np.zeros(self.arm.n_joints)
         mode = CommandMode(command.mode)
         if mode in (CommandMode.STOP, CommandMode.EMERGENCY_STOP):
             self.erase_all_trajectories()
@@ -698,10 +702,10 @@ class SdkArm:
             self.status.mode, self.status.emergency_stop = ControlMode.CARTESIAN_VELOCITY, False
         else:
             point = velocity_point(kinova.POSITION_TYPE.ANGULAR_VELOCITY,
-                                   angular_dps=jaco2.model_rate_to_physical(command.joint_velocities))
+                                   angular_dps=self.arm.model_rate_to_physical(command.joint_velocities))
             self.status.mode, self.status.emergency_stop = ControlMode.ANGULAR_VELOCITY, False
         self._check("SendBasicTrajectory", self.sdk.send_basic_trajectory(point))
-        return np.zeros(jaco2.N_JOINTS)
+        return np.zeros(self.arm.n_joints)
 
     @staticmethod
     def _check(function: str, code: int) -> None:

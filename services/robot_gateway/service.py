@@ -32,7 +32,7 @@ from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
 from services.robot.hardware import HardwareError, JointReading
 from services.robot.node import RobotNode, RobotNodeConfig
-from services.model import jaco2
+from services.model.arm import load_arm
 from services.robot_gateway.kinova_sdk import (ArmSession, ArmStartError, KinovaSdk, SdkArm, SdkError,
                                                SdkEthernetConfig, open_arm)
 from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
@@ -42,15 +42,11 @@ from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
 SIMULATED_TIME_LIMIT_NS = 10**17
 
 
-#: the arm the gateway drives: the one description there is today (services/model/jaco2.py); the SDK backend refuses
-#: an arm that reports another model
-ARM_NAME = "j2s7s300"
-
-
 class GatewayConfig(RobotNodeConfig):
     backend: Literal["rs485", "kinova_sdk"] = "rs485"
     bus: BusConfig = msgspec.field(default_factory=BusConfig)
-    addresses: list[int] = msgspec.field(default_factory=lambda: list(r.ACTUATOR_ADDRESSES))
+    #: the actuators' bus addresses, joint by joint; null: the arm description's
+    addresses: Optional[list[int]] = None
     #: realtime: an actuator that has not replied after this long is a bus error (lockstep: lockstep.link_timeout_s)
     link_timeout_s: float = 0.01
     #: at start, keep asking the actuators for their positions this long (an arm, or robot_sim, powering up)
@@ -66,6 +62,14 @@ class GatewayConfig(RobotNodeConfig):
         super().__post_init__()
         if self.backend == "kinova_sdk" and ClockMode(self.clock) is not ClockMode.REALTIME:
             raise ValueError("the kinova_sdk backend runs in realtime only (a real arm has no simulated clock)")
+        arm = load_arm(self.arm)
+        if self.addresses is not None and (len(self.addresses) != arm.n_joints
+                                           or len(set(self.addresses)) != arm.n_joints):
+            raise ValueError(f"addresses must be {arm.n_joints} distinct bus addresses (the {arm.name}'s joints)")
+
+    def bus_addresses(self) -> list[int]:
+        """The actuators' addresses: the config's, else the arm description's."""
+        return list(load_arm(self.arm).bus_addresses) if self.addresses is None else list(self.addresses)
 
 
 class RobotGatewayService(RobotNode):
@@ -91,7 +95,7 @@ class RobotGatewayService(RobotNode):
         timeout = cfg.lockstep.link_timeout_s if self.lockstep else cfg.link_timeout_s
         # realtime: pipelined, so that the round trip does not stretch the 2 ms cycle; lockstep: in step, so that
         # the arm behind the bus computes exactly what the simulated arm in robot_sim's process does
-        hardware = LinkHardware(ActuatorLink(self.bus, cfg.addresses, timeout, self.counters),
+        hardware = LinkHardware(ActuatorLink(self.bus, cfg.bus_addresses(), timeout, self.counters), self.arm,
                                 pipelined=not self.lockstep)
         try:
             reading = self._connect(hardware)
@@ -105,6 +109,11 @@ class RobotGatewayService(RobotNode):
             self.bus.close()  # a start that fails leaves no socket behind
             self.bus = None
             raise
+
+    def arm_summary(self) -> str:
+        addresses = self.config.bus_addresses()
+        return (f"arm {self.arm.name}: {len(addresses)} actuators on the bus "
+                f"({', '.join(f'0x{a:02X}' for a in addresses)})")
 
     def _connect(self, hardware: LinkHardware) -> JointReading:
         """The actuators' first answer, waiting up to ``connect_timeout_s`` for them; the start fails after."""
@@ -183,10 +192,11 @@ def connect_sdk_arm(config: GatewayConfig, sdk: Optional[KinovaSdk] = None,
     otherwise, the API closed again)."""
     sdk = sdk or KinovaSdk.find(config.sdk_library, config.sdk_transport)
     ethernet = config.sdk_ethernet if config.sdk_transport == "ethernet" else None
-    session = open_arm(sdk, serial=config.sdk_serial, arm_name=ARM_NAME, n_joints=jaco2.N_JOINTS,
+    description = load_arm(config.arm)
+    session = open_arm(sdk, serial=config.sdk_serial, arm_name=description.name, n_joints=description.n_joints,
                        ethernet=ethernet, log=log)
     try:
-        arm = SdkArm(sdk, config.dsp)
+        arm = SdkArm(sdk, config.dsp, description)
         try:
             reading = arm.read()
         except SdkError as exc:
@@ -212,7 +222,8 @@ class SdkGatewayService(RobotNode):
         self.connection = connection
         #: the library, found and loaded now so that a missing one fails before anything starts
         self.sdk = connection.sdk if connection else KinovaSdk.find(config.sdk_library, config.sdk_transport)
-        self.arm: Optional[SdkArm] = connection.arm if connection else None
+        #: the arm behind the SDK (``self.arm`` is its description)
+        self.sdk_arm: Optional[SdkArm] = connection.arm if connection else None
         self.cycle_s = config.dsp.cycle_s
 
     def start(self) -> "SdkGatewayService":
@@ -222,7 +233,7 @@ class SdkGatewayService(RobotNode):
             return super().start()  # refuses, saying why
         if self.connection is None:
             self.connection = connect_sdk_arm(self.config, self.sdk, self.log)
-            self.arm = self.connection.arm
+            self.sdk_arm = self.connection.arm
         try:
             return super().start()
         except BaseException:
@@ -233,10 +244,13 @@ class SdkGatewayService(RobotNode):
         return _NoJoints(self.connection.session), self.connection.first_reading
 
     def make_dsp(self):
-        return self.arm
+        return self.sdk_arm
 
     def make_api(self):
         return self.sdk
+
+    def arm_summary(self) -> str:
+        return f"arm {self.arm.name}: {self.arm.n_joints} joints behind Kinova's SDK"
 
     def lowlevel_unavailable(self) -> str:
         return "the kinova_sdk backend has no low-level torque API (the USB layer offers none); use the rs485 backend"
@@ -247,7 +261,7 @@ class SdkGatewayService(RobotNode):
         self._cycles.tick()
         self.rates.tick("bus_cycle")
         try:
-            self.core.observe(self.arm.read())
+            self.core.observe(self.sdk_arm.read())
             self.consecutive_errors, self._bus_faults = 0, []
         except Exception as exc:  # an SDK error code, or values the arm should never report (NaN)
             self.consecutive_errors += 1

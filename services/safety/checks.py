@@ -14,7 +14,7 @@ import numpy as np
 
 from protocol.conventions import IMAGE_AGE_BUDGET_S, AngularConvention, Frame
 from protocol.messages import MotionLimits
-from services.model import frames, jaco2, saturation
+from services.model import frames, saturation
 from services.model.limits import stricter
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics
@@ -106,21 +106,22 @@ def _over_speed(ratio: saturation.TwistRatio, robot: MotionLimits) -> tuple[list
 class CommandChecker:
     """Checks desired commands against the limits, the robot's state and the workspace zones."""
 
-    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics | None = None) -> None:
+    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics) -> None:
+        """``kinematics``: of the arm the commands are for (``kinematics.arm``: its joints, their ranges)."""
         self.limits = limits
-        self.kin = kinematics or ArmKinematics()
-        self.lower, self.upper = jaco2.model_limits()
+        self.kin = kinematics
+        self.lower, self.upper = kinematics.arm.model_limits()
         margin = math.radians(limits.joint_limit_margin_deg)
         self.lower_soft, self.upper_soft = self.lower + margin, self.upper - margin
         self.limited = np.isfinite(self.lower)
         #: the last base-frame twist (or joint velocities) forwarded, for the acceleration limits
         self.last_twist_base = np.zeros(6)
-        self.last_dq = np.zeros(jaco2.N_JOINTS)
+        self.last_dq = np.zeros(kinematics.arm.n_joints)
 
     def reset_motion(self) -> None:
         """Forget the last forwarded motion (after a stop: the next command starts from rest)."""
         self.last_twist_base = np.zeros(6)
-        self.last_dq = np.zeros(jaco2.N_JOINTS)
+        self.last_dq = np.zeros(self.kin.arm.n_joints)
 
     # ------------------------------------------------------------------ twists
     def check_twist(self, frame: Frame, angular: AngularConvention, twist, q, dt: float,
@@ -195,6 +196,9 @@ class CommandChecker:
         robot = effective_limits(lim, robot)
         q = np.asarray(q, dtype=float)
         dq = np.array(dq, dtype=float, copy=True)
+        if len(dq) != self.kin.arm.n_joints:
+            return Decision(refusal=f"joint_count: {len(dq)} joint velocities for the {self.kin.arm.name}'s "
+                                    f"{self.kin.arm.n_joints} joints", limits=["joint_count"])
         decision = Decision()
         limited, ratio = saturation.limit_uniformly(dq, robot.joint_speed_rps)
         if ratio > 1.0:
@@ -235,9 +239,9 @@ class MotionMonitor:
     limit continuously for at least ``measured_overspeed_s`` (by the states' stamps: two consecutive states at
     100 Hz) is an overspeed: :meth:`observe` returns why, once, and the service latches a protective stop."""
 
-    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics | None = None) -> None:
+    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics) -> None:
         self.limits = limits
-        self.kin = kinematics or ArmKinematics()
+        self.kin = kinematics
         self._since: Optional[int] = None
         #: the largest measured speeds so far, as fractions of their limits (without the margin)
         self.peak_ratio = {"linear": 0.0, "angular": 0.0, "joint": 0.0}

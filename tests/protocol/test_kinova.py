@@ -104,8 +104,11 @@ def test_zone_list_holds_at_most_ten():
 def test_angular_info_list_helpers():
     info = k.AngularInfo.from_list([270, 170, 0, 80, 0, 220, 0])
     assert info.Actuator6 == 220.0 and info.as_list()[1] == 170.0
-    with pytest.raises(ValueError):
-        k.AngularInfo.from_list([0.0] * 6)
+    # a 6-DoF arm's six angles: the seventh actuator reads 0, as Kinova's SDK gives it
+    assert k.AngularInfo.from_list([1.0] * 6).as_list() == [1.0] * 6 + [0.0]
+    for wrong in ([], [0.0] * 8):
+        with pytest.raises(ValueError):
+            k.AngularInfo.from_list(wrong)
 
 
 def test_model_codes_parse_as_kinova_writes_them():

@@ -314,3 +314,29 @@ def test_a_profile_across_hosts_starts_one_host_part_at_a_time(tmp_path):
     out = mfvs("up", "--profile", "multi-host", env=env)
     assert out.returncode == 2 and "say which this computer is (--host)" in out.stderr
     assert not (tmp_path / "stack.json").exists()
+
+
+def test_a_profile_runs_one_arm_and_up_arm_sets_it_for_every_service_that_runs_on_one(tmp_path):
+    """`mfvs up --arm NAME` sets the robot's arm and the controller's and safety's; a profile whose services
+    name different arms is refused in one line before anything starts (issue 32)."""
+    import yaml
+
+    from services.launcher import load_profile, profile_arm, with_arm
+
+    sim = load_profile("sim", 7447)
+    assert profile_arm(sim) == "j2s7s300"
+    six = with_arm(sim, "j2n6s300")
+    assert profile_arm(six) == "j2n6s300"
+    assert {s.name for s in six.services if "arm=j2n6s300" in s.set} == {"robot_sim", "controller", "safety"}
+    gateway = with_arm(load_profile("gateway", 7447), "j2n6s300")
+    assert {s.name for s in gateway.services if "arm=j2n6s300" in s.set} == \
+        {"robot_sim", "robot_gateway", "controller", "safety"}
+    mixed = {"services": [{"name": "robot_sim", "set": ["arm=j2n6s300"]}, {"name": "controller",
+                                                                            "set": ["arm=j2s7s300"]}]}
+    (tmp_path / "mixed.yaml").write_text(yaml.safe_dump(mixed))
+    env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path / "run"))
+    out = mfvs("up", "--profile", str(tmp_path / "mixed.yaml"), env=env, timeout=30)
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out
+    assert "the profile mixes arms (robot_sim j2n6s300, controller j2s7s300)" in out.stderr
+    unknown = mfvs("up", "--arm", "j2n9s300", env=env, timeout=30)
+    assert unknown.returncode == 2 and "unknown arm 'j2n9s300'; known: j2n6s300, j2s7s300" in unknown.stderr

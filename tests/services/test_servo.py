@@ -11,6 +11,7 @@ from services.runtime.config import ConfigError, config_from_text
 from services.robot.dsp import DSPConfig
 from services.servo import Iteration, Scenario, load_scenario, read_log, run, write_log
 from tests.helpers import REPO
+from tests.helpers import ARM
 
 TABLE2 = REPO / "examples" / "scenarios" / "table2.yaml"
 EASY = REPO / "examples" / "scenarios" / "easy.yaml"
@@ -30,7 +31,7 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     assert result.final_error_norm < 5e-5
     assert 30 < result.iterations < 400
     assert result.max_joint_limit_violation_deg == 0.0
-    assert 0 < result.max_linear_speed_mps <= DSPConfig().max_linear_speed_mps * 1.05  # the robot's, declared
+    assert 0 < result.max_linear_speed_mps <= ARM.max_linear_speed_mps * 1.05  # the robot's, declared
     lines = Path(result.trajectory_log).read_text().splitlines()
     assert len(lines) >= result.iterations
     # lockstep: a frame every 1/30 s of the arm's time, each answered, from the first the law acted on

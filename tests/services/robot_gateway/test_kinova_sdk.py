@@ -19,13 +19,15 @@ import pytest
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from services.model import jaco2
 from services.runtime.transport import ZenohConfig, free_loopback_port, loopback_endpoint, open_session
 from services.robot_gateway import kinova_sdk as sdk_mod
 from services.robot_gateway.kinova_sdk import ArmStartError, KinovaSdk
 from services.robot_gateway.service import GatewayConfig, SdkEthernetConfig, robot_gateway_service
 from tests.helpers import REPO
 from tests.stack import KEYS, Recorder, next_seq, wait_for
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 SOURCE = Path(__file__).resolve().parent / "fake_kinova_sdk" / "fake_kinova_sdk.c"
 #: the start-up sequence of Kinova's driver (kinova_comm.cpp), as the stand-in records it
@@ -240,7 +242,7 @@ def test_the_gateway_drives_the_arm_through_the_sdk(gateway, fake):
     states = Recorder(client, KEYS.robot_state, m.RobotState)
     assert wait_for(lambda: len(states) > 5)
     angles = np.array(service.sdk.checked("GetAngularPosition").Actuators.as_list())
-    assert states.last().q == pytest.approx(jaco2.physical_deg_to_model(angles).tolist(), abs=1e-5)
+    assert states.last().q == pytest.approx(ARM.physical_deg_to_model(angles).tolist(), abs=1e-5)
     # a mixed twist becomes a CARTESIAN_VELOCITY point, in the arm's convention
     twist = m.Twist(header=m.Header(), frame=Frame.MIXED, angular=AngularConvention.SEED000,
                     linear=(0.05, -0.02, 0.01), rotational=(0.0, 0.1, -0.2))
@@ -259,7 +261,7 @@ def test_the_gateway_drives_the_arm_through_the_sdk(gateway, fake):
     assert wait_for(lambda: fake.FakeCount(b"points") > before)
     point = last_point(fake)
     assert point.Position.Type == kinova.POSITION_TYPE.ANGULAR_VELOCITY
-    assert point.Position.Actuators.as_list() == pytest.approx(jaco2.model_rate_to_physical(dq).tolist(), abs=1e-4)
+    assert point.Position.Actuators.as_list() == pytest.approx(ARM.model_rate_to_physical(dq).tolist(), abs=1e-4)
     # another angular convention is refused, not reinterpreted
     refused = service.counters.get("rejected.command")
     wrong = m.Twist(header=m.Header(), frame=Frame.MIXED, angular=AngularConvention.OMEGA, linear=(0.0, 0.0, 0.0),

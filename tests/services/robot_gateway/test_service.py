@@ -10,7 +10,6 @@ import pytest
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import ClockMode
-from services.model import jaco2
 from services.model.kinematics import ArmKinematics
 from services.robot.hardware import CYCLES_PER_DSP
 from services.robot.hardware import CYCLE_S
@@ -22,6 +21,9 @@ from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses, RouterProcess
 from tests.helpers import REPO, CpuLoad
 from tests.stack import KEYS, Recorder, wait_for
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 
@@ -41,11 +43,11 @@ def test_same_keys_and_same_motion_as_robot_sim():
         try:
             states = Recorder(client, KEYS.robot_state, m.RobotState)
             assert wait_for(lambda: len(states) > 20)
-            assert states.last().q == pytest.approx(jaco2.HOME.tolist(), abs=1e-3)
+            assert states.last().q == pytest.approx(ARM.home.tolist(), abs=1e-3)
             # the Kinova API answers through the gateway
             replies = list(client.get(KEYS.robot_api("GetAngularPosition"), timeout=5.0))
             position = m.decode(replies[0].ok.payload.to_bytes(), kinova.AngularPositionReply)
-            assert position.result.Actuators.as_list() == pytest.approx(jaco2.HOME_DEG.tolist(), abs=0.05)
+            assert position.result.Actuators.as_list() == pytest.approx(ARM.home_deg.tolist(), abs=0.05)
             before = health_counters(client)
             # a mixed-frame velocity command resent every 5 ms (latest wins on the robot) for 1.5 s
             subprocess.run([sys.executable, "-m", "bench.command_source", "--connect", router.endpoint,
@@ -58,7 +60,7 @@ def test_same_keys_and_same_motion_as_robot_sim():
             window = [s for s in commanded if s.header.stamp_ns >= commanded[0].header.stamp_ns + 300_000_000]
             seconds = (window[-1].header.stamp_ns - window[0].header.stamp_ns) / 1e9
             assert seconds > 0.9, f"only {seconds:.2f} s of commanded motion reported"
-            kin = ArmKinematics()
+            kin = ArmKinematics(ARM)
             velocity = (kin.pose(window[-1].q)[1] - kin.pose(window[0].q)[1]) / seconds
             along = float(velocity @ linear) / float(linear @ linear)
             across = float(np.linalg.norm(velocity - along * linear) / np.linalg.norm(linear))
@@ -86,7 +88,7 @@ def lost_cycles(before: dict, after: dict) -> float:
         return after[service]["errors"].get(counter, 0) - before[service]["errors"].get(counter, 0)
 
     gateway = sum(grown("robot_gateway", c) for c in ("cycles.missed", "cycles.arm_missed", "bus.failed_exchanges"))
-    return (gateway + grown("robot_sim", "frames.missed") / jaco2.N_JOINTS
+    return (gateway + grown("robot_sim", "frames.missed") / ARM.n_joints
             + grown("robot_gateway", "dsp.stale_holds") * 2 * CYCLES_PER_DSP)
 
 
