@@ -211,7 +211,8 @@ def test_a_torque_or_joint_velocity_command_for_another_arm_is_refused(router):
             header=m.Header(stamp_ns=time.time_ns(), seq=next_seq()), mode=m.CommandMode.JOINT_VELOCITY,
             joint_velocities=[0.1] * 7)))
         assert wait_for(lambda: service.counters.get("refused.joint_count") == 2)
-        assert not service.lowlevel.active and service.counters.get("rejected.lowlevel_command") == 0
+        assert not service.lowlevel.active  # refused by the node before low-level control saw it
+        assert service.counters.get("rejected.lowlevel_command") == 1 and service.counters.get("rejected.command") == 1
         assert wait_for(lambda: len(states) > 0)
         state = states.last()
         assert (state.arm, len(state.q), len(state.limits.joint_speed_rps)) == ("j2n6s300", 6, 6)
