@@ -256,7 +256,8 @@ class RobotSimService(RobotNode):
     def check_health(self) -> tuple[bool, str]:
         ok, detail = super().check_health()
         trigger = self.outputs.trigger_detail() if self.outputs is not None else ""
-        return ok, f"sim_time_s={self.sim.time_ns * 1e-9:.3f} {trigger} {detail}"
+        arm, _, rest = detail.partition("; ")  # the arm first, as every robot node's detail starts
+        return ok, f"{arm}; sim_time_s={self.sim.time_ns * 1e-9:.3f} {trigger} {rest}"
 
 
 class ArmOnBusService(Service):
