@@ -143,8 +143,12 @@ def _cmd_model(args: argparse.Namespace) -> int:
                 "continuous": j.continuous,
                 "limits_physical_deg": None if j.continuous else [j.lower_deg, j.upper_deg],
                 "max_speed_dps": j.max_speed_dps,
-                "max_torque_nm": j.max_torque_nm,
+                "peak_torque_nm": j.peak_torque_nm,
+                "nominal_torque_nm": j.nominal_torque_nm,
                 "actuator": j.actuator,
+                "no_load_speed_dps": round(j.spec.no_load_speed_rpm * 6.0, 2),
+                "gear_ratio": j.spec.gear_ratio,
+                "torque_sensor_precision_nm": j.spec.torque_sensor_precision_nm,
                 "bus_address": f"0x{arm.bus_addresses[i]:02X}",
                 "link_mass_kg": round(j.link_mass_kg, 6),
             }
@@ -156,6 +160,9 @@ def _cmd_model(args: argparse.Namespace) -> int:
         "reach_m": round(arm.reach, 4),
         "max_linear_speed_mps": arm.max_linear_speed_mps,
         "max_angular_speed_rps": arm.max_angular_speed_rps,
+        # where the emulated arm departs from this description (robot_sim): the description file says why
+        "emulation": {"link_mass_scale": arm.true_link_mass_scale.tolist(),
+                      "torque_mode_friction_nm": np.round(arm.true_friction_nm, 4).tolist()},
     }
     print(json.dumps(info, indent=None if args.json else 2))
     return 0
