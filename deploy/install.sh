@@ -17,6 +17,9 @@ apt_packages=(
     libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libopengl0 libglx-mesa0
     # the tests build a stand-in for Kinova's SDK library (tests/services/robot_gateway/fake_kinova_sdk) to test the ctypes backend
     gcc libc6-dev
+    # the console's browser tests and benchmark: Debian's Chromium, headless, driven through its chromedriver
+    # (Selenium); a font for the page's text
+    chromium chromium-driver fonts-dejavu-core
 )
 if [[ "${MFVS_SKIP_APT:-0}" != 1 ]]; then
     sudo_cmd=()
