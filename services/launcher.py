@@ -35,7 +35,7 @@ import msgspec
 from protocol import messages as m
 from protocol.keys import Keys
 from services.runtime.config import ConfigStruct, load_config
-from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health
+from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health, service_condition
 from services.runtime.transport import ZenohConfig, file_endpoints, open_session
 
 REPO = Path(__file__).resolve().parents[1]
@@ -393,12 +393,7 @@ def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -
         router["error"] = str(exc)
         found = {}
     for name, health in sorted(found.items()):
-        if health is None:
-            condition = "unknown"
-        elif not health.healthy:
-            condition = "unhealthy"
-        else:
-            condition = "degraded" if health.degraded else "healthy"
+        condition = service_condition(health)
         services.append({
             "name": name, "pid": health.pid if health else pids.get(name),
             "healthy": condition == "healthy", "condition": condition,
