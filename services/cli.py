@@ -126,8 +126,8 @@ def _cmd_estop(args: argparse.Namespace) -> int:
     """Engage (or reset) the latched e-stop and report what the safety service says."""
     import time
 
-    from protocol import messages as m
     from protocol.keys import Keys
+    from services.estop_client import EStopClient
 
     try:
         session = _operator_session(args)
@@ -135,24 +135,13 @@ def _cmd_estop(args: argparse.Namespace) -> int:
         print(f"e-stop NOT sent: cannot reach the router at {args.connect} ({exc}); is the stack up? "
               f"(--connect ENDPOINT, --zenoh-config FILE)", file=sys.stderr)
         return 2
-    keys = Keys(args.robot_id)
-    statuses: list = []
-    session.declare_subscriber(keys.safety_status, lambda s: statuses.append(m.decode(s.payload.to_bytes(),
-                                                                                      m.SafetyStatus)))
-    message = m.EStop(header=m.Header(stamp_ns=time.time_ns()), reset=args.reset, operator=args.operator,
-                      reason=args.reason)
-    publisher = session.declare_publisher(keys.estop)
-    time.sleep(0.2)  # let the declaration reach the router
-    deadline = time.monotonic() + args.timeout
-    confirmed = False
-    while time.monotonic() < deadline and not confirmed:
-        publisher.put(m.encode(message))  # repeated until safety confirms: an e-stop must not be lost
-        time.sleep(0.1)
-        confirmed = any((s.state is m.SafetyState.ESTOP) != args.reset for s in statuses[-3:])
+    with EStopClient(session, Keys(args.robot_id)) as client:
+        time.sleep(0.2)  # let the declarations reach the router
+        status = client.send(args.reset, args.operator, args.reason, args.timeout)
     session.close()
     word = "reset" if args.reset else "engaged"
-    if confirmed:
-        print(f"e-stop {word}: safety reports state {statuses[-1].state.value}")
+    if status is not None:
+        print(f"e-stop {word}: safety reports state {status.state.value}")
         return 0
     print(f"e-stop {'reset' if args.reset else 'request'} sent, but no safety service confirmed it within "
           f"{args.timeout:g} s", file=sys.stderr)
