@@ -155,6 +155,7 @@ def _cmd_task(args: argparse.Namespace) -> int:
     from protocol import messages as m
     from protocol.keys import Keys
     from services.controller.task_client import TaskUnavailable, call_task
+    from services.launcher import describe_task
 
     try:
         session = _operator_session(args)
@@ -174,8 +175,7 @@ def _cmd_task(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(msgspec.to_builtins(status)))
     else:
-        by = f", by {status.by}" + (f": {status.reason}" if status.reason else "") if status.by else ""
-        print(f"task {status.state.value} (task {status.task}{by}){': ' + status.message if status.message else ''}")
+        print(describe_task(status))
     return 0 if status.ok else 1
 
 
