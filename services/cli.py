@@ -490,11 +490,13 @@ def build_parser() -> argparse.ArgumentParser:
     from services.calibration.cli import add_parser as add_calibrate
     from services.check import add_parser as add_check
 
+    from services.console.cli import add_parser as add_console
     from services.observe.cli import add_parsers as add_observe
 
     add_calibrate(sub)
     add_check(sub, _add_connection_options, _operator_session)
     add_observe(sub, _add_connection_options, _operator_session, _stack_connection)
+    add_console(sub, _add_connection_options, _stack_connection)
 
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")
