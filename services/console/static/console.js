@@ -10,7 +10,7 @@ const GREEN = "#2fb95c", GOAL = "#ff4fd8";
 
 // what the tests and the benchmark read (window.mfvsConsole)
 const stats = { frames: 0, delaysMs: [], consoleMs: [], firstAt: null, lastAt: null, refusals: [], results: [],
-                connects: 0, lastCapture: null };
+                connects: 0, lastCapture: null, sent: [] };
 const page = {
   ws: null, token: sessionStorage.getItem("mfvs-token") || "", tokenRequired: false, authenticated: false,
   backoffMs: 500, nextId: 0, bitmap: null, frameHeader: null, decoding: false, pendingFrame: null,
@@ -335,6 +335,7 @@ function act(action, extra = {}) {
       : "Not connected to the console: nothing was sent.", "error");
     return;
   }
+  stats.sent.push({ action, at: wallNowMs() });
   localStorage.setItem("mfvs-operator", message.operator);
   say(`Sent: ${action.replace("_", " ")}…`, "info");
 }
