@@ -237,3 +237,49 @@ def test_a_console_beyond_loopback_without_a_token_does_not_start(tmp_path):
     out = subprocess.run([MFVS, "console", "--connect", f"tcp/127.0.0.1:{free_loopback_port()}"], capture_output=True,
                          text=True, timeout=60, env=env)
     assert out.returncode == 2 and "cannot reach the stack's router" in out.stderr, out.stderr
+
+
+def test_behind_a_tls_deployment_it_serves_https_with_its_certificate_and_acts_as_the_operator(tmp_path):
+    """`mfvs authority init --tls`'s deployment: the console, given the operator's config, serves HTTPS with the
+    deployment's console certificate (a browser that trusts the deployment's CA verifies it), and its e-stop goes
+    through the router's access control as the operator's."""
+    import ssl
+
+    from services.runtime.authority import write_deployment
+
+    deployment = write_deployment(tmp_path / "authority", tls=True, port=free_loopback_port())
+    operator = str(deployment.client_configs["operator"])
+    with Router(port=None, config_file=deployment.router_config) as router:
+        safety = SafetyService(SafetyConfig(clock=ClockMode.REALTIME, zenoh=router.client_config(
+            config_file=str(deployment.client_configs["safety"])))).start()
+        try:
+            with ConsoleProcess(deployment.endpoint, "--zenoh-config", operator) as console:
+                assert console.ready["tls"] and console.url.startswith("https://127.0.0.1:")
+                trusted = ssl.create_default_context(cafile=str(tmp_path / "authority" / "certs" / "ca.pem"))
+
+                async def engage():
+                    async with aiohttp.ClientSession(connector=aiohttp.TCPConnector(ssl=trusted)) as session:
+                        async with session.get(console.url) as page:
+                            assert page.status == 200
+                        async with session.ws_connect(console.url.replace("https", "wss", 1) + "ws",
+                                                      origin=console.url.rstrip("/")) as ws:
+                            await ws.send_json({"type": "action", "action": "estop_engage", "id": 1})
+                            while True:
+                                answer = await ws.receive_json(timeout=15)
+                                if answer["type"] in ("result", "refused"):
+                                    return answer
+
+                answer = asyncio.run(engage())
+                assert answer["type"] == "result" and answer["ok"], answer
+                assert safety.core.estop_latched
+                # plain HTTP is refused by the TLS listener: no page without the certificate's protection
+                async def plain():
+                    async with aiohttp.ClientSession() as session:
+                        try:
+                            async with session.get(console.url.replace("https", "http", 1)) as response:
+                                return response.status
+                        except aiohttp.ClientError:
+                            return "refused"
+                assert asyncio.run(plain()) in ("refused", 400)
+        finally:
+            safety.stop()
