@@ -262,6 +262,8 @@ SAFETY_FRESH_S = 1.0
 SPEED_WINDOW_S = 0.05
 #: the series keep a sample per this long
 SERIES_STEP_S = 0.05
+#: a source's line that repeats within this long is not logged again (s)
+REPEAT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -325,16 +327,17 @@ class ConsoleModel:
         self.health: dict[str, dict] = {}
         self._paths: deque[tuple[float, list]] = deque()
         self._poses: deque[tuple[float, np.ndarray]] = deque()
-        self._said: dict[str, str] = {}
+        self._said: dict[tuple[str, str], float] = {}
 
     # -------------------------------------------------------------- the log
     def note(self, source: str, level: str, text: str, now: float) -> None:
         self.events.append(Event(now, source, level, text))
 
     def _say(self, source: str, level: str, text: str, now: float) -> None:
-        """A line, unless it repeats the source's last one."""
-        if self._said.get(source) != text:
-            self._said[source] = text
+        """A line, unless the source said the same within REPEAT_S (a fault that comes and goes with every state, a
+        state that flickers, an e-stop sent again until confirmed: once, not a screenful)."""
+        if now - self._said.get((source, text), -math.inf) >= REPEAT_S:
+            self._said[(source, text)] = now
             self.note(source, level, text, now)
 
     # -------------------------------------------------------------- the stack's messages
@@ -397,25 +400,21 @@ class ConsoleModel:
         self.joint_speed_ratio = max(ratios) if ratios else None
         if state.faults:
             self._say("robot", "error", "faults: " + "; ".join(state.faults), now)
-        else:
-            self._said.pop("robot", None)
 
     def on_controller(self, status: m.ControllerStatus, now: float) -> None:
         self.controller = status
         level, text = _level(controller_line(status))
         if level != "info":
             self._say("controller", level, text, now)
-        else:
-            self._said.pop("controller", None)
 
     def on_safety(self, status: m.SafetyStatus, now: float) -> None:
         previous = self.safety
         self.safety, self.safety_at = status, now
         if previous is None or previous.state is not status.state:
             level, _ = _level(safety_line(status))
-            self.note("safety", level, f"safety: {status.state.value}", now)
+            self._say("safety", level, f"safety: {status.state.value}", now)
         if status.last_refusal and (previous is None or previous.last_refusal != status.last_refusal):
-            self.note("safety", "warning", f"safety refused: {status.last_refusal}", now)
+            self._say("safety", "warning", f"safety refused: {status.last_refusal}", now)
 
     def on_estop(self, estop: m.EStop, now: float) -> None:
         level, text = _level(estop_line(estop))

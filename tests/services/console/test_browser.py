@@ -22,8 +22,9 @@ from tests.stack import KEYS, Recorder, wait_for
 
 TOKEN = "a token for the browser test"
 PHONE, DESKTOP = (390, 844), (1280, 1000)
-#: from the click to the e-stop leaving the console (the page, its WebSocket, the console's worker thread) on a
-#: shared 2-core machine with the stack and the browser busy: generous; the safety budget counts from there
+#: from the page's click handler to the e-stop leaving the console (the page's WebSocket, the console's worker
+#: thread) on a shared 2-core machine with the stack and the browser busy: generous; the safety budget counts from
+#: there
 CONSOLE_BUDGET_S = 0.5
 
 CANVAS_CHECKSUM = """
@@ -57,6 +58,7 @@ def sim_stack():
 def screenshots(driver, artefacts: Path, name: str) -> None:
     for label, (width, height) in (("phone", PHONE), ("desktop", DESKTOP)):
         driver.set_window_size(width, height)
+        driver.execute_script("window.scrollTo(0, 0)")
         time.sleep(0.6)
         driver.save_screenshot(str(artefacts / f"console-{name}-{label}.png"))
 
@@ -114,16 +116,18 @@ def test_the_console_shows_the_arm_starts_the_task_stops_the_arm_and_releases_on
         moving = driver.execute_script(CANVAS_CHECKSUM)
         assert wait_for(lambda: driver.execute_script(CANVAS_CHECKSUM) != moving, timeout=5)  # the image changes
 
-        # the e-stop: the arm at rest within the safety budget, from when the console sent it
-        before = states.last()
-        v0 = ee_speed(kin, before)
+        # the e-stop: the arm at rest within the safety budget, from when the console sent it (at the speed it had
+        # then)
         clicked_ns = time.time_ns()
         click(driver, "estop")
         assert wait_for(lambda: len(estops) > 0, timeout=5)
         sent_ns = estops.snapshot()[0].header.stamp_ns
-        assert (sent_ns - clicked_ns) * 1e-9 < CONSOLE_BUDGET_S
-        pressed_ms = page_stats(driver)["sent"][-1]["at"]  # when the page's button handler ran
+        # from the button's click handler on the page (WebDriver's own dispatch of the click, before it, is the
+        # test's machinery) to the e-stop leaving the console
+        pressed_ms = page_stats(driver)["sent"][-1]["at"]
+        assert 0 <= sent_ns / 1e6 - pressed_ms < CONSOLE_BUDGET_S * 1e3
         time.sleep(1.0)
+        v0 = ee_speed(kin, [s for s in states.snapshot() if s.header.stamp_ns <= sent_ns][-1])
         elapsed = time_to_rest(states, kin, sent_ns)
         bound = rest_bound(v0, dsp.emergency_linear_decel_mps2, ESTOP_DELIVERY_BUDGET_S)
         print(f"e-stop from the page at {v0:.3f} m/s: sent {(sent_ns - clicked_ns) / 1e6:.0f} ms after the click "

@@ -205,6 +205,9 @@ def test_health_task_estop_and_refusals_make_the_log_and_the_estop_state_goes_st
     model.on_task(m.TaskStatus(ok=True, state=m.TaskState.RUNNING, task=2, by="alice", reason="a drink"), 7.0)
     model.on_estop(m.EStop(header=m.Header(), operator="bob", reason="spill"), 8.0)
     model.on_state(state(0.0, faults=["joint 3 over its limit"]), now=9.0)
+    for t in (9.01, 9.02, 9.5):  # a fault that comes and goes with the states: logged once
+        model.on_state(state(t - 9.0, faults=["joint 3 over its limit"] if t != 9.02 else []), now=t)
+    model.on_estop(m.EStop(header=m.Header(), operator="bob", reason="spill"), 9.6)  # sent again: logged once
     model.note("console", "warning", "refused: the e-stop is already engaged", 10.0)
     texts = [e["text"] for e in model.snapshot(10.0)["events"]]
     assert texts == ["refused: the e-stop is already engaged", "faults: joint 3 over its limit",
