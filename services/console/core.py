@@ -412,9 +412,9 @@ class ConsoleModel:
         self.safety, self.safety_at = status, now
         if previous is None or previous.state is not status.state:
             level, _ = _level(safety_line(status))
-            self._say("safety", level, f"safety: {status.state.value}", now)
+            self._say("safety", level, f"state {status.state.value}", now)
         if status.last_refusal and (previous is None or previous.last_refusal != status.last_refusal):
-            self._say("safety", "warning", f"safety refused: {status.last_refusal}", now)
+            self._say("safety", "warning", f"refused: {status.last_refusal}", now)
 
     def on_estop(self, estop: m.EStop, now: float) -> None:
         level, text = _level(estop_line(estop))
