@@ -104,6 +104,8 @@ class ConsoleWeb:
         self.app.router.add_static("/static/", STATIC, show_index=False, follow_symlinks=False)
         self._runner: Optional[web.AppRunner] = None
         self._tasks: list[asyncio.Task] = []
+        #: the kinds of request being carried out now (each in a worker thread)
+        self._in_flight: set = set()
         self.port = 0
 
     @property
@@ -213,9 +215,13 @@ class ConsoleWeb:
             situation = self.service.model.situation(time.time())
         try:
             command = decide(message, self.access, situation)
+            if command.action in self._in_flight:  # one of each at a time: a flood of requests queues nothing
+                raise Refused("in_progress", f"a {command.action.value.replace('_', ' ')} is being carried out: "
+                                             "wait for its answer")
         except Refused as refusal:
             self._refuse(refusal.reason, refusal.message, page, message.id)
             return
+        self._in_flight.add(command.action)
         self._tasks.append(asyncio.create_task(self._carry_out(page, message.id, command)))
         self._tasks = [t for t in self._tasks if not t.done()]
 
@@ -225,6 +231,8 @@ class ConsoleWeb:
         except Exception as exc:  # the stack's session failed under it: say so, keep serving
             self.service.counters.inc("errors.action")
             done, what = False, f"{command.action.value} failed: {exc}"
+        finally:
+            self._in_flight.discard(command.action)
         page.tell({"type": "result", "id": request_id, "action": command.action.value, "ok": done,
                    "message": what})
 

@@ -283,3 +283,23 @@ def test_behind_a_tls_deployment_it_serves_https_with_its_certificate_and_acts_a
                 assert asyncio.run(plain()) in ("refused", 400)
         finally:
             safety.stop()
+
+
+def test_one_request_of_a_kind_at_a_time(stack_with_safety):
+    """No controller answers: a task start waits for it (up to --timeout); a second start meanwhile is refused,
+    not queued, and the e-stop is not held up by either."""
+    router, safety = stack_with_safety["router"], stack_with_safety["safety"]
+    with ConsoleProcess(router.endpoint, "--timeout", "3") as console:
+        async def session():
+            async with Page(console.url) as page:
+                await page.until(lambda r: r["type"] == "status" and r["estop"]["engaged"] is False, timeout=30)
+                await page.send({"type": "action", "action": "task_start", "id": 1, "operator": "al"})
+                second = await page.answer({"type": "action", "action": "task_start", "id": 2, "operator": "al"})
+                assert second["reason"] == "in_progress", second
+                stop = await page.answer({"type": "action", "action": "estop_engage", "id": 3})
+                assert stop["type"] == "result" and stop["ok"], stop
+                first = await page.until(lambda r: r.get("id") == 1)
+                assert first["type"] == "result" and not first["ok"] and "no controller answered" in first["message"]
+
+        asyncio.run(session())
+        assert safety.core.estop_latched
