@@ -445,7 +445,7 @@ class ConsoleModel:
                              "since": since}
         if before != condition and (before is not None or condition != "healthy"):
             why = f" ({'; '.join(degraded)})" if degraded else ""
-            self.note(name, "info" if condition == "healthy" else "warning", f"{name} {condition}{why}", now)
+            self.note(name, "info" if condition == "healthy" else "warning", f"{condition}{why}", now)
 
     # -------------------------------------------------------------- what the rules and the page see
     def situation(self, now: float) -> Situation:

@@ -212,8 +212,8 @@ def test_health_task_estop_and_refusals_make_the_log_and_the_estop_state_goes_st
     texts = [e["text"] for e in model.snapshot(10.0)["events"]]
     assert texts == ["refused: the e-stop is already engaged", "faults: joint 3 over its limit",
                      "e-stop engaged by bob: spill", "task 2 running by alice: a drink",
-                     "refused: estop: latched", "state estop", "vision gone",
-                     "vision degraded (image at 20.0 Hz (nominal 30))"]
+                     "refused: estop: latched", "state estop", "gone",
+                     "degraded (image at 20.0 Hz (nominal 30))"]
     assert model.snapshot(10.0)["task"]["by"] == "alice"
     json.dumps(model.snapshot(10.0), allow_nan=False)  # JSON as the page takes it
 
