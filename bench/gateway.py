@@ -26,6 +26,7 @@ from protocol import messages as m
 from protocol.keys import Keys
 from services.model.kinematics import ArmKinematics
 from services.runtime.transport import open_session
+from services.model.arm import load_arm
 from services.model.limits import arm_limits
 from services.stack import RobotProcesses, RouterProcess
 
@@ -54,8 +55,7 @@ def _health(client, keys: Keys, name: str):
 
 def run_once(load: int, seconds: float) -> dict:
     keys = Keys()
-    kin = ArmKinematics()
-    limit = arm_limits().linear_speed_mps
+    kin = None
     with RouterProcess() as router, RobotProcesses(router.client_config()):
         client = open_session(router.client_config())
         states: list[m.RobotState] = []
@@ -64,6 +64,8 @@ def run_once(load: int, seconds: float) -> dict:
         deadline = time.monotonic() + 30
         while len(states) < 20 and time.monotonic() < deadline:
             time.sleep(0.05)
+        arm = load_arm(states[-1].arm) if states else load_arm()  # the robot's, as its states declare it
+        kin, limit = ArmKinematics(arm), arm_limits(arm).linear_speed_mps
         hogs = _spin(load)
         try:
             time.sleep(0.3)

@@ -11,7 +11,8 @@ import time
 
 import numpy as np
 
-from services.model import jaco2
+from services.model.arm import DEFAULT_ARM, ArmDescription, load_arm
+from services.model.kinematics import ArmKinematics
 from services.controller.law import ServoInput
 from services.controller.laws import LAW_NAMES, make_law
 from services.robot_sim.scene import CameraConfig
@@ -20,19 +21,19 @@ from services.robot_sim.scene import CameraConfig
 TARGETS_US = {"adaptive-pd-mixed": 100.0, "smc": 150.0}
 
 
-def _input(k: int) -> ServoInput:
+def _input(k: int, arm: ArmDescription) -> ServoInput:
     goal = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
     wobble = 0.01 * np.sin(0.1 * k)
     return ServoInput(t_s=1.0 + k / 30.0, points=goal * 0.6 + np.array([0.03 + wobble, -0.02]),
                       depths=np.full(4, 0.45), goal_points=goal, goal_depths=np.full(4, 0.2888),
-                      q=jaco2.HOME + 0.01 * np.sin(0.05 * k), camera_in_ee=CameraConfig().camera_in_ee.matrix())
+                      q=arm.home + 0.01 * np.sin(0.05 * k), camera_in_ee=CameraConfig().camera_in_ee.matrix())
 
 
-def measure(name: str, iterations: int, rounds: int) -> dict:
+def measure(name: str, iterations: int, rounds: int, arm: ArmDescription) -> dict:
     """Per-iteration time over ``rounds`` rounds: the machine's noise (a shared virtual machine) moves single
     rounds a lot, so the figure is the median of the rounds' medians, with the best round beside it."""
-    law = make_law(name)
-    inputs = [_input(k) for k in range(iterations + 50)]
+    law = make_law(name, None, ArmKinematics(arm))
+    inputs = [_input(k, arm) for k in range(iterations + 50)]
     for inp in inputs[:50]:  # warm-up (first-call costs, caches)
         law.step(inp)
     medians, p99s = [], []
@@ -52,8 +53,9 @@ def measure(name: str, iterations: int, rounds: int) -> dict:
     return result
 
 
-def run(iterations: int = 1000, rounds: int = 5) -> dict:
-    return {name: measure(name, iterations, rounds) for name in LAW_NAMES}
+def run(iterations: int = 1000, rounds: int = 5, arm: str = DEFAULT_ARM) -> dict:
+    description = load_arm(arm)
+    return {name: measure(name, iterations, rounds, description) for name in LAW_NAMES}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -61,8 +63,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--iterations", type=int, default=1000, help="timed iterations per round")
     parser.add_argument("--rounds", type=int, default=5, help="rounds per law")
+    parser.add_argument("--arm", default=DEFAULT_ARM, help=f"the arm (default {DEFAULT_ARM})")
     args = parser.parse_args(argv)
-    result = run(args.iterations, args.rounds)
+    result = run(args.iterations, args.rounds, args.arm)
     if args.json:
         print(json.dumps(result))
     else:

@@ -19,6 +19,7 @@ import numpy as np
 
 from services.runtime.metrics import LoopTimer
 from services.robot.rs485_bus import BusConfig, RS485Bus
+from services.model.arm import DEFAULT_ARM, check_arm_name, load_arm
 from services.robot_gateway.link import ActuatorLink
 from services.stack import simulated_link
 
@@ -44,8 +45,8 @@ def _measure(link: ActuatorLink, seconds: float) -> tuple[list[float], list[floa
     return exchange_ms, query_ms
 
 
-def run_hub(seconds: float = 5.0) -> dict:
-    """The actuators in a robot_sim process (actuator_bus mode), this process the host, the hub in between."""
+def run_hub(seconds: float = 5.0, arm: str = DEFAULT_ARM) -> dict:
+    """``arm``'s actuators in a robot_sim process (actuator_bus mode), this process the host, the hub between."""
     import subprocess
     import sys
 
@@ -56,12 +57,12 @@ def run_hub(seconds: float = 5.0) -> dict:
     with Router(port=0) as router, CanHub() as hub:
         config = BusConfig(interface="mfvs_hub", channel=hub.channel)
         sim = subprocess.Popen([sys.executable, "-m", "services.robot_sim", "--connect", router.endpoint,
-                                "--set", "mode=actuator_bus", "--set", "bus.interface=mfvs_hub",
+                                "--set", f"arm={arm}", "--set", "mode=actuator_bus", "--set", "bus.interface=mfvs_hub",
                                 "--set", f"bus.channel={hub.channel}"], cwd=REPO,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         host = RS485Bus(config)
         try:
-            link = ActuatorLink(host, timeout_s=0.1)
+            link = ActuatorLink(host, load_arm(arm).bus_addresses, timeout_s=0.1)
             deadline = time.monotonic() + 60.0
             while True:  # until the actuators answer (the process loads MuJoCo first)
                 try:
@@ -79,17 +80,18 @@ def run_hub(seconds: float = 5.0) -> dict:
             host.close()
             sim.terminate()
             sim.wait(timeout=20)
-    return {"transport": "hub", "cycle_rate_hz": float(detail.get("cycle_rate_hz", "nan")),
+    return {"transport": "hub", "arm": arm, "actuators": len(link.addresses), "cycle_rate_hz": float(detail.get("cycle_rate_hz", "nan")),
             "cycle_jitter_ms_p99": float(detail.get("jitter_ms_p99", "nan")),
             "exchange_ms": _stats(exchange_ms), "position_query_ms": _stats(query_ms), "seconds": seconds}
 
 
-def run(seconds: float = 5.0) -> dict:
-    with simulated_link(timeout_s=0.1, settle_s=0.5) as (runner, link):
+def run(seconds: float = 5.0, arm: str = DEFAULT_ARM) -> dict:
+    with simulated_link(timeout_s=0.1, settle_s=0.5, arm=load_arm(arm)) as (runner, link):
         runner.loop_timer = LoopTimer(0.002)
         exchange_ms, query_ms = _measure(link, seconds)
         loop = runner.loop_timer.stats()
-    return {"transport": "virtual", "cycle_rate_hz": round(loop["rate_hz"], 2),
+    return {"transport": "virtual", "arm": arm, "actuators": len(link.addresses),
+            "cycle_rate_hz": round(loop["rate_hz"], 2),
             "cycle_jitter_ms_p50": round(loop["jitter_ms_p50"], 3),
             "cycle_jitter_ms_p99": round(loop["jitter_ms_p99"], 3),
             "cycle_jitter_ms_max": round(loop["jitter_ms_max"], 3),
@@ -102,21 +104,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=5.0, help="measurement window (s)")
     parser.add_argument("--transport", choices=["virtual", "hub"], default="virtual",
                         help="virtual: one process; hub: robot_sim's actuators in their own process, via the hub")
+    parser.add_argument("--arm", default=DEFAULT_ARM, help=f"the arm whose actuators answer (default {DEFAULT_ARM})")
     args = parser.parse_args(argv)
-    result = run(args.seconds) if args.transport == "virtual" else run_hub(args.seconds)
+    try:
+        check_arm_name(args.arm)
+    except ValueError as exc:
+        parser.error(str(exc))
+    result = run(args.seconds, args.arm) if args.transport == "virtual" else run_hub(args.seconds, args.arm)
     if args.json:
         print(json.dumps(result))
     else:
         if result["transport"] == "virtual":
-            print(f"actuator cycle: {result['cycle_rate_hz']:.2f} Hz (nominal 500), period jitter p50 "
+            print(f"{result['arm']}'s {result['actuators']} actuators: cycle {result['cycle_rate_hz']:.2f} Hz (nominal 500), "
+                  f"period jitter p50 "
                   f"{result['cycle_jitter_ms_p50']:.3f} ms, p99 {result['cycle_jitter_ms_p99']:.3f} ms, max "
                   f"{result['cycle_jitter_ms_max']:.3f} ms")
         else:
-            print(f"actuator cycle (robot_sim process, via the CAN hub): {result['cycle_rate_hz']:.2f} Hz (nominal "
+            print(f"{result['arm']}'s {result['actuators']} actuators (robot_sim process, via the CAN hub): cycle "
+                  f"{result['cycle_rate_hz']:.2f} Hz (nominal "
                   f"500), period jitter p99 {result['cycle_jitter_ms_p99']:.3f} ms")
         for name in ("exchange_ms", "position_query_ms"):
             s = result[name]
-            label = "0x14 ×7 → 21 replies" if name == "exchange_ms" else "position query ×7 → 7 replies"
+            n = result["actuators"]
+            label = f"0x14 ×{n} → {3 * n} replies" if name == "exchange_ms" else f"position query ×{n} → {n} replies"
             print(f"{label}: p50 {s['p50']:.3f} ms, p99 {s['p99']:.3f} ms, max {s['max']:.3f} ms ({s['n']})")
     return 0
 

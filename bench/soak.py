@@ -58,6 +58,7 @@ from protocol.conventions import AngularConvention, Frame
 from protocol.keys import Keys
 from services.controller.task_client import TaskUnavailable, call_task
 from services.launcher import load_profile, read_stack, restart
+from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.admission import AdmissionConfig
 from services.robot.dsp import DSPConfig
@@ -226,7 +227,8 @@ class Soak:
         self.placement = placement or OneHost()
         self.kinds = {k: KIND_WEIGHTS[k] for k in (kinds or applicable_kinds(self.placement))}
         self.rng = random.Random(seed)
-        self.kin = ArmKinematics()
+        #: the kinematics of the robot's arm, as its states declare it (services.model.arm.load_arm by name)
+        self.kin: ArmKinematics | None = None
         self.dsp = DSPConfig()
         self.judge = Judge.for_robot(AdmissionConfig(), self.dsp)
         self.lock = threading.Lock()
@@ -254,12 +256,14 @@ class Soak:
     # ------------------------------------------------------------------ what the arm does
     def _on_state(self, sample) -> None:
         state = m.decode(sample.payload.to_bytes(), m.RobotState)
+        if self.kin is None or self.kin.arm.name != state.arm:
+            self.kin = ArmKinematics(load_arm(state.arm))
         linear = self.kin.ee_speed(state.q, state.dq)
         limits = state.limits
         joint_ratio = float(np.max(np.abs(state.dq) / np.asarray(limits.joint_speed_rps))) if limits else 0.0
         applied = state.applied_command
         record = StateRecord(state.header.stamp_ns, time.time_ns(), linear, joint_ratio,
-                             limits.linear_speed_mps if limits else self.dsp.max_linear_speed_mps,
+                             limits.linear_speed_mps if limits else self.kin.arm.max_linear_speed_mps,
                              applied.stamp_ns if applied else 0)
         with self.lock:
             self.judge.state(record)

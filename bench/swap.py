@@ -10,7 +10,8 @@ Profiles: ``sim-lockstep`` and ``gateway-lockstep`` (deterministic: one run each
 ``python -m bench.swap [--json] [--runs N] [--scenario FILE ...] [--random-starts N [--seed S] [--base FILE]]`` or
 ``mfvs bench swap``; without ``--scenario`` or ``--random-starts`` every file in ``examples/scenarios``.
 ``--random-starts N`` makes N scenarios no one has seen from ``--base`` (table2 by default): the tag placed at random
-in front of the camera (:func:`random_start`), each written next to the results so a start can be run again.
+in front of the camera as for Table 3 over random starts (:mod:`services.starts`), each written next to the results
+so a start can be run again.
 
 Realtime against lockstep: a lockstep run repeats itself exactly, but its iteration count is one draw from a wide
 spread. The last iterations are spent creeping under the arm's velocity dead-band toward a threshold near the
@@ -26,19 +27,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import random
 import statistics
 import tempfile
 from pathlib import Path
 from typing import Optional
 
 import msgspec
-import yaml
 
 from protocol.conventions import ClockMode
 from services.runtime.progress import ProgressLine
 from services.robot_sim.scene import default_target_in_camera
 from services.servo import load_scenario, run
+from services.starts import write_starts
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
 #: how far a nudged lockstep start moves the tag (m): about what the arm covers at its top speed in a millisecond
@@ -50,32 +50,6 @@ APPROACH_FACTOR = 10.0
 REALTIME_TOLERANCE = 0.10
 PROFILES = {"sim-lockstep": ("sim", ClockMode.LOCKSTEP), "gateway-lockstep": ("gateway", ClockMode.LOCKSTEP),
             "sim-realtime": ("sim", ClockMode.REALTIME), "gateway-realtime": ("gateway", ClockMode.REALTIME)}
-
-
-def random_start(rng: random.Random) -> dict:
-    """A tag pose in the camera frame at the start (``target.pose_in_camera``) that a positioning task can begin
-    from: 0.42-0.60 m ahead, up to 8 cm off the optical axis sideways and 6 cm up or down, facing the camera within
-    10° and turned up to 45° about the optical axis, so that the whole tag is in view."""
-    return {"xyz": [round(rng.uniform(-0.08, 0.08), 4), round(rng.uniform(-0.06, 0.06), 4),
-                    round(rng.uniform(0.42, 0.60), 4)],
-            "rpy_deg": [round(180.0 + rng.uniform(-10.0, 10.0), 2), round(rng.uniform(-10.0, 10.0), 2),
-                        round(rng.uniform(-45.0, 45.0), 2)]}
-
-
-def random_scenarios(base: Path, count: int, seed: int, out_dir: Path) -> list[Path]:
-    """``count`` copies of the ``base`` scenario, each with a start from :func:`random_start`, in ``out_dir``."""
-    rng = random.Random(seed)
-    scenario = yaml.safe_load(base.read_text())
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for i in range(count):
-        scenario.setdefault("target", {})["pose_in_camera"] = random_start(rng)
-        scenario["target"].pop("pose_in_base", None)
-        path = out_dir / f"{base.stem}_seed{seed}_start{i}.yaml"
-        path.write_text(f"# {base.name} from a random start (mfvs bench swap --random-starts, seed {seed})\n"
-                        + yaml.safe_dump(scenario, sort_keys=False))
-        paths.append(path)
-    return paths
 
 
 def nudge_offsets(count: int) -> list[tuple[float, float, float]]:
@@ -224,8 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.random_starts < 0:
         parser.error("--random-starts must be at least 0")
     starts_dir = (args.keep or Path(tempfile.mkdtemp(prefix="mfvs-starts-"))) if args.random_starts else None
-    scenarios = (args.scenario or []) + (random_scenarios(args.base, args.random_starts, args.seed, starts_dir)
-                                         if args.random_starts else [])
+    scenarios = (args.scenario or []) + ([start.scenario for start in write_starts(
+        args.base, args.random_starts, args.seed, starts_dir, command="mfvs bench swap --random-starts")]
+        if args.random_starts else [])
     scenarios = scenarios or sorted(SCENARIOS.glob("*.yaml"))
     results = []
     for path in scenarios:

@@ -2,12 +2,15 @@
 
 These are the types the emulated API (robot_sim) and the gateway speak on ``…/robot/api/<Function>``. Units are
 Kinova's: CartesianInfo in metres and radians (m/s and rad/s in velocity mode, XYZ Euler angles R = Rx·Ry·Rz),
-AngularInfo in degrees (deg/s in velocity mode). Facts from ``shared/reference/kinova.md``.
+AngularInfo in degrees (deg/s in velocity mode). Facts from ``shared/reference/kinova.md``; the names and values
+of the codes and enums are those of Kinova's headers (``shared/reference/kinova-sdk/include``; the tests check them
+against the headers with the C++ compiler where the SDK is present).
 """
 from __future__ import annotations
 
 import enum
-from typing import Annotated
+import re
+from typing import Annotated, NamedTuple
 
 import msgspec
 
@@ -25,24 +28,138 @@ MAX_ACTUATORS = 7
 
 
 class ErrorCode(enum.IntEnum):
-    """Return codes of the API functions (1 is success)."""
+    """Return codes of the API functions (1 is success), every one Kinova's headers define, with their names:
+    Kinova.API.USBCommLayerUbuntu.h (the comm layer: 1, 666, 1001-1022, 9999), Kinova.API.USBCommandLayerUbuntu.h
+    (the command layer: 2001-2015, 2100-2102) and KinovaTypes.h (5001-5003)."""
 
     NO_ERROR_KINOVA = 1
+    #: an error occurred, and where is not known
     UNKNOWN_ERROR = 666
-    # 1001-1022 are USB/RS-485 errors and 2001-2015 initialisation errors; only these two are named publicly
+    # the comm layer: USB (libusb) and RS-485
+    ERROR_LOAD_USB_LIBRARY = 1001
+    ERROR_OPEN_METHOD = 1002
+    ERROR_WRITE_METHOD = 1003
+    ERROR_READ_METHOD = 1004
+    ERROR_READ_INT_METHOD = 1005
+    ERROR_FREE_LIBRARY = 1006
+    #: a problem with the USB connection between the arm and the computer
+    ERROR_JACO_CONNECTION = 1007
+    #: the USB interface could not be claimed (another program holds the arm)
+    ERROR_CLAIM_INTERFACE = 1008
+    ERROR_UNKNOWN_DEVICE = 1009
+    #: the functionality used has not been initialised (Ethernet: the local address could not be bound)
+    ERROR_NOT_INITIALIZED = 1010
+    ERROR_LIBUSB_NO_DEVICE = 1011
+    ERROR_LIBUSB_BUSY = 1012
+    ERROR_LIBUSB_NOT_SUPPORTED = 1013
+    ERROR_SENDPACKET_UNKNOWN = 1014
+    #: no arm found
+    ERROR_NO_DEVICE_FOUND = 1015
+    ERROR_OPERATION_INCOMPLETED = 1016
+    ERROR_RS485_INVALID_HANDLE = 1017
+    ERROR_RS485_IO_PENDING = 1018
+    ERROR_RS485_NOT_ENOUGH_MEMORY = 1019
     ERROR_RS485_TIMEOUT = 1020
-    ERROR_COMMUNICATION_TIMEOUT = 1022
+    ERROR_FUNCTION_NOT_ACCESSIBLE = 1021
+    #: no answer within the comm layer's timeout (5 s on USB)
+    ERROR_COMM_TIMEOUT = 1022
+    #: the arm answered a NACK
+    ERROR_NACK_RECEIVED = 9999
+    # the command layer: initialisation
+    ERROR_INIT_API = 2001
+    #: the command layer could not load its comm layer (USBCommLayerUbuntu.so, by bare name)
+    ERROR_LOAD_COMM_DLL = 2002
+    JACO_NACK_FIRST = 2003
+    JACO_COMM_FAILED = 2004
+    JACO_NACK_NORMAL = 2005
+    ERROR_INIT_COMM_METHOD = 2006
+    ERROR_CLOSE_METHOD = 2007
+    ERROR_GET_DEVICE_COUNT_METHOD = 2008
+    ERROR_SEND_PACKET_METHOD = 2009
+    ERROR_SET_ACTIVE_DEVICE_METHOD = 2010
+    ERROR_GET_DEVICES_LIST_METHOD = 2011
+    ERROR_SEMAPHORE_FAILED = 2012
+    ERROR_SCAN_FOR_NEW_DEVICE = 2013
+    ERROR_GET_ACTIVE_DEVICE_METHOD = 2014
+    ERROR_OPEN_RS485_ACTIVATE = 2015
     ERROR_INVALID_PARAM = 2100
     ERROR_API_NOT_INITIALIZED = 2101
-    ERROR_NACK_RECEIVED = 9999
+    ERROR_INIT_DATA_STRUCTURES_METHOD = 2102
+    # KinovaTypes.h: files (firmware programming)
+    ERROR_UNKNOWFILE = 5001
+    ERROR_MEMORY = 5002
+    ERROR_FILEREADING = 5003
 
 
-#: Code ranges documented for the API, for validating codes from a real SDK that are not named above.
-ERROR_CODE_RANGES = ((1, 1), (666, 666), (1001, 1022), (2001, 2015), (2100, 2101), (9999, 9999))
+_DEFINED_CODES = frozenset(int(code) for code in ErrorCode)
 
 
 def is_known_error_code(code: int) -> bool:
-    return any(lo <= code <= hi for lo, hi in ERROR_CODE_RANGES)
+    """Whether Kinova's headers define this return code."""
+    return code in _DEFINED_CODES
+
+
+def error_name(code: int) -> str:
+    """The header's name of a return code, or says it has none."""
+    try:
+        return ErrorCode(code).name
+    except ValueError:
+        return "a code Kinova's headers do not define"
+
+
+class ModelCode(NamedTuple):
+    """A Kinova arm's model code, as Kinova writes it (j2n6s300, j2s7s300, m1n6s300): family (j JACO, m MICO,
+    r ROCO, c custom), version, wrist (s spherical, n non-spherical), joints, mode (s service, a assistive),
+    fingers, and two reserved digits."""
+
+    family: str
+    version: int
+    wrist: str
+    joints: int
+    mode: str
+    fingers: int
+
+    @property
+    def code(self) -> str:
+        return f"{self.family}{self.version}{self.wrist}{self.joints}{self.mode}{self.fingers}00"
+
+
+_MODEL_CODE = re.compile(r"([jmrc])([12])([sn])([467])([sa])([23])00")
+_WRISTS = {"s": "spherical", "n": "non-spherical"}
+_FAMILIES = {"j": "JACO", "m": "MICO", "r": "ROCO", "c": "custom"}
+
+
+def parse_model_code(text: str) -> ModelCode | None:
+    """The model code in ``text`` (case and surrounding blanks or NULs ignored), or None when it is not one."""
+    match = _MODEL_CODE.fullmatch(text.strip().strip("\0").strip().lower())
+    if match is None:
+        return None
+    family, version, wrist, joints, mode, fingers = match.groups()
+    return ModelCode(family, int(version), wrist, int(joints), mode, int(fingers))
+
+
+def arm_type_refusal(device_model: str, arm_name: str, n_joints: int) -> str | None:
+    """Why an arm that reports ``device_model`` must not be driven as the configured arm ``arm_name`` with
+    ``n_joints`` joints (None: it may). The joint count decides; where the configured name is a model code too,
+    the family, version and wrist must match as well (a j2s6s300 is not a j2n6s300: other kinematics). A model
+    the arm reports that is not a model code is refused: the joint count could not be checked."""
+    reported = parse_model_code(device_model)
+    if reported is None:
+        return (f"the arm reports its model as {device_model.strip()!r}, not a Kinova model code such as j2s7s300: "
+                f"its joint count cannot be checked against {arm_name} ({n_joints} joints)")
+    if reported.joints != n_joints:
+        return (f"the arm is a {reported.code} with {reported.joints} joints; the configured arm {arm_name} has "
+                f"{n_joints}")
+    configured = parse_model_code(arm_name)
+    if configured is None:
+        return None
+    if reported.wrist != configured.wrist:
+        return (f"the arm is a {reported.code} with a {_WRISTS[reported.wrist]} wrist; the configured arm {arm_name} "
+                f"has a {_WRISTS[configured.wrist]} one: other kinematics")
+    if (reported.family, reported.version) != (configured.family, configured.version):
+        return (f"the arm is a {reported.code} ({_FAMILIES[reported.family]} {reported.version}); the configured "
+                f"arm {arm_name} is a {_FAMILIES[configured.family]} {configured.version}: other kinematics")
+    return None
 
 
 class POSITION_TYPE(enum.IntEnum):
@@ -65,6 +182,10 @@ class HAND_MODE(enum.IntEnum):
     HAND_NOMOVEMENT = 0
     POSITION_MODE = 1
     VELOCITY_MODE = 2
+    NO_FINGER = 3
+    ONE_FINGER = 4
+    TWO_FINGERS = 5
+    THREE_FINGERS = 6
 
 
 class GENERALCONTROL_TYPE(enum.IntEnum):
@@ -113,9 +234,11 @@ class AngularInfo(Message):
 
     @classmethod
     def from_list(cls, values) -> "AngularInfo":
+        """One value per joint of the arm (1-7); the actuators an arm does not have read 0, as Kinova's SDK gives
+        them for a 6-DoF arm."""
         values = [float(v) for v in values]
-        if len(values) != MAX_ACTUATORS:
-            raise ValueError(f"AngularInfo needs {MAX_ACTUATORS} values, got {len(values)}")
+        if not 1 <= len(values) <= MAX_ACTUATORS:
+            raise ValueError(f"AngularInfo takes 1 to {MAX_ACTUATORS} values, got {len(values)}")
         return cls(**{f"Actuator{i + 1}": v for i, v in enumerate(values)})
 
 

@@ -21,10 +21,13 @@ from protocol.conventions import AngularConvention, Frame
 
 #: Bumped on any incompatible change; a message with another version is refused, never guessed at.
 #: 2: RobotState.timing, SimClock.frame_stamp_ns, ServiceHealth.degraded.
-SCHEMA_VERSION = 2
+#: 3: the arm is a choice: RobotState.arm and arm_digest; joint vectors as long as the arm's joints (1-7).
+SCHEMA_VERSION = 3
 
-#: The JACO-2 j2s7s300 has seven actuators; the wire carries exactly that many joint values.
-N_JOINTS = 7
+#: The most joints an arm has (the Kinova API's AngularInfo: Actuator1..7). A joint vector on the wire has the
+#: robot's arm's length (RobotState.arm: 6 for the j2n6s300, 7 for the j2s7s300); each reader checks it against the
+#: arm it runs.
+MAX_JOINTS = 7
 
 MAX_IMAGE_SIDE = 8192
 
@@ -86,8 +89,18 @@ NonNegInt = Annotated[int, msgspec.Meta(ge=0)]
 #: a time stamp or sequence number: an int64 (what every clock and counter here fits, what a peer in C expects)
 Stamp = Annotated[int, msgspec.Meta(ge=0, le=2**63 - 1)]
 Vec3 = tuple[float, float, float]
-JointVector = Annotated[list[float], msgspec.Meta(min_length=N_JOINTS, max_length=N_JOINTS)]
+JointVector = Annotated[list[float], msgspec.Meta(min_length=1, max_length=MAX_JOINTS)]
+#: an arm description's name (services/model/arms/<name>.yaml) and its fingerprint (the file's SHA-256, 16 hex)
+ArmName = Annotated[str, msgspec.Meta(pattern=r"^[a-z0-9_]{1,32}$")]
+ArmDigest = Annotated[str, msgspec.Meta(pattern=r"^[0-9a-f]{16}$")]
 ServiceName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-.]{1,64}$")]
+
+
+def _same_length(message: Message, *names: str) -> None:
+    """Joint vectors of one message have one length (the arm's joints)."""
+    lengths = {name: len(getattr(message, name)) for name in names}
+    if len(set(lengths.values())) > 1:
+        raise ValueError("joint vectors of different lengths: " + ", ".join(f"{k} {v}" for k, v in lengths.items()))
 
 
 class Hop(Message):
@@ -272,7 +285,8 @@ class Twist(Message):
 
 
 class JointVelocity(Message):
-    """Desired joint velocities in rad/s, model joint order and sign (see services.model.jaco2)."""
+    """Desired joint velocities in rad/s, one per joint of the robot's arm, model order and sign
+    (services.model.arm)."""
 
     header: Header
     velocities: JointVector
@@ -316,6 +330,9 @@ class ControllerState(str, enum.Enum):
     IDLE = "idle"
     #: the arm has not passed the commissioning check (`mfvs check arm`) and it is not waived: zero output
     ARM_NOT_CHECKED = "arm_not_checked"
+    #: the robot runs another arm than this controller was started for (or one it has no description of): zero
+    #: output, until it is restarted for that arm
+    WRONG_ARM = "wrong_arm"
 
 
 class TaskState(str, enum.Enum):
@@ -413,7 +430,7 @@ class MotionLimits(Message):
     linear_speed_mps: Positive
     angular_speed_rps: Positive
     #: each joint's speed limit (model rad/s)
-    joint_speed_rps: Annotated[list[Positive], msgspec.Meta(min_length=N_JOINTS, max_length=N_JOINTS)]
+    joint_speed_rps: Annotated[list[Positive], msgspec.Meta(min_length=1, max_length=MAX_JOINTS)]
     linear_accel_mps2: Positive
     angular_accel_rps2: Positive
     joint_accel_rps2: Positive
@@ -432,7 +449,11 @@ class ArmCheckState(str, enum.Enum):
 
 class RobotState(Message):
     header: Header
-    #: model joint angles (rad), velocities (rad/s), torques (N·m)
+    #: the arm the robot runs (its description's name and fingerprint): every reader takes the joint count and the
+    #: joints' ranges from that description, and does nothing for an arm it was not started for
+    arm: ArmName
+    arm_digest: ArmDigest
+    #: model joint angles (rad), velocities (rad/s), torques (N·m): one per joint of the arm
     q: JointVector
     dq: JointVector
     tau: JointVector
@@ -454,6 +475,12 @@ class RobotState(Message):
     #: the commissioning check's verdict on this arm; the controller starts tasks only when passed or waived
     arm_check: ArmCheckState = ArmCheckState.NEVER
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _same_length(self, "q", "dq", "tau")
+        if self.limits is not None and len(self.limits.joint_speed_rps) != len(self.q):
+            raise ValueError(f"limits.joint_speed_rps has {len(self.limits.joint_speed_rps)} joints, q {len(self.q)}")
+
 
 class ArmCheckRequest(Message):
     """Run the commissioning check: each joint in turn moves by ``step_deg`` at ``speed_dps`` and back."""
@@ -461,9 +488,9 @@ class ArmCheckRequest(Message):
     header: Header
     #: the check moves the arm: the caller says it is clear to (`mfvs check arm --yes`)
     confirm: bool = False
-    joints: Annotated[list[Annotated[int, msgspec.Meta(ge=1, le=N_JOINTS)]],
-                      msgspec.Meta(min_length=1, max_length=N_JOINTS)] = msgspec.field(
-        default_factory=lambda: list(range(1, N_JOINTS + 1)))
+    #: which joints (1-based); empty: every joint of the arm
+    joints: Annotated[list[Annotated[int, msgspec.Meta(ge=1, le=MAX_JOINTS)]],
+                      msgspec.Meta(max_length=MAX_JOINTS)] = []
     step_deg: Annotated[float, msgspec.Meta(ge=1.0, le=10.0)] = 5.0
     speed_dps: Annotated[float, msgspec.Meta(ge=1.0, le=10.0)] = 5.0
     operator: Annotated[str, msgspec.Meta(max_length=64)] = ""
@@ -490,7 +517,7 @@ class ArmCheckReply(Message):
     passed: bool = False
     state: ArmCheckState = ArmCheckState.NEVER
     message: Annotated[str, msgspec.Meta(max_length=512)] = ""
-    joints: Annotated[list[JointCheck], msgspec.Meta(max_length=N_JOINTS)] = []
+    joints: Annotated[list[JointCheck], msgspec.Meta(max_length=MAX_JOINTS)] = []
     #: the arm's pose against the description's at the start (mm, deg)
     static_error_mm: float = 0.0
     static_error_deg: float = 0.0
@@ -521,6 +548,10 @@ class LowLevelState(Message):
     current_a: JointVector
     temperature_c: JointVector
     faults: Annotated[list[str], msgspec.Meta(max_length=32)] = []
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _same_length(self, "q", "dq", "tau", "current_a", "temperature_c")
 
 
 class SimClock(Message):

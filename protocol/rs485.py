@@ -77,9 +77,8 @@ class Command(enum.IntEnum):
 
 
 HOST_ADDRESS = 0x00
-#: Joints 1-6 answer at 0x10-0x15. The 7-DoF arm's seventh actuator address is not documented publicly; one
-#: driver addresses 0x19, which mfvs follows (configurable where the bus is configured).
-ACTUATOR_ADDRESSES = (0x10, 0x11, 0x12, 0x13, 0x14, 0x15, 0x19)
+#: The actuators' addresses are the arm's (its description's ``bus_addresses``: joints 1-6 at 0x10-0x15; the 7-DoF
+#: arm's seventh is not documented publicly, one driver addresses 0x19, which mfvs follows).
 
 
 class ControlModeRequest(enum.IntEnum):

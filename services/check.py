@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
 import time
 from typing import Optional
 
 from protocol import messages as m
 from protocol.keys import Keys
+from services.model.arm import DEFAULT_ARM, check_arm_name
 
 #: how long a check may take (seven joints out and back at the slowest speed, with settling)
 CHECK_TIMEOUT_S = 900.0
@@ -32,13 +34,36 @@ def add_parser(sub, add_connection_options, operator_session) -> None:
     arm.add_argument("--simulate", action="store_true", help="on an emulated arm (robot_sim, its own router)")
     arm.add_argument("--mirror-joint", type=int, action="append", default=[], metavar="N",
                      help="--simulate: the emulated arm's joint N turns the other way from the description")
-    arm.add_argument("--joints", default="1,2,3,4,5,6,7", help="which joints, e.g. 1,2,3 (default all)")
+    arm.add_argument("--joints", default="", help="which joints, e.g. 1,2,3 (default: every joint of the arm)")
+    arm.add_argument("--arm", default=None, metavar="NAME",
+                     help="--simulate: the arm emulated (default j2s7s300); else the arm the robot must declare it "
+                          "runs (default: whichever it runs)")
     arm.add_argument("--step-deg", type=float, default=5.0, help="how far each joint moves (1-10°)")
     arm.add_argument("--speed-dps", type=float, default=5.0, help="how fast (1-10°/s)")
     arm.add_argument("--operator", default="mfvs-cli", help="who is checking (logged by the robot)")
     arm.add_argument("--json", action="store_true", help="print one JSON object")
     add_connection_options(arm)
     arm.set_defaults(func=_cmd_check_arm, operator_session=operator_session)
+
+
+def robot_declared_arm(session, keys: Keys, timeout_s: float = 2.0) -> Optional[str]:
+    """The arm the robot declares in its states (None: no state within ``timeout_s``)."""
+    heard: list[str] = []
+    done = threading.Event()
+
+    def on_state(sample) -> None:
+        try:
+            heard.append(m.decode(sample.payload.to_bytes(), m.RobotState).arm)
+            done.set()
+        except m.ProtocolError:
+            pass
+
+    subscriber = session.declare_subscriber(keys.robot_state, on_state)
+    try:
+        done.wait(timeout_s)
+    finally:
+        subscriber.undeclare()
+    return heard[0] if heard else None
 
 
 def request_check(session, keys: Keys, request: m.ArmCheckRequest, timeout_s: float = CHECK_TIMEOUT_S
@@ -50,9 +75,9 @@ def request_check(session, keys: Keys, request: m.ArmCheckRequest, timeout_s: fl
     return None
 
 
-def simulated_check(request: m.ArmCheckRequest, mirrored: list[int]) -> m.ArmCheckReply:
-    """The check on robot_sim's emulated arm (lockstep, no camera), with ``mirrored`` joints turning the other way
-    from the description, through a router of its own."""
+def simulated_check(request: m.ArmCheckRequest, mirrored: list[int], arm: str = DEFAULT_ARM) -> m.ArmCheckReply:
+    """The check on robot_sim's emulated ``arm`` (lockstep, no camera), with ``mirrored`` joints turning the other
+    way from the description, through a router of its own."""
     from services.robot_sim.firmware import ActuatorConfig
     from services.robot_sim.scene import CameraConfig, SceneConfig
     from services.robot_sim.service import RobotSimConfig, RobotSimService
@@ -60,7 +85,7 @@ def simulated_check(request: m.ArmCheckRequest, mirrored: list[int]) -> m.ArmChe
     from services.runtime.transport import Router, open_session
 
     with Router(port=0) as router:
-        config = RobotSimConfig(clock="lockstep", zenoh=router.client_config(),
+        config = RobotSimConfig(arm=arm, clock="lockstep", zenoh=router.client_config(),
                                 scene=SceneConfig(camera=CameraConfig(enabled=False)),
                                 actuators=ActuatorConfig(mirrored_joints=mirrored),
                                 arm_check=ArmCheckConfig(waived=False))
@@ -110,11 +135,18 @@ def _cmd_check_arm(args) -> int:
         print("mfvs check arm: --mirror-joint configures the emulated arm: it needs --simulate", file=sys.stderr)
         return 2
     try:
+        if args.arm is not None:
+            check_arm_name(args.arm)
         if args.simulate:
-            reply = simulated_check(request, args.mirror_joint)
+            reply = simulated_check(request, args.mirror_joint, args.arm or DEFAULT_ARM)
         else:
             session = args.operator_session(args)
             try:
+                if args.arm is not None:
+                    robot_arm = robot_declared_arm(session, Keys(args.robot_id))
+                    if robot_arm != args.arm:
+                        raise RuntimeError(f"the robot runs the {robot_arm or 'unknown arm (no state heard)'}, not "
+                                           f"the {args.arm}: nothing was checked")
                 reply = request_check(session, Keys(args.robot_id), request)
             finally:
                 session.close()

@@ -10,6 +10,7 @@ import signal
 import sys
 import threading
 from importlib.metadata import PackageNotFoundError, version
+from typing import Optional
 
 
 def _version() -> str:
@@ -73,18 +74,69 @@ def _cmd_bus_hub(args: argparse.Namespace) -> int:
     return 0
 
 
+def _arm_or_exit(command: str, name: str):
+    """The arm description ``name``, or (None, after one line on stderr) when there is none of that name."""
+    from services.model.arm import ArmError, load_arm
+
+    try:
+        return load_arm(name)
+    except ArmError as exc:
+        print(f"mfvs {command}: {exc}", file=sys.stderr)
+        return None
+
+
+def _add_arm_option(parser, default: Optional[str] = "default", what: str = "") -> None:
+    """``--arm NAME``: the arm description a command runs with (one setting for a whole stack); ``default``: the
+    default arm unless given (None: what the command's input says, ``what``)."""
+    from services.model.arm import DEFAULT_ARM, arm_names
+
+    default = DEFAULT_ARM if default == "default" else default
+    parser.add_argument("--arm", default=default, metavar="NAME",
+                        help=f"the arm: {', '.join(arm_names())} (default {default or what})")
+
+
 def _cmd_model(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from services.model import frames, jaco2
+    from services.model import frames
 
+    arm = _arm_or_exit("model", args.arm)
+    if arm is None:
+        return 2
     if args.what == "urdf":
-        sys.stdout.write(jaco2.urdf() + "\n")
+        sys.stdout.write(arm.urdf() + "\n")
         return 0
-    lower, upper = jaco2.model_limits()
-    T = jaco2.dh_forward_kinematics(jaco2.HOME)
+    if args.what == "fk":
+        if args.joints_deg is None:
+            print("mfvs model fk: give the joints: --joints-deg A,B,... (physical degrees, one per joint)",
+                  file=sys.stderr)
+            return 2
+        try:
+            joints = [float(v) for v in args.joints_deg.split(",")]
+        except ValueError:
+            print(f"mfvs model fk: --joints-deg {args.joints_deg!r} is not comma-separated numbers", file=sys.stderr)
+            return 2
+        if len(joints) != arm.n_joints or not all(np.isfinite(joints)):
+            print(f"mfvs model fk: the {arm.name} has {arm.n_joints} joints: give {arm.n_joints} finite angles, not "
+                  f"{len(joints)}", file=sys.stderr)
+            return 2
+        T = arm.dh_forward_kinematics(arm.physical_deg_to_model(joints))
+        theta = frames.matrix_to_euler_xyz(T[:3, :3])
+        # as GetCartesianPosition reports it: metres and XYZ Euler angles (rad)
+        pose = {"X": T[0, 3], "Y": T[1, 3], "Z": T[2, 3], "ThetaX": theta[0], "ThetaY": theta[1], "ThetaZ": theta[2]}
+        pose = {k: round(float(v), 6) for k, v in pose.items()}
+        if args.json:
+            print(json.dumps({"arm": arm.name, "joints_deg": joints, **pose}))
+        else:
+            print(f"{arm.name} at {joints} deg: X {pose['X']:.4f} Y {pose['Y']:.4f} Z {pose['Z']:.4f} m, "
+                  f"ThetaX {pose['ThetaX']:.4f} ThetaY {pose['ThetaY']:.4f} ThetaZ {pose['ThetaZ']:.4f} rad")
+        return 0
+    T = arm.dh_forward_kinematics(arm.home)
     info = {
-        "robot": "j2s7s300",
+        "arm": arm.name,
+        "title": arm.title,
+        "seed": arm.seed,
+        "description": str(arm.path),
         "joints": [
             {
                 "name": j.name,
@@ -92,15 +144,20 @@ def _cmd_model(args: argparse.Namespace) -> int:
                 "limits_physical_deg": None if j.continuous else [j.lower_deg, j.upper_deg],
                 "max_speed_dps": j.max_speed_dps,
                 "max_torque_nm": j.max_torque_nm,
+                "actuator": j.actuator,
+                "bus_address": f"0x{arm.bus_addresses[i]:02X}",
+                "link_mass_kg": round(j.link_mass_kg, 6),
             }
-            for j in jaco2.JOINTS
+            for i, j in enumerate(arm.joints)
         ],
-        "home_physical_deg": jaco2.HOME_DEG.tolist(),
+        "home_physical_deg": arm.home_deg.tolist(),
         "home_ee_xyz_m": np.round(T[:3, 3], 4).tolist(),
         "home_ee_euler_xyz_deg": np.round(np.degrees(frames.matrix_to_euler_xyz(T[:3, :3])), 2).tolist(),
-        "straight_reach_m": round(jaco2.STRAIGHT_REACH, 4),
+        "reach_m": round(arm.reach, 4),
+        "max_linear_speed_mps": arm.max_linear_speed_mps,
+        "max_angular_speed_rps": arm.max_angular_speed_rps,
     }
-    print(json.dumps(info, indent=2))
+    print(json.dumps(info, indent=None if args.json else 2))
     return 0
 
 
@@ -194,11 +251,11 @@ def _cmd_servo(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from services.runtime.config import ConfigError
-    from services.servo import load_scenario, run
+    from services.servo import load_scenario, on_arm, run
 
     try:
-        scenario = load_scenario(args.scenario)
-    except ConfigError as exc:
+        scenario = on_arm(load_scenario(args.scenario), args.arm, args.scenario)
+    except (ConfigError, ValueError) as exc:
         print(f"mfvs servo: {exc}", file=sys.stderr)
         return 2
     if args.profile not in ("sim", "gateway"):
@@ -275,10 +332,12 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     if args.profile not in ("sim", "gateway"):
         print(f"mfvs experiment: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
         return 2
+    if args.random_starts is not None:
+        return _random_starts_experiment(args)
     try:
         progress = _experiment_progress(args.name, args.json)
         output = run_experiment(args.name, args.scenario, args.out, progress, profile=args.profile,
-                                on_iteration=progress.on_iteration)
+                                on_iteration=progress.on_iteration, arm=args.arm)
     except ConfigError as exc:
         print(f"mfvs experiment: {exc}", file=sys.stderr)
         return 2
@@ -286,6 +345,51 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
         print(json.dumps(output), flush=True)
     else:
         _print_experiment(output)
+    return 0
+
+
+def _random_starts_experiment(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from services.experiments import RANDOM_START_EXPERIMENTS, run_random_starts
+    from services.runtime.config import ConfigError
+
+    if args.name not in RANDOM_START_EXPERIMENTS:
+        print(f"mfvs experiment: --random-starts runs {', '.join(RANDOM_START_EXPERIMENTS)}, not {args.name}",
+              file=sys.stderr)
+        return 2
+    if args.random_starts < 1:
+        print("mfvs experiment: --random-starts needs at least 1 start", file=sys.stderr)
+        return 2
+    # the starts are written where they can be run again: beside the results, or in the working directory
+    starts_dir = (Path(args.out) / "starts" if args.out
+                  else Path("mfvs-random-starts") / f"{args.name}-{args.arm or 'scenario'}-seed{args.seed}")
+    progress = _experiment_progress(args.name, args.json)
+    try:
+        output = run_random_starts(args.name, args.random_starts, args.seed, args.scenario, args.out, starts_dir,
+                                   progress, profile=args.profile, on_iteration=progress.on_iteration, arm=args.arm)
+    except (ConfigError, ValueError) as exc:
+        print(f"mfvs experiment: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(output), flush=True)
+        return 0
+    summary = output["summary"]
+    print(f"{output['title']} (starts in {output['random_starts']['scenarios']})")
+    for law, figures in summary["laws"].items():
+        it = figures["iterations"]
+        quart = "–" if it["median"] is None else f"{it['q1']:.0f} / {it['median']:.0f} / {it['q3']:.0f}"
+        print(f"  {law:22s} converged {figures['converged']}/{summary['starts']}  iterations q1/median/q3 {quart}"
+              f"  (paper {figures['paper_iterations']})" + (f"  failures {figures['failures']}"
+                                                            if figures["failures"] else ""))
+    print(f"in the paper's order on {summary['fraction_in_paper_order']:.0%} of the starts; the mixed law "
+          f"≥ {summary['clearly_faster_pct']:g} % faster than adaptive-pd-joint on "
+          f"{summary['fraction_clearly_faster']:.0%}, median improvement {summary['median_improvement_pct']} % "
+          f"(paper {summary['paper_improvement_pct']} %), mixed failures {summary['proposed_failures']}")
+    for entry in summary["not_clearly_faster"]:
+        print(f"  start {entry['index']}: improvement {entry['improvement_pct']} %; shaped by {entry['shaped_by']}")
+    if output["report"]:
+        print(f"report: {output['report']}")
     return 0
 
 
@@ -311,13 +415,17 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_up(args: argparse.Namespace) -> int:
     from services.runtime.config import ConfigError
-    from services.launcher import load_profile, up
+    from services.launcher import load_profile, up, with_arm
 
     try:
         profile = load_profile(args.profile, args.port, args.bus_port)
     except ConfigError as exc:
         print(f"mfvs up: {exc}", file=sys.stderr)
         return 2
+    if args.arm is not None:
+        if _arm_or_exit("up", args.arm) is None:
+            return 2
+        profile = with_arm(profile, args.arm)
     code, message = up(profile, args.clock, args.wait, args.host)
     print(message, file=sys.stderr if code else sys.stdout)
     return code
@@ -346,6 +454,8 @@ def _cmd_restart(args: argparse.Namespace) -> int:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
+    from services.robot.node import ROBOT_SERVICES
+
     from services.launcher import read_stack, status_json
 
     stack = read_stack()
@@ -366,6 +476,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
             print(f"  {s['name']:12s} pid {s['pid']}  {condition}{why}{_restarts(s)}  {rates}; {errors}")
             if s["name"] in ("safety", "controller") or s["condition"] in ("dead", "not responding"):
                 print(f"  {'':12s} {s['detail']}")  # the e-stop, the task's state, or how it ended
+            elif s["name"] in ROBOT_SERVICES and s["detail"].startswith("arm "):
+                print(f"  {'':12s} {s['detail'].split(';')[0]}")  # the arm, and what drives its joints
     return 0 if report["router"]["reachable"] else 1
 
 
@@ -429,8 +541,14 @@ def build_parser() -> argparse.ArgumentParser:
                      help="SCHED_FIFO priority where the OS grants it, as the robot's loops (0: normal scheduling)")
     hub.set_defaults(func=_cmd_bus_hub)
 
-    model = sub.add_parser("model", help="the JACO-2 j2s7s300 description")
-    model.add_argument("what", choices=["urdf", "info"], help="urdf: print the URDF; info: limits, home pose")
+    model = sub.add_parser("model", help="an arm's description (j2s7s300: seed 000's 7-DoF; j2n6s300: seed 003's "
+                                         "6-DoF): its joints, limits, home, URDF and forward kinematics")
+    model.add_argument("what", choices=["urdf", "info", "fk"],
+                       help="urdf: print the URDF; info: joints, limits, home pose; fk: the end effector's pose")
+    _add_arm_option(model)
+    model.add_argument("--joints-deg", default=None, metavar="A,B,...",
+                       help="fk: physical joint angles (deg, as GetAngularPosition), one per joint")
+    model.add_argument("--json", action="store_true", help="one JSON object (info, fk)")
     model.set_defaults(func=_cmd_model)
 
     up_cmd = sub.add_parser("up", help="start a stack (router and services) as background processes")
@@ -439,6 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     up_cmd.add_argument("--port", type=int, default=7447, help="router port (sim and gateway profiles)")
     up_cmd.add_argument("--bus-port", type=int, default=7448, help="CAN hub port (gateway profile)")
     up_cmd.add_argument("--wait", type=float, default=60.0, help="seconds to wait for every service")
+    _add_arm_option(up_cmd, default=None, what="the profile's (j2s7s300 unless it sets one)")
     up_cmd.add_argument("--host", default=None,
                         help="in a profile across computers (deploy/profiles/multi-host.yaml), which one this is: "
                              "start only its part")
@@ -463,6 +582,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "processes; in lockstep the same run to the bit)")
     servo.add_argument("--json", action="store_true", help="print one JSON object with the result")
     servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
+    _add_arm_option(servo, default=None, what="the scenario's robot.arm")
     servo.add_argument("--record", metavar="FILE.mcap", help="record every topic of the run into this MCAP file "
                        "(as `mfvs record` does)")
     servo.set_defaults(func=_cmd_servo)
@@ -479,6 +599,11 @@ def build_parser() -> argparse.ArgumentParser:
     experiment.add_argument("--json", action="store_true", help="print one JSON object with the runs and summary")
     experiment.add_argument("--profile", default="sim", help="sim (default) or gateway (robot_gateway over the "
                                                              "RS-485 bus; lockstep gives the same numbers)")
+    experiment.add_argument("--random-starts", type=int, default=None, metavar="N",
+                            help="table3 from N random Table-2-like starts (the tag placed at random around "
+                                 "--scenario's, or table2.yaml's), each written as a scenario file to run again")
+    experiment.add_argument("--seed", type=int, default=1, help="the random starts' draws (default 1)")
+    _add_arm_option(experiment, default=None, what="the scenario's")
     experiment.set_defaults(func=_cmd_experiment)
 
     demo = sub.add_parser("demo", help="for a new user: run part-a and table3 with a line per run, write the "

@@ -25,6 +25,7 @@ folder of their own, and the comparison's figures and a ``report.md`` beside the
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -39,10 +40,12 @@ import numpy as np
 
 from protocol.conventions import ClockMode
 from services.controller.law import Gains
-from services.model import jaco2
-from services.plots import comparison_plots, constraint_plots, tracking_plots
+from services.model.arm import load_arm
+from services.plots import comparison_plots, constraint_plots, random_starts_plots, tracking_plots
 from services.robot_sim.scene import target_in_base
-from services.servo import Scenario, ServoResult, load_scenario, read_log, run, stack_config
+from services.runtime.config import ConfigError
+from services.servo import Scenario, ServoResult, load_scenario, on_arm, read_log, run, stack_config
+from services.starts import TABLE2_LIKE, Start, quartiles, write_starts
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "examples" / "scenarios"
 
@@ -140,7 +143,7 @@ def failure(result: ServoResult) -> Optional[str]:
     return result.status  # tag_lost, diverged, max_iterations, ...
 
 
-def _row(spec: RunSpec, result: ServoResult, records: list[dict]) -> dict:
+def _row(spec: RunSpec, result: ServoResult, records: list[dict], scenario_arm: str) -> dict:
     return {
         "label": spec.label, "law": spec.law, "converged": result.converged,
         "iterations": result.iterations, "status": result.status, "final_error_norm": result.final_error_norm,
@@ -149,6 +152,8 @@ def _row(spec: RunSpec, result: ServoResult, records: list[dict]) -> dict:
         "error_growth": (round(result.max_error_norm / result.initial_error_norm, 3)
                          if result.initial_error_norm else None),
         "failure": failure(result), "limits_met": limits_met(result),
+        # iterations whose law output the controller scaled down to the arm's speed limits
+        "saturated_iterations": sum(1 for r in records if r.get("saturated")),
         "min_manipulability": round(result.min_manipulability, 5),
         "min_zone_distance_m": (None if result.min_zone_distance_m is None
                                 else round(result.min_zone_distance_m, 4)),
@@ -157,6 +162,7 @@ def _row(spec: RunSpec, result: ServoResult, records: list[dict]) -> dict:
         "servo_time_s": result.servo_time_s,
         "lockstep_timeouts": result.lockstep_timeouts,
         "gains": msgspec.to_builtins(spec.gains),
+        "arm": scenario_arm,
         "options": dict(spec.options),
     }
 
@@ -297,7 +303,8 @@ def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) 
     tracked_s = (seen[-1]["stamp_ns"] - start_ns) * 1e-9 if seen else 0.0
     end_ns = records[-1]["stamp_ns"] if records else 0
     window = [r for r in records if (end_ns - r["stamp_ns"]) * 1e-9 <= FAILURE_WINDOW_S]
-    nearest = {id(r): float(jaco2.limit_margins_deg(r["q"]).min()) for r in records if r.get("q")}
+    arm = load_arm(scenario.robot.arm)
+    nearest = {id(r): float(arm.limit_margins_deg(r["q"]).min()) for r in records if r.get("q")}
     faults = {fault for r in window for fault in r.get("robot_faults", [])}
     if result.status == "max_iterations":
         failure = None  # the target's path ended with the target still tracked
@@ -350,8 +357,9 @@ def _tracking_summary(rows: dict, trajectories: dict) -> dict:
 
 
 def _tracking_figures(trajectories: dict, rows: dict, out: Path, base: Scenario) -> list:
-    start = target_in_base(stack_config(base).robot.scene)[:3, 3]
-    return tracking_plots(trajectories, out, target_start=start, target_velocity=base.target.velocity_mps,
+    arm = load_arm(base.robot.arm)
+    start = target_in_base(stack_config(base).robot.scene, arm)[:3, 3]
+    return tracking_plots(trajectories, out, arm=arm, target_start=start, target_velocity=base.target.velocity_mps,
                           failures={label: row["failure"] for label, row in rows.items()})
 
 
@@ -404,17 +412,30 @@ def _copy(scenario: Scenario) -> Scenario:
     return msgspec.convert(msgspec.to_builtins(scenario), Scenario)
 
 
+def default_scenario(experiment: "Experiment", arm: Optional[str] = None) -> Path:
+    """An experiment's own start: its scenario file, or the one written for ``arm`` beside it
+    (``<scenario>_<arm>.yaml``) where the shared one gives another arm's start."""
+    shared = SCENARIOS / experiment.scenario
+    own = SCENARIOS / f"{shared.stem}_{arm}.yaml"
+    return own if arm is not None and own.is_file() else shared
+
+
 def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_dir: Optional[str | Path] = None,
                    progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
-                   on_iteration: Optional[Callable[[str, Scenario, object], None]] = None) -> dict:
-    """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal); ``progress(label, result)``
-    after each run, ``on_iteration(label, scenario, iteration_record)`` during it. Returns ``{"experiment", "title", "paper", "scenario", "runs": [...], "summary": {...},
+                   on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
+                   arm: Optional[str] = None) -> dict:
+    """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal) on ``arm`` (None: the
+    scenario's); ``progress(label, result)`` after each run, ``on_iteration(label, scenario, iteration_record)``
+    during it. Returns ``{"experiment", "title", "paper", "scenario", "arm", "runs": [...], "summary": {...},
     "report", "plots"}``."""
     if name not in EXPERIMENTS:
         raise KeyError(f"unknown experiment {name!r}; known: {', '.join(EXPERIMENTS)}")
     experiment = EXPERIMENTS[name]
-    path = Path(scenario_path) if scenario_path is not None else SCENARIOS / experiment.scenario
-    base = load_scenario(path)
+    path = Path(scenario_path) if scenario_path is not None else default_scenario(experiment, arm)
+    try:
+        base = on_arm(load_scenario(path), arm, str(path))
+    except ValueError as exc:
+        raise ConfigError(str(path), str(exc)) from None
     base.clock = ClockMode.LOCKSTEP  # every experiment is a function of its scenario
     if not experiment.keep_law_options:
         base.law_options = {}
@@ -431,14 +452,15 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
             result = run(scenario, root / spec.label, each, profile=profile, plots=out_dir is not None)
             records = read_log(result.trajectory_log)
             trajectories[spec.label] = records
-            rows[spec.label] = _row(spec, result, records)
+            rows[spec.label] = _row(spec, result, records, scenario.robot.arm)
             if experiment.run_figures is not None:
                 rows[spec.label].update(experiment.run_figures(scenario, result, records))
             rows[spec.label]["plots"] = result.plots if out_dir is not None else []
             if progress is not None:
                 progress(spec.label, result)
         output = {"experiment": name, "seed": experiment.seed, "title": experiment.title,
-                  "paper": experiment.paper, "scenario": str(path), "profile": profile, "runs": list(rows.values()),
+                  "paper": experiment.paper, "scenario": str(path), "arm": base.robot.arm, "profile": profile,
+                  "runs": list(rows.values()),
                   "summary": experiment.summarize(rows, trajectories), "report": None, "plots": [],
                   # every run waited for every answer: the same numbers on a rerun (on this machine)
                   "repeatable": all(row["lockstep_timeouts"] == 0 for row in rows.values())}
@@ -455,6 +477,158 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
             output["report"] = str(report)
             (out / "result.json").write_text(json.dumps(output, indent=2) + "\n")
     return output
+
+
+# ------------------------------------------------------------------------------------------------ random starts
+#: the experiments that run over random starts, and the law each compares (the proposed one, its baseline)
+RANDOM_START_EXPERIMENTS = {"table3": ("adaptive-pd-mixed", "adaptive-pd-joint")}
+#: the mixed law is "clearly faster" on a start when it takes at least this many per cent fewer iterations than
+#: adaptive-pd-joint (issue 34's bar); below it, the report says what shaped the two runs
+CLEARLY_FASTER_PCT = 15.0
+#: what shaped a run, from its limits (the arm's DSP, at iteration ticks) and the controller's saturation
+SHAPING = ("speed", "acceleration", "singularity", "dead_band", "joint_limit", "zone")
+
+
+def shaped_by(row: dict) -> dict:
+    """What limited a run's motion, with counts: iterations at whose tick each of the arm's limits acted, and those
+    whose law output the controller scaled to the speed limits (``controller_saturation``)."""
+    shaping = {cause: row["limits_met"][cause] for cause in SHAPING if row["limits_met"].get(cause)}
+    if row.get("saturated_iterations"):
+        shaping["controller_saturation"] = row["saturated_iterations"]
+    return shaping
+
+
+def _start_summary(start: Start, rows: dict) -> dict:
+    proposed, baseline = RANDOM_START_EXPERIMENTS["table3"]
+    table = _table3_summary(rows, {})
+    improvement = table["improvement_pct"]
+    entry = {"start": start.to_json(), "iterations": table["iterations"],
+             "failures": {label: row["failure"] for label, row in rows.items() if row["failure"]},
+             "improvement_pct": improvement, "in_paper_order": table["in_paper_order"],
+             "clearly_faster": improvement is not None and improvement >= CLEARLY_FASTER_PCT}
+    if not entry["clearly_faster"]:
+        entry["shaped_by"] = {label: shaped_by(rows[label]) for label in (proposed, baseline)}
+    return entry
+
+
+def _random_starts_summary(starts: list[dict], runs: list[dict]) -> dict:
+    proposed, baseline = RANDOM_START_EXPERIMENTS["table3"]
+    laws = list(TABLE3_PAPER)
+    improvements = [s["improvement_pct"] for s in starts if s["improvement_pct"] is not None]
+    n = len(starts)
+    per_law = {}
+    for law in laws:
+        rows = [r for r in runs if r["law"] == law]
+        failures: dict[str, int] = {}
+        for r in rows:
+            if r["failure"]:
+                failures[r["failure"]] = failures.get(r["failure"], 0) + 1
+        per_law[law] = {"iterations": quartiles([r["iterations"] for r in rows if r["converged"]]),
+                        "converged": sum(r["converged"] for r in rows), "failures": failures,
+                        "paper_iterations": TABLE3_PAPER[law]}
+    return {
+        "starts": n, "laws": per_law,
+        "fraction_in_paper_order": round(sum(s["in_paper_order"] for s in starts) / n, 3),
+        "improvement_pct": quartiles(improvements),
+        "median_improvement_pct": (round(float(np.median(improvements)), 1) if improvements else None),
+        "fraction_clearly_faster": round(sum(s["clearly_faster"] for s in starts) / n, 3),
+        "clearly_faster_pct": CLEARLY_FASTER_PCT,
+        "proposed_failures": n - per_law[proposed]["converged"],
+        "not_clearly_faster": [{"index": s["start"]["index"], "improvement_pct": s["improvement_pct"],
+                                "failures": s["failures"], "shaped_by": s["shaped_by"]}
+                               for s in starts if not s["clearly_faster"]],
+        "paper_improvement_pct": improvement_pct(TABLE3_PAPER[proposed], TABLE3_PAPER[baseline]),
+    }
+
+
+def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str | Path] = None,
+                      out_dir: Optional[str | Path] = None, starts_dir: Optional[str | Path] = None,
+                      progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
+                      on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
+                      arm: Optional[str] = None) -> dict:
+    """Experiment ``name`` from ``count`` random starts drawn with ``seed`` (:mod:`services.starts`, the tag placed
+    at random as in Table 2, around the base scenario's), each start's scenario written to ``starts_dir`` (default
+    ``out_dir/starts``) so it can be run again with ``--scenario``. Every run carries ``start`` (which start it ran);
+    the summary gives each law's iterations (median, quartiles) and failures, and per start the proposed law's
+    improvement over its baseline and whether the four laws came in the paper's order."""
+    if name not in RANDOM_START_EXPERIMENTS:
+        raise KeyError(f"--random-starts runs {', '.join(RANDOM_START_EXPERIMENTS)}, not {name!r}")
+    experiment = EXPERIMENTS[name]
+    base = Path(base_path) if base_path is not None else default_scenario(experiment, arm)
+    if starts_dir is None:
+        if out_dir is None:
+            raise ValueError("random starts need a directory to write their scenarios to (out_dir or starts_dir)")
+        starts_dir = Path(out_dir) / "starts"
+    starts = write_starts(base, count, seed, Path(starts_dir), arm=arm)
+    runs, per_start = [], []
+    for start in starts:
+        label = f"start{start.index}"
+        output = run_experiment(
+            name, start.scenario, None if out_dir is None else Path(out_dir) / label,
+            None if progress is None else (lambda run_label, result: progress(f"{label} {run_label}", result)),
+            profile=profile, arm=arm,
+            on_iteration=None if on_iteration is None else (
+                lambda run_label, scenario, record: on_iteration(f"{label} {run_label}", scenario, record)))
+        rows = {row["label"]: row for row in output["runs"]}
+        for row in output["runs"]:
+            row["start"] = start.to_json()
+            runs.append(row)
+        per_start.append(_start_summary(start, rows) | {"repeatable": output["repeatable"]})
+    result = {"experiment": name, "seed": experiment.seed, "title": f"{experiment.title}, over {count} random starts",
+              "paper": experiment.paper, "scenario": str(base), "arm": runs[0]["arm"] if runs else arm,
+              "profile": profile, "random_starts": {"count": count, "seed": seed, "ranges": dataclasses.asdict(TABLE2_LIKE),
+                                "scenarios": str(starts_dir)},
+              "runs": runs, "starts": per_start, "summary": _random_starts_summary(per_start, runs),
+              "repeatable": all(s["repeatable"] for s in per_start), "report": None, "plots": []}
+    if out_dir is not None:
+        out = Path(out_dir)
+        result["plots"] = [str(p) for p in random_starts_plots(runs, per_start, out, laws=list(TABLE3_PAPER),
+                                                               paper=TABLE3_PAPER,
+                                                               clearly_faster_pct=CLEARLY_FASTER_PCT)]
+        report = out / "report.md"
+        report.write_text(random_starts_report(result, out))
+        result["report"] = str(report)
+        (out / "result.json").write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def random_starts_report(output: dict, out_dir: Path) -> str:
+    summary = output["summary"]
+    rs = output["random_starts"]
+    lines = [f"# {output['title']}", "",
+             f"`mfvs experiment {output['experiment']} --random-starts {rs['count']} --seed {rs['seed']}` around "
+             f"`{output['scenario']}` ({output['profile']} profile, lockstep). Each start's scenario is in "
+             f"`{rs['scenarios']}` (run one again with `--scenario`).", "",
+             f"**Seed {output['seed']} reports:** {output['paper']}.", "",
+             "| law | converged | iterations q1 | median | q3 | paper | failures |", "|---|---|---|---|---|---|---|"]
+    for law, figures in summary["laws"].items():
+        it = figures["iterations"]
+        lines.append(f"| {law} | {figures['converged']}/{summary['starts']} | {_cell(it['q1'])} | "
+                     f"{_cell(it['median'])} | {_cell(it['q3'])} | {figures['paper_iterations']} | "
+                     f"{_cell(figures['failures'])} |")
+    lines += ["", f"In the paper's order on **{summary['fraction_in_paper_order']:.0%}** of the starts; the mixed law "
+                  f"at least {summary['clearly_faster_pct']:g} % faster than adaptive-pd-joint on "
+                  f"**{summary['fraction_clearly_faster']:.0%}**, median improvement "
+                  f"**{_cell(summary['median_improvement_pct'])} %** (paper: {summary['paper_improvement_pct']} %); "
+                  f"the mixed law failed on {summary['proposed_failures']}.", "",
+              "| start | tag in the camera (xyz m, rpy deg) | " + " | ".join(TABLE3_PAPER) + " | improvement % | "
+              "in order |", "|---|---|" + "---|" * len(TABLE3_PAPER) + "---|---|"]
+    for entry in output["starts"]:
+        pose = entry["start"]["pose_in_camera"]
+        lines.append(f"| {entry['start']['index']} | {pose['xyz']}, {pose['rpy_deg']} | "
+                     + " | ".join(_cell(entry["iterations"][law]) for law in TABLE3_PAPER)
+                     + f" | {_cell(entry['improvement_pct'])} | {_cell(entry['in_paper_order'])} |")
+    if summary["not_clearly_faster"]:
+        lines += ["", "Where the mixed law was not clearly faster, what shaped each run (iterations at whose tick "
+                      "each of the arm's limits acted; the controller's own saturation):", ""]
+        for entry in summary["not_clearly_faster"]:
+            lines.append(f"- start {entry['index']}: improvement {_cell(entry['improvement_pct'])} %"
+                         + (f", failures {_cell(entry['failures'])}" if entry["failures"] else "") + "; "
+                         + "; ".join(f"{label}: {_cell(shaping)}" for label, shaping in entry["shaped_by"].items()))
+    lines += ["", "## Summary", "", "```json", json.dumps(summary, indent=2), "```", "", "## Figures", ""]
+    lines += [f"![{Path(p).stem}]({Path(p).relative_to(out_dir).as_posix()})" for p in output["plots"]]
+    lines.append("")
+    return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------------------------------ the report

@@ -34,9 +34,9 @@ import msgspec
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.runtime.config import ConfigStruct, load_config
+from services.runtime.config import ConfigError, ConfigStruct, config_mapping, load_config
 from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health, service_condition
-from services.runtime.transport import ZenohConfig, file_endpoints, open_session
+from services.runtime.transport import ZenohConfig, file_access_control, file_endpoints, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 SERVICES = ("safety", "vision", "controller", "robot_sim")
@@ -206,6 +206,7 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0, host: Optio
     message)."""
     try:
         runs_router, services = profile.part(host)
+        arm = profile_arm(profile)
     except ValueError as exc:
         return 2, str(exc)
     current = read_stack()
@@ -227,6 +228,9 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0, host: Optio
     # behind an authority router, the launcher's own checks (and `status`, `estop`) need an identity: the
     # operator's, from the same directory as the services' client configs
     observer = _observer_config(profile)
+    if observer is None and profile.router.config and file_access_control(profile.router.config):
+        return 2, f"the router's access control ({profile.router.config}) would refuse the launcher: " \
+                  f"{NO_OPERATOR_IDENTITY}"
     processes = []
     children: list[subprocess.Popen] = []
     if runs_router:
@@ -270,18 +274,74 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0, host: Optio
                        f"(logs in {directory})")
         time.sleep(0.5)
     down()
-    return 1, f"services not alive after {wait_s:g} s: {', '.join(sorted(names - alive))}"
+    hint = f" (behind a router with access control, {NO_OPERATOR_IDENTITY})" if observer is None else ""
+    return 1, f"services not alive after {wait_s:g} s: {', '.join(sorted(names - alive))}{hint}"
+
+
+def client_config(service: ProfileService) -> Optional[str]:
+    """The zenoh client config a profile's service runs with: its ``zenoh_config``, else its config's
+    ``zenoh.config_file`` (in its config file or set through ``set:``), as the service itself resolves it."""
+    if service.zenoh_config:
+        return service.zenoh_config
+    try:
+        zenoh = config_mapping(service.config, service.set, f"{service.name}'s set").get("zenoh") or {}
+    except ConfigError:
+        return None  # the service itself says what is wrong with its config
+    return zenoh.get("config_file") if isinstance(zenoh, dict) else None
+
+
+#: the services that run on an arm description (the robot's declares it; the others check theirs against it)
+ARM_SERVICES = ("robot_sim", "robot_gateway", "controller", "safety")
+
+
+def service_setting(service: ProfileService, key: str):
+    """A top-level setting of a profile's service as it will run with it (its config file, then ``set:``), or None
+    where neither gives one (or its config cannot be read: the service says why when it starts)."""
+    try:
+        return config_mapping(service.config, service.set, f"{service.name}'s set").get(key)
+    except ConfigError:
+        return None
+
+
+def with_arm(profile: Profile, arm: str) -> Profile:
+    """The profile with every service that runs on an arm set to ``arm`` (`mfvs up --arm NAME`)."""
+    services = [msgspec.structs.replace(s, set=[*s.set, f"arm={arm}"]) if s.name in ARM_SERVICES else s
+                for s in profile.services]
+    return msgspec.structs.replace(profile, services=services)
+
+
+def profile_arm(profile: Profile) -> str:
+    """The one arm a profile runs (its robot's; the default arm where none is set); ValueError naming the services
+    when they do not agree (a controller or safety started for another arm than the robot's would do nothing)."""
+    from services.model.arm import DEFAULT_ARM, check_arm_name
+
+    arms = {s.name: service_setting(s, "arm") for s in profile.services if s.name in ARM_SERVICES}
+    robots = {name: arm or DEFAULT_ARM for name, arm in arms.items() if name in ("robot_sim", "robot_gateway")}
+    named = {**robots, **{name: arm for name, arm in arms.items() if arm is not None}}
+    if len(set(named.values())) > 1:
+        listed = ", ".join(f"{name} {arm}" for name, arm in named.items())
+        raise ValueError(f"the profile mixes arms ({listed}): one arm for the whole stack (mfvs up --arm NAME)")
+    arm = next(iter(named.values()), DEFAULT_ARM)
+    check_arm_name(arm)
+    return arm
 
 
 def _observer_config(profile: Profile) -> Optional[str]:
     """The operator's client config next to the services' (``mfvs authority init`` writes them together), if the
     services run with client configs."""
     for service in profile.services:
-        if service.zenoh_config:
-            candidate = Path(service.zenoh_config).parent / "operator.json5"
+        config = client_config(service)
+        if config:
+            candidate = Path(config).parent / "operator.json5"
             if candidate.is_file():
                 return str(candidate)
     return None
+
+
+#: what to do when the launcher has no identity for a router that checks them
+NO_OPERATOR_IDENTITY = ("the launcher (and `mfvs status`, `task`, `estop`) needs the operator's identity: put "
+                        "operator.json5 (written by `mfvs authority init`) beside the services' client configs "
+                        "(their zenoh_config, or zenoh.config_file in their config or set:)")
 
 
 def stack_task(function: str, operator: str = "mfvs", reason: str = "", timeout_s: float = 5.0) -> m.TaskStatus:

@@ -14,7 +14,7 @@ from typing import Iterable, Optional
 
 import numpy as np
 
-from services.model import jaco2
+from services.model.arm import ArmDescription
 
 _POINT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple")
 
@@ -96,9 +96,10 @@ def features_plot(ax, records: list[dict], goal: Optional[np.ndarray], camera=No
     ax.grid(alpha=0.3)
 
 
-def servo_plots(records, out_dir: Path, *, law: str, goal=None, camera=None, threshold: float = 5e-5,
-                robot_limits: Optional[dict] = None) -> list[Path]:
-    """The figures of one run, written to ``out_dir``; none when the tag was never seen (nothing to plot)."""
+def servo_plots(records, out_dir: Path, *, law: str, arm: ArmDescription, goal=None, camera=None,
+                threshold: float = 5e-5, robot_limits: Optional[dict] = None) -> list[Path]:
+    """The figures of one run on ``arm``, written to ``out_dir``; none when the tag was never seen (nothing to
+    plot)."""
     plt = _pyplot()
     records = _as_dicts(records)
     out_dir = Path(out_dir)
@@ -137,10 +138,10 @@ def servo_plots(records, out_dir: Path, *, law: str, goal=None, camera=None, thr
         tc = _times(commands, seen[0]["stamp_ns"])
         values = np.array([r["command"] for r in commands])
         fig, (first, second) = plt.subplots(2, 1, figsize=(6.0, 6.0), sharex=True)
-        if values.shape[1] == 7:
-            for k in range(7):
+        if commands[0].get("command_kind") == "joint_velocity":
+            for k in range(values.shape[1]):
                 first.plot(tc, np.degrees(values[:, k]), lw=1.0, label=f"q̇{k + 1}")
-            limits = np.degrees(robot_limits["joint_speed_rps"]) if robot_limits else jaco2.MAX_SPEED_DPS
+            limits = np.degrees(robot_limits["joint_speed_rps"]) if robot_limits else arm.max_speed_dps
             for value in sorted(set(np.round(limits, 6))):
                 first.axhline(value, color="tab:red", ls="--", lw=0.8)
                 first.axhline(-value, color="tab:red", ls="--", lw=0.8)
@@ -170,14 +171,14 @@ def servo_plots(records, out_dir: Path, *, law: str, goal=None, camera=None, thr
         second.set_xlabel("time (s)")
         _save(fig, out_dir / "velocities.png", paths)
 
-    with_q = [r for r in seen if len(r["q"]) == 7]
+    with_q = [r for r in seen if len(r["q"]) == arm.n_joints]
     if with_q:
         tq = _times(with_q, seen[0]["stamp_ns"])
-        q_deg = np.array([jaco2.model_to_physical_deg(r["q"]) for r in with_q])
-        limited = [i for i, j in enumerate(jaco2.JOINTS) if not j.continuous]
+        q_deg = np.array([arm.model_to_physical_deg(r["q"]) for r in with_q])
+        limited = [i for i, j in enumerate(arm.joints) if not j.continuous]
         fig, axes = plt.subplots(len(limited) + 2, 1, figsize=(6.0, 8.5), sharex=True)
         for ax, i in zip(axes, limited):
-            joint = jaco2.JOINTS[i]
+            joint = arm.joints[i]
             ax.plot(tq, q_deg[:, i], lw=1.2, label=f"joint {i + 1}")
             for bound in (joint.lower_deg, joint.upper_deg):
                 ax.axhline(bound, color="tab:red", ls="--", lw=0.8)
@@ -187,7 +188,7 @@ def servo_plots(records, out_dir: Path, *, law: str, goal=None, camera=None, thr
             ax.legend(fontsize=7, loc="upper right")
             ax.grid(alpha=0.3)
         continuous = axes[len(limited)]
-        for i, joint in enumerate(jaco2.JOINTS):
+        for i, joint in enumerate(arm.joints):
             if joint.continuous:
                 continuous.plot(tq, q_deg[:, i], lw=1.0, label=f"joint {i + 1}")
         continuous.set_ylabel("deg")
@@ -332,7 +333,7 @@ def _constraint_regions(ax, law_options: dict, camera) -> None:
 
 # ------------------------------------------------------------------------------------------------ seed 004
 def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target_velocity,
-                   failures: dict) -> list[Path]:
+                   failures: dict, arm: ArmDescription) -> list[Path]:
     """Seed 004's figures (label → trajectory records): the modified manipulability w'(q) and Yoshikawa's w over
     time, the joints' margin to their limits, and a top view of the target's path (from ``target_start`` at the
     arm's time 0, at ``target_velocity``, base frame) and the end effector's."""
@@ -352,7 +353,7 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target
         w = np.array([r["manipulability"] for r in records])
         w_ax.semilogy(t, np.maximum(w_prime, 1e-12), color=colour, lw=1.3, label=f"{label}: w'(q)")
         w_ax.semilogy(t, np.maximum(w, 1e-12) ** 2, color=colour, lw=1.0, ls="--", label=f"{label}: w² (Yoshikawa)")
-        margin = jaco2.limit_margins_deg(np.array([r["q"] for r in records])).min(axis=1)
+        margin = arm.limit_margins_deg(np.array([r["q"] for r in records])).min(axis=1)
         margin_ax.plot(t, margin, color=colour, lw=1.3, label=f"{label} ({failures.get(label) or 'path end'})")
     w_ax.set_ylabel("manipulability")
     w_ax.legend(fontsize=7, ncol=2)
@@ -365,7 +366,7 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target
     margin_ax.grid(alpha=0.3)
     _save(fig, out_dir / "manipulability.png", paths)
 
-    kin = ArmKinematics()
+    kin = ArmKinematics(arm)
     start = np.asarray(target_start, dtype=float)
     velocity = np.asarray(target_velocity, dtype=float)
     fig, ax = plt.subplots(figsize=(6.4, 6.0))
@@ -382,7 +383,7 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target
             at = start + velocity * t_end
             ax.plot(*at[:2], "X", color=colour, ms=10, label=f"{label}: last tracked ({failures.get(label) or 'path end'})")
     reach = np.linspace(0.0, 2.0 * np.pi, 200)
-    ax.plot(jaco2.STRAIGHT_REACH * np.cos(reach), jaco2.STRAIGHT_REACH * np.sin(reach), ":", color="0.5",
+    ax.plot(arm.reach * np.cos(reach), arm.reach * np.sin(reach), ":", color="0.5",
             label="arm's straight reach")
     ax.plot(0.0, 0.0, "k^", ms=8, label="base")
     ax.set_xlabel("x (m, base)")
@@ -392,4 +393,50 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target
     ax.legend(fontsize=7, loc="best")
     ax.set_title("top view: the target's path and the end effector's", fontsize=10)
     _save(fig, out_dir / "tracking_paths.png", paths)
+    return paths
+
+
+def random_starts_plots(runs: list[dict], starts: list[dict], out_dir: Path, *, laws: list[str], paper: dict,
+                        clearly_faster_pct: float) -> list[Path]:
+    """Table 3 over random starts: each law's iterations to converge over the starts (a box per law, every start a
+    dot, the paper's count a red mark; failures counted under the box), and the mixed law's improvement over
+    adaptive-pd-joint start by start against the bar it should clear and the paper's."""
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    fig, (box, gain) = plt.subplots(1, 2, figsize=(12.0, 4.4), gridspec_kw={"width_ratios": [3, 2]})
+    data = [[r["iterations"] for r in runs if r["law"] == law and r["converged"]] for law in laws]
+    positions = np.arange(1, len(laws) + 1)
+    box.boxplot([d if d else [np.nan] for d in data], positions=positions, widths=0.5, showfliers=False)
+    for x, values in zip(positions, data):
+        jitter = np.linspace(-0.12, 0.12, len(values)) if len(values) > 1 else np.zeros(len(values))
+        box.plot(x + jitter, values, "o", ms=3, alpha=0.6, color="tab:blue")
+    box.plot(positions, [paper[law] for law in laws], "_", ms=22, mew=2.5, color="tab:red", label="paper (Table 3)")
+    for x, law in zip(positions, laws):
+        failed = sum(1 for r in runs if r["law"] == law and not r["converged"])
+        box.annotate(f"{failed} failed" if failed else "all converged", (x, 0), xycoords=("data", "axes fraction"),
+                     xytext=(0, 4), textcoords="offset points", ha="center", fontsize=7)
+    box.set_xticks(positions, laws, fontsize=8)
+    box.set_ylabel("iterations to ‖e‖ < 5e-5")
+    box.set_title(f"iterations over {len(starts)} random starts", fontsize=10)
+    box.legend(fontsize=8)
+    box.grid(alpha=0.3, axis="y")
+    values = [s["improvement_pct"] for s in starts]
+    colours = ["tab:green" if s["clearly_faster"] else "tab:red" for s in starts]
+    indices = [s["start"]["index"] for s in starts]
+    gain.bar(range(len(starts)), [v if v is not None else 0.0 for v in values], color=colours)
+    for i, v in enumerate(values):
+        if v is None:
+            gain.annotate("failed", (i, 0), ha="center", va="bottom", fontsize=7, rotation=90)
+    gain.axhline(clearly_faster_pct, color="tab:gray", ls="--", lw=1, label=f"{clearly_faster_pct:g} %")
+    paper_pct = 100.0 * (paper["adaptive-pd-joint"] - paper["adaptive-pd-mixed"]) / paper["adaptive-pd-joint"]
+    gain.axhline(paper_pct, color="tab:red", ls=":", lw=1, label=f"paper {paper_pct:.1f} %")
+    gain.set_xticks(range(len(starts)), indices, fontsize=7)
+    gain.set_xlabel("start")
+    gain.set_ylabel("mixed law: fewer iterations than joint PD (%)")
+    gain.set_title("the mixed law's improvement, start by start", fontsize=10)
+    gain.legend(fontsize=8)
+    gain.grid(alpha=0.3, axis="y")
+    _save(fig, out_dir / "random_starts.png", paths)
     return paths

@@ -22,7 +22,7 @@ import numpy as np
 from protocol import messages as m
 from protocol.conventions import ClockMode, DepthSource
 from protocol.keys import Keys
-from services.model import jaco2
+from services.model.arm import DEFAULT_ARM, load_arm
 from services.runtime.config import ConfigError, ConfigStruct, load_config
 from services.model.kinematics import ArmKinematics, manipulability
 from services.robot.zones import nearest_zone
@@ -32,8 +32,8 @@ from services.controller.law import Gains, LawConfig
 from services.controller.laws import JOINT_LAWS, LAW_NAMES
 from services.controller.service import ControllerConfig
 from services.controller.task_client import start_task
-from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig
-from services.robot.dsp import DSPConfig
+from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, check_joints_deg
+from services.robot.dsp import DSPConfig, for_arm
 from services.robot.node import ROBOT_SERVICES
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
@@ -43,12 +43,21 @@ from services.vision.service import GoalConfig, TagConfig, VisionConfig
 
 
 class ScenarioRobot(ConfigStruct):
-    #: physical angles (deg), as GetAngularPosition reports them
-    initial_joints_deg: list[float] = msgspec.field(default_factory=lambda: jaco2.HOME_DEG.tolist())
+    #: the arm (services/model/arms/<arm>.yaml: j2s7s300, seed 000's 7-DoF; j2n6s300, seed 003's 6-DoF); the whole
+    #: stack runs it
+    arm: str = DEFAULT_ARM
+    #: physical angles (deg), as GetAngularPosition reports them, one per joint of the arm; null: its home
+    initial_joints_deg: Optional[list[float]] = None
     #: the arm's DSP as robot_sim's config has it: the convention it reads for Cartesian angular velocity (the
     #: controller and safety are set to the same), its speed limits, its velocity dead-band, its protection zones
     #: (safety guards the same zones)
     dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
+
+    def __post_init__(self) -> None:
+        arm = load_arm(self.arm)  # an unknown arm is refused here, naming the ones there are
+        if self.initial_joints_deg is not None:
+            check_joints_deg(arm, self.initial_joints_deg, "robot.initial_joints_deg")
+        for_arm(self.dsp, arm)
 
 
 class ScenarioConvergence(ConfigStruct):
@@ -100,18 +109,32 @@ def load_scenario(path) -> Scenario:
     return scenario
 
 
+def on_arm(scenario: Scenario, arm: Optional[str], name: str = "the scenario") -> Scenario:
+    """``scenario`` run on ``arm`` (`--arm NAME`; None: as it says). Its start, when it gives one, must be that arm's
+    (one angle per joint): ValueError otherwise, saying so."""
+    if arm is None or arm == scenario.robot.arm:
+        return scenario
+    if scenario.robot.initial_joints_deg is not None:
+        raise ValueError(f"{name} starts the {scenario.robot.arm} at initial_joints_deg "
+                         f"{scenario.robot.initial_joints_deg}: not a start for the {arm} (give a scenario for it, or "
+                         f"leave robot.initial_joints_deg out for the arm's home)")
+    robot = msgspec.structs.replace(scenario.robot, arm=arm)
+    robot.__post_init__()  # the arm known, and the DSP's limits within its ranges
+    return msgspec.structs.replace(scenario, robot=robot)
+
+
 def stack_config(scenario: Scenario) -> StackConfig:
     s = scenario
     convention = s.robot.dsp.angular_convention
-    robot = RobotSimConfig(scene=SceneConfig(initial_joints_deg=list(s.robot.initial_joints_deg), camera=s.camera,
-                                             target=s.target), dsp=s.robot.dsp)
+    robot = RobotSimConfig(arm=s.robot.arm, scene=SceneConfig(initial_joints_deg=s.robot.initial_joints_deg,
+                                                              camera=s.camera, target=s.target), dsp=s.robot.dsp)
     vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m,
                                         layout=s.target.layout), goal=s.goal)
     control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.velocity_mps),
                         robot_convention=convention)
-    controller = ControllerConfig(law=s.law, control=control, convergence_error_norm=s.convergence.error_norm,
-                                  options=law_options(s))
-    safety = SafetyConfig()
+    controller = ControllerConfig(arm=s.robot.arm, law=s.law, control=control,
+                                  convergence_error_norm=s.convergence.error_norm, options=law_options(s))
+    safety = SafetyConfig(arm=s.robot.arm)
     safety.limits.robot_convention = convention
     safety.limits.zones = list(s.robot.dsp.zones)  # the arm's protection zones are the site's: safety guards them too
     return StackConfig(clock=s.clock, robot=robot, vision=vision, controller=controller, safety=safety)
@@ -268,6 +291,7 @@ class _Watcher:
         self.safety_refusal = ""
         self.safety_stop = ""
         self.states: list[m.RobotState] = []
+        self.joint_output = joint_output
         output_key = keys.desired_joint_velocity if joint_output else keys.desired_twist
         output_type = m.JointVelocity if joint_output else m.Twist
         self._subs = [
@@ -379,8 +403,9 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     config = stack_config(scenario)
     config.profile = profile
     joint_output = config.controller.law in JOINT_LAWS
-    kin = ArmKinematics()
-    lower, upper = jaco2.model_limits()
+    arm = load_arm(scenario.robot.arm)
+    kin = ArmKinematics(arm)
+    lower, upper = arm.model_limits()
     records: list[Iteration] = []
     started = time.monotonic()
     status = "timeout"
@@ -516,7 +541,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         from services.plots import servo_plots
 
         result.plots = [] if not plots else [str(p) for p in servo_plots(
-            records, out, law=scenario.law, goal=scenario.goal.features, camera=scenario.camera,
+            records, out, law=scenario.law, arm=arm, goal=scenario.goal.features, camera=scenario.camera,
             threshold=scenario.convergence.error_norm, robot_limits=result.robot_limits)]
         (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
     return result
@@ -603,4 +628,4 @@ def _fill_inputs(record: Iteration, watcher: _Watcher) -> None:
         record.points = [list(p) for p in features.points]
         record.error = list(features.error)
     record.command = watcher.commands.get(record.stamp_ns, [])
-    record.command_kind = "joint_velocity" if len(record.command) == 7 else "mixed_twist"
+    record.command_kind = "joint_velocity" if watcher.joint_output else "mixed_twist"

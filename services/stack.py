@@ -22,6 +22,7 @@ import yaml
 
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
+from services.model.arm import ArmDescription, load_arm
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import alive_services
 from services.runtime.transport import ZenohConfig, open_session
@@ -42,21 +43,23 @@ _rig_channels = itertools.count()
 
 @contextlib.contextmanager
 def simulated_link(bus: BusConfig | None = None, timeout_s: float = 0.05, settle_s: float = 0.05,
-                   lockstep: bool = False):
+                   lockstep: bool = False, arm: ArmDescription | None = None):
     """A simulated arm's actuators answering on a bus (robot_sim's ArmOnBus, in a thread) and the host's link to
     them, as ``(arm, link)``: the gateway's view of the arm without zenoh, for tests and benchmarks. By default the
     bus is a fresh in-process channel (``mfvs_local``). ``lockstep``: the arm runs one cycle per command batch
     from the host, so that what the host does is exactly repeatable (two realtime loops in one interpreter share
-    its lock, which no deployment does: realtime behaviour is measured with the arm in its own process)."""
+    its lock, which no deployment does: realtime behaviour is measured with the arm in its own process). ``arm``: the
+    arm simulated (default: the default arm)."""
+    arm = arm or load_arm()
     bus = bus or BusConfig(interface="mfvs_local", channel=f"simulated-link-{os.getpid()}-{next(_rig_channels)}")
     # the arm's loop and the host's in one process: the GIL must change hands well within a bus cycle
     sys.setswitchinterval(min(sys.getswitchinterval(), SWITCH_INTERVAL_S))
-    runner = ArmOnBus(Simulation(render=False), RS485Bus(bus), ArmOnBusConfig(lockstep=lockstep)).start()
+    runner = ArmOnBus(Simulation(render=False, arm=arm), RS485Bus(bus), ArmOnBusConfig(lockstep=lockstep)).start()
     try:
         host = RS485Bus(bus)
         try:
             time.sleep(settle_s)
-            yield runner, ActuatorLink(host, timeout_s=timeout_s)
+            yield runner, ActuatorLink(host, arm.bus_addresses, timeout_s=timeout_s)
         finally:
             host.close()
     finally:

@@ -3,8 +3,12 @@ from pathlib import Path
 
 import numpy as np
 
-from services.model import jaco2
 from services.model.kinematics import ArmKinematics
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
+#: a robot state's declaration of that arm (RobotState's arm and arm_digest)
+ARM_DECLARED = {"arm": ARM.name, "arm_digest": ARM.digest}
 
 #: the repository's root (the tests sit in folders that mirror the code's)
 REPO = Path(__file__).resolve().parents[1]
@@ -12,8 +16,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 def random_q(rng, margin_deg: float = 2.0) -> np.ndarray:
     """Model angles: limited joints uniformly inside their limits, continuous joints over ±2 turns."""
-    lower, upper = jaco2.model_limits()
-    q = rng.uniform(-4 * np.pi, 4 * np.pi, jaco2.N_JOINTS)
+    lower, upper = ARM.model_limits()
+    q = rng.uniform(-4 * np.pi, 4 * np.pi, ARM.n_joints)
     limited = np.isfinite(lower)
     m = np.radians(margin_deg)
     q[limited] = rng.uniform(lower[limited] + m, upper[limited] - m)
@@ -22,7 +26,10 @@ def random_q(rng, margin_deg: float = 2.0) -> np.ndarray:
 
 class PinArm(ArmKinematics):
     """Reference kinematics for tests: the product's Pinocchio wrapper (checked against MuJoCo and the DH table
-    in test_jaco2_model)."""
+    in test_arm), of the default arm unless told another."""
+
+    def __init__(self, arm=ARM) -> None:
+        super().__init__(arm)
 
 
 class CpuLoad:
@@ -62,7 +69,7 @@ def tag_corners_seen(q, tag_in_base: np.ndarray, camera_in_ee: np.ndarray, kin: 
     from services.model import frames
     from services.model import tag as tags
 
-    camera = frames.homogeneous(*(kin or ArmKinematics()).pose(q)) @ camera_in_ee
+    camera = frames.homogeneous(*(kin or ArmKinematics(ARM)).pose(q)) @ camera_in_ee
     T = np.linalg.inv(camera) @ tag_in_base
     corners = (T[:3, :3] @ tags.corners_in_tag(size_m).T).T + T[:3, 3]
     return corners[:, :2] / corners[:, 2:3], corners[:, 2]
@@ -83,10 +90,10 @@ def iterations_in_a_late_loop(law, tag_in_camera: np.ndarray, camera_in_ee: np.n
 
     gaps = frame_gaps or {0.03: 0.5, 0.04: 0.4, 0.07: 0.1}
     rng = np.random.default_rng(seed)
-    kin = ArmKinematics()
-    tag_in_base = frames.homogeneous(*kin.pose(jaco2.HOME)) @ camera_in_ee @ tag_in_camera
-    q, t = jaco2.HOME.copy(), 0.0
-    commands = [(0.0, np.zeros(jaco2.N_JOINTS))]  # (moving the arm from, joint velocities)
+    kin = ArmKinematics(ARM)
+    tag_in_base = frames.homogeneous(*kin.pose(ARM.home)) @ camera_in_ee @ tag_in_camera
+    q, t = ARM.home.copy(), 0.0
+    commands = [(0.0, np.zeros(ARM.n_joints))]  # (moving the arm from, joint velocities)
 
     def in_effect(at: float) -> np.ndarray:
         return [dq for start, dq in commands if start <= at][-1]
@@ -113,6 +120,6 @@ def iterations_in_a_late_loop(law, tag_in_camera: np.ndarray, camera_in_ee: np.n
         dq = law.step(ServoInput(t_s=t, points=points, depths=depths, goal_points=GOAL_SQUARE,
                                  goal_depths=np.full(4, 0.2888), q=q.copy(), camera_in_ee=camera_in_ee,
                                  dq=in_effect(t).copy())).joint_velocities
-        dq = dq / max(1.0, float(np.max(np.abs(dq) / (jaco2.MAX_SPEED * 0.8))))
+        dq = dq / max(1.0, float(np.max(np.abs(dq) / (ARM.max_speed * 0.8))))
         commands.append((t + rng.uniform(*command_delay_s), dq))
     return None

@@ -6,10 +6,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.model import jaco2
 from services.model import tag as tags
 from services.model.kinematics import ArmKinematics
 from services.controller.law import Law, LawOutput, ServoInput
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 @dataclass
@@ -35,7 +37,7 @@ class KinematicLoop:
     tag_velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
-        self.kin = ArmKinematics()
+        self.kin = ArmKinematics(ARM)
         self.q = np.asarray(self.q0, dtype=float).copy()
         #: the joints' velocity now: the last command, tracked ideally
         self.dq = np.zeros_like(self.q)
@@ -75,5 +77,5 @@ class KinematicLoop:
 
 
 def within_limits(q) -> bool:
-    lower, upper = jaco2.model_limits()
+    lower, upper = ARM.model_limits()
     return bool(np.all(q >= lower) and np.all(q <= upper))

@@ -27,6 +27,7 @@ from services.safety.service import SafetyConfig, SafetyService
 from services.vision.service import VisionConfig, VisionService
 from tests.stack import KEYS, Recorder, wait_for
 from tests.protocol.test_messages_fuzz import MESSAGE_TYPES, pack, values
+from tests.helpers import ARM
 
 def rejects(payload: bytes, message_type) -> bool:
     try:
@@ -99,8 +100,8 @@ QUIET_INPUTS = {
     m.EStop: m.EStop(header=m.Header(seq=1, stamp_ns=1), operator="fuzz"),
     m.VisionGoal: m.VisionGoal(header=m.Header(seq=1, stamp_ns=1), features=[[-0.1, -0.1], [0.1, -0.1], [0.1, 0.1],
                                                                               [-0.1, 0.1]], depth_m=0.3),
-    m.JointVelocity: m.JointVelocity(header=m.Header(seq=1, stamp_ns=1), velocities=[0.0] * m.N_JOINTS),
-    m.TorqueCommand: m.TorqueCommand(header=m.Header(seq=1, stamp_ns=1), torques=[0.0] * m.N_JOINTS),
+    m.JointVelocity: m.JointVelocity(header=m.Header(seq=1, stamp_ns=1), velocities=[0.0] * ARM.n_joints),
+    m.TorqueCommand: m.TorqueCommand(header=m.Header(seq=1, stamp_ns=1), torques=[0.0] * ARM.n_joints),
 }
 
 

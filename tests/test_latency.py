@@ -2,6 +2,7 @@
 complete trace (vision → controller → safety → robot) in causal order, within generous bounds."""
 from bench.latency import analyse, run
 from protocol import messages as m
+from tests.helpers import ARM_DECLARED
 
 
 def test_trace_is_complete_and_latency_is_bounded():
@@ -24,7 +25,7 @@ def test_analysis_counts_each_frame_once_at_its_first_application():
         return m.Header(source_stamp_ns=capture, trace=trace)
 
     def state(applied):
-        return m.RobotState(header=m.Header(), q=[0.0] * 7, dq=[0.0] * 7, tau=[0.0] * 7,
+        return m.RobotState(**ARM_DECLARED, header=m.Header(), q=[0.0] * 7, dq=[0.0] * 7, tau=[0.0] * 7,
                             pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
                             control_mode=m.ControlMode.IDLE, applied_command=applied)
 

@@ -44,6 +44,11 @@ def add_parser(sub) -> None:
 
 
 def _add_common(parser) -> None:
+    from services.model.arm import arm_names
+
+    parser.add_argument("--arm", default=None, metavar="NAME",
+                        help=f"the arm ({', '.join(arm_names())}): --simulate's emulated arm (default j2s7s300); a "
+                             "recording's arm must be this one")
     defaults = BoardConfig()
     parser.add_argument("--squares", default=f"{defaults.squares_x}x{defaults.squares_y}",
                         help="the board's squares across x down (default %(default)s)")
@@ -89,6 +94,7 @@ def _cmd_intrinsics(args) -> int:
 
     from services.calibration.intrinsics import CalibrationFailed, calibrate_intrinsics, read_images
     from services.calibration.simulate import record_intrinsics
+    from services.model.arm import DEFAULT_ARM, load_arm
 
     if not args.simulate and not args.out:
         return _fail("intrinsics", ValueError("say where to write the calibration: --out FILE"))
@@ -98,11 +104,12 @@ def _cmd_intrinsics(args) -> int:
             truth = None
             directory = Path(args.images) if args.images else _recording_dir(args, stack)
             if args.simulate:
-                truth = record_intrinsics(directory, board, views=args.views, seed=args.seed)
+                truth = record_intrinsics(directory, board, views=args.views, seed=args.seed,
+                                          arm=load_arm(args.arm or DEFAULT_ARM))
             if not directory.is_dir():
                 raise CalibrationFailed(f"no folder {directory}")
             result = calibrate_intrinsics(read_images(directory), board)
-    except (CalibrationFailed, CalibrationError) as exc:
+    except (CalibrationFailed, CalibrationError, ValueError) as exc:
         return _fail("intrinsics", exc)
     report = result.summary()
     K = result.intrinsics
@@ -135,8 +142,9 @@ def _cmd_intrinsics(args) -> int:
 def _cmd_hand_eye(args) -> int:
     from contextlib import ExitStack
 
-    from services.calibration.hand_eye import HandEyeFailed, calibrate_hand_eye
+    from services.calibration.hand_eye import HandEyeFailed, calibrate_hand_eye, read_recording
     from services.calibration.simulate import CAMERA, mounting_error, record_hand_eye
+    from services.model.arm import DEFAULT_ARM, load_arm
 
     if not args.simulate and not args.calibration:
         return _fail("hand-eye", ValueError("the camera's intrinsics are needed: --calibration FILE"))
@@ -148,14 +156,19 @@ def _cmd_hand_eye(args) -> int:
             truth = None
             directory = Path(args.recording) if args.recording else _recording_dir(args, stack)
             if args.simulate:
-                truth = record_hand_eye(directory, board, poses=args.poses, seed=args.seed)
+                truth = record_hand_eye(directory, board, poses=args.poses, seed=args.seed,
+                                        arm=load_arm(args.arm or DEFAULT_ARM))
+            elif args.arm is not None:
+                recorded = read_recording(directory).arm
+                if recorded != args.arm:
+                    raise CalibrationError(f"{directory} was recorded on the {recorded}, not the {args.arm}")
             if args.calibration:
                 intrinsics = read_intrinsics(args.calibration)
                 K, distortion = intrinsics.camera_matrix, intrinsics.distortion
             else:
                 K, distortion = CAMERA.matrix(), np.zeros(5)
             result = calibrate_hand_eye(directory, board, K, distortion)
-    except (HandEyeFailed, CalibrationError, RuntimeError) as exc:
+    except (HandEyeFailed, CalibrationError, RuntimeError, ValueError) as exc:
         return _fail("hand-eye", exc)
     report = result.summary()
     xyz, rpy = report["camera_in_ee"]["xyz"], report["camera_in_ee"]["rpy_deg"]

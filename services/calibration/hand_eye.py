@@ -1,7 +1,7 @@
 """Where the camera sits on the end effector (eye-in-hand): from arm poses and the board's pose in the camera at
 each, solve A·X = X·B for X, the camera frame in the end-effector frame.
 
-A recording is a folder of images and ``arm_poses.yaml``: ``poses: [{image: NAME, joints_deg: [7 angles]}, ...]``,
+A recording is a folder of images and ``arm_poses.yaml``: ``arm: NAME`` and ``poses: [{image: NAME, joints_deg: [one angle per joint]}, ...]``,
 the arm's physical joint angles (as GetAngularPosition reports them) when each image was taken, with the arm at
 rest. The end effector's pose is the arm description's forward kinematics of those angles: the same kinematics the
 controller servos with, so the mounting found is the one that makes the controller's camera Jacobian right.
@@ -28,7 +28,8 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from services.model import frames, jaco2
+from services.model import frames
+from services.model.arm import DEFAULT_ARM, load_arm
 from services.model.board import BoardConfig, BoardDetector
 from services.runtime.config import ConfigError, ConfigStruct, config_from_mapping, read_yaml
 
@@ -47,13 +48,18 @@ class RecordedPose(ConfigStruct):
     image: str
     joints_deg: list[float]
 
-    def __post_init__(self) -> None:
-        if len(self.joints_deg) != jaco2.N_JOINTS:
-            raise ValueError(f"joints_deg needs {jaco2.N_JOINTS} angles")
-
 
 class Recording(ConfigStruct):
-    poses: list[RecordedPose]
+    #: the arm the poses were recorded on (its description: the forward kinematics of the joint angles)
+    arm: str = DEFAULT_ARM
+    poses: list[RecordedPose] = []
+
+    def __post_init__(self) -> None:
+        arm = load_arm(self.arm)
+        for pose in self.poses:
+            if len(pose.joints_deg) != arm.n_joints:
+                raise ValueError(f"{pose.image}: joints_deg has {len(pose.joints_deg)} angles; the {arm.name} has "
+                                 f"{arm.n_joints} joints")
 
 
 def read_recording(directory: Path) -> Recording:
@@ -186,6 +192,7 @@ def calibrate_hand_eye(directory: Path, board: BoardConfig, camera_matrix: np.nd
     except ConfigError as exc:
         raise HandEyeFailed(str(exc)) from None
     detector = BoardDetector(board)
+    arm = load_arm(recording.arm)
     T_base_ee, T_camera_target, views, skipped = [], [], [], {}
     for pose in recording.poses:
         gray = cv2.imread(str(Path(directory) / pose.image), cv2.IMREAD_GRAYSCALE)
@@ -197,7 +204,7 @@ def calibrate_hand_eye(directory: Path, board: BoardConfig, camera_matrix: np.nd
         if T_ct is None:
             skipped[pose.image] = f"fewer than {MIN_CORNERS} board corners found"
             continue
-        T_base_ee.append(jaco2.dh_forward_kinematics(jaco2.physical_deg_to_model(pose.joints_deg)))
+        T_base_ee.append(arm.dh_forward_kinematics(arm.physical_deg_to_model(pose.joints_deg)))
         T_camera_target.append(T_ct)
         views.append(view)
     if len(T_base_ee) < MIN_POSES:

@@ -13,7 +13,8 @@ import cv2
 import numpy as np
 import yaml
 
-from services.model import frames, jaco2
+from services.model import frames
+from services.model.arm import ArmDescription, load_arm
 from services.model.board import BoardConfig, BoardDetector
 from services.robot_sim.scene import CameraConfig, PoseConfig, SceneConfig, TargetConfig
 from services.robot_sim.sim import Simulation
@@ -40,13 +41,14 @@ def _facing(distance: float, x: float, y: float, tilt_x: float, tilt_y: float, r
 
 
 def record_intrinsics(directory: Path, board: BoardConfig, camera: CameraConfig = CAMERA, views: int = 16,
-                      seed: int = 0) -> Truth:
+                      seed: int = 0, arm: ArmDescription | None = None) -> Truth:
     """``views`` images of the board at 0.35-0.6 m, tilted up to 35°, written to ``directory``; the board's centre
     reaches 70 % of the way to the image's edges, so that the views cover its corners, where the lens bends most
     (a board cut by the edge is still found: ChArUco corners are identified one by one)."""
     rng = np.random.default_rng(seed)
     directory.mkdir(parents=True, exist_ok=True)
-    sim = Simulation(SceneConfig(floor=False, camera=camera, target=TargetConfig(board=board)))
+    sim = Simulation(SceneConfig(floor=False, camera=camera, target=TargetConfig(board=board)),
+                     arm=arm or load_arm())
     try:
         T_base_camera = sim.camera_pose()
         for i in range(views):
@@ -65,26 +67,29 @@ def record_intrinsics(directory: Path, board: BoardConfig, camera: CameraConfig 
 
 
 def record_hand_eye(directory: Path, board: BoardConfig, camera: CameraConfig = CAMERA, poses: int = 15,
-                    seed: int = 0, max_tries: int = 400) -> Truth:
-    """The arm at ``poses`` wrist poses around its initial configuration, the board fixed 0.45 m in front of the
-    camera's initial view; each image with the board's corners in view is kept with its joint angles."""
+                    seed: int = 0, max_tries: int = 400, arm: ArmDescription | None = None) -> Truth:
+    """The arm (default: the default arm) at ``poses`` wrist poses around its home, the board fixed 0.45 m in front
+    of the camera's initial view; each image with the board's corners in view is kept with its joint angles, and
+    the recording says which arm it was made on."""
+    arm = arm or load_arm()
     rng = np.random.default_rng(seed)
     directory.mkdir(parents=True, exist_ok=True)
     scene = SceneConfig(floor=False, camera=camera,
                         target=TargetConfig(board=board, pose_in_camera=_facing(0.45, 0.0, 0.0, 0.0, 0.0, 0.0)))
     detector = BoardDetector(board)
-    q0 = np.array(scene.initial_joints_deg)
-    # the wrist does most of the turning; the shoulder and elbow move the camera about
-    span = np.array([6.0, 5.0, 5.0, 25.0, 25.0, 30.0, 0.0])
-    lower, upper = (np.degrees(v) for v in jaco2.model_limits())
-    sim = Simulation(scene)
+    q0 = np.array(scene.start_deg(arm))
+    # the wrist does most of the turning; the shoulder and elbow move the camera about (a last joint beyond the
+    # wrist's three turns the camera about its axis: left alone)
+    span = np.array([6.0, 5.0, 5.0, 25.0, 25.0, 30.0, 0.0][:arm.n_joints])
+    lower, upper = (np.degrees(v) for v in arm.model_limits())
+    sim = Simulation(scene, arm=arm)
     kept = []
     try:
         for _ in range(max_tries):
             if len(kept) == poses:
                 break
-            q = q0 + rng.uniform(-1.0, 1.0, jaco2.N_JOINTS) * span
-            model = np.degrees(jaco2.physical_deg_to_model(q))
+            q = q0 + rng.uniform(-1.0, 1.0, arm.n_joints) * span
+            model = np.degrees(arm.physical_deg_to_model(q))
             if np.any(model < lower + 2.0) or np.any(model > upper - 2.0):
                 continue
             sim.reset(q.tolist())
@@ -100,8 +105,8 @@ def record_hand_eye(directory: Path, board: BoardConfig, camera: CameraConfig = 
     if len(kept) < poses:
         raise RuntimeError(f"only {len(kept)} of {poses} wrist poses kept the board in view")
     (directory / POSES_FILE).write_text(
-        "# physical joint angles (deg, as GetAngularPosition) when each image was taken\n"
-        + yaml.safe_dump({"poses": kept}, sort_keys=False))
+        "# the arm, and its physical joint angles (deg, as GetAngularPosition) when each image was taken\n"
+        + yaml.safe_dump({"arm": arm.name, "poses": kept}, sort_keys=False))
     return Truth(camera)
 
 

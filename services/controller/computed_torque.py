@@ -8,12 +8,12 @@ gravity compensation on (as on the real DSP), ĝ(q) is left out of the command.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
 
-from services.model import jaco2
+from services.model.arm import ArmDescription
 
 
 def cubic(q0, qf, tf: float, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -27,14 +27,18 @@ def cubic(q0, qf, tf: float, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 @dataclass
 class ComputedTorque:
-    kp: np.ndarray = field(default_factory=lambda: np.full(jaco2.N_JOINTS, 100.0))
-    kd: np.ndarray = field(default_factory=lambda: np.full(jaco2.N_JOINTS, 20.0))
+    arm: ArmDescription
+    #: per joint (1/s², 1/s); None: 100 and 20 for every joint
+    kp: np.ndarray = None
+    kd: np.ndarray = None
     #: leave ĝ(q) out: the actuators add it themselves
     actuator_gravity_compensation: bool = True
 
     def __post_init__(self) -> None:
-        arm = jaco2.load_pinocchio()
-        self.model = arm.model
+        n = self.arm.n_joints
+        self.kp = np.full(n, 100.0) if self.kp is None else np.asarray(self.kp, dtype=float)
+        self.kd = np.full(n, 20.0) if self.kd is None else np.asarray(self.kd, dtype=float)
+        self.model = self.arm.load_pinocchio().model
         self.data = self.model.createData()
 
     def torque(self, q, dq, q_d, dq_d, ddq_d) -> np.ndarray:

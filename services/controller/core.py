@@ -29,6 +29,8 @@ from services.controller.law import ConstraintAbort, LawOutput, ServoInput
 from services.controller.laws import JOINT_LAWS, make_law
 from services.controller.task import Task
 from services.model import frames, saturation
+from services.model.arm import ArmDescription, declared_arm, load_arm
+from services.model.kinematics import ArmKinematics
 from services.model.limits import declared as declared_limits
 
 
@@ -55,13 +57,29 @@ def arm_not_checked(state: RobotState) -> str:
 
 class ControllerCore:
     def __init__(self, config) -> None:
-        """``config``: the service's :class:`~services.controller.service.ControllerConfig` (the law, its options,
-        the convergence threshold, the input budgets, the conditioning bound and the output limits)."""
+        """``config``: the service's :class:`~services.controller.service.ControllerConfig` (the arm, the law, its
+        options, the convergence threshold, the input budgets, the conditioning bound and the output limits). The
+        law is made for the robot's arm once a state declares it (:meth:`step`)."""
         self.config = config
-        self.law = make_law(config.law, config.control, **config.options)
+        #: the arm the law runs on, and the law (None until known: the configured arm, or the robot's first state)
+        self.arm: Optional[ArmDescription] = None
+        self.law = None
         self.joint_output = config.law in JOINT_LAWS
         self.task = Task()
         self.iteration = 0
+        if config.arm is not None:
+            self._make_law(load_arm(config.arm))
+
+    def take_arm(self, state: RobotState) -> str:
+        """Run on the arm ``state`` declares (the law is made for it the first time): "" or why not."""
+        arm, why = declared_arm(state.arm, state.arm_digest, len(state.q), self.config.arm, self.arm)
+        if arm is not None and self.law is None:
+            self._make_law(arm)
+        return why
+
+    def _make_law(self, arm: ArmDescription) -> None:
+        self.arm = arm
+        self.law = make_law(self.config.law, self.config.control, ArmKinematics(arm), **self.config.options)
 
     # ------------------------------------------------------------------ the task
     def start_task(self, request: TaskRequest, now_ns: int, state: Optional[RobotState] = None) -> TaskStatus:
@@ -69,17 +87,25 @@ class ControllerCore:
         check and is not waived."""
         if state is not None and state.arm_check not in ARM_CHECK_OK:
             return self.task.status(False, arm_not_checked(state))
+        if state is not None:
+            wrong = self.take_arm(state)
+            if wrong:
+                return self.task.status(False, wrong)
         was_running = self.task.running
         reply = self.task.start(request, now_ns)
         if not was_running:  # a new task: the law's memory and the iteration count start afresh
-            self.law.reset()
+            self._reset_law()
             self.iteration = 0
         return reply
 
     def stop_task(self, request: TaskRequest) -> TaskStatus:
         reply = self.task.stop(request)
-        self.law.reset()
+        self._reset_law()
         return reply
+
+    def _reset_law(self) -> None:
+        if self.law is not None:
+            self.law.reset()
 
     # ------------------------------------------------------------------ one iteration
     def step(self, features: Features, state: Optional[RobotState], camera_in_ee: Optional[np.ndarray],
@@ -92,9 +118,13 @@ class ControllerCore:
 
         def zero(kind: ControllerState, detail: str = "", reset: bool = False) -> Step:
             if reset:
-                self.law.reset()
+                self._reset_law()
             return Step(kind, self.iteration, detail)
 
+        if state is not None:
+            wrong = self.take_arm(state)
+            if wrong:
+                return zero(ControllerState.WRONG_ARM, wrong, reset=True)
         if not self.task.running:
             return zero(ControllerState.IDLE, "no task running (mfvs task start)")
         if features.status not in USABLE_FEATURE_STATUSES:
@@ -137,7 +167,8 @@ class ControllerCore:
         values = output.joint_velocities if self.joint_output else output.twist
         if values is None or not np.all(np.isfinite(values)):
             return zero(ControllerState.ILL_CONDITIONED, "the law produced a non-finite output", reset=True)
-        saturated = saturate(output, declared_limits(state), self.joint_output, state, cfg.control.robot_convention)
+        saturated = saturate(output, declared_limits(state, self.arm), self.joint_output, state,
+                             cfg.control.robot_convention)
         return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated)
 
     def features_now(self, points: np.ndarray, depths: np.ndarray, q_capture, q_now, camera_in_ee: np.ndarray
@@ -153,18 +184,17 @@ class ControllerCore:
 
 def saturate(output: LawOutput, robot: MotionLimits, joint_output: bool, state: RobotState,
              convention: AngularConvention) -> bool:
-    """Scale the law's output down to the robot's limits (in place): joint velocities uniformly to the joints'
-    speeds, a twist's linear part to the linear speed and its angular part (rates in the robot's convention) so
-    the end effector's angular velocity is within the angular speed, the way the robot measures it; whether
-    anything was scaled."""
+    """Scale the law's output down to the robot's limits (in place) by one factor, so it keeps the direction the law
+    asked for: joint velocities to the joints' speeds; a twist so that its linear speed and the end effector's
+    angular speed (its rates in the robot's convention turned into ω, the way the robot measures it) are both
+    within their limits. Whether anything was scaled."""
     if joint_output:
         output.joint_velocities, ratio = saturation.limit_uniformly(output.joint_velocities, robot.joint_speed_rps)
         return ratio > 1.0
     twist = output.twist
-    twist[:3], linear = saturation.limit_norm(twist[:3], robot.linear_speed_mps)
     pose = state.pose
     R = frames.euler_xyz_to_matrix((pose.ThetaX, pose.ThetaY, pose.ThetaZ))
-    angular = float(np.linalg.norm(frames.omega_ee_from_angular(twist[3:], R, convention)))
-    if angular > robot.angular_speed_rps:
-        twist[3:] *= robot.angular_speed_rps / angular  # the rates are linear in ω: scaled as it is
-    return linear > robot.linear_speed_mps or angular > robot.angular_speed_rps
+    motion = np.concatenate([twist[:3], frames.omega_ee_from_angular(twist[3:], R, convention)])
+    output.twist, ratio = saturation.limit_twist(twist, robot.linear_speed_mps, robot.angular_speed_rps,
+                                                 judged_on=motion)
+    return ratio.over > 1.0

@@ -14,7 +14,7 @@ import numpy as np
 
 from protocol.conventions import AngularConvention, DepthSource, ErrorRateSource
 from services.controller import ibvs
-from services.model import frames, jaco2
+from services.model import frames
 from services.model.kinematics import ArmKinematics
 from services.runtime.config import ConfigStruct
 
@@ -93,12 +93,14 @@ class LawOutput:
 class Law:
     name = "law"
 
-    def __init__(self, config: LawConfig | None = None, kinematics: ArmKinematics | None = None) -> None:
+    def __init__(self, config: LawConfig | None, kinematics: ArmKinematics) -> None:
+        """``kinematics``: of the arm the law runs on (its description: ``kinematics.arm``)."""
         self.config = config or LawConfig()
-        self.kin = kinematics or ArmKinematics()
+        self.kin = kinematics
+        self.arm = kinematics.arm
         self.rate = ibvs.ErrorRate(self.config.derivative_tau_s)
         self._last_camera_twist: Optional[np.ndarray] = None
-        self.lower, self.upper = jaco2.model_limits()
+        self.lower, self.upper = self.arm.model_limits()
 
     def reset(self) -> None:
         self.rate.reset()

@@ -108,8 +108,8 @@ class MixedJacobianJointLaw(CameraTwistLaw):
         return LawOutput(joint_velocities=dq, camera_twist=Vc, gain=gain)
 
 
-def make_law(name: str, config: LawConfig | None = None, kinematics: ArmKinematics | None = None, **options) -> Law:
-    """The law called ``name`` (see the module table)."""
+def make_law(name: str, config: LawConfig | None, kinematics: ArmKinematics, **options) -> Law:
+    """The law called ``name`` (see the module table), on the arm of ``kinematics``."""
     if name == "adaptive-pd-mixed":
         return CameraTwistLaw(config, kinematics, mixed=True)
     if name == "ee-frame":

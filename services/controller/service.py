@@ -35,7 +35,8 @@ from protocol.messages import (
     encode,
 )
 from protocol import messages
-from services.model import frames, jaco2
+from services.model import frames
+from services.model.arm import check_arm_name
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.state_history import StateHistory
 from services.controller.core import ControllerCore
@@ -44,6 +45,9 @@ from services.controller.laws import LAW_NAMES
 
 
 class ControllerConfig(ServiceConfig):
+    #: the arm it controls (services/model/arms/<arm>.yaml); null: the robot's, as its states declare it. Named,
+    #: a robot that declares another arm gets nothing from this controller (status wrong_arm)
+    arm: Optional[str] = None
     law: str = "adaptive-pd-mixed"
     control: LawConfig = msgspec.field(default_factory=LawConfig)
     #: ‖e‖ below this is converged (seed 000: 5e-5)
@@ -66,6 +70,8 @@ class ControllerConfig(ServiceConfig):
     def __post_init__(self) -> None:
         if self.law not in LAW_NAMES:
             raise ValueError(f"unknown law {self.law!r}; known: {', '.join(LAW_NAMES)}")
+        if self.arm is not None:
+            check_arm_name(self.arm)
 
 
 class ControllerService(Service):
@@ -107,7 +113,8 @@ class ControllerService(Service):
     def check_health(self) -> tuple[bool, str]:
         status, task = self.last_status, self.core.task
         state = f"task={task.state.value}" + (f"({task.count} by {task.by})" if task.by else "")
-        return True, f"{state} law={self.config.law} iteration={self.core.iteration} " + (
+        arm = self.core.arm.name if self.core.arm is not None else "(the robot's, not heard yet)"
+        return True, f"{state} arm={arm} law={self.config.law} iteration={self.core.iteration} " + (
             f"status={status.status.value} error_norm={status.error_norm:.3g}" if status else "no features yet")
 
     # ------------------------------------------------------------------ the task
@@ -182,7 +189,8 @@ class ControllerService(Service):
             answered = self._last_answer
             if answered is not None and answered[0] == features.header.source_stamp_ns:
                 self.counters.inc("features.repeated")
-                self.output_pub.put(answered[1])
+                if answered[1] is not None:
+                    self.output_pub.put(answered[1])
                 self.status_pub.put(answered[2])
                 return
             status, output = self.compute(features, state, capture_state)
@@ -214,14 +222,17 @@ class ControllerService(Service):
     def _publish(self, features: Features, recv_ns: int, status: ControllerStatus,
                  output: Optional[LawOutput]) -> None:
         header: Header = self.header("output", source=features.header, recv_ns=recv_ns)
+        message = None
         if self.core.joint_output:
-            dq = output.joint_velocities if output is not None else np.zeros(jaco2.N_JOINTS)
-            message = JointVelocity(header=header, velocities=dq.tolist())
+            if output is not None or self.core.arm is not None:  # a zero needs the arm's joints (none: no output)
+                dq = output.joint_velocities if output is not None else np.zeros(self.core.arm.n_joints)
+                message = JointVelocity(header=header, velocities=dq.tolist())
         else:
             twist = output.twist if output is not None else np.zeros(6)
             message = Twist(header=header, frame=Frame.MIXED, angular=self.config.control.robot_convention,
                             linear=tuple(twist[:3]), rotational=tuple(twist[3:]))
-        self.output_pub.put(message)
+        if message is not None:
+            self.output_pub.put(message)
         self.status_pub.put(status)
         self.last_status = status
         self._last_answer = (features.header.source_stamp_ns, message, status)

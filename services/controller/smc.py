@@ -28,7 +28,7 @@ from typing import Optional
 
 import numpy as np
 
-from services.model import jaco2
+from services.model.arm import ArmDescription
 from services.controller.law import ConstraintAbort, Law, LawConfig, LawOutput, ServoInput
 
 
@@ -92,7 +92,8 @@ class JointSpeedConstraint:
     """φ = −1 + |q̇_i|/q̇_max,i + margin. ``u_plus`` None: 1.25× the largest normalized acceleration the task
     levels may ask for (max_task_accel / min q̇_max), so the switching gain dominates them."""
 
-    max_speed: np.ndarray = field(default_factory=lambda: jaco2.MAX_SPEED * 0.8)
+    #: each joint's (rad/s; the law fills in 0.8× the arm's rated speeds when none is given)
+    max_speed: Optional[np.ndarray] = None
     margin: float = 0.0
     u_plus: Optional[float] = None
 
@@ -143,11 +144,12 @@ class SmcOptions:
     null_damping: float = 3.0
 
     @classmethod
-    def from_dict(cls, options: dict) -> "SmcOptions":
-        """Options as a scenario writes them; joint ranges are given per joint number (1-7) in physical degrees,
-        like ``joint_range: {joints_deg: {6: [200, 240]}, K: 0.1, u_plus: 2}``."""
+    def from_dict(cls, options: dict, arm: ArmDescription) -> "SmcOptions":
+        """Options as a scenario writes them, for ``arm``; joint ranges are given per joint number (1-n) in physical
+        degrees, like ``joint_range: {joints_deg: {6: [200, 240]}, K: 0.1, u_plus: 2}``."""
         options = {k: (dict(v) if isinstance(v, dict) else v) for k, v in options.items()}
-        out = cls()
+        n = arm.n_joints
+        out = cls(joint_speed=JointSpeedConstraint(max_speed=arm.max_speed * 0.8))
         if "fov" in options:
             out.fov = None if options["fov"] is None else FovConstraint(**options.pop("fov"))
         if "joint_range" in options:
@@ -156,25 +158,25 @@ class SmcOptions:
                 joints = {}
                 for number, limits in spec.pop("joints_deg", {}).items():
                     index = int(number) - 1
-                    if not 0 <= index < jaco2.N_JOINTS or len(limits) != 2:
-                        raise ValueError(f"joint_range: joint {number} needs two limits, joints are 1-7")
-                    ends = sorted(jaco2.SIGN[index] * math.radians(v) for v in limits)
+                    if not 0 <= index < n or len(limits) != 2:
+                        raise ValueError(f"joint_range: joint {number} needs two limits, joints are 1-{n}")
+                    ends = sorted(arm.sign[index] * math.radians(v) + arm.offset[index] for v in limits)
                     joints[index] = (ends[0], ends[1])
                 if not joints:
-                    lower, upper = jaco2.model_limits()
-                    joints = {i: (lower[i], upper[i]) for i in range(jaco2.N_JOINTS) if np.isfinite(lower[i])}
+                    lower, upper = arm.model_limits()
+                    joints = {i: (lower[i], upper[i]) for i in range(n) if np.isfinite(lower[i])}
                 out.joint_range = JointRangeConstraint(joints=joints, **spec)
         else:
-            lower, upper = jaco2.model_limits()
+            lower, upper = arm.model_limits()
             out.joint_range = JointRangeConstraint(
-                joints={i: (lower[i], upper[i]) for i in range(jaco2.N_JOINTS) if np.isfinite(lower[i])}, margin=0.05)
+                joints={i: (lower[i], upper[i]) for i in range(n) if np.isfinite(lower[i])}, margin=0.05)
         if "joint_speed" in options:
             spec = options.pop("joint_speed")
             if spec is None:
                 out.joint_speed = None
             else:
                 scale = spec.pop("speed_scale", 0.8)
-                out.joint_speed = JointSpeedConstraint(max_speed=jaco2.MAX_SPEED * scale, **spec)
+                out.joint_speed = JointSpeedConstraint(max_speed=arm.max_speed * scale, **spec)
         if "spheres" in options:
             out.spheres = [SphereConstraint(**s) for s in options.pop("spheres")]
         if "occlusions" in options:
@@ -203,7 +205,7 @@ class ConstraintSet:
     names: list
 
 
-#: eq. 49's sign pattern for a 6R arm, with a seventh sign chosen for the 7-DoF arm
+#: eq. 49's sign pattern for a 6R arm, with a seventh sign chosen for the 7-DoF arm (an arm's first n of them)
 GRADIENT_ERROR_SIGNS = np.array([-1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
 
 
@@ -212,7 +214,7 @@ class SlidingModeLaw(Law):
 
     def __init__(self, config: LawConfig | None = None, kinematics=None, **options) -> None:
         super().__init__(config, kinematics)
-        self.options = SmcOptions.from_dict(options)
+        self.options = SmcOptions.from_dict(options, self.arm)
         if self.options.joint_range is not None:
             joints = self.options.joint_range.joints
             idx = np.array(sorted(joints), dtype=int)
@@ -226,7 +228,7 @@ class SlidingModeLaw(Law):
 
     def reset(self) -> None:
         super().reset()
-        self.dq_c = np.zeros(jaco2.N_JOINTS)
+        self.dq_c = np.zeros(self.arm.n_joints)
         self._Js_prev: Optional[np.ndarray] = None
         self._t_prev: Optional[float] = None
 
@@ -235,7 +237,7 @@ class SlidingModeLaw(Law):
                     dq: np.ndarray) -> ConstraintSet:
         """Every constraint at this step (eq. 19-31, 40)."""
         opt = self.options
-        n_joints = jaco2.N_JOINTS
+        n_joints = self.arm.n_joints
         # per kind: σ, the gradient ∇σ (w.r.t. q; for speeds ∂φ/∂q̇), the approach gain K (None: a speed, whose φ
         # is σ itself) and the switching gain u⁺
         parts: list[tuple[np.ndarray, np.ndarray, Optional[float], float]] = []
@@ -275,7 +277,7 @@ class SlidingModeLaw(Law):
         rows, rhs, phis, drifts, sigmas = [], [], [], [], []
         for sigma, grad, K, u_plus in parts:
             if opt.gradient_error:  # eq. 49
-                grad = grad + opt.gradient_error * GRADIENT_ERROR_SIGNS * np.abs(grad)
+                grad = grad + opt.gradient_error * GRADIENT_ERROR_SIGNS[:n_joints] * np.abs(grad)
             if K is None:
                 rows.append(grad)
                 phis.append(sigma)
@@ -299,7 +301,7 @@ class SlidingModeLaw(Law):
             if opt.joint_range is not None:
                 names += [f"joint_range:{j + 1}" for j in opt.joint_range.joints]
             if opt.joint_speed is not None:
-                names += [f"joint_speed:{j + 1}" for j in range(jaco2.N_JOINTS)]
+                names += [f"joint_speed:{j + 1}" for j in range(self.arm.n_joints)]
             names += [f"sphere:{k}" for k in range(len(opt.spheres))]
             self._names_cache = cached = (n_points, names)
         return cached[1]

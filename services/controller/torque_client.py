@@ -19,10 +19,10 @@ from services.controller.computed_torque import ComputedTorque, cubic
 
 
 class CubicTorqueClient:
-    def __init__(self, session, keys: Keys, q0, qf, duration_s: float, controller: ComputedTorque | None = None):
+    def __init__(self, session, keys: Keys, q0, qf, duration_s: float, controller: ComputedTorque):
         self.keys = keys
         self.q0, self.qf, self.duration_s = np.asarray(q0, float), np.asarray(qf, float), duration_s
-        self.controller = controller or ComputedTorque()
+        self.controller = controller
         self.errors_deg: list[float] = []
         #: the arm's time (ns) of the first state: the cubic starts there
         self.start_ns: int | None = None

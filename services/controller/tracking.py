@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.model import jaco2
+from services.model.arm import ArmDescription
 from services.model.kinematics import manipulability
 from services.controller.law import Law, LawConfig, LawOutput, ServoInput
 
@@ -65,9 +65,9 @@ class TrackingOptions:
             raise ValueError("tracking weights need q ≥ 0, r > 0, S ≥ 0")
 
 
-def joint_limit_penalty(q, k: float) -> float:
-    """P(q) of eq. 27 over the limited joints: 0 at any limit, 1 − exp(−k/4ⁿ) at mid-range."""
-    lower, upper = jaco2.model_limits()
+def joint_limit_penalty(q, k: float, arm: ArmDescription) -> float:
+    """P(q) of eq. 27 over ``arm``'s limited joints: 0 at any limit, 1 − exp(−k/4ⁿ) at mid-range."""
+    lower, upper = arm.model_limits()
     limited = np.isfinite(lower)
     q = np.asarray(q, dtype=float)
     lo, hi = lower[limited], upper[limited]
@@ -94,7 +94,7 @@ class ManipulabilityLaw(Law):
     def modified_manipulability(self, q) -> float:
         """w'(q) = P(q)·det(J Jᵀ) (eq. 26 with the penalty of eq. 27)."""
         J = self.kin.jacobian_base(q)
-        return joint_limit_penalty(q, self.options.k) * max(0.0, float(np.linalg.det(J @ J.T)))
+        return joint_limit_penalty(q, self.options.k, self.arm) * max(0.0, float(np.linalg.det(J @ J.T)))
 
     def gradient(self, q, J_c_pinv: np.ndarray, w: float) -> np.ndarray:
         """∇_u w' on the tracking axes (zero off the avoidance axes), eq. 31."""
@@ -122,6 +122,6 @@ class ManipulabilityLaw(Law):
         u6 = np.zeros(6)
         u6[self.axes] = u_track + u_avoid
         dq = J_c_pinv @ u6
-        notes = {"w": self.manipulability(q), "w_prime": w, "penalty": joint_limit_penalty(q, o.k),
+        notes = {"w": self.manipulability(q), "w_prime": w, "penalty": joint_limit_penalty(q, o.k, self.arm),
                  "avoid_speed": float(np.linalg.norm(u_avoid))}
         return LawOutput(joint_velocities=dq, camera_twist=u6, gain=o.q, notes=notes)

@@ -4,20 +4,23 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from services.model import jaco2
+from services.model.arm import ArmDescription
 
 
 class ArmKinematics:
-    """End-effector pose and base Jacobian of the JACO-2 at a configuration (model angles, rad).
+    """End-effector pose and base Jacobian of an arm at a configuration (model angles, rad).
 
     Not thread-safe: each thread or loop owns its own instance (the Pinocchio model itself is shared).
     """
 
-    def __init__(self) -> None:
-        arm = jaco2.load_pinocchio()
-        self.model = arm.model
-        self.ee_frame_id = arm.ee_frame_id
+    def __init__(self, arm: ArmDescription) -> None:
+        self.arm = arm
+        pinocchio_arm = self.arm.load_pinocchio()
+        self.model = pinocchio_arm.model
+        self.ee_frame_id = pinocchio_arm.ee_frame_id
         self.data = self.model.createData()
+        #: the length that puts translation and rotation in one unit (:func:`normalized_jacobian`): the arm's reach
+        self.characteristic_length_m = self.arm.reach
 
     def pose(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(R_be, p) of the end effector in the base frame."""
@@ -26,7 +29,7 @@ class ArmKinematics:
         return M.rotation.copy(), M.translation.copy()
 
     def jacobian_base(self, q) -> np.ndarray:
-        """6×7 [v; ω] of the end-effector origin, both in base coordinates."""
+        """6×n [v; ω] of the end-effector origin, both in base coordinates."""
         pin.computeJointJacobians(self.model, self.data, np.asarray(q, dtype=float))
         pin.updateFramePlacements(self.model, self.data)
         return pin.getFrameJacobian(self.model, self.data, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED).copy()
@@ -49,7 +52,7 @@ class ArmKinematics:
         return M.rotation.copy(), M.translation.copy(), J.copy()
 
     def link_poses(self, q) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """(R, p) in the base frame of every link of the description (base_link, link_0 … link_7, end_effector),
+        """(R, p) in the base frame of every link of the description (base_link, link_0 … link_n, end_effector),
         for drawing the arm."""
         pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
         return {frame.name: (self.data.oMf[i].rotation.copy(), self.data.oMf[i].translation.copy())
@@ -65,3 +68,19 @@ def manipulability(J: np.ndarray) -> float:
     singularity)."""
     return float(np.prod(np.linalg.svd(J, compute_uv=False)))
 
+
+
+def normalized_jacobian(J: np.ndarray, length_m: float) -> np.ndarray:
+    """J with its linear rows divided by a characteristic length of the arm: every row then maps joint rates (rad/s)
+    to rad/s (a rotation, or a translation as the turn of the arm's length it amounts to), so its singular values
+    compare translation with rotation in one unit, and an arm scaled in size has the same ones at the same angles."""
+    Jn = np.array(J, dtype=float, copy=True)
+    Jn[:3] /= length_m
+    return Jn
+
+
+def singularity_measure(J: np.ndarray, length_m: float) -> float:
+    """How far the arm is from a singularity, without units: the smallest singular value of
+    :func:`normalized_jacobian` (0 at a singularity; the j2s7s300 at its home pose: 0.13). With every joint at
+    1 rad/s the end effector can move at least this fast in any direction, in rad/s or arm lengths per second."""
+    return float(np.linalg.svd(normalized_jacobian(J, length_m), compute_uv=False)[-1])

@@ -22,13 +22,14 @@ from foxglove import messages as fm
 
 from protocol import messages as m
 from protocol.topics import Topic
-from services.model import frames, jaco2
+from services.model import frames
+from services.model.arm import BASE_LINK, EE_LINK, ArmDescription, declared_arm
 from services.model.kinematics import ArmKinematics
 from services.runtime.jsonsafe import json_safe
 
 #: the viewer's channels are under this prefix (the raw payloads keep their zenoh keys)
 VIEW = "/view"
-BASE_FRAME = jaco2.BASE_LINK
+BASE_FRAME = BASE_LINK
 CAMERA_FRAME = "camera"
 TAG_FRAME = "tag"
 #: the raw channels: MessagePack, described by the message type's JSON schema, the type's name in the metadata
@@ -155,16 +156,16 @@ def robot_command(message: m.RobotCommand) -> dict:
                    joint_velocities=list(message.joint_velocities or []), **twist_fields)
 
 
-def joint_states(state: m.RobotState) -> fm.JointStates:
+def joint_states(state: m.RobotState, arm: ArmDescription) -> fm.JointStates:
     return fm.JointStates(timestamp=timestamp(state.header.stamp_ns), joints=[
         fm.JointState(name=name, position=q, velocity=dq, effort=tau)
-        for name, q, dq, tau in zip(jaco2.JOINT_NAMES, state.q, state.dq, state.tau)])
+        for name, q, dq, tau in zip(arm.joint_names, state.q, state.dq, state.tau)])
 
 
-def joint_margins(state: m.RobotState) -> dict:
+def joint_margins(state: m.RobotState, arm: ArmDescription) -> dict:
     """Each limited joint's distance to its nearer limit (deg): the joints against their limits, as one plot."""
-    limited = [name for name, lower in zip(jaco2.JOINT_NAMES, jaco2.model_limits()[0]) if np.isfinite(lower)]
-    margins = jaco2.limit_margins_deg(np.asarray(state.q))
+    limited = [name for name, lower in zip(arm.joint_names, arm.model_limits()[0]) if np.isfinite(lower)]
+    margins = arm.limit_margins_deg(np.asarray(state.q))
     return _series(state.header, **{name: float(v) for name, v in zip(limited, margins)},
                    minimum_deg=float(np.min(margins)) if len(margins) else None)
 
@@ -195,7 +196,7 @@ def arm_scene(link_poses: dict, stamp_ns: int) -> fm.SceneUpdate:
 
 def camera_transform(info: m.CameraInfo) -> fm.FrameTransform:
     pose = info.camera_in_ee
-    return fm.FrameTransform(timestamp=timestamp(info.header.stamp_ns), parent_frame_id=jaco2.EE_LINK,
+    return fm.FrameTransform(timestamp=timestamp(info.header.stamp_ns), parent_frame_id=EE_LINK,
                              child_frame_id=CAMERA_FRAME, translation=_vector(pose.xyz),
                              rotation=_pose_quaternion(pose))
 
@@ -272,7 +273,8 @@ class ViewChannels:
         self.logs = fc.LogChannel(t["logs"], context=context)
         self.series = {name: foxglove.Channel(f"{VIEW}/{name}", schema=_json_schema(title), context=context)
                        for name, title in SERIES.items()}
-        self.kinematics = ArmKinematics()
+        #: the robot's arm, as its states declare it (the view follows the robot it watches)
+        self.kinematics: Optional[ArmKinematics] = None
         self._info: Optional[m.CameraInfo] = None
         self._said: dict[str, str] = {}
 
@@ -315,11 +317,19 @@ class ViewChannels:
         elif kind is m.EStop:
             self._say("estop", estop_line(message), message.header.stamp_ns, log_time)
         elif kind is m.RobotState:
+            current = self.kinematics.arm if self.kinematics is not None else None
+            arm, why = declared_arm(message.arm, message.arm_digest, len(message.q), None,
+                                    current if current is not None and current.name == message.arm else None)
+            if arm is None:
+                self._say("robot", (fm.LogLevel.Error, f"arm: {why}"), message.header.stamp_ns, log_time)
+                return
+            if arm is not current:
+                self.kinematics = ArmKinematics(arm)
             links = self.kinematics.link_poses(message.q)
-            self.joints.log(joint_states(message), log_time=log_time)
+            self.joints.log(joint_states(message, arm), log_time=log_time)
             self.transforms.log(arm_transforms(links, message.header.stamp_ns), log_time=log_time)
             self.scene.log(arm_scene(links, message.header.stamp_ns), log_time=log_time)
-            self._series("joint_margins", joint_margins(message), log_time)
+            self._series("joint_margins", joint_margins(message, arm), log_time)
             if message.faults:
                 self._say("robot", (fm.LogLevel.Error, "; ".join(message.faults)), message.header.stamp_ns,
                           log_time)

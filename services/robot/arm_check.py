@@ -22,7 +22,6 @@ settles it on the first connection.
 from __future__ import annotations
 
 import enum
-import hashlib
 import json
 import math
 from dataclasses import dataclass
@@ -32,7 +31,8 @@ from typing import Callable, Optional
 import numpy as np
 
 from protocol.messages import ArmCheckReply, ArmCheckState, JointCheck
-from services.model import frames, jaco2
+from services.model import frames
+from services.model.arm import ArmDescription
 from services.runtime.config import ConfigStruct
 
 #: the end effector's motion may differ from the description's by this much (mm, deg) for a joint to pass
@@ -43,7 +43,8 @@ STATIC_TOLERANCE = (3.0, 0.5)
 
 @dataclass(frozen=True)
 class ArmCheckPlan:
-    joints: tuple[int, ...] = tuple(range(1, jaco2.N_JOINTS + 1))
+    #: which joints (1-based); empty: every joint of the arm
+    joints: tuple[int, ...] = ()
     step_deg: float = 5.0
     speed_dps: float = 5.0
     #: at rest this long (joint speeds below ``rest_dps``) before a sample is taken
@@ -75,17 +76,20 @@ class ArmCheckRun:
     and says which joint velocities to command (model rad/s), or None when the check is over (:attr:`samples`,
     :attr:`failure`)."""
 
-    def __init__(self, plan: ArmCheckPlan, q_start: np.ndarray, t_s: float) -> None:
+    def __init__(self, plan: ArmCheckPlan, arm: ArmDescription, q_start: np.ndarray, t_s: float) -> None:
         self.plan = plan
         self.q_start = np.asarray(q_start, dtype=float).copy()
+        joints = plan.joints or tuple(range(1, arm.n_joints + 1))
+        if any(not 1 <= j <= arm.n_joints for j in joints):
+            raise ValueError(f"the {arm.name} has joints 1 to {arm.n_joints}, not {list(joints)}")
         self.samples: list[Sample] = []
         self.failure = ""
         #: the moves: (joint, target), each joint out and back
         self.moves: list[tuple[int, np.ndarray]] = []
-        lower, upper = jaco2.model_limits()
+        lower, upper = arm.model_limits()
         margin = math.radians(plan.limit_margin_deg)
         step = math.radians(plan.step_deg)
-        for joint in plan.joints:
+        for joint in joints:
             i = joint - 1
             out = self.q_start.copy()
             out[i] += step if self.q_start[i] + step <= upper[i] - margin else -step
@@ -113,7 +117,7 @@ class ArmCheckRun:
             self.abort("the arm gives no Cartesian report of its own (an RS-485 gateway computes its pose from the "
                        "description itself): nothing to compare with; use the kinova_sdk backend")
             return None
-        zero = np.zeros(jaco2.N_JOINTS)
+        zero = np.zeros(len(self.q_start))
         if self._phase is Phase.SETTLE:
             if np.degrees(np.abs(dq)).max() < plan.rest_dps:
                 self._rest_since = t_s if self._rest_since is None else self._rest_since
@@ -170,8 +174,9 @@ def zero_offsets(samples: list[Sample], fk: Callable[[np.ndarray], np.ndarray]) 
     """The joint offsets (model rad) that best explain the arm's positions at the samples (damped Gauss-Newton on
     the end effector's position; joint 7 turns the end effector about its own axis and cannot be told from the
     end-effector frame by positions, so it stays at zero)."""
-    offsets = np.zeros(jaco2.N_JOINTS)
-    free = list(range(jaco2.N_JOINTS - 1))
+    n = len(samples[0].q)
+    offsets = np.zeros(n)
+    free = list(range(n - 1))
     h = 1e-6
     for _ in range(20):
         residual, jacobian = [], []
@@ -192,9 +197,9 @@ def zero_offsets(samples: list[Sample], fk: Callable[[np.ndarray], np.ndarray]) 
     return offsets
 
 
-def analyse(samples: list[Sample], fk: Callable[[np.ndarray], np.ndarray] = jaco2.dh_forward_kinematics,
-            failure: str = "") -> ArmCheckReply:
-    """The verdict on a run's samples: each joint's direction, and the poses at the start."""
+def analyse(samples: list[Sample], fk: Callable[[np.ndarray], np.ndarray], failure: str = "") -> ArmCheckReply:
+    """The verdict on a run's samples against the description's forward kinematics ``fk``: each joint's direction,
+    and the poses at the start."""
     if failure or not samples:
         return ArmCheckReply(ok=False, state=ArmCheckState.FAILED, message=(failure or "no samples")[:512])
     start = samples[0]
@@ -272,12 +277,12 @@ class ArmCheckConfig(ConfigStruct):
     record: Optional[str] = None
 
 
-def description_fingerprint() -> str:
-    """What identifies the arm description a verdict was reached with (its URDF, hashed)."""
-    return hashlib.sha256(jaco2.urdf().encode()).hexdigest()[:16]
+def description_fingerprint(arm: ArmDescription) -> str:
+    """What identifies the arm description a verdict was reached with (its name and file, hashed)."""
+    return f"{arm.name}:{arm.digest}"
 
 
-def load_verdict(config: ArmCheckConfig) -> tuple[ArmCheckState, str]:
+def load_verdict(config: ArmCheckConfig, arm: ArmDescription) -> tuple[ArmCheckState, str]:
     """The state to start with: waived, the recorded verdict for this description, or never."""
     if config.waived:
         return ArmCheckState.WAIVED, "waived by the robot's config (arm_check.waived)"
@@ -289,15 +294,15 @@ def load_verdict(config: ArmCheckConfig) -> tuple[ArmCheckState, str]:
         return ArmCheckState.NEVER, "the arm has not been checked (mfvs check arm)"
     except (OSError, ValueError) as exc:
         return ArmCheckState.NEVER, f"the check's record {config.record} cannot be read ({exc}): check again"
-    if record.get("description") != description_fingerprint():
+    if record.get("description") != description_fingerprint(arm):
         return ArmCheckState.NEVER, "the arm description changed since the last check: check again"
     state = ArmCheckState.PASSED if record.get("passed") is True else ArmCheckState.FAILED
     return state, str(record.get("message", ""))[:256]
 
 
-def save_verdict(config: ArmCheckConfig, reply: ArmCheckReply, when: str) -> None:
+def save_verdict(config: ArmCheckConfig, arm: ArmDescription, reply: ArmCheckReply, when: str) -> None:
     if config.record:
         Path(config.record).write_text(json.dumps({
-            "passed": reply.passed, "message": reply.message, "when": when, "description": description_fingerprint(),
+            "passed": reply.passed, "message": reply.message, "when": when, "description": description_fingerprint(arm),
             "joints": [{"joint": j.joint, "direction": j.direction, "zero_offset_deg": j.zero_offset_deg}
                        for j in reply.joints]}, indent=2))

@@ -23,7 +23,6 @@ from typing import Optional
 import numpy as np
 
 from protocol.messages import RobotCommand
-from services.model import jaco2
 from services.robot.dsp import CommandRefused, KinovaDSP
 from services.robot.hardware import CYCLE_S, CYCLES_PER_DSP, JointReading, JointTargets
 
@@ -48,11 +47,13 @@ class RobotCore:
         self.dsp = dsp
         self.cycle_s = cycle_s
         self.reading = reading
+        #: the arm's joints (as many as the readings carry)
+        self.n_joints = len(reading.q)
         self.q_ref = reading.q.copy()
         #: the DSP's joint velocities, and the ramp toward them: from ``_dq_from``, over the ``_step``-th
         #: exchange since the DSP cycle
-        self.dq_ref = np.zeros(jaco2.N_JOINTS)
-        self._dq_from = np.zeros(jaco2.N_JOINTS)
+        self.dq_ref = np.zeros(self.n_joints)
+        self._dq_from = np.zeros(self.n_joints)
         self._step = CYCLES_PER_DSP
         #: bus cycles in which the DSP was too late and the joints were held (see MAX_CYCLES_WITHOUT_DSP)
         self.dsp_stale_cycles = 0
@@ -60,7 +61,7 @@ class RobotCore:
         self._erase_requested = False
         #: low-level torque control owns the joints: targets carry ``torques``, robot commands are refused
         self.torque_mode = False
-        self.torques = np.zeros(jaco2.N_JOINTS)
+        self.torques = np.zeros(self.n_joints)
 
     # ------------------------------------------------------------------ the bus cycle
     def targets(self) -> JointTargets:
@@ -88,8 +89,8 @@ class RobotCore:
     def stop(self) -> None:
         """Stop where the targets are (a failed exchange, a DSP too late): the reference stays, so the arm is not
         pulled back to a reading that may be a few cycles old."""
-        self.dq_ref = np.zeros(jaco2.N_JOINTS)
-        self._dq_from = np.zeros(jaco2.N_JOINTS)
+        self.dq_ref = np.zeros(self.n_joints)
+        self._dq_from = np.zeros(self.n_joints)
         self._step = CYCLES_PER_DSP
 
     def hold(self) -> None:
@@ -136,7 +137,7 @@ class RobotCore:
     def enter_torque_mode(self) -> None:
         """Low-level control takes the joints; the DSP forgets its trajectories at its next cycle (it may be
         computing one now, in another thread)."""
-        self.torques = np.zeros(jaco2.N_JOINTS)
+        self.torques = np.zeros(self.n_joints)
         self.torque_mode = True
         self._erase_requested = True
 

@@ -7,9 +7,11 @@ integrates into the actuators' position targets, reproducing the DSP's behaviour
 * a velocity command lasts one 10 ms cycle and must be resent; with no command for ``watchdog_cycles`` cycles
   the arm decelerates to rest within the acceleration limits;
 * speed limits (0.2 m/s, 1.07 rad/s by default, configurable within Kinova's client ranges), acceleration
-  limits (0.64 m/s², 2.75 rad/s², 200 deg/s²) and the actuators' joint speeds (36/48 deg/s);
-* Cartesian velocity resolved by damped least squares, with null-space motion away from joint limits and
-  singularities while the arm moves;
+  limits (0.64 m/s², 2.75 rad/s², 200 deg/s²) and the actuators' joint speeds (36/48 deg/s), each applied by one
+  factor on the whole motion, so a limited command keeps its direction;
+* Cartesian velocity resolved on the Jacobian with its rows in one unit; a redundant arm's self-motion (while it
+  moves) away from joint limits and, near a singularity, up the singularity measure; damped least squares only
+  where the arm is truly near one;
 * protection zones: the component of end-effector motion into a zone is removed, so it glides along the zone;
 * joint limits are never crossed: the speed toward a limit is capped so the joint can always stop before it;
 * the angular part of a Cartesian velocity is read in one configured convention; a command that declares
@@ -37,13 +39,12 @@ import numpy as np
 from protocol import kinova
 from protocol.conventions import AngularConvention, Frame
 from protocol.messages import CommandMode, ControlMode, Header, MotionLimits, RobotCommand
-from services.model import frames, jaco2, saturation
+from services.model import frames, saturation
+from services.model.arm import ArmDescription
 from services.runtime.config import ConfigStruct
-from services.model.kinematics import ArmKinematics, manipulability
+from services.model.kinematics import ArmKinematics, normalized_jacobian, singularity_measure
 from services.model.limits import arm_limits
 from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
-
-LINEAR_SPEED_RANGE, ANGULAR_SPEED_RANGE = jaco2.LINEAR_SPEED_RANGE, jaco2.ANGULAR_SPEED_RANGE
 
 
 class DeadBandShape(str, enum.Enum):
@@ -93,11 +94,13 @@ class DSPConfig(ConfigStruct):
     cycle_s: float = 0.01
     #: how the angular part of a Cartesian velocity is read (ARCHITECTURE.md)
     angular_convention: AngularConvention = AngularConvention.SEED000
-    max_linear_speed_mps: float = jaco2.MAX_LINEAR_SPEED_MPS
-    max_angular_speed_rps: float = jaco2.MAX_ANGULAR_SPEED_RPS
-    linear_accel_mps2: float = jaco2.LINEAR_ACCEL_MPS2
-    angular_accel_rps2: float = jaco2.ANGULAR_ACCEL_RPS2
-    joint_accel_dps2: float = jaco2.JOINT_ACCEL_DPS2
+    #: the top translation (m/s) and orientation (rad/s) speeds, within the client configuration ranges of the arm's
+    #: description, and the accelerations; null: the arm's own (its description)
+    max_linear_speed_mps: Optional[float] = None
+    max_angular_speed_rps: Optional[float] = None
+    linear_accel_mps2: Optional[float] = None
+    angular_accel_rps2: Optional[float] = None
+    joint_accel_dps2: Optional[float] = None
     dead_band: DeadBand = msgspec.field(default_factory=DeadBand)
     #: fraction of the actuators' rated speeds (36/48 deg/s) the DSP may use
     joint_speed_scale: float = 1.0
@@ -108,13 +111,20 @@ class DSPConfig(ConfigStruct):
     command_delay_cycles: int = 0
     #: joints stop this far inside their limits
     joint_limit_margin_deg: float = 2.0
-    #: damped least squares: the damping reaches this value as the smallest singular value of J goes to 0 ...
-    max_damping: float = 0.04
-    #: ... and is zero above this smallest singular value
-    singular_threshold: float = 0.06
-    #: null-space gains (while moving): away from joint limits, toward higher manipulability
+    #: singularities, judged by :func:`~services.model.kinematics.singularity_measure` (the smallest singular value
+    #: of J with its linear rows over the arm's reach: no units; 0.13 at the j2s7s300's home, 0.025 with its elbow
+    #: 10° from straight). Below ``avoid_singularity_below`` a redundant arm's self-motion climbs the measure
+    #: (null space, while moving), at full ``singularity_avoidance_gain`` from ``damp_singularity_below`` down;
+    #: the end effector's motion is not changed by it
+    avoid_singularity_below: float = 0.06
+    singularity_avoidance_gain: float = 0.6
+    #: only this near a singularity, where self-motion could not keep the arm away, is the motion resolved by
+    #: damped least squares, the damping reaching ``max_damping`` as the measure goes to 0 (our choice: no public
+    #: figure; docs/robot.md)
+    damp_singularity_below: float = 0.02
+    max_damping: float = 0.02
+    #: null-space gain (while moving) away from joint limits
     joint_limit_gain: float = 0.6
-    manipulability_gain: float = 0.6
     #: position trajectories: proportional gain (1/s) before the speed and acceleration profile
     position_gain: float = 3.0
     #: emergency stop: the end effector brakes along its path at these decelerations (whichever binds)
@@ -125,27 +135,59 @@ class DSPConfig(ConfigStruct):
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=ZoneFilterConfig)
 
     def __post_init__(self) -> None:
-        if not LINEAR_SPEED_RANGE[0] <= self.max_linear_speed_mps <= LINEAR_SPEED_RANGE[1]:
-            raise ValueError(f"max_linear_speed_mps must be within Kinova's range {LINEAR_SPEED_RANGE} m/s")
-        if not ANGULAR_SPEED_RANGE[0] <= self.max_angular_speed_rps <= ANGULAR_SPEED_RANGE[1]:
-            raise ValueError(f"max_angular_speed_rps must be within Kinova's range {ANGULAR_SPEED_RANGE} rad/s")
-        for name in ("cycle_s", "linear_accel_mps2", "angular_accel_rps2", "joint_accel_dps2"):
+        for name in ("cycle_s", "max_linear_speed_mps", "max_angular_speed_rps", "linear_accel_mps2",
+                     "angular_accel_rps2", "joint_accel_dps2"):
             value = getattr(self, name)
-            if not (value > 0 and math.isfinite(value)):
+            if value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive")
         if not 0 < self.joint_speed_scale <= 1:
             raise ValueError("joint_speed_scale must be within (0, 1]")
         if self.watchdog_cycles < 1:
             raise ValueError("watchdog_cycles must be at least 1")
+        if not 0.0 <= self.damp_singularity_below <= self.avoid_singularity_below < 1.0:
+            raise ValueError("the singularity thresholds need 0 <= damp_singularity_below <= avoid_singularity_below < 1")
+        for name in ("max_damping", "singularity_avoidance_gain", "joint_limit_gain"):
+            value = getattr(self, name)
+            if not (value >= 0 and math.isfinite(value)):
+                raise ValueError(f"{name} must be zero or positive")
         if not 0 <= self.command_delay_cycles <= 100:
             raise ValueError("command_delay_cycles must be within [0, 100]")
 
 
-def motion_limits(config: DSPConfig, linear_speed_mps: float | None = None,
+def for_arm(config: DSPConfig, arm: ArmDescription) -> DSPConfig:
+    """``config`` with what it leaves to the arm filled in from ``arm``'s description, and checked against it (the
+    top speeds within the arm's client configuration ranges). Raises ValueError."""
+    def own(value: Optional[float], default: float) -> float:
+        return default if value is None else value
+
+    resolved = msgspec.structs.replace(
+        config, max_linear_speed_mps=own(config.max_linear_speed_mps, arm.max_linear_speed_mps),
+        max_angular_speed_rps=own(config.max_angular_speed_rps, arm.max_angular_speed_rps),
+        linear_accel_mps2=own(config.linear_accel_mps2, arm.linear_accel_mps2),
+        angular_accel_rps2=own(config.angular_accel_rps2, arm.angular_accel_rps2),
+        joint_accel_dps2=own(config.joint_accel_dps2, arm.joint_accel_dps2))
+    check_speeds(arm, resolved.max_linear_speed_mps, resolved.max_angular_speed_rps, ValueError,
+                 ("dsp.max_linear_speed_mps", "dsp.max_angular_speed_rps"))
+    return resolved
+
+
+def check_speeds(arm: ArmDescription, linear_mps: Optional[float], angular_rps: Optional[float],
+                 error: type[Exception], names: tuple[str, str] = ("max translation velocity",
+                                                                   "max orientation velocity")) -> None:
+    """Top speeds a client sets must be within the arm's client configuration ranges (SetCartesianMaxVelocities, a
+    DSP's config: ``names`` says what they are called there)."""
+    if linear_mps is not None and not arm.linear_speed_range_mps[0] <= linear_mps <= arm.linear_speed_range_mps[1]:
+        raise error(f"{names[0]} must be within the {arm.name}'s range {arm.linear_speed_range_mps} m/s")
+    if angular_rps is not None and not arm.angular_speed_range_rps[0] <= angular_rps <= arm.angular_speed_range_rps[1]:
+        raise error(f"{names[1]} must be within the {arm.name}'s range {arm.angular_speed_range_rps} rad/s")
+
+
+def motion_limits(config: DSPConfig, arm: ArmDescription, linear_speed_mps: float | None = None,
                   angular_speed_rps: float | None = None) -> MotionLimits:
-    """The limits an arm with this DSP configuration applies (the Cartesian speeds as set at run time, when they
+    """The limits ``arm`` with this DSP configuration applies (the Cartesian speeds as set at run time, when they
     were: SetCartesianMaxVelocities)."""
-    return arm_limits(config.max_linear_speed_mps if linear_speed_mps is None else linear_speed_mps,
+    config = for_arm(config, arm)
+    return arm_limits(arm, config.max_linear_speed_mps if linear_speed_mps is None else linear_speed_mps,
                       config.max_angular_speed_rps if angular_speed_rps is None else angular_speed_rps,
                       config.joint_speed_scale, config.linear_accel_mps2, config.angular_accel_rps2,
                       config.joint_accel_dps2)
@@ -202,9 +244,11 @@ class DSPStatus:
 
 
 class KinovaDSP:
-    def __init__(self, config: DSPConfig | None = None, kinematics: ArmKinematics | None = None) -> None:
-        self.config = config or DSPConfig()
-        self.kin = kinematics or ArmKinematics()
+    def __init__(self, config: DSPConfig, kinematics: ArmKinematics) -> None:
+        """``config`` as given (what it leaves to the arm is filled in from ``kinematics.arm``'s description)."""
+        self.kin = kinematics
+        self.arm = kinematics.arm
+        self.config = for_arm(config, self.arm)
         self.fifo: collections.deque = collections.deque()
         self.zones: list[Zone] = list(self.config.zones)
         self.max_linear = self.config.max_linear_speed_mps
@@ -213,16 +257,16 @@ class KinovaDSP:
         self._direct: Optional[object] = None
         self._last_velocity: Optional[object] = None
         self._missed = 0
-        self._dq_prev = np.zeros(jaco2.N_JOINTS)
+        self._dq_prev = np.zeros(self.arm.n_joints)
         self._twist_prev = np.zeros(6)
-        self._lower, self._upper = jaco2.model_limits()
+        self._lower, self._upper = self.arm.model_limits()
         margin = math.radians(self.config.joint_limit_margin_deg)
         self._lower_soft, self._upper_soft = self._lower + margin, self._upper - margin
         self._limited = np.isfinite(self._lower)
         lower = np.where(self._limited, self._lower, -1.0)
         upper = np.where(self._limited, self._upper, 1.0)
         self._mid, self._half_range = (lower + upper) / 2.0, (upper - lower) / 2.0
-        self._joint_max_speed = jaco2.MAX_SPEED * self.config.joint_speed_scale
+        self._joint_max_speed = self.arm.max_speed * self.config.joint_speed_scale
         self._joint_accel = math.radians(self.config.joint_accel_dps2)
         self._moving_mode = ControlMode.IDLE
         #: emergency braking in progress: [scale, joint velocities at the trigger, scale rate (1/s)]
@@ -255,6 +299,9 @@ class KinovaDSP:
                 )
             segment = _CartesianVelocity(np.array([*twist.linear, *twist.rotational]), twist.angular, command.header)
         else:
+            if len(command.joint_velocities) != self.arm.n_joints:
+                raise CommandRefused(f"this arm has {self.arm.n_joints} joints, the command "
+                                     f"{len(command.joint_velocities)} joint velocities")
             segment = _JointVelocity(np.asarray(command.joint_velocities, dtype=float), command.header)
         if self.config.command_delay_cycles:
             self._delayed.append((self.status.cycles + 1 + self.config.command_delay_cycles, segment))
@@ -289,14 +336,15 @@ class KinovaDSP:
             segment = _CartesianVelocity(np.array([c.X, c.Y, c.Z, c.ThetaX, c.ThetaY, c.ThetaZ]),
                                          self.config.angular_convention)
         elif kind == kinova.POSITION_TYPE.ANGULAR_VELOCITY:
-            segment = _JointVelocity(jaco2.physical_rate_to_model(position.Actuators.as_list()))
+            segment = _JointVelocity(self.arm.physical_rate_to_model(position.Actuators.as_list()[:self.arm.n_joints]))
         elif kind == kinova.POSITION_TYPE.ANGULAR_POSITION:
-            q = jaco2.physical_deg_to_model(position.Actuators.as_list())
+            q = self.arm.physical_deg_to_model(position.Actuators.as_list()[:self.arm.n_joints])
             if np.any(q < self._lower) or np.any(q > self._upper):
                 return kinova.ErrorCode.ERROR_INVALID_PARAM
             speed = None
             if limits is not None and limits.speedParameter1 > 0 and limits.speedParameter2 > 0:
-                speed = np.radians([limits.speedParameter1] * 3 + [limits.speedParameter2] * 4)
+                # speedParameter1: actuators 1-3, speedParameter2: the others (kinova.md)
+                speed = np.radians([limits.speedParameter1] * 3 + [limits.speedParameter2] * (self.arm.n_joints - 3))
             segment = _AngularPosition(q, speed)
         elif kind == kinova.POSITION_TYPE.CARTESIAN_POSITION:
             c = position.CartesianPosition
@@ -313,7 +361,7 @@ class KinovaDSP:
 
     def move_home(self) -> None:
         self.erase_all_trajectories()
-        self.fifo.append(_AngularPosition(jaco2.HOME.copy()))
+        self.fifo.append(_AngularPosition(self.arm.home.copy()))
 
     def erase_all_trajectories(self) -> None:
         self.fifo.clear()
@@ -323,13 +371,10 @@ class KinovaDSP:
         self._missed = self.config.watchdog_cycles
 
     def set_max_velocities(self, linear_mps: float | None = None, angular_rps: float | None = None) -> None:
+        check_speeds(self.arm, linear_mps, angular_rps, CommandRefused)
         if linear_mps is not None:
-            if not LINEAR_SPEED_RANGE[0] <= linear_mps <= LINEAR_SPEED_RANGE[1]:
-                raise CommandRefused(f"max translation velocity must be within {LINEAR_SPEED_RANGE} m/s")
             self.max_linear = min(linear_mps, self.config.max_linear_speed_mps)
         if angular_rps is not None:
-            if not ANGULAR_SPEED_RANGE[0] <= angular_rps <= ANGULAR_SPEED_RANGE[1]:
-                raise CommandRefused(f"max orientation velocity must be within {ANGULAR_SPEED_RANGE} rad/s")
             self.max_angular = min(angular_rps, self.config.max_angular_speed_rps)
 
     @property
@@ -396,7 +441,7 @@ class KinovaDSP:
 
     def motion_limits(self) -> MotionLimits:
         """The limits this DSP applies now (what the robot node declares in its states)."""
-        return motion_limits(self.config, self.max_linear, self.max_angular)
+        return motion_limits(self.config, self.arm, self.max_linear, self.max_angular)
 
     def _dead_band(self, command: np.ndarray, twist_base: np.ndarray) -> np.ndarray:
         """``command`` (a twist or joint velocities) scaled by the dead-band of the end-effector motion it asks."""
@@ -446,17 +491,18 @@ class KinovaDSP:
         return error / distance * speed
 
     def _limit_twist(self, twist: np.ndarray, dt: float, max_lin: float, max_ang: float) -> np.ndarray:
+        """The speed and acceleration limits, each by one factor on the whole twist: Kinova documents a limit per
+        part (translation and orientation speeds) but not how a twist over one of them is brought within it, so
+        the emulated arm keeps the direction it was asked for."""
         cfg = self.config
-        out = np.array(twist, dtype=float, copy=True)
-        for part, vmax, amax in ((slice(0, 3), max_lin, cfg.linear_accel_mps2),
-                                 (slice(3, 6), max_ang, cfg.angular_accel_rps2)):
-            out[part], speed = saturation.limit_norm(out[part], vmax)
-            if speed > vmax:
-                self._flag("speed")
-            out[part], cut = saturation.limit_norm_change(self._twist_prev[part], out[part], amax * dt)
-            if cut:
-                self._flag("acceleration")
-        return out
+        out, ratio = saturation.limit_twist(np.asarray(twist, dtype=float), max_lin, max_ang)
+        if ratio.over > 1.0:
+            self._flag("speed")
+        out, cut = saturation.limit_twist_change(self._twist_prev, out, cfg.linear_accel_mps2 * dt,
+                                                 cfg.angular_accel_rps2 * dt)
+        if cut:
+            self._flag("acceleration")
+        return np.array(out, dtype=float, copy=True)
 
     def _cartesian(self, q, p, J, twist_base, dt, max_lin, max_ang) -> np.ndarray:
         cfg = self.config
@@ -464,41 +510,55 @@ class KinovaDSP:
         twist[:3], zones = filter_velocity(self.zones, p, twist[:3], cfg.zone_filter, dt)
         for name in zones:
             self._flag(f"zone:{name}")
-        U, s, Vt = np.linalg.svd(J)
-        sigma_min = s[-1]
+        # resolved on J with its rows in one unit (services.model.kinematics.normalized_jacobian): the same joint
+        # motion as J⁺ wherever the arm is not near a singularity, and a measure of how near it is
+        length = self.kin.characteristic_length_m
+        Jn = normalized_jacobian(J, length)
+        twist_n = twist.copy()
+        twist_n[:3] /= length
+        U, s, Vt = np.linalg.svd(Jn)
+        measure = s[-1]
         damping2 = 0.0
-        if sigma_min < cfg.singular_threshold:
-            damping2 = (1.0 - (sigma_min / cfg.singular_threshold) ** 2) * cfg.max_damping**2
+        if measure < cfg.damp_singularity_below:
+            damping2 = (1.0 - (measure / cfg.damp_singularity_below) ** 2) * cfg.max_damping**2
             self._flag("singularity")
-        dq = J.T @ np.linalg.solve(J @ J.T + damping2 * np.eye(6), twist)
+        dq = Jn.T @ np.linalg.solve(Jn @ Jn.T + damping2 * np.eye(6), twist_n)
         # self-motion away from joint limits and singularities, in proportion to how fast the end effector moves:
         # a fine approach stays fine (the joints never cancel each other's self-motion exactly, so self-motion
         # faster than the task itself shakes the end effector), and the arm at rest does not drift
         moving = min(1.0, np.linalg.norm(twist[:3]) / max_lin + np.linalg.norm(twist[3:]) / max_ang)
-        if moving > 0.0:
+        if moving > 0.0 and len(q) > 6:
             s_inv = np.where(s > 1e-6, 1.0 / np.maximum(s, 1e-12), 0.0)
-            J_pinv = Vt.T[:, :6] @ np.diag(s_inv) @ U.T
-            null = np.eye(jaco2.N_JOINTS) - J_pinv @ J
-            dq += moving * (null @ self._secondary_task(q, s))
+            Jn_pinv = Vt.T[:, :6] @ np.diag(s_inv) @ U.T
+            null = np.eye(len(q)) - Jn_pinv @ Jn
+            dq += moving * (null @ self._secondary_task(q, measure))
         return self._joint(q, dq, dt, self._joint_max_speed, uniform=True)
 
-    def _secondary_task(self, q, s) -> np.ndarray:
+    def _secondary_task(self, q, measure: float) -> np.ndarray:
+        """Joint rates the null space takes from: toward the middle of the joints' ranges, and, near a singularity,
+        up the gradient of the singularity measure's logarithm (a barrier: the nearer, the harder it pushes),
+        scaled by how near."""
         cfg = self.config
-        xi = np.zeros(jaco2.N_JOINTS)
+        xi = np.zeros(len(q))
         limited = self._limited
         xi[limited] = -cfg.joint_limit_gain * (q[limited] - self._mid[limited]) / self._half_range[limited]
-        if cfg.manipulability_gain > 0.0:
-            w0 = float(np.prod(s))  # manipulability() of this J, from the singular values already at hand
-            grad = np.zeros(jaco2.N_JOINTS)
-            h = 1e-5
-            for i in range(jaco2.N_JOINTS):
-                dq = np.zeros(jaco2.N_JOINTS)
-                dq[i] = h
-                grad[i] = (manipulability(self.kin.jacobian_base(q + dq)) - w0) / h
-            norm = np.linalg.norm(grad)
-            if norm > 1e-9:
-                xi += cfg.manipulability_gain * grad / norm * min(1.0, 0.02 / max(w0, 1e-6))
+        nearness = self._singularity_nearness(measure)
+        if nearness > 0.0 and cfg.singularity_avoidance_gain > 0.0:
+            length = self.kin.characteristic_length_m
+            h = 1e-6
+            grad_log = np.array([math.log(max(singularity_measure(self.kin.jacobian_base(q + h * e), length), 1e-12)
+                                          / max(measure, 1e-12)) / h for e in np.eye(len(q))])
+            xi += cfg.singularity_avoidance_gain * nearness * grad_log
+            self._flag("singularity_avoidance")
         return xi
+
+    def _singularity_nearness(self, measure: float) -> float:
+        """0 at or above ``avoid_singularity_below``, rising linearly to 1 at ``damp_singularity_below`` and below."""
+        cfg = self.config
+        if measure >= cfg.avoid_singularity_below:
+            return 0.0
+        span = cfg.avoid_singularity_below - cfg.damp_singularity_below
+        return 1.0 if span <= 0.0 else min(1.0, (cfg.avoid_singularity_below - measure) / span)
 
     def _joint(self, q, dq_desired, dt, max_speed, uniform: bool = False) -> np.ndarray:
         """Joint speed (uniform scaling keeps a Cartesian direction), joint acceleration, joint limits."""
@@ -547,13 +607,13 @@ class KinovaDSP:
     def _stop(self, q, p, J, dt) -> np.ndarray:
         """Decelerate to rest within the acceleration limits of the mode the arm was moving in."""
         if not np.any(self._dq_prev):
-            return np.zeros(jaco2.N_JOINTS)
+            return np.zeros(self.arm.n_joints)
         if self._moving_mode in (ControlMode.CARTESIAN_VELOCITY, ControlMode.CARTESIAN_POSITION):
             dq = self._cartesian(q, p, J, np.zeros(6), dt, self.max_linear, self.max_angular)
         else:
-            dq = self._joint(q, np.zeros(jaco2.N_JOINTS), dt, self._joint_max_speed)
+            dq = self._joint(q, np.zeros(self.arm.n_joints), dt, self._joint_max_speed)
         if np.max(np.abs(dq)) < 1e-4:
-            dq = np.zeros(jaco2.N_JOINTS)
+            dq = np.zeros(self.arm.n_joints)
         return dq
 
     def _flag(self, name: str) -> None:

@@ -8,12 +8,12 @@ arm in-process and the same arm behind the bus give the node identical numbers.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional, Protocol
 
 import numpy as np
 
-from services.model import jaco2
+from services.model.arm import ArmDescription
 
 #: the actuators' bus cycle (500 Hz)
 CYCLE_S = 0.002
@@ -38,18 +38,28 @@ class JointReading:
     q: np.ndarray
     dq: np.ndarray
     tau: np.ndarray
-    current_a: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS))
-    temperature_c: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS))
+    #: (None: zeros, one per joint)
+    current_a: Optional[np.ndarray] = None
+    temperature_c: Optional[np.ndarray] = None
     #: per actuator: 0 position mode, 1 torque mode
-    mode: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS, dtype=int))
+    mode: Optional[np.ndarray] = None
     #: per actuator: the latched fault (protocol.rs485.ActuatorError), 0 for none
-    fault: np.ndarray = field(default_factory=lambda: np.zeros(jaco2.N_JOINTS, dtype=int))
+    fault: Optional[np.ndarray] = None
     #: when the reading was taken: on the emulated arm's own timeline (robot_sim), or on the host's clock when
     #: the bus gives no better (a real arm); 0 when unknown
     stamp_ns: int = 0
     #: the end effector's pose (4×4, base frame) as the arm itself reports it (Kinova's DSP through the SDK, the
     #: simulator's physics), when it does: an RS-485 bus carries joints only
     arm_pose: Optional[np.ndarray] = None
+
+    def __post_init__(self) -> None:
+        n = len(self.q)
+        for name in ("current_a", "temperature_c"):
+            if getattr(self, name) is None:
+                setattr(self, name, np.zeros(n))
+        for name in ("mode", "fault"):
+            if getattr(self, name) is None:
+                setattr(self, name, np.zeros(n, dtype=int))
 
     def faults(self) -> list[str]:
         return [f"actuator {i + 1}: fault {int(code)}" for i, code in enumerate(self.fault) if code]
@@ -65,15 +75,15 @@ class JointTargets:
     torques: Optional[np.ndarray] = None
 
 
-def physical_targets(targets: JointTargets) -> tuple[np.ndarray, np.ndarray]:
+def physical_targets(targets: JointTargets, arm: ArmDescription) -> tuple[np.ndarray, np.ndarray]:
     """(position deg, torque N·m) in the actuators' own (physical) units and signs, as 0x14 carries them."""
-    torques = np.zeros(jaco2.N_JOINTS) if targets.torques is None else jaco2.SIGN * np.asarray(targets.torques)
-    return jaco2.model_to_physical_deg(targets.q), torques
+    torques = np.zeros(arm.n_joints) if targets.torques is None else arm.sign * np.asarray(targets.torques)
+    return arm.model_to_physical_deg(targets.q), torques
 
 
 @dataclass
 class ActuatorValues:
-    """What the seven actuators report for one cycle (the 0x15-0x17 replies), in their own units and signs:
+    """What the arm's actuators report for one cycle (the 0x15-0x17 replies), in their own units and signs:
     physical degrees and deg/s, N·m, A, °C, and per actuator the mode (0 position, 1 torque) and the fault code.
     The emulated firmware produces them (float64), the bus link decodes them (float32 on the wire)."""
 
@@ -88,13 +98,13 @@ class ActuatorValues:
     stamp_ns: int = 0
 
 
-def reading_from_physical(values: ActuatorValues) -> JointReading:
+def reading_from_physical(values: ActuatorValues, arm: ArmDescription) -> JointReading:
     """A reading in model units from the actuators' own values: the one conversion both the bus link and the
     in-process simulated arm use."""
-    return JointReading(q=jaco2.physical_deg_to_model(values.position_deg),
-                        dq=jaco2.physical_rate_to_model(values.velocity_dps),
-                        tau=jaco2.SIGN * np.asarray(values.torque_nm, dtype=float),
-                        current_a=jaco2.SIGN * np.asarray(values.current_a, dtype=float),
+    return JointReading(q=arm.physical_deg_to_model(values.position_deg),
+                        dq=arm.physical_rate_to_model(values.velocity_dps),
+                        tau=arm.sign * np.asarray(values.torque_nm, dtype=float),
+                        current_a=arm.sign * np.asarray(values.current_a, dtype=float),
                         temperature_c=np.asarray(values.temperature_c, dtype=float),
                         mode=np.asarray(values.mode, dtype=int), fault=np.asarray(values.fault, dtype=int),
                         stamp_ns=int(values.stamp_ns))

@@ -7,7 +7,7 @@ from typing import Callable, Protocol
 import numpy as np
 
 from protocol import kinova
-from services.model import frames, jaco2
+from services.model import frames
 from services.robot.dsp import CommandRefused, KinovaDSP
 from services.robot.zones import zone_from_kinova, zone_to_kinova
 
@@ -37,9 +37,10 @@ class KinovaApi:
     def __init__(self, robot: "RobotView", dsp: KinovaDSP) -> None:
         self.robot = robot
         self.dsp = dsp
+        self.arm = dsp.arm
         self.builtin_zones = list(dsp.zones)
         self.kinova_zones: list = []
-        self.last_command = np.zeros(jaco2.N_JOINTS)
+        self.last_command = np.zeros(self.arm.n_joints)
 
     def call(self, function: str, argument) -> kinova.ApiReply:
         handler: Callable = getattr(self, f"_{function}")
@@ -74,16 +75,16 @@ class KinovaApi:
             Actuators=kinova.AngularInfo.from_list(values_deg)))
 
     def _GetAngularPosition(self, _):
-        return self._angular(jaco2.model_to_physical_deg(self.robot.q))
+        return self._angular(self.arm.model_to_physical_deg(self.robot.q))
 
     def _GetAngularVelocity(self, _):
-        return self._angular(jaco2.model_rate_to_physical(self.robot.dq))
+        return self._angular(self.arm.model_rate_to_physical(self.robot.dq))
 
     def _GetAngularForce(self, _):
-        return self._angular(jaco2.SIGN * self.robot.tau)
+        return self._angular(self.arm.sign * self.robot.tau)
 
     def _GetAngularCommand(self, _):
-        return self._angular(jaco2.model_to_physical_deg(self.robot.q_ref))
+        return self._angular(self.arm.model_to_physical_deg(self.robot.q_ref))
 
     def _cartesian(self, T) -> kinova.CartesianPositionReply:
         euler = frames.matrix_to_euler_xyz(T[:3, :3])
@@ -94,7 +95,7 @@ class KinovaApi:
         return self._cartesian(self.robot.ee_pose())
 
     def _GetCartesianCommand(self, _):
-        return self._cartesian(jaco2.dh_forward_kinematics(self.robot.q_ref))
+        return self._cartesian(self.arm.dh_forward_kinematics(self.robot.q_ref))
 
     def _SetProtectionZone(self, zones: kinova.ZoneList):
         try:

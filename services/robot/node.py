@@ -2,8 +2,9 @@
 robot_gateway's actuators on a bus), and the robot's one loop.
 
 On zenoh: robot commands in (``…/robot/command``, from safety), the Kinova API as queryables
-(``…/robot/api/<Function>``), the robot state out at every DSP cycle (100 Hz), the low-level torque API
-(``…/robot/lowlevel/*``, 500 Hz, realtime only), and the commissioning check (``…/robot/check/arm``,
+(``…/robot/api/<Function>``, run and answered by the loop's worker, with a timeout: :mod:`services.robot.api_calls`),
+the robot state out at every DSP cycle (100 Hz), the low-level torque API (``…/robot/lowlevel/*``, 500 Hz,
+realtime only), and the commissioning check (``…/robot/check/arm``,
 :mod:`services.robot.arm_check`): while it runs, the node moves the arm itself, joint by joint, and holds safety's
 commands (an emergency stop ends the check and stops the arm); its verdict goes out in every state.
 
@@ -34,7 +35,6 @@ robot_gateway learns it from the simulator's clock).
 """
 from __future__ import annotations
 
-import queue
 import threading
 import time
 from concurrent.futures import Future
@@ -65,8 +65,10 @@ from protocol.messages import (
 )
 from services.model import frames
 from services.robot import arm_check
+from services.robot.api_calls import ApiCallQueue
 from services.runtime.config import ConfigStruct
-from services.robot.dsp import DSPConfig, KinovaDSP
+from services.model.arm import DEFAULT_ARM, load_arm
+from services.robot.dsp import DSPConfig, KinovaDSP, for_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.kinova_api import KinovaApi
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
@@ -87,6 +89,8 @@ ROBOT_SERVICES = ("robot_sim", "robot_gateway")
 MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})
 #: an in-process simulated arm runs at most this many late cycles back to back (0.1 s), then drops the stall
 MAX_CATCH_UP_CYCLES = 50
+#: a Kinova API call not taken by the robot's worker within this long is answered as timed out, without being run
+API_TIMEOUT_S = 5.0
 
 
 #: the DSP's plan must be ready this long before the next bus exchange: the command window ends there at the latest
@@ -130,6 +134,9 @@ class LockstepConfig(ConfigStruct):
 
 
 class RobotNodeConfig(ServiceConfig):
+    #: the arm (its description: services/model/arms/<arm>.yaml); the node declares it in every state, and the other
+    #: services run on it
+    arm: str = DEFAULT_ARM
     dsp: DSPConfig = msgspec.field(default_factory=DSPConfig)
     lockstep: LockstepConfig = msgspec.field(default_factory=LockstepConfig)
     #: which robot commands are applied at all: fresh, not from the future, in sequence per sender
@@ -151,6 +158,7 @@ class RobotNodeConfig(ServiceConfig):
     command_window_s: float = MAX_COMMAND_WINDOW_S
 
     def __post_init__(self) -> None:
+        for_arm(self.dsp, load_arm(self.arm))  # an unknown arm, or speeds outside its ranges, refused now
         if self.max_bus_errors < 1:
             raise ValueError("max_bus_errors must be at least 1")
         if not 0.0 <= self.command_window_s <= MAX_COMMAND_WINDOW_S:
@@ -228,9 +236,11 @@ class RobotNode(Service):
         super().__init__(config, **kw)
         self.config: RobotNodeConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
-        self.kin = ArmKinematics()
+        #: the arm this node runs (its description), declared in every state
+        self.arm = load_arm(config.arm)
+        self.kin = ArmKinematics(self.arm)
         #: the bus loop's own kinematics workspace (ArmKinematics is not thread-safe; the DSP worker uses ``kin``)
-        self.gravity_kin = ArmKinematics()
+        self.gravity_kin = ArmKinematics(self.arm)
         #: the loop's period: the bus cycle (a backend without a joint-level bus runs at its DSP's cycle)
         self.cycle_s = CYCLE_S
         self.hardware: Optional[RobotHardware] = None
@@ -252,7 +262,9 @@ class RobotNode(Service):
         self.command_cond = threading.Condition()
         self.admission = CommandAdmission(config.admission)
         self.torque_admission = CommandAdmission(config.admission)
-        self._api_calls: queue.Queue = queue.Queue()
+        #: Kinova API calls from the robot/api/* queryable, run and answered by the worker (services.robot.api_calls)
+        self.api_calls = ApiCallQueue(API_TIMEOUT_S, on_timeout=lambda call: self.counters.inc("api.timeouts"))
+        self._api_timeouts_thread: Optional[threading.Thread] = None
         self._applied: Optional[Header] = None
         self._last_refusal = ""
         self._refusal_cycles = 0
@@ -281,7 +293,7 @@ class RobotNode(Service):
         self._missed = RateMeter()
         self._cycles = RateMeter()
         #: the commissioning check: its state and why, a request waiting for the loop, the run under way
-        self.arm_check_state, self.arm_check_detail = arm_check.load_verdict(config.arm_check)
+        self.arm_check_state, self.arm_check_detail = arm_check.load_verdict(config.arm_check, self.arm)
         self._check_request: Optional[tuple[ArmCheckRequest, Future]] = None
         self._check_run: Optional[tuple[arm_check.ArmCheckRun, Future]] = None
         self._state_before_check = (self.arm_check_state, self.arm_check_detail)
@@ -331,6 +343,7 @@ class RobotNode(Service):
             self.hardware.close()
             raise
         self._thread = start_thread(self._run, f"{self.name}-loop")
+        self._api_timeouts_thread = start_thread(self._answer_api_timeouts, f"{self.name}-api-timeouts")
 
     def make_dsp(self):
         """What interprets robot commands: the emulated Kinova DSP (an arm behind Kinova's SDK has its own)."""
@@ -357,6 +370,9 @@ class RobotNode(Service):
             self._thread.join(timeout=5.0)
         if self._dsp_thread is not None:
             self._dsp_thread.join(timeout=5.0)
+        self.api_calls.close(f"{self.name} is stopping")
+        if self._api_timeouts_thread is not None:
+            self._api_timeouts_thread.join(timeout=5.0)
         if self.hardware is not None:
             self.hardware.close()
 
@@ -368,18 +384,32 @@ class RobotNode(Service):
         timing = self.timing()
         work, exchange, lag, dsp, wait = (self.work.stats(), self.exchange_time.stats(), self.wake_lag.stats(),
                                           self.dsp_time.stats(), self.command_wait.stats())
-        return True, (f"bus_rate_hz={timing.rate_hz:.1f} late_per_s={timing.late_per_s:.1f} "
+        return True, (f"{self.arm_summary()}; bus_rate_hz={timing.rate_hz:.1f} late_per_s={timing.late_per_s:.1f} "
                       f"missed_per_s={timing.missed_per_s:.1f} work_ms={work['p50_ms']:.2f}/{work['p99_ms']:.2f} "
                       f"exchange_ms={exchange['p50_ms']:.2f}/{exchange['p99_ms']:.2f} "
                       f"wake_lag_ms={lag['p50_ms']:.2f}/{lag['p99_ms']:.2f} dsp_ms={dsp['p50_ms']:.2f}/"
                       f"{dsp['p99_ms']:.2f} command_wait_ms={wait['p50_ms']:.2f}/{wait['p99_ms']:.2f} (p50/p99)")
+
+    def arm_summary(self) -> str:
+        """The arm this node runs, and what drives its joints (the first part of its health's detail)."""
+        return f"arm {self.arm.name}: {self.arm.n_joints} joints"
 
     def timing(self) -> LoopTiming:
         return LoopTiming(rate_hz=self._cycles.rate_hz(), late_per_s=self._late.rate_hz(),
                           missed_per_s=self._missed.rate_hz())
 
     # ------------------------------------------------------------------ inputs (zenoh threads)
+    def _wrong_joint_count(self, kind: str, values: Optional[list]) -> bool:
+        """A joint vector for another arm than this one: refused and counted (``refused.joint_count``)."""
+        if values is None or len(values) == self.arm.n_joints:
+            return False
+        self.counters.inc("refused.joint_count")
+        self.refuse(kind, f"{len(values)} joint values for the {self.arm.name}'s {self.arm.n_joints} joints")
+        return True
+
     def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
+        if self._wrong_joint_count("command", command.joint_velocities):
+            return
         with self.command_cond:
             rejection = self.admission.admit(command.header, recv_ns)
             if rejection is not None:
@@ -405,6 +435,8 @@ class RobotNode(Service):
                 self.command_cond.notify_all()
 
     def _on_torque(self, command: TorqueCommand, recv_ns: int) -> None:
+        if self._wrong_joint_count("lowlevel_command", command.torques):
+            return
         unavailable = self.lowlevel_unavailable()
         if unavailable:
             self.refuse("lowlevel_command", unavailable)
@@ -438,15 +470,29 @@ class RobotNode(Service):
             query.reply(query.key_expr, encode(kinova.ApiReply(
                 code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc)[:256])))
             return
-        future: Future = Future()
-        self._api_calls.put((function, argument, future))
+        # handed to the worker, which answers (this callback must not wait: its session delivers nothing meanwhile)
+        refusal = self.api_calls.submit(function, argument, lambda reply: self._answer_api(query, reply))
+        if refusal:
+            self.refuse("api", f"{function}: {refusal}")
+            self._answer_api(query, kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
+                                                    message=f"not run: {refusal}"))
+            return
         with self.command_cond:
-            self.command_cond.notify_all()
+            self.command_cond.notify_all()  # a DSP waiting for a command runs the call now
+
+    def _answer_api(self, query: zenoh.Query, reply: kinova.ApiReply) -> None:
         try:
-            reply = future.result(timeout=5.0)
-        except Exception as exc:  # the loop died or timed out: the caller gets Kinova's unknown error
-            reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR), message=f"not executed: {exc}")
-        query.reply(query.key_expr, encode(reply))
+            query.reply(query.key_expr, encode(reply))
+        except Exception:  # the session closed under it (the node stopping)
+            self.counters.inc("errors.api_reply")
+        finally:
+            query.drop()  # the final answer goes out now, not when the query is collected
+
+    def _answer_api_timeouts(self) -> None:
+        """Answer the API calls the worker did not take in time, even while it is held up (a slow SDK call)."""
+        while not self.stop_requested:
+            self.api_calls.wait_for_deadline(0.5)
+            self.api_calls.expire()
 
     def _on_arm_check(self, query: zenoh.Query) -> None:
         """Run the commissioning check (the reply comes when it is over: a minute or two)."""
@@ -500,7 +546,7 @@ class RobotNode(Service):
             plan = arm_check.ArmCheckPlan(joints=tuple(request.joints), step_deg=request.step_deg,
                                           speed_dps=request.speed_dps)
             try:
-                run = arm_check.ArmCheckRun(plan, reading.q, tick_ns * 1e-9)
+                run = arm_check.ArmCheckRun(plan, self.arm, reading.q, tick_ns * 1e-9)
             except ValueError as exc:
                 future.set_result(ArmCheckReply(ok=False, state=self.arm_check_state, message=str(exc)))
                 return taken
@@ -524,14 +570,14 @@ class RobotNode(Service):
                             reason="commissioning check"), tick_ns
 
     def _finish_arm_check(self, run: "arm_check.ArmCheckRun", future: Future) -> None:
-        reply = arm_check.analyse(run.samples, failure=run.failure)
+        reply = arm_check.analyse(run.samples, self.arm.dh_forward_kinematics, failure=run.failure)
         self._check_run = None
         if not reply.ok:  # the check could not judge: the arm's verdict is what it was before
             self.arm_check_state, self.arm_check_detail = self._state_before_check
             reply = msgspec.structs.replace(reply, state=self.arm_check_state)
         else:
             self.arm_check_state, self.arm_check_detail = reply.state, reply.message
-            arm_check.save_verdict(self.config.arm_check, reply, time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+            arm_check.save_verdict(self.config.arm_check, self.arm, reply, time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         self.counters.inc(f"arm_check.{reply.state.value}")
         (self.log.info if reply.passed else self.log.warning)("commissioning check: %s: %s", reply.state.value,
                                                              reply.message)
@@ -539,21 +585,21 @@ class RobotNode(Service):
 
     # ------------------------------------------------------------------ the loop thread
     def run_api_calls(self) -> None:
-        while True:
-            try:
-                function, argument, future = self._api_calls.get_nowait()
-            except queue.Empty:
-                return
-            if function in MOTION_FUNCTIONS and self.core.torque_mode:
-                self.refuse("api", f"{function}: low-level torque control is active")
-                future.set_result(kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
-                                                  message="low-level torque control is active"))
-                continue
-            try:
-                future.set_result(self.api.call(function, argument))
-            except Exception as exc:
-                self.counters.inc("errors.api")
-                future.set_exception(exc)
+        """Run and answer the Kinova API calls waiting (on the worker, between DSP cycles)."""
+        while (call := self.api_calls.take()) is not None:
+            if call.function in MOTION_FUNCTIONS and self.core.torque_mode:
+                self.refuse("api", f"{call.function}: low-level torque control is active")
+                reply = kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                        message="low-level torque control is active")
+            else:
+                try:
+                    reply = self.api.call(call.function, call.argument)
+                except Exception as exc:
+                    self.counters.inc("errors.api")
+                    self.limited_log.error("api", "%s: %s failed: %s", self.name, call.function, exc)
+                    reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
+                                            message=f"{call.function} failed: {exc}"[:512])
+            self.api_calls.finish(call, reply)
 
     def take_command(self, wait_until: Optional[float] = None) -> Optional[tuple[RobotCommand, int]]:
         """The command waiting, if any; with ``wait_until`` (monotonic) first wait until then for a :func:`fresh`
@@ -804,7 +850,8 @@ class RobotNode(Service):
             faults.append(f"refused: {self._last_refusal}"[:120])
             self._refusal_cycles -= 1
         self.state_pub.put(RobotState(
-            header=self.header("state", stamp_ns=stamp_ns), q=reading.q.tolist(), dq=reading.dq.tolist(),
+            header=self.header("state", stamp_ns=stamp_ns), arm=self.arm.name, arm_digest=self.arm.digest,
+            q=reading.q.tolist(), dq=reading.dq.tolist(),
             tau=reading.tau.tolist(),
             pose=KinovaPose(X=p[0], Y=p[1], Z=p[2], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2]),
             control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],

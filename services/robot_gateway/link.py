@@ -13,7 +13,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from protocol import rs485 as r
-from services.model import jaco2
+from services.model.arm import ArmDescription
 from services.runtime.metrics import Counters
 from services.robot.rs485_bus import BusError, RS485Bus
 from services.robot.hardware import (ActuatorValues, HardwareError, JointReading, JointTargets, physical_targets,
@@ -31,8 +31,8 @@ _REPLY_NAMES = ("SEND_ALL_VALUES_1", "SEND_ALL_VALUES_2", "SEND_ALL_VALUES_3")
 
 
 class ActuatorLink:
-    def __init__(self, bus: RS485Bus, addresses=r.ACTUATOR_ADDRESSES, timeout_s: float = 0.01,
-                 counters: Counters | None = None) -> None:
+    def __init__(self, bus: RS485Bus, addresses, timeout_s: float = 0.01, counters: Counters | None = None) -> None:
+        """``addresses``: the actuators', joint by joint (an arm description's ``bus_addresses``)."""
         self.bus = bus
         self.addresses = list(addresses)
         self.timeout_s = timeout_s
@@ -255,8 +255,9 @@ class LinkHardware:
 
     simulated_in_process = False
 
-    def __init__(self, link: ActuatorLink, pipelined: bool = True) -> None:
+    def __init__(self, link: ActuatorLink, arm: ArmDescription, pipelined: bool = True) -> None:
         self.link = link
+        self.arm = arm
         #: the replies carry the emulated arm's own stamps (the bus says whether its interface keeps them)
         self.arm_timeline = link.bus.arm_timeline
         self.pipelined = pipelined
@@ -274,10 +275,10 @@ class LinkHardware:
             raise HardwareError(str(exc)) from exc
         zeros = np.zeros(len(positions))
         return reading_from_physical(ActuatorValues(positions, zeros, zeros, zeros, zeros, zeros.astype(int),
-                                                    zeros.astype(int), self.link.last_stamp_ns))
+                                                    zeros.astype(int), self.link.last_stamp_ns), self.arm)
 
     def exchange(self, targets: JointTargets) -> JointReading:
-        position_deg, torque_nm = physical_targets(targets)
+        position_deg, torque_nm = physical_targets(targets, self.arm)
         torques = torque_nm if targets.torques is not None else None
         link = self.link
         try:
@@ -297,7 +298,7 @@ class LinkHardware:
             self._outstanding, self._resync = None, True  # start afresh, after draining what is left
             raise HardwareError(str(exc)) from exc
         self._last = reading
-        return reading_from_physical(reading)
+        return reading_from_physical(reading, self.arm)
 
     def _collect_outstanding(self) -> Optional[ActuatorValues]:
         if self._outstanding is None:
@@ -316,7 +317,7 @@ class LinkHardware:
     def enter_torque_mode(self, expected_torques: np.ndarray) -> None:
         self._settle()
         try:
-            self.link.switch_to_torque(jaco2.SIGN * np.asarray(expected_torques, dtype=float))
+            self.link.switch_to_torque(self.arm.sign * np.asarray(expected_torques, dtype=float))
         except LinkError as exc:
             raise HardwareError(str(exc)) from exc
 
@@ -331,8 +332,8 @@ class LinkHardware:
         self.link.bus.close()
 
 
-def expected_torques_physical(q_model) -> np.ndarray:
-    """The gravity torques the host's model expects at q (actuator sign), for the validation handshake."""
+def expected_torques_physical(arm: ArmDescription, q_model) -> np.ndarray:
+    """The gravity torques the host's model of ``arm`` expects at q (actuator sign), for the validation handshake."""
     from services.model.kinematics import ArmKinematics
 
-    return jaco2.SIGN * ArmKinematics().gravity(q_model)
+    return arm.sign * ArmKinematics(arm).gravity(q_model)

@@ -6,9 +6,10 @@ hardware, so every other service sees the same robot:
   the emulated DSP itself at 100 Hz on top of its 500 Hz exchanges with the actuators. In lockstep it drives
   robot_sim's emulated actuators (``mode: actuator_bus``) cycle by cycle, and learns from the simulator's clock
   which tick carries a camera frame;
-* ``kinova_sdk`` backend (:class:`SdkGatewayService`): the arm through Kinova's USB command layer loaded with
-  ctypes (services.robot_gateway.kinova_sdk); the arm's own DSP interprets the commands, so the gateway forwards
-  them every 10 ms; no low-level torque API; realtime only.
+* ``kinova_sdk`` backend (:class:`SdkGatewayService`): the arm through Kinova's own SDK library (USB, or
+  Ethernet) loaded with ctypes (services.robot_gateway.kinova_sdk); the arm's own DSP interprets the commands, so
+  the gateway forwards them every 10 ms; no low-level torque API; realtime only. It opens the arm before it
+  connects to the router: a gateway that cannot reach its arm says so first (one line, exit 2).
 
 Bus failures (timeouts, NACKs, missing replies, garbled frames) are counted; the arm is held at its last measured
 angles, and after ``max_bus_errors`` consecutive failures the gateway reports itself unhealthy and refuses motion
@@ -16,13 +17,14 @@ until the bus answers again.
 """
 from __future__ import annotations
 
+import logging
 import threading
 import time
+from dataclasses import dataclass
 from typing import Literal, Optional
 
 import msgspec
 
-from protocol import kinova
 from protocol import rs485 as r
 from protocol.conventions import ClockMode
 from protocol.messages import SimClock
@@ -30,7 +32,9 @@ from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
 from services.robot.hardware import HardwareError, JointReading
 from services.robot.node import RobotNode, RobotNodeConfig
-from services.robot_gateway.kinova_sdk import KINOVA_SDK_LIBRARY, KinovaSdk, SdkArm, SdkError
+from services.model.arm import load_arm
+from services.robot_gateway.kinova_sdk import (ArmSession, ArmStartError, KinovaSdk, SdkArm, SdkError,
+                                               SdkEthernetConfig, open_arm)
 from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
 
 
@@ -41,17 +45,31 @@ SIMULATED_TIME_LIMIT_NS = 10**17
 class GatewayConfig(RobotNodeConfig):
     backend: Literal["rs485", "kinova_sdk"] = "rs485"
     bus: BusConfig = msgspec.field(default_factory=BusConfig)
-    addresses: list[int] = msgspec.field(default_factory=lambda: list(r.ACTUATOR_ADDRESSES))
+    #: the actuators' bus addresses, joint by joint; null: the arm description's
+    addresses: Optional[list[int]] = None
     #: realtime: an actuator that has not replied after this long is a bus error (lockstep: lockstep.link_timeout_s)
     link_timeout_s: float = 0.01
     #: at start, keep asking the actuators for their positions this long (an arm, or robot_sim, powering up)
     connect_timeout_s: float = 30.0
-    sdk_library: str = KINOVA_SDK_LIBRARY
+    #: Kinova's SDK: its directory or its command-layer file (null: $MFVS_KINOVA_SDK)
+    sdk_library: Optional[str] = None
+    #: the serial number of the arm to drive (null: the only one connected)
+    sdk_serial: Optional[str] = None
+    sdk_transport: Literal["usb", "ethernet"] = "usb"
+    sdk_ethernet: SdkEthernetConfig = msgspec.field(default_factory=SdkEthernetConfig)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.backend == "kinova_sdk" and ClockMode(self.clock) is not ClockMode.REALTIME:
             raise ValueError("the kinova_sdk backend runs in realtime only (a real arm has no simulated clock)")
+        arm = load_arm(self.arm)
+        if self.addresses is not None and (len(self.addresses) != arm.n_joints
+                                           or len(set(self.addresses)) != arm.n_joints):
+            raise ValueError(f"addresses must be {arm.n_joints} distinct bus addresses (the {arm.name}'s joints)")
+
+    def bus_addresses(self) -> list[int]:
+        """The actuators' addresses: the config's, else the arm description's."""
+        return list(load_arm(self.arm).bus_addresses) if self.addresses is None else list(self.addresses)
 
 
 class RobotGatewayService(RobotNode):
@@ -77,7 +95,7 @@ class RobotGatewayService(RobotNode):
         timeout = cfg.lockstep.link_timeout_s if self.lockstep else cfg.link_timeout_s
         # realtime: pipelined, so that the round trip does not stretch the 2 ms cycle; lockstep: in step, so that
         # the arm behind the bus computes exactly what the simulated arm in robot_sim's process does
-        hardware = LinkHardware(ActuatorLink(self.bus, cfg.addresses, timeout, self.counters),
+        hardware = LinkHardware(ActuatorLink(self.bus, cfg.bus_addresses(), timeout, self.counters), self.arm,
                                 pipelined=not self.lockstep)
         try:
             reading = self._connect(hardware)
@@ -91,6 +109,11 @@ class RobotGatewayService(RobotNode):
             self.bus.close()  # a start that fails leaves no socket behind
             self.bus = None
             raise
+
+    def arm_summary(self) -> str:
+        addresses = self.config.bus_addresses()
+        return (f"arm {self.arm.name}: {len(addresses)} actuators on the bus "
+                f"({', '.join(f'0x{a:02X}' for a in addresses)})")
 
     def _connect(self, hardware: LinkHardware) -> JointReading:
         """The actuators' first answer, waiting up to ``connect_timeout_s`` for them; the start fails after."""
@@ -128,13 +151,14 @@ class RobotGatewayService(RobotNode):
 
 class _NoJoints:
     """The kinova_sdk backend's joints as the robot node sees them: the arm's own DSP drives them; there is no
-    joint-level exchange and no low-level torque API through the USB layer."""
+    joint-level exchange and no low-level torque API through the command layer. Closing it ends the arm's
+    session (trajectories erased, StopControlAPI, CloseAPI)."""
 
     simulated_in_process = False
     arm_timeline = False
 
-    def __init__(self, sdk: KinovaSdk) -> None:
-        self.sdk = sdk
+    def __init__(self, session: ArmSession) -> None:
+        self.session = session
 
     def exchange(self, targets):
         raise HardwareError("the kinova_sdk backend has no joint-level exchange")
@@ -146,41 +170,87 @@ class _NoJoints:
         pass
 
     def close(self) -> None:
-        self.sdk.action("CloseAPI")
+        self.session.close()
+
+
+@dataclass
+class SdkConnection:
+    """The arm opened through Kinova's SDK, with its first reading: what the kinova_sdk backend starts from."""
+
+    sdk: KinovaSdk
+    session: ArmSession
+    arm: SdkArm
+    first_reading: JointReading
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def connect_sdk_arm(config: GatewayConfig, sdk: Optional[KinovaSdk] = None,
+                    log: Optional[logging.Logger] = None) -> SdkConnection:
+    """Kinova's SDK found (unless given) and the arm opened and read once (:class:`ArmStartError` with one line
+    otherwise, the API closed again)."""
+    sdk = sdk or KinovaSdk.find(config.sdk_library, config.sdk_transport)
+    ethernet = config.sdk_ethernet if config.sdk_transport == "ethernet" else None
+    description = load_arm(config.arm)
+    session = open_arm(sdk, serial=config.sdk_serial, arm_name=description.name, n_joints=description.n_joints,
+                       ethernet=ethernet, log=log)
+    try:
+        arm = SdkArm(sdk, config.dsp, description)
+        try:
+            reading = arm.read()
+        except SdkError as exc:
+            raise ArmStartError(f"the arm does not report its state: {exc}") from None
+    except BaseException:
+        session.close()
+        raise
+    return SdkConnection(sdk, session, arm, reading)
 
 
 class SdkGatewayService(RobotNode):
     """The robot node on an arm behind Kinova's SDK: every DSP cycle (10 ms) it reads the arm, publishes its state
-    and forwards the latest robot command to the arm's own DSP."""
+    and forwards the latest robot command to the arm's own DSP. It opens the arm in :meth:`start` before it joins
+    the network, unless it is given one already open (``connection``: the process's entry opens it first)."""
 
     name = "robot_gateway"
 
-    def __init__(self, config: GatewayConfig | None = None, **kw) -> None:
+    def __init__(self, config: GatewayConfig | None = None, connection: Optional[SdkConnection] = None,
+                 **kw) -> None:
         config = config or GatewayConfig(backend="kinova_sdk")
         super().__init__(config, **kw)
         self.config: GatewayConfig = config
-        #: the library, loaded now so that a missing one fails before anything starts
-        self.sdk = KinovaSdk(config.sdk_library)
-        self.arm: Optional[SdkArm] = None
+        self.connection = connection
+        #: the library, found and loaded now so that a missing one fails before anything starts
+        self.sdk = connection.sdk if connection else KinovaSdk.find(config.sdk_library, config.sdk_transport)
+        #: the arm behind the SDK (``self.arm`` is its description)
+        self.sdk_arm: Optional[SdkArm] = connection.arm if connection else None
         self.cycle_s = config.dsp.cycle_s
 
-    def open_hardware(self):
-        code = self.sdk.action("InitAPI")
-        if code != kinova.ErrorCode.NO_ERROR_KINOVA:
-            raise SdkError("InitAPI", code)
-        self.arm = SdkArm(self.sdk, self.config.dsp)
+    def start(self) -> "SdkGatewayService":
+        """Open the arm, then start the service (the router comes second: a gateway that cannot reach its arm
+        says so, whatever the network)."""
+        if self.state != "created":
+            return super().start()  # refuses, saying why
+        if self.connection is None:
+            self.connection = connect_sdk_arm(self.config, self.sdk, self.log)
+            self.sdk_arm = self.connection.arm
         try:
-            reading = self.arm.read()
+            return super().start()
         except BaseException:
-            self.sdk.action("CloseAPI")
+            self.connection.close()
             raise
-        return _NoJoints(self.sdk), reading
+
+    def open_hardware(self):
+        return _NoJoints(self.connection.session), self.connection.first_reading
 
     def make_dsp(self):
-        return self.arm
+        return self.sdk_arm
 
     def make_api(self):
         return self.sdk
+
+    def arm_summary(self) -> str:
+        return f"arm {self.arm.name}: {self.arm.n_joints} joints behind Kinova's SDK"
 
     def lowlevel_unavailable(self) -> str:
         return "the kinova_sdk backend has no low-level torque API (the USB layer offers none); use the rs485 backend"
@@ -191,7 +261,7 @@ class SdkGatewayService(RobotNode):
         self._cycles.tick()
         self.rates.tick("bus_cycle")
         try:
-            self.core.observe(self.arm.read())
+            self.core.observe(self.sdk_arm.read())
             self.consecutive_errors, self._bus_faults = 0, []
         except Exception as exc:  # an SDK error code, or values the arm should never report (NaN)
             self.consecutive_errors += 1

@@ -27,7 +27,7 @@ import mujoco
 import numpy as np
 
 from protocol.messages import CHANNELS, CameraInfo, Header, Image, ImageEncoding
-from services.model import jaco2
+from services.model.arm import mujoco_module
 from services.robot.pacing import normal_priority, request_realtime
 from services.runtime.threads import name_os_thread, start_thread
 from services.robot_sim import imaging as imaging_mod
@@ -53,7 +53,7 @@ def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, heigh
     camera's imperfections when it has them, until the pipe closes or a None comes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is robot_sim's to handle: it closes us
     name_os_thread("robot_sim-render")
-    jaco2.mujoco_module()  # a spawned interpreter: its MuJoCo warnings to the log too, not to MUJOCO_LOG.TXT
+    mujoco_module()  # a spawned interpreter: its MuJoCo warnings to the log too, not to MUJOCO_LOG.TXT
     if realtime_priority > 0:
         # llvmpipe (Mesa's CPU rasteriser) splits a frame across a thread per core by default. In realtime, on a
         # shared 2-core host, those threads at normal priority cost a quarter more CPU than one (10.5 against 8.5

@@ -40,14 +40,15 @@ import mujoco
 import numpy as np
 
 from protocol import rs485 as r
-from services.model import jaco2
+from services.model.arm import ArmDescription
 from services.robot.hardware import CYCLE_S, EXTRAPOLATED_CYCLES, ActuatorValues
 from services.runtime.config import ConfigStruct
 from services.runtime.metrics import Counters
 
 
 class ActuatorConfig(ConfigStruct):
-    addresses: list[int] = msgspec.field(default_factory=lambda: list(r.ACTUATOR_ADDRESSES))
+    #: the actuators' bus addresses, joint by joint; null: the arm description's
+    addresses: Optional[list[int]] = None
     torque_timeout_s: float = 0.25
     gravity_compensation: bool = True
     reference_tolerance_deg: float = 10.0
@@ -61,12 +62,23 @@ class ActuatorConfig(ConfigStruct):
     mirrored_joints: list[int] = msgspec.field(default_factory=list)
 
     def __post_init__(self) -> None:
-        if len(self.addresses) != jaco2.N_JOINTS or len(set(self.addresses)) != jaco2.N_JOINTS:
-            raise ValueError(f"addresses must be {jaco2.N_JOINTS} distinct bus addresses")
-        if any(not 1 <= j <= jaco2.N_JOINTS for j in self.mirrored_joints):
-            raise ValueError(f"mirrored_joints are joint numbers 1..{jaco2.N_JOINTS}")
         if not 0 < self.torque_timeout_s:
             raise ValueError("torque_timeout_s must be positive")
+
+
+def actuator_addresses(config: ActuatorConfig, arm: ArmDescription) -> list[int]:
+    """The actuators' bus addresses: the config's, else the arm description's."""
+    return list(arm.bus_addresses) if config.addresses is None else list(config.addresses)
+
+
+def check_actuators(config: ActuatorConfig, arm: ArmDescription) -> None:
+    """The actuators' config against the arm: one distinct address per joint, mirrored joints that exist."""
+    addresses = actuator_addresses(config, arm)
+    if len(addresses) != arm.n_joints or len(set(addresses)) != arm.n_joints:
+        raise ValueError(f"actuators.addresses must be {arm.n_joints} distinct bus addresses (the {arm.name}'s "
+                         f"joints), not {[hex(a) for a in addresses]}")
+    if any(not 1 <= j <= arm.n_joints for j in config.mirrored_joints):
+        raise ValueError(f"actuators.mirrored_joints are joint numbers 1..{arm.n_joints}")
 
 
 #: N·m per A of a geared motor, and a steady temperature: emulation constants for the reported current and
@@ -117,15 +129,17 @@ class ActuatorFirmware:
     :meth:`validate_torque`, :meth:`switch_mode`, :meth:`clear_fault`); :meth:`begin_cycle` takes them at a
     boundary; :meth:`apply` sets the joint torques every physics step."""
 
-    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, config: ActuatorConfig | None = None,
-                 counters: Counters | None = None) -> None:
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, arm: ArmDescription,
+                 config: ActuatorConfig | None = None, counters: Counters | None = None) -> None:
         self.model, self.data = model, data
+        self.arm = arm
         self.config = config or ActuatorConfig()
+        check_actuators(self.config, arm)
         self.counters = counters or Counters()
-        self.n = jaco2.N_JOINTS
+        self.n = arm.n_joints
         self.torque_limit = model.actuator_ctrlrange[: self.n, 1].copy()
-        self.lower, self.upper = jaco2.model_limits()
-        self.actuators = [Actuator(i, address) for i, address in enumerate(self.config.addresses)]
+        self.lower, self.upper = arm.model_limits()
+        self.actuators = [Actuator(i, address) for i, address in enumerate(actuator_addresses(self.config, arm))]
         self.by_address = {a.address: a for a in self.actuators}
         self._mass = np.zeros((model.nv, model.nv))
         self._friction = model.dof_damping[: self.n].copy()
@@ -133,10 +147,10 @@ class ActuatorFirmware:
         # (physical degrees, the bus's unit, to the model's radians, sign included); a mirrored joint turns the other
         # way about its home angle
         direction = np.array([-1.0 if i + 1 in self.config.mirrored_joints else 1.0 for i in range(self.n)])
-        self._deg_to_model = jaco2.SIGN * direction * (math.pi / 180.0)
-        self._pivot_model = jaco2.SIGN * np.radians(jaco2.HOME_DEG * (1.0 - direction))
+        self._deg_to_model = arm.sign * direction * (math.pi / 180.0)
+        self._pivot_model = arm.sign * np.radians(arm.home_deg * (1.0 - direction)) + arm.offset
         #: an actuator's torque (its sign) to the model's joint torque
-        self._torque_sign = jaco2.SIGN * direction
+        self._torque_sign = arm.sign * direction
         #: the current cycle boundary's time (s) on the arm's timeline
         self.now_s = 0.0
         #: reports raised at a boundary (joint limits) for the bus to carry: (address, error)

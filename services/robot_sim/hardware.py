@@ -12,7 +12,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from protocol import rs485 as r
-from services.model import jaco2
+from services.model.arm import ArmDescription
 from services.robot.hardware import (ActuatorValues, HardwareError, JointReading, JointTargets, physical_targets,
                                      reading_from_physical)
 from services.robot_sim.sim import Simulation
@@ -23,13 +23,13 @@ def float32(values) -> np.ndarray:
     return np.asarray(values, dtype=np.float64).astype(np.float32).astype(np.float64)
 
 
-def reading_from_values(values: ActuatorValues, epoch_ns: int = 0) -> JointReading:
+def reading_from_values(values: ActuatorValues, arm: ArmDescription, epoch_ns: int = 0) -> JointReading:
     """The reading the 0x15-0x17 replies of this cycle carry (float32 values, the 0x16 temperature in 0.01 °C)."""
     return reading_from_physical(ActuatorValues(
         position_deg=float32(values.position_deg), velocity_dps=float32(values.velocity_dps),
         torque_nm=float32(values.torque_nm), current_a=float32(values.current_a),
         temperature_c=np.round(values.temperature_c / 0.01) * 0.01, mode=values.mode, fault=values.fault,
-        stamp_ns=epoch_ns + values.stamp_ns))
+        stamp_ns=epoch_ns + values.stamp_ns), arm)
 
 
 class SimulatedHardware:
@@ -47,15 +47,15 @@ class SimulatedHardware:
 
     def read(self) -> JointReading:
         """The joints now, without a cycle (at start)."""
-        reading = reading_from_values(self.sim.firmware.values(self.sim.time_ns), self.epoch_ns)
+        reading = reading_from_values(self.sim.firmware.values(self.sim.time_ns), self.sim.arm, self.epoch_ns)
         reading.arm_pose = self.sim.ee_pose()
         return reading
 
     def exchange(self, targets: JointTargets) -> JointReading:
-        position_deg, torque_nm = physical_targets(targets)
+        position_deg, torque_nm = physical_targets(targets, self.sim.arm)
         position_deg, torque_nm = float32(position_deg), float32(torque_nm)
         firmware = self.sim.firmware
-        for i in range(jaco2.N_JOINTS):
+        for i in range(self.sim.arm.n_joints):
             firmware.command(i, float(position_deg[i]), float(torque_nm[i]))
         values = self.sim.begin_cycle()
         # the physical arm's own report, whatever its description says (MuJoCo's last kinematics: a physics step,
@@ -65,23 +65,24 @@ class SimulatedHardware:
         if self.on_boundary is not None:
             self.on_boundary(values)
         self.sim.end_cycle()
-        reading = reading_from_values(values, self.epoch_ns)
+        reading = reading_from_values(values, self.sim.arm, self.epoch_ns)
         reading.arm_pose = arm_pose
         return reading
 
     def enter_torque_mode(self, expected_torques: np.ndarray) -> None:
         firmware = self.sim.firmware
-        expected = float32(jaco2.SIGN * np.asarray(expected_torques, dtype=float))
-        invalid = [i for i in range(jaco2.N_JOINTS) if not firmware.validate_torque(i, float(expected[i]))]
+        n = self.sim.arm.n_joints
+        expected = float32(self.sim.arm.sign * np.asarray(expected_torques, dtype=float))
+        invalid = [i for i in range(n) if not firmware.validate_torque(i, float(expected[i]))]
         if invalid:
             raise HardwareError(f"torque validation failed for actuators {[i + 1 for i in invalid]}")
-        refused = [i for i in range(jaco2.N_JOINTS)
+        refused = [i for i in range(n)
                    if firmware.switch_mode(i, r.ControlModeRequest.TORQUE) is not r.ControlModeReply.TORQUE_OK]
         if refused:
             raise HardwareError(f"torque mode refused by actuators {[i + 1 for i in refused]}")
 
     def leave_torque_mode(self) -> None:
-        for i in range(jaco2.N_JOINTS):
+        for i in range(self.sim.arm.n_joints):
             self.sim.firmware.switch_mode(i, r.ControlModeRequest.POSITION)
 
     def close(self) -> None:

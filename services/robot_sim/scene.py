@@ -13,7 +13,8 @@ import mujoco
 import numpy as np
 
 from protocol.messages import CameraInfo, Header, ImageEncoding, Pose
-from services.model import frames, jaco2
+from services.model import frames
+from services.model.arm import EE_LINK, ArmDescription
 from services.model.board import BoardConfig, board_image
 from services.robot.hardware import CYCLE_NS, DSP_CYCLE_NS
 from services.robot_sim.imaging import ImagingConfig
@@ -134,22 +135,38 @@ class TargetConfig(ConfigStruct):
 
 
 class SceneConfig(ConfigStruct):
-    #: physical joint angles (deg) as GetAngularPosition reports them
-    initial_joints_deg: list[float] = msgspec.field(default_factory=lambda: jaco2.HOME_DEG.tolist())
+    """The world around the arm (the arm itself is the robot's config: ``arm``)."""
+
+    #: physical joint angles (deg) as GetAngularPosition reports them, one per joint of the arm; null: its home
+    initial_joints_deg: Optional[list[float]] = None
     camera: CameraConfig = msgspec.field(default_factory=CameraConfig)
     target: TargetConfig = msgspec.field(default_factory=TargetConfig)
     timestep_s: float = 0.001
     floor: bool = True
 
     def __post_init__(self) -> None:
-        if len(self.initial_joints_deg) != jaco2.N_JOINTS:
-            raise ValueError(f"initial_joints_deg needs {jaco2.N_JOINTS} angles")
         if not 1e-4 <= self.timestep_s <= 0.001:
             raise ValueError("timestep_s must be within 0.1..1 ms (physics at 1 kHz or faster)")
-        q = jaco2.physical_deg_to_model(self.initial_joints_deg)
-        lower, upper = jaco2.model_limits()
-        if np.any(q < lower) or np.any(q > upper):
-            raise ValueError("initial_joints_deg are outside the joint limits")
+
+    def check(self, arm: ArmDescription) -> None:
+        """The scene against the arm it holds (its initial angles). Raises ValueError."""
+        if self.initial_joints_deg is not None:
+            check_joints_deg(arm, self.initial_joints_deg, "initial_joints_deg")
+
+    def start_deg(self, arm: ArmDescription) -> list[float]:
+        """Where the arm starts (physical deg): ``initial_joints_deg``, or the arm's home."""
+        return list(self.initial_joints_deg) if self.initial_joints_deg is not None else arm.home_deg.tolist()
+
+
+def check_joints_deg(arm: ArmDescription, joints_deg, name: str) -> None:
+    """Physical angles (deg) for ``arm``: one per joint, within its limits. Raises ValueError saying which."""
+    if len(joints_deg) != arm.n_joints:
+        raise ValueError(f"{name} has {len(joints_deg)} angles; the {arm.name} has {arm.n_joints} joints")
+    if not all(math.isfinite(v) for v in joints_deg):
+        raise ValueError(f"{name} must be finite")
+    if not arm.within_limits(arm.physical_deg_to_model(joints_deg)):
+        raise ValueError(f"{name} are outside the {arm.name}'s joint limits")
+
 
 
 
@@ -158,17 +175,17 @@ def camera_in_ee(cfg: SceneConfig) -> np.ndarray:
     return cfg.camera.camera_in_ee.matrix()
 
 
-def target_in_base(cfg: SceneConfig) -> np.ndarray:
-    """The target's initial pose in the base frame (resolving pose_in_camera at the initial configuration)."""
+def target_in_base(cfg: SceneConfig, arm: ArmDescription) -> np.ndarray:
+    """The target's initial pose in the base frame (resolving pose_in_camera at ``arm``'s initial configuration)."""
     if cfg.target.pose_in_base is not None:
         return cfg.target.pose_in_base.matrix()
     pose_in_camera = (cfg.target.pose_in_camera or default_target_in_camera()).matrix()
-    T_be = jaco2.dh_forward_kinematics(jaco2.physical_deg_to_model(cfg.initial_joints_deg))
+    T_be = arm.dh_forward_kinematics(arm.physical_deg_to_model(cfg.start_deg(arm)))
     return T_be @ camera_in_ee(cfg) @ pose_in_camera
 
 
-def build_model(cfg: SceneConfig) -> mujoco.MjModel:
-    spec = jaco2.mujoco_spec()
+def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
+    spec = arm.mujoco_spec()
     spec.option.timestep = cfg.timestep_s
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     cam = cfg.camera
@@ -180,7 +197,7 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
     spec.visual.headlight.diffuse = [0.4, 0.4, 0.4]
 
-    for i, joint_spec in enumerate(jaco2.JOINTS):
+    for i, joint_spec in enumerate(arm.joints):
         motor = spec.add_actuator(name=f"motor_{i + 1}", target=joint_spec.name)
         motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
         motor.gainprm[0] = 1.0
@@ -215,7 +232,7 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
     texture.data = rgb.tobytes()
     spec.add_material(name="tag", textures=["", "tag"], texrepeat=[1, 1], texuniform=False, specular=0.0,
                       shininess=0.0, reflectance=0.0)
-    T_bt = target_in_base(cfg)
+    T_bt = target_in_base(cfg, arm)
     if cfg.floor and T_bt[2, 3] < 0.0:
         raise ValueError(f"the target's centre is {-T_bt[2, 3]:.3f} m below the floor; move it or disable the floor")
     target = world.add_body(name=TAG_BODY, mocap=True, pos=T_bt[:3, 3].tolist(),
@@ -227,7 +244,7 @@ def build_model(cfg: SceneConfig) -> mujoco.MjModel:
     # Eye-in-hand camera with exact intrinsics: MuJoCo's principal_pixel is the offset of the image centre from
     # the principal point, in pixels (verified by rendering).
     T_ec = camera_in_ee(cfg)
-    ee = spec.body(jaco2.EE_LINK)
+    ee = spec.body(EE_LINK)
     camera = ee.add_camera(name=CAMERA_NAME, pos=T_ec[:3, 3].tolist(),
                            quat=frames.matrix_to_quat_wxyz(T_ec[:3, :3] @ MUJOCO_FROM_OPTICAL).tolist())
     cx, cy = cam.principal_point

@@ -38,9 +38,11 @@ from services.robot.hardware import CYCLE_NS, CYCLE_S, DSP_CYCLE_NS, ActuatorVal
 from services.robot.node import ROBOT_SERVICES, RobotNode, RobotNodeConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig
 from services.robot_sim.camera import SimCamera
-from services.robot_sim.firmware import ActuatorConfig
+from services.model.arm import load_arm
+from services.robot_sim.firmware import ActuatorConfig, check_actuators
 from services.robot_sim.hardware import SimulatedHardware
-from services.robot_sim.scene import DEFAULT_TRIGGER_MS, TRIGGER_OFFSETS_MS, SceneConfig, trigger_offset
+from services.robot_sim.scene import DEFAULT_TRIGGER_MS, TRIGGER_OFFSETS_MS, SceneConfig, check_joints_deg, \
+    trigger_offset
 from services.robot_sim.trigger_phase import TriggerPhase
 from services.robot_sim.sim import Simulation
 
@@ -64,6 +66,10 @@ class RobotSimConfig(RobotNodeConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        arm = load_arm(self.arm)
+        if self.scene.initial_joints_deg is not None:
+            check_joints_deg(arm, self.scene.initial_joints_deg, "scene.initial_joints_deg")
+        check_actuators(self.actuators, arm)
         if self.actuators.mirrored_joints and self.arm_check.waived:
             raise ValueError("actuators.mirrored_joints makes the arm disagree with its description: the check "
                              "cannot be waived (arm_check.waived: false)")
@@ -206,7 +212,7 @@ class RobotSimService(RobotNode):
             raise ValueError("RobotSimService is robot_sim's api mode; use robot_sim_service() for any mode")
         super().__init__(config, **kw)
         self.config: RobotSimConfig = config
-        self.sim = Simulation(config.scene, config.actuators, render=True, counters=self.counters)
+        self.sim = Simulation(config.scene, config.actuators, render=True, counters=self.counters, arm=self.arm)
         self.outputs: Optional[_SimulationOutputs] = None
 
     def open_hardware(self):
@@ -250,7 +256,8 @@ class RobotSimService(RobotNode):
     def check_health(self) -> tuple[bool, str]:
         ok, detail = super().check_health()
         trigger = self.outputs.trigger_detail() if self.outputs is not None else ""
-        return ok, f"sim_time_s={self.sim.time_ns * 1e-9:.3f} {trigger} {detail}"
+        arm, _, rest = detail.partition("; ")  # the arm first, as every robot node's detail starts
+        return ok, f"{arm}; sim_time_s={self.sim.time_ns * 1e-9:.3f} {trigger} {rest}"
 
 
 class ArmOnBusService(Service):
@@ -265,10 +272,12 @@ class ArmOnBusService(Service):
         super().__init__(config, **kw)
         self.config: RobotSimConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
-        self.sim = Simulation(config.scene, config.actuators, render=True, counters=self.counters)
+        #: the arm simulated (its description)
+        self.arm = load_arm(config.arm)
+        self.sim = Simulation(config.scene, config.actuators, render=True, counters=self.counters, arm=self.arm)
         epoch = _epoch(config)
         self.outputs = _SimulationOutputs(self, self.sim, config, epoch)
-        self.arm: Optional[ArmOnBus] = None
+        self.arm_on_bus: Optional[ArmOnBus] = None
 
     def on_start(self) -> None:
         cfg = self.config
@@ -280,14 +289,14 @@ class ArmOnBusService(Service):
         except BaseException:
             bus.close()
             raise
-        self.arm = ArmOnBus(self.sim, bus, ArmOnBusConfig(
+        self.arm_on_bus = ArmOnBus(self.sim, bus, ArmOnBusConfig(
             lockstep=self.lockstep, epoch_ns=self.outputs.epoch_ns, sync=cfg.bus_sync, timing=cfg.lockstep,
             realtime_priority=cfg.realtime_priority, max_sim_time_s=cfg.max_sim_time_s), self.counters,
             on_boundary=self._on_boundary, on_tick=self._on_tick, on_retry=self.outputs.retry,
             on_epoch=self._on_epoch, log=self.log)
         if not self.lockstep:
             self.declare_loop("bus_cycle", 1.0 / CYCLE_S, ("cycles.late", "cycles.dropped"))
-        self.arm.start()
+        self.arm_on_bus.start()
 
     def _on_boundary(self, sim_time_ns: int) -> None:
         self.rates.tick("bus_cycle")
@@ -302,17 +311,17 @@ class ArmOnBusService(Service):
 
     @property
     def finished(self) -> threading.Event:
-        return self.arm.finished
+        return self.arm_on_bus.finished
 
     def on_stop(self) -> None:
-        if self.arm is not None:
-            self.arm.stop()
+        if self.arm_on_bus is not None:
+            self.arm_on_bus.stop()
         self.outputs.stop()
 
     def check_health(self) -> tuple[bool, str]:
-        if self.arm is None or not self.arm.alive:
+        if self.arm_on_bus is None or not self.arm_on_bus.alive:
             return False, "actuator loop stopped"
-        stats, phase = self.arm.loop_timer.stats(), self.arm.phase_error.stats()
+        stats, phase = self.arm_on_bus.loop_timer.stats(), self.arm_on_bus.phase_error.stats()
         return True, (f"sim_time_s={self.sim.time_ns * 1e-9:.3f} bus_cycle_rate_hz={stats['rate_hz']:.1f} "
                       f"jitter_ms_p99={stats['jitter_ms_p99']:.2f} host_phase_error_ms_p50={phase['p50_ms']:.2f} "
                       f"p99={phase['p99_ms']:.2f} {self.outputs.trigger_detail()}")

@@ -16,7 +16,8 @@ from typing import Optional
 import mujoco
 import numpy as np
 
-from services.model import frames, jaco2
+from services.model import frames
+from services.model.arm import EE_LINK, ArmDescription, load_arm
 from services.runtime.metrics import Counters
 from services.robot.hardware import CYCLE_NS, ActuatorValues
 from services.robot_sim import scene as scene_mod
@@ -26,13 +27,18 @@ from services.robot_sim.firmware import ActuatorConfig, ActuatorFirmware
 
 class Simulation:
     def __init__(self, scene: scene_mod.SceneConfig | None = None, actuators: ActuatorConfig | None = None,
-                 render: bool = True, counters: Counters | None = None) -> None:
+                 render: bool = True, counters: Counters | None = None, arm: ArmDescription | None = None) -> None:
+        #: the arm simulated (its description; a service passes the one it is configured with, a notebook may
+        #: leave it to the default arm)
+        self.arm = arm if arm is not None else load_arm()
         self.scene = scene or scene_mod.SceneConfig()
-        self.model = scene_mod.build_model(self.scene)
+        self.scene.check(self.arm)
+        self.n = self.arm.n_joints
+        self.model = scene_mod.build_model(self.scene, self.arm)
         self.data = mujoco.MjData(self.model)
-        if self.model.nv != jaco2.N_JOINTS:
-            raise ValueError(f"the model must have exactly {jaco2.N_JOINTS} dofs, it has {self.model.nv}")
-        self.firmware = ActuatorFirmware(self.model, self.data, actuators, counters)
+        if self.model.nv != self.n:
+            raise ValueError(f"the model must have exactly {self.n} dofs, it has {self.model.nv}")
+        self.firmware = ActuatorFirmware(self.model, self.data, self.arm, actuators, counters)
         self.physics_dt_ns = int(round(self.model.opt.timestep * 1e9))
         self.cycle_ns = CYCLE_NS
         if self.cycle_ns % self.physics_dt_ns:
@@ -45,7 +51,7 @@ class Simulation:
         self._mocap = self.model.body(scene_mod.TAG_BODY).mocapid[0]
         self._target_start = self.data.mocap_pos[self._mocap].copy()
         self._target_velocity = np.asarray(self.scene.target.velocity_mps, dtype=float)
-        self._ee_body = self.model.body(jaco2.EE_LINK).id
+        self._ee_body = self.model.body(EE_LINK).id
         self._camera_id = self.model.camera(scene_mod.CAMERA_NAME).id
         self._renderer = None
         self._render_enabled = render
@@ -59,8 +65,8 @@ class Simulation:
     # ------------------------------------------------------------------ state
     def reset(self, joints_deg=None) -> None:
         mujoco.mj_resetData(self.model, self.data)
-        q = self.firmware.model_from_physical_deg(self.scene.initial_joints_deg if joints_deg is None else joints_deg)
-        self.data.qpos[: jaco2.N_JOINTS] = q
+        q = self.firmware.model_from_physical_deg(self.scene.start_deg(self.arm) if joints_deg is None else joints_deg)
+        self.data.qpos[: self.n] = q
         self.data.mocap_pos[self._mocap] = self._target_start
         mujoco.mj_forward(self.model, self.data)
         self.time_ns = 0
@@ -71,15 +77,15 @@ class Simulation:
 
     @property
     def q(self) -> np.ndarray:
-        return self.data.qpos[: jaco2.N_JOINTS].copy()
+        return self.data.qpos[: self.n].copy()
 
     @property
     def dq(self) -> np.ndarray:
-        return self.data.qvel[: jaco2.N_JOINTS].copy()
+        return self.data.qvel[: self.n].copy()
 
     @property
     def tau(self) -> np.ndarray:
-        return self.data.actuator_force[: jaco2.N_JOINTS].copy()
+        return self.data.actuator_force[: self.n].copy()
 
     def ee_pose(self) -> np.ndarray:
         return frames.homogeneous(self.data.xmat[self._ee_body].reshape(3, 3), self.data.xpos[self._ee_body])

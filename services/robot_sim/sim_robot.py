@@ -8,6 +8,8 @@ from typing import Optional
 import numpy as np
 
 from protocol.messages import RobotCommand
+from services.model.arm import ArmDescription
+from services.model.kinematics import ArmKinematics
 from services.robot.dsp import DSPConfig, KinovaDSP
 from services.robot.core import Refusal, RobotCore
 from services.robot.hardware import CYCLES_PER_DSP
@@ -19,16 +21,18 @@ from services.robot_sim.sim import Simulation
 
 class SimulatedRobot:
     def __init__(self, scene: SceneConfig | None = None, dsp: DSPConfig | None = None,
-                 actuators: ActuatorConfig | None = None) -> None:
-        self.sim = Simulation(scene, actuators, render=False)
+                 actuators: ActuatorConfig | None = None, arm: ArmDescription | None = None) -> None:
+        """``arm``: the arm simulated (default: the default arm)."""
+        self.sim = Simulation(scene, actuators, render=False, arm=arm)
+        self.arm = self.sim.arm
         self.hardware = SimulatedHardware(self.sim)
-        self._dsp_config = dsp
+        self._dsp_config = dsp or DSPConfig()
         self.reset()
 
     def reset(self, joints_deg=None) -> None:
         """Back to the scene's start (or ``joints_deg``), at rest, with a fresh DSP."""
         self.sim.reset(joints_deg)
-        self.core = RobotCore(KinovaDSP(self._dsp_config), self.hardware.read())
+        self.core = RobotCore(KinovaDSP(self._dsp_config, ArmKinematics(self.arm)), self.hardware.read())
         self.dsp = self.core.dsp
 
     def step_cycle(self, command: Optional[RobotCommand] = None) -> Optional[Refusal]:

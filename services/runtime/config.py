@@ -144,6 +144,17 @@ def apply_override(data: dict, assignment: str, name: str = "--set") -> None:
         raise ConfigError(name, f"value of {key.strip()} is not valid YAML ({exc})") from None
 
 
+def config_mapping(path: str | os.PathLike | None, assignments=(), name: str = "--set") -> dict:
+    """A config file's mapping (empty without a file) with ``dotted.key=value`` overrides applied: what a service
+    validates at start (``--config FILE --set ...``), and what a launcher reads of a service it starts."""
+    data = read_yaml(path) if path else {}
+    if not isinstance(data, dict):
+        raise ConfigError(str(path), "expected a mapping at the top level")
+    for assignment in assignments:
+        apply_override(data, assignment, name)
+    return data
+
+
 def dump_defaults(config_type: type) -> str:
     """YAML text of a config type's defaults (for documentation and `--print-config`)."""
     return yaml.safe_dump(msgspec.to_builtins(config_type()), sort_keys=False)

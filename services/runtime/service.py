@@ -39,6 +39,11 @@ from services.runtime.transport import GuardedPublisher, ZenohConfig, open_sessi
 M = TypeVar("M", bound=msgspec.Struct)
 
 
+class StartupError(RuntimeError):
+    """A service cannot start for a reason its user can act on (a device or library missing, a refused arm): its
+    message is one line saying what to do. ``service_main`` prints it and exits 2, without a traceback."""
+
+
 class ServiceConfig(ConfigStruct):
     robot_id: str = "jaco"
     clock: ClockMode = ClockMode.REALTIME
@@ -419,13 +424,16 @@ class Service:
 
 
 def service_main(service_type: type[Service], config_type: type[ServiceConfig], argv: list[str] | None = None,
-                 description: str = "") -> int:
+                 description: str = "", prepare: Callable[[ServiceConfig], dict] | None = None) -> int:
     """The command line every service's ``python -m`` entry shares: ``--config FILE``, ``--clock``,
-    ``--connect ENDPOINT``, ``--robot-id``. Overrides are applied before validation, so they are checked too."""
+    ``--connect ENDPOINT``, ``--robot-id``. Overrides are applied before validation, so they are checked too.
+    ``prepare(config)``, when given, runs first of all, before the process asks for realtime priority: what the
+    service needs from the computer before anything else (robot_gateway: Kinova's SDK and the arm), so that a
+    :class:`StartupError` there is the one line the process prints; it returns keyword arguments for the service."""
     import argparse
     import sys
 
-    from services.runtime.config import ConfigError, apply_override, config_from_mapping, read_yaml
+    from services.runtime.config import ConfigError, config_from_mapping, config_mapping
     from services.runtime.logs import setup_logging
 
     parser = argparse.ArgumentParser(prog=f"python -m services.{service_type.name}", description=description)
@@ -441,11 +449,7 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
 
     faulthandler.enable()  # a crash in a native library (EGL, MuJoCo, zenoh) says where, on stderr (the log)
     try:
-        data = read_yaml(args.config) if args.config else {}
-        if not isinstance(data, dict):
-            raise ConfigError(args.config, "expected a mapping at the top level")
-        for assignment in args.set:
-            apply_override(data, assignment)
+        data = config_mapping(args.config, args.set)
         if args.clock:
             data["clock"] = args.clock
         if args.robot_id:
@@ -464,26 +468,28 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
         print(f"{service_type.name}: {exc}", file=sys.stderr)
         return 2
     setup_logging(config.log_level)
-    priority = getattr(config, "realtime_priority", 0)
-    if priority > 0:
-        # the whole process, before zenoh starts its threads (they inherit it), all at one priority: a loop at
-        # realtime priority that waits for the interpreter lock held by a thread of lower priority would wait
-        # behind whatever preempts that thread (the rest of the host, or another realtime process)
-        from services.robot.pacing import request_realtime
-
-        request_realtime(priority, f"{service_type.name} process")
     code = 1
     try:
+        prepared = prepare(config) if prepare is not None else {}
+        priority = getattr(config, "realtime_priority", 0)
+        if priority > 0:
+            # the whole process, before zenoh starts its threads (they inherit it), all at one priority: a loop at
+            # realtime priority that waits for the interpreter lock held by a thread of lower priority would wait
+            # behind whatever preempts that thread (the rest of the host, or another realtime process)
+            from services.robot.pacing import request_realtime
+
+            request_realtime(priority, f"{service_type.name} process")
         try:
-            service = service_type(config)
+            service = service_type(config, **prepared)
         except (ValueError, OSError) as exc:  # what the config names cannot be had: a file, a device
-            print(f"{service_type.name}: {exc}", file=sys.stderr)
-            code = 2
-            return code
+            raise StartupError(str(exc)) from exc
         code = service.run()
-        return code
+    except StartupError as exc:  # the service could not start, and says why in one line
+        print(f"{service_type.name}: {exc}", file=sys.stderr)
+        code = 2
     finally:
         _record_exit(code)
+    return code
 
 
 #: where a service started by ``mfvs up`` leaves its exit code, for ``mfvs status`` to report (a process killed

@@ -50,6 +50,11 @@ def file_endpoints(config_file: str, which: str) -> list[str]:
     return list(value) if isinstance(value, list) else []
 
 
+def file_access_control(config_file: str) -> bool:
+    """Whether a zenoh config file turns on access control (a router that refuses unknown identities)."""
+    return json.loads(_load_file(config_file).get_json("access_control/enabled") or "false") is True
+
+
 def _endpoints(wanted: list[str], default: list[str], in_file: list[str], which: str, config_file: str) -> list[str]:
     """The file's endpoints win over the built-in default; endpoints given as well must agree with them (a
     service that silently joined another router than its file names would be worse than one that fails)."""

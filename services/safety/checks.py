@@ -14,7 +14,7 @@ import numpy as np
 
 from protocol.conventions import IMAGE_AGE_BUDGET_S, AngularConvention, Frame
 from protocol.messages import MotionLimits
-from services.model import frames, jaco2, saturation
+from services.model import frames, saturation
 from services.model.limits import stricter
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics
@@ -94,37 +94,36 @@ class Decision:
         return self.refusal is not None
 
 
-def _over_speed(name: str, speed: float, limit: float) -> "Decision":
-    """The refusal of a command over a speed limit (``over_limit: refuse``)."""
-    return Decision(refusal=f"{name}: {speed:.3f} over the limit {limit:.3f}", limits=[name])
+def _over_speed(ratio: saturation.TwistRatio, robot: MotionLimits) -> tuple[list[str], str]:
+    """The names of a twist's parts over their speed limits, and why (a clamp's record, or a refusal's reason)."""
+    over = [(name, part * limit, limit) for name, part, limit in
+            (("linear_speed", ratio.linear, robot.linear_speed_mps),
+             ("angular_speed", ratio.angular, robot.angular_speed_rps)) if part > 1.0]
+    return [name for name, _, _ in over], "; ".join(f"{name}: {speed:.3f} over the limit {limit:.3f}"
+                                                    for name, speed, limit in over)
 
 
 class CommandChecker:
     """Checks desired commands against the limits, the robot's state and the workspace zones."""
 
-    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics | None = None) -> None:
+    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics) -> None:
+        """``kinematics``: of the arm the commands are for (``kinematics.arm``: its joints, their ranges)."""
         self.limits = limits
-        self.kin = kinematics or ArmKinematics()
-        self.lower, self.upper = jaco2.model_limits()
+        self.kin = kinematics
+        self.lower, self.upper = kinematics.arm.model_limits()
         margin = math.radians(limits.joint_limit_margin_deg)
         self.lower_soft, self.upper_soft = self.lower + margin, self.upper - margin
         self.limited = np.isfinite(self.lower)
         #: the last base-frame twist (or joint velocities) forwarded, for the acceleration limits
         self.last_twist_base = np.zeros(6)
-        self.last_dq = np.zeros(jaco2.N_JOINTS)
+        self.last_dq = np.zeros(kinematics.arm.n_joints)
 
     def reset_motion(self) -> None:
         """Forget the last forwarded motion (after a stop: the next command starts from rest)."""
         self.last_twist_base = np.zeros(6)
-        self.last_dq = np.zeros(jaco2.N_JOINTS)
+        self.last_dq = np.zeros(self.kin.arm.n_joints)
 
     # ------------------------------------------------------------------ twists
-    @staticmethod
-    def speed_limits(robot: MotionLimits) -> tuple:
-        """A base twist's parts, their speed limits and the names a limited or refused command gives them."""
-        return ((slice(0, 3), robot.linear_speed_mps, "linear_speed"),
-                (slice(3, 6), robot.angular_speed_rps, "angular_speed"))
-
     def check_twist(self, frame: Frame, angular: AngularConvention, twist, q, dt: float,
                     robot: MotionLimits) -> Decision:
         """``robot``: the limits the robot declares (:func:`services.model.limits.declared`)."""
@@ -142,20 +141,19 @@ class CommandChecker:
             return Decision(refusal=f"orientation: {exc}", limits=["euler_singularity"])
         decision = Decision()
 
-        # speeds
-        for part, vmax, name in self.speed_limits(robot):
-            limited, speed = saturation.limit_norm(base[part], vmax)
-            if speed > vmax:
-                if lim.over_limit == "refuse":
-                    return _over_speed(name, speed, vmax)
-                base[part] = limited
-                decision.limits.append(name)
-        # accelerations, from the last forwarded twist
-        for part, amax, name in ((slice(0, 3), robot.linear_accel_mps2, "linear_accel"),
-                                 (slice(3, 6), robot.angular_accel_rps2, "angular_accel")):
-            base[part], cut = saturation.limit_norm_change(self.last_twist_base[part], base[part], amax * dt)
-            if cut:
-                decision.limits.append(name)
+        # speeds: the whole twist by one factor (its direction kept), or refused
+        limited, ratio = saturation.limit_twist(base, robot.linear_speed_mps, robot.angular_speed_rps)
+        if ratio.over > 1.0:
+            over, why = _over_speed(ratio, robot)
+            if lim.over_limit == "refuse":
+                return Decision(refusal=why, limits=over)
+            base = limited
+            decision.limits += over
+        # accelerations, from the last forwarded twist: the change by one factor
+        base, cut = saturation.limit_twist_change(self.last_twist_base, base, robot.linear_accel_mps2 * dt,
+                                                  robot.angular_accel_rps2 * dt)
+        if cut:
+            decision.limits.append("acceleration")
         # workspace zones: remove motion into a zone
         base[:3], zones = filter_velocity(lim.zones, p, base[:3], lim.zone_filter, dt)
         decision.limits += [f"zone:{z}" for z in zones]
@@ -163,11 +161,12 @@ class CommandChecker:
         J_pinv = np.linalg.pinv(J)
         dq = J_pinv @ base
         scale = 1.0
-        ratio = saturation.over_limit_ratio(dq, robot.joint_speed_rps)
-        if ratio > 1.0:
+        joint_ratio = saturation.over_limit_ratio(dq, robot.joint_speed_rps)
+        if joint_ratio > 1.0:
             if lim.over_limit == "refuse":
-                return Decision(refusal=f"joint_speed: {ratio:.2f}× the joint speed limit", limits=["joint_speed"])
-            scale = 1.0 / ratio
+                return Decision(refusal=f"joint_speed: {joint_ratio:.2f}× the joint speed limit",
+                                limits=["joint_speed"])
+            scale = 1.0 / joint_ratio
             decision.limits.append("joint_speed")
         scale = min(scale, self._joint_limit_scale(q, dq * scale, decision) * scale)
         base *= scale
@@ -197,6 +196,9 @@ class CommandChecker:
         robot = effective_limits(lim, robot)
         q = np.asarray(q, dtype=float)
         dq = np.array(dq, dtype=float, copy=True)
+        if len(dq) != self.kin.arm.n_joints:
+            return Decision(refusal=f"joint_count: {len(dq)} joint velocities for the {self.kin.arm.name}'s "
+                                    f"{self.kin.arm.n_joints} joints", limits=["joint_count"])
         decision = Decision()
         limited, ratio = saturation.limit_uniformly(dq, robot.joint_speed_rps)
         if ratio > 1.0:
@@ -210,14 +212,13 @@ class CommandChecker:
         dq *= self._joint_limit_scale(q, dq, decision)
         R, p, J = self.kin.pose_and_jacobian(q)
         twist = J @ dq
-        for part, vmax, name in self.speed_limits(robot):
-            speed = float(np.linalg.norm(twist[part]))
-            if speed > vmax:
-                if lim.over_limit == "refuse":
-                    return _over_speed(name, speed, vmax)
-                dq = dq * (vmax / speed)  # the joint motion scaled as its twist part is
-                twist = J @ dq
-                decision.limits.append(name)
+        ratio = saturation.twist_ratio(twist, robot.linear_speed_mps, robot.angular_speed_rps)
+        if ratio.over > 1.0:
+            over, why = _over_speed(ratio, robot)
+            if lim.over_limit == "refuse":
+                return Decision(refusal=why, limits=over)
+            dq, twist = dq / ratio.over, twist / ratio.over  # the joint motion scaled as its twist is
+            decision.limits += over
         _, zones = filter_velocity(lim.zones, p, twist[:3], lim.zone_filter, dt)
         if zones:
             # joint motion cannot be bent along a zone's boundary: motion into a zone is refused
@@ -238,9 +239,9 @@ class MotionMonitor:
     limit continuously for at least ``measured_overspeed_s`` (by the states' stamps: two consecutive states at
     100 Hz) is an overspeed: :meth:`observe` returns why, once, and the service latches a protective stop."""
 
-    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics | None = None) -> None:
+    def __init__(self, limits: SafetyLimits, kinematics: ArmKinematics) -> None:
         self.limits = limits
-        self.kin = kinematics or ArmKinematics()
+        self.kin = kinematics
         self._since: Optional[int] = None
         #: the largest measured speeds so far, as fractions of their limits (without the margin)
         self.peak_ratio = {"linear": 0.0, "angular": 0.0, "joint": 0.0}

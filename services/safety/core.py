@@ -30,6 +30,8 @@ from protocol.messages import (
     SafetyState,
     Twist,
 )
+from services.model.arm import ArmDescription, declared_arm
+from services.model.kinematics import ArmKinematics
 from services.model.limits import declared as declared_limits
 from services.runtime.state_history import StateHistory
 from services.safety.checks import CommandChecker, Decision, MotionMonitor, SafetyLimits
@@ -49,7 +51,7 @@ class HeldCommand:
 
     def check(self, checker: CommandChecker, state: RobotState, dt: float) -> Decision:
         """Check the command against the robot's ``state``: its joint angles and the limits it declares."""
-        q, robot = np.asarray(state.q, dtype=float), declared_limits(state)
+        q, robot = np.asarray(state.q, dtype=float), declared_limits(state, checker.kin.arm)
         if self.twist is not None:
             t = self.twist
             return checker.check_twist(t.frame, t.angular, (*t.linear, *t.rotational), q, dt, robot)
@@ -91,13 +93,19 @@ Action = Union[Send, Refused, Count, Note]
 
 class SafetyCore:
     def __init__(self, limits: SafetyLimits, upstream: list[str], robots: list[str], rate_hz: float,
-                 lockstep: bool) -> None:
+                 lockstep: bool, arm: Optional[str] = None) -> None:
+        """``arm``: the arm safety was started for (None: the robot's, as its states declare it); the checks are
+        made for the robot's arm once a state declares it, and nothing moves an arm they were not made for."""
         self.limits = limits
         self.upstream, self.robots = list(upstream), list(robots)
         self.dt = 1.0 / rate_hz
         self.lockstep = lockstep
-        self.checker = CommandChecker(limits)
-        self.monitor = MotionMonitor(limits, self.checker.kin)
+        self.expected_arm = arm
+        self.arm: Optional[ArmDescription] = None
+        self.checker: Optional[CommandChecker] = None
+        self.monitor: Optional[MotionMonitor] = None
+        #: why the robot's arm is not one safety runs for ("" when it is, or none was heard)
+        self.wrong_arm = ""
         self.held: Optional[HeldCommand] = None
         self.robot_state: Optional[RobotState] = None
         self.states: StateHistory[RobotState] = StateHistory()
@@ -124,10 +132,21 @@ class SafetyCore:
     def state(self, state: RobotState, now_ns: int) -> list[Action]:
         """A robot state; in lockstep ``now_ns`` is its stamp, and it is answered (the waiting commands first)."""
         stamp = state.header.stamp_ns
+        out: list[Action] = []
+        arm, self.wrong_arm = declared_arm(state.arm, state.arm_digest, len(state.q), self.expected_arm, self.arm)
+        if arm is None:  # not an arm these checks are for: a stop answers, nothing else is done with it
+            out.append(self._refuse(f"arm: {self.wrong_arm}"))
+            self.held = None
+            if self.lockstep:
+                out.append(self._send(Decision(refusal=self.last_refusal), None, stamp))
+            return out
+        if self.checker is None:
+            self.arm = arm
+            self.checker = CommandChecker(self.limits, ArmKinematics(arm))
+            self.monitor = MotionMonitor(self.limits, self.checker.kin)
         self.robot_state = state
         self.states.add(stamp, state)
-        out: list[Action] = []
-        overspeed = self.monitor.observe(state.q, state.dq, stamp, declared_limits(state))
+        overspeed = self.monitor.observe(state.q, state.dq, stamp, declared_limits(state, arm))
         if overspeed is not None:
             out += self._protective_stop(overspeed)
         if self.lockstep:
@@ -206,6 +225,9 @@ class SafetyCore:
         reason = self.input_problem(held.source, now_ns)
         if reason is not None:
             return None, reason
+        if self.checker is None:  # no state from an arm these checks are for
+            return None, (f"arm: {self.wrong_arm}" if self.wrong_arm
+                          else "robot_state: no robot state has declared its arm yet")
         state = self._fresh_state(now_ns, state)
         if state is None:
             return None, "robot_state: no fresh robot state to check the command against"
@@ -265,7 +287,8 @@ class SafetyCore:
         elif decision.refused or held is None:
             command = RobotCommand(header=header, mode=CommandMode.STOP, reason=(decision.refusal or "")[:256])
             state = SafetyState.REFUSING if self.last_refusal else SafetyState.OK
-            self.checker.reset_motion()
+            if self.checker is not None:
+                self.checker.reset_motion()
         elif decision.twist is not None:
             twist = Twist(header=header, frame=Frame.MIXED, angular=self.limits.robot_convention,
                           linear=tuple(decision.twist[:3]), rotational=tuple(decision.twist[3:]))

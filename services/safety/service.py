@@ -30,6 +30,7 @@ import zenoh
 from protocol.conventions import ClockMode
 from protocol.messages import EStop, JointVelocity, RobotState, SafetyStatus, Twist
 from services.robot.pacing import request_realtime
+from services.model.arm import check_arm_name
 from services.runtime.service import Service, ServiceConfig
 from services.runtime.threads import start_thread
 from services.safety.checks import SafetyLimits
@@ -37,6 +38,9 @@ from services.safety.core import Action, Count, HeldCommand, Refused, SafetyCore
 
 
 class SafetyConfig(ServiceConfig):
+    #: the arm it guards (services/model/arms/<arm>.yaml); null: the robot's, as its states declare it. Named, a
+    #: robot that declares another arm gets only stops from safety
+    arm: Optional[str] = None
     limits: SafetyLimits = msgspec.field(default_factory=SafetyLimits)
     #: realtime resend rate of the held command (the robot's DSP needs one every 10 ms)
     rate_hz: float = 100.0
@@ -49,6 +53,10 @@ class SafetyConfig(ServiceConfig):
     #: robot's 20 ms watchdog, which must not trip because safety waited behind the rest of the host
     realtime_priority: int = 30
 
+    def __post_init__(self) -> None:
+        if self.arm is not None:
+            check_arm_name(self.arm)
+
 
 class SafetyService(Service):
     name = "safety"
@@ -59,7 +67,8 @@ class SafetyService(Service):
         super().__init__(config, **kw)
         self.config: SafetyConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
-        self.core = SafetyCore(config.limits, config.upstream, config.robots, config.rate_hz, self.lockstep)
+        self.core = SafetyCore(config.limits, config.upstream, config.robots, config.rate_hz, self.lockstep,
+                               arm=config.arm)
         #: one input at a time through the core (zenoh's threads, and the resend loop)
         self.lock = threading.Lock()
         self._thread: Optional[threading.Thread] = None
@@ -92,9 +101,12 @@ class SafetyService(Service):
     def check_health(self) -> tuple[bool, str]:
         alive = self._thread is not None and self._thread.is_alive()
         core = self.core
+        if core.monitor is None:
+            arm = core.wrong_arm or "no robot state has declared its arm yet"
+            return alive, f"state={core.safety_state.value} estop={core.estop_latched} arm: {arm}"
         peaks = " ".join(f"peak_{name}={ratio:.2f}" for name, ratio in core.monitor.peak_ratio.items())
-        return alive, (f"state={core.safety_state.value} estop={core.estop_latched} alive={sorted(core.alive)} "
-                       f"measured speeds/limits: {peaks}")
+        return alive, (f"state={core.safety_state.value} estop={core.estop_latched} arm={core.arm.name} "
+                       f"alive={sorted(core.alive)} measured speeds/limits: {peaks}")
 
     # ------------------------------------------------------------------ inputs: decoded, then the core decides
     def _on_liveliness(self, sample: zenoh.Sample) -> None:

@@ -65,16 +65,26 @@ class TagConfig(ConfigStruct):
 
 
 class GoalConfig(ConfigStruct):
-    """One of: features (normalized, corner order as detected) with depth_m; or camera_in_tag."""
+    """One of: features (normalized, corner order as detected) with depth_m; or camera_in_tag. Neither: seed 000
+    Table 2's square (±0.1666 at 0.2888 m)."""
 
-    features: Optional[list[tuple[float, float]]] = msgspec.field(default_factory=lambda: list(TABLE2_GOAL))
-    depth_m: Optional[float] = TABLE2_DEPTH
+    features: Optional[list[tuple[float, float]]] = None
+    #: the goal's depth, with features (default: Table 2's 0.2888 m); a camera_in_tag goal has its own depths
+    depth_m: Optional[float] = None
     camera_in_tag: Optional[PoseConfig] = None
 
     def __post_init__(self) -> None:
-        if (self.features is None) == (self.camera_in_tag is None):
-            raise ValueError("give the goal as features (with depth_m) or as camera_in_tag, exactly one")
-        if self.features is not None and (self.depth_m is None or self.depth_m <= 0 or len(self.features) != 4):
+        if self.features is not None and self.camera_in_tag is not None:
+            raise ValueError("give the goal as features or camera_in_tag, exactly one (features: null to use camera_in_tag)")
+        if self.camera_in_tag is not None:
+            if self.depth_m is not None:
+                raise ValueError("a camera_in_tag goal has its own depths: give no depth_m with it")
+            return
+        if self.features is None:
+            self.features = list(TABLE2_GOAL)
+        if self.depth_m is None:
+            self.depth_m = TABLE2_DEPTH
+        if self.depth_m <= 0 or len(self.features) != 4:
             raise ValueError("goal features need 4 points and a positive depth_m")
 
 

@@ -20,12 +20,23 @@ def test_error_codes_and_ranges():
     assert k.ErrorCode.NO_ERROR_KINOVA == 1
     assert k.ErrorCode.UNKNOWN_ERROR == 666
     assert k.ErrorCode.ERROR_RS485_TIMEOUT == 1020
-    assert k.ErrorCode.ERROR_COMMUNICATION_TIMEOUT == 1022
+    assert k.ErrorCode.ERROR_COMM_TIMEOUT == 1022  # the header's name
+    assert k.ErrorCode.ERROR_NO_DEVICE_FOUND == 1015 and k.ErrorCode.ERROR_LOAD_COMM_DLL == 2002
     assert k.ErrorCode.ERROR_INVALID_PARAM == 2100
     assert k.ErrorCode.ERROR_API_NOT_INITIALIZED == 2101
     assert k.ErrorCode.ERROR_NACK_RECEIVED == 9999
-    assert all(k.is_known_error_code(c) for c in (1, 666, 1001, 1015, 2001, 2015, 2100, 9999))
-    assert not any(k.is_known_error_code(c) for c in (0, 2, 1000, 1023, 2016, 2102, 10000))
+    # every code the headers define has its name: 1001-1022, 2001-2015, 2100-2102, 5001-5003
+    assert {int(c) for c in k.ErrorCode} == {1, 666, 9999, *range(1001, 1023), *range(2001, 2016),
+                                             *range(2100, 2103), *range(5001, 5004)}
+    assert all(k.is_known_error_code(c) for c in (1, 666, 1001, 1015, 2001, 2015, 2100, 2102, 5003, 9999))
+    assert not any(k.is_known_error_code(c) for c in (0, 2, 1000, 1023, 2016, 2103, 5004, 10000))
+    assert k.error_name(1015) == "ERROR_NO_DEVICE_FOUND" and "do not define" in k.error_name(1023)
+
+
+def test_hand_mode_has_the_headers_seven_values():
+    assert [(h.name, h.value) for h in k.HAND_MODE] == [
+        ("HAND_NOMOVEMENT", 0), ("POSITION_MODE", 1), ("VELOCITY_MODE", 2), ("NO_FINGER", 3), ("ONE_FINGER", 4),
+        ("TWO_FINGERS", 5), ("THREE_FINGERS", 6)]
 
 
 def test_zone_shapes_and_torque_switch_values():
@@ -93,5 +104,28 @@ def test_zone_list_holds_at_most_ten():
 def test_angular_info_list_helpers():
     info = k.AngularInfo.from_list([270, 170, 0, 80, 0, 220, 0])
     assert info.Actuator6 == 220.0 and info.as_list()[1] == 170.0
-    with pytest.raises(ValueError):
-        k.AngularInfo.from_list([0.0] * 6)
+    # a 6-DoF arm's six angles: the seventh actuator reads 0, as Kinova's SDK gives it
+    assert k.AngularInfo.from_list([1.0] * 6).as_list() == [1.0] * 6 + [0.0]
+    for wrong in ([], [0.0] * 8):
+        with pytest.raises(ValueError):
+            k.AngularInfo.from_list(wrong)
+
+
+def test_model_codes_parse_as_kinova_writes_them():
+    assert k.parse_model_code("j2n6s300") == k.ModelCode("j", 2, "n", 6, "s", 3)
+    assert k.parse_model_code(" J2S7S300\0\0") == k.ModelCode("j", 2, "s", 7, "s", 3)  # as a C char[20] may hold it
+    assert k.parse_model_code("m1n6s300").code == "m1n6s300"
+    assert all(k.parse_model_code(text) is None for text in ("", "JACO2", "j2n5s300", "j2x6s300", "j2n6s300x",
+                                                             "j2n6s399"))
+
+
+def test_an_arm_is_driven_only_as_the_arm_it_reports_itself_to_be():
+    assert k.arm_type_refusal("j2s7s300", "j2s7s300", 7) is None
+    assert k.arm_type_refusal("j2n6a200", "j2n6s300", 6) is None  # fingers and mode do not change the kinematics
+    assert k.arm_type_refusal("j2s7s300", "my-arm", 7) is None  # a configured name that is no code: joints decide
+    reason = k.arm_type_refusal("j2n6s300", "j2s7s300", 7)
+    assert "j2n6s300 with 6 joints" in reason and "j2s7s300 has 7" in reason
+    assert "wrist" in k.arm_type_refusal("j2s6s300", "j2n6s300", 6)
+    assert "MICO 1" in k.arm_type_refusal("m1n6s300", "j2n6s300", 6)
+    reason = k.arm_type_refusal("JACO2", "j2s7s300", 7)
+    assert "'JACO2'" in reason and "cannot be checked" in reason

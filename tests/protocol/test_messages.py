@@ -5,6 +5,7 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
+from tests.helpers import ARM_DECLARED
 
 
 def header(**kw):
@@ -34,7 +35,7 @@ SAMPLES = [
                                  linear=(0.0, 0.0, 0.1), rotational=(0.0, 0.0, 0.0))),
     m.RobotCommand(header=header(), mode=m.CommandMode.JOINT_VELOCITY, joint_velocities=j7(-0.01)),
     m.RobotCommand(header=header(), mode=m.CommandMode.STOP, reason="stale image"),
-    m.RobotState(header=header(), q=j7(), dq=j7(0.0), tau=j7(1.0),
+    m.RobotState(**ARM_DECLARED, header=header(), q=j7(), dq=j7(0.0), tau=j7(1.0),
                  pose=m.KinovaPose(X=0.1, Y=-0.4, Z=0.5, ThetaX=1.5, ThetaY=0.1, ThetaZ=-0.2),
                  control_mode=m.ControlMode.CARTESIAN_VELOCITY, fifo_count=3, faults=["zone"],
                  applied_command=header()),

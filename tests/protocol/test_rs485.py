@@ -3,6 +3,7 @@ import struct
 import pytest
 
 from protocol import rs485 as r
+from tests.helpers import ARM
 
 
 def test_message_layout_is_byte_exact():
@@ -84,7 +85,7 @@ def test_payload_parsers_check_the_command():
 
 
 def test_batches():
-    msgs = [r.RS485Message(r.Command.GET_ACTUAL_POSITION, 0, a) for a in r.ACTUATOR_ADDRESSES]
+    msgs = [r.RS485Message(r.Command.GET_ACTUAL_POSITION, 0, a) for a in ARM.bus_addresses]
     payload = r.encode_batch(msgs)
     assert len(payload) == 20 * 7 and r.decode_batch(payload) == msgs
     with pytest.raises(r.RS485Error):

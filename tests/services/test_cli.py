@@ -7,8 +7,10 @@ import sys
 import time
 from pathlib import Path
 
-from services.model import jaco2
 from services.runtime.transport import ZenohConfig, open_session
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 def mfvs_executable() -> str:
@@ -62,10 +64,10 @@ def test_a_router_on_a_busy_port_says_so_without_a_traceback():
 
 def test_model_info_and_urdf():
     info = json.loads(run("model", "info").stdout)
-    assert info["home_physical_deg"] == jaco2.HOME_DEG.tolist()
+    assert info["home_physical_deg"] == ARM.home_deg.tolist()
     assert [j["limits_physical_deg"] for j in info["joints"]][1] == [47.0, 313.0]
     urdf = run("model", "urdf").stdout
-    assert urdf.strip() == jaco2.urdf().strip()
+    assert urdf.strip() == ARM.urdf().strip()
 
 
 def test_router_command_serves_and_stops_on_sigterm():

@@ -8,17 +8,19 @@ import numpy as np
 import pytest
 
 from services.experiments import _beyond_vision, run_experiment
-from services.model import jaco2
 from tests.services.test_experiments import MFVS, check_shape, shortened
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 def test_joint_limit_margins_and_the_edge_of_vision():
-    lower, upper = jaco2.model_limits()
-    q = jaco2.HOME.copy()
+    lower, upper = ARM.model_limits()
+    q = ARM.home.copy()
     limited = np.flatnonzero(np.isfinite(lower))
     q[limited[0]] = lower[limited[0]] + np.radians(2.0)
-    assert jaco2.limit_margins_deg(q).min() == pytest.approx(2.0)
-    assert jaco2.limit_margins_deg(np.stack([q, jaco2.HOME])).shape == (2, int(limited.size))
+    assert ARM.limit_margins_deg(q).min() == pytest.approx(2.0)
+    assert ARM.limit_margins_deg(np.stack([q, ARM.home])).shape == (2, int(limited.size))
     square = [[-0.1, -0.1], [0.1, -0.1], [0.1, 0.1], [-0.1, 0.1]]
     assert not _beyond_vision(square, 615.0)  # 123-px sides, facing the camera
     assert _beyond_vision([[x / 5 for x in p] for p in square], 615.0)  # 25-px sides

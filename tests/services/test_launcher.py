@@ -226,21 +226,28 @@ def test_estop_without_a_reachable_router_says_so_plainly(tmp_path):
     assert task.returncode == 2 and "cannot reach the router" in task.stderr and "Traceback" not in task.stderr
 
 
-@pytest.mark.parametrize("tls", [False, True], ids=["acl", "tls"])
-def test_up_behind_an_authority_router_and_estop_through_it(tmp_path, tls):
+@pytest.mark.parametrize("tls, given_by", [(False, "zenoh_config"), (True, "zenoh_config"), (False, "set")],
+                         ids=["acl", "tls", "acl-set"])
+def test_up_behind_an_authority_router_and_estop_through_it(tmp_path, tls, given_by):
     """`mfvs up` with a profile whose router and services use `mfvs authority init`'s configs: the router listens
     where its config says (TLS included), the launcher's checks and `status`/`task`/`estop` use the operator
-    identity of the same directory, and the stack comes up idle."""
+    identity of the same directory, and the stack comes up idle. Each service's client config may be its
+    profile entry's ``zenoh_config`` or, as the README's authority paragraph says, ``zenoh.config_file`` set through
+    ``set:`` (issue 34: the launcher then went without an identity and was refused)."""
     import yaml
 
     from services.runtime.authority import write_deployment
 
     port = free_loopback_port()
     deployment = write_deployment(tmp_path / "authority", tls=tls, port=port)
+
+    def entry(name):
+        client = str(deployment.client_configs[name])
+        return {"name": name, "config": f"services/{name}/{name}.yaml",
+                **({"zenoh_config": client} if given_by == "zenoh_config" else {"set": [f"zenoh.config_file={client}"]})}
+
     profile = {"router": {"port": 7447, "config": str(deployment.router_config)},
-               "services": [{"name": name, "config": f"services/{name}/{name}.yaml",
-                             "zenoh_config": str(deployment.client_configs[name])}
-                            for name in ("safety", "vision", "controller", "robot_sim")]}
+               "services": [entry(name) for name in ("safety", "vision", "controller", "robot_sim")]}
     (tmp_path / "profile.yaml").write_text(yaml.safe_dump(profile))
     env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path / "run"))
     out = mfvs("up", "--profile", str(tmp_path / "profile.yaml"), "--clock", "realtime", env=env)
@@ -264,6 +271,23 @@ def test_up_behind_an_authority_router_and_estop_through_it(tmp_path, tls):
     finally:
         down = mfvs("down", env=env)
     assert down.returncode == 0
+
+
+def test_a_launcher_without_an_identity_for_an_access_controlled_router_says_what_to_do(tmp_path):
+    """Client configs without the operator's beside them: refused at once, in one line, before anything starts."""
+    import yaml
+
+    from services.runtime.authority import write_deployment
+
+    deployment = write_deployment(tmp_path / "authority", port=free_loopback_port())
+    (deployment.client_configs["vision"].parent / "operator.json5").unlink()
+    profile = {"router": {"config": str(deployment.router_config)},
+               "services": [{"name": "vision", "set": [f"zenoh.config_file={deployment.client_configs['vision']}"]}]}
+    (tmp_path / "profile.yaml").write_text(yaml.safe_dump(profile))
+    env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path / "run"))
+    out = mfvs("up", "--profile", str(tmp_path / "profile.yaml"), env=env, timeout=30)
+    assert out.returncode == 2 and "operator.json5" in out.stderr and "access control" in out.stderr, out
+    assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "run" / "stack.json").exists()
 
 
 def test_a_profile_across_hosts_starts_one_host_part_at_a_time(tmp_path):
@@ -290,3 +314,29 @@ def test_a_profile_across_hosts_starts_one_host_part_at_a_time(tmp_path):
     out = mfvs("up", "--profile", "multi-host", env=env)
     assert out.returncode == 2 and "say which this computer is (--host)" in out.stderr
     assert not (tmp_path / "stack.json").exists()
+
+
+def test_a_profile_runs_one_arm_and_up_arm_sets_it_for_every_service_that_runs_on_one(tmp_path):
+    """`mfvs up --arm NAME` sets the robot's arm and the controller's and safety's; a profile whose services
+    name different arms is refused in one line before anything starts (issue 32)."""
+    import yaml
+
+    from services.launcher import load_profile, profile_arm, with_arm
+
+    sim = load_profile("sim", 7447)
+    assert profile_arm(sim) == "j2s7s300"
+    six = with_arm(sim, "j2n6s300")
+    assert profile_arm(six) == "j2n6s300"
+    assert {s.name for s in six.services if "arm=j2n6s300" in s.set} == {"robot_sim", "controller", "safety"}
+    gateway = with_arm(load_profile("gateway", 7447), "j2n6s300")
+    assert {s.name for s in gateway.services if "arm=j2n6s300" in s.set} == \
+        {"robot_sim", "robot_gateway", "controller", "safety"}
+    mixed = {"services": [{"name": "robot_sim", "set": ["arm=j2n6s300"]}, {"name": "controller",
+                                                                            "set": ["arm=j2s7s300"]}]}
+    (tmp_path / "mixed.yaml").write_text(yaml.safe_dump(mixed))
+    env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path / "run"))
+    out = mfvs("up", "--profile", str(tmp_path / "mixed.yaml"), env=env, timeout=30)
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out
+    assert "the profile mixes arms (robot_sim j2n6s300, controller j2s7s300)" in out.stderr
+    unknown = mfvs("up", "--arm", "j2n9s300", env=env, timeout=30)
+    assert unknown.returncode == 2 and "unknown arm 'j2n9s300'; known: j2n6s300, j2s7s300" in unknown.stderr

@@ -11,6 +11,7 @@ from services.runtime.config import ConfigError, config_from_text
 from services.robot.dsp import DSPConfig
 from services.servo import Iteration, Scenario, load_scenario, read_log, run, write_log
 from tests.helpers import REPO
+from tests.helpers import ARM
 
 TABLE2 = REPO / "examples" / "scenarios" / "table2.yaml"
 EASY = REPO / "examples" / "scenarios" / "easy.yaml"
@@ -30,7 +31,7 @@ def test_proposed_law_converges_from_the_table2_start(tmp_path):
     assert result.final_error_norm < 5e-5
     assert 30 < result.iterations < 400
     assert result.max_joint_limit_violation_deg == 0.0
-    assert 0 < result.max_linear_speed_mps <= DSPConfig().max_linear_speed_mps * 1.05  # the robot's, declared
+    assert 0 < result.max_linear_speed_mps <= ARM.max_linear_speed_mps * 1.05  # the robot's, declared
     lines = Path(result.trajectory_log).read_text().splitlines()
     assert len(lines) >= result.iterations
     # lockstep: a frame every 1/30 s of the arm's time, each answered, from the first the law acted on
@@ -108,9 +109,15 @@ goal: {features: null, depth_m: null, camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg:
     assert config.robot.scene.target == scenario.target and config.robot.scene.camera.rate_hz == 15.0
     assert config.vision.goal == scenario.goal and config.vision.tag.id == 3 and config.vision.tag.size_m == 0.05
     assert config.controller.control.target_motion  # a moving target turns the law's ∂ê/∂t term on
+    # camera_in_tag alone is the goal (issue 34: the default features do not count as given)
+    alone = config_from_text("goal: {camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
+    assert alone.goal == scenario.goal and stack_config(alone).vision.goal.features is None
     with pytest.raises(ConfigError) as err:  # the goal's rules are vision's
-        config_from_text("goal: {camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
-    assert "exactly one" in str(err.value)
+        config_from_text("goal: {features: [[-0.1, -0.1], [0.1, -0.1], [0.1, 0.1], [-0.1, 0.1]], "
+                         "camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
+    assert "give the goal as features or camera_in_tag, exactly one" in str(err.value)
+    assert config_from_text("{}", Scenario).goal.features == [(-0.1666, -0.1666), (0.1666, -0.1666),
+                                                               (0.1666, 0.1666), (-0.1666, 0.1666)]
 
 
 def test_a_scenario_s_robot_dsp_is_robot_sims_one_config_for_the_whole_stack():

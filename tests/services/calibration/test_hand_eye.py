@@ -64,5 +64,5 @@ def test_a_recording_without_enough_poses_is_refused(tmp_path):
     with pytest.raises(HandEyeFailed, match="at 0 of 1"):
         calibrate_hand_eye(tmp_path, BoardConfig(), CAMERA.matrix(), np.zeros(5))
     (tmp_path / "arm_poses.yaml").write_text("poses: [{image: a.png, joints_deg: [1, 2]}]\n")
-    with pytest.raises(HandEyeFailed, match="7 angles"):
+    with pytest.raises(HandEyeFailed, match="joints_deg has 2 angles; the j2s7s300 has 7 joints"):
         calibrate_hand_eye(tmp_path, BoardConfig(), CAMERA.matrix(), np.zeros(5))

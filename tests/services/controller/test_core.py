@@ -7,14 +7,20 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention
-from services.model import frames, jaco2
+from services.model import frames
 from services.model.kinematics import ArmKinematics
 from services.model.limits import arm_limits, stricter
-from services.controller.core import ControllerCore
-from services.controller.law import LawConfig
+from services.controller.core import ControllerCore, saturate
+from services.controller.law import LawOutput
+from services.controller.core import saturate
+from services.controller.law import LawConfig, LawOutput
 from services.controller.service import ControllerConfig, ControllerService
 from services.robot_sim.scene import CameraConfig
 from tests.helpers import iterations_in_a_late_loop, tag_corners_seen
+from services.model.arm import load_arm
+from tests.helpers import ARM_DECLARED
+
+ARM = load_arm("j2s7s300")
 
 GOAL = [(-0.1666, -0.1666), (0.1666, -0.1666), (0.1666, 0.1666), (-0.1666, 0.1666)]
 
@@ -31,7 +37,7 @@ def features(points=None, status=m.FeatureStatus.OK, age_s=0.0, depth=0.5):
 
 
 #: limits a robot declares in its state, lower than the arm's maxima (the controller must read them there)
-DECLARED = stricter(arm_limits(), linear_speed_mps=0.15, angular_speed_rps=0.8, joint_speed_scale=0.8)
+DECLARED = stricter(arm_limits(ARM), linear_speed_mps=0.15, angular_speed_rps=0.8, joint_speed_scale=0.8)
 
 
 def controller(law="adaptive-pd-mixed", with_state=True, started=True, limits=DECLARED,
@@ -40,7 +46,7 @@ def controller(law="adaptive-pd-mixed", with_state=True, started=True, limits=DE
     if started:
         service.start_task(m.TaskRequest(operator="test"))
     if with_state:
-        service._on_state(m.RobotState(header=m.Header(stamp_ns=time.time_ns()), q=jaco2.HOME.tolist(),
+        service._on_state(m.RobotState(**ARM_DECLARED, header=m.Header(stamp_ns=time.time_ns()), q=ARM.home.tolist(),
                                        dq=[0.0] * 7, tau=[0.0] * 7,
                                        pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
                                        control_mode=m.ControlMode.IDLE, limits=limits, arm_check=arm_check), 0)
@@ -89,6 +95,21 @@ def test_output_is_saturated_to_the_robots_declared_limits_and_says_so(declared,
     omega = frames.omega_ee_from_angular(output.twist[3:], np.eye(3), AngularConvention.SEED000)
     assert np.linalg.norm(output.twist[:3]) == pytest.approx(linear, rel=1e-9)
     assert np.linalg.norm(omega) <= angular * (1 + 1e-9)
+
+
+def test_a_saturated_twist_keeps_the_direction_the_law_asked_for():
+    """Issue 34: the linear part over its limit slows the angular part by the same factor; two robots declaring
+    different limits get the same direction."""
+    outputs = [controller(limits=declared).compute(features(points=FAR, depth=1.5))[1].twist
+               for declared in (DECLARED, None)]
+    assert np.linalg.norm(outputs[0]) < np.linalg.norm(outputs[1])
+    assert np.allclose(outputs[0] / np.linalg.norm(outputs[0]), outputs[1] / np.linalg.norm(outputs[1]))
+    state = m.RobotState(**ARM_DECLARED, header=m.Header(), q=ARM.home.tolist(), dq=[0.0] * 7, tau=[0.0] * 7,
+                         pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
+                         control_mode=m.ControlMode.IDLE)
+    output = LawOutput(twist=np.array([0.4, 0.0, 0.0, 0.0, 0.0, 0.3]))
+    assert saturate(output, arm_limits(ARM), False, state, AngularConvention.SEED000)
+    assert np.allclose(output.twist, [0.2, 0.0, 0.0, 0.0, 0.0, 0.15])
 
 
 def test_joint_law_output_is_saturated_per_joint_speed():
@@ -194,7 +215,7 @@ def test_the_core_answers_without_a_service():
 
 
 def robot_state(q, dq=None, stamp_ns=None):
-    return m.RobotState(header=m.Header(stamp_ns=stamp_ns or time.time_ns()), q=list(q),
+    return m.RobotState(**ARM_DECLARED, header=m.Header(stamp_ns=stamp_ns or time.time_ns()), q=list(q),
                         dq=list(dq if dq is not None else np.zeros(7)), tau=[0.0] * 7,
                         pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
                         control_mode=m.ControlMode.IDLE, arm_check=m.ArmCheckState.WAIVED)
@@ -206,9 +227,9 @@ def test_realtime_carries_the_frame_to_the_arms_latest_configuration(compensate)
     for the frame q_now would have given (a static target); without it, the frame's own."""
     camera_in_ee = CameraConfig().camera_in_ee.matrix()
     tag = frames.homogeneous(np.diag([1.0, -1.0, -1.0]), [0.03, -0.02, 0.45])
-    q_then = jaco2.HOME.copy()
+    q_then = ARM.home.copy()
     q_now = q_then + np.array([0.02, -0.015, 0.01, 0.02, -0.01, 0.015, 0.0])  # ~100 ms at a brisk speed
-    tag_in_base = frames.homogeneous(*ArmKinematics().pose(q_then)) @ camera_in_ee @ tag
+    tag_in_base = frames.homogeneous(*ArmKinematics(ARM).pose(q_then)) @ camera_in_ee @ tag
     now = time.time_ns()
 
     def features_at(q):
@@ -239,7 +260,8 @@ def iterations_with_a_late_image_pipeline(image_delay_s: float, compensate: bool
     (detection and transport on a loaded host), its command moving the arm 40 ms later, the frame carried to the
     arm's configuration then by the controller's own ``features_now`` when ``compensate``."""
     camera_in_ee = CameraConfig().camera_in_ee.matrix()
-    core = ControllerCore(ControllerConfig(law="adaptive-pd-joint", control=LawConfig(joint_limit_gain=0.0)))
+    core = ControllerCore(ControllerConfig(arm="j2s7s300", law="adaptive-pd-joint",
+                                           control=LawConfig(joint_limit_gain=0.0)))
     tag = frames.homogeneous(np.diag([1.0, -1.0, -1.0]), [0.03, -0.02, 0.42])
     carry = (lambda points, depths, q_capture, q_now: core.features_now(points, depths, q_capture, q_now,
                                                                          camera_in_ee)) if compensate else None
@@ -295,3 +317,28 @@ def test_a_frame_delivered_twice_gets_the_same_answer_and_one_step_of_the_law(ro
         twists.close()
         client.close()
         service.stop()
+
+
+def test_a_controller_started_for_another_arm_than_the_robots_says_so_and_commands_nothing():
+    """Started for the 6-DoF, the robot declaring the 7-DoF: every iteration is wrong_arm, no output (issue 32);
+    left to the robot's arm, it takes the robot's and runs the law for it; a robot declaring a description this
+    host has another version of is refused too."""
+    from services.controller.core import ControllerCore
+
+    helper = controller()  # a j2s7s300 state and a camera mount
+    f = features()
+    now = f.header.source_stamp_ns
+    for_6dof = ControllerCore(ControllerConfig(arm="j2n6s300"))
+    for_6dof.start_task(m.TaskRequest(operator="test"), now)
+    step = for_6dof.step(f, helper.robot_state, helper.camera_in_ee, now)
+    assert step.kind is m.ControllerState.WRONG_ARM and step.output is None
+    assert "started for the j2n6s300, the robot runs the j2s7s300" in step.detail
+    refused = for_6dof.start_task(m.TaskRequest(operator="test"), now, helper.robot_state)
+    assert not refused.ok and "j2n6s300" in refused.message
+    follows = ControllerCore(ControllerConfig())
+    follows.start_task(m.TaskRequest(operator="test"), now)
+    assert follows.step(f, helper.robot_state, helper.camera_in_ee, now).kind is m.ControllerState.CONVERGING
+    assert follows.arm.name == "j2s7s300"
+    other_version = msgspec.structs.replace(helper.robot_state, arm_digest="0" * 16)
+    step = ControllerCore(ControllerConfig()).step(f, other_version, helper.camera_in_ee, now)
+    assert step.kind is m.ControllerState.WRONG_ARM and "differs from this host's" in step.detail

@@ -6,13 +6,16 @@ import pinocchio as pin
 import pytest
 
 from protocol.conventions import AngularConvention, DepthSource, ErrorRateSource
-from services.model import frames, jaco2
+from services.model import frames
 from services.runtime.config import PoseConfig
 from services.model.kinematics import ArmKinematics
 from services.controller import ibvs
 from services.controller.law import Gains, LawConfig, ServoInput
 from services.controller.laws import make_law
 from tests.helpers import iterations_in_a_late_loop, tag_corners_seen
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 CAMERA_IN_EE = PoseConfig(xyz=(0.065, 0.0, -0.02), rpy_deg=(0.0, 0.0, 90.0)).matrix()
 
@@ -88,13 +91,13 @@ def test_pd_law_decays_the_error_exponentially_when_it_can():
 
 def test_camera_motion_error_rate_is_the_features_rate_along_a_joint_motion(rng):
     """L̂·J_c·q̇ (eq. 21's ė due to the camera's motion) against the corners' own change when the joints move."""
-    kin = ArmKinematics()
+    kin = ArmKinematics(ARM)
     tag = PoseConfig(xyz=(0.03, -0.02, 0.45), rpy_deg=(175.0, 4.0, 15.0)).matrix()
-    tag_in_base = frames.homogeneous(*kin.pose(jaco2.HOME)) @ CAMERA_IN_EE @ tag
-    law = make_law("adaptive-pd-joint")
+    tag_in_base = frames.homogeneous(*kin.pose(ARM.home)) @ CAMERA_IN_EE @ tag
+    law = make_law("adaptive-pd-joint", None, ArmKinematics(ARM))
     for _ in range(5):
-        q = jaco2.HOME + rng.uniform(-0.05, 0.05, jaco2.N_JOINTS)
-        dq = rng.normal(scale=0.2, size=jaco2.N_JOINTS)
+        q = ARM.home + rng.uniform(-0.05, 0.05, ARM.n_joints)
+        dq = rng.normal(scale=0.2, size=ARM.n_joints)
         points, depths = tag_corners_seen(q, tag_in_base, CAMERA_IN_EE, kin)
         L = ibvs.interaction_matrix(points, depths)
         J_c = law._camera_jacobian(q, CAMERA_IN_EE)[0]
@@ -108,14 +111,14 @@ def test_camera_motion_error_rate_is_the_features_rate_along_a_joint_motion(rng)
 def test_pd_laws_take_e_dot_from_the_measured_joint_velocities(name, rng):
     """With camera_motion the derivative term sees the arm's joint velocities, not the frames' difference: an arm
     at rest gives the proportional law's output whatever the previous frame was; frame_difference does not."""
-    q = jaco2.HOME.copy()
+    q = ARM.home.copy()
     first, second = servo_input(q, rng), servo_input(q, rng)
     second.t_s = first.t_s + 1 / 30
     outputs = {}
     for source in ErrorRateSource:
         for kd in (0.0, 0.55):
-            law = make_law(name, LawConfig(gains=Gains(kd=kd), error_rate=source))
-            first.dq = second.dq = np.zeros(jaco2.N_JOINTS)
+            law = make_law(name, LawConfig(gains=Gains(kd=kd), error_rate=source), ArmKinematics(ARM))
+            first.dq = second.dq = np.zeros(ARM.n_joints)
             law.step(first)
             out = law.step(second)
             outputs[source, kd] = out.twist if out.twist is not None else out.joint_velocities
@@ -141,7 +144,7 @@ def late_uneven_loop(source: ErrorRateSource, seed: int) -> int | None:
     """Iterations for adaptive-pd-joint to bring ‖e‖ under 5e-5 when frames come 30-100 ms apart, each command
     takes effect 100-200 ms after its frame (a loaded host's pipeline) and the corners carry 2e-5 of noise, as a
     realtime stack on two busy cores sees them; None if it does not."""
-    law = make_law("adaptive-pd-joint", LawConfig(error_rate=source, joint_limit_gain=0.0))
+    law = make_law("adaptive-pd-joint", LawConfig(error_rate=source, joint_limit_gain=0.0), ArmKinematics(ARM))
     tag = PoseConfig(xyz=(0.03, -0.02, 0.42), rpy_deg=(175.0, 4.0, 15.0)).matrix()
     return iterations_in_a_late_loop(law, tag, CAMERA_IN_EE, seed=seed, command_delay_s=(0.1, 0.2), noise=2e-5,
                                      frame_gaps={0.03: 0.45, 0.04: 0.35, 0.07: 0.15, 0.1: 0.05})
@@ -181,9 +184,9 @@ def camera_twist_achieved(kin, q, dq):
 def test_mixed_twist_moves_the_camera_with_the_camera_twist(convention, rng):
     """The proposed law's output, executed by an arm that reads ``convention``, moves the camera exactly with
     the camera twist of eq. 21 (through eq. 22-25 and the frame math)."""
-    kin = ArmKinematics()
+    kin = ArmKinematics(ARM)
     law = make_law("adaptive-pd-mixed", LawConfig(robot_convention=convention), kin)
-    inp = servo_input(jaco2.HOME, rng)
+    inp = servo_input(ARM.home, rng)
     out = law.step(inp)
     R, _, J = kin.pose_and_jacobian(inp.q)
     # the arm realises the mixed twist: base twist from the declared convention, joint velocities through J⁺
@@ -193,10 +196,10 @@ def test_mixed_twist_moves_the_camera_with_the_camera_twist(convention, rng):
 
 
 def test_ee_frame_law_sends_the_end_effector_twist_as_if_mixed(rng):
-    kin = ArmKinematics()
-    inp = servo_input(jaco2.HOME, rng)
-    mixed = make_law("adaptive-pd-mixed", kinematics=kin).step(inp)
-    wrong = make_law("ee-frame", kinematics=kin).step(inp)
+    kin = ArmKinematics(ARM)
+    inp = servo_input(ARM.home, rng)
+    mixed = make_law("adaptive-pd-mixed", None, kin).step(inp)
+    wrong = make_law("ee-frame", None, kin).step(inp)
     V_e = frames.ee_twist_from_camera(wrong.camera_twist, CAMERA_IN_EE[:3, :3], CAMERA_IN_EE[:3, 3])
     assert np.allclose(wrong.twist, V_e)
     assert not np.allclose(wrong.twist, mixed.twist, atol=1e-3)
@@ -204,11 +207,11 @@ def test_ee_frame_law_sends_the_end_effector_twist_as_if_mixed(rng):
 
 @pytest.mark.parametrize("name", ["p-joint", "adaptive-p-joint", "adaptive-pd-joint"])
 def test_joint_laws_drive_the_features_as_eq_17_18(name, rng):
-    kin = ArmKinematics()
+    kin = ArmKinematics(ARM)
     config = LawConfig(gains=Gains(lambda_=1.2, lambda0=2.8, lambda_inf=0.3, slope0=30.0, kd=0.25),
                        joint_limit_gain=0.0)
     law = make_law(name, config, kin)
-    inp = servo_input(jaco2.HOME, rng)
+    inp = servo_input(ARM.home, rng)
     out = law.step(inp)
     L = ibvs.interaction_matrix(inp.points, inp.depths)
     s_dot = L @ camera_twist_achieved(kin, inp.q, out.joint_velocities)
@@ -220,26 +223,26 @@ def test_joint_laws_drive_the_features_as_eq_17_18(name, rng):
 
 
 def test_joint_limit_task_stays_in_the_null_space(rng):
-    kin = ArmKinematics()
-    inp = servo_input(jaco2.HOME, rng)
+    kin = ArmKinematics(ARM)
+    inp = servo_input(ARM.home, rng)
     with_xi = make_law("p-joint", LawConfig(joint_limit_gain=2.0), kin).step(inp)
     without = make_law("p-joint", LawConfig(joint_limit_gain=0.0), kin).step(inp)
     assert not np.allclose(with_xi.joint_velocities, without.joint_velocities)
     L = ibvs.interaction_matrix(inp.points, inp.depths)
-    J_c = make_law("p-joint", kinematics=kin)._camera_jacobian(inp.q, CAMERA_IN_EE)[0]
+    J_c = make_law("p-joint", None, kin)._camera_jacobian(inp.q, CAMERA_IN_EE)[0]
     assert np.allclose(L @ J_c @ with_xi.joint_velocities, L @ J_c @ without.joint_velocities, atol=1e-9)
 
 
 def test_mixed_jacobian_joint_law_realises_the_seed000_twist(rng):
-    kin = ArmKinematics()
-    inp = servo_input(jaco2.HOME, rng)
+    kin = ArmKinematics(ARM)
+    inp = servo_input(ARM.home, rng)
     out = make_law("mixed-jacobian-joint", LawConfig(joint_limit_gain=0.0), kin).step(inp)
     assert np.allclose(camera_twist_achieved(kin, inp.q, out.joint_velocities), out.camera_twist, atol=1e-5)
 
 
 def test_unknown_law_is_refused():
     with pytest.raises(ValueError, match="unknown law 'pid'"):
-        make_law("pid")
+        make_law("pid", None, ArmKinematics(ARM))
     assert math.isfinite(Gains().lambda0)
 
 
@@ -247,13 +250,14 @@ def test_target_motion_term_reduces_the_tracking_lag():
     """A target moving at constant velocity: estimating ∂ê/∂t (eq. 19/21) shrinks the steady tracking error."""
     from tests.kinematic_loop import KinematicLoop
 
-    T_be = jaco2.dh_forward_kinematics(jaco2.HOME)
+    T_be = ARM.dh_forward_kinematics(ARM.home)
     tag = PoseConfig(xyz=(0.0, 0.0, 0.2888), rpy_deg=(180.0, 0.0, 0.0)).matrix()
     goal = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
     errors = {}
     for compensate in (False, True):
-        law = make_law("adaptive-pd-joint", LawConfig(target_motion=compensate, joint_limit_gain=0.0))
-        loop = KinematicLoop(law, T_be @ CAMERA_IN_EE @ tag, CAMERA_IN_EE, jaco2.HOME, goal, np.full(4, 0.2888),
+        law = make_law("adaptive-pd-joint", LawConfig(target_motion=compensate, joint_limit_gain=0.0),
+                       ArmKinematics(ARM))
+        loop = KinematicLoop(law, T_be @ CAMERA_IN_EE @ tag, CAMERA_IN_EE, ARM.home, goal, np.full(4, 0.2888),
                              tag_velocity=np.array([0.02, 0.0, 0.0]))
         steps = loop.run(150)
         errors[compensate] = np.mean([s.error_norm for s in steps[100:]])

@@ -4,7 +4,6 @@ import math
 import numpy as np
 import pytest
 
-from services.model import jaco2
 from services.runtime.config import PoseConfig
 from tests.kinematic_loop import KinematicLoop
 from services.controller.law import ConstraintAbort, ServoInput
@@ -12,7 +11,11 @@ from services.controller.laws import make_law
 from services.controller.smc import GRADIENT_ERROR_SIGNS
 from services.robot_sim.scene import CameraConfig
 from services.servo import load_scenario, run
+from services.model.kinematics import ArmKinematics
 from tests.helpers import REPO
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 T_EC = CameraConfig().camera_in_ee.matrix()
 GOAL = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
@@ -20,13 +23,13 @@ GOAL = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.16
 
 def hand_input(points, q=None):
     return ServoInput(t_s=1.0, points=np.array(points), depths=np.full(4, 0.4), goal_points=GOAL,
-                      goal_depths=np.full(4, 0.2888), q=jaco2.HOME.copy() if q is None else q, camera_in_ee=T_EC)
+                      goal_depths=np.full(4, 0.2888), q=ARM.home.copy() if q is None else q, camera_in_ee=T_EC)
 
 
 def test_level_one_equality_on_a_hand_built_case():
     """A feature outside the field of view activates its constraint: the acceleration satisfies the level-1
     equality K∇σᵀ q̈ = −u⁺ exactly (eq. 40), whatever the tracking task asks."""
-    law = make_law("smc", fov={"margin": 0.05, "K": 0.1, "u_plus": 2.0}, joint_speed=None, joint_range=None)
+    law = make_law("smc", None, ArmKinematics(ARM), fov={"margin": 0.05, "K": 0.1, "u_plus": 2.0}, joint_speed=None, joint_range=None)
     a, b = law.options.fov.semi_axes
     points = [(-0.1, -0.1), (a * 1.01, 0.0), (0.1, 0.1), (-0.1, 0.1)]  # point 1 just outside
     law.step(hand_input(points))
@@ -38,9 +41,9 @@ def test_level_one_equality_on_a_hand_built_case():
 @pytest.mark.parametrize("form", ["radius", "polynomial"])
 def test_fov_gradient_matches_finite_differences(form):
     tag_in_camera = PoseConfig(xyz=(0.12, 0.0, 0.4), rpy_deg=(180.0, 0.0, 10.0)).matrix()
-    T_be = jaco2.dh_forward_kinematics(jaco2.HOME)
-    loop = KinematicLoop(make_law("smc"), T_be @ T_EC @ tag_in_camera, T_EC, jaco2.HOME, GOAL, np.full(4, 0.2888))
-    law = make_law("smc", joint_speed=None, joint_range=None, fov={"form": form})
+    T_be = ARM.dh_forward_kinematics(ARM.home)
+    loop = KinematicLoop(make_law("smc", None, ArmKinematics(ARM)), T_be @ T_EC @ tag_in_camera, T_EC, ARM.home, GOAL, np.full(4, 0.2888))
+    law = make_law("smc", None, ArmKinematics(ARM), joint_speed=None, joint_range=None, fov={"form": form})
     fov = law.options.fov
     a, b = fov.semi_axes
 
@@ -50,7 +53,7 @@ def test_fov_gradient_matches_finite_differences(form):
         h = np.abs(pts[:, 0] / a) ** fov.exponent + np.abs(pts[:, 1] / b) ** fov.exponent
         return h - 1.0 if form == "polynomial" else h ** (1.0 / fov.exponent) - 1.0
 
-    q = jaco2.HOME.copy()
+    q = ARM.home.copy()
     loop.q = q
     pts, depths = loop.observe()
     inp = ServoInput(t_s=1.0, points=pts, depths=depths, goal_points=GOAL, goal_depths=np.full(4, 0.2888), q=q,
@@ -70,9 +73,9 @@ def test_fov_gradient_matches_finite_differences(form):
 
 
 def test_abort_when_active_constraints_exceed_the_freedom():
-    law = make_law("smc", joint_speed={"speed_scale": 0.3}, joint_range=None)
+    law = make_law("smc", None, ArmKinematics(ARM), joint_speed={"speed_scale": 0.3}, joint_range=None)
     # every joint over its speed, moving the feature (already outside) further out
-    law.dq_c = jaco2.MAX_SPEED * 0.3 * 1.01 * np.array([-1, 1, -1, 1, -1, 1, -1])
+    law.dq_c = ARM.max_speed * 0.3 * 1.01 * np.array([-1, 1, -1, 1, -1, 1, -1])
     a, _ = law.options.fov.semi_axes
     with pytest.raises(ConstraintAbort, match="leave no freedom"):
         law.step(hand_input([(-0.1, -0.1), (a * 1.3, 0.0), (0.1, 0.1), (-0.1, 0.1)]))
@@ -84,8 +87,8 @@ def test_gradient_error_changes_every_row_by_the_pattern_and_leaves_sigma_exact(
     options = dict(joint_speed={"speed_scale": 0.3}, joint_range={"joints_deg": {2: [100, 250]}},
                    spheres=[{"centre": [0.0, -0.4, 0.5], "radius": 0.05}],
                    occlusions=[{"centre": [0.0, 0.0], "semi_axes": [0.05, 0.05]}])
-    a = make_law("smc", **options)
-    b = make_law("smc", gradient_error=0.3, **options)
+    a = make_law("smc", None, ArmKinematics(ARM), **options)
+    b = make_law("smc", None, ArmKinematics(ARM), gradient_error=0.3, **options)
     half = a.options.fov.semi_axes[0] * 1.01
     inp = hand_input([(-0.1, -0.1), (half, 0.0), (0.1, 0.1), (-0.1, 0.1)])
     J_c, _, J_base = a._camera_jacobian(inp.q, T_EC)
@@ -103,13 +106,13 @@ def test_gradient_error_changes_every_row_by_the_pattern_and_leaves_sigma_exact(
 
 def test_occlusion_sigma_is_positive_inside_and_its_gradient_matches_finite_differences():
     tag_in_camera = PoseConfig(xyz=(0.05, 0.02, 0.4), rpy_deg=(180.0, 0.0, 10.0)).matrix()
-    T_be = jaco2.dh_forward_kinematics(jaco2.HOME)
-    loop = KinematicLoop(make_law("smc"), T_be @ T_EC @ tag_in_camera, T_EC, jaco2.HOME, GOAL, np.full(4, 0.2888))
+    T_be = ARM.dh_forward_kinematics(ARM.home)
+    loop = KinematicLoop(make_law("smc", None, ArmKinematics(ARM)), T_be @ T_EC @ tag_in_camera, T_EC, ARM.home, GOAL, np.full(4, 0.2888))
     pts, depths = loop.observe()
     region = {"centre": [float(pts[0, 0]) + 0.01, float(pts[0, 1])], "semi_axes": [0.03, 0.02], "exponent": 4}
-    law = make_law("smc", fov=None, joint_speed=None, joint_range=None, occlusions=[region])
+    law = make_law("smc", None, ArmKinematics(ARM), fov=None, joint_speed=None, joint_range=None, occlusions=[region])
     inp = ServoInput(t_s=1.0, points=pts, depths=depths, goal_points=GOAL, goal_depths=np.full(4, 0.2888),
-                     q=jaco2.HOME.copy(), camera_in_ee=T_EC)
+                     q=ARM.home.copy(), camera_in_ee=T_EC)
     J_c, _, J_base = law._camera_jacobian(inp.q, T_EC)
     cs = law.constraints(inp, law._L(inp) @ J_c, J_base, np.zeros(3), np.zeros(7))
     assert cs.sigmas[0] > 0 > max(cs.sigmas[1:])  # point 0 inside the region, the others outside
@@ -124,18 +127,18 @@ def test_occlusion_sigma_is_positive_inside_and_its_gradient_matches_finite_diff
     for k in range(7):
         step = np.zeros(7)
         step[k] = h
-        fd = (sigma0(jaco2.HOME + step) - sigma0(jaco2.HOME - step)) / (2 * h)
+        fd = (sigma0(ARM.home + step) - sigma0(ARM.home - step)) / (2 * h)
         assert cs.rows[0][k] / 0.1 == pytest.approx(fd, rel=1e-4, abs=1e-6)
 
 
 def test_a_joints_range_and_speed_active_together_are_one_constraint_not_an_abort():
     """Joint 2 at the end of its range and over its speed, moving toward the limit: the two rows are parallel
     (the paper aborts); the law keeps the one asking the larger deceleration and goes on."""
-    lower_deg = float(jaco2.model_to_physical_deg(jaco2.HOME)[1]) - 40.0
-    law = make_law("smc", fov=None, joint_speed={"speed_scale": 0.3},
-                   joint_range={"joints_deg": {2: [lower_deg, float(jaco2.HOME_DEG[1]) + 0.2]}})
+    lower_deg = float(ARM.model_to_physical_deg(ARM.home)[1]) - 40.0
+    law = make_law("smc", None, ArmKinematics(ARM), fov=None, joint_speed={"speed_scale": 0.3},
+                   joint_range={"joints_deg": {2: [lower_deg, float(ARM.home_deg[1]) + 0.2]}})
     law.dq_c = np.zeros(7)
-    law.dq_c[1] = jaco2.SIGN[1] * jaco2.MAX_SPEED[1] * 0.3 * 1.05  # toward the upper end, over its speed
+    law.dq_c[1] = ARM.sign[1] * ARM.max_speed[1] * 0.3 * 1.05  # toward the upper end, over its speed
     out = law.step(hand_input([tuple(p * 0.9) for p in GOAL]))
     _, _, ddq, active = law.last_level1
     names = [law._names(4)[i] for i in active]
@@ -151,7 +154,7 @@ def test_look_ahead_activates_a_constraint_before_it_is_crossed():
     happens; looking ahead, the law activates it now and the predicted φ stays within the band T_s·u⁺."""
     outcome = {}
     for rounds in (0, 3):
-        law = make_law("smc", joint_speed=None, joint_range=None, lookahead_rounds=rounds,
+        law = make_law("smc", None, ArmKinematics(ARM), joint_speed=None, joint_range=None, lookahead_rounds=rounds,
                        fov={"K": 0.1, "u_plus": 0.3})
         a, _ = law.options.fov.semi_axes
         inp = hand_input([(-0.1, -0.1), (0.97 * a, 0.0), (0.1, 0.1), (-0.1, 0.1)])
@@ -171,17 +174,17 @@ def test_look_ahead_activates_a_constraint_before_it_is_crossed():
 
 
 def test_tracking_gain_is_exponential():
-    law = make_law("smc", joint_speed=None, joint_range=None, fov=None)
+    law = make_law("smc", None, ArmKinematics(ARM), joint_speed=None, joint_range=None, fov=None)
     out = law.step(hand_input([tuple(p * 0.5) for p in GOAL]))
     norm = np.linalg.norm((np.array([tuple(p * 0.5) for p in GOAL]) - GOAL).reshape(-1))
     assert out.gain == pytest.approx(4.0 * math.exp(-(10.0 / 4.0) * norm))
 
 
 def test_kinematic_loop_converges_with_constraints_active_within_their_bands():
-    T_be = jaco2.dh_forward_kinematics(jaco2.HOME)
+    T_be = ARM.dh_forward_kinematics(ARM.home)
     tag = PoseConfig(xyz=(0.06, 0.04, 0.5247), rpy_deg=(172.0, -6.0, 30.0)).matrix()
-    law = make_law("smc", joint_speed={"speed_scale": 0.3})
-    loop = KinematicLoop(law, T_be @ T_EC @ tag, T_EC, jaco2.HOME, GOAL, np.full(4, 0.2888))
+    law = make_law("smc", None, ArmKinematics(ARM), joint_speed={"speed_scale": 0.3})
+    loop = KinematicLoop(law, T_be @ T_EC @ tag, T_EC, ARM.home, GOAL, np.full(4, 0.2888))
     steps = loop.run(1500, 5e-5)
     assert steps[-1].error_norm < 5e-5
     assert sum(1 for s in steps if s.output.notes["active"] > 0) > 0

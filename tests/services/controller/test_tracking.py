@@ -4,12 +4,16 @@ import math
 import numpy as np
 import pytest
 
-from services.model import frames, jaco2
+from services.model import frames
 from services.runtime.config import PoseConfig
 from services.controller.law import ServoInput
 from services.controller.laws import make_law
 from services.controller.tracking import joint_limit_penalty
 from services.robot_sim.scene import CameraConfig
+from services.model.arm import load_arm
+from services.model.kinematics import ArmKinematics
+
+ARM = load_arm("j2s7s300")
 
 T_EC = CameraConfig().camera_in_ee.matrix()
 GOAL = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
@@ -18,11 +22,11 @@ GOAL = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.16
 def inp(q=None):
     points = GOAL * 0.6 + np.array([0.03, -0.02])
     return ServoInput(t_s=1.0, points=points, depths=np.full(4, 0.45), goal_points=GOAL,
-                      goal_depths=np.full(4, 0.2888), q=jaco2.HOME.copy() if q is None else q, camera_in_ee=T_EC)
+                      goal_depths=np.full(4, 0.2888), q=ARM.home.copy() if q is None else q, camera_in_ee=T_EC)
 
 
 def test_without_manipulability_cost_it_is_eq_17():
-    law = make_law("manipulability", S=0.0, q=2.0, r_translation=0.5, r_rotation=0.1)
+    law = make_law("manipulability", None, ArmKinematics(ARM), S=0.0, q=2.0, r_translation=0.5, r_rotation=0.1)
     x = inp()
     out = law.step(x)
     o = law.options
@@ -35,7 +39,7 @@ def test_without_manipulability_cost_it_is_eq_17():
 
 
 def test_the_step_zeroes_the_gradient_of_the_linearised_objective():
-    law = make_law("manipulability", S=1e-6, q=2.0, r_translation=0.5, r_rotation=0.1)
+    law = make_law("manipulability", None, ArmKinematics(ARM), S=1e-6, q=2.0, r_translation=0.5, r_rotation=0.1)
     x = inp()
     u = law.step(x).camera_twist
     o = law.options
@@ -51,21 +55,21 @@ def test_the_step_zeroes_the_gradient_of_the_linearised_objective():
 
 
 def test_joint_limit_penalty():
-    lower, upper = jaco2.model_limits()
-    q = jaco2.HOME.copy()
+    lower, upper = ARM.model_limits()
+    q = ARM.home.copy()
     mid = q.copy()
     limited = np.isfinite(lower)
     mid[limited] = (lower[limited] + upper[limited]) / 2
-    assert joint_limit_penalty(mid, 220.0) == pytest.approx(1 - math.exp(-220.0 / 4**3))
+    assert joint_limit_penalty(mid, 220.0, ARM) == pytest.approx(1 - math.exp(-220.0 / 4**3))
     at_limit = mid.copy()
     at_limit[1] = upper[1]
-    assert joint_limit_penalty(at_limit, 220.0) == 0.0
-    assert 0 < joint_limit_penalty(q, 220.0) < joint_limit_penalty(mid, 220.0) < 1
+    assert joint_limit_penalty(at_limit, 220.0, ARM) == 0.0
+    assert 0 < joint_limit_penalty(q, 220.0, ARM) < joint_limit_penalty(mid, 220.0, ARM) < 1
 
 
 def test_manipulability_does_not_depend_on_the_frame_or_the_camera_mounting(rng):
-    law = make_law("manipulability")
-    q = jaco2.HOME + rng.normal(scale=0.2, size=7)
+    law = make_law("manipulability", None, ArmKinematics(ARM))
+    q = ARM.home + rng.normal(scale=0.2, size=7)
     J_base = law.kin.jacobian_base(q)
     R, _ = law.kin.pose(q)
     J_ee = frames.rotation_motion_transform(R.T) @ J_base
@@ -77,8 +81,8 @@ def test_manipulability_does_not_depend_on_the_frame_or_the_camera_mounting(rng)
 
 
 def test_cartesian_gradient_matches_the_joint_gradient_through_the_resolver():
-    law = make_law("manipulability", S=1e-6, avoidance_axes=["vx", "vy", "vz", "wx", "wy", "wz"], h=1e-6)
-    q = jaco2.HOME.copy()
+    law = make_law("manipulability", None, ArmKinematics(ARM), S=1e-6, avoidance_axes=["vx", "vy", "vz", "wx", "wy", "wz"], h=1e-6)
+    q = ARM.home.copy()
     J_pinv = np.linalg.pinv(law._camera_jacobian(q, T_EC)[0])
     w = law.modified_manipulability(q)
     g = law.gradient(q, J_pinv, w)
@@ -88,9 +92,9 @@ def test_cartesian_gradient_matches_the_joint_gradient_through_the_resolver():
 
 
 def test_a_step_along_the_avoidance_velocity_increases_w():
-    law = make_law("manipulability", S=1e-6)
+    law = make_law("manipulability", None, ArmKinematics(ARM), S=1e-6)
     x = inp()
-    tracking_only = make_law("manipulability", S=0.0).step(x).camera_twist
+    tracking_only = make_law("manipulability", None, ArmKinematics(ARM), S=0.0).step(x).camera_twist
     with_avoidance = law.step(x).camera_twist
     u_avoid = with_avoidance - tracking_only
     J_pinv = np.linalg.pinv(law._camera_jacobian(x.q, T_EC)[0])
@@ -100,6 +104,6 @@ def test_a_step_along_the_avoidance_velocity_increases_w():
 
 def test_axes_are_validated():
     with pytest.raises(ValueError):
-        make_law("manipulability", tracking_axes=["vx", "spin"])
+        make_law("manipulability", None, ArmKinematics(ARM), tracking_axes=["vx", "spin"])
     with pytest.raises(ValueError):
-        make_law("manipulability", tracking_axes=["vx", "vy"], avoidance_axes=["vz"])
+        make_law("manipulability", None, ArmKinematics(ARM), tracking_axes=["vx", "vy"], avoidance_axes=["vz"])

@@ -9,8 +9,10 @@ import pytest
 
 from protocol.conventions import AngularConvention
 from services.model import frames as f
-from services.model import jaco2
 from tests.helpers import PinArm, random_q
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 CONVENTIONS = list(AngularConvention)
 H = 1e-6
@@ -298,5 +300,5 @@ def test_mixed_twist_drives_the_arm_as_declared(arm, rng):
 
 def test_home_pose_has_an_invertible_b():
     arm = PinArm()
-    R, _ = arm.pose(jaco2.HOME)
+    R, _ = arm.pose(ARM.home)
     f.mixed_transform(R)  # does not raise

@@ -8,11 +8,14 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from protocol.keys import Keys
 from protocol.topics import topic_of
-from services.model import jaco2
 from services.model.kinematics import ArmKinematics
 from services.observe import foxglove_view as fv
 from services.runtime.jsonsafe import json_safe
 from tests.services.observe.mcap_files import read_mcap
+from services.model.arm import EE_LINK, BASE_LINK, load_arm
+from tests.helpers import ARM_DECLARED
+
+ARM = load_arm("j2s7s300")
 
 KEYS = Keys()
 INFO = m.CameraInfo(header=m.Header(stamp_ns=5), width=640, height=480, fx=600.0, fy=610.0, cx=320.0, cy=240.0,
@@ -30,8 +33,8 @@ def features(status=m.FeatureStatus.OK):
                       tag_pose_in_camera=m.Pose(xyz=(0.0, 0.0, 0.3)))
 
 
-def robot_state(q=jaco2.HOME, faults=()):
-    return m.RobotState(header=HEADER, q=list(q), dq=[0.1] * 7, tau=[0.0] * 7,
+def robot_state(q=ARM.home, faults=()):
+    return m.RobotState(**ARM_DECLARED, header=HEADER, q=list(q), dq=[0.1] * 7, tau=[0.0] * 7,
                         pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
                         control_mode=m.ControlMode.CARTESIAN_VELOCITY, faults=list(faults))
 
@@ -87,23 +90,23 @@ def test_distortion_moves_the_goal_as_the_lens_moves_the_image():
 
 
 def test_the_arm_in_3d_and_its_joints_against_their_limits(tmp_path):
-    q = jaco2.HOME.copy()
+    q = ARM.home.copy()
     out = shown(tmp_path, [(KEYS.robot_state, robot_state(q)), (KEYS.camera_info, INFO), (KEYS.features, features())])
     transforms = [t for _, _, msg in out["/tf"] for t in msg.transforms]
-    links = ArmKinematics().link_poses(q)
+    links = ArmKinematics(ARM).link_poses(q)
     by_child = {t.child_frame_id: t for t in transforms}
-    assert set(links) - {jaco2.BASE_LINK} | {fv.CAMERA_FRAME, fv.TAG_FRAME} == set(by_child)
-    _, p = ArmKinematics().pose(q)
-    ee = by_child[jaco2.EE_LINK].translation
+    assert set(links) - {BASE_LINK} | {fv.CAMERA_FRAME, fv.TAG_FRAME} == set(by_child)
+    _, p = ArmKinematics(ARM).pose(q)
+    ee = by_child[EE_LINK].translation
     assert np.allclose([ee.x, ee.y, ee.z], p)
-    assert by_child[fv.CAMERA_FRAME].parent_frame_id == jaco2.EE_LINK
+    assert by_child[fv.CAMERA_FRAME].parent_frame_id == EE_LINK
     assert by_child[fv.TAG_FRAME].translation.z == 0.3
     scene = out["/view/robot/arm"][0][2]
     assert len(scene.entities[0].lines[0].points) == len(links)
     joints = out["/view/robot/joints"][0][2].joints
-    assert [j.name for j in joints] == list(jaco2.JOINT_NAMES) and joints[3].position == q[3]
+    assert [j.name for j in joints] == list(ARM.joint_names) and joints[3].position == q[3]
     margins = out["/view/joint_margins"][0][2]
-    assert margins["minimum_deg"] == min(jaco2.limit_margins_deg(q))
+    assert margins["minimum_deg"] == min(ARM.limit_margins_deg(q))
 
 
 def test_series_are_plottable_json_and_statuses_are_logged_when_they_change(tmp_path):

@@ -10,15 +10,18 @@ import pytest
 from protocol import messages as m
 from protocol.keys import Keys
 from protocol.topics import UnknownTopic
-from services.model import jaco2
 from services.observe import introspect
 from services.runtime.transport import open_session
+from services.model.arm import load_arm
+from tests.helpers import ARM_DECLARED
+
+ARM = load_arm("j2s7s300")
 
 KEYS = Keys()
 
 
 def robot_state(seq: int) -> m.RobotState:
-    return m.RobotState(header=m.Header(seq=seq, stamp_ns=1_000_000_000 + seq * 10_000_000), q=list(jaco2.HOME),
+    return m.RobotState(**ARM_DECLARED, header=m.Header(seq=seq, stamp_ns=1_000_000_000 + seq * 10_000_000), q=list(ARM.home),
                         dq=[0.0] * 7, tau=[0.0] * 7,
                         pose=m.KinovaPose(X=0.2, Y=-0.3, Z=0.4, ThetaX=0, ThetaY=0, ThetaZ=0),
                         control_mode=m.ControlMode.CARTESIAN_VELOCITY)
@@ -94,7 +97,7 @@ def test_echo_prints_each_message_and_says_which_payload_did_not_decode(router):
             assert introspect.echo(session, KEYS, "robot/*", as_json_lines=True, count=2, seconds=10.0,
                                    out=out) == 0
         first = json.loads(out.getvalue().splitlines()[0])
-        assert first["key"] == KEYS.robot_state and first["message"]["q"] == pytest.approx(list(jaco2.HOME))
+        assert first["key"] == KEYS.robot_state and first["message"]["q"] == pytest.approx(list(ARM.home))
     finally:
         session.close()
 

@@ -7,12 +7,14 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from services.robot.dsp import KinovaDSP
+from services.robot.dsp import DSPConfig, KinovaDSP
 from services.robot.core import RobotCore
 from services.robot.hardware import CYCLES_PER_DSP
 from services.robot.hardware import HardwareError
 from services.robot_gateway.link import LinkHardware
 from services.stack import simulated_link
+from services.model.kinematics import ArmKinematics
+from tests.helpers import ARM
 
 
 def twist_command(linear, rotational):
@@ -24,8 +26,8 @@ def twist_command(linear, rotational):
 @pytest.fixture
 def gateway():
     with simulated_link(lockstep=True) as (arm, link):
-        hardware = LinkHardware(link, pipelined=False)  # in step with the arm, as the gateway runs in lockstep
-        yield arm, hardware, RobotCore(KinovaDSP(), hardware.read())
+        hardware = LinkHardware(link, ARM, pipelined=False)  # in step with the arm, as the gateway runs in lockstep
+        yield arm, hardware, RobotCore(KinovaDSP(DSPConfig(), ArmKinematics(ARM)), hardware.read())
 
 
 def run_dsp(hardware, core, command, cycles, on_cycle=None):

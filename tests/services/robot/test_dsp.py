@@ -7,13 +7,16 @@ import pytest
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from services.model import frames, jaco2
+from services.model import frames
 from services.model.kinematics import ArmKinematics
-from services.robot.dsp import CommandRefused, DeadBand, DSPConfig, KinovaDSP
+from services.robot.dsp import CommandRefused, DeadBand, DSPConfig, KinovaDSP, for_arm
 from services.robot.hardware import JointReading
 from services.robot.zones import BoxZone
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim_robot import SimulatedRobot
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 def twist_command(linear, rotational, convention=AngularConvention.SEED000, frame=Frame.MIXED, seq=0):
@@ -97,7 +100,7 @@ def test_a_resent_command_keeps_moving_and_one_missed_cycle_is_tolerated():
 
 
 def test_protection_zone_is_never_entered_and_motion_continues_along_it():
-    T = jaco2.dh_forward_kinematics(jaco2.HOME)
+    T = ARM.dh_forward_kinematics(ARM.home)
     p0 = T[:3, 3]
     # a wall 4 cm in front of the end effector (toward −y), wide and tall
     zone = BoxZone(name="user", min_xyz=(p0[0] - 1.0, p0[1] - 0.6, 0.0), max_xyz=(p0[0] + 1.0, p0[1] - 0.04, 1.5))
@@ -120,13 +123,13 @@ def test_default_base_zone_protects_the_column():
 
 
 def within_limits(q):
-    lower, upper = jaco2.model_limits()
+    lower, upper = ARM.model_limits()
     return bool(np.all(q >= lower) and np.all(q <= upper))
 
 
 def test_joint_limits_hold_under_adversarial_joint_commands():
     sim = make_sim()
-    lower, upper = jaco2.model_limits()
+    lower, upper = ARM.model_limits()
     for joint in (1, 3, 5):
         for direction in (-1.0, 1.0):
             sim.reset()
@@ -148,7 +151,7 @@ def test_joint_limits_hold_under_random_commands(rng):
             command = joint_command(rng.uniform(-2, 2, 7))
         for q, _, _ in run(sim, command, int(rng.integers(5, 60))):
             assert within_limits(q)
-        assert np.all(np.abs(sim.dq) <= jaco2.MAX_SPEED * 1.05)
+        assert np.all(np.abs(sim.dq) <= ARM.max_speed * 1.05)
 
 
 def test_speed_limits_hold():
@@ -157,6 +160,20 @@ def test_speed_limits_hold():
     for _, twist, _ in trace[30:]:
         assert np.linalg.norm(twist[:3]) <= 0.2 * 1.02
     assert "speed" in sim.dsp.status.active_limits
+
+
+def test_a_twist_over_one_speed_limit_keeps_its_direction():
+    """Linear 2.5× over its limit, angular well within: the whole motion slows by one factor (issue 34), so the
+    end effector turns at 0.4× the rate it was asked for, not the full rate with a cut translation."""
+    sim = make_sim(angular_convention=AngularConvention.OMEGA)
+    linear, omega_ee = np.array([0.0, 0.5, 0.0]), np.array([0.0, 0.0, 0.3])
+    trace = run(sim, twist_command(linear, omega_ee, AngularConvention.OMEGA), 60)
+    assert "speed" in sim.dsp.status.active_limits
+    asked = np.concatenate([linear, trace[0][2][:3, :3] @ omega_ee])
+    for _, twist_base, T in trace[40:]:
+        assert np.linalg.norm(twist_base[:3]) == pytest.approx(0.2, rel=0.02)
+        asked = np.concatenate([linear, T[:3, :3] @ omega_ee])  # ω is turned into the base frame as the arm turns
+        assert np.linalg.norm(twist_base - asked * 0.2 / 0.5) <= 0.02 * np.linalg.norm(asked * 0.2 / 0.5)
 
 
 @pytest.mark.parametrize("bad", [
@@ -220,23 +237,23 @@ def test_fifo_holds_2000_points():
 
 def test_angular_position_and_move_home():
     sim = make_sim()
-    target = jaco2.HOME_DEG + np.array([10, -8, 12, 10, -15, 10, 20])
+    target = ARM.home_deg + np.array([10, -8, 12, 10, -15, 10, 20])
     point = kinova.TrajectoryPoint(Position=kinova.UserPosition(
         Type=kinova.POSITION_TYPE.ANGULAR_POSITION, Actuators=kinova.AngularInfo.from_list(target)))
     assert sim.dsp.send_basic_trajectory(point) == kinova.ErrorCode.NO_ERROR_KINOVA
     for _ in range(400):
         sim.step_cycle()
-    assert jaco2.model_to_physical_deg(sim.q) == pytest.approx(target, abs=0.1)
+    assert ARM.model_to_physical_deg(sim.q) == pytest.approx(target, abs=0.1)
     assert sim.dsp.fifo_count == 0
     sim.dsp.move_home()
     for _ in range(400):
         sim.step_cycle()
-    assert jaco2.model_to_physical_deg(sim.q) == pytest.approx(jaco2.HOME_DEG, abs=0.1)
+    assert ARM.model_to_physical_deg(sim.q) == pytest.approx(ARM.home_deg, abs=0.1)
 
 
 def test_angular_position_outside_limits_is_refused():
     sim = make_sim()
-    target = jaco2.HOME_DEG.copy()
+    target = ARM.home_deg.copy()
     target[1] = 20.0  # joint 2 range is 47-313
     point = kinova.TrajectoryPoint(Position=kinova.UserPosition(
         Type=kinova.POSITION_TYPE.ANGULAR_POSITION, Actuators=kinova.AngularInfo.from_list(target)))
@@ -270,10 +287,12 @@ def test_client_max_velocities_are_range_checked_and_applied():
 
 
 def test_config_ranges():
-    with pytest.raises(ValueError):
-        DSPConfig(max_linear_speed_mps=0.3)
-    with pytest.raises(ValueError):
-        DSPConfig(max_angular_speed_rps=0.1)
+    with pytest.raises(ValueError, match="dsp.max_linear_speed_mps must be within the j2s7s300's range"):
+        for_arm(DSPConfig(max_linear_speed_mps=0.3), ARM)
+    with pytest.raises(ValueError, match="dsp.max_angular_speed_rps"):
+        for_arm(DSPConfig(max_angular_speed_rps=0.1), ARM)
+    with pytest.raises(ValueError, match="max_linear_speed_mps must be positive"):
+        DSPConfig(max_linear_speed_mps=-0.1)
 
 
 def test_emergency_stop_brakes_at_the_emergency_deceleration_along_the_path():
@@ -303,10 +322,10 @@ def test_emergency_stop_brakes_at_the_emergency_deceleration_along_the_path():
 # ------------------------------------------------------------------------------------------ the dead-band
 def dsp_speed(command, band: DeadBand) -> np.ndarray:
     """The end-effector twist (base) the DSP's first cycle asks of the arm at rest at home for ``command``."""
-    dsp = KinovaDSP(DSPConfig(dead_band=band))
+    dsp = KinovaDSP(DSPConfig(dead_band=band), ArmKinematics(ARM))
     dsp.submit(command)
-    dq = dsp.cycle(JointReading(q=jaco2.HOME.copy(), dq=np.zeros(7), tau=np.zeros(7)))
-    return dsp.kin.jacobian_base(jaco2.HOME) @ dq, dsp.status.active_limits
+    dq = dsp.cycle(JointReading(q=ARM.home.copy(), dq=np.zeros(7), tau=np.zeros(7)))
+    return dsp.kin.jacobian_base(ARM.home) @ dq, dsp.status.active_limits
 
 
 @pytest.mark.parametrize("fraction", [0.1, 0.5, 0.9])
@@ -328,7 +347,7 @@ def test_a_cartesian_command_below_the_dead_band_creeps_or_stops(fraction):
 
 def test_a_joint_command_is_judged_by_the_end_effector_motion_it_asks():
     band = DeadBand(linear_mps=0.002, angular_rps=0.01)
-    J = ArmKinematics().jacobian_base(jaco2.HOME)
+    J = ArmKinematics(ARM).jacobian_base(ARM.home)
     slow = np.linalg.pinv(J) @ np.array([0.001, 0.0, 0.0, 0.0, 0.0, 0.0])
     twist, limits = dsp_speed(joint_command(slow), band)
     assert np.linalg.norm(twist[:3]) == pytest.approx(0.0005, rel=1e-2) and "dead_band" in limits
@@ -339,10 +358,10 @@ def test_a_joint_command_is_judged_by_the_end_effector_motion_it_asks():
 
 
 def test_the_dsp_declares_the_limits_it_applies():
-    dsp = KinovaDSP(DSPConfig(max_linear_speed_mps=0.15))
+    dsp = KinovaDSP(DSPConfig(max_linear_speed_mps=0.15), ArmKinematics(ARM))
     limits = dsp.motion_limits()
-    assert limits.linear_speed_mps == 0.15 and limits.angular_speed_rps == jaco2.MAX_ANGULAR_SPEED_RPS
-    assert np.allclose(limits.joint_speed_rps, jaco2.MAX_SPEED)
+    assert limits.linear_speed_mps == 0.15 and limits.angular_speed_rps == ARM.max_angular_speed_rps
+    assert np.allclose(limits.joint_speed_rps, ARM.max_speed)
     dsp.set_max_velocities(linear_mps=0.1, angular_rps=0.5)
     assert (dsp.motion_limits().linear_speed_mps, dsp.motion_limits().angular_speed_rps) == (0.1, 0.5)
     with pytest.raises(ValueError, match="dead_band"):
@@ -352,15 +371,16 @@ def test_the_dsp_declares_the_limits_it_applies():
 def test_a_command_to_motion_delay_holds_velocity_commands_and_never_a_stop():
     """command_delay_cycles: a velocity command moves the arm that many cycles later than the next one; a stop acts
     at once and drops the commands still on their way."""
-    reading = JointReading(q=jaco2.HOME.copy(), dq=np.zeros(7), tau=np.zeros(7))
+    reading = JointReading(q=ARM.home.copy(), dq=np.zeros(7), tau=np.zeros(7))
     for delay in (0, 3):
-        dsp = KinovaDSP(DSPConfig(command_delay_cycles=delay, dead_band=DeadBand(linear_mps=0, angular_rps=0)))
+        dsp = KinovaDSP(DSPConfig(command_delay_cycles=delay, dead_band=DeadBand(linear_mps=0, angular_rps=0)),
+                        ArmKinematics(ARM))
         moving = []
         for cycle in range(8):
             dsp.submit(twist_command((0.05, 0.0, 0.0), (0.0, 0.0, 0.0)))
             moving.append(bool(np.any(dsp.cycle(reading))))
         assert moving == [False] * delay + [True] * (8 - delay)
-    dsp = KinovaDSP(DSPConfig(command_delay_cycles=3))
+    dsp = KinovaDSP(DSPConfig(command_delay_cycles=3), ArmKinematics(ARM))
     dsp.submit(twist_command((0.05, 0.0, 0.0), (0.0, 0.0, 0.0)))
     dsp.submit(m.RobotCommand(header=m.Header(), mode=m.CommandMode.STOP))
     assert not any(np.any(dsp.cycle(reading)) for _ in range(6))

@@ -14,7 +14,9 @@ from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses
+from services.model.arm import load_arm
 from tests.stack import KEYS, Recorder, next_seq, wait_for
+from tests.helpers import ARM
 
 
 
@@ -164,6 +166,7 @@ def test_low_level_torque_api_with_its_watchdog(robot):
 
 def test_computed_torque_over_the_low_level_zenoh_api(robot):
     """Seed 003's computed torque as a zenoh client of the low-level API tracks the eq. 5.1 cubic within 1°."""
+    from services.controller.computed_torque import ComputedTorque
     from services.controller.torque_client import CubicTorqueClient
 
     client = robot.client
@@ -171,7 +174,7 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot):
     assert wait_for(lambda: len(low) > 20)
     q0 = np.array(low.last().q)
     qf = q0 + np.radians([10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
-    controller = CubicTorqueClient(client, KEYS, q0, qf, duration_s=2.0)
+    controller = CubicTorqueClient(client, KEYS, q0, qf, duration_s=2.0, controller=ComputedTorque(ARM))
     try:
         assert controller.done.wait(15.0)
     finally:
@@ -190,6 +193,31 @@ def test_lockstep_robot_sim_refuses_torque_commands(router):
         client.put(KEYS.lowlevel_command, m.encode(m.TorqueCommand(header=m.Header(), torques=[0.0] * 7)))
         assert wait_for(lambda: service.counters.get("rejected.lowlevel_command") == 1)
         assert not service.lowlevel.active
+    finally:
+        client.close()
+        service.stop()
+
+
+def test_a_torque_or_joint_velocity_command_for_another_arm_is_refused(router):
+    """A j2n6s300 robot node: seven torques, or seven joint velocities, are refused and counted
+    (``refused.joint_count``), nothing is applied, and the node keeps running (issue 32)."""
+    service = robot_sim_service(RobotSimConfig(arm="j2n6s300", clock=ClockMode.LOCKSTEP,
+                                               zenoh=router.client_config())).start()
+    client = open_session(router.client_config())
+    try:
+        states = Recorder(client, KEYS.robot_state, m.RobotState)
+        client.put(KEYS.lowlevel_command, m.encode(m.TorqueCommand(header=m.Header(), torques=[0.0] * 7)))
+        client.put(KEYS.robot_command, m.encode(m.RobotCommand(
+            header=m.Header(stamp_ns=time.time_ns(), seq=next_seq()), mode=m.CommandMode.JOINT_VELOCITY,
+            joint_velocities=[0.1] * 7)))
+        assert wait_for(lambda: service.counters.get("refused.joint_count") == 2)
+        assert not service.lowlevel.active  # refused by the node before low-level control saw it
+        assert service.counters.get("rejected.lowlevel_command") == 1 and service.counters.get("rejected.command") == 1
+        assert wait_for(lambda: len(states) > 0)
+        state = states.last()
+        assert (state.arm, len(state.q), len(state.limits.joint_speed_rps)) == ("j2n6s300", 6, 6)
+        assert state.arm_digest == load_arm("j2n6s300").digest
+        assert service.check_health()[1].startswith("arm j2n6s300: 6 joints")
     finally:
         client.close()
         service.stop()

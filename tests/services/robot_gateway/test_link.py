@@ -5,9 +5,11 @@ import numpy as np
 import pytest
 
 from protocol import rs485 as r
-from services.model import jaco2
 from services.robot_gateway.link import ActuatorLink, LinkError, expected_torques_physical
 from services.stack import simulated_link
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 @pytest.fixture
@@ -19,9 +21,9 @@ def link():
 def test_positions_and_all_values(link):
     link, runner = link
     positions = link.positions_deg()
-    assert positions == pytest.approx(jaco2.HOME_DEG, abs=0.05)
+    assert positions == pytest.approx(ARM.home_deg, abs=0.05)
     reading = link.command(positions)
-    assert reading.position_deg == pytest.approx(jaco2.HOME_DEG, abs=0.05)
+    assert reading.position_deg == pytest.approx(ARM.home_deg, abs=0.05)
     assert np.all(reading.mode == 0) and np.all(reading.fault == 0)
     assert np.all(reading.temperature_c == pytest.approx(35.0))
 
@@ -31,7 +33,7 @@ def test_torque_mode_round_trip_holds_the_arm_with_gravity_compensation(link):
     time.sleep(0.2)
     with runner.lock:
         q = runner.sim.q
-    link.switch_to_torque(expected_torques_physical(q))
+    link.switch_to_torque(expected_torques_physical(ARM, q))
     positions = link.positions_deg()
     for _ in range(100):  # 0.2 s of zero extra torque: the actuators' gravity compensation holds the arm
         reading = link.command(positions, np.zeros(7))
@@ -64,7 +66,7 @@ def test_replies_of_the_next_cycle_that_come_early_are_kept_for_it():
     cycles' replies arrive in one read, the second cycle's belong to the next collection (a copy of the collector
     without this counted them as unexpected, and the next exchange then timed out)."""
     with simulated_link(lockstep=True) as (_, link):
-        home = jaco2.HOME_DEG.astype(float)
+        home = ARM.home_deg.astype(float)
         link.command(home)
         link.send_command(home)
         link.send_command(home + 0.01)
@@ -104,7 +106,7 @@ def _replies(addresses, order, extra=()):
 
 @pytest.mark.parametrize("seed", range(5))
 def test_a_whole_reply_set_in_any_order_is_taken_at_once_and_the_same_as_one_by_one(seed):
-    addresses = list(r.ACTUATOR_ADDRESSES)
+    addresses = list(ARM.bus_addresses)
     order = np.random.default_rng(seed).permutation(3 * len(addresses))
     next_cycle = _replies(addresses, range(3))  # the next request's first replies, already here
     whole = ActuatorLink(_QueuedBus([_replies(addresses, order, extra=[next_cycle])]), addresses)
@@ -119,7 +121,7 @@ def test_a_whole_reply_set_in_any_order_is_taken_at_once_and_the_same_as_one_by_
 
 
 def test_a_duplicate_reply_in_a_full_batch_is_counted_not_taken():
-    addresses = list(r.ACTUATOR_ADDRESSES)
+    addresses = list(ARM.bus_addresses)
     n = 3 * len(addresses)
     duplicated = _replies(addresses, [0] + list(range(n - 1)))  # the first twice, the last one missing ...
     late = _replies(addresses, [n - 1])  # ... comes in the next batch

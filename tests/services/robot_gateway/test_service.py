@@ -1,4 +1,5 @@
 """The swap: robot_sim in actuator-bus mode plus robot_gateway offer the same zenoh robot as robot_sim alone."""
+import os
 import subprocess
 import sys
 import time
@@ -9,17 +10,20 @@ import pytest
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import ClockMode
-from services.model import jaco2
 from services.model.kinematics import ArmKinematics
 from services.robot.hardware import CYCLES_PER_DSP
 from services.robot.hardware import CYCLE_S
 from services.robot.rs485_bus import BusConfig
+from services.runtime.service import StartupError
 from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses, RouterProcess
 from tests.helpers import REPO, CpuLoad
 from tests.stack import KEYS, Recorder, wait_for
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 
@@ -39,11 +43,11 @@ def test_same_keys_and_same_motion_as_robot_sim():
         try:
             states = Recorder(client, KEYS.robot_state, m.RobotState)
             assert wait_for(lambda: len(states) > 20)
-            assert states.last().q == pytest.approx(jaco2.HOME.tolist(), abs=1e-3)
+            assert states.last().q == pytest.approx(ARM.home.tolist(), abs=1e-3)
             # the Kinova API answers through the gateway
             replies = list(client.get(KEYS.robot_api("GetAngularPosition"), timeout=5.0))
             position = m.decode(replies[0].ok.payload.to_bytes(), kinova.AngularPositionReply)
-            assert position.result.Actuators.as_list() == pytest.approx(jaco2.HOME_DEG.tolist(), abs=0.05)
+            assert position.result.Actuators.as_list() == pytest.approx(ARM.home_deg.tolist(), abs=0.05)
             before = health_counters(client)
             # a mixed-frame velocity command resent every 5 ms (latest wins on the robot) for 1.5 s
             subprocess.run([sys.executable, "-m", "bench.command_source", "--connect", router.endpoint,
@@ -56,7 +60,7 @@ def test_same_keys_and_same_motion_as_robot_sim():
             window = [s for s in commanded if s.header.stamp_ns >= commanded[0].header.stamp_ns + 300_000_000]
             seconds = (window[-1].header.stamp_ns - window[0].header.stamp_ns) / 1e9
             assert seconds > 0.9, f"only {seconds:.2f} s of commanded motion reported"
-            kin = ArmKinematics()
+            kin = ArmKinematics(ARM)
             velocity = (kin.pose(window[-1].q)[1] - kin.pose(window[0].q)[1]) / seconds
             along = float(velocity @ linear) / float(linear @ linear)
             across = float(np.linalg.norm(velocity - along * linear) / np.linalg.norm(linear))
@@ -84,7 +88,7 @@ def lost_cycles(before: dict, after: dict) -> float:
         return after[service]["errors"].get(counter, 0) - before[service]["errors"].get(counter, 0)
 
     gateway = sum(grown("robot_gateway", c) for c in ("cycles.missed", "cycles.arm_missed", "bus.failed_exchanges"))
-    return (gateway + grown("robot_sim", "frames.missed") / jaco2.N_JOINTS
+    return (gateway + grown("robot_sim", "frames.missed") / ARM.n_joints
             + grown("robot_gateway", "dsp.stale_holds") * 2 * CYCLES_PER_DSP)
 
 
@@ -133,8 +137,15 @@ def test_without_actuators_the_gateway_does_not_start(router):
 
 
 def test_kinova_sdk_backend_fails_clearly_without_the_library():
-    with pytest.raises(RuntimeError, match="Kinova SDK library"):
+    with pytest.raises(StartupError, match="Kinova's SDK library is not where sdk_library says: no "
+                                           "/nonexistent/libkinova.so"):
         robot_gateway_service(GatewayConfig(backend="kinova_sdk", sdk_library="/nonexistent/libkinova.so"))
+    # as a process: one line, exit 2, no traceback
+    run = subprocess.run([sys.executable, "-m", "services.robot_gateway", "--set", "backend=kinova_sdk",
+                          "--set", "sdk_library=/nonexistent"], capture_output=True, text=True, timeout=60,
+                         cwd=REPO, env={k: v for k, v in os.environ.items() if k != "MFVS_KINOVA_SDK"})
+    assert run.returncode == 2 and run.stderr.strip().splitlines() == [
+        "robot_gateway: Kinova's SDK library is not where sdk_library says: no /nonexistent"]
     with pytest.raises(ValueError, match="realtime only"):
         GatewayConfig(backend="kinova_sdk", clock=ClockMode.LOCKSTEP)  # a real arm has no simulated clock
 

@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 
 from protocol import rs485 as r
-from services.model import jaco2
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.robot_sim.bus_device import ActuatorBusDevice
 from services.robot_sim.sim import Simulation
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 _channels = itertools.count()
 
@@ -67,12 +69,12 @@ def f32(x):
 
 def test_actual_position_reply_is_byte_exact(rig):
     (reply,) = rig.request(r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, 0x11))
-    position = jaco2.model_to_physical_deg(rig.sim.q)[1]
+    position = ARM.model_to_physical_deg(rig.sim.q)[1]
     assert reply.encode() == struct.pack("<hBB4f", 0x02, 0x11, 0x00, position, 0.0, 0.0, 0.0)
 
 
 def test_position_and_torque_command_gets_one_reply_of_each_kind(rig):
-    target = float(jaco2.HOME_DEG[0])
+    target = float(ARM.home_deg[0])
     replies = rig.request(r.PositionTorqueCommand(target, 0.0).to_message(0x10))
     assert [m.command for m in replies] == [r.Command.SEND_ALL_VALUES_1, r.Command.SEND_ALL_VALUES_2,
                                             r.Command.SEND_ALL_VALUES_3]
@@ -82,32 +84,32 @@ def test_position_and_torque_command_gets_one_reply_of_each_kind(rig):
     assert replies[1].encode()[4:12] == struct.pack("<4h", 0, 0, 1000, 3500)
     assert replies[2].floats[0] == f32(target) and replies[2].floats[2] == 0.0  # position mode, no fault
     # one 0x14 per actuator gets 7 × 3 replies
-    for address in r.ACTUATOR_ADDRESSES:
-        i = r.ACTUATOR_ADDRESSES.index(address)
-        rig.host.send(r.PositionTorqueCommand(float(jaco2.HOME_DEG[i]), 0.0).to_message(address))
+    for address in ARM.bus_addresses:
+        i = ARM.bus_addresses.index(address)
+        rig.host.send(r.PositionTorqueCommand(float(ARM.home_deg[i]), 0.0).to_message(address))
     replies = rig.cycle(1)
-    assert len(replies) == 21 and {m.source for m in replies} == set(r.ACTUATOR_ADDRESSES)
+    assert len(replies) == 21 and {m.source for m in replies} == set(ARM.bus_addresses)
 
 
 def test_replies_are_stamped_with_the_arm_cycle_they_report(rig):
     rig.cycle(3)  # boundaries at 0, 2 and 4 ms: the third cycle runs from 4 ms
-    rig.host.send(r.PositionTorqueCommand(float(jaco2.HOME_DEG[0]), 0.0).to_message(0x10))
+    rig.host.send(r.PositionTorqueCommand(float(ARM.home_deg[0]), 0.0).to_message(0x10))
     stamped = rig.cycle_stamped(1)
     # the command came during that cycle: the replies carry its values and its time
     assert {stamp for _, stamp in stamped} == {4_000_000}
 
 
 def test_position_mode_moves_the_joint_to_the_target(rig):
-    target = float(jaco2.HOME_DEG[3]) + 5.0
+    target = float(ARM.home_deg[3]) + 5.0
     for _ in range(400):
         rig.host.send(r.PositionTorqueCommand(target, 0.0).to_message(0x13))
         rig.cycle(1)
-    assert jaco2.model_to_physical_deg(rig.sim.q)[3] == pytest.approx(target, abs=0.1)
+    assert ARM.model_to_physical_deg(rig.sim.q)[3] == pytest.approx(target, abs=0.1)
 
 
 def test_a_target_is_reached_at_the_end_of_the_cycle_that_takes_it(rig):
     """Interpolated position mode: the reference moves from where it is to the new target across one cycle."""
-    address, home = 0x15, float(jaco2.HOME_DEG[5])
+    address, home = 0x15, float(ARM.home_deg[5])
     actuator = rig.firmware.actuators[5]
     rig.host.send(r.PositionTorqueCommand(home + 0.01, 0.0).to_message(address))
     rig.cycle(1)
@@ -121,7 +123,7 @@ def test_a_missed_cycle_goes_on_one_cycle_then_holds_and_superseded_ones_are_cou
     """A host that is late: a cycle without a target continues the reference along its rate for that cycle (where
     the host's next target would have taken it), then the reference holds; two targets in one cycle keep the
     newer. Both are counted, and a target that only came late continues the motion without a jump."""
-    address, home = 0x11, float(jaco2.HOME_DEG[1])
+    address, home = 0x11, float(ARM.home_deg[1])
     actuator = rig.firmware.actuators[1]
     for k in range(5):
         rig.host.send(r.PositionTorqueCommand(home + 0.02 * k, 0.0).to_message(address))
@@ -150,8 +152,8 @@ def test_position_mode_follows_a_moving_target_without_lag_or_overshoot(rig, joi
     target for the end of the cycle that takes it (as the robot node plans), with the jitter of a host that is
     not hard realtime (every 7th command late by a cycle): the fundamental of the reported position matches the
     target's within 3 % and within a cycle."""
-    address = r.ACTUATOR_ADDRESSES[joint]
-    home = float(jaco2.HOME_DEG[joint])
+    address = ARM.bus_addresses[joint]
+    home = float(ARM.home_deg[joint])
     f, amplitude = 4.0, 0.5
 
     def target(t):
@@ -177,8 +179,8 @@ def test_position_mode_follows_a_moving_target_without_lag_or_overshoot(rig, joi
 
 
 def torque_mode(rig, address=0x12):
-    i = r.ACTUATOR_ADDRESSES.index(address)
-    measured = float(jaco2.SIGN[i] * rig.sim.data.actuator_force[i])
+    i = ARM.bus_addresses.index(address)
+    measured = float(ARM.sign[i] * rig.sim.data.actuator_force[i])
     (valid,) = rig.request(r.RS485Message.with_floats(r.Command.GET_TORQUE_VALIDATION_REQUEST, 0, address,
                                                       [measured]))
     assert valid.command is r.Command.SEND_TORQUE_VALIDATION and valid.uints[0] == 1
@@ -201,7 +203,7 @@ def test_switching_to_torque_needs_a_validation(rig):
 def test_torque_mode_falls_back_to_position_after_250_ms_without_torque_commands(rig):
     rig.cycle(50)
     assert r.parse_switch_mode_reply(torque_mode(rig)) is r.ControlModeReply.TORQUE_OK
-    position = float(jaco2.model_to_physical_deg(rig.sim.q)[2])
+    position = float(ARM.model_to_physical_deg(rig.sim.q)[2])
     for _ in range(50):  # 100 ms of zero torque commands: gravity compensation holds the arm
         rig.host.send(r.PositionTorqueCommand(position, 0.0).to_message(0x12))
         rig.cycle(1)
@@ -218,11 +220,11 @@ def test_torque_mode_falls_back_to_position_after_250_ms_without_torque_commands
 def test_torque_over_the_limit_is_clamped_and_reported_once(rig):
     rig.cycle(50)
     torque_mode(rig)
-    position = float(jaco2.model_to_physical_deg(rig.sim.q)[2])
+    position = float(ARM.model_to_physical_deg(rig.sim.q)[2])
     replies = rig.request(r.PositionTorqueCommand(position, 500.0).to_message(0x12))
     errors = [m for m in replies if m.command is r.Command.REPORT_ERROR]
     assert len(errors) == 1 and r.parse_report_error(errors[0]) is r.ActuatorError.TORQUE
-    assert rig.firmware.by_address[0x12].torque_nm == pytest.approx(jaco2.MAX_TORQUE[2])
+    assert rig.firmware.by_address[0x12].torque_nm == pytest.approx(ARM.max_torque[2])
     replies = rig.request(r.PositionTorqueCommand(position, 500.0).to_message(0x12))
     assert not [m for m in replies if m.command is r.Command.REPORT_ERROR]
 
@@ -261,7 +263,7 @@ def test_unsupported_commands_get_a_nack(rig):
 def test_host_cycles_split_what_a_stalled_loop_finds_queued():
     from services.robot_sim.arm_on_bus import host_cycles
 
-    addresses = list(r.ACTUATOR_ADDRESSES)
+    addresses = list(ARM.bus_addresses)
     first = r.position_torque_records(addresses, np.full(7, 1.0), np.zeros(7))
     second = r.position_torque_records(addresses, np.full(7, 2.0), np.zeros(7))
     other = r.to_records([r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, addresses[0])])
@@ -283,8 +285,8 @@ def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
     host, device_bus = RS485Bus(BusConfig(channel=channel)), RS485Bus(BusConfig(channel=channel))
     try:
         arm = ArmOnBus(sim, device_bus)
-        addresses = list(r.ACTUATOR_ADDRESSES)
-        start = jaco2.model_to_physical_deg(sim.q)
+        addresses = list(ARM.bus_addresses)
+        start = ARM.model_to_physical_deg(sim.q)
         for k in (1, 2):
             host.send_batch(r.position_torque_records(addresses, start + 0.01 * k, np.zeros(7)))
         taken = []

@@ -55,7 +55,7 @@ def test_bad_config_is_refused_with_the_key_name(router, tmp_path):
     bad.write_text("dsp: {max_linear_speed_mps: 0.5}\nscene: {camera: {fx: 615.0}}\n")
     out = subprocess.run([sys.executable, "-m", "services.robot_sim", "--config", str(bad)], cwd=REPO,
                          capture_output=True, text=True, timeout=60)
-    assert out.returncode == 2 and "key 'dsp'" in out.stderr and "max_linear_speed_mps" in out.stderr
+    assert out.returncode == 2 and "dsp.max_linear_speed_mps" in out.stderr and "(0.04, 0.2)" in out.stderr
     bad.write_text("scene: {camera: {focal: 615.0}}\n")
     out = subprocess.run([sys.executable, "-m", "services.robot_sim", "--config", str(bad)], cwd=REPO,
                          capture_output=True, text=True, timeout=60)

@@ -3,10 +3,13 @@ import cv2
 import numpy as np
 import pytest
 
-from services.model import jaco2
 from services.model import tag as tags
+from services.robot_sim.service import RobotSimConfig
 from services.robot_sim.scene import CameraConfig, PoseConfig, SceneConfig, TargetConfig, build_model
 from services.robot_sim.sim import Simulation
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 def detect(image, family="tag36h11"):
@@ -84,16 +87,19 @@ def test_moving_target_moves_at_its_velocity():
 
 
 def test_torque_limits_are_the_actuators():
-    model = build_model(SceneConfig())
-    assert model.actuator_ctrlrange[:, 1].tolist() == jaco2.MAX_TORQUE.tolist()
+    model = build_model(SceneConfig(), ARM)
+    assert model.actuator_ctrlrange[:, 1].tolist() == ARM.max_torque.tolist()
     assert model.opt.timestep <= 0.001
 
 
 def test_scene_config_validation():
-    with pytest.raises(ValueError):
-        SceneConfig(initial_joints_deg=[0.0] * 6)
-    with pytest.raises(ValueError):
-        SceneConfig(initial_joints_deg=[0, 20, 0, 180, 0, 180, 0])  # joint 2 below 47°
+    with pytest.raises(ValueError, match="initial_joints_deg has 6 angles; the j2s7s300 has 7 joints"):
+        SceneConfig(initial_joints_deg=[0.0] * 6).check(ARM)
+    with pytest.raises(ValueError, match="outside the j2s7s300's joint limits"):
+        SceneConfig(initial_joints_deg=[0, 20, 0, 180, 0, 180, 0]).check(ARM)  # joint 2 below 47°
+    SceneConfig(initial_joints_deg=[0.0] * 6, floor=False)  # a scene alone does not know its arm ...
+    with pytest.raises(ValueError, match="scene.initial_joints_deg has 6 angles; the j2s7s300 has 7 joints"):
+        RobotSimConfig(scene=SceneConfig(initial_joints_deg=[0.0] * 6))  # ... the robot's config does
     with pytest.raises(ValueError):
         TargetConfig(pose_in_base=PoseConfig(), pose_in_camera=PoseConfig())
     with pytest.raises(ValueError):
@@ -110,7 +116,7 @@ def test_physics_model_matches_pinocchio_gravity(rng):
     from tests.helpers import random_q
 
     sim = Simulation(render=False)
-    kin = ArmKinematics()
+    kin = ArmKinematics(ARM)
     for _ in range(20):
         q = random_q(rng)
         sim.data.qpos[:7] = q
@@ -122,7 +128,7 @@ def test_physics_model_matches_pinocchio_gravity(rng):
 def test_target_below_the_floor_is_refused():
     cfg = SceneConfig(target=TargetConfig(pose_in_base=PoseConfig(xyz=(0.0, -0.6, -0.1))))
     with pytest.raises(ValueError, match="below the floor"):
-        build_model(cfg)
+        build_model(cfg, ARM)
 
 
 @pytest.mark.parametrize("encoding", ["rgb8", "mono8"])

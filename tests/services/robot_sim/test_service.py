@@ -11,11 +11,13 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
-from services.model import jaco2
 from services.robot.dsp import DSPConfig, motion_limits
 from services.runtime.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import next_seq, wait_for
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 KEYS = Keys()
 
@@ -121,7 +123,7 @@ def test_lockstep_velocity_command_moves_as_declared(robot, client):
     assert all(a is not None and a.trace[-1].service == "robot_sim" for a in applied)
     assert all(s.angular_convention is AngularConvention.SEED000 for s in window)
     # the limits its DSP applies, declared in every state (the controller and safety read them there)
-    assert all(s.limits == motion_limits(DSPConfig()) for s in window)
+    assert all(s.limits == motion_limits(DSPConfig(), ARM) for s in window)
 
 
 def test_lockstep_publishes_frames_with_capture_stamps(start_robot, client):
@@ -182,13 +184,13 @@ def api(client, function, argument=None, reply_type=kinova.ApiReply):
 def test_kinova_api_queryables(robot, client):
     position = api(client, "GetAngularPosition", reply_type=kinova.AngularPositionReply)
     assert position.code == kinova.ErrorCode.NO_ERROR_KINOVA
-    assert position.result.Actuators.as_list() == pytest.approx(jaco2.HOME_DEG.tolist(), abs=1e-6)
+    assert position.result.Actuators.as_list() == pytest.approx(ARM.home_deg.tolist(), abs=1e-6)
     cartesian = api(client, "GetCartesianPosition", reply_type=kinova.CartesianPositionReply)
-    T = jaco2.dh_forward_kinematics(jaco2.HOME)
+    T = ARM.dh_forward_kinematics(ARM.home)
     assert [cartesian.result.Coordinates.X, cartesian.result.Coordinates.Y, cartesian.result.Coordinates.Z] == \
         pytest.approx(T[:3, 3].tolist(), abs=1e-6)
 
-    target = jaco2.HOME_DEG + np.array([5.0, -5.0, 0.0, 5.0, 0.0, -5.0, 10.0])
+    target = ARM.home_deg + np.array([5.0, -5.0, 0.0, 5.0, 0.0, -5.0, 10.0])
     point = kinova.TrajectoryPoint(Position=kinova.UserPosition(
         Type=kinova.POSITION_TYPE.ANGULAR_POSITION, Actuators=kinova.AngularInfo.from_list(target)))
     assert api(client, "SendBasicTrajectory", point).code == kinova.ErrorCode.NO_ERROR_KINOVA

@@ -18,6 +18,7 @@ from services.runtime.transport import Router, ZenohConfig, free_loopback_port, 
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import KEYS, Recorder, next_seq, wait_for
 from tests.helpers import REPO
+from tests.helpers import ARM_DECLARED
 
 
 
@@ -173,7 +174,7 @@ def test_only_the_torque_controller_identity_commands_torques(deployment, robot)
 def test_only_robots_publish_robot_state(deployment):
     safety = session_as(deployment, "safety")
     states = Recorder(safety, KEYS.robot_state, m.RobotState)
-    fake = m.encode(m.RobotState(header=m.Header(), q=[0.0] * 7, dq=[0.0] * 7, tau=[0.0] * 7,
+    fake = m.encode(m.RobotState(**ARM_DECLARED, header=m.Header(), q=[0.0] * 7, dq=[0.0] * 7, tau=[0.0] * 7,
                                  pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
                                  control_mode=m.ControlMode.IDLE))
     for service in ("vision", "controller", "operator"):

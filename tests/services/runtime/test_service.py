@@ -22,6 +22,7 @@ from services.runtime.service import Service, ServiceConfig, service_condition
 from services.runtime.transport import Router, ZenohConfig, open_session, to_zenoh_config
 from tests.stack import wait_for
 from tests.helpers import REPO
+from tests.helpers import ARM_DECLARED
 
 
 
@@ -251,7 +252,7 @@ def test_a_lockstep_follower_takes_the_simulators_stamps_as_time(router, client)
     service = Follower(ServiceConfig(zenoh=router.client_config(), clock=ClockMode.LOCKSTEP)).start()
     try:
         time.sleep(0.3)
-        state = m.RobotState(header=m.Header(stamp_ns=5_000_000_000), q=[0.0] * 7, dq=[0.0] * 7, tau=[0.0] * 7,
+        state = m.RobotState(**ARM_DECLARED, header=m.Header(stamp_ns=5_000_000_000), q=[0.0] * 7, dq=[0.0] * 7, tau=[0.0] * 7,
                              pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
                              control_mode=m.ControlMode.IDLE)
         client.put(keys.desired_twist, m.encode(msgspec_replace(twist(), stamp_ns=9_000_000_000)))

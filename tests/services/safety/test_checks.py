@@ -9,21 +9,25 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
-from services.model import jaco2
 from services.model.kinematics import ArmKinematics
 from services.model.limits import arm_limits, stricter
 from services.runtime.transport import open_session
-from services.safety.checks import MotionMonitor, SafetyLimits
+from services.model import frames
+from services.safety.checks import CommandChecker, MotionMonitor, SafetyLimits
 from services.safety.service import SafetyConfig, SafetyService
 from tests.stack import KEYS, Recorder, wait_for
+from services.model.arm import load_arm
+from tests.helpers import ARM_DECLARED
+
+ARM = load_arm("j2s7s300")
 
 PERIOD_NS = 10_000_000  # the robot state's period (100 Hz)
-KIN = ArmKinematics()
-Q = jaco2.HOME.copy()
+KIN = ArmKinematics(ARM)
+Q = ARM.home.copy()
 #: the limits the robot declares in its states (the monitor's reference)
-ROBOT = stricter(arm_limits(), linear_speed_mps=0.15, angular_speed_rps=0.8)
+ROBOT = stricter(arm_limits(ARM), linear_speed_mps=0.15, angular_speed_rps=0.8)
 #: a robot whose Cartesian limits are out of reach (only the joints' speeds count)
-JOINTS_ONLY = msgspec.structs.replace(arm_limits(), linear_speed_mps=100.0, angular_speed_rps=100.0)
+JOINTS_ONLY = msgspec.structs.replace(arm_limits(ARM), linear_speed_mps=100.0, angular_speed_rps=100.0)
 
 
 def dq_for_linear(speed_mps: float, direction=(1.0, 0.0, 0.0)) -> np.ndarray:
@@ -38,14 +42,14 @@ def feed(monitor: MotionMonitor, dq, states: int, start_ns: int = 0, robot=ROBOT
 
 
 def test_measured_speed_within_the_margin_never_trips():
-    monitor = MotionMonitor(SafetyLimits())
+    monitor = MotionMonitor(SafetyLimits(), ArmKinematics(ARM))
     assert feed(monitor, dq_for_linear(0.15 * 1.09), 50) == [None] * 50
     assert monitor.peak_ratio["linear"] == pytest.approx(1.09, rel=1e-6)
     assert monitor.peak_linear_mps == pytest.approx(0.15 * 1.09, rel=1e-6)
 
 
 def test_one_state_over_is_tolerated_two_in_a_row_trip():
-    monitor = MotionMonitor(SafetyLimits())
+    monitor = MotionMonitor(SafetyLimits(), ArmKinematics(ARM))
     fast, slow = dq_for_linear(0.15 * 1.16, (0.3, -0.5, 0.8)), dq_for_linear(0.05)
     assert feed(monitor, fast, 1) == [None]
     assert monitor.observe(Q, slow, PERIOD_NS, ROBOT) is None  # back under: the count starts again
@@ -56,23 +60,23 @@ def test_one_state_over_is_tolerated_two_in_a_row_trip():
 
 @pytest.mark.parametrize("joint", range(7))
 def test_a_joint_over_its_own_limit_trips(joint):
-    monitor = MotionMonitor(SafetyLimits())
+    monitor = MotionMonitor(SafetyLimits(), ArmKinematics(ARM))
     dq = np.zeros(7)
-    dq[joint] = jaco2.MAX_SPEED[joint] * 1.12
+    dq[joint] = ARM.max_speed[joint] * 1.12
     reasons = feed(monitor, dq, 2, robot=JOINTS_ONLY)
     assert reasons[0] is None and f"joint {joint + 1} speed" in reasons[1]
-    dq[joint] = jaco2.MAX_SPEED[joint] * 1.05
-    assert feed(MotionMonitor(SafetyLimits()), dq, 20, robot=JOINTS_ONLY) == [None] * 20
+    dq[joint] = ARM.max_speed[joint] * 1.05
+    assert feed(MotionMonitor(SafetyLimits(), ArmKinematics(ARM)), dq, 20, robot=JOINTS_ONLY) == [None] * 20
 
 
 def test_a_site_limit_stricter_than_the_robots_is_watched_and_a_looser_one_is_not():
     fast = dq_for_linear(0.12)
-    assert feed(MotionMonitor(SafetyLimits(max_linear_speed_mps=0.1)), fast, 2)[1] is not None
-    assert feed(MotionMonitor(SafetyLimits(max_linear_speed_mps=0.5)), dq_for_linear(0.15 * 1.2), 2)[1] is not None
+    assert feed(MotionMonitor(SafetyLimits(max_linear_speed_mps=0.1), ArmKinematics(ARM)), fast, 2)[1] is not None
+    assert feed(MotionMonitor(SafetyLimits(max_linear_speed_mps=0.5), ArmKinematics(ARM)), dq_for_linear(0.15 * 1.2), 2)[1] is not None
 
 
 def test_angular_overspeed_trips():
-    monitor = MotionMonitor(SafetyLimits(max_angular_speed_rps=0.5))
+    monitor = MotionMonitor(SafetyLimits(max_angular_speed_rps=0.5), ArmKinematics(ARM))
     twist = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.5 * 1.2])
     dq = np.linalg.pinv(KIN.jacobian_base(Q)) @ twist
     assert "angular speed" in feed(monitor, dq, 2)[1]
@@ -88,7 +92,7 @@ def safety(router):
 
 
 def robot_state(dq, stamp_ns: int) -> bytes:
-    return m.encode(m.RobotState(header=m.Header(stamp_ns=stamp_ns), q=Q.tolist(), dq=list(map(float, dq)),
+    return m.encode(m.RobotState(**ARM_DECLARED, header=m.Header(stamp_ns=stamp_ns), q=Q.tolist(), dq=list(map(float, dq)),
                                  tau=[0.0] * 7, pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
                                  control_mode=m.ControlMode.CARTESIAN_VELOCITY, limits=ROBOT))
 
@@ -147,3 +151,18 @@ def test_safety_refuses_an_input_from_the_future(safety):
     assert wait_for(lambda: any(c.mode is m.CommandMode.CARTESIAN_VELOCITY for c in commands.snapshot()), timeout=5)
     for token in tokens:
         token.undeclare()
+
+
+@pytest.mark.parametrize("over_limit", ["clamp", "refuse"])
+def test_a_twist_over_one_speed_limit_is_scaled_as_a_whole_or_refused(over_limit):
+    """Issue 34: the linear part at 2× its limit, the angular within: clamped, the whole twist is halved (its
+    direction kept, as the law asked); refused, the reason names the part over."""
+    checker = CommandChecker(SafetyLimits(over_limit=over_limit, robot_convention=AngularConvention.OMEGA), ArmKinematics(ARM))
+    asked = np.array([0.0, -0.3, 0.0, 0.0, 0.0, 0.4])
+    decision = checker.check_twist(Frame.MIXED, AngularConvention.OMEGA, asked, Q, dt=1.0, robot=ROBOT)
+    if over_limit == "refuse":
+        assert decision.refused and decision.limits == ["linear_speed"]
+        assert "linear_speed: 0.300 over the limit 0.150" in decision.refusal
+        return
+    assert not decision.refused and "linear_speed" in decision.limits
+    assert np.allclose(decision.twist, asked / 2.0)

@@ -3,9 +3,13 @@ import numpy as np
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from services.model import jaco2
 from services.safety.checks import SafetyLimits
 from services.safety.core import Count, HeldCommand, Note, Refused, SafetyCore, Send
+from services.model.arm import load_arm
+from services.model.kinematics import ArmKinematics
+from tests.helpers import ARM_DECLARED
+
+ARM = load_arm("j2s7s300")
 
 S = 1_000_000_000  # ns
 
@@ -19,7 +23,7 @@ def core(lockstep=False, **limits) -> SafetyCore:
 
 
 def state(stamp_ns, q=None) -> m.RobotState:
-    return m.RobotState(header=m.Header(stamp_ns=stamp_ns), q=(jaco2.HOME if q is None else q).tolist(),
+    return m.RobotState(**ARM_DECLARED, header=m.Header(stamp_ns=stamp_ns), q=(ARM.home if q is None else q).tolist(),
                         dq=[0.0] * 7, tau=[0.0] * 7,
                         pose=m.KinovaPose(X=0, Y=0, Z=0, ThetaX=0, ThetaY=0, ThetaZ=0),
                         control_mode=m.ControlMode.CARTESIAN_VELOCITY)
@@ -94,7 +98,7 @@ def test_the_estop_latches_answers_every_frame_with_an_emergency_stop_and_only_a
 
 def test_measured_overspeed_latches_a_protective_stop():
     safety = core()
-    J = safety.checker.kin.jacobian_base(jaco2.HOME)
+    J = ArmKinematics(ARM).jacobian_base(ARM.home)
     actions = []
     for k in range(3):  # the end effector at 0.3 m/s (limit 0.15) for longer than a state period
         moving = state(10 * S + k * 10_000_000)
@@ -114,3 +118,31 @@ def test_lockstep_checks_a_command_against_its_frame_s_state_and_answers_every_t
     modes = [c.mode for c in sends(actions)]
     assert modes == [m.CommandMode.CARTESIAN_VELOCITY, m.CommandMode.CARTESIAN_VELOCITY]
     assert [a.stamp_ns for a in actions if isinstance(a, Send)] == [None, frame]
+
+
+def test_safety_started_for_another_arm_than_the_robots_sends_only_stops():
+    """Safety started for the 6-DoF, the robot declaring the 7-DoF: the state is refused (``arm``), a desired
+    command gets a stop, nothing moves (issue 32); safety left to the robot's arm checks for the robot's."""
+    for_6dof = SafetyCore(SafetyLimits(), upstream=["vision", "controller"], robots=["robot_sim"], rate_hz=100.0,
+                          lockstep=False, arm="j2n6s300")
+    for name in ("vision", "controller", "robot_sim"):
+        for_6dof.liveliness(name, True)
+    actions = for_6dof.state(state(10 * S), 10 * S)
+    assert [a.reason for a in actions if isinstance(a, Refused)] == [
+        "arm: started for the j2n6s300, the robot runs the j2s7s300: nothing is done for it"]
+    answer = sends(for_6dof.desired(twist(10 * S), 10 * S))
+    assert [c.mode for c in answer] == [m.CommandMode.STOP] and for_6dof.checker is None
+    follows = core()
+    follows.state(state(10 * S), 10 * S)
+    assert sends(follows.desired(twist(10 * S), 10 * S))[0].mode is m.CommandMode.CARTESIAN_VELOCITY
+    assert follows.arm.name == "j2s7s300"
+
+
+def test_joint_velocities_for_another_arm_are_refused():
+    safety = core()
+    safety.state(state(10 * S), 10 * S)
+    six = HeldCommand(None, m.JointVelocity(header=m.Header(stamp_ns=10 * S, source_stamp_ns=10 * S),
+                                            velocities=[0.01] * 6), 10 * S)
+    actions = safety.desired(six, 10 * S)
+    assert [c.mode for c in sends(actions)] == [m.CommandMode.STOP]
+    assert any(isinstance(a, Refused) and a.reason.startswith("joint_count: 6 joint velocities") for a in actions)

@@ -14,13 +14,16 @@ import pytest
 
 from protocol import messages as m
 from services.robot.admission import AdmissionConfig
-from services.robot.dsp import DSPConfig
+from services.robot.dsp import DSPConfig, for_arm
 from services.runtime.faults import RELOAD_PERIOD_S, write_fault_plan
 from services.model.kinematics import ArmKinematics
 from services.safety.service import SafetyConfig
 from services.runtime.transport import open_session
 from tests.stack import KEYS, Recorder, wait_for
 from tests.helpers import REPO
+from services.model.arm import load_arm
+
+ARM = load_arm("j2s7s300")
 
 
 PIPELINE = textwrap.dedent("""
@@ -43,7 +46,7 @@ def ee_speed(kin, state):
 def arm_moving(router, safety_args=(), robot_args=()):
     """safety and robot_sim processes (realtime, with extra arguments each) and a stand-in pipeline process
     commanding 0.1 m/s: (client, states, pipeline, kin) once the arm moves at that speed."""
-    kin = ArmKinematics()
+    kin = ArmKinematics(ARM)
     client = open_session(router.client_config())
     states = Recorder(client, KEYS.robot_state, m.RobotState)
     env = dict(os.environ, MUJOCO_GL="egl")
@@ -100,7 +103,7 @@ def test_killing_the_pipeline_mid_motion_stops_the_arm_in_time(moving_arm):
     pipeline.wait(timeout=10)
     time.sleep(1.5)
     elapsed = time_to_rest(states, kin, kill_ns)
-    bound = rest_bound(v0, DSPConfig().linear_accel_mps2, SafetyConfig().limits.command_budget_s + 0.010)
+    bound = rest_bound(v0, ARM.linear_accel_mps2, SafetyConfig().limits.command_budget_s + 0.010)
     print(f"v0 {v0:.3f} m/s, at rest {elapsed * 1e3:.0f} ms after the kill (bound {bound * 1e3:.0f} ms)")
     assert elapsed <= bound
 
@@ -122,7 +125,7 @@ def rest_bound(v0: float, decel: float, reaction_s: float) -> float:
     event is seen at rest: plus the DSP's next tick, the servo's settling and the state that shows it. Until the
     stop lands the arm follows its last command, which may still be speeding it up (at most at the DSP's
     acceleration, to at most its top speed): it brakes from that speed, not from ``v0``."""
-    dsp = DSPConfig()
+    dsp = for_arm(DSPConfig(), ARM)
     reaction_s += dsp.cycle_s
     braking_from = min(v0 + dsp.linear_accel_mps2 * reaction_s, dsp.max_linear_speed_mps)
     return reaction_s + braking_from / decel + SERVO_SETTLE_S + STATE_PERIOD_S
@@ -132,7 +135,7 @@ def test_estop_in_realtime_stops_within_v0_over_a_stop(moving_arm):
     """The e-stop in realtime: the arm travels no further than at full speed until the DSP tick after the e-stop
     arrives plus its emergency braking distance, and is at rest within the braking time plus the budgets above.
     (Measured: 4.5 or 5.5 mm, one DSP tick at 0.1 m/s apart, against 3.3 mm of braking; at rest 83-101 ms.)"""
-    dsp = DSPConfig()
+    dsp = for_arm(DSPConfig(), ARM)
     client, states, pipeline, kin = moving_arm
     before = states.last()
     v0 = ee_speed(kin, before)
@@ -174,8 +177,8 @@ def test_a_service_killed_or_stopped_mid_motion_stops_the_arm_and_the_stack_reco
     code, message = up(sim_profile(port), "realtime")
     assert code == 0, message
     assert stack_task(m.START_TASK, operator="test").state is m.TaskState.RUNNING  # it came up idle
-    kin = ArmKinematics()
-    dsp = DSPConfig()
+    kin = ArmKinematics(ARM)
+    dsp = for_arm(DSPConfig(), ARM)
     client = open_session(ZenohConfig(connect=[endpoint]))
     states = Recorder(client, KEYS.robot_state, m.RobotState)
     try:
@@ -233,7 +236,7 @@ def test_the_stack_comes_up_idle_moves_for_a_task_and_rests_when_it_stops(tmp_pa
     port = free_loopback_port()
     code, message = up(sim_profile(port), "realtime")
     assert code == 0, message
-    kin = ArmKinematics()
+    kin = ArmKinematics(ARM)
     client = open_session(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
     states = Recorder(client, KEYS.robot_state, m.RobotState)
     statuses = Recorder(client, KEYS.controller_status, m.ControllerStatus)
@@ -250,7 +253,7 @@ def test_the_stack_comes_up_idle_moves_for_a_task_and_rests_when_it_stops(tmp_pa
         assert stopped.state is m.TaskState.IDLE and stopped.task == 1
         time.sleep(1.5)
         elapsed = time_to_rest(states, kin, stop_ns)
-        bound = rest_bound(v0, DSPConfig().linear_accel_mps2, PIPELINE_BUDGET_S)
+        bound = rest_bound(v0, ARM.linear_accel_mps2, PIPELINE_BUDGET_S)
         print(f"task stopped at v0 {v0:.3f} m/s: at rest after {elapsed * 1e3:.0f} ms (bound {bound * 1e3:.0f} ms)")
         assert elapsed <= bound
         assert statuses.last().status is m.ControllerState.IDLE
@@ -278,7 +281,7 @@ def test_the_router_killed_mid_motion_and_restarted_the_arm_rests_and_every_serv
     code, message = up(sim_profile(port), "realtime")
     assert code == 0, message
     assert stack_task(m.START_TASK, operator="test").state is m.TaskState.RUNNING
-    kin = ArmKinematics()
+    kin = ArmKinematics(ARM)
     client = open_session(ZenohConfig(connect=[endpoint]))
     states = Recorder(client, KEYS.robot_state, m.RobotState)
     try:
@@ -311,7 +314,7 @@ def test_a_link_to_the_robot_that_drops_or_delays_commands_rests_the_arm_and_not
     budget on its own clock, stays at rest while the fault lasts, no command older than the admission allows is
     ever applied (the held-back ones still arrive after the fault is lifted, and are refused), and once the link
     is sound the arm moves again, never faster than the DSP's limit."""
-    dsp = DSPConfig()
+    dsp = for_arm(DSPConfig(), ARM)
     plan = tmp_path / "faults.yaml"
     with arm_moving(router, safety_args=["--set", f"faults_file={plan}"]) as (client, states, pipeline, kin):
         v0 = ee_speed(kin, states.last())

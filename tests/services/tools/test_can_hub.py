@@ -12,6 +12,7 @@ from services.tools.can_hub import HEADER, CanHub, parse_channel
 from services.robot.rs485_bus import BusConfig
 from services.stack import simulated_link
 from tests.stack import wait_for
+from tests.helpers import ARM
 
 
 @pytest.fixture
@@ -75,7 +76,7 @@ def test_without_a_hub_the_interface_fails_clearly():
 def test_rs485_exchange_with_the_emulated_actuators_across_the_hub(hub):
     with simulated_link(BusConfig(interface="mfvs_hub", channel=hub.channel), settle_s=0.0) as (_, link):
         positions = link.positions_deg()
-        assert len(positions) == len(r.ACTUATOR_ADDRESSES)
+        assert len(positions) == len(ARM.bus_addresses)
         started = time.monotonic()
         for _ in range(50):
             reading = link.command(positions)

@@ -1,0 +1,593 @@
+"""Arm descriptions: one file per arm in ``services/model/arms/<name>.yaml``, each from public facts with its sources
+named beside its numbers; :func:`load_arm` reads one into an immutable :class:`ArmDescription`, and everything that
+needs an arm's geometry, limits or inertia takes it from there. A third arm is one new file.
+
+Like Pinocchio's and MuJoCo's models, a description is immutable and shared: MuJoCo (:meth:`ArmDescription.mujoco_spec`)
+and Pinocchio (:meth:`ArmDescription.load_pinocchio`) both load the same URDF text (:meth:`ArmDescription.urdf`), and
+:meth:`ArmDescription.dh_forward_kinematics` evaluates the DH table directly as an independent reference.
+
+Geometry is a classic DH table, T_i = Rz(θ_i)·Tz(d_i)·Tx(a_i)·Rx(α_i), after a base rotation, with
+θ_DH,i = sign_i·q_i + offset_i for the physical angle q_i (radians) the arm reports (GetAngularPosition, never wrapped).
+*Model* angles are those θ_DH (radians): the wire (protocol.messages) carries model angles and rates; Kinova units
+appear only at the API boundary.
+
+Inertia: each link's mass from the file's source, its centre of mass mid-segment and a solid cylinder (mfvs's choice:
+adequate for simulation and computed torque, not an identified model).
+"""
+from __future__ import annotations
+
+import ast
+import math
+import operator
+from dataclasses import dataclass
+from functools import cached_property, lru_cache
+from pathlib import Path
+from typing import Optional, Union
+
+import msgspec
+import numpy as np
+import yaml
+
+ARMS_DIR = Path(__file__).resolve().parent / "arms"
+#: the arm a stack runs when nothing chooses one (seed 000's)
+DEFAULT_ARM = "j2s7s300"
+BASE_LINK = "base_link"
+EE_LINK = "end_effector"
+#: the most joints the Kinova API carries (AngularInfo: Actuator1..7)
+MAX_JOINTS = 7
+
+_LINK_RADIUS = 0.04
+_MIN_SEGMENT = 0.08
+#: the symmetric range a continuous joint gets in formats that need one (model rad); effectively unbounded
+_CONTINUOUS_RANGE = 100.0 * math.pi
+
+
+class ArmError(ValueError):
+    """An arm that cannot be had: an unknown name, or a description file that is not valid."""
+
+
+# ------------------------------------------------------------------------------------------------ the file
+
+
+Number = Union[float, int, str]
+
+_OPERATORS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv,
+              ast.USub: operator.neg, ast.UAdd: operator.pos}
+_FUNCTIONS = {"sin": math.sin, "cos": math.cos, "sqrt": math.sqrt, "radians": math.radians}
+
+
+def evaluate(value: Number, names: dict[str, float]) -> float:
+    """A number of a description file: a number, or arithmetic as the sources write it (+ - * / of numbers, the
+    file's lengths, pi, sin, cos, sqrt, radians)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if not isinstance(value, str):
+        raise ArmError(f"{value!r} is not a number or an expression")
+
+    def walk(node) -> float:
+        if isinstance(node, ast.Expression):
+            return walk(node.body)
+        if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)) and not isinstance(node.value, bool):
+            return float(node.value)
+        if isinstance(node, ast.Name):
+            if node.id == "pi":
+                return math.pi
+            if node.id in names:
+                return names[node.id]
+            raise ArmError(f"unknown name {node.id!r} in {value!r}")
+        if isinstance(node, ast.BinOp) and type(node.op) in _OPERATORS:
+            return _OPERATORS[type(node.op)](walk(node.left), walk(node.right))
+        if isinstance(node, ast.UnaryOp) and type(node.op) in _OPERATORS:
+            return _OPERATORS[type(node.op)](walk(node.operand))
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in _FUNCTIONS
+                and len(node.args) == 1 and not node.keywords):
+            return _FUNCTIONS[node.func.id](walk(node.args[0]))
+        raise ArmError(f"{value!r}: only numbers, names, + - * / and sin, cos, sqrt, radians are allowed")
+
+    try:
+        tree = ast.parse(value, mode="eval")
+    except SyntaxError:
+        raise ArmError(f"{value!r} is not an expression") from None
+    result = walk(tree)
+    if not math.isfinite(result):
+        raise ArmError(f"{value!r} is not finite")
+    return result
+
+
+class _DHRow(msgspec.Struct, forbid_unknown_fields=True):
+    d: Number
+    a: Number
+    alpha: Number
+    sign: int
+    offset: Number
+
+
+class _Kinematics(msgspec.Struct, forbid_unknown_fields=True):
+    base_rpy: tuple[Number, Number, Number]
+    dh: list[_DHRow]
+    shoulder_height: Number
+    reach: Number
+
+
+class _Cartesian(msgspec.Struct, forbid_unknown_fields=True):
+    linear_speed_range_mps: tuple[float, float]
+    angular_speed_range_rps: tuple[float, float]
+    linear_accel_mps2: float
+    angular_accel_rps2: float
+    joint_accel_dps2: float
+
+
+class _Joint(msgspec.Struct, forbid_unknown_fields=True):
+    name: str
+    range_deg: Optional[tuple[float, float]]
+    max_speed_dps: float
+    actuator: str
+
+
+class _Link(msgspec.Struct, forbid_unknown_fields=True):
+    mass_kg: Number
+
+
+class _Base(msgspec.Struct, forbid_unknown_fields=True):
+    mass_kg: Number
+    com_z: Number
+    height: Number
+    radius: Number
+
+
+class _File(msgspec.Struct, forbid_unknown_fields=True):
+    name: str
+    title: str
+    seed: str
+    lengths: dict[str, float]
+    kinematics: _Kinematics
+    cartesian: _Cartesian
+    joints: list[_Joint]
+    home_deg: list[float]
+    bus_addresses: list[int]
+    links: list[_Link]
+    base: _Base
+    armature: list[float]
+    damping: list[float]
+    torque_limits_nm: list[float]
+
+
+# ------------------------------------------------------------------------------------------------ the description
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    name: str
+    continuous: bool
+    #: physical limits in degrees (None for continuous joints)
+    lower_deg: Optional[float]
+    upper_deg: Optional[float]
+    max_speed_dps: float
+    #: the torque the emulated actuator may give (N·m)
+    max_torque_nm: float
+    #: the actuator that drives it (its data sheet's name)
+    actuator: str
+    #: mass (kg) of the link this joint moves, including the actuator it carries
+    link_mass_kg: float
+
+
+@dataclass(frozen=True, eq=False)
+class ArmDescription:
+    """One arm, immutable: its kinematics, limits, inertia and bus, as its description file gives them."""
+
+    name: str
+    title: str
+    #: the seed paper that uses this arm
+    seed: str
+    joints: tuple[JointSpec, ...]
+    dh_d: tuple[float, ...]
+    dh_a: tuple[float, ...]
+    dh_alpha: tuple[float, ...]
+    base_rpy: tuple[float, float, float]
+    #: θ_DH = sign·q_physical + offset (rad)
+    sign: np.ndarray
+    offset: np.ndarray
+    shoulder_height: float
+    #: the end effector's distance from the shoulder with the arm straight (m)
+    reach: float
+    home_deg: np.ndarray
+    bus_addresses: tuple[int, ...]
+    base_mass_kg: float
+    base_com_z: float
+    base_height: float
+    base_radius: float
+    armature: np.ndarray
+    damping: np.ndarray
+    #: the range of the top translation (m/s) and orientation (rad/s) speeds a client may set, and the accelerations
+    linear_speed_range_mps: tuple[float, float]
+    angular_speed_range_rps: tuple[float, float]
+    linear_accel_mps2: float
+    angular_accel_rps2: float
+    joint_accel_dps2: float
+    #: the file it was read from
+    path: Path
+
+    @property
+    def max_linear_speed_mps(self) -> float:
+        return self.linear_speed_range_mps[1]
+
+    @property
+    def max_angular_speed_rps(self) -> float:
+        return self.angular_speed_range_rps[1]
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, ArmDescription) and other.name == self.name and other.digest == self.digest
+
+    def __hash__(self) -> int:
+        return hash((self.name, self.digest))
+
+    def __repr__(self) -> str:
+        return f"ArmDescription({self.name!r}, {self.n_joints} joints)"
+
+    # -------------------------------------------------------------------- derived, constant
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @cached_property
+    def joint_names(self) -> tuple[str, ...]:
+        return tuple(j.name for j in self.joints)
+
+    @cached_property
+    def link_names(self) -> tuple[str, ...]:
+        return tuple(f"link_{i}" for i in range(1, self.n_joints + 1))
+
+    @cached_property
+    def continuous(self) -> np.ndarray:
+        return np.array([j.continuous for j in self.joints])
+
+    @cached_property
+    def max_speed_dps(self) -> np.ndarray:
+        return np.array([j.max_speed_dps for j in self.joints])
+
+    @cached_property
+    def max_speed(self) -> np.ndarray:
+        """Each joint's top speed (rad/s)."""
+        return np.radians(self.max_speed_dps)
+
+    @cached_property
+    def max_torque(self) -> np.ndarray:
+        return np.array([j.max_torque_nm for j in self.joints])
+
+    @cached_property
+    def home(self) -> np.ndarray:
+        """The home pose in model angles (rad)."""
+        return self.physical_deg_to_model(self.home_deg)
+
+    @cached_property
+    def digest(self) -> str:
+        """A fingerprint of the description's text: two hosts with the same name and digest run the same arm."""
+        import hashlib
+
+        return hashlib.sha256(self.path.read_bytes()).hexdigest()[:16]
+
+    # -------------------------------------------------------------------- angles
+    def physical_deg_to_model(self, q_deg) -> np.ndarray:
+        """Physical angles (deg, as GetAngularPosition reports them) → model angles (rad)."""
+        return self.sign * np.radians(np.asarray(q_deg, dtype=float)) + self.offset
+
+    def model_to_physical_deg(self, q) -> np.ndarray:
+        return np.degrees(self.sign * (np.asarray(q, dtype=float) - self.offset))
+
+    def physical_rate_to_model(self, dq_dps) -> np.ndarray:
+        """Physical joint rates (deg/s) → model rates (rad/s)."""
+        return self.sign * np.radians(np.asarray(dq_dps, dtype=float))
+
+    def model_rate_to_physical(self, dq) -> np.ndarray:
+        return np.degrees(self.sign * np.asarray(dq, dtype=float))
+
+    def model_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper model-angle limits (rad); ±inf for continuous joints."""
+        return self._model_limits[0].copy(), self._model_limits[1].copy()
+
+    @cached_property
+    def _model_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        lower = np.full(self.n_joints, -np.inf)
+        upper = np.full(self.n_joints, np.inf)
+        for i, j in enumerate(self.joints):
+            if j.continuous:
+                continue
+            a = self.sign[i] * math.radians(j.lower_deg) + self.offset[i]
+            b = self.sign[i] * math.radians(j.upper_deg) + self.offset[i]
+            lower[i], upper[i] = min(a, b), max(a, b)
+        return lower, upper
+
+    def limit_margins_deg(self, q) -> np.ndarray:
+        """Each limited joint's distance to its nearer limit (deg), at one configuration (model radians) or at a
+        stack of them (…×n → …×limited joints)."""
+        lower, upper = self._model_limits
+        limited = np.isfinite(lower)
+        q = np.asarray(q, dtype=float)[..., limited]
+        return np.degrees(np.minimum(q - lower[limited], upper[limited] - q))
+
+    def within_limits(self, q) -> bool:
+        lower, upper = self._model_limits
+        q = np.asarray(q, dtype=float)
+        return bool(np.all(q >= lower) and np.all(q <= upper))
+
+    # -------------------------------------------------------------------- reference kinematics
+    def dh_forward_kinematics(self, q) -> np.ndarray:
+        """Base → end-effector homogeneous transform straight from the DH table (model angles, rad)."""
+        q = np.asarray(q, dtype=float)
+        T = _rpy(*self.base_rpy)
+        for i in range(self.n_joints):
+            T = T @ _dh(q[i], self.dh_d[i], self.dh_a[i], self.dh_alpha[i])
+        return T
+
+    # -------------------------------------------------------------------- the URDF both loaders read
+    @cached_property
+    def _urdf(self) -> str:
+        parts = [
+            '<?xml version="1.0"?>',
+            f'<robot name="{self.name}">',
+            # MuJoCo reads this block and keeps the fixed frames as bodies.
+            '<mujoco><compiler angle="radian" discardvisual="false" fusestatic="false" strippath="false"/></mujoco>',
+            f'<link name="{BASE_LINK}">{_inertial(self.base_mass_kg, self.base_height, self.base_com_z, self.base_radius)}'
+            f'<collision><origin xyz="0 0 {_f(self.base_height / 2)}" rpy="0 0 0"/><geometry><cylinder '
+            f'radius="{_f(self.base_radius)}" length="{_f(self.base_height)}"/></geometry></collision></link>',
+            '<link name="link_0"/>',
+            f'<joint name="base_dh" type="fixed"><parent link="{BASE_LINK}"/><child link="link_0"/>'
+            f'<origin xyz="0 0 0" rpy="{" ".join(_f(v) for v in self.base_rpy)}"/></joint>',
+        ]
+        lower, upper = self._model_limits
+        for i, spec in enumerate(self.joints):
+            d = self.dh_d[i]
+            length = max(math.hypot(d, self.dh_a[i]), _MIN_SEGMENT)
+            link = self.link_names[i]
+            parts.append(f'<link name="{link}">{_inertial(spec.link_mass_kg, length, d / 2, _LINK_RADIUS, self.dh_a[i] / 2)}'
+                         f'{_segment_geometry(d, self.dh_a[i])}</link>')
+            if i == 0:
+                origin = '<origin xyz="0 0 0" rpy="0 0 0"/>'
+            else:
+                origin = (f'<origin xyz="{_f(self.dh_a[i - 1])} 0 {_f(self.dh_d[i - 1])}" '
+                          f'rpy="{_f(self.dh_alpha[i - 1])} 0 0"/>')
+            lo, hi = (-_CONTINUOUS_RANGE, _CONTINUOUS_RANGE) if spec.continuous else (lower[i], upper[i])
+            parent = "link_0" if i == 0 else self.link_names[i - 1]
+            parts.append(
+                f'<joint name="{spec.name}" type="revolute"><parent link="{parent}"/><child link="{link}"/>{origin}'
+                f'<axis xyz="0 0 1"/><limit lower="{_f(lo)}" upper="{_f(hi)}" effort="{_f(spec.max_torque_nm)}" '
+                f'velocity="{_f(math.radians(spec.max_speed_dps))}"/></joint>'
+            )
+        parts.append(f'<link name="{EE_LINK}"/>')
+        parts.append(
+            f'<joint name="end_effector_fixed" type="fixed"><parent link="{self.link_names[-1]}"/>'
+            f'<child link="{EE_LINK}"/><origin xyz="{_f(self.dh_a[-1])} 0 {_f(self.dh_d[-1])}" '
+            f'rpy="{_f(self.dh_alpha[-1])} 0 0"/></joint>'
+        )
+        parts.append("</robot>")
+        return "\n".join(parts)
+
+    def urdf(self) -> str:
+        """The arm as URDF text: base_link → (base rotation) link_0 → joint_1 … joint_n → end_effector.
+
+        Each joint's origin is the previous DH link's Tz(d)·Tx(a)·Rx(α), so joint i's coordinate is exactly θ_DH,i.
+        Continuous joints are written as revolute joints with a range of ±100π so every loader keeps one coordinate
+        per joint."""
+        return self._urdf
+
+    # -------------------------------------------------------------------- loaders
+    def mujoco_spec(self):
+        """A MuJoCo MjSpec of the arm (from :meth:`urdf`): continuous joints unlimited, rotor inertia and joint
+        friction as :attr:`armature` and :attr:`damping`, no contacts. Scenes add to it."""
+        mujoco = mujoco_module()
+
+        spec = mujoco.MjSpec.from_string(self.urdf())
+        for i, spec_joint in enumerate(self.joints):
+            joint = spec.joint(spec_joint.name)
+            joint.armature = float(self.armature[i])
+            joint.damping = [float(self.damping[i]), 0.0, 0.0]  # MuJoCo 4: polynomial damping coefficients
+            if spec_joint.continuous:
+                joint.limited = mujoco.mjtLimited.mjLIMITED_FALSE
+        # The primitive link shapes overlap at the joints, and the arm does not collide with itself or its
+        # surroundings in this model (protection zones and joint limits keep it clear, as on the real arm):
+        # they are visual.
+        for geom in spec.geoms:
+            geom.contype = 0
+            geom.conaffinity = 0
+        return spec
+
+    def load_mujoco(self):
+        """The bare arm as an MjModel (no scene, no actuators)."""
+        return self.mujoco_spec().compile()
+
+    def load_pinocchio(self) -> "PinocchioArm":
+        """The arm as a Pinocchio model (immutable; create ``model.createData()`` per user)."""
+        return _pinocchio(self)
+
+
+@dataclass(frozen=True)
+class PinocchioArm:
+    model: object
+    ee_frame_id: int
+
+
+@lru_cache(maxsize=None)
+def _pinocchio(arm: ArmDescription) -> PinocchioArm:
+    import pinocchio as pin
+
+    model = pin.buildModelFromXML(arm.urdf())
+    if model.nq != arm.n_joints or model.nv != arm.n_joints:
+        raise ArmError(f"Pinocchio built nq={model.nq}, nv={model.nv} from {arm.name}'s URDF; expected "
+                       f"{arm.n_joints}")
+    model.armature = arm.armature.copy()  # URDF has no rotor inertia: the same values MuJoCo gets
+    model.damping = arm.damping.copy()
+    return PinocchioArm(model, model.getFrameId(EE_LINK))
+
+
+def mujoco_module():
+    """The mujoco module, its warnings sent to the ``mujoco`` logger: MuJoCo's own handler writes them into a
+    MUJOCO_LOG.TXT in whatever directory the process was started from."""
+    import logging
+
+    import mujoco
+
+    if mujoco.get_mju_user_warning() is None:
+        log = logging.getLogger("mujoco")
+        mujoco.set_mju_user_warning(lambda message: log.warning("MuJoCo: %s", message))
+    return mujoco
+
+
+# ------------------------------------------------------------------------------------------------ loading
+
+
+def arm_names() -> list[str]:
+    """The arms this installation describes (one file each in services/model/arms)."""
+    return sorted(p.stem for p in ARMS_DIR.glob("*.yaml"))
+
+
+def check_arm_name(name: str) -> str:
+    """``name`` when it is a described arm; else :class:`ArmError` naming the ones there are."""
+    if name not in arm_names():
+        raise ArmError(f"unknown arm {name!r}; known: {', '.join(arm_names())}")
+    return name
+
+
+@lru_cache(maxsize=None)
+def load_arm(name: str = DEFAULT_ARM) -> ArmDescription:
+    """The arm described by ``services/model/arms/<name>.yaml`` (cached: one immutable description per name)."""
+    check_arm_name(name)
+    return read_description(ARMS_DIR / f"{name}.yaml")
+
+
+def declared_arm(name: str, digest: str, n_joints: int, expected: Optional[str],
+                 current: Optional[ArmDescription]) -> tuple[Optional[ArmDescription], str]:
+    """The arm a service runs on, from the one the robot declares (its name, description fingerprint and joint count,
+    as every robot state carries them): (the description, "") or (None, why not). ``expected``: the arm the service
+    was started for (None: the robot's); ``current``: the one it runs on already (it does not change arms while it
+    runs)."""
+    if expected is not None and name != expected:
+        return None, f"started for the {expected}, the robot runs the {name}: nothing is done for it"
+    if current is not None:
+        if name != current.name or digest != current.digest:
+            return None, (f"running for the {current.name} ({current.digest}), the robot now runs the {name} "
+                          f"({digest}): restart the service")
+        arm = current
+    else:
+        try:
+            arm = load_arm(name)
+        except ArmError as exc:
+            return None, f"the robot runs an arm this host does not describe: {exc}"
+        if arm.digest != digest:
+            return None, (f"the robot's {name} description ({digest}) differs from this host's ({arm.digest}): "
+                          "run the same mfvs on both")
+    if n_joints != arm.n_joints:
+        return None, f"the robot's state has {n_joints} joints, the {arm.name} {arm.n_joints}"
+    return arm, ""
+
+
+def read_description(path: Path) -> ArmDescription:
+    """An arm description file, validated: every joint its DH row, link and limits, the lengths it names, a home
+    within the limits."""
+    path = Path(path)
+    try:
+        data = msgspec.convert(yaml.safe_load(path.read_text()), _File)
+    except (msgspec.ValidationError, yaml.YAMLError, OSError) as exc:
+        raise ArmError(f"{path}: {exc}") from None
+    if data.name != path.stem:
+        raise ArmError(f"{path}: its name is {data.name!r}, its file {path.stem!r}")
+    n = len(data.joints)
+    counts = {"kinematics.dh": len(data.kinematics.dh), "links": len(data.links), "home_deg": len(data.home_deg),
+              "bus_addresses": len(data.bus_addresses), "armature": len(data.armature), "damping": len(data.damping),
+              "torque_limits_nm": len(data.torque_limits_nm)}
+    wrong = [f"{key} has {count}" for key, count in counts.items() if count != n]
+    if not 1 <= n <= MAX_JOINTS or wrong:
+        raise ArmError(f"{path}: {n} joints ({'; '.join(wrong) or f'at most {MAX_JOINTS}'})")
+    names = dict(data.lengths)
+
+    def num(value) -> float:
+        try:
+            return evaluate(value, names)
+        except ArmError as exc:
+            raise ArmError(f"{path}: {exc}") from None
+
+    joints = []
+    for joint, link, limit in zip(data.joints, data.links, data.torque_limits_nm):
+        if joint.range_deg is not None and not joint.range_deg[0] < joint.range_deg[1]:
+            raise ArmError(f"{path}: {joint.name}'s range_deg must be [lower, upper]")
+        if not (joint.max_speed_dps > 0 and limit > 0 and num(link.mass_kg) > 0):
+            raise ArmError(f"{path}: {joint.name}: speeds, torques and masses must be positive")
+        joints.append(JointSpec(joint.name, joint.range_deg is None,
+                                None if joint.range_deg is None else joint.range_deg[0],
+                                None if joint.range_deg is None else joint.range_deg[1],
+                                joint.max_speed_dps, limit, joint.actuator, num(link.mass_kg)))
+    dh = data.kinematics.dh
+    if any(row.sign not in (-1, 1) for row in dh):
+        raise ArmError(f"{path}: each DH row's sign is 1 or -1")
+    base = data.base
+    arm = ArmDescription(
+        name=data.name, title=data.title, seed=data.seed, joints=tuple(joints),
+        dh_d=tuple(num(r.d) for r in dh), dh_a=tuple(num(r.a) for r in dh), dh_alpha=tuple(num(r.alpha) for r in dh),
+        base_rpy=tuple(num(v) for v in data.kinematics.base_rpy),
+        sign=np.array([float(r.sign) for r in dh]), offset=np.array([num(r.offset) for r in dh]),
+        shoulder_height=num(data.kinematics.shoulder_height), reach=num(data.kinematics.reach),
+        home_deg=np.array(data.home_deg, dtype=float), bus_addresses=tuple(data.bus_addresses),
+        base_mass_kg=num(base.mass_kg), base_com_z=num(base.com_z), base_height=num(base.height),
+        base_radius=num(base.radius), armature=np.array(data.armature, dtype=float),
+        damping=np.array(data.damping, dtype=float),
+        linear_speed_range_mps=tuple(data.cartesian.linear_speed_range_mps),
+        angular_speed_range_rps=tuple(data.cartesian.angular_speed_range_rps),
+        linear_accel_mps2=data.cartesian.linear_accel_mps2, angular_accel_rps2=data.cartesian.angular_accel_rps2,
+        joint_accel_dps2=data.cartesian.joint_accel_dps2, path=path)
+    if not arm.within_limits(arm.home):
+        raise ArmError(f"{path}: home_deg is outside the joint limits")
+    if len(set(arm.bus_addresses)) != n or not all(0 < a < 0xFF for a in arm.bus_addresses):
+        raise ArmError(f"{path}: bus_addresses must be {n} distinct addresses 0x01-0xFE")
+    return arm
+
+
+# ------------------------------------------------------------------------------------------------ helpers
+
+
+def _f(x: float) -> str:
+    return repr(float(x))
+
+
+def _rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rz(yaw)·Ry(pitch)·Rx(roll) as a 4×4 (URDF's rpy)."""
+    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw),
+                              math.sin(yaw))
+    if pitch == 0.0 and yaw == 0.0:  # the common base turn about x alone, exactly as a rotation about x
+        return np.array([[1.0, 0, 0, 0], [0, cr, -sr, 0], [0, sr, cr, 0], [0, 0, 0, 1]])
+    R = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]]) @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ \
+        np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
+
+
+def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
+    ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
+    return np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d], [0, 0, 0, 1]])
+
+
+def _inertial(mass: float, length: float, z_com: float, radius: float, x_com: float = 0.0) -> str:
+    """A solid cylinder's inertia about its centre of mass at (x_com, 0, z_com), its axis from the link's origin
+    through that centre (z when x_com is 0)."""
+    ixx = mass * (3 * radius * radius + length * length) / 12.0
+    izz = mass * radius * radius / 2.0
+    pitch = math.atan2(x_com, z_com) if x_com else 0.0
+    return (
+        f'<inertial><origin xyz="{_f(x_com)} 0 {_f(z_com)}" rpy="0 {_f(pitch)} 0"/><mass value="{_f(mass)}"/>'
+        f'<inertia ixx="{_f(ixx)}" ixy="0" ixz="0" iyy="{_f(ixx)}" iyz="0" izz="{_f(izz)}"/></inertial>'
+    )
+
+
+def _segment_geometry(d: float, a: float = 0.0) -> str:
+    """A cylinder along the link's segment to the next joint (or a sphere when they coincide)."""
+    if abs(d) < 1e-6 and abs(a) < 1e-6:
+        shape = f'<sphere radius="{_f(_LINK_RADIUS * 1.15)}"/>'
+        origin = '<origin xyz="0 0 0" rpy="0 0 0"/>'
+    elif abs(a) < 1e-6:
+        shape = f'<cylinder radius="{_f(_LINK_RADIUS)}" length="{_f(abs(d))}"/>'
+        origin = f'<origin xyz="0 0 {_f(d / 2)}" rpy="0 0 0"/>'
+    else:  # along (a, 0, d): a cylinder's z turned onto that direction
+        length = math.hypot(a, d)
+        pitch = math.atan2(a, d)
+        shape = f'<cylinder radius="{_f(_LINK_RADIUS)}" length="{_f(length)}"/>'
+        origin = f'<origin xyz="{_f(a / 2)} 0 {_f(d / 2)}" rpy="0 {_f(pitch)} 0"/>'
+    return f"<collision>{origin}<geometry>{shape}</geometry></collision>"
