@@ -184,7 +184,7 @@ def _cmd_estop(args: argparse.Namespace) -> int:
     import time
 
     from protocol.keys import Keys
-    from services.estop_client import EStopClient
+    from services.safety.estop_client import EStopClient
 
     try:
         session = _operator_session(args)

@@ -14,7 +14,7 @@ from protocol import messages as m
 from protocol.conventions import ClockMode
 from services.console.core import Action, Command, ConsoleModel, frame_packet
 from services.controller.task_client import TaskUnavailable, call_task
-from services.estop_client import EStopClient
+from services.safety.estop_client import EStopClient
 from services.launcher import describe_task
 from services.observe.foxglove_view import jpeg
 from services.runtime.service import Service, ServiceConfig, query_health

@@ -3,7 +3,7 @@ import time
 
 from protocol import messages as m
 from protocol.conventions import ClockMode
-from services.estop_client import EStopClient
+from services.safety.estop_client import EStopClient
 from services.runtime.transport import open_session
 from services.safety.service import SafetyConfig, SafetyService
 from tests.stack import KEYS, Recorder, wait_for
