@@ -3,7 +3,7 @@ adapters that decode, lock, count and send):
 
 * what the page shows (:class:`ConsoleModel`): the camera's overlays (the detected corners, the goal where the lens
   puts it, each corner's recent path), the feature error over time, the arm's speed against its limit, each joint
-  against its range, the task, the e-stop, each service's health, the last refusals and warnings;
+  against its range (the arm's description, as the robot declares its arm), the task, the e-stop, each service's health, the last refusals and warnings;
 * what a person may ask, and who (:func:`parse_page_message`, :class:`Access`, :func:`decide`): start and stop
   the task, engage and release the e-stop, and nothing else; the token beyond loopback, the page's own origin
   only; which request goes to the stack and which is refused, the refusal's reason (a counter's name) with a
@@ -27,7 +27,8 @@ import msgspec
 import numpy as np
 
 from protocol import messages as m
-from services.model import limits as arm_limits
+from services.model.arm import ArmDescription, declared_arm
+from services.model.limits import declared as declared_limits
 from services.observe.foxglove_view import controller_line, estop_line, normalized_to_pixels, safety_line
 from services.runtime.jsonsafe import json_safe
 from services.runtime.service import service_condition
@@ -234,24 +235,44 @@ def decide(request: ActionMessage, access: Access, situation: Situation) -> Comm
     return Command(action, operator or ANONYMOUS, reason)
 
 
-# ------------------------------------------------------------------------------------------------ the joints
+# ------------------------------------------------------------------------------------------------ the arm
 
 
-def joint_ranges(n_joints: int) -> list[Optional[tuple[float, float]]]:
-    """Each joint's range (model rad; None for a continuous joint, or where it is not known). The robot declares no
-    joint ranges on the wire: they are the arm description's, for an arm with ``n_joints`` joints. The one place the
-    console reads them."""
-    from services.model import jaco2
+@dataclass(frozen=True)
+class RobotArm:
+    """The arm the robot declares in its states (name, fingerprint, joint count) and, when this host describes
+    exactly that arm, its description (else ``problem`` says why not: an arm this host does not describe, a
+    description of another version, a state of another length)."""
 
-    if n_joints != jaco2.N_JOINTS:
-        return [None] * n_joints
-    lower, upper = jaco2.model_limits()
-    return [(float(lo), float(hi)) if math.isfinite(lo) else None for lo, hi in zip(lower, upper)]
+    name: str
+    digest: str
+    n_joints: int
+    description: Optional[ArmDescription]
+    problem: str
+
+    @classmethod
+    def of(cls, state: m.RobotState) -> "RobotArm":
+        description, problem = declared_arm(state.arm, state.arm_digest, len(state.q), None, None)
+        return cls(state.arm, state.arm_digest, len(state.q), description, problem)
+
+    def declares(self, state: m.RobotState) -> bool:
+        return (self.name, self.digest, self.n_joints) == (state.arm, state.arm_digest, len(state.q))
 
 
-def wrapped_deg(q: float) -> float:
-    """A continuous joint's angle in [-180, 180) degrees."""
-    return (math.degrees(q) + 180.0) % 360.0 - 180.0
+def joints_shown(state: m.RobotState, arm: Optional[ArmDescription]) -> list[dict]:
+    """Each joint as the page shows it. With the arm's description: its name, its angle in the physical degrees
+    GetAngularPosition reports (as Kinova's own tools show them), its range in the same degrees and its distance to
+    the nearer limit (None for a continuous joint); without one, the model angle in degrees only."""
+    if arm is None:
+        return [{"label": f"J{i + 1}", "deg": round(math.degrees(q), 2), "lower_deg": None, "upper_deg": None,
+                 "margin_deg": None} for i, q in enumerate(state.q)]
+    physical = arm.model_to_physical_deg(state.q)
+    margins = iter(arm.limit_margins_deg(state.q))  # the limited joints', in order
+    return [{"label": joint.name, "deg": round(float(deg), 2),
+             "lower_deg": None if joint.continuous else joint.lower_deg,
+             "upper_deg": None if joint.continuous else joint.upper_deg,
+             "margin_deg": None if joint.continuous else round(float(next(margins)), 2)}
+            for joint, deg in zip(arm.joints, physical)]
 
 
 # ------------------------------------------------------------------------------------------------ the model
@@ -323,6 +344,8 @@ class ConsoleModel:
         self.speed = _Series(series_s)
         self.speed_now: Optional[float] = None
         self.joint_speed_ratio: Optional[float] = None
+        #: the arm the robot declares (None until a state came)
+        self.arm: Optional[RobotArm] = None
         self.events: deque[Event] = deque(maxlen=max_events)
         self.health: dict[str, dict] = {}
         self._paths: deque[tuple[float, list]] = deque()
@@ -379,8 +402,17 @@ class ConsoleModel:
         recent.reverse()
         return [[[round(c[i][0], 1), round(c[i][1], 1)] for c in recent] for i in range(count)]
 
-    def on_state(self, state: m.RobotState, now: float) -> None:
+    def on_state(self, state: m.RobotState, now: float) -> str:
+        """A robot state: "" or, when this host does not describe the arm it declares, why (the page shows the state
+        without the arm's ranges and limits; the service counts it)."""
         self.state = state
+        if self.arm is None or not self.arm.declares(state):  # the first state, or a robot restarted on another arm
+            self.arm = RobotArm.of(state)
+            if self.arm.description is not None:
+                self.note("robot", "info", f"arm {state.arm}: {self.arm.description.title}, {self.arm.n_joints} joints",
+                          now)
+        if self.arm.problem:
+            self._say("robot", "error", f"arm: {self.arm.problem}", now)
         t = state.header.stamp_ns * 1e-9
         position = np.array([state.pose.X, state.pose.Y, state.pose.Z])
         if self._poses and t <= self._poses[-1][0]:
@@ -395,11 +427,21 @@ class ConsoleModel:
         if t - t0 >= SPEED_WINDOW_S * 0.99:
             self.speed_now = float(np.linalg.norm(position - p0) / (t - t0))
             self.speed.add(t, self.speed_now)
-        limits = arm_limits.declared(state)
-        ratios = [abs(v) / limit for v, limit in zip(state.dq, limits.joint_speed_rps)]
+        limits = self.limits()
+        ratios = [abs(v) / limit for v, limit in zip(state.dq, limits.joint_speed_rps)] if limits is not None else []
         self.joint_speed_ratio = max(ratios) if ratios else None
         if state.faults:
             self._say("robot", "error", "faults: " + "; ".join(state.faults), now)
+        return self.arm.problem
+
+    def limits(self) -> Optional[m.MotionLimits]:
+        """The limits the robot declares, else its arm description's; None when it declares none for an arm this
+        host does not describe."""
+        if self.state is None:
+            return None
+        if self.arm is None or self.arm.description is None:
+            return self.state.limits
+        return declared_limits(self.state, self.arm.description)
 
     def on_controller(self, status: m.ControllerStatus, now: float) -> None:
         self.controller = status
@@ -456,15 +498,16 @@ class ConsoleModel:
     def joints(self) -> list[dict]:
         if self.state is None:
             return []
-        out = []
-        for i, (q, span) in enumerate(zip(self.state.q, joint_ranges(len(self.state.q)))):
-            if span is None:
-                out.append({"label": f"J{i + 1}", "deg": round(wrapped_deg(q), 2), "lower_deg": None,
-                            "upper_deg": None})
-            else:
-                out.append({"label": f"J{i + 1}", "deg": round(math.degrees(q), 2),
-                            "lower_deg": round(math.degrees(span[0]), 2), "upper_deg": round(math.degrees(span[1]), 2)})
-        return out
+        return joints_shown(self.state, self.arm.description if self.arm is not None else None)
+
+    def arm_shown(self) -> Optional[dict]:
+        """The arm the robot declares, as the page names it, and which angles the joints are shown in."""
+        if self.arm is None:
+            return None
+        described = self.arm.description is not None
+        return {"name": self.arm.name, "title": self.arm.description.title if described else None,
+                "joints": self.arm.n_joints, "described": described, "problem": self.arm.problem,
+                "angles": "physical" if described else "model"}
 
     def snapshot(self, now: float) -> dict:
         """Everything the page shows but the image and its overlay, as JSON-able values."""
@@ -479,16 +522,17 @@ class ConsoleModel:
             "law": self.controller.law, "status": self.controller.status.value,
             "iteration": self.controller.iteration, "error_norm": self.controller.error_norm,
             "detail": self.controller.detail}
-        limit = arm_limits.declared(self.state).linear_speed_mps if self.state is not None else None
+        limits = self.limits()
         image = None if self.info is None else {"width": self.info.width, "height": self.info.height}
         return json_safe({
             "type": "status", "estop": {"engaged": situation.estop_engaged}, "safety": safety, "task": task,
             "controller": controller, "features": None if self.features is None else {
                 "status": self.features.status.value, "error_norm": self.features.error_norm},
             "error": self.error.relative(),
-            "speed": {**self.speed.relative(), "now": self.speed_now, "limit": limit,
+            "speed": {**self.speed.relative(), "now": self.speed_now,
+                      "limit": limits.linear_speed_mps if limits is not None else None,
                       "joint_ratio": self.joint_speed_ratio},
-            "joints": self.joints(), "paths": self.paths(), "image": image,
+            "arm": self.arm_shown(), "joints": self.joints(), "paths": self.paths(), "image": image,
             "health": sorted(({k: v for k, v in h.items() if k != "since"} for h in self.health.values()),
                              key=lambda h: h["name"]),
             "events": [{"at_s": e.at_s, "source": e.source, "level": e.level, "text": e.text}

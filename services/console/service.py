@@ -60,7 +60,7 @@ class ConsoleService(Service):
         self.subscribe(k.camera_info, m.CameraInfo, self._locked(self.model.on_camera_info, timed=False),
                        "camera_info")
         self.subscribe(k.features, m.Features, self._on_features, "features")
-        self.subscribe(k.robot_state, m.RobotState, self._locked(self.model.on_state), "robot_state")
+        self.subscribe(k.robot_state, m.RobotState, self._on_state, "robot_state")
         self.subscribe(k.controller_status, m.ControllerStatus, self._locked(self.model.on_controller),
                        "controller_status")
         self.subscribe(k.safety_status, m.SafetyStatus, self._locked(self.model.on_safety), "safety_status")
@@ -80,8 +80,12 @@ class ConsoleService(Service):
 
     def check_health(self) -> tuple[bool, str]:
         rates = self.rates.snapshot()
+        with self.lock:
+            arm = self.model.arm
+        robot = ("no robot state yet" if arm is None else f"arm {arm.name}" if arm.description is not None
+                 else f"arm {arm.name} not described here")
         return True, (f"pages={self.pages_open} frames {rates.get('frames.sent', 0.0):.1f}/s "
-                      f"(encoded {rates.get('frames.encoded', 0.0):.1f}/s)")
+                      f"(encoded {rates.get('frames.encoded', 0.0):.1f}/s) {robot}")
 
     # ------------------------------------------------------------------ inputs
     def _locked(self, update, timed: bool = True):
@@ -103,6 +107,13 @@ class ConsoleService(Service):
             overlay = self.model.on_features(features, time.time())
         if self.wants_frames():
             self.on_overlay(overlay)
+
+    def _on_state(self, state: m.RobotState, _recv_ns: int) -> None:
+        with self.lock:
+            problem = self.model.on_state(state, time.time())
+        if problem:  # shown without the arm's ranges and limits; counted each state, as safety counts its refusals
+            self.counters.inc("arm.not_described")
+            self.limited_log.warning("arm", "console: the robot's arm: %s", problem)
 
     def _on_clock(self, tick: m.SimClock, _recv_ns: int) -> None:
         self.wall_stamps = ClockMode(tick.mode) is ClockMode.REALTIME

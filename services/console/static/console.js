@@ -204,6 +204,7 @@ function renderStatus(status) {
     $("speed-text").textContent = `${speed.now.toFixed(3)} m/s of ${speed.limit.toFixed(3)} m/s limit ` +
       `(${Math.round(100 * speed.now / speed.limit)} %)${joint}`;
   }
+  renderArm(status.arm);
   renderJoints(status.joints);
   renderHealth(status.health);
   renderEvents(status.events);
@@ -262,6 +263,21 @@ function plot(canvas, series, options) {
   ctx.lineWidth = 1;
 }
 
+// the arm the robot declares: which it is and which angles its joints are shown in (the physical degrees the arm
+// reports, GetAngularPosition's, when this host describes that arm; model angles otherwise, without ranges)
+function renderArm(arm) {
+  const box = $("arm");
+  if (!arm) { box.textContent = "no robot state yet"; box.className = "small"; return; }
+  if (arm.described) {
+    box.textContent = `${arm.name} (${arm.title}): degrees as the arm reports them (GetAngularPosition)`;
+    box.className = "small";
+  } else {
+    box.textContent = `${arm.name}: not described on this host (${arm.problem}); model angles in degrees, ` +
+      "no ranges";
+    box.className = "small warning";
+  }
+}
+
 function renderJoints(joints) {
   const box = $("joints");
   if (box.children.length !== joints.length) {
@@ -278,13 +294,12 @@ function renderJoints(joints) {
     row.querySelector(".value").textContent = `${joint.deg.toFixed(1)}°`;
     if (joint.lower_deg === null) {
       track.className = "track continuous";
-      mark.style.left = `${(joint.deg + 180) / 3.6}%`;
-      track.title = "continuous joint";
+      mark.style.left = `${(((joint.deg % 360) + 360) % 360) / 3.6}%`;  // where it points in a turn, 0-360°
+      track.title = "continuous joint (or no range known)";
     } else {
       const span = joint.upper_deg - joint.lower_deg;
       const at = Math.min(1, Math.max(0, (joint.deg - joint.lower_deg) / span));
-      const near = Math.min(joint.deg - joint.lower_deg, joint.upper_deg - joint.deg) < 10;
-      track.className = near ? "track near" : "track";
+      track.className = joint.margin_deg < 10 ? "track near" : "track";
       mark.style.left = `${100 * at}%`;
       track.title = `${joint.lower_deg.toFixed(0)}° … ${joint.upper_deg.toFixed(0)}°`;
     }

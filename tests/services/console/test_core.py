@@ -8,9 +8,9 @@ import pytest
 
 from protocol import messages as m
 from services.console.core import (ANONYMOUS, Access, Action, ActionMessage, AuthMessage, ConsoleModel, Refused,
-                                   Situation, decide, frame_packet, is_loopback, joint_ranges, parse_page_message,
-                                   read_frame_packet)
-from services.model import jaco2
+                                   Situation, decide, frame_packet, is_loopback, parse_page_message, read_frame_packet)
+from services.model.arm import load_arm
+from services.model.limits import arm_limits
 
 TOKEN = "correct horse battery"
 
@@ -132,8 +132,14 @@ def features(t_s, shift_px=0.0, status=m.FeatureStatus.OK):
                       corners_px=corners if usable else [])
 
 
-def state(t_s, x=0.4, dq=0.0, faults=()):
-    return m.RobotState(header=header(t_s), q=list(jaco2.HOME), dq=[dq] + [0.0] * 6, tau=[0.0] * 7,
+SEVEN, SIX = load_arm("j2s7s300"), load_arm("j2n6s300")
+
+
+def state(t_s, x=0.4, dq=0.0, faults=(), arm=SEVEN, q=None, digest=None, name=None):
+    """A state of the robot running ``arm`` (at its home unless ``q``); ``digest`` and ``name`` declare another."""
+    n = len(q) if q is not None else arm.n_joints
+    return m.RobotState(header=header(t_s), arm=name or arm.name, arm_digest=digest or arm.digest,
+                        q=list(arm.home if q is None else q), dq=[dq] + [0.0] * (n - 1), tau=[0.0] * n,
                         pose=m.KinovaPose(X=x, Y=0.0, Z=0.5, ThetaX=0.0, ThetaY=0.0, ThetaZ=0.0),
                         control_mode=m.ControlMode.CARTESIAN_VELOCITY, faults=list(faults))
 
@@ -159,35 +165,97 @@ def test_the_overlay_puts_the_goal_where_the_lens_does_and_keeps_each_corners_re
     assert error["t"][-1] == 0.0 and error["t"][0] < 0 and error["v"][-1] == pytest.approx(0.039 * math.sqrt(8))  # the last usable frame
 
 
-def test_the_arms_speed_is_its_travel_against_the_limit_it_declares():
+@pytest.mark.parametrize("arm", [SEVEN, SIX], ids=lambda a: a.name)
+def test_the_arms_speed_is_its_travel_against_the_limit_it_declares(arm):
     model = ConsoleModel()
     for i in range(40):  # 0.1 m/s along x, a state every 10 ms
-        model.on_state(state(i * 0.01, x=0.4 + 0.001 * i, dq=0.5), now=0.0)
+        assert model.on_state(state(i * 0.01, x=0.4 + 0.001 * i, dq=0.5, arm=arm), now=0.0) == ""
     snapshot = model.snapshot(0.0)
     assert snapshot["speed"]["now"] == pytest.approx(0.1, rel=1e-6)
-    assert snapshot["speed"]["limit"] == jaco2.MAX_LINEAR_SPEED_MPS  # declared none: the arm's maximum
-    assert snapshot["speed"]["joint_ratio"] == pytest.approx(0.5 / jaco2.MAX_SPEED[0])
-    declared = m.MotionLimits(linear_speed_mps=0.05, angular_speed_rps=0.5, joint_speed_rps=[1.0] * 7,
-                              linear_accel_mps2=1.0, angular_accel_rps2=1.0, joint_accel_rps2=1.0)
-    moving = state(0.5, x=0.45, dq=0.5)
+    assert snapshot["speed"]["limit"] == arm.max_linear_speed_mps  # declared none: its arm's maximum
+    assert snapshot["speed"]["joint_ratio"] == pytest.approx(0.5 / arm.max_speed[0])
+    declared = arm_limits(arm, linear_speed_mps=0.05, joint_speed_scale=0.5)
+    moving = state(0.5, x=0.45, dq=0.5, arm=arm)
     moving.limits = declared
     model.on_state(moving, now=0.0)
-    assert model.snapshot(0.0)["speed"]["limit"] == 0.05 and model.joint_speed_ratio == pytest.approx(0.5)
+    assert model.snapshot(0.0)["speed"]["limit"] == 0.05
+    assert model.joint_speed_ratio == pytest.approx(0.5 / (0.5 * arm.max_speed[0]))
 
 
-def test_each_joint_against_its_range_for_the_arm_the_state_describes():
+@pytest.mark.parametrize("arm", [SEVEN, SIX], ids=lambda a: a.name)
+def test_each_joint_against_its_range_in_the_degrees_the_arm_reports_for_the_arm_the_robot_declares(arm):
     model = ConsoleModel()
-    model.on_state(state(0.0), now=0.0)
-    joints = model.snapshot(0.0)["joints"]
-    assert [j["label"] for j in joints] == [f"J{i}" for i in range(1, 8)]
-    lower, upper = jaco2.model_limits()
-    for joint, q, lo, hi in zip(joints, jaco2.HOME, lower, upper):
-        if math.isfinite(lo):
-            assert (joint["lower_deg"], joint["upper_deg"]) == (round(math.degrees(lo), 2), round(math.degrees(hi), 2))
-            assert joint["deg"] == round(math.degrees(q), 2)
-        else:  # continuous: its angle, wrapped
-            assert joint["lower_deg"] is None and -180 <= joint["deg"] < 180
-    assert joint_ranges(6) == [None] * 6  # an arm this description is not: the values, no ranges
+    q = arm.home.copy()
+    limited = np.flatnonzero(~arm.continuous)
+    lower, upper = arm.model_limits()
+    q[limited[0]] = lower[limited[0]] + np.radians(4.0)  # 4° from a limit
+    model.on_state(state(0.0, arm=arm, q=q), now=0.0)
+    snapshot = model.snapshot(0.0)
+    assert snapshot["arm"] == {"name": arm.name, "title": arm.title, "joints": arm.n_joints, "described": True,
+                               "problem": "", "angles": "physical"}
+    joints = snapshot["joints"]
+    assert [j["label"] for j in joints] == list(arm.joint_names) and len(joints) == arm.n_joints
+    physical = arm.model_to_physical_deg(q)
+    for joint, spec, deg in zip(joints, arm.joints, physical):
+        assert joint["deg"] == round(deg, 2)  # as GetAngularPosition reports it
+        if spec.continuous:
+            assert joint["lower_deg"] is None and joint["upper_deg"] is None and joint["margin_deg"] is None
+        else:
+            assert (joint["lower_deg"], joint["upper_deg"]) == (spec.lower_deg, spec.upper_deg)
+            assert spec.lower_deg <= joint["deg"] <= spec.upper_deg
+            assert joint["margin_deg"] == pytest.approx(min(deg - spec.lower_deg, spec.upper_deg - deg), abs=0.01)
+    assert joints[limited[0]]["margin_deg"] == pytest.approx(4.0, abs=0.01)
+    assert [e["text"] for e in snapshot["events"]] == [f"arm {arm.name}: {arm.title}, {arm.n_joints} joints"]
+
+
+def test_the_6_dof_arms_home_in_the_degrees_its_own_tools_show():
+    model = ConsoleModel()
+    model.on_state(state(0.0, arm=SIX), now=0.0)
+    # kinova-ros's HOME of the j2n6s300, in GetAngularPosition's degrees
+    assert [j["deg"] for j in model.snapshot(0.0)["joints"]] == pytest.approx(list(SIX.home_deg), abs=0.01)
+    assert [(j["lower_deg"], j["upper_deg"]) for j in model.snapshot(0.0)["joints"]][1:3] == [(47.0, 313.0),
+                                                                                            (19.0, 341.0)]
+
+
+@pytest.mark.parametrize("declared, why", [
+    (dict(name="j2x9s999"), "does not describe"),  # an arm this host has no file for
+    (dict(digest="0123456789abcdef"), "differs from this host's"),  # the same name, another version of its file
+    (dict(q=[0.1] * 5), "5 joints"),  # a state that is not that arm's length
+], ids=["unknown", "other_version", "joint_count"])
+def test_an_arm_this_host_does_not_describe_is_shown_as_such_and_nothing_breaks(declared, why):
+    model = ConsoleModel()
+    for i in range(10):
+        problem = model.on_state(state(i * 0.01, x=0.4 + 0.001 * i, dq=0.5, **declared), now=i * 0.01)
+        assert why in problem  # the service counts it
+    snapshot = model.snapshot(0.1)
+    assert snapshot["arm"]["described"] is False and snapshot["arm"]["angles"] == "model"
+    assert why in snapshot["arm"]["problem"] and snapshot["arm"]["title"] is None
+    n = len(declared.get("q", SEVEN.home))
+    assert [j["label"] for j in snapshot["joints"]] == [f"J{i}" for i in range(1, n + 1)]
+    assert all(j["lower_deg"] is None and j["margin_deg"] is None for j in snapshot["joints"])
+    assert snapshot["joints"][0]["deg"] == round(math.degrees(state(0.0, **declared).q[0]), 2)  # model angles
+    assert snapshot["speed"]["limit"] is None and snapshot["speed"]["joint_ratio"] is None  # none declared
+    assert snapshot["speed"]["now"] == pytest.approx(0.1, rel=1e-6)  # what it does is still shown
+    said = [e["text"] for e in snapshot["events"]]
+    assert len(said) == 1 and said[0].startswith("arm: ") and why in said[0]  # said once, not every state
+    json.dumps(snapshot, allow_nan=False)
+    limited = state(0.2, dq=0.5, **declared)  # limits it declares itself are shown, arm or not
+    limited.limits = m.MotionLimits(linear_speed_mps=0.05, angular_speed_rps=0.5, joint_speed_rps=[1.0] * n,
+                                    linear_accel_mps2=1.0, angular_accel_rps2=1.0, joint_accel_rps2=1.0)
+    model.on_state(limited, now=0.2)
+    assert model.snapshot(0.2)["speed"]["limit"] == 0.05 and model.joint_speed_ratio == pytest.approx(0.5)
+
+
+def test_a_robot_restarted_on_another_arm_is_followed():
+    model = ConsoleModel()
+    model.on_state(state(0.0, name="j2x9s999"), now=0.0)
+    assert model.snapshot(0.0)["arm"]["described"] is False
+    model.on_state(state(0.0, arm=SIX), now=1.0)
+    snapshot = model.snapshot(1.0)
+    assert snapshot["arm"]["name"] == "j2n6s300" and snapshot["arm"]["described"]
+    assert len(snapshot["joints"]) == 6 and snapshot["speed"]["limit"] == SIX.max_linear_speed_mps
+    model.on_state(state(0.0, arm=SEVEN), now=2.0)
+    assert [j["label"] for j in model.snapshot(2.0)["joints"]] == list(SEVEN.joint_names)
 
 
 def test_health_task_estop_and_refusals_make_the_log_and_the_estop_state_goes_stale():
@@ -211,7 +279,7 @@ def test_health_task_estop_and_refusals_make_the_log_and_the_estop_state_goes_st
     model.note("console", "warning", "refused: the e-stop is already engaged", 10.0)
     texts = [e["text"] for e in model.snapshot(10.0)["events"]]
     assert texts == ["refused: the e-stop is already engaged", "faults: joint 3 over its limit",
-                     "e-stop engaged by bob: spill", "task 2 running by alice: a drink",
+                     f"arm j2s7s300: {SEVEN.title}, 7 joints", "e-stop engaged by bob: spill", "task 2 running by alice: a drink",
                      "refused: estop: latched", "state estop", "gone",
                      "degraded (image at 20.0 Hz (nominal 30))"]
     assert model.snapshot(10.0)["task"]["by"] == "alice"

@@ -6,6 +6,7 @@ import asyncio
 import json
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -14,6 +15,7 @@ import pytest
 
 from protocol import messages as m
 from protocol.conventions import ClockMode
+from services.model.arm import load_arm
 from services.runtime.service import query_health
 from services.runtime.transport import Router, free_loopback_port, open_session
 from services.safety.service import SafetyConfig, SafetyService
@@ -303,3 +305,64 @@ def test_one_request_of_a_kind_at_a_time(stack_with_safety):
 
         asyncio.run(session())
         assert safety.core.estop_latched
+
+
+class RobotStates:
+    """A robot's states every 20 ms, declaring whatever arm :attr:`declared` says (name, fingerprint, angles)."""
+
+    def __init__(self, client_config, **declared) -> None:
+        self.declared = declared
+        self.session = open_session(client_config)
+        self.publisher = self.session.declare_publisher(KEYS.robot_state)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.thread.join(timeout=5)
+        self.session.close()
+
+    def _run(self):
+        while not self.stop.wait(0.02):
+            d = dict(self.declared)
+            n = len(d["q"])
+            state = m.RobotState(header=m.Header(stamp_ns=time.time_ns()), arm=d["arm"], arm_digest=d["digest"],
+                                 q=list(d["q"]), dq=[0.0] * n, tau=[0.0] * n,
+                                 pose=m.KinovaPose(X=0.4, Y=0.0, Z=0.5, ThetaX=0.0, ThetaY=0.0, ThetaZ=0.0),
+                                 control_mode=m.ControlMode.CARTESIAN_VELOCITY)
+            self.publisher.put(m.encode(state))
+
+
+def test_the_page_follows_the_arm_the_robot_declares_and_counts_one_this_host_does_not_describe(stack_with_safety):
+    router = stack_with_safety["router"]
+    six = load_arm("j2n6s300")
+    with ConsoleProcess(router.endpoint) as console, \
+            RobotStates(router.client_config(), arm=six.name, digest=six.digest, q=six.home) as robot:
+        async def session():
+            async with Page(console.url) as page:
+                status = await page.until(lambda r: r["type"] == "status" and r["arm"] is not None, timeout=30)
+                assert status["arm"]["name"] == "j2n6s300" and status["arm"]["described"], status["arm"]
+                assert [j["label"] for j in status["joints"]] == list(six.joint_names)
+                assert [j["deg"] for j in status["joints"]] == pytest.approx(list(six.home_deg), abs=0.01)
+                assert status["speed"]["limit"] == six.max_linear_speed_mps
+                assert "arm.not_described" not in status["console"]["errors"]
+                # the robot restarted with a version of that arm's file this host does not have
+                robot.declared = dict(arm=six.name, digest="0123456789abcdef", q=six.home)
+                status = await page.until(lambda r: r["type"] == "status" and r["arm"]["problem"], timeout=30)
+                assert not status["arm"]["described"] and "differs from this host's" in status["arm"]["problem"]
+                assert len(status["joints"]) == 6 and status["joints"][1]["lower_deg"] is None
+                assert any("differs from this host's" in e["text"] for e in status["events"])
+                # then an arm it does not describe at all
+                robot.declared = dict(arm="j2x9s999", digest="0123456789abcdef", q=[0.0] * 5)
+                status = await page.until(lambda r: r["type"] == "status" and r["arm"]["name"] == "j2x9s999",
+                                          timeout=30)
+                assert "does not describe" in status["arm"]["problem"] and len(status["joints"]) == 5
+
+        asyncio.run(session())
+        found = healths(router.client_config())["console"]
+        assert found.errors.get("arm.not_described", 0) > 0 and "arm j2x9s999 not described here" in found.detail
+        assert console.process.poll() is None
