@@ -13,8 +13,10 @@ from bench.console import Browser, page_stats, wait_for_frames
 from protocol import messages as m
 from protocol.conventions import ClockMode
 from services.controller.task_client import call_task
+from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.dsp import DSPConfig
+from services.robot_sim.service import RobotSimConfig
 from services.runtime.transport import open_session
 from services.stack import ConsoleProcess, LocalStack, StackConfig
 from tests.services.safety.test_service_processes import ESTOP_DELIVERY_BUDGET_S, ee_speed, rest_bound, time_to_rest
@@ -96,7 +98,8 @@ def test_the_console_shows_the_arm_starts_the_task_stops_the_arm_and_releases_on
     from selenium.webdriver.common.by import By
 
     stack, session, states, safety, estops = sim_stack
-    kin, dsp = ArmKinematics(), DSPConfig()
+    assert wait_for(lambda: len(states) > 0, timeout=30)
+    kin, dsp = ArmKinematics(load_arm(states.last().arm)), DSPConfig()  # the arm the robot declares
     with ConsoleProcess(stack.endpoint) as console, Browser(*DESKTOP) as driver:
         driver.get(console.url)
         first = wait_for_frames(driver, 5)
@@ -206,3 +209,39 @@ def test_with_a_token_nothing_is_shown_and_every_action_is_refused_without_it(si
         driver.find_element(By.ID, "token").send_keys(TOKEN)
         click(driver, "token-ok")
         wait_for_frames(driver, 3)
+
+
+def test_a_console_following_a_6_dof_stack_shows_its_six_joints_in_the_degrees_the_arm_reports(artefacts):
+    """A stack on the j2n6s300 (the controller and safety take the robot's arm from its states, as the console
+    does): the page names the arm, draws its six joints against the ranges of its description, in the degrees
+    GetAngularPosition reports, and starts its task."""
+    from selenium.webdriver.common.by import By
+
+    six = load_arm("j2n6s300")
+    with LocalStack(StackConfig(clock=ClockMode.REALTIME, robot=RobotSimConfig(arm=six.name))) as stack:
+        session = open_session(stack.router.client_config())
+        states = Recorder(session, KEYS.robot_state, m.RobotState)
+        try:
+            with ConsoleProcess(stack.endpoint) as console, Browser(*DESKTOP) as driver:
+                driver.get(console.url)
+                wait_for_frames(driver, 3)
+                assert wait_for(lambda: "j2n6s300" in text(driver, "arm"), timeout=15), text(driver, "arm")
+                assert "GetAngularPosition" in text(driver, "arm") and six.title in text(driver, "arm")
+                rows = driver.find_elements(By.CSS_SELECTOR, "#joints .joint")
+                assert [r.find_element(By.CSS_SELECTOR, ".label").text for r in rows] == list(six.joint_names)
+                shown = driver.execute_script("return window.mfvsConsole.page.status.joints")
+                reported = six.model_to_physical_deg(states.last().q)
+                assert [j["deg"] for j in shown] == pytest.approx(list(reported), abs=0.5)
+                ranges = [r.find_element(By.CSS_SELECTOR, ".track").get_attribute("title") for r in rows]
+                assert ranges[1:3] == ["47° … 313°", "19° … 341°"] and ranges[0].startswith("continuous")
+                driver.find_element(By.ID, "operator").send_keys("tester")
+                click(driver, "start")
+                assert wait_for(lambda: task_state(session) is m.TaskState.RUNNING, timeout=15)
+                assert wait_for(lambda: "running" in text(driver, "task-state"), timeout=10)
+                screenshots(driver, artefacts, "j2n6s300")
+                click(driver, "stop")
+                assert wait_for(lambda: task_state(session) is m.TaskState.IDLE, timeout=15)
+                assert not [r for r in page_stats(driver)["refusals"]]
+        finally:
+            states.close()
+            session.close()
