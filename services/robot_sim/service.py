@@ -235,6 +235,9 @@ class RobotSimService(RobotNode):
     def on_lockstep_retry(self, tick_ns: int) -> None:
         self.outputs.retry(tick_ns)
 
+    def lockstep_outputs_matched(self) -> bool:
+        return not self.outputs.renders or self.outputs.image_pub.matching
+
     def on_loop_start(self) -> None:
         self.hardware.epoch_ns = time.time_ns() - self.sim.time_ns  # the arm's time starts now, as wall time
         self.outputs.epoch_ns = self.hardware.epoch_ns
