@@ -158,8 +158,8 @@ def split(profiles: dict[str, dict]) -> dict:
         "  law": other("controller", "law"),
         "  safety": other("safety", "safety"),
         "  services": other("vision", "vision") + other("controller", "controller"),
-        "  messages": sum(other(p, label) for p in ("vision", "controller", "safety") for label in ("publish", "decode"))
-        + ip.exclusive_ms(robot, "decode"),
+        "  messages": ip.exclusive_ms(robot, "decode") + sum(
+            other(p, label) for p in ("vision", "controller", "safety") for label in ("publish", "decode")),
     }
     rows["robot_loop"] = sum(rows[k] for k in ("  physics", "  actuators", "  bus", "  node", "  state", "  publish",
                                                 "  frame_snapshot"))
@@ -178,8 +178,9 @@ def print_profile(figures: dict, label: str) -> None:
     print(f"load (uptime) {figures['load_before']} before, {figures['load_after']} after"
           + (f"; {figures['hogs']} CPU hogs beside" if figures["hogs"] else ""))
     error = figures["final_error_norm"]
-    print(f"{figures['status']}: {figures['iterations']} iterations, final ‖e‖ {error if error is None else f'{error:.6e}'}"
-          f", lockstep timeouts {figures['lockstep_timeouts']}")
+    error = "none" if error is None else f"{error:.6e}"
+    print(f"{figures['status']}: {figures['iterations']} iterations, final ‖e‖ {error}, lockstep timeouts "
+          f"{figures['lockstep_timeouts']}")
     print(f"wall: run {figures['wall_time_s']:.2f} s (start-up and stop included); loop {figures['loop_s']:.2f} s for "
           f"{figures['frames']} frames; {figures['iteration_ms']:.2f} ms per iteration as the runner saw them")
     print("\nper iteration (ms of wall time)")

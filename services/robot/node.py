@@ -321,6 +321,9 @@ class RobotNode(Service):
     def on_loop_start(self) -> None:
         """The realtime loop is about to run its first cycle (robot_sim starts its arm's time now)."""
 
+    def on_lockstep_end(self) -> None:
+        """The lockstep loop's thread is about to end (robot_sim frees the renderer that thread rendered with)."""
+
     def lowlevel_unavailable(self) -> str:
         """Why torque commands are refused ('' when the low-level API is offered)."""
         return "low-level torque control runs in realtime only" if self.lockstep else ""
@@ -632,9 +635,12 @@ class RobotNode(Service):
                  self.finished)
 
     def _run_lockstep(self) -> None:
-        self._await_answerers()
-        while not self.done():
-            self.bus_cycle()
+        try:
+            self._await_answerers()
+            while not self.done():
+                self.bus_cycle()
+        finally:
+            self.on_lockstep_end()
 
     def _await_answerers(self) -> None:
         """Before the first cycle, until an answerer is alive and the outputs it answers have their subscribers (at

@@ -41,6 +41,7 @@ TIMED: dict[str, dict[str, str]] = {
         "services.robot_sim.service:RobotSimService._at_boundary": "frame_snapshot",
         "services.robot_sim.service:RobotSimService.frame_at_tick": "frame_wait",
         "services.robot_sim.camera:RenderProcess.render": "render",
+        "services.robot_sim.camera:FrameRenderer.render": "render",
         "services.robot.node:RobotNode.publish_state": "state",
         "services.robot.node:RobotNode._wait_for_answer": "answer_wait",
         "services.runtime.service:TypedPublisher.put": "publish",
