@@ -63,7 +63,7 @@ class FrameRenderer:
         self.model, self.camera_id, self.encoding = model, camera_id, encoding
         self.imaging, self.camera_matrix = imaging, camera_matrix
         self.data = mujoco.MjData(model)
-        self.renderer = mujoco.Renderer(model, height, width)
+        self.renderer = scene_mod.renderer(model, height, width)
         self.pixels = np.empty((height, width, 3), dtype=np.uint8)
 
     def render(self, qpos: np.ndarray, mocap_pos: np.ndarray, mocap_quat: np.ndarray, start=None,

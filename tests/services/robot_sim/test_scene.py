@@ -241,3 +241,31 @@ def test_in_lockstep_the_loop_renders_the_frame_the_render_process_would(encodin
     assert camera.renderer_pid is None and not multiprocessing.active_children()
     assert in_loop[0].data == in_process[0].data and in_loop[0].header.source_stamp_ns == 7
     assert camera.last_image is in_loop[0] and rendering_threads == ["robot-loop"]
+
+
+def test_the_renderer_holds_no_shadow_map_and_a_scene_buffer_its_size_for_the_same_pixels():
+    """No light casts shadows: MuJoCo's default 4096² shadow map (64 MB in every GL context) and its 10,000-geom
+    scene buffer (9 MB) bought nothing. The frames are the ones the defaults gave."""
+    import mujoco
+
+    from services.robot_sim import scene as scene_mod
+
+    sim = Simulation(SceneConfig())
+    sim.data.qpos[:] += 0.02
+    mujoco.mj_forward(sim.model, sim.data)
+    assert sim.model.vis.quality.shadowsize == 0
+    height, width = sim.scene.camera.height, sim.scene.camera.width
+    frames = []
+    for shadowsize, make in ((0, scene_mod.renderer), (4096, mujoco.Renderer)):
+        sim.model.vis.quality.shadowsize = shadowsize
+        renderer = make(sim.model, height, width)
+        try:
+            renderer.update_scene(sim.data, camera=sim.camera_id)
+            frames.append(renderer.render().copy())
+            if make is scene_mod.renderer:
+                assert renderer.scene.maxgeom < 1000 and renderer.scene.ngeom <= renderer.scene.maxgeom
+        finally:
+            renderer.close()
+    sim.model.vis.quality.shadowsize = 0
+    sim.close()
+    assert frames[0].any() and np.array_equal(frames[0], frames[1])
