@@ -5,7 +5,7 @@
 * lockstep: the real-time factor (simulated / wall time) with a stand-in pipeline that answers every clock tick
   and every frame at once (the upper bound the real services can approach), and free-running (nobody listening).
 
-``python -m bench.loops [--json] [--seconds S]`` or ``mfvs bench loops``.
+``python -m bench.loops [--json] [--seconds S] [--arm NAME]`` or ``mfvs bench loops``.
 """
 from __future__ import annotations
 
@@ -17,6 +17,9 @@ import time
 from protocol import messages as m
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
+from bench.stack import unknown_arm
+from services.cli import add_arm_option
+from services.model.arm import DEFAULT_ARM
 from services.runtime.metrics import LoopTimer
 from services.runtime.transport import GuardedPublisher, Router, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
@@ -59,7 +62,7 @@ class _StandInPipeline:
         self.publisher.undeclare()
 
 
-def realtime(seconds: float) -> dict:
+def realtime(seconds: float, arm: str = DEFAULT_ARM) -> dict:
     with Router() as router:
         client = open_session(router.client_config())
         frames: list[int] = []
@@ -67,7 +70,7 @@ def realtime(seconds: float) -> dict:
         client.declare_subscriber(KEYS.camera_image,
                                   lambda s: frames.append(m.decode(s.payload.to_bytes(), m.Image).header.stamp_ns))
         client.declare_subscriber(KEYS.robot_state, lambda s: states.append(time.monotonic_ns()))
-        service = RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=router.client_config()))
+        service = RobotSimService(RobotSimConfig(arm=arm, clock=ClockMode.REALTIME, zenoh=router.client_config()))
         service.start()
         try:
             time.sleep(1.0)  # warm-up: renderer context, first frames
@@ -90,12 +93,13 @@ def realtime(seconds: float) -> dict:
             "seconds": seconds}
 
 
-def lockstep(sim_seconds: float, pipeline: bool) -> dict:
+def lockstep(sim_seconds: float, pipeline: bool, arm: str = DEFAULT_ARM) -> dict:
     with Router() as router:
         client = open_session(router.client_config())
         stand_in = _StandInPipeline(client) if pipeline else None
         time.sleep(0.3)
-        config = RobotSimConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config(), max_sim_time_s=sim_seconds)
+        config = RobotSimConfig(arm=arm, clock=ClockMode.LOCKSTEP, zenoh=router.client_config(),
+                                max_sim_time_s=sim_seconds)
         service = RobotSimService(config)
         start = time.monotonic()
         service.start()
@@ -114,11 +118,12 @@ def lockstep(sim_seconds: float, pipeline: bool) -> dict:
             "wall_seconds": round(wall, 3), "frames": n_frames, "timeouts": timeouts}
 
 
-def run(seconds: float = 10.0, sim_seconds: float = 5.0) -> dict:
+def run(seconds: float = 10.0, sim_seconds: float = 5.0, arm: str = DEFAULT_ARM) -> dict:
     return {
-        "realtime": realtime(seconds),
-        "lockstep_with_pipeline": lockstep(sim_seconds, pipeline=True),
-        "lockstep_free_running": lockstep(sim_seconds, pipeline=False),
+        "arm": arm,
+        "realtime": realtime(seconds, arm),
+        "lockstep_with_pipeline": lockstep(sim_seconds, pipeline=True, arm=arm),
+        "lockstep_free_running": lockstep(sim_seconds, pipeline=False, arm=arm),
     }
 
 
@@ -127,13 +132,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--seconds", type=float, default=10.0, help="realtime measurement window (s)")
     parser.add_argument("--sim-seconds", type=float, default=5.0, help="simulated time per lockstep run (s)")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
-    result = run(args.seconds, args.sim_seconds)
+    if unknown_arm(parser, args):
+        return 2
+    result = run(args.seconds, args.sim_seconds, args.arm)
     if args.json:
         print(json.dumps(result))
     else:
         rt = result["realtime"]
-        print(f"realtime 100 Hz loop: {rt['cycle_rate_hz']:.2f} Hz, "
+        print(f"robot_sim on the {result['arm']}: realtime 100 Hz loop: {rt['cycle_rate_hz']:.2f} Hz, "
               f"period jitter p50 {rt['cycle_jitter_ms_p50']:.3f} ms, p99 {rt['cycle_jitter_ms_p99']:.3f} ms, "
               f"max {rt['cycle_jitter_ms_max']:.3f} ms "
               f"({rt['cycles']} cycles, {rt['overruns']} overruns); frames {rt['frame_rate_hz']:.1f} Hz, "
