@@ -491,7 +491,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
               "rs485": "bench.rs485", "swap": "bench.swap", "cpu": "bench.cpu", "gateway": "bench.gateway",
-              "load": "bench.load", "soak": "bench.soak", "console": "bench.console"}
+              "load": "bench.load", "soak": "bench.soak", "console": "bench.console", "lowlevel": "bench.lowlevel"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -664,8 +664,9 @@ def build_parser() -> argparse.ArgumentParser:
                        "robot_sim and through robot_gateway; cpu: CPU and memory per service; gateway: tracking "
                        "under load; load: the robot state's period while a flood hits an unrelated key; "
                        "soak: servo tasks back to back through random faults, and the unsafe events; console: "
-                       "frames per second and capture → page delay of the console in headless Chromium; every "
-                       "benchmark on an arm takes --arm NAME")
+                       "frames per second and capture → page delay of the console in headless Chromium; lowlevel: "
+                       "the 500 Hz low-level torque loop as a client sees it (state rate, jitter, missed cycles, "
+                       "watchdog, command → state); every benchmark on an arm takes --arm NAME")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)
