@@ -50,6 +50,8 @@ ROBOTS = {"sim": "robot_sim", "gateway": "robot_gateway"}
 #: the robot's counters reported over the window (their growth)
 COUNTERS = ("cycles.late", "cycles.missed", "cycles.arm_missed", "bus.failed_exchanges", "lowlevel.watchdog",
             "lowlevel.safety_stops", "rejected.lowlevel_command")
+#: and why torque commands were refused (services.robot.node: stale, replayed, after a safety stop, ...)
+REFUSALS = "refused.lowlevel_"
 #: the sending thread's SCHED_FIFO priority: safety's (and bench/command_source.py's), below the robot's loops
 CLIENT_PRIORITY = 30
 #: before the window: torque mode engaged, the routes warm
@@ -150,7 +152,8 @@ def robot_figures(before: m.ServiceHealth, after: m.ServiceHealth) -> dict:
             "lowlevel_state_hz": round(after.rates_hz.get("pub.lowlevel_state", 0.0), 1),
             "wake_lag_ms": _p50_p99(detail.get("wake_lag_ms")), "work_ms": _p50_p99(detail.get("work_ms")),
             "exchange_ms": _p50_p99(detail.get("exchange_ms")),
-            "counters": {name: after.errors.get(name, 0) - before.errors.get(name, 0) for name in COUNTERS}}
+            "counters": {name: after.errors.get(name, 0) - before.errors.get(name, 0)
+                         for name in (*COUNTERS, *sorted(k for k in after.errors if k.startswith(REFUSALS)))}}
 
 
 def _healths(session, keys: Keys, names: tuple[str, ...]) -> dict[str, m.ServiceHealth]:
@@ -220,7 +223,8 @@ def print_result(r: dict) -> None:
           f"{c['cycles.missed']}, the arm without an exchange {c['cycles.arm_missed']} (in the stamps "
           f"{s['arm_cycles_without_exchange']}), failed exchanges {c['bus.failed_exchanges']}, watchdog "
           f"{c['lowlevel.watchdog']}, safety stops {c['lowlevel.safety_stops']}, refused "
-          f"{c['rejected.lowlevel_command']}")
+          f"{c['rejected.lowlevel_command']}" + "".join(f", {k.removeprefix(REFUSALS)} {v}" for k, v in c.items()
+                                                        if k.startswith(REFUSALS) and v))
     if r["actuators"]:
         a = r["actuators"]
         print(f"  actuators (robot_sim): cycle {a['cycle_rate_hz']} Hz, jitter p99 {a['cycle_jitter_ms_p99']} ms")

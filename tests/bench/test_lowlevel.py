@@ -27,7 +27,7 @@ def test_a_short_run_reports_every_figure_of_the_loop(profile, arm, joints, caps
     assert _stats_complete(client["command_to_state_ms"]) and client["command_to_state_ms"]["p50"] > 0
     assert loop["bus_rate_hz"] > 0 and loop["lowlevel_state_hz"] > 0
     assert loop["wake_lag_ms"]["p99"] is not None and loop["work_ms"]["p99"] is not None
-    assert set(loop["counters"]) == set(COUNTERS) and all(v >= 0 for v in loop["counters"].values())
+    assert set(loop["counters"]) >= set(COUNTERS) and all(v >= 0 for v in loop["counters"].values())
     if profile == "gateway":
         assert result["robot"] == "robot_gateway" and result["actuators"]["cycle_rate_hz"] > 0
     else:
