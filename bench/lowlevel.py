@@ -16,7 +16,8 @@ gravity compensation. After a warm-up, over ``--seconds``:
   exchange, failed exchanges, ``lowlevel.watchdog`` (cycles whose newest torque command was older than the
   watchdog, 5 ms: the arm held zero extra torque), torque safety stops and refused torque commands;
 * with the gateway profile, the emulated actuators' own 500 Hz cycle (rate, jitter p99);
-* the client: its commands, their rate and send jitter, and ``command_to_state_ms``: from a command's send to the
+* the client: its commands, their rate, the slots it woke too late for (skipped, not sent late in a burst) and its
+  send jitter, and ``command_to_state_ms``: from a command's send to the
   arrival of the first state the robot measured at or after it (its stamp). A low-level state does not say which
   torque command it applied (a RobotState does: ``applied_command``), so this is the round trip when the command
   reached the robot before that cycle's step, and a lower bound when it came later.
@@ -60,7 +61,9 @@ WARM_UP_S = 1.0
 
 class TorqueSender:
     """Zero extra torque on every joint at 500 Hz, from a thread of its own, until stopped; the send times
-    (``time.time_ns()``)."""
+    (``time.time_ns()``). A slot the thread woke too late for (more than a cycle) is skipped, as the robot's loop
+    skips one for a remote arm (the figures count them): a torque for a past cycle is worth nothing, and a burst of
+    them would only queue behind each other."""
 
     def __init__(self, session, keys: Keys, n_joints: int) -> None:
         self.publisher = GuardedPublisher.declare(session, keys.lowlevel_command)
@@ -82,6 +85,7 @@ class TorqueSender:
             k = 0
             while not self._stop.is_set():
                 time.sleep(max(0.0, start + k * CYCLE_S - time.monotonic()))
+                k = max(k, int((time.monotonic() - start) / CYCLE_S))  # woke a cycle or more late: this slot
                 self._seq += 1
                 now = time.time_ns()
                 self.publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=self._seq, stamp_ns=now),
@@ -137,7 +141,7 @@ def analyse(heard: list[tuple[int, m.LowLevelState]], sent_ns: list[int], window
                    "torque_mode_share": round(sum(s.mode is m.ActuatorMode.TORQUE for _, s in states) / len(states),
                                               4),
                    "drift_deg_max": round(float(np.degrees(np.abs(q - q[0]).max())), 4)},
-        "client": {"commands": len(commands),
+        "client": {"commands": len(commands), "slots_skipped": max(0, round(window_s / CYCLE_S) - len(commands)),
                    "rate_hz": round(len(commands) / window_s, 1),
                    "send_jitter_ms": stats(list(np.abs(np.diff(commands) / 1e6 - CYCLE_S * 1e3))),
                    "command_to_state_ms": stats(list(round_trip_ms))},
@@ -229,8 +233,8 @@ def print_result(r: dict) -> None:
         a = r["actuators"]
         print(f"  actuators (robot_sim): cycle {a['cycle_rate_hz']} Hz, jitter p99 {a['cycle_jitter_ms_p99']} ms")
     t, sj = client["command_to_state_ms"], client["send_jitter_ms"]
-    print(f"  client: {client['commands']} commands at {client['rate_hz']}/s (send jitter p50 {sj['p50']} ms, p99 "
-          f"{sj['p99']} ms); command → first state after it p50 {t['p50']} ms, p99 {t['p99']} ms, max {t['max']} ms")
+    print(f"  client: {client['commands']} commands at {client['rate_hz']}/s ({client['slots_skipped']} slots it woke "
+          f"too late for), send jitter p50 {sj['p50']} ms, p99 {sj['p99']} ms; command → first state after it p50 {t['p50']} ms, p99 {t['p99']} ms, max {t['max']} ms")
 
 
 def main(argv: list[str] | None = None) -> int:
