@@ -57,7 +57,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from protocol.keys import Keys
 from services.controller.task_client import TaskUnavailable, call_task
-from services.launcher import load_profile, read_stack, restart
+from services.launcher import behind_authority, load_profile, read_stack, restart
 from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.admission import AdmissionConfig
@@ -506,10 +506,8 @@ class Soak:
 
 def soak_profile(port: int, deployment, faults_dir: Path):
     """The sim profile behind the authority router, each service reading its fault plan from ``faults_dir``."""
-    profile = load_profile("sim", port)
-    profile.router.config = str(deployment.router_config)
+    profile = behind_authority(load_profile("sim", port), deployment)
     for service in profile.services:
-        service.zenoh_config = str(deployment.client_configs[service.name])
         service.set.append(f"faults_file={faults_dir / f'{service.name}.yaml'}")
     return profile
 
