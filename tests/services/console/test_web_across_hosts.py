@@ -123,3 +123,78 @@ def test_on_the_multi_host_profile_the_console_on_the_operators_computer_shows_t
         print(f"e-stop across hosts at {v0:.3f} m/s: sent {sent_ns / 1e6 - pressed_ms:.0f} ms after the page's "
               f"handler, at rest {elapsed * 1e3:.0f} ms after (bound {bound * 1e3:.0f} ms)")
         assert elapsed <= bound
+
+
+@pytest.fixture
+def tls_stack_on_the_arm_pc(tmp_path, monkeypatch):
+    """A lab of two computers, the arm's and a tablet; on the arm's, the sim profile behind `mfvs authority init
+    --tls`'s deployment, whose console certificate names the arm computer's address (MFVS_CONSOLE_SANS), started
+    by `mfvs up`; a recording of its messages there. Yields (lab, deployment, recording)."""
+    import msgspec
+    import yaml
+
+    from services.launcher import behind_authority, load_profile
+    from services.runtime.authority import write_deployment
+
+    with netns.Lab(["arm-pc", "tablet"]) as lab:
+        monkeypatch.setenv("MFVS_CONSOLE_SANS", f"IP:{lab.address('arm-pc')}")
+        deployment = write_deployment(tmp_path / "authority", tls=True)
+        profile = tmp_path / "profile.yaml"
+        profile.write_text(yaml.safe_dump(msgspec.to_builtins(behind_authority(load_profile("sim", 7447),
+                                                                               deployment))))
+        run_dir = tmp_path / "arm-pc"
+        try:
+            up = lab.mfvs("arm-pc", run_dir, ["up", "--profile", str(profile), "--clock", "realtime"], timeout_s=180)
+            assert up.returncode == 0 and deployment.endpoint in up.stdout, up.stdout + up.stderr
+            with Recording(lab, "arm-pc", deployment.endpoint, tmp_path / "heard.jsonl",
+                           str(deployment.client_configs["operator"])) as heard:
+                assert wait_for(lambda: heard.safety_state() is not None, timeout=30)  # safety is reporting
+                yield lab, deployment, heard
+        finally:
+            lab.mfvs("arm-pc", run_dir, ["down"])
+
+
+def test_beyond_loopback_it_serves_https_a_browser_trusting_the_deployments_ca_accepts_and_the_token_is_required(
+        tls_stack_on_the_arm_pc, tmp_path):
+    """`mfvs console --listen ADDRESS --token-file F` on the arm's computer with the operator's config of a TLS
+    deployment: HTTPS with the deployment's console certificate. The tablet's Chromium trusts the deployment's CA
+    (its ca.pem installed, as a person installs it on a tablet), no certificate check turned off: without that CA
+    it shows no page; with it, the page is a secure one, shows nothing and refuses every action until the token is
+    given, then its e-stop engages (safety says so on the arm's computer)."""
+    lab, deployment, heard = tls_stack_on_the_arm_pc
+    address, ca = lab.address("arm-pc"), str(tmp_path / "authority" / "certs" / "ca.pem")
+    token_file = tmp_path / "console-token"
+    token_file.write_text(TOKEN + "\n")
+    with lab.inside("arm-pc"):
+        console = ConsoleProcess(deployment.endpoint, "--zenoh-config", str(deployment.client_configs["operator"]),
+                                 "--listen", address, "--token-file", str(token_file)).__enter__()
+    try:
+        assert console.ready["tls"] and console.ready["token_required"]
+        assert console.url.startswith(f"https://{address}:"), console.url
+        with lab.inside("tablet"):
+            with Browser(*PHONE) as untrusting:  # the deployment's CA not installed: the browser refuses the page
+                untrusting.get(console.url)
+                assert untrusting.execute_script("return [location.protocol, typeof window.mfvsConsole]") == \
+                    ["chrome-error:", "undefined"]
+            with Browser(*PHONE, trust_ca=ca) as driver:
+                driver.get(console.url)
+                assert driver.execute_script("return [location.protocol, window.isSecureContext]") == ["https:", True]
+                assert wait_for(lambda: driver.execute_script(
+                    "return document.getElementById('token-dialog').open"), timeout=15)
+                for count, button in enumerate(("estop", "start"), start=1):
+                    driver.execute_script("document.getElementById('token-dialog').close()")
+                    click(driver, button)
+                    assert wait_for(lambda: refusals(driver).count("token") >= count, timeout=10), refusals(driver)
+                time.sleep(1.0)
+                assert page_stats(driver)["frames"] == 0 and not heard.messages("estop")
+                assert heard.safety_state() is not m.SafetyState.ESTOP
+                driver.execute_script("document.getElementById('token-dialog').showModal()")
+                driver.find_element(By.ID, "token").send_keys(TOKEN)
+                click(driver, "token-ok")
+                wait_for_frames(driver, 3)
+                click(driver, "estop")
+                assert wait_for(lambda: heard.safety_state() is m.SafetyState.ESTOP, timeout=10)
+                assert wait_for(lambda: text(driver, "estop") == "E-STOP ENGAGED", timeout=10)
+                assert not heard.messages("estop")[0].reset
+    finally:
+        console.__exit__(None, None, None)
