@@ -2,10 +2,10 @@
 behind their capture (p50, p99), on a stack in realtime with its task running (the arm moving, every service a
 process, the console one more, the browser one more: all on this machine's cores).
 
-``python -m bench.console [--json] [--seconds S] [--profile sim|gateway]`` or ``mfvs bench console``. The delay is
+``python -m bench.console [--json] [--seconds S] [--profile sim|gateway] [--arm NAME]`` or ``mfvs bench console``. The delay is
 from the frame's capture stamp (robot_sim's camera) to the page's clock once the frame is decoded and drawn; both
 clocks are this machine's. ``console_to_page_ms`` is the part from the console's receiving the frame. ``--json``
-prints ``{"fps", "delay_ms": {p50, p99, max, n}, "console_to_page_ms": {...}, "camera_hz", "encoded_hz",
+prints ``{"profile", "arm", "fps", "delay_ms": {p50, p99, max, n}, "console_to_page_ms": {...}, "camera_hz", "encoded_hz",
 "dropped", "seconds"}``.
 
 Debian's Chromium and chromedriver (``deploy/install.sh``) are driven by Selenium, started as this machine needs
@@ -24,11 +24,11 @@ from pathlib import Path
 from typing import Optional
 
 from bench.latency import stats
-from bench.stack import servoing_stack
+from bench.stack import profile_on_arm, servoing_stack, unknown_arm
 from protocol.keys import Keys
-from services.launcher import load_profile
+from services.cli import add_arm_option
 from services.runtime.service import query_health
-from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
+from services.runtime.transport import ZenohConfig, open_session
 from services.stack import ConsoleProcess
 
 CHROMIUM = "/usr/bin/chromium"
@@ -146,17 +146,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to count (after the first frames)")
     parser.add_argument("--profile", default="sim", help="sim (default) or gateway")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
-    profile = load_profile(args.profile, free_loopback_port(), free_loopback_port())
-    with servoing_stack(profile, operator="bench-console") as endpoint:
+    if unknown_arm(parser, args):
+        return 2
+    with servoing_stack(profile_on_arm(args.profile, args.arm), operator="bench-console") as endpoint:
         with ConsoleProcess(endpoint) as console:
-            result = {"profile": args.profile, "seconds": args.seconds,
+            result = {"profile": args.profile, "arm": args.arm, "seconds": args.seconds,
                       **measure(console.url, args.seconds, lambda: console_rates(endpoint))}
     if args.json:
         print(json.dumps(result))
     else:
         delay, part = result["delay_ms"], result["console_to_page_ms"]
-        print(f"console ({args.profile}, {args.seconds:g} s, headless Chromium): {result['fps']:.1f} frames/s drawn "
+        print(f"console ({args.profile}, {args.arm}, {args.seconds:g} s, headless Chromium): {result['fps']:.1f} frames/s drawn "
               f"(camera {result.get('camera_hz', 0):.1f} Hz, encoded {result.get('encoded_hz', 0):.1f} Hz)")
         print(f"  capture → page: p50 {delay['p50']} ms, p99 {delay['p99']} ms, max {delay['max']} ms "
               f"({delay['n']} frames)")
