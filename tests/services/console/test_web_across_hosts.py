@@ -23,7 +23,8 @@ from services.stack import ConsoleProcess
 from services.tools import netns
 from services.tools.netns import REPO
 from tests.deploy.profiles.test_multi_host import HOSTS, _stack_across
-from tests.services.console.test_web_browser import CONSOLE_BUDGET_S, DESKTOP, PHONE, click, refusals, text
+from tests.services.console.test_web_browser import (CLOCKS_MS, CONSOLE_BUDGET_S, DESKTOP, PHONE, click, refusals,
+                                                     text)
 from tests.services.safety.test_service_processes import ESTOP_DELIVERY_BUDGET_S, ee_speed, rest_bound, time_to_rest
 from tests.stack import wait_for
 
@@ -112,7 +113,7 @@ def test_on_the_multi_host_profile_the_console_on_the_operators_computer_shows_t
             assert wait_for(lambda: heard.messages("estop"), timeout=5)
             sent_ns = heard.messages("estop")[0].header.stamp_ns
             pressed_ms = page_stats(driver)["sent"][-1]["at"]
-            assert 0 <= sent_ns / 1e6 - pressed_ms < CONSOLE_BUDGET_S * 1e3
+            assert -CLOCKS_MS <= sent_ns / 1e6 - pressed_ms < CONSOLE_BUDGET_S * 1e3
             assert wait_for(lambda: heard.safety_state() is m.SafetyState.ESTOP, timeout=10)
             assert wait_for(lambda: text(driver, "estop") == "E-STOP ENGAGED", timeout=10)
             time.sleep(1.0)
