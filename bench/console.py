@@ -15,9 +15,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+import subprocess
 import tempfile
 import time
+from pathlib import Path
+from typing import Optional
 
 from bench.latency import stats
 from bench.stack import profile_on_arm, servoing_stack, unknown_arm
@@ -29,6 +33,7 @@ from services.stack import ConsoleProcess
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"
+CERTUTIL = "certutil"
 #: headless, as root (no sandbox), and nothing that reaches for the internet
 CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -37,11 +42,17 @@ CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-
 
 class Browser:
     """Headless Chromium driven by Selenium through chromedriver, in a fresh profile: a context manager giving the
-    driver (``width`` × ``height`` window)."""
+    driver (``width`` × ``height`` window).
 
-    def __init__(self, width: int = 1280, height: int = 900) -> None:
+    ``trust_ca`` (a PEM file): the browser also trusts that certificate authority, as a tablet does once the
+    deployment's ``ca.pem`` is installed on it. Chromium on Linux takes the CAs a user added from the NSS database
+    in ``$HOME/.pki/nssdb``; this browser gets a HOME of its own whose database holds that CA alone (written with
+    ``certutil``, Debian's libnss3-tools). Nothing turns certificate checks off."""
+
+    def __init__(self, width: int = 1280, height: int = 900, trust_ca: Optional[str] = None) -> None:
         self.width, self.height = width, height
-        self._profile = ""
+        self.trust_ca = trust_ca
+        self._files = ""
         self.driver = None
 
     def __enter__(self):
@@ -50,13 +61,19 @@ class Browser:
 
         options = webdriver.ChromeOptions()
         options.binary_location = CHROMIUM
-        self._profile = tempfile.mkdtemp(prefix="mfvs-chromium-")
-        for flag in (*CHROMIUM_FLAGS, f"--user-data-dir={self._profile}", f"--window-size={self.width},{self.height}"):
+        self._files = tempfile.mkdtemp(prefix="mfvs-chromium-")
+        profile = Path(self._files) / "profile"
+        for flag in (*CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--window-size={self.width},{self.height}"):
             options.add_argument(flag)
         try:
-            self.driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+            env = None
+            if self.trust_ca is not None:
+                home = Path(self._files) / "home"
+                trust_only(home / ".pki" / "nssdb", self.trust_ca)
+                env = dict(os.environ, HOME=str(home))
+            self.driver = webdriver.Chrome(service=Service(CHROMEDRIVER, env=env), options=options)
         except Exception:
-            shutil.rmtree(self._profile, ignore_errors=True)
+            shutil.rmtree(self._files, ignore_errors=True)
             raise
         return self.driver
 
@@ -64,7 +81,19 @@ class Browser:
         if self.driver is not None:
             self.driver.quit()
             self.driver = None
-        shutil.rmtree(self._profile, ignore_errors=True)
+        shutil.rmtree(self._files, ignore_errors=True)
+
+
+def trust_only(nss_database: Path, ca_pem: str) -> None:
+    """A new NSS database at ``nss_database`` (no password) whose only added certificate is the CA ``ca_pem``,
+    trusted to identify web sites ("C,,")."""
+    if shutil.which(CERTUTIL) is None:
+        raise RuntimeError(f"no {CERTUTIL} (Debian's libnss3-tools; deploy/install.sh installs it)")
+    nss_database.mkdir(parents=True)
+    for args in (["-N", "--empty-password"], ["-A", "-t", "C,,", "-n", "mfvs deployment CA", "-i", str(ca_pem)]):
+        done = subprocess.run([CERTUTIL, "-d", f"sql:{nss_database}", *args], capture_output=True, text=True)
+        if done.returncode:
+            raise RuntimeError(f"certutil {' '.join(args)}: {done.stderr.strip() or done.stdout.strip()}")
 
 
 def page_stats(driver) -> dict:

@@ -61,7 +61,7 @@ from protocol.conventions import AngularConvention, Frame
 from protocol.keys import Keys
 from services.controller.task_client import TaskUnavailable, call_task
 from services.cli import add_arm_option
-from services.launcher import Profile, load_profile, read_stack, restart, with_arm
+from services.launcher import Profile, behind_authority, load_profile, read_stack, restart, with_arm
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.admission import AdmissionConfig
@@ -514,10 +514,8 @@ class Soak:
 def soak_profile(port: int, deployment, faults_dir: Path, arm: str = DEFAULT_ARM):
     """The sim profile on ``arm`` behind the authority router, each service reading its fault plan from
     ``faults_dir``."""
-    profile = with_arm(load_profile("sim", port), arm)
-    profile.router.config = str(deployment.router_config)
+    profile = behind_authority(with_arm(load_profile("sim", port), arm), deployment)
     for service in profile.services:
-        service.zenoh_config = str(deployment.client_configs[service.name])
         service.set.append(f"faults_file={faults_dir / f'{service.name}.yaml'}")
     return profile
 
