@@ -2,10 +2,10 @@
 behind their capture (p50, p99), on a stack in realtime with its task running (the arm moving, every service a
 process, the console one more, the browser one more: all on this machine's cores).
 
-``python -m bench.console [--json] [--seconds S] [--profile sim|gateway]`` or ``mfvs bench console``. The delay is
+``python -m bench.console [--json] [--seconds S] [--profile sim|gateway] [--arm NAME]`` or ``mfvs bench console``. The delay is
 from the frame's capture stamp (robot_sim's camera) to the page's clock once the frame is decoded and drawn; both
 clocks are this machine's. ``console_to_page_ms`` is the part from the console's receiving the frame. ``--json``
-prints ``{"fps", "delay_ms": {p50, p99, max, n}, "console_to_page_ms": {...}, "camera_hz", "encoded_hz",
+prints ``{"profile", "arm", "fps", "delay_ms": {p50, p99, max, n}, "console_to_page_ms": {...}, "camera_hz", "encoded_hz",
 "dropped", "seconds"}``.
 
 Debian's Chromium and chromedriver (``deploy/install.sh``) are driven by Selenium, started as this machine needs
@@ -15,20 +15,25 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+import subprocess
 import tempfile
 import time
+from pathlib import Path
+from typing import Optional
 
 from bench.latency import stats
-from bench.stack import servoing_stack
+from bench.stack import profile_on_arm, servoing_stack, unknown_arm
 from protocol.keys import Keys
-from services.launcher import load_profile
+from services.cli import add_arm_option
 from services.runtime.service import query_health
-from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
+from services.runtime.transport import ZenohConfig, open_session
 from services.stack import ConsoleProcess
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"
+CERTUTIL = "certutil"
 #: headless, as root (no sandbox), and nothing that reaches for the internet
 CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
@@ -37,11 +42,17 @@ CHROMIUM_FLAGS = ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-
 
 class Browser:
     """Headless Chromium driven by Selenium through chromedriver, in a fresh profile: a context manager giving the
-    driver (``width`` × ``height`` window)."""
+    driver (``width`` × ``height`` window).
 
-    def __init__(self, width: int = 1280, height: int = 900) -> None:
+    ``trust_ca`` (a PEM file): the browser also trusts that certificate authority, as a tablet does once the
+    deployment's ``ca.pem`` is installed on it. Chromium on Linux takes the CAs a user added from the NSS database
+    in ``$HOME/.pki/nssdb``; this browser gets a HOME of its own whose database holds that CA alone (written with
+    ``certutil``, Debian's libnss3-tools). Nothing turns certificate checks off."""
+
+    def __init__(self, width: int = 1280, height: int = 900, trust_ca: Optional[str] = None) -> None:
         self.width, self.height = width, height
-        self._profile = ""
+        self.trust_ca = trust_ca
+        self._files = ""
         self.driver = None
 
     def __enter__(self):
@@ -50,13 +61,19 @@ class Browser:
 
         options = webdriver.ChromeOptions()
         options.binary_location = CHROMIUM
-        self._profile = tempfile.mkdtemp(prefix="mfvs-chromium-")
-        for flag in (*CHROMIUM_FLAGS, f"--user-data-dir={self._profile}", f"--window-size={self.width},{self.height}"):
+        self._files = tempfile.mkdtemp(prefix="mfvs-chromium-")
+        profile = Path(self._files) / "profile"
+        for flag in (*CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--window-size={self.width},{self.height}"):
             options.add_argument(flag)
         try:
-            self.driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+            env = None
+            if self.trust_ca is not None:
+                home = Path(self._files) / "home"
+                trust_only(home / ".pki" / "nssdb", self.trust_ca)
+                env = dict(os.environ, HOME=str(home))
+            self.driver = webdriver.Chrome(service=Service(CHROMEDRIVER, env=env), options=options)
         except Exception:
-            shutil.rmtree(self._profile, ignore_errors=True)
+            shutil.rmtree(self._files, ignore_errors=True)
             raise
         return self.driver
 
@@ -64,7 +81,19 @@ class Browser:
         if self.driver is not None:
             self.driver.quit()
             self.driver = None
-        shutil.rmtree(self._profile, ignore_errors=True)
+        shutil.rmtree(self._files, ignore_errors=True)
+
+
+def trust_only(nss_database: Path, ca_pem: str) -> None:
+    """A new NSS database at ``nss_database`` (no password) whose only added certificate is the CA ``ca_pem``,
+    trusted to identify web sites ("C,,")."""
+    if shutil.which(CERTUTIL) is None:
+        raise RuntimeError(f"no {CERTUTIL} (Debian's libnss3-tools; deploy/install.sh installs it)")
+    nss_database.mkdir(parents=True)
+    for args in (["-N", "--empty-password"], ["-A", "-t", "C,,", "-n", "mfvs deployment CA", "-i", str(ca_pem)]):
+        done = subprocess.run([CERTUTIL, "-d", f"sql:{nss_database}", *args], capture_output=True, text=True)
+        if done.returncode:
+            raise RuntimeError(f"certutil {' '.join(args)}: {done.stderr.strip() or done.stdout.strip()}")
 
 
 def page_stats(driver) -> dict:
@@ -117,17 +146,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--seconds", type=float, default=10.0, help="how long to count (after the first frames)")
     parser.add_argument("--profile", default="sim", help="sim (default) or gateway")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
-    profile = load_profile(args.profile, free_loopback_port(), free_loopback_port())
-    with servoing_stack(profile, operator="bench-console") as endpoint:
+    if unknown_arm(parser, args):
+        return 2
+    with servoing_stack(profile_on_arm(args.profile, args.arm), operator="bench-console") as endpoint:
         with ConsoleProcess(endpoint) as console:
-            result = {"profile": args.profile, "seconds": args.seconds,
+            result = {"profile": args.profile, "arm": args.arm, "seconds": args.seconds,
                       **measure(console.url, args.seconds, lambda: console_rates(endpoint))}
     if args.json:
         print(json.dumps(result))
     else:
         delay, part = result["delay_ms"], result["console_to_page_ms"]
-        print(f"console ({args.profile}, {args.seconds:g} s, headless Chromium): {result['fps']:.1f} frames/s drawn "
+        print(f"console ({args.profile}, {args.arm}, {args.seconds:g} s, headless Chromium): {result['fps']:.1f} frames/s drawn "
               f"(camera {result.get('camera_hz', 0):.1f} Hz, encoded {result.get('encoded_hz', 0):.1f} Hz)")
         print(f"  capture → page: p50 {delay['p50']} ms, p99 {delay['p99']} ms, max {delay['max']} ms "
               f"({delay['n']} frames)")

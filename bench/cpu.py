@@ -1,9 +1,10 @@
 """What each service costs per second of running: CPU (% of one core, user + system) and resident memory (MB) of
 every process of a stack (with its children), per profile, while it servos onto the tag (`mfvs up`, realtime, on free ports).
 
-``python -m bench.cpu [--json] [--seconds S] [--profiles sim,gateway]`` or ``mfvs bench cpu``. ``--json`` prints
-``{"profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb", "threads": {name: cpu_pct}}}, "total_cpu_pct",
-"total_rss_mb"}}}``; ``--threads`` also prints each process's threads by their kernel names.
+``python -m bench.cpu [--json] [--seconds S] [--profiles sim,gateway] [--arm NAME]`` or ``mfvs bench cpu``.
+``--json`` prints ``{"arm", "seconds", "profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb", "threads":
+{name: cpu_pct}}}, "total_cpu_pct", "total_rss_mb"}}}``; ``--threads`` also prints each process's threads by their
+kernel names.
 """
 from __future__ import annotations
 
@@ -12,9 +13,10 @@ import json
 import os
 import time
 
-from services.runtime.transport import free_loopback_port
-from bench.stack import servoing_stack
-from services.launcher import load_profile, read_stack
+from bench.stack import profile_on_arm, servoing_stack, unknown_arm
+from services.cli import add_arm_option
+from services.launcher import read_stack
+from services.model.arm import DEFAULT_ARM
 from services.robot.pacing import normal_priority, request_realtime
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
@@ -90,8 +92,8 @@ def rss_mb(pid: int) -> float:
     return sum(_rss_mb_of(p) for p in process_tree(pid))
 
 
-def measure(profile_name: str, seconds: float, settle_s: float = 3.0) -> dict:
-    with servoing_stack(load_profile(profile_name, free_loopback_port(), free_loopback_port()), "bench cpu"):
+def measure(profile_name: str, seconds: float, settle_s: float = 3.0, arm: str = DEFAULT_ARM) -> dict:
+    with servoing_stack(profile_on_arm(profile_name, arm), "bench cpu"):
         try:
             time.sleep(settle_s)  # past start-up (imports, first frames)
             processes = {p["name"]: p["pid"] for p in read_stack()["processes"]}
@@ -124,13 +126,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profiles", default="sim,gateway", help="comma-separated profiles (default sim,gateway)")
     parser.add_argument("--threads", action="store_true",
                         help="also each process's threads (by kernel name) costing 1 %% of a core or more")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
-    results = {name: measure(name, args.seconds) for name in args.profiles.split(",") if name}
+    if unknown_arm(parser, args):
+        return 2
+    results = {name: measure(name, args.seconds, arm=args.arm) for name in args.profiles.split(",") if name}
     if args.json:
-        print(json.dumps({"seconds": args.seconds, "profiles": results}))
+        print(json.dumps({"arm": args.arm, "seconds": args.seconds, "profiles": results}))
         return 0
     for name, r in results.items():
-        print(f"{name}: {r['total_cpu_pct']:.0f} % of a core, {r['total_rss_mb']:.0f} MB")
+        print(f"{name} ({args.arm}): {r['total_cpu_pct']:.0f} % of a core, {r['total_rss_mb']:.0f} MB")
         for process, figures in sorted(r["processes"].items(), key=lambda kv: -kv[1]["cpu_pct"]):
             print(f"  {process:14s} {figures['cpu_pct']:5.1f} %  {figures['rss_mb']:6.0f} MB")
             if args.threads:

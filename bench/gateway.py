@@ -7,8 +7,9 @@ motion, from the poses, against the commanded one; and the largest instantaneous
 speed against the commanded peak and the arm's limit, and how the bus kept time (late and missed cycles per
 second, the gateway's loop work and exchange times, the arm's lock to the host).
 
-``python -m bench.gateway [--json] [--load N] [--seconds S] [--runs R]`` or ``mfvs bench gateway``. ``--load``:
-how many spinning processes (default: a run without and a run with one per core).
+``python -m bench.gateway [--json] [--load N] [--seconds S] [--runs R] [--arm NAME]`` or ``mfvs bench gateway``.
+``--load``: how many spinning processes (default: a run without and a run with one per core). ``--json`` prints
+``{"arm", "runs": [...]}``.
 """
 from __future__ import annotations
 
@@ -26,8 +27,11 @@ from protocol import messages as m
 from protocol.keys import Keys
 from services.model.kinematics import ArmKinematics
 from services.runtime.transport import open_session
-from services.model.arm import load_arm
+from bench.stack import measured_arm, unknown_arm
+from services.cli import add_arm_option
+from services.model.arm import DEFAULT_ARM, load_arm
 from services.model.limits import arm_limits
+from services.robot_sim.service import RobotSimConfig
 from services.stack import RobotProcesses, RouterProcess
 
 REPO = Path(__file__).resolve().parents[1]
@@ -53,10 +57,10 @@ def _health(client, keys: Keys, name: str):
     return None
 
 
-def run_once(load: int, seconds: float) -> dict:
+def run_once(load: int, seconds: float, arm: str = DEFAULT_ARM) -> dict:
     keys = Keys()
     kin = None
-    with RouterProcess() as router, RobotProcesses(router.client_config()):
+    with RouterProcess() as router, RobotProcesses(router.client_config(), RobotSimConfig(arm=arm)):
         client = open_session(router.client_config())
         states: list[m.RobotState] = []
         client.declare_subscriber(keys.robot_state, lambda s: states.append(
@@ -64,15 +68,15 @@ def run_once(load: int, seconds: float) -> dict:
         deadline = time.monotonic() + 30
         while len(states) < 20 and time.monotonic() < deadline:
             time.sleep(0.05)
-        arm = load_arm(states[-1].arm) if states else load_arm()  # the robot's, as its states declare it
-        kin, limit = ArmKinematics(arm), arm_limits(arm).linear_speed_mps
+        description = load_arm(measured_arm(arm, {s.arm for s in states}))  # the robot's, as its states declare it
+        kin, limit = ArmKinematics(description), arm_limits(description).linear_speed_mps
         hogs = _spin(load)
         try:
             time.sleep(0.3)
             source = _command_source(router.endpoint, seconds)
             source.wait(timeout=seconds + 30)
             time.sleep(0.1)
-            gateway, arm = _health(client, keys, "robot_gateway"), _health(client, keys, "robot_sim")
+            gateway, actuators = _health(client, keys, "robot_gateway"), _health(client, keys, "robot_sim")
         finally:
             for hog in hogs:
                 hog.kill()
@@ -90,7 +94,7 @@ def run_once(load: int, seconds: float) -> dict:
     instant = np.array([kin.ee_velocity(s.q, s.dq) for s in steady])
     speeds = np.array([kin.ee_speed(s.q, s.dq) for s in snapshot])
     return {
-        "load": load,
+        "arm": arm, "load": load,
         "mean_velocity_error_pct": round(100 * float(np.linalg.norm(mean_velocity - LINEAR) / np.linalg.norm(LINEAR)),
                                          2),
         "max_instant_error_pct": round(100 * float(np.max(np.linalg.norm(instant - LINEAR, axis=1))
@@ -100,7 +104,7 @@ def run_once(load: int, seconds: float) -> dict:
         "late_per_s": round(float(np.mean([s.timing.late_per_s for s in steady])), 2),
         "missed_per_s": round(float(np.mean([s.timing.missed_per_s for s in steady])), 2),
         "gateway": gateway.detail if gateway else None, "gateway_degraded": list(gateway.degraded) if gateway else None,
-        "arm": arm.detail if arm else None,
+        "actuators": actuators.detail if actuators else None,
     }
 
 
@@ -111,19 +115,23 @@ def main(argv: list[str] | None = None) -> int:
                         help="spinning processes beside the stack (default: 0, then one per core)")
     parser.add_argument("--seconds", type=float, default=3.0, help="commanded motion per run (default 3)")
     parser.add_argument("--runs", type=int, default=3, help="runs per load (default 3)")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
+    if unknown_arm(parser, args):
+        return 2
     loads = [args.load] if args.load is not None else [0, os.cpu_count() or 1]
-    runs = [run_once(load, args.seconds) for load in loads for _ in range(args.runs)]
+    runs = [run_once(load, args.seconds, args.arm) for load in loads for _ in range(args.runs)]
     if args.json:
-        print(json.dumps({"runs": runs}))
+        print(json.dumps({"arm": args.arm, "runs": runs}))
         return 0
+    print(f"the gateway profile's robot on the {args.arm}")
     for r in runs:
         print(f"load {r['load']}: mean velocity {r['mean_velocity_error_pct']:.2f} % off (worst instant "
               f"{r['max_instant_error_pct']:.0f} %), peak {r['peak_speed_mps']:.3f} m/s (commanded "
               f"{r['commanded_speed_mps']:.3f}, limit {r['speed_limit_mps']:.3f}), late {r['late_per_s']:.1f}/s, "
               f"missed {r['missed_per_s']:.1f}/s")
-        print(f"    gateway: {r['gateway']}")
-        print(f"    arm:     {r['arm']}")
+        print(f"    gateway:   {r['gateway']}")
+        print(f"    actuators: {r['actuators']}")
     return 0
 
 

@@ -2,9 +2,9 @@
 read off the per-hop trace every robot command carries. The stack runs in realtime as separate processes
 (`mfvs up`), on a free loopback port.
 
-``python -m bench.latency [--json] [--seconds S] [--profiles sim,gateway] [--set SERVICE:KEY=VALUE]`` or
-``mfvs bench latency``. ``--json`` prints the first profile's ``{"e2e_ms": {p50, p99, max, n}, "hops": {name:
-{p50, p99, max, n}}, "start": {"e2e_ms": ...}, ...}`` and every profile's under ``"profiles"``; e2e counts each
+``python -m bench.latency [--json] [--seconds S] [--profiles sim,gateway] [--arm NAME] [--set SERVICE:KEY=VALUE]``
+or ``mfvs bench latency``. ``--json`` prints the first profile's ``{"arm", "e2e_ms": {p50, p99, max, n}, "hops":
+{name: {p50, p99, max, n}}, "start": {"e2e_ms": ...}, ...}`` and every profile's under ``"profiles"``; e2e counts each
 frame once, at the first robot cycle that applies a command derived from it. ``start`` is the task's first second
 (the services warm up before they say they are alive, so it should look like the rest); the measured window
 follows it.
@@ -21,9 +21,11 @@ import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
 from services.runtime.service import query_health
-from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
-from bench.stack import servoing_stack, with_overrides
+from services.runtime.transport import ZenohConfig, open_session
+from bench.stack import measured_arm, profile_on_arm, servoing_stack, unknown_arm, with_overrides
+from services.cli import add_arm_option
 from services.launcher import load_profile
+from services.model.arm import DEFAULT_ARM
 from services.robot.node import ROBOT_SERVICES
 
 
@@ -63,8 +65,9 @@ def analyse(states: list[m.RobotState]) -> dict:
     return {"e2e_ms": stats(e2e), "hops": {name: stats(values) for name, values in hops.items()}}
 
 
-def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None = None) -> dict:
-    stack = with_overrides(load_profile(profile, free_loopback_port(), free_loopback_port()), overrides or [])
+def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None = None,
+        arm: str = DEFAULT_ARM) -> dict:
+    stack = with_overrides(profile_on_arm(profile, arm), overrides or [])
     with servoing_stack(stack, "bench latency") as endpoint:
         session = open_session(ZenohConfig(connect=[endpoint]))
         states: list[m.RobotState] = []
@@ -83,10 +86,11 @@ def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None
     trigger = re.search(r"camera_trigger_ms=\S+ \([^)]*\)", robot_sim.detail) if robot_sim is not None else None
     result["camera_trigger"] = trigger.group(0) if trigger else None
     result["profile"] = profile
+    result["arm"] = measured_arm(arm, {state.arm for state in states})
     return result
 
 
-def run_profiles(seconds: float, profiles: list[str], overrides: list[str]) -> dict:
+def run_profiles(seconds: float, profiles: list[str], overrides: list[str], arm: str = DEFAULT_ARM) -> dict:
     """The first profile's figures at the top (the format of one), each profile's under ``profiles``. An override
     goes to the profiles that have its service."""
     names = {profile: {s.name for s in load_profile(profile, 0, 0).services} for profile in profiles}
@@ -96,13 +100,14 @@ def run_profiles(seconds: float, profiles: list[str], overrides: list[str]) -> d
                              f"({', '.join(sorted(set().union(*names.values())))})")
     results = {}
     for profile in profiles:
-        results[profile] = run(seconds, profile, [o for o in overrides if o.partition(":")[0] in names[profile]])
+        results[profile] = run(seconds, profile, [o for o in overrides if o.partition(":")[0] in names[profile]],
+                               arm)
     return {**results[profiles[0]], "profiles": results}
 
 
 def print_result(result: dict) -> None:
     e = result["e2e_ms"]
-    print(f"{result['profile']}: end to end (capture → applied): p50 {e['p50']} ms, p99 {e['p99']} ms, "
+    print(f"{result['profile']} ({result['arm']}): end to end (capture → applied): p50 {e['p50']} ms, p99 {e['p99']} ms, "
           f"max {e['max']} ms ({e['n']} frames)")
     for name, h in result["hops"].items():
         print(f"  {name:24s} p50 {h['p50']:8.3f} ms  p99 {h['p99']:8.3f} ms  max {h['max']:8.3f} ms")
@@ -120,13 +125,16 @@ def main(argv: list[str] | None = None) -> int:
                              "gateway: robot_gateway over the RS-485 bus hub")
     parser.add_argument("--set", action="append", default=[], metavar="SERVICE:KEY=VALUE",
                         help="a config override for one service, e.g. robot_sim:scene.camera.trigger_offset_ms=4")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
+    if unknown_arm(parser, args):
+        return 2
     profiles = [p.strip() for p in args.profiles.split(",") if p.strip()]
     unknown = [p for p in profiles if p not in ("sim", "gateway")]
     if unknown or not profiles:
         parser.error(f"--profiles takes sim and/or gateway, not {', '.join(unknown) or 'nothing'}")
     try:
-        result = run_profiles(args.seconds, profiles, args.set)
+        result = run_profiles(args.seconds, profiles, args.set, args.arm)
     except ValueError as exc:
         parser.error(str(exc))
     if args.json:

@@ -1,7 +1,8 @@
 """Control-law cost: microseconds per iteration of every law (one features message → one output), on a
-typical input (4 points, the 7-joint arm), without zenoh.
+typical input (4 points, the arm at its home), without zenoh.
 
-``python -m bench.laws [--json] [--iterations N]`` or ``mfvs bench laws``.
+``python -m bench.laws [--json] [--iterations N] [--arm NAME]`` or ``mfvs bench laws``; ``--json`` prints
+``{"arm", "laws": {law: {"p50_us", "best_p50_us", "p99_us", "n", ...}}}``.
 """
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ import time
 
 import numpy as np
 
+from bench.stack import unknown_arm
+from services.cli import add_arm_option
 from services.model.arm import DEFAULT_ARM, ArmDescription, load_arm
 from services.model.kinematics import ArmKinematics
 from services.controller.law import ServoInput
@@ -55,7 +58,7 @@ def measure(name: str, iterations: int, rounds: int, arm: ArmDescription) -> dic
 
 def run(iterations: int = 1000, rounds: int = 5, arm: str = DEFAULT_ARM) -> dict:
     description = load_arm(arm)
-    return {name: measure(name, iterations, rounds, description) for name in LAW_NAMES}
+    return {"arm": arm, "laws": {name: measure(name, iterations, rounds, description) for name in LAW_NAMES}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,13 +66,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--iterations", type=int, default=1000, help="timed iterations per round")
     parser.add_argument("--rounds", type=int, default=5, help="rounds per law")
-    parser.add_argument("--arm", default=DEFAULT_ARM, help=f"the arm (default {DEFAULT_ARM})")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
+    if unknown_arm(parser, args):
+        return 2
     result = run(args.iterations, args.rounds, args.arm)
     if args.json:
         print(json.dumps(result))
     else:
-        for name, r in result.items():
+        print(f"the {result['arm']} at its home")
+        for name, r in result["laws"].items():
             target = f" (target ≤ {r['target_us']:.0f} µs: {'met' if r['meets_target'] else 'NOT met'})" \
                 if "target_us" in r else ""
             print(f"{name:22s} p50 {r['p50_us']:8.1f} µs (best round {r['best_p50_us']:7.1f})   "

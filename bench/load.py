@@ -7,7 +7,7 @@ period at which a separate subscriber receives them (what every service sees) an
 the robot loop's own account (bus cycles per second, late and missed cycles per second, from RobotState.timing)
 and, under flood, the rate the flood achieved.
 
-``python -m bench.load [--json] [--seconds S] [--rate N]`` or ``mfvs bench load``.
+``python -m bench.load [--json] [--seconds S] [--rate N] [--arm NAME]`` or ``mfvs bench load``.
 """
 from __future__ import annotations
 
@@ -22,9 +22,11 @@ import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
 from bench.latency import stats
-from bench.stack import servoing_stack
-from services.launcher import REPO, load_profile
-from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
+from bench.stack import measured_arm, profile_on_arm, servoing_stack, unknown_arm
+from services.cli import add_arm_option
+from services.launcher import REPO
+from services.model.arm import DEFAULT_ARM
+from services.runtime.transport import ZenohConfig, open_session
 
 #: where the flood goes: outside the stack's keys, so no service decodes it
 FLOOD_KEY = "bench/flood/payload"
@@ -73,8 +75,8 @@ def _phase(states: list[tuple[int, m.RobotState]]) -> dict:
     }
 
 
-def run(seconds: float = 10.0, rate: float = 10_000.0) -> dict:
-    with servoing_stack(load_profile("sim", free_loopback_port()), "bench load") as endpoint:
+def run(seconds: float = 10.0, rate: float = 10_000.0, arm: str = DEFAULT_ARM) -> dict:
+    with servoing_stack(profile_on_arm("sim", arm), "bench load") as endpoint:
         session = open_session(ZenohConfig(connect=[endpoint]))
         states: list[tuple[int, m.RobotState]] = []
         session.declare_subscriber(Keys().robot_state, lambda s: states.append(
@@ -91,7 +93,7 @@ def run(seconds: float = 10.0, rate: float = 10_000.0) -> dict:
     if flood.returncode != 0:
         raise RuntimeError(f"the flood failed: {flood.stderr.strip()[-300:]}")
     sent, received = (float(x) for x in flood.stdout.split())
-    return {"seconds": seconds, "quiet": _phase(quiet),
+    return {"arm": measured_arm(arm, {state.arm for _, state in states}), "seconds": seconds, "quiet": _phase(quiet),
             "flood": {**_phase(flooded), "asked_msg_s": rate, "sent_msg_s": round(sent), "received_msg_s":
                       round(received)}}
 
@@ -101,11 +103,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--seconds", type=float, default=10.0, help="each phase's length (s)")
     parser.add_argument("--rate", type=float, default=10_000.0, help="flood messages per second")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
-    result = run(args.seconds, args.rate)
+    if unknown_arm(parser, args):
+        return 2
+    result = run(args.seconds, args.rate, args.arm)
     if args.json:
         print(json.dumps(result))
         return 0
+    print(f"the sim stack on the {result['arm']}, {result['seconds']:g} s a phase")
     for name in ("quiet", "flood"):
         r = result[name]
         loop, heard = r["loop_period_ms"], r["state_period_ms"]

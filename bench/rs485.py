@@ -7,7 +7,7 @@
 Transports: ``virtual`` (python-can's in-process bus, the actuators in a thread of this process) or ``hub`` (the
 deploy shape of the gateway profile: the actuators in a robot_sim process, frames through the mfvs CAN hub).
 
-``python -m bench.rs485 [--json] [--seconds S] [--transport virtual|hub]`` or ``mfvs bench rs485``.
+``python -m bench.rs485 [--json] [--seconds S] [--transport virtual|hub] [--arm NAME]`` or ``mfvs bench rs485``.
 """
 from __future__ import annotations
 
@@ -19,7 +19,9 @@ import numpy as np
 
 from services.runtime.metrics import LoopTimer
 from services.robot.rs485_bus import BusConfig, RS485Bus
-from services.model.arm import DEFAULT_ARM, check_arm_name, load_arm
+from bench.stack import detail_fields, unknown_arm
+from services.cli import add_arm_option
+from services.model.arm import DEFAULT_ARM, load_arm
 from services.robot_gateway.link import ActuatorLink
 from services.stack import simulated_link
 
@@ -75,12 +77,13 @@ def run_hub(seconds: float = 5.0, arm: str = DEFAULT_ARM) -> dict:
             time.sleep(1.0)
             exchange_ms, query_ms = _measure(link, seconds)
             health = status(router.endpoint).get("robot_sim")
-            detail = dict(item.split("=") for item in health.detail.split()) if health else {}
+            detail = detail_fields(health.detail if health else None)
         finally:
             host.close()
             sim.terminate()
             sim.wait(timeout=20)
-    return {"transport": "hub", "arm": arm, "actuators": len(link.addresses), "cycle_rate_hz": float(detail.get("cycle_rate_hz", "nan")),
+    return {"transport": "hub", "arm": arm, "actuators": len(link.addresses),
+            "cycle_rate_hz": float(detail.get("bus_cycle_rate_hz", "nan")),
             "cycle_jitter_ms_p99": float(detail.get("jitter_ms_p99", "nan")),
             "exchange_ms": _stats(exchange_ms), "position_query_ms": _stats(query_ms), "seconds": seconds}
 
@@ -104,12 +107,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=5.0, help="measurement window (s)")
     parser.add_argument("--transport", choices=["virtual", "hub"], default="virtual",
                         help="virtual: one process; hub: robot_sim's actuators in their own process, via the hub")
-    parser.add_argument("--arm", default=DEFAULT_ARM, help=f"the arm whose actuators answer (default {DEFAULT_ARM})")
+    add_arm_option(parser)
     args = parser.parse_args(argv)
-    try:
-        check_arm_name(args.arm)
-    except ValueError as exc:
-        parser.error(str(exc))
+    if unknown_arm(parser, args):
+        return 2
     result = run(args.seconds, args.arm) if args.transport == "virtual" else run_hub(args.seconds, args.arm)
     if args.json:
         print(json.dumps(result))

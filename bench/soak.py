@@ -31,7 +31,9 @@ whole again. Lost-state events: gaps over 100 ms in the robot states heard. A fa
 of its end, every service is alive and the loop is in service again: robot states and the controller's iterations
 heard, the controller servoing, safety passing its commands.
 
-``python -m bench.soak [--minutes N] [--seed S] [--hosts] [--json]`` or ``mfvs bench soak``.
+``python -m bench.soak [--minutes N] [--seed S] [--hosts] [--arm NAME] [--json]`` or ``mfvs bench soak``: the stack
+runs the arm ``--arm`` names (default j2s7s300), and the judge takes the limits and kinematics of the arm the robot
+declares in its states.
 """
 from __future__ import annotations
 
@@ -49,16 +51,18 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import yaml
 
-from bench.stack import servoing_stack, with_overrides
+from bench.stack import measured_arm, servoing_stack, unknown_arm, with_overrides
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from protocol.keys import Keys
 from services.controller.task_client import TaskUnavailable, call_task
-from services.launcher import load_profile, read_stack, restart
-from services.model.arm import load_arm
+from services.cli import add_arm_option
+from services.launcher import Profile, behind_authority, load_profile, read_stack, restart, with_arm
+from services.model.arm import DEFAULT_ARM, load_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.admission import AdmissionConfig
 from services.robot.dsp import DSPConfig
@@ -229,6 +233,8 @@ class Soak:
         self.rng = random.Random(seed)
         #: the kinematics of the robot's arm, as its states declare it (services.model.arm.load_arm by name)
         self.kin: ArmKinematics | None = None
+        #: every arm the robot's states declared (one, unless something is wrong)
+        self.arms: set[str] = set()
         self.dsp = DSPConfig()
         self.judge = Judge.for_robot(AdmissionConfig(), self.dsp)
         self.lock = threading.Lock()
@@ -258,6 +264,7 @@ class Soak:
         state = m.decode(sample.payload.to_bytes(), m.RobotState)
         if self.kin is None or self.kin.arm.name != state.arm:
             self.kin = ArmKinematics(load_arm(state.arm))
+            self.arms.add(state.arm)
         linear = self.kin.ee_speed(state.q, state.dq)
         limits = state.limits
         joint_ratio = float(np.max(np.abs(state.dq) / np.asarray(limits.joint_speed_rps))) if limits else 0.0
@@ -504,12 +511,11 @@ class Soak:
         self.operator.close()
 
 
-def soak_profile(port: int, deployment, faults_dir: Path):
-    """The sim profile behind the authority router, each service reading its fault plan from ``faults_dir``."""
-    profile = load_profile("sim", port)
-    profile.router.config = str(deployment.router_config)
+def soak_profile(port: int, deployment, faults_dir: Path, arm: str = DEFAULT_ARM):
+    """The sim profile on ``arm`` behind the authority router, each service reading its fault plan from
+    ``faults_dir``."""
+    profile = behind_authority(with_arm(load_profile("sim", port), arm), deployment)
     for service in profile.services:
-        service.zenoh_config = str(deployment.client_configs[service.name])
         service.set.append(f"faults_file={faults_dir / f'{service.name}.yaml'}")
     return profile
 
@@ -574,11 +580,12 @@ def campaign(soak: Soak, names: set[str], minutes: float, progress=None) -> dict
         "unsafe_events": len(verdict["unsafe_events"]), "unsafe": verdict["unsafe_events"][:20],
         "lost_state_events": verdict["lost_state_events"], "lost_state_longest_s": verdict["lost_state_longest_s"],
         "states": verdict["states"], "max_linear_mps": verdict["max_linear_mps"], "log": log,
+        "declared_arms": sorted(soak.arms),
     }
 
 
 def run(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None, kinds: list[str] | None = None,
-        progress=None) -> dict:
+        progress=None, arm: str = DEFAULT_ARM) -> dict:
     """The soak on this computer."""
     check_kinds(kinds, hosts=False)
     with tempfile.TemporaryDirectory(prefix="mfvs-soak-") as directory:
@@ -587,17 +594,20 @@ def run(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None
         port = free_loopback_port()
         deployment = write_deployment(run_dir / "authority", port=port,
                                       services=IDENTITIES)
-        profile = with_overrides(soak_profile(port, deployment, run_dir / "faults"), overrides or [])
+        profile = with_overrides(soak_profile(port, deployment, run_dir / "faults", arm), overrides or [])
         names = {s.name for s in profile.services}
         with servoing_stack(profile, "bench soak") as endpoint:
             soak = Soak(endpoint, deployment, run_dir, seed, Keys(profile.robot_id), kinds)
             result = campaign(soak, names, minutes, progress)
-    return {"minutes": minutes, "seed": seed, "hosts": False, **result}
+    return {"minutes": minutes, "seed": seed, "hosts": False, "arm": measured_arm(arm, result["declared_arms"]),
+            **result}
 
 
-def hosts_profile(path: Path, lab: netns.Lab, deployment, faults_dir: Path, overrides: list[str]) -> dict:
-    """The shipped multi-host profile as a lab fills it in (the robot computer's address, access control), each
-    service reading its fault plan from ``faults_dir``, written to ``path``; which computer runs each process."""
+def hosts_profile(path: Path, lab: netns.Lab, deployment, faults_dir: Path, overrides: list[str],
+                  arm: str = DEFAULT_ARM) -> dict:
+    """The shipped multi-host profile as a lab fills it in (the robot computer's address, access control), on
+    ``arm``, each service reading its fault plan from ``faults_dir``, written to ``path``; which computer runs each
+    process."""
     profile = yaml.safe_load((netns.REPO / "deploy" / "profiles" / "multi-host.yaml").read_text())
     profile["router"].update(address=lab.address("robot"), config=str(deployment.router_config))
     for service in profile["services"]:
@@ -607,12 +617,13 @@ def hosts_profile(path: Path, lab: netns.Lab, deployment, faults_dir: Path, over
     unknown = {o.partition(":")[0] for o in overrides} - {s["name"] for s in profile["services"]}
     if unknown:
         raise ValueError(f"--set: no service called {', '.join(sorted(unknown))} in the multi-host profile")
-    path.write_text(yaml.safe_dump(profile))
-    return {"router": profile["router"]["host"], **{s["name"]: s["host"] for s in profile["services"]}}
+    filled = with_arm(msgspec.convert(profile, Profile), arm)
+    path.write_text(yaml.safe_dump(msgspec.to_builtins(filled)))
+    return {"router": filled.router.host, **{s.name: s.host for s in filled.services}}
 
 
 def run_across_hosts(minutes: float = 10.0, seed: int = 1, overrides: list[str] | None = None,
-                     kinds: list[str] | None = None, progress=None) -> dict:
+                     kinds: list[str] | None = None, progress=None, arm: str = DEFAULT_ARM) -> dict:
     """The soak with the stack across three computers (network namespaces), watched from the robot's."""
     check_kinds(kinds, hosts=True)
     why = netns.unavailable()
@@ -624,14 +635,14 @@ def run_across_hosts(minutes: float = 10.0, seed: int = 1, overrides: list[str] 
         deployment = write_deployment(run_dir / "authority", host=lab.address("robot"), port=7447,
                                       services=IDENTITIES)
         profile_file = run_dir / "multi-host.yaml"
-        hosts_of = hosts_profile(profile_file, lab, deployment, run_dir / "faults", overrides or [])
+        hosts_of = hosts_profile(profile_file, lab, deployment, run_dir / "faults", overrides or [], arm)
         run_dirs = {host: run_dir / host for host in HOSTS}  # the router's computer first
         with netns.stack_across(lab, profile_file, run_dirs, deployment.endpoint):
             spec = {"endpoint": deployment.endpoint, "router_config": str(deployment.router_config),
                     "client_configs": {k: str(v) for k, v in deployment.client_configs.items()},
                     "run_dir": str(run_dir), "run_dirs": {h: str(d) for h, d in run_dirs.items()},
                     "hosts_of": hosts_of, "lab": {"hosts": lab.hosts, "net": lab.net, "tag": lab.tag},
-                    "seed": seed, "minutes": minutes, "kinds": kinds}
+                    "seed": seed, "minutes": minutes, "kinds": kinds, "arm": arm}
             (run_dir / "spec.json").write_text(json.dumps(spec))
             # the soak watches from the robot's computer: its states are heard whatever happens to other cables
             inside = subprocess.run(lab.command("robot", [sys.executable, "-m", "bench.soak", "--inside",
@@ -653,8 +664,9 @@ def run_inside(spec_file: str, progress=None) -> dict:
     placement = AcrossHosts(lab, {h: Path(d) for h, d in spec["run_dirs"].items()}, spec["hosts_of"])
     soak = Soak(spec["endpoint"], deployment, Path(spec["run_dir"]), spec["seed"], Keys(), spec["kinds"], placement)
     names = {name for name in spec["hosts_of"] if name != "router"}
+    result = campaign(soak, names, spec["minutes"], progress)
     return {"minutes": spec["minutes"], "seed": spec["seed"], "hosts": True,
-            **campaign(soak, names, spec["minutes"], progress)}
+            "arm": measured_arm(spec["arm"], result["declared_arms"]), **result}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -671,7 +683,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hosts", action="store_true",
                         help="the stack across three computers (network namespaces, root only), cables pulled too")
     parser.add_argument("--inside", metavar="SPEC", help=argparse.SUPPRESS)  # run_across_hosts' own campaign
+    add_arm_option(parser)
     args = parser.parse_args(argv)
+    if unknown_arm(parser, args):
+        return 2
     progress = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     if args.inside:
         result = run_inside(args.inside, progress)
@@ -684,12 +699,12 @@ def main(argv: list[str] | None = None) -> int:
         check_kinds(kinds, args.hosts)
     except ValueError as exc:
         parser.error(str(exc))
-    result = (run_across_hosts if args.hosts else run)(args.minutes, args.seed, args.set, kinds, progress)
+    result = (run_across_hosts if args.hosts else run)(args.minutes, args.seed, args.set, kinds, progress, args.arm)
     if args.json:
         print(json.dumps(result))
         return 0 if result["unsafe_events"] == 0 else 1
     where = "across three computers" if result["hosts"] else "on one computer"
-    print(f"{result['minutes']:g} min {where}, seed {result['seed']}: {result['tasks']['started']} tasks "
+    print(f"{result['minutes']:g} min {where} on the {result['arm']}, seed {result['seed']}: {result['tasks']['started']} tasks "
           f"({result['tasks']['converged']} converged), {result['faults_total']} faults "
           f"({', '.join(f'{k} {v}' for k, v in result['faults'].items())})")
     print(f"recovered {result['recoveries']} (p50 {result['recovery_s']['p50']} s, max {result['recovery_s']['max']} s)"

@@ -1,15 +1,47 @@
 """The running stack a benchmark measures: the named profile up in realtime, every service a process, in a run
 directory of its own, with a servo task started (the stack comes up idle); taken down and the run directory
-forgotten on the way out, whatever happened."""
+forgotten on the way out, whatever happened. Also what every benchmark on an arm shares: its ``--arm`` option
+(checked as every command's is, before anything starts), the profile on that arm, and the arm a run measured."""
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
+import re
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
+from typing import Optional
 
 from protocol import messages as m
-from services.launcher import Profile, down, stack_task, up
+from services.cli import arm_or_exit
+from services.launcher import Profile, down, load_profile, stack_task, up, with_arm
+from services.runtime.transport import free_loopback_port
+
+
+def unknown_arm(parser: argparse.ArgumentParser, args: argparse.Namespace) -> bool:
+    """Whether ``args.arm`` (services.cli.add_arm_option's ``--arm``) names no arm: then one line on stderr, as
+    every command says it, and the benchmark exits 2 having started nothing."""
+    return arm_or_exit(parser.prog.removeprefix("mfvs "), args.arm) is None
+
+
+def profile_on_arm(name: str, arm: str) -> Profile:
+    """The profile ``name`` (sim, gateway or a file) on free loopback ports, every service that runs on an arm set to
+    ``arm``, as `mfvs up --profile NAME --arm ARM` runs it."""
+    return with_arm(load_profile(name, free_loopback_port(), free_loopback_port()), arm)
+
+
+def measured_arm(asked: str, declared: Iterable[str]) -> str:
+    """The arm a run measured: the one its robot declared in its states (``declared``), which must be ``asked``
+    (a robot on another arm would make every figure the wrong arm's)."""
+    named = set(declared)
+    if named and named != {asked}:
+        raise RuntimeError(f"the robot declared the {', '.join(sorted(named))}, not the {asked} asked for")
+    return asked
+
+
+def detail_fields(detail: Optional[str]) -> dict[str, str]:
+    """The ``name=value`` fields of a service's health detail (e.g. a robot node's ``bus_rate_hz=499.8``)."""
+    return dict(re.findall(r"([\w.]+)=(\S+)", detail or ""))
 
 
 @contextlib.contextmanager

@@ -7,8 +7,11 @@ that became no iteration were lost.
 Profiles: ``sim-lockstep`` and ``gateway-lockstep`` (deterministic: one run each, and they must agree exactly),
 ``sim-realtime`` and ``gateway-realtime`` (the gateway's iterations should be within 10 % of the sim's).
 
-``python -m bench.swap [--json] [--runs N] [--scenario FILE ...] [--random-starts N [--seed S] [--base FILE]]`` or
-``mfvs bench swap``; without ``--scenario`` or ``--random-starts`` every file in ``examples/scenarios``.
+``python -m bench.swap [--json] [--runs N] [--scenario FILE ...] [--random-starts N [--seed S] [--base FILE]]
+[--arm NAME]`` or ``mfvs bench swap``; without ``--scenario`` or ``--random-starts`` every file in
+``examples/scenarios``. Each scenario runs on its own arm (``robot.arm``), as `mfvs servo` runs it; ``--arm NAME``
+runs them on that arm (as `mfvs servo --arm`): of the shipped scenarios, those that start another arm at joint
+angles of its own are left out (and named); a ``--scenario`` that does is refused.
 ``--random-starts N`` makes N scenarios no one has seen from ``--base`` (table2 by default): the tag placed at random
 in front of the camera as for Table 3 over random starts (:mod:`services.starts`), each written next to the results
 so a start can be run again.
@@ -28,16 +31,20 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import tempfile
 from pathlib import Path
 from typing import Optional
 
 import msgspec
 
+from bench.stack import unknown_arm
 from protocol.conventions import ClockMode
+from services.runtime.config import ConfigError
 from services.runtime.progress import ProgressLine
 from services.robot_sim.scene import default_target_in_camera
-from services.servo import load_scenario, run
+from services.cli import add_arm_option
+from services.servo import load_scenario, on_arm, run
 from services.starts import write_starts
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
@@ -112,10 +119,30 @@ def realtime_against_lockstep(lockstep: dict, realtime: dict) -> Optional[dict]:
             "within": abs(median - 1.0) <= REALTIME_TOLERANCE and len(ratios) == len(realtime["runs"])}
 
 
+def scenario_on(path: Path, arm: Optional[str]):
+    """The scenario at ``path`` on ``arm`` (None: its own); ValueError when it starts another arm at angles of its
+    own (services.servo.on_arm)."""
+    return on_arm(load_scenario(path), arm, str(path))
+
+
+def shipped_for(arm: Optional[str]) -> tuple[list[Path], list[Path]]:
+    """The shipped scenarios that run on ``arm`` (all of them for None), and those left out (they start another
+    arm at joint angles of its own)."""
+    fit, left = [], []
+    for path in sorted(SCENARIOS.glob("*.yaml")):
+        try:
+            scenario_on(path, arm)
+            fit.append(path)
+        except ValueError:
+            left.append(path)
+    return fit, left
+
+
 def measure_scenario(scenario_path: Path, runs: int, profiles: list[str], quiet: bool = False,
-                     nudges: int = 0) -> dict:
+                     nudges: int = 0, arm: Optional[str] = None) -> dict:
     """Each profile's runs of one scenario (a lockstep profile: the start as written, then ``nudges`` nudged
-    starts); on a terminal (unless ``quiet``) a progress line during each run."""
+    starts), on ``arm`` (None: the scenario's own); on a terminal (unless ``quiet``) a progress line during each
+    run."""
     results = {}
     for name in profiles:
         profile, clock = PROFILES[name]
@@ -124,7 +151,7 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str], quiet:
                   else [(0.0, 0.0, 0.0)] * runs)
         rows = []
         for offset in starts:
-            scenario = load_scenario(scenario_path)
+            scenario = scenario_on(scenario_path, arm)
             scenario.clock = clock
             if any(offset):
                 scenario = nudged(scenario, offset)
@@ -167,7 +194,8 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str], quiet:
             compared = realtime_against_lockstep(lockstep, realtime)
             if compared is not None:
                 realtime_over_lockstep[profile] = compared
-    return {"scenario": str(scenario_path), "profiles": results, "comparison": comparison,
+    return {"scenario": str(scenario_path), "arm": scenario_on(scenario_path, arm).robot.arm, "profiles": results,
+            "comparison": comparison,
             "realtime_over_lockstep": realtime_over_lockstep}
 
 
@@ -189,7 +217,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="the scenario the random starts vary (default examples/scenarios/table2.yaml)")
     parser.add_argument("--keep", type=Path, metavar="DIR",
                         help="write the random starts' scenario files here (default: a temporary directory)")
+    add_arm_option(parser, default=None, what="each scenario's robot.arm")
     args = parser.parse_args(argv)
+    if args.arm is not None and unknown_arm(parser, args):
+        return 2
     profiles = [p for p in args.profiles.split(",") if p]
     unknown = [p for p in profiles if p not in PROFILES]
     if unknown or args.runs < 1 or args.nudges < 0:
@@ -197,18 +228,28 @@ def main(argv: list[str] | None = None) -> int:
                      else "--runs must be at least 1" if args.runs < 1 else "--nudges must be at least 0")
     if args.random_starts < 0:
         parser.error("--random-starts must be at least 0")
+    try:  # every scenario named, and the random starts' base, on the arm before anything runs
+        for path in [*(args.scenario or []), *([args.base] if args.random_starts else [])]:
+            scenario_on(path, args.arm)
+    except (ConfigError, ValueError) as exc:
+        print(f"{parser.prog}: {exc}", file=sys.stderr)
+        return 2
     starts_dir = (args.keep or Path(tempfile.mkdtemp(prefix="mfvs-starts-"))) if args.random_starts else None
     scenarios = (args.scenario or []) + ([start.scenario for start in write_starts(
-        args.base, args.random_starts, args.seed, starts_dir, command="mfvs bench swap --random-starts")]
-        if args.random_starts else [])
-    scenarios = scenarios or sorted(SCENARIOS.glob("*.yaml"))
+        args.base, args.random_starts, args.seed, starts_dir, command="mfvs bench swap --random-starts",
+        arm=args.arm)] if args.random_starts else [])
+    if not scenarios:
+        scenarios, left_out = shipped_for(args.arm)
+        if left_out and not args.json:
+            print(f"on the {args.arm}, leaving out {', '.join(p.name for p in left_out)} (they start another arm at "
+                  f"joint angles of its own)")
     results = []
     for path in scenarios:
-        result = measure_scenario(path, args.runs, profiles, quiet=args.json, nudges=args.nudges)
+        result = measure_scenario(path, args.runs, profiles, quiet=args.json, nudges=args.nudges, arm=args.arm)
         results.append(result)
         if args.json:
             continue
-        print(f"scenario {result['scenario']}")
+        print(f"scenario {result['scenario']} on the {result['arm']}")
         if args.random_starts and Path(result["scenario"]).parent == starts_dir:
             print(f"  start: tag at {load_scenario(Path(result['scenario'])).target.pose_in_camera} in the camera")
         for name, r in result["profiles"].items():
@@ -236,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"realtime within {REALTIME_TOLERANCE:.0%} of lockstep (medians) in every scenario: "
               f"{'yes' if not outside else 'no: ' + ', '.join(outside)}")
     if args.json:
-        print(json.dumps({"scenarios": results}))
+        print(json.dumps({"arm": args.arm, "scenarios": results}))
     return 0
 
 

@@ -464,7 +464,8 @@ class RobotState(Message):
     watchdog_tripped: bool = False
     #: the angular convention the robot's DSP interprets for Cartesian velocity commands
     angular_convention: AngularConvention = AngularConvention.SEED000
-    #: header (with trace) of the command applied in the last DSP cycle, the robot's hop appended
+    #: header (with trace) of the command applied in the last DSP cycle, the robot's hop appended (its ``pub_ns``:
+    #: when the robot applied it, which can be up to a DSP cycle before this state's stamp)
     applied_command: Optional[Header] = None
     timing: LoopTiming = msgspec.field(default_factory=LoopTiming)
     #: the limits the robot applies (None: not declared; readers then take the arm description's maxima)

@@ -76,8 +76,9 @@ def _cmd_bus_hub(args: argparse.Namespace) -> int:
     return 0
 
 
-def _arm_or_exit(command: str, name: str):
-    """The arm description ``name``, or (None, after one line on stderr) when there is none of that name."""
+def arm_or_exit(command: str, name: str):
+    """The arm description ``name``, or (None, after one line on stderr: ``mfvs <command>: ...``) when there is none
+    of that name: every command's ``--arm``, the benchmarks' too, checked before anything starts."""
     from services.model.arm import ArmError, load_arm
 
     try:
@@ -87,7 +88,7 @@ def _arm_or_exit(command: str, name: str):
         return None
 
 
-def _add_arm_option(parser, default: Optional[str] = "default", what: str = "") -> None:
+def add_arm_option(parser, default: Optional[str] = "default", what: str = "") -> None:
     """``--arm NAME``: the arm description a command runs with (one setting for a whole stack); ``default``: the
     default arm unless given (None: what the command's input says, ``what``)."""
     from services.model.arm import DEFAULT_ARM, arm_names
@@ -102,7 +103,7 @@ def _cmd_model(args: argparse.Namespace) -> int:
 
     from services.model import frames
 
-    arm = _arm_or_exit("model", args.arm)
+    arm = arm_or_exit("model", args.arm)
     if arm is None:
         return 2
     if args.what == "urdf":
@@ -432,7 +433,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
         print(f"mfvs up: {exc}", file=sys.stderr)
         return 2
     if args.arm is not None:
-        if _arm_or_exit("up", args.arm) is None:
+        if arm_or_exit("up", args.arm) is None:
             return 2
         profile = with_arm(profile, args.arm)
     code, message = up(profile, args.clock, args.wait, args.host)
@@ -492,7 +493,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
               "rs485": "bench.rs485", "swap": "bench.swap", "cpu": "bench.cpu", "gateway": "bench.gateway",
-              "load": "bench.load", "soak": "bench.soak", "console": "bench.console",
+              "load": "bench.load", "soak": "bench.soak", "console": "bench.console", "lowlevel": "bench.lowlevel",
               "lockstep": "bench.lockstep"}
 
 
@@ -555,7 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
                                          "6-DoF): its joints, limits, home, URDF and forward kinematics")
     model.add_argument("what", choices=["urdf", "info", "fk"],
                        help="urdf: print the URDF; info: joints, limits, home pose; fk: the end effector's pose")
-    _add_arm_option(model)
+    add_arm_option(model)
     model.add_argument("--joints-deg", default=None, metavar="A,B,...",
                        help="fk: physical joint angles (deg, as GetAngularPosition), one per joint")
     model.add_argument("--json", action="store_true", help="one JSON object (info, fk)")
@@ -567,7 +568,7 @@ def build_parser() -> argparse.ArgumentParser:
     up_cmd.add_argument("--port", type=int, default=7447, help="router port (sim and gateway profiles)")
     up_cmd.add_argument("--bus-port", type=int, default=7448, help="CAN hub port (gateway profile)")
     up_cmd.add_argument("--wait", type=float, default=60.0, help="seconds to wait for every service")
-    _add_arm_option(up_cmd, default=None, what="the profile's (j2s7s300 unless it sets one)")
+    add_arm_option(up_cmd, default=None, what="the profile's (j2s7s300 unless it sets one)")
     up_cmd.add_argument("--host", default=None,
                         help="in a profile across computers (deploy/profiles/multi-host.yaml), which one this is: "
                              "start only its part")
@@ -592,7 +593,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "processes; in lockstep the same run to the bit)")
     servo.add_argument("--json", action="store_true", help="print one JSON object with the result")
     servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
-    _add_arm_option(servo, default=None, what="the scenario's robot.arm")
+    add_arm_option(servo, default=None, what="the scenario's robot.arm")
     servo.add_argument("--record", metavar="FILE.mcap", help="record every topic of the run into this MCAP file "
                        "(as `mfvs record` does)")
     servo.set_defaults(func=_cmd_servo)
@@ -613,7 +614,7 @@ def build_parser() -> argparse.ArgumentParser:
                             help="table3 from N random Table-2-like starts (the tag placed at random around "
                                  "--scenario's, or table2.yaml's), each written as a scenario file to run again")
     experiment.add_argument("--seed", type=int, default=1, help="the random starts' draws (default 1)")
-    _add_arm_option(experiment, default=None, what="the scenario's")
+    add_arm_option(experiment, default=None, what="the scenario's")
     experiment.set_defaults(func=_cmd_experiment)
 
     demo = sub.add_parser("demo", help="for a new user: run part-a and table3 with a line per run, write the "
@@ -666,8 +667,10 @@ def build_parser() -> argparse.ArgumentParser:
                        "robot_sim and through robot_gateway; cpu: CPU and memory per service; gateway: tracking "
                        "under load; load: the robot state's period while a flood hits an unrelated key; "
                        "soak: servo tasks back to back through random faults, and the unsafe events; console: "
-                       "frames per second and capture → page delay of the console in headless Chromium; lockstep: where a "
-                       "lockstep iteration's wall time goes (--identity: runs bit-identical to main's)")
+                       "frames per second and capture → page delay of the console in headless Chromium; lowlevel: "
+                       "the 500 Hz low-level torque loop as a client sees it (state rate, jitter, missed cycles, "
+                       "watchdog, command → state); lockstep: where a lockstep iteration's wall time goes "
+                       "(--identity: runs bit-identical to main's); every benchmark on an arm takes --arm NAME")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)

@@ -494,6 +494,15 @@ def _exit_code(path: Optional[str]) -> Optional[int]:
         return None
 
 
+def behind_authority(profile: Profile, deployment) -> Profile:
+    """``profile`` with its router on ``deployment``'s config (`mfvs authority init`: access control, TLS where it
+    has certificates) and each service on its own identity's client config there."""
+    profile.router.config = str(deployment.router_config)
+    for service in profile.services:
+        service.zenoh_config = str(deployment.client_configs[service.name])
+    return profile
+
+
 def load_profile(name_or_path: str, port: int, bus_port: int = BUS_HUB_PORT) -> Profile:
     if name_or_path == "sim":
         return sim_profile(port)

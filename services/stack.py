@@ -187,7 +187,8 @@ class RobotProcesses:
     """The robot's side of a profile as processes, as deployed, clients of the router at ``zenoh``: for the
     gateway profile the CAN hub, robot_sim's emulated arm (``mode: actuator_bus``) and robot_gateway in front of
     it; for the sim profile robot_sim alone. A context manager; the start fails (keeping the logs, whose directory
-    it names) if the robot does not come up."""
+    it names) if the robot does not come up. The gateway runs the robot's arm (``robot.arm``) unless ``gateway``
+    is given, which must then name the same arm (a ValueError otherwise, as for a profile that mixes arms)."""
 
     def __init__(self, zenoh: ZenohConfig, robot: RobotSimConfig | None = None,
                  gateway: GatewayConfig | None = None, clock: ClockMode = ClockMode.REALTIME,
@@ -199,8 +200,11 @@ class RobotProcesses:
         self.zenoh, self.clock, self.timeout_s = zenoh, ClockMode(clock), timeout_s
         self.robot = msgspec.structs.replace(robot, zenoh=zenoh, clock=self.clock)
         self.gateway = msgspec.structs.replace(
-            gateway or GatewayConfig(robot_id=robot.robot_id, dsp=robot.dsp, lockstep=robot.lockstep,
+            gateway or GatewayConfig(arm=robot.arm, robot_id=robot.robot_id, dsp=robot.dsp, lockstep=robot.lockstep,
                                      log_level=robot.log_level), zenoh=zenoh, clock=self.clock)
+        if profile == "gateway" and self.gateway.arm != self.robot.arm:
+            raise ValueError(f"the robot's side mixes arms (robot_sim {self.robot.arm}, robot_gateway "
+                             f"{self.gateway.arm}): one arm for the whole stack")
         self.processes: list[subprocess.Popen] = []
         self._files = tempfile.TemporaryDirectory(prefix="mfvs-robot-")
         self.logs = Path(self._files.name)

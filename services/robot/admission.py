@@ -47,10 +47,10 @@ class CommandAdmission:
     def admit(self, header: Header, now_ns: int) -> Optional[Rejection]:
         """None when the command may go on to the DSP (and its sequence number is then the sender's last), else
         why not."""
+        stale = self.stale(header, now_ns)
+        if stale is not None:
+            return stale
         age_s = (now_ns - header.stamp_ns) * 1e-9
-        if header.stamp_ns == 0 or age_s > self.config.max_age_s:
-            return Rejection("stale", f"stamped {age_s * 1e3:.0f} ms ago (at most {self.config.max_age_s * 1e3:.0f})"
-                             if header.stamp_ns else "not stamped")
         if -age_s > self.config.max_future_s:
             return Rejection("future", f"stamped {-age_s * 1e3:.0f} ms ahead of the robot's clock "
                                        f"(at most {self.config.max_future_s * 1e3:.0f})")
@@ -60,6 +60,15 @@ class CommandAdmission:
             return Rejection("sequence", f"sequence {header.seq} from {source or 'an unnamed sender'} after {last}: "
                                          "a repeat or a replay")
         self._last_seq[source] = header.seq
+        return None
+
+    def stale(self, header: Header, now_ns: int) -> Optional[Rejection]:
+        """Why a command is too old to apply at ``now_ns``, or None. Checked on arrival and again at the tick that
+        would apply it: a command fresh when it arrived can age past the bound while it waits for its tick."""
+        age_s = (now_ns - header.stamp_ns) * 1e-9
+        if header.stamp_ns == 0 or age_s > self.config.max_age_s:
+            return Rejection("stale", f"stamped {age_s * 1e3:.0f} ms ago (at most {self.config.max_age_s * 1e3:.0f})"
+                             if header.stamp_ns else "not stamped")
         return None
 
     def new_session(self, source: str) -> None:

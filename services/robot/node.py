@@ -424,9 +424,7 @@ class RobotNode(Service):
         with self.command_cond:
             rejection = self.admission.admit(command.header, recv_ns)
             if rejection is not None:
-                self.counters.inc(f"refused.{rejection.kind}")
-                self.refuse("command", rejection.reason)
-                self._last_refusal, self._refusal_cycles = rejection.reason, 100
+                self._refuse_command(rejection)
                 return
             self._command = (command, recv_ns)
             self.command_cond.notify_all()
@@ -831,6 +829,12 @@ class RobotNode(Service):
             self.core.dsp.erase_all_trajectories()
             if self._check_run is not None:
                 self._check_run[0].abort("the bus is failing")
+        applied_ns = self.clock.now_ns()
+        if taken is not None:
+            stale = self.admission.stale(taken[0].header, applied_ns)
+            if stale is not None:  # fresh on arrival, aged past the bound waiting for its tick
+                self._refuse_command(stale)
+                taken = None
         dq_ref, refusal = self.core.dsp_plan(taken[0] if taken is not None else None, reading)
         with self._core_lock:
             self.core.take_plan(dq_ref)
@@ -838,12 +842,16 @@ class RobotNode(Service):
         if taken is not None:
             command, recv_ns = taken
             if refusal is None:
-                self._applied = command.header.with_hop(self.name, recv_ns, self.clock.now_ns())
+                self._applied = command.header.with_hop(self.name, recv_ns, applied_ns)
             else:
-                self.refuse("command", refusal.reason)
-                self.counters.inc(f"refused.{refusal.kind}")
-                self._last_refusal, self._refusal_cycles = refusal.reason, 100
+                self._refuse_command(refusal)
         return waited_s
+
+    def _refuse_command(self, rejection) -> None:
+        """A robot command not applied: counted by kind, logged, and named in the states' faults for a while."""
+        self.counters.inc(f"refused.{rejection.kind}")
+        self.refuse("command", rejection.reason)
+        self._last_refusal, self._refusal_cycles = rejection.reason, 100
 
     # ------------------------------------------------------------------ lockstep
     def _answered(self, tick_ns: int, frame_stamp: Optional[int]) -> bool:

@@ -5,6 +5,7 @@ computer with its own run directory, as `mfvs up --host` on real computers would
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import subprocess
 import sys
@@ -14,6 +15,15 @@ from pathlib import Path
 
 MFVS = str(Path(sys.executable).parent / "mfvs")
 REPO = Path(__file__).resolve().parents[2]
+#: setns(2)'s flag for a network namespace (<sched.h>; Python has os.setns only from 3.12)
+_CLONE_NEWNET = 0x40000000
+
+
+def _setns(fd: int) -> None:
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.setns(fd, _CLONE_NEWNET) != 0:
+        errno = ctypes.get_errno()
+        raise OSError(errno, f"setns: {os.strerror(errno)}")
 
 
 def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -80,6 +90,27 @@ class Lab:
 
     def command(self, host: str, args: list[str]) -> list[str]:
         return ["ip", "netns", "exec", self.ns(host), *args]
+
+    @contextlib.contextmanager
+    def inside(self, host: str) -> Iterator[None]:
+        """The calling thread on ``host`` until the block ends: the sockets it opens and the processes it starts
+        meanwhile are that computer's (a network namespace is a thread's, and a child's is its parent thread's), so
+        a client library that starts its own helper (Selenium's chromedriver, and the browser under it) runs there
+        whole. So are the threads it starts meanwhile; the process's other threads stay where they are, and a
+        socket stays on the computer it was opened on."""
+        own = os.open("/proc/thread-self/ns/net", os.O_RDONLY)
+        try:
+            target = os.open(f"/run/netns/{self.ns(host)}", os.O_RDONLY)
+            try:
+                _setns(target)
+            finally:
+                os.close(target)
+            try:
+                yield
+            finally:
+                _setns(own)
+        finally:
+            os.close(own)
 
     def mfvs(self, host: str, run_dir: Path, args: list[str], timeout_s: float = 60.0) -> subprocess.CompletedProcess:
         """`mfvs ARGS` on ``host``, with that computer's run directory (where its stack is recorded)."""

@@ -7,7 +7,9 @@ import yaml
 
 from bench.soak import (ACROSS_HOSTS_KINDS, HOSTS, KIND_WEIGHTS, REST_S, AcrossHosts, Judge, OneHost, StateRecord,
                         Window, applicable_kinds, check_kinds, goal_features, hosts_profile)
+from services.launcher import Profile, profile_arm
 from services.runtime.authority import write_deployment
+from services.runtime.config import load_config
 from services.tools import netns
 from services.robot.admission import AdmissionConfig
 from services.robot.dsp import DSPConfig
@@ -103,13 +105,16 @@ def test_the_hosts_profile_is_the_shipped_one_filled_in(tmp_path):
     deployment = write_deployment(tmp_path / "authority", host=lab.address("robot"),
                                   services=("safety", "robot_sim", "vision", "controller", "operator"))
     hosts_of = hosts_profile(tmp_path / "p.yaml", lab, deployment, tmp_path / "faults",
-                             ["robot_sim:dsp.watchdog_cycles=500"])
+                             ["robot_sim:dsp.watchdog_cycles=500"], arm="j2n6s300")
     assert hosts_of == {"router": "robot", "robot_sim": "robot", "vision": "vision", "controller": "vision",
                         "safety": "safety"}
     profile = yaml.safe_load((tmp_path / "p.yaml").read_text())
     assert profile["router"]["address"] == lab.address("robot")
     robot_sim = next(s for s in profile["services"] if s["name"] == "robot_sim")
-    assert robot_sim["set"] == [f"faults_file={tmp_path / 'faults' / 'robot_sim.yaml'}", "dsp.watchdog_cycles=500"]
+    assert robot_sim["set"] == [f"faults_file={tmp_path / 'faults' / 'robot_sim.yaml'}", "dsp.watchdog_cycles=500",
+                                "arm=j2n6s300"]
+    # the whole stack on the arm asked for (`mfvs up` refuses a profile that mixes arms)
+    assert profile_arm(load_config(tmp_path / "p.yaml", Profile)) == "j2n6s300"
     assert robot_sim["zenoh_config"] == str(deployment.client_configs["robot_sim"])
     with pytest.raises(ValueError, match="no service called"):
         hosts_profile(tmp_path / "q.yaml", lab, deployment, tmp_path / "faults", ["camera:x=1"])

@@ -344,13 +344,14 @@ function say(text, kind) {
 function act(action, extra = {}) {
   const message = { type: "action", action, id: ++page.nextId, operator: $("operator").value.trim(),
                     reason: $("reason").value.trim(), confirm: Boolean(extra.confirm), token: page.token };
+  const at = wallNowMs();  // before the send: the console may have acted on it before send returns
   if (!send(message)) {
     say(action === "estop_engage"
       ? "NOT CONNECTED: the e-stop was NOT sent. Use the arm's own emergency stop."
       : "Not connected to the console: nothing was sent.", "error");
     return;
   }
-  stats.sent.push({ action, at: wallNowMs() });
+  stats.sent.push({ action, at });
   localStorage.setItem("mfvs-operator", message.operator);
   say(`Sent: ${action.replace("_", " ")}…`, "info");
 }

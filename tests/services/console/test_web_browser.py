@@ -28,6 +28,9 @@ PHONE, DESKTOP = (390, 844), (1280, 1000)
 #: thread) on a shared 2-core machine with the stack and the browser busy: generous; the safety budget counts from
 #: there
 CONSOLE_BUDGET_S = 0.5
+#: the page's wall clock (performance.timeOrigin + performance.now(), coarsened to 0.1 ms) against the console's
+#: (time.time_ns()): the same machine's clock read two ways, a press and its e-stop may be under a millisecond apart
+CLOCKS_MS = 2.0
 
 CANVAS_CHECKSUM = """
 const c = document.getElementById("camera"), d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
@@ -128,7 +131,7 @@ def test_the_console_shows_the_arm_starts_the_task_stops_the_arm_and_releases_on
         # from the button's click handler on the page (WebDriver's own dispatch of the click, before it, is the
         # test's machinery) to the e-stop leaving the console
         pressed_ms = page_stats(driver)["sent"][-1]["at"]
-        assert 0 <= sent_ns / 1e6 - pressed_ms < CONSOLE_BUDGET_S * 1e3
+        assert -CLOCKS_MS <= sent_ns / 1e6 - pressed_ms < CONSOLE_BUDGET_S * 1e3
         time.sleep(1.0)
         v0 = ee_speed(kin, [s for s in states.snapshot() if s.header.stamp_ns <= sent_ns][-1])
         elapsed = time_to_rest(states, kin, sent_ns)

@@ -38,6 +38,17 @@ def test_within_the_age_and_the_skew_pass():
     assert CommandAdmission(config).admit(header(1, NOW + 40_000_000), NOW) is None
 
 
+def test_a_command_fresh_on_arrival_is_stale_at_a_tick_past_its_age():
+    """The robot checks the age again at the tick that would apply the command (services/robot/node.py dsp_tick):
+    admitted 190 ms old, it must not be applied 15 ms later."""
+    admission = CommandAdmission(AdmissionConfig(max_age_s=0.2))
+    command = header(1, NOW - 190_000_000)
+    assert admission.admit(command, NOW) is None
+    assert admission.stale(command, NOW + 5_000_000) is None
+    late = admission.stale(command, NOW + 15_000_000)
+    assert late is not None and late.kind == "stale" and "205 ms ago" in late.reason
+
+
 def test_a_repeat_or_a_replay_is_refused_per_sender_until_its_new_session():
     admission = CommandAdmission()
     assert admission.admit(header(7, sender="safety"), NOW) is None

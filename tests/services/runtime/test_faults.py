@@ -3,6 +3,7 @@ zenoh router whose plan file changes while it runs."""
 import time
 
 import pytest
+import zenoh
 
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
@@ -48,7 +49,10 @@ class Talker(Service):
     name = "talker"
 
     def on_start(self):
-        self.out = self.publisher(self.keys.desired_twist, "twist")
+        # the control path's publishers drop a sample when zenoh's queue is congested (the newest command is what
+        # matters; the e-stop repeats until confirmed); with three CPU hogs beside it, 3 of 30 runs
+        # of 200 lost a sample, which this test, counting what the fault plan alone drops, would take for the plan's
+        self.out = self.publisher(self.keys.desired_twist, "twist", congestion_control=zenoh.CongestionControl.BLOCK)
 
     def say(self, seq):
         self.out.put(m.Twist(header=m.Header(seq=seq), frame=Frame.MIXED, angular=AngularConvention.SEED000,
@@ -83,9 +87,11 @@ def test_a_plan_written_while_the_service_runs_drops_and_delays_its_messages_and
     write_plan(plan, [{"key": talker.keys.desired_twist, "drop": 0.5}])
     for seq in range(1, 201):
         talker.say(seq)
-    time.sleep(0.5)
-    dropped = talker.counters.get("faults.dropped.twist")
+    dropped = talker.counters.get("faults.dropped.twist")  # final: each say decides before it returns
     assert 60 <= dropped <= 140  # a fair coin over 200 throws
+    # the survivors arrive in their own time on a loaded host (a fixed sleep once read the count before they had)
+    assert wait_for(lambda: len(heard) >= 1 + 200 - dropped, timeout=5)
+    time.sleep(0.1)
     assert len(heard) == 1 + 200 - dropped
 
     write_plan(plan, [{"key": "mfvs/**", "delay_ms": 150}])
