@@ -1,6 +1,6 @@
 """Where a lockstep iteration's wall time goes, and the check that speeding it up changed nothing it computes.
 
-``mfvs bench lockstep [--scenario FILE] [--law NAME] [--hogs N] [--json]``: one lockstep run through the real
+``mfvs bench lockstep [--scenario FILE] [--law NAME] [--arm NAME] [--hogs N] [--json]``: one lockstep run through the real
 services (sim profile; by default Table 3's p-joint run from examples/scenarios/table2.yaml, 640×480), every
 process timing its part of each iteration (:mod:`services.runtime.iteration_profile`), and per iteration the wall
 time split by where it goes: the robot's loop (physics, the emulated actuators and bus, the robot node, the state
@@ -28,10 +28,12 @@ import time
 from pathlib import Path
 
 from bench.cpu import cpu_seconds, process_tree
+from bench.stack import unknown_arm
+from services.cli import add_arm_option
 from services.controller.laws import LAW_NAMES
 from services.experiments import TABLE3_GAINS
 from services.runtime import iteration_profile as ip
-from services.servo import load_scenario, run
+from services.servo import load_scenario, on_arm, run
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = REPO / "examples" / "scenarios"
@@ -323,7 +325,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--base", default=None, help="the commit to compare with (default: git merge-base HEAD main)")
     parser.add_argument("--fresh", action="store_true", help="run the base again rather than reuse its logs")
     parser.add_argument("--keep", default=None, help="keep this tree's identity outputs in this directory")
+    add_arm_option(parser, default=None, what="the scenario's; --identity: the runs' own")
     args = parser.parse_args(argv)
+    if args.arm is not None and unknown_arm(parser, args):
+        return 2
     if args.hogs < 0:
         print("mfvs bench lockstep: --hogs must be 0 or more", file=sys.stderr)
         return 2
@@ -333,8 +338,8 @@ def main(argv: list[str] | None = None) -> int:
     from services.runtime.config import ConfigError
 
     try:
-        scenario = load_scenario(args.scenario)
-    except ConfigError as exc:
+        scenario = on_arm(load_scenario(args.scenario), args.arm, args.scenario)
+    except (ConfigError, ValueError) as exc:
         print(f"mfvs bench lockstep: {exc}", file=sys.stderr)
         return 2
     if args.law != "scenario":
