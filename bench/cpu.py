@@ -158,7 +158,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name} ({args.arm}): {r['total_cpu_pct']:.0f} % of a core, {r['total_rss_mb']:.0f} MB resident "
               f"(RSS), {r['total_pss_mb']:.0f} MB proportional (PSS: shared libraries counted once)")
         for process, figures in sorted(r["processes"].items(), key=lambda kv: -kv[1]["cpu_pct"]):
-            print(f"  {process:14s} {figures['cpu_pct']:5.1f} %  {figures['rss_mb']:6.0f} MB  PSS {figures['pss_mb']:4.0f} MB")
+            print(f"  {process:14s} {figures['cpu_pct']:5.1f} %  {figures['rss_mb']:6.0f} MB  "
+                  f"PSS {figures['pss_mb']:4.0f} MB")
             if args.threads:
                 for thread, pct in figures["threads"].items():
                     if pct >= 1.0:

@@ -1,7 +1,7 @@
 """Where a lockstep iteration's wall time goes, and the check that speeding it up changed nothing it computes.
 
-``mfvs bench lockstep [--scenario FILE] [--law NAME] [--arm NAME] [--hogs N] [--json]``: one lockstep run through the real
-services (sim profile; by default Table 3's p-joint run from examples/scenarios/table2.yaml, 640×480), every
+``mfvs bench lockstep [--scenario FILE] [--law NAME] [--arm NAME] [--hogs N] [--json]``: one lockstep run through
+the real services (sim profile; by default Table 3's p-joint run from examples/scenarios/table2.yaml, 640×480), every
 process timing its part of each iteration (:mod:`services.runtime.iteration_profile`), and per iteration the wall
 time split by where it goes: the robot's loop (physics, the emulated actuators and bus, the robot node, the state
 out), rendering, the waits for the pipeline and what filled them (detection, the law, safety, messages, and the
