@@ -56,15 +56,20 @@ def _cpu_seconds_of(pid: int) -> float:
     return _stat_cpu(f"/proc/{pid}/stat")[1]
 
 
-def _rss_mb_of(pid: int) -> float:
+def _proc_mb(path: str, field: str) -> float:
+    """A ``field: N kB`` line of a /proc file, in MB (0 when the process is gone)."""
     try:
-        with open(f"/proc/{pid}/status") as f:
+        with open(path) as f:
             for line in f:
-                if line.startswith("VmRSS:"):
+                if line.startswith(field):
                     return int(line.split()[1]) / 1024
     except OSError:
         pass
     return 0.0
+
+
+def _rss_mb_of(pid: int) -> float:
+    return _proc_mb(f"/proc/{pid}/status", "VmRSS:")
 
 
 def cpu_seconds(pid: int) -> float:
@@ -94,14 +99,7 @@ def rss_mb(pid: int) -> float:
 
 
 def _pss_mb_of(pid: int) -> float:
-    try:
-        with open(f"/proc/{pid}/smaps_rollup") as f:
-            for line in f:
-                if line.startswith("Pss:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return 0.0
+    return _proc_mb(f"/proc/{pid}/smaps_rollup", "Pss:")
 
 
 def pss_mb(pid: int) -> float:
