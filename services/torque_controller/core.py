@@ -118,9 +118,11 @@ class TorqueRun:
         self.abort = ""
         self.finished = False
         self._last_ns: Optional[int] = None
+        #: the faults the robot reported in the states answered (joint limits, torque...), and in how many states
+        self.faults: dict[str, int] = {}
         self._rows: dict[str, list] = {k: [] for k in (
             "t", "stamp_ns", "q", "dq", "tau_measured", "tau_command", "torque_mode", "x", "x_d", "q_d",
-            "position_error_m", "orientation_error_deg", "joint_error_deg")}
+            "position_error_m", "orientation_error_deg", "joint_error_deg", "latency_ms", "response_ms")}
 
     def fits(self, state: LowLevelState) -> bool:
         """Whether a state is for this arm (its joint count); one that is not is refused and counted."""
@@ -135,6 +137,10 @@ class TorqueRun:
         self.start_ns = state.header.stamp_ns
         return self.start
 
+    def elapsed_s(self, state: LowLevelState) -> float:
+        """The run's time at a state (s from the first answered state's stamp)."""
+        return 0.0 if self.start_ns is None else (state.header.stamp_ns - self.start_ns) / 1e9
+
     def answer(self, state: LowLevelState) -> Optional[np.ndarray]:
         """The torque (model sign, N·m, gravity included where the law has it) for this state; None once the run
         is over (its time is up, or the controller gave up)."""
@@ -147,6 +153,8 @@ class TorqueRun:
             return None
         dt = CYCLE_S if self._last_ns is None else min(max((stamp - self._last_ns) / 1e9, 0.0), MAX_STEP_S)
         self._last_ns = stamp
+        for fault in state.faults:
+            self.faults[fault] = self.faults.get(fault, 0) + 1
         q, dq = np.asarray(state.q, dtype=float), np.asarray(state.dq, dtype=float)
         step = self.controller.step(t, dt, q, dq)
         if step.abort or not np.all(np.isfinite(step.tau)):
@@ -171,7 +179,10 @@ class TorqueRun:
         return step.tau
 
     def sent(self, state: LowLevelState, arrival_ns: int, sent_ns: int) -> None:
+        """The answer to the last state :meth:`answer` took went out at ``sent_ns`` (it arrived at ``arrival_ns``)."""
         self.timing.answered_state(state.header.stamp_ns, arrival_ns, sent_ns)
+        self._rows["latency_ms"].append((sent_ns - state.header.stamp_ns) / 1e6)
+        self._rows["response_ms"].append((sent_ns - arrival_ns) / 1e6)
 
     def arrays(self) -> dict[str, np.ndarray]:
         n = self.arm.n_joints
@@ -194,7 +205,7 @@ class TorqueRun:
                 "x0": None if start is None or start.x0 is None else start.x0.tolist(),
                 "xf": None if start is None or start.xf is None else start.xf.tolist(),
                 "target": None if start is None else start.target,
-                "abort": self.abort, "timing": self.timing.summary(), **extra}
+                "abort": self.abort, "faults": dict(self.faults), "timing": self.timing.summary(), **extra}
 
     def save(self, path: Path, **extra) -> Path:
         """The run's log: its arrays and, as JSON under ``meta``, what it was and how its loop kept time."""

@@ -31,6 +31,10 @@ from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread
 from services.torque_controller.core import TorqueRun
 
+#: the robot's counters are read this long before the run ends, while commands still flow: after its last command
+#: the robot counts a watchdog cycle every 2 ms until it releases torque control (250 ms), which is the end of the
+#: run, not a missed cycle
+COUNTERS_BEFORE_END_S = 0.1
 #: the robot's counters a run reports (their growth during the run)
 ROBOT_COUNTERS = ("lowlevel.watchdog", "cycles.late", "cycles.missed", "cycles.arm_missed", "dsp.overruns",
                   "rejected.lowlevel_command", "refused.lowlevel_sequence", "refused.lowlevel_stale",
@@ -86,6 +90,9 @@ class TorqueControllerService(Service):
         self._pending: Optional[tuple[LowLevelState, int]] = None
         self._robot_state: Optional[RobotState] = None
         self._worker: Optional[threading.Thread] = None
+        self._robot_before: dict = {}
+        self._robot_after: Optional[dict] = None
+        self._counters_thread: Optional[threading.Thread] = None
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -196,6 +203,8 @@ class TorqueControllerService(Service):
             self.command_pub.put(TorqueCommand(header=self.header("lowlevel_command", source=state.header),
                                                torques=tau.tolist(), gravity_compensation=False))
             run.sent(state, arrival, time.time_ns())
+            if self._counters_thread is None and run.elapsed_s(state) >= duration - COUNTERS_BEFORE_END_S:
+                self._counters_thread = start_thread(self._read_robot_after, f"{self.name}-counters")
             state, arrival = self._wait("low-level state", self._take_pending, cfg.stall_s)
         if run.abort:
             self.failure = f"gave up: {run.abort}"
@@ -221,27 +230,36 @@ class TorqueControllerService(Service):
         raise RuntimeError("the robot did not answer GetCartesianPosition")
 
     def _robot_counters(self) -> dict:
-        """The robot's own counters and loop rate, from its health (whichever robot service answers)."""
-        for name, health in query_health(self.session, self.keys, timeout_s=2.0).items():
-            if name in ROBOT_SERVICES:
+        """The robot's own counters and loop rate, from its health (the gateway's where there is one: robot_sim
+        then only emulates the actuators behind it)."""
+        found = query_health(self.session, self.keys, timeout_s=2.0)
+        for name in sorted(ROBOT_SERVICES, key=lambda n: n != "robot_gateway"):
+            if name in found:
+                health = found[name]
                 return {"service": name, "errors": dict(health.errors), "rates_hz": dict(health.rates_hz),
                         "detail": health.detail}
         return {}
+
+    def _read_robot_after(self) -> None:
+        try:
+            self._robot_after = self._robot_counters()
+        except Exception:  # the robot may be gone: the run's own log still goes out
+            self.log.debug("robot counters", exc_info=True)
 
     def _finish(self) -> None:
         run = self.run_
         if run is not None and self.session is not None:
             robot = {}
-            try:
-                after = self._robot_counters() if run.start is not None else {}
-                before = getattr(self, "_robot_before", {})
-                if after:
-                    robot = {"service": after["service"], "detail": after["detail"],
-                             "bus_cycle_hz": after["rates_hz"].get("bus_cycle"),
-                             "counters": {k: after["errors"].get(k, 0) - before.get("errors", {}).get(k, 0)
-                                          for k in ROBOT_COUNTERS}}
-            except Exception:  # the robot may be gone: the run's own log still goes out
-                self.log.debug("robot counters", exc_info=True)
+            if self._counters_thread is not None:
+                self._counters_thread.join(timeout=5.0)
+            elif run.start is not None:  # the run ended early: the counters now
+                self._read_robot_after()
+            after, before = self._robot_after, self._robot_before
+            if after:
+                robot = {"service": after["service"], "detail": after["detail"],
+                         "bus_cycle_hz": after["rates_hz"].get("bus_cycle"),
+                         "counters": {k: after["errors"].get(k, 0) - before.get("errors", {}).get(k, 0)
+                                      for k in ROBOT_COUNTERS}}
             if self.config.log:
                 run.save(Path(self.config.log), failure=self.failure, robot=robot,
                          refused_states=self.counters.get("refused.joint_count"))
