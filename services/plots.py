@@ -563,6 +563,7 @@ def torque_comparison_plots(runs: dict[str, dict], metas: dict[str, dict], out_d
             top.plot(a["t"], a["position_error_m"] * 1e3, lw=1.1, label=label)
             bottom.plot(a["t"], a["orientation_error_deg"], lw=1.1, label=label)
         top.set_yscale("log")
+        top.set_ylim(bottom=1e-2)  # the first sample is at the reference: its zero would stretch the axis
         top.set_ylabel("position error (mm)")
         bottom.set_ylabel("orientation error (deg)")
         bottom.set_xlabel("time (s)")
