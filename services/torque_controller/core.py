@@ -19,7 +19,6 @@ each low-level state it takes (with the wall time) and publishes the torque it r
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -227,7 +226,3 @@ def _builtins(options) -> dict:
     import msgspec
 
     return msgspec.to_builtins(options)
-
-
-def finite(value: float) -> Optional[float]:
-    return value if value is not None and math.isfinite(value) else None

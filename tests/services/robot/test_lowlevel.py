@@ -16,7 +16,6 @@ from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses
 from services.model.arm import load_arm
 from tests.stack import KEYS, Recorder, next_seq, wait_for
-from tests.helpers import ARM
 
 
 
