@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs mfvs on a fresh Debian 12 (bookworm) machine or container:
 #   - system packages: Python 3.11 with venv, EGL/Mesa for headless MuJoCo rendering (MUJOCO_GL=egl), libusb-1.0 for
-#     Kinova's SDK;
+#     Kinova's SDK, Chromium and its chromedriver for the console's browser tests;
 #   - a virtual environment in .venv with mfvs (editable) and its test dependencies;
 #   - the `mfvs` command on PATH (a link in /usr/local/bin as root, else ~/.local/bin), to this checkout's.
 # Re-running it is safe. Environment: PYTHON (default python3), MFVS_SKIP_APT=1 to skip the system packages,
@@ -21,6 +21,9 @@ apt_packages=(
     # the tests build a stand-in for Kinova's SDK library (tests/services/robot_gateway/fake_kinova_sdk) to test the
     # ctypes backend, and compile Kinova's C++ headers to check the backend's structs and functions against them
     gcc g++ libc6-dev
+    # the console's browser tests and benchmark: Debian's Chromium, headless, driven through its chromedriver
+    # (Selenium); a font for the page's text
+    chromium chromium-driver fonts-dejavu-core
 )
 if [[ "${MFVS_SKIP_APT:-0}" != 1 ]]; then
     sudo_cmd=()

@@ -22,9 +22,15 @@ TRAJECTORY_FIFO_SIZE = 2000
 MAX_ZONES = 10
 #: Points per zone shape.
 ZONE_SHAPE_POINTS = 8
-#: Length of the float arrays of the torque API (SendAngularTorqueCommand, SendCartesianForceCommand).
+#: Length of the float arrays of the torque API (SendAngularTorqueCommand, SendCartesianForceCommand,
+#: SetTorqueActuatorGain, SetTorqueActuatorDamping): COMMAND_SIZE in Kinova's header.
 TORQUE_COMMAND_SIZE = 70
 MAX_ACTUATORS = 7
+#: Length of SetGravityOptimalZParam's array (GRAVITY_PARAM_SIZE), and how many of them the arm's optimal-Z
+#: estimate fills: OPTIMAL_Z_PARAM_SIZE for a 6-DoF arm, OPTIMAL_Z_PARAM_SIZE_7DOF for a 7-DoF one.
+GRAVITY_PARAM_SIZE = 42
+OPTIMAL_Z_PARAM_SIZE = 16
+OPTIMAL_Z_PARAM_SIZE_7DOF = 19
 
 
 class ErrorCode(enum.IntEnum):
@@ -195,6 +201,13 @@ class GENERALCONTROL_TYPE(enum.IntEnum):
     TORQUE = 1
 
 
+class GRAVITY_TYPE(enum.IntEnum):
+    """Argument of SetGravityType: how the arm's gravity compensation in torque mode gets its parameters."""
+
+    MANUAL_INPUT = 0
+    OPTIMAL = 1
+
+
 class ShapeType(enum.IntEnum):
     """Protection-zone shapes. Only PrismSquareBase_Z is documented as used by the DSP."""
 
@@ -328,6 +341,39 @@ class ClientConfigurations(Message):
     MaxOrientationAcceleration: float = 2.75
 
 
+# ---------------------------------------------------------------------- arguments of the torque-mode setup (Table 5.1)
+class FloatArgument(Message):
+    """The one float of SetTorqueSafetyFactor (factor) and SetTorqueVibrationController (activationStatus)."""
+
+    value: float = 0.0
+
+
+class CommandArray(Message):
+    """A float[COMMAND_SIZE] argument (SetTorqueActuatorGain, SetTorqueActuatorDamping): one value per actuator,
+    actuator 1 first; the values past the arm's actuators are not read."""
+
+    values: Annotated[list[float], msgspec.Meta(min_length=TORQUE_COMMAND_SIZE, max_length=TORQUE_COMMAND_SIZE)] = (
+        msgspec.field(default_factory=lambda: [0.0] * TORQUE_COMMAND_SIZE))
+
+
+class GravityParameters(Message):
+    """SetGravityOptimalZParam's float[GRAVITY_PARAM_SIZE]."""
+
+    values: Annotated[list[float], msgspec.Meta(min_length=GRAVITY_PARAM_SIZE, max_length=GRAVITY_PARAM_SIZE)] = (
+        msgspec.field(default_factory=lambda: [0.0] * GRAVITY_PARAM_SIZE))
+
+
+class GravityTypeArgument(Message):
+    type: GRAVITY_TYPE = GRAVITY_TYPE.OPTIMAL
+
+
+class ActuatorAddress(Message):
+    """SetTorqueZero's and SetJointZero's ActuatorAdress (sic): an actuator's RS-485 address (16 = 0x10 for joint
+    1, kinova.md)."""
+
+    address: Annotated[int, msgspec.Meta(ge=0, le=255)] = 0
+
+
 # ----------------------------------------------------------------------------------------------- the zenoh API
 #
 # Each Kinova function is a zenoh queryable at ``…/robot/api/<Function>``. The query payload is the function's
@@ -364,9 +410,20 @@ class ClientConfigurationsReply(ApiReply):
 #: function name → (argument type or None, reply type)
 #: functions that move the arm or change how it moves (zones, limits, control mode): in an authority deployment
 #: only the service that commands the robot may call them (services/runtime/authority.py)
+#: the torque-mode setup of seed 003's Table 5.1 (services/robot/torque_setup.py says what each does)
+TORQUE_SETUP_FUNCTIONS: dict[str, type] = {
+    "SetTorqueSafetyFactor": FloatArgument,
+    "SetTorqueVibrationController": FloatArgument,
+    "SetTorqueActuatorGain": CommandArray,
+    "SetTorqueActuatorDamping": CommandArray,
+    "SetGravityType": GravityTypeArgument,
+    "SetGravityOptimalZParam": GravityParameters,
+    "SetTorqueZero": ActuatorAddress,
+    "SetJointZero": ActuatorAddress,
+}
 MUTATING_API_FUNCTIONS = frozenset({
     "MoveHome", "SetCartesianControl", "SetAngularControl", "SendBasicTrajectory", "EraseAllTrajectories",
-    "SetProtectionZone", "EraseAllProtectionZones", "SetClientConfigurations",
+    "SetProtectionZone", "EraseAllProtectionZones", "SetClientConfigurations", *TORQUE_SETUP_FUNCTIONS,
 })
 
 API_FUNCTIONS: dict[str, tuple[type | None, type]] = {
@@ -389,6 +446,7 @@ API_FUNCTIONS: dict[str, tuple[type | None, type]] = {
     "EraseAllProtectionZones": (None, ApiReply),
     "GetClientConfigurations": (None, ClientConfigurationsReply),
     "SetClientConfigurations": (ClientConfigurations, ApiReply),
+    **{name: (argument, ApiReply) for name, argument in TORQUE_SETUP_FUNCTIONS.items()},
 }
 
 prepare_decoders(wire_types(globals()))

@@ -143,8 +143,12 @@ def _cmd_model(args: argparse.Namespace) -> int:
                 "continuous": j.continuous,
                 "limits_physical_deg": None if j.continuous else [j.lower_deg, j.upper_deg],
                 "max_speed_dps": j.max_speed_dps,
-                "max_torque_nm": j.max_torque_nm,
+                "peak_torque_nm": j.peak_torque_nm,
+                "nominal_torque_nm": j.nominal_torque_nm,
                 "actuator": j.actuator,
+                "no_load_speed_dps": round(j.spec.no_load_speed_rpm * 6.0, 2),
+                "gear_ratio": j.spec.gear_ratio,
+                "torque_sensor_precision_nm": j.spec.torque_sensor_precision_nm,
                 "bus_address": f"0x{arm.bus_addresses[i]:02X}",
                 "link_mass_kg": round(j.link_mass_kg, 6),
             }
@@ -156,6 +160,9 @@ def _cmd_model(args: argparse.Namespace) -> int:
         "reach_m": round(arm.reach, 4),
         "max_linear_speed_mps": arm.max_linear_speed_mps,
         "max_angular_speed_rps": arm.max_angular_speed_rps,
+        # where the emulated arm departs from this description (robot_sim): the description file says why
+        "emulation": {"link_mass_scale": arm.true_link_mass_scale.tolist(),
+                      "torque_mode_friction_nm": np.round(arm.true_friction_nm, 4).tolist()},
     }
     print(json.dumps(info, indent=None if args.json else 2))
     return 0
@@ -183,8 +190,8 @@ def _cmd_estop(args: argparse.Namespace) -> int:
     """Engage (or reset) the latched e-stop and report what the safety service says."""
     import time
 
-    from protocol import messages as m
     from protocol.keys import Keys
+    from services.safety.estop_client import EStopClient
 
     try:
         session = _operator_session(args)
@@ -192,24 +199,13 @@ def _cmd_estop(args: argparse.Namespace) -> int:
         print(f"e-stop NOT sent: cannot reach the router at {args.connect} ({exc}); is the stack up? "
               f"(--connect ENDPOINT, --zenoh-config FILE)", file=sys.stderr)
         return 2
-    keys = Keys(args.robot_id)
-    statuses: list = []
-    session.declare_subscriber(keys.safety_status, lambda s: statuses.append(m.decode(s.payload.to_bytes(),
-                                                                                      m.SafetyStatus)))
-    message = m.EStop(header=m.Header(stamp_ns=time.time_ns()), reset=args.reset, operator=args.operator,
-                      reason=args.reason)
-    publisher = session.declare_publisher(keys.estop)
-    time.sleep(0.2)  # let the declaration reach the router
-    deadline = time.monotonic() + args.timeout
-    confirmed = False
-    while time.monotonic() < deadline and not confirmed:
-        publisher.put(m.encode(message))  # repeated until safety confirms: an e-stop must not be lost
-        time.sleep(0.1)
-        confirmed = any((s.state is m.SafetyState.ESTOP) != args.reset for s in statuses[-3:])
+    with EStopClient(session, Keys(args.robot_id)) as client:
+        time.sleep(0.2)  # let the declarations reach the router
+        status = client.send(args.reset, args.operator, args.reason, args.timeout)
     session.close()
     word = "reset" if args.reset else "engaged"
-    if confirmed:
-        print(f"e-stop {word}: safety reports state {statuses[-1].state.value}")
+    if status is not None:
+        print(f"e-stop {word}: safety reports state {status.state.value}")
         return 0
     print(f"e-stop {'reset' if args.reset else 'request'} sent, but no safety service confirmed it within "
           f"{args.timeout:g} s", file=sys.stderr)
@@ -223,6 +219,7 @@ def _cmd_task(args: argparse.Namespace) -> int:
     from protocol import messages as m
     from protocol.keys import Keys
     from services.controller.task_client import TaskUnavailable, call_task
+    from services.launcher import describe_task
 
     try:
         session = _operator_session(args)
@@ -242,8 +239,7 @@ def _cmd_task(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(msgspec.to_builtins(status)))
     else:
-        by = f", by {status.by}" + (f": {status.reason}" if status.reason else "") if status.by else ""
-        print(f"task {status.state.value} (task {status.task}{by}){': ' + status.message if status.message else ''}")
+        print(describe_task(status))
     return 0 if status.ok else 1
 
 
@@ -539,7 +535,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
               "rs485": "bench.rs485", "swap": "bench.swap", "cpu": "bench.cpu", "gateway": "bench.gateway",
-              "load": "bench.load", "soak": "bench.soak"}
+              "load": "bench.load", "soak": "bench.soak", "console": "bench.console"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -676,11 +672,13 @@ def build_parser() -> argparse.ArgumentParser:
     from services.calibration.cli import add_parser as add_calibrate
     from services.check import add_parser as add_check
 
+    from services.console.cli import add_parser as add_console
     from services.observe.cli import add_parsers as add_observe
 
     add_calibrate(sub)
     add_check(sub, _add_connection_options, _operator_session)
     add_observe(sub, _add_connection_options, _operator_session, _stack_connection)
+    add_console(sub, _add_connection_options, _stack_connection)
 
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")
@@ -714,7 +712,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "rs485: actuator bus cycle and request→reply latency; swap: iterations to converge through "
                        "robot_sim and through robot_gateway; cpu: CPU and memory per service; gateway: tracking "
                        "under load; load: the robot state's period while a flood hits an unrelated key; "
-                       "soak: servo tasks back to back through random faults, and the unsafe events")
+                       "soak: servo tasks back to back through random faults, and the unsafe events; console: "
+                       "frames per second and capture → page delay of the console in headless Chromium")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)

@@ -35,7 +35,7 @@ import msgspec
 from protocol import messages as m
 from protocol.keys import Keys
 from services.runtime.config import ConfigError, ConfigStruct, config_mapping, load_config
-from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health
+from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health, service_condition
 from services.runtime.transport import ZenohConfig, file_access_control, file_endpoints, open_session
 
 REPO = Path(__file__).resolve().parents[1]
@@ -360,6 +360,12 @@ def stack_task(function: str, operator: str = "mfvs", reason: str = "", timeout_
         session.close()
 
 
+def describe_task(status: m.TaskStatus) -> str:
+    """The controller's answer to a task request in a sentence (`mfvs task`, the console)."""
+    by = f", by {status.by}" + (f": {status.reason}" if status.reason else "") if status.by else ""
+    return f"task {status.state.value} (task {status.task}{by}){': ' + status.message if status.message else ''}"
+
+
 def down(timeout_s: float = 15.0) -> tuple[int, str]:
     stack = read_stack()
     if stack is None:
@@ -453,12 +459,7 @@ def status_json(endpoint: str, robot_id: str, zenoh_config: str | None = None) -
         router["error"] = str(exc)
         found = {}
     for name, health in sorted(found.items()):
-        if health is None:
-            condition = "unknown"
-        elif not health.healthy:
-            condition = "unhealthy"
-        else:
-            condition = "degraded" if health.degraded else "healthy"
+        condition = service_condition(health)
         services.append({
             "name": name, "pid": health.pid if health else pids.get(name),
             "healthy": condition == "healthy", "condition": condition,

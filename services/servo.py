@@ -309,6 +309,10 @@ class _Watcher:
 
     def _on_status(self, status):
         with self.lock:
+            last = self.statuses[-1] if self.statuses else None
+            if last is not None and (last.header.seq, last.header.source_stamp_ns) == (
+                    status.header.seq, status.header.source_stamp_ns):
+                return  # the controller's answer to a frame again (a lockstep retry): one record per frame
             self.statuses.append(status)
             self.lock.notify_all()
 

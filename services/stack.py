@@ -102,6 +102,42 @@ class RouterProcess:
             self.process = None
 
 
+class ConsoleProcess:
+    """``mfvs console`` as its own process, as deployed, on a free port of the loopback (``--port 0``) for the robot
+    of the router at ``endpoint``, with extra command-line options: a context manager with its :attr:`url` (what it
+    printed once it listened). It reads no run directory (its own, empty, stands in for the user's)."""
+
+    def __init__(self, endpoint: str, *options: str, robot_id: str = "jaco") -> None:
+        self.args = [sys.executable, "-m", "services.cli", "console", "--port", "0", "--connect", endpoint,
+                     "--robot-id", robot_id, *options]
+        self.process: Optional[subprocess.Popen] = None
+        self.url = ""
+        self.ready: dict = {}
+        self._files = tempfile.TemporaryDirectory(prefix="mfvs-console-")
+        self.log = Path(self._files.name) / "console.log"
+
+    def __enter__(self) -> "ConsoleProcess":
+        env = dict(os.environ, MFVS_RUN_DIR=self._files.name)
+        with self.log.open("ab") as log:
+            self.process = subprocess.Popen(self.args, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=log,
+                                            text=True)
+        line = self.process.stdout.readline()
+        try:
+            self.ready = json.loads(line)
+            self.url = self.ready["console"]
+        except (ValueError, KeyError):
+            said = self.log.read_text()
+            self.__exit__(None, None, None)
+            raise RuntimeError(f"the console did not start (it said {line!r}; its log: {said[-2000:]})") from None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.process is not None:
+            stop_processes([self.process])
+            self.process = None
+        self._files.cleanup()
+
+
 def write_config(directory: Path, name: str, config) -> str:
     """``config`` as ``directory/name.yaml`` (what a service's ``--config`` reads); its path."""
     path = directory / f"{name}.yaml"

@@ -1,5 +1,5 @@
-"""Arbitrary bytes against a running stack (Hypothesis): robot_sim, vision, controller and safety in realtime on a
-real router. Every key any service subscribes to and every queryable any service declares (from the services' own
+"""Arbitrary bytes against a running stack (Hypothesis): robot_sim, vision, controller, safety and the operator's
+console in realtime on a real router. Every key any service subscribes to and every queryable any service declares (from the services' own
 declarations, so a new input is fuzzed without touching this file) gets payloads that its message type does not
 accept: random bytes, random MessagePack, messages of other types, and real messages of its own type made wrong
 (truncated, oversized, a wrong schema version, NaN or infinity, a number out of range, an unknown enum value, an
@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import ClockMode
+from services.console.service import ConsoleConfig, ConsoleService
 from services.controller.service import ControllerConfig, ControllerService
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.runtime.transport import Router, open_session
@@ -72,6 +73,8 @@ def stack():
             services["vision"] = VisionService(configs["vision"]).start()
             services["controller"] = ControllerService(configs["controller"]).start()
             services["robot"] = robot_sim_service(configs["robot"]).start()
+            # the operator's console follows the stack too (its page's own requests are fuzzed in its tests)
+            services["console"] = ConsoleService(ConsoleConfig(zenoh=client_config)).start()
             client = open_session(client_config)
             states = Recorder(client, KEYS.robot_state, m.RobotState)
             assert wait_for(lambda: len(states) > 20 and services["vision"].counters.get("rejected.image") == 0)

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Generates the certificates of a TLS deployment: a CA, the router's certificate (SAN 127.0.0.1, localhost and
 # the host names given in MFVS_ROUTER_SANS), one client certificate per service (its CN is the service name,
-# which the router's access control matches), and for tests a rogue CA with a client certificate that claims
+# which the router's access control matches), the operator console's HTTPS certificate (`mfvs console`; server
+# use only, SAN 127.0.0.1, localhost and MFVS_CONSOLE_SANS, e.g. "IP:192.168.1.20,DNS:arm-pc.local" for a
+# tablet that reaches it by that address), and for tests a rogue CA with a client certificate that claims
 # CN=safety and must be rejected.
 # Non-interactive. Usage: gen_certs.sh OUTDIR [SERVICE ...]   (default services below)
 set -euo pipefail
@@ -10,6 +12,7 @@ shift || true
 DAYS=825
 SERVICES="${*:-safety robot_sim robot_gateway vision controller operator}"
 EXTRA_SANS="${MFVS_ROUTER_SANS:-}"
+CONSOLE_SANS="${MFVS_CONSOLE_SANS:-}"
 mkdir -p "$OUT"; OUT="$(cd "$OUT" && pwd)"; cd "$OUT"
 
 make_ca () {  # $1 = file prefix, $2 = CN
@@ -36,6 +39,14 @@ subjectAltName=IP:127.0.0.1,DNS:localhost,DNS:router${EXTRA_SANS:+,$EXTRA_SANS}
 authorityKeyIdentifier=keyid,issuer
 subjectKeyIdentifier=hash"
 
+# the console's: a web server's certificate, never a zenoh client's (no clientAuth)
+CONSOLE_EXT="basicConstraints=critical,CA:FALSE
+keyUsage=critical,digitalSignature,keyEncipherment
+extendedKeyUsage=serverAuth
+subjectAltName=IP:127.0.0.1,DNS:localhost${CONSOLE_SANS:+,$CONSOLE_SANS}
+authorityKeyIdentifier=keyid,issuer
+subjectKeyIdentifier=hash"
+
 CLIENT_EXT="basicConstraints=critical,CA:FALSE
 keyUsage=critical,digitalSignature,keyEncipherment
 extendedKeyUsage=clientAuth
@@ -48,6 +59,8 @@ make_ca ca "mfvs-root-ca"
 make_leaf router ca "$SERVER_EXT"
 # 3. one client certificate per service
 for s in $SERVICES; do make_leaf "$s" ca "$CLIENT_EXT"; done
+# 3b. the operator console's HTTPS certificate
+make_leaf console ca "$CONSOLE_EXT"
 # 4. rogue CA and a client cert it signed (claims CN=safety!)
 make_ca rogue_ca "rogue-ca"
 openssl req -new -newkey rsa:2048 -nodes -sha256 -keyout rogue_safety.key -out rogue_safety.csr \
@@ -59,7 +72,7 @@ rm -f rogue_safety.csr rogue_safety.ext *.srl
 chmod 600 ./*.key
 
 # sanity checks
-openssl verify -CAfile ca.pem router.pem $(for s in $SERVICES; do echo "$s.pem"; done)
+openssl verify -CAfile ca.pem router.pem console.pem $(for s in $SERVICES; do echo "$s.pem"; done)
 if openssl verify -CAfile ca.pem rogue_safety.pem >/dev/null 2>&1; then echo "ERROR: rogue verifies!"; exit 1; fi
 echo "rogue_safety.pem correctly NOT verifiable with ca.pem"
 ls -1 "$OUT"

@@ -255,7 +255,8 @@ class JointPD(TorqueController):
 
 class ComputedTorque(JointPD):
     """Eq. 4.16-4.18 with the feed-forward (q̈_d, q̇_d), Ĉ and friction on eq. 5.1 between two joint configurations:
-    the low-level API's well-modelled baseline (gains 100 and 20 on every joint, the rotors' inertia known)."""
+    the low-level API's well-modelled baseline (the rotors' inertia and the viscous friction known; gains the
+    options' kp and kd, else 100 and 20 on every joint)."""
 
     name = "computed-torque"
 
@@ -265,8 +266,10 @@ class ComputedTorque(JointPD):
 
     def begin(self, q0, x0_reported=None) -> Start:
         n = self.arm.n_joints
+        o = self.options
         self.start = Start(q0=np.asarray(q0, dtype=float))
-        self.kp, self.kd = np.full(n, 100.0), np.full(n, 20.0)
+        self.kp = np.full(n, 100.0) if o.kp is None else laws.per_joint_gains(o.kp, n)
+        self.kd = np.full(n, 20.0) if o.kd is None else laws.per_joint_gains(o.kd, n)
         displacement = self.options.joint_displacement_deg or [10.0] * n
         if len(displacement) != n:
             raise ValueError(f"joint_displacement_deg has {len(displacement)} angles for {n} joints")

@@ -29,6 +29,8 @@ import numpy as np
 import yaml
 
 ARMS_DIR = Path(__file__).resolve().parent / "arms"
+#: Kinova's actuators as their data sheets give them (the arm files name each joint's)
+ACTUATORS_FILE = Path(__file__).resolve().parent / "actuators.yaml"
 #: the arm a stack runs when nothing chooses one (seed 000's)
 DEFAULT_ARM = "j2s7s300"
 BASE_LINK = "base_link"
@@ -128,6 +130,32 @@ class _Link(msgspec.Struct, forbid_unknown_fields=True):
     mass_kg: Number
 
 
+class Actuator(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """One actuator model's data sheet (services/model/actuators.yaml)."""
+
+    peak_torque_nm: float
+    stall_torque_nm: float
+    nominal_torque_nm: float
+    no_load_speed_rpm: float
+    nominal_speed_rpm: float
+    gear_ratio: float
+    torque_gradient_nm_per_a: float
+    backdriving_torque_nm: tuple[float, float]
+    torque_sensor_precision_nm: float
+    torque_sensor_drift_nm: float
+    mass_kg: float
+
+    @property
+    def no_load_speed(self) -> float:
+        """rad/s at the output."""
+        return self.no_load_speed_rpm * 2.0 * math.pi / 60.0
+
+
+class _Emulation(msgspec.Struct, forbid_unknown_fields=True):
+    link_mass_scale: list[float]
+    torque_mode_friction_fraction: float
+
+
 class _Base(msgspec.Struct, forbid_unknown_fields=True):
     mass_kg: Number
     com_z: Number
@@ -149,7 +177,7 @@ class _File(msgspec.Struct, forbid_unknown_fields=True):
     base: _Base
     armature: list[float]
     damping: list[float]
-    torque_limits_nm: list[float]
+    emulation: _Emulation
 
 
 # ------------------------------------------------------------------------------------------------ the description
@@ -163,12 +191,24 @@ class JointSpec:
     lower_deg: Optional[float]
     upper_deg: Optional[float]
     max_speed_dps: float
-    #: the torque the emulated actuator may give (N·m)
-    max_torque_nm: float
-    #: the actuator that drives it (its data sheet's name)
+    #: the actuator that drives it (its data sheet's name) and its data sheet
     actuator: str
+    spec: Actuator
     #: mass (kg) of the link this joint moves, including the actuator it carries
     link_mass_kg: float
+
+    @property
+    def max_torque_nm(self) -> float:
+        """The most torque the joint gives: its actuator's peak (software limitation)."""
+        return self.spec.peak_torque_nm
+
+    @property
+    def peak_torque_nm(self) -> float:
+        return self.spec.peak_torque_nm
+
+    @property
+    def nominal_torque_nm(self) -> float:
+        return self.spec.nominal_torque_nm
 
 
 @dataclass(frozen=True, eq=False)
@@ -198,6 +238,11 @@ class ArmDescription:
     base_radius: float
     armature: np.ndarray
     damping: np.ndarray
+    #: the emulated arm's truth where it departs from this description, the controllers' model (robot_sim builds it
+    #: so): each link's mass and inertia scaled, and the Coulomb friction an actuator's torque loop leaves at its
+    #: joint, as a fraction of the smallest backdriving torque of its data sheet
+    true_link_mass_scale: np.ndarray
+    torque_mode_friction_fraction: float
     #: the range of the top translation (m/s) and orientation (rad/s) speeds a client may set, and the accelerations
     linear_speed_range_mps: tuple[float, float]
     angular_speed_range_rps: tuple[float, float]
@@ -252,7 +297,15 @@ class ArmDescription:
 
     @cached_property
     def max_torque(self) -> np.ndarray:
+        """Each joint's peak torque (N·m, its actuator's software limitation)."""
         return np.array([j.max_torque_nm for j in self.joints])
+
+    @cached_property
+    def true_friction_nm(self) -> np.ndarray:
+        """The Coulomb friction (N·m) the emulated arm's joints show in torque mode: the given fraction of their
+        actuators' smallest backdriving torque (the rest the actuator's torque loop, closed on its output's sensor,
+        takes out)."""
+        return self.torque_mode_friction_fraction * np.array([j.spec.backdriving_torque_nm[0] for j in self.joints])
 
     @cached_property
     def home(self) -> np.ndarray:
@@ -480,6 +533,15 @@ def declared_arm(name: str, digest: str, n_joints: int, expected: Optional[str],
     return arm, ""
 
 
+@lru_cache(maxsize=1)
+def load_actuators() -> dict[str, Actuator]:
+    """The actuators' data sheets by model (services/model/actuators.yaml)."""
+    try:
+        return msgspec.convert(yaml.safe_load(ACTUATORS_FILE.read_text()), dict[str, Actuator])
+    except (msgspec.ValidationError, yaml.YAMLError, OSError) as exc:
+        raise ArmError(f"{ACTUATORS_FILE}: {exc}") from None
+
+
 def read_description(path: Path) -> ArmDescription:
     """An arm description file, validated: every joint its DH row, link and limits, the lengths it names, a home
     within the limits."""
@@ -493,7 +555,7 @@ def read_description(path: Path) -> ArmDescription:
     n = len(data.joints)
     counts = {"kinematics.dh": len(data.kinematics.dh), "links": len(data.links), "home_deg": len(data.home_deg),
               "bus_addresses": len(data.bus_addresses), "armature": len(data.armature), "damping": len(data.damping),
-              "torque_limits_nm": len(data.torque_limits_nm)}
+              "emulation.link_mass_scale": len(data.emulation.link_mass_scale)}
     wrong = [f"{key} has {count}" for key, count in counts.items() if count != n]
     if not 1 <= n <= MAX_JOINTS or wrong:
         raise ArmError(f"{path}: {n} joints ({'; '.join(wrong) or f'at most {MAX_JOINTS}'})")
@@ -505,16 +567,25 @@ def read_description(path: Path) -> ArmDescription:
         except ArmError as exc:
             raise ArmError(f"{path}: {exc}") from None
 
+    actuators = load_actuators()
     joints = []
-    for joint, link, limit in zip(data.joints, data.links, data.torque_limits_nm):
+    for joint, link in zip(data.joints, data.links):
         if joint.range_deg is not None and not joint.range_deg[0] < joint.range_deg[1]:
             raise ArmError(f"{path}: {joint.name}'s range_deg must be [lower, upper]")
-        if not (joint.max_speed_dps > 0 and limit > 0 and num(link.mass_kg) > 0):
-            raise ArmError(f"{path}: {joint.name}: speeds, torques and masses must be positive")
+        if not (joint.max_speed_dps > 0 and num(link.mass_kg) > 0):
+            raise ArmError(f"{path}: {joint.name}: speeds and masses must be positive")
+        if joint.actuator not in actuators:
+            raise ArmError(f"{path}: {joint.name}'s actuator {joint.actuator!r} has no data sheet in "
+                           f"{ACTUATORS_FILE.name} (there: {', '.join(actuators)})")
         joints.append(JointSpec(joint.name, joint.range_deg is None,
                                 None if joint.range_deg is None else joint.range_deg[0],
                                 None if joint.range_deg is None else joint.range_deg[1],
-                                joint.max_speed_dps, limit, joint.actuator, num(link.mass_kg)))
+                                joint.max_speed_dps, joint.actuator, actuators[joint.actuator], num(link.mass_kg)))
+    emulation = data.emulation
+    if not 0.0 <= emulation.torque_mode_friction_fraction <= 1.0 or any(
+            not 0.5 <= k <= 2.0 for k in emulation.link_mass_scale):
+        raise ArmError(f"{path}: emulation: torque_mode_friction_fraction within 0..1, link_mass_scale within "
+                       "0.5..2")
     dh = data.kinematics.dh
     if any(row.sign not in (-1, 1) for row in dh):
         raise ArmError(f"{path}: each DH row's sign is 1 or -1")
@@ -529,6 +600,8 @@ def read_description(path: Path) -> ArmDescription:
         base_mass_kg=num(base.mass_kg), base_com_z=num(base.com_z), base_height=num(base.height),
         base_radius=num(base.radius), armature=np.array(data.armature, dtype=float),
         damping=np.array(data.damping, dtype=float),
+        true_link_mass_scale=np.array(emulation.link_mass_scale, dtype=float),
+        torque_mode_friction_fraction=emulation.torque_mode_friction_fraction,
         linear_speed_range_mps=tuple(data.cartesian.linear_speed_range_mps),
         angular_speed_range_rps=tuple(data.cartesian.angular_speed_range_rps),
         linear_accel_mps2=data.cartesian.linear_accel_mps2, angular_accel_rps2=data.cartesian.angular_accel_rps2,

@@ -63,17 +63,22 @@ def _pose_quaternion(pose: m.Pose) -> fm.Quaternion:
 
 
 # ------------------------------------------------------------------------------------------------ the camera
-def camera_image(image: m.Image, quality: int = 90) -> fm.CompressedImage:
-    """The frame as JPEG (a tenth of the raw bytes: the viewer's copy; the raw frame is in the raw channel)."""
+def jpeg(image: m.Image, quality: int = 90) -> bytes:
+    """The frame as JPEG (a tenth of the raw bytes: a viewer's copy; the raw frame is what vision sees)."""
     channels = m.CHANNELS[image.encoding]
     pixels = np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.width, channels)
     if image.encoding is m.ImageEncoding.RGB8:
         pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
-    ok, jpeg = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    ok, encoded = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         raise ValueError(f"OpenCV could not encode a {image.width}x{image.height} {image.encoding.value} frame")
-    return fm.CompressedImage(timestamp=timestamp(image.header.stamp_ns), frame_id=CAMERA_FRAME, data=jpeg.tobytes(),
-                              format="jpeg")
+    return encoded.tobytes()
+
+
+def camera_image(image: m.Image, quality: int = 90) -> fm.CompressedImage:
+    """The frame as JPEG (the raw frame is in the raw channel)."""
+    return fm.CompressedImage(timestamp=timestamp(image.header.stamp_ns), frame_id=CAMERA_FRAME,
+                              data=jpeg(image, quality), format="jpeg")
 
 
 def camera_calibration(info: m.CameraInfo) -> fm.CameraCalibration:

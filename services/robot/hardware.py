@@ -132,4 +132,8 @@ class RobotHardware(Protocol):
     def leave_torque_mode(self) -> None:
         """Back to position mode, holding where the joints are (raises :class:`HardwareError`)."""
 
+    def zero_torque_sensor(self, joint: int) -> None:
+        """SetTorqueZero: the joint's torque sensor reads 0 where it stands (raises :class:`HardwareError` where the
+        hardware cannot)."""
+
     def close(self) -> None: ...

@@ -2,13 +2,14 @@
 any robot: robot_sim's simulated arm or robot_gateway's real one. A :class:`RobotView` gives the measured state."""
 from __future__ import annotations
 
-from typing import Callable, Protocol
+from typing import Callable, Optional, Protocol
 
 import numpy as np
 
 from protocol import kinova
 from services.model import frames
 from services.robot.dsp import CommandRefused, KinovaDSP
+from services.robot.torque_setup import TORQUE_SETUP_SETTERS, TorqueSetup, configure, joint_of_address
 from services.robot.zones import zone_from_kinova, zone_to_kinova
 
 
@@ -30,19 +31,31 @@ class RobotView(Protocol):
     def ee_pose(self) -> np.ndarray: ...
 
 
+class SensorZeroing(Protocol):
+    """What SetTorqueZero needs of the joints (a hardware that cannot raises HardwareError saying why)."""
+
+    def zero_torque_sensor(self, joint: int) -> None: ...
+
+
 class KinovaApi:
     """The Kinova high-level API functions, on a robot (its measured state) and its DSP. Calls must run in the
     thread that runs the DSP (between cycles)."""
 
-    def __init__(self, robot: "RobotView", dsp: KinovaDSP) -> None:
+    def __init__(self, robot: "RobotView", dsp: KinovaDSP, torque_setup: Optional[TorqueSetup] = None,
+                 sensors: Optional[SensorZeroing] = None) -> None:
         self.robot = robot
         self.dsp = dsp
+        #: Table 5.1's torque-mode setup, shared with low-level control
+        self.torque_setup = torque_setup if torque_setup is not None else TorqueSetup(dsp.arm)
+        self.sensors = sensors
         self.arm = dsp.arm
         self.builtin_zones = list(dsp.zones)
         self.kinova_zones: list = []
         self.last_command = np.zeros(self.arm.n_joints)
 
     def call(self, function: str, argument) -> kinova.ApiReply:
+        if function in TORQUE_SETUP_SETTERS:
+            return self._configure(function, argument)
         handler: Callable = getattr(self, f"_{function}")
         return handler(argument)
 
@@ -127,3 +140,31 @@ class KinovaApi:
         except CommandRefused as exc:
             return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))
         return kinova.ApiReply()
+
+    # ------------------------------------------------------------------ the torque-mode setup (Table 5.1)
+    def _configure(self, function: str, argument) -> kinova.ApiReply:
+        problem = configure(self.torque_setup, function, argument)
+        if problem:
+            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=problem)
+        return kinova.ApiReply()
+
+    def _SetTorqueZero(self, argument: kinova.ActuatorAddress):
+        joint = joint_of_address(self.arm, argument.address)
+        if joint is None:
+            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=(
+                f"no actuator at address {argument.address} on the {self.arm.name} (its actuators: "
+                f"{', '.join(str(a) for a in self.arm.bus_addresses)})"))
+        if self.sensors is None or not hasattr(self.sensors, "zero_torque_sensor"):
+            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                   message="this robot's joints cannot zero their torque sensors")
+        try:
+            self.sensors.zero_torque_sensor(joint)
+        except Exception as exc:  # HardwareError: the hardware says why
+            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=str(exc))
+        return kinova.ApiReply()
+
+    def _SetJointZero(self, argument: kinova.ActuatorAddress):
+        return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=(
+            "SetJointZero re-references an actuator's absolute position sensor: the emulated sensors never slip, "
+            "and which angle the call assigns is not public, so the emulation does not run it "
+            "(services/robot/torque_setup.py)"))

@@ -8,8 +8,13 @@ depend on what drives the arm:
   one is replaced by zero extra torque, so the actuators' gravity compensation holds the arm;
 * after ``release_s`` without commands the joints return to position mode, holding where they are, under the DSP
   (the real actuators' own torque-inactivity timeout is the same 250 ms);
-* ``gravity_compensation: false`` means the client's torques already include gravity: since the actuators always
-  add it, the model's gravity torque is subtracted.
+* ``gravity_compensation: false`` means the client's torques already include gravity: since the actuators add it,
+  the model's gravity torque is subtracted; so is it when the arm's own compensation is off (Table 5.1's optimal-Z
+  parameters all 0), where the emulated actuators, which always add it, would otherwise;
+* the torque-mode setup of Table 5.1 (:mod:`services.robot.torque_setup`) applies here, for every robot alike: the
+  actuators' damping is added to each command, and a joint faster than the safety factor allows returns the arm to
+  trajectory control (position mode, holding where it is); torque commands are then refused until the client has
+  been quiet for ``release_s``, so a client starts torque control again only on purpose.
 
 Time is the caller's monotonic wall clock: low-level control runs in realtime only.
 """
@@ -22,6 +27,8 @@ from typing import Callable, Optional, Protocol
 import numpy as np
 
 from protocol.messages import TorqueCommand
+from services.robot.torque_setup import (TorqueSetup, arm_compensates_gravity, damping_torque, over_safety_speed,
+                                         safety_speed_threshold)
 from services.runtime.config import ConfigStruct
 
 
@@ -56,34 +63,51 @@ class Outcome(enum.Enum):
     WATCHDOG = "watchdog"    # the command is stale: zero extra torque
     RELEASED = "released"    # back to position mode
     REFUSED = "refused"      # the joints refused torque mode (detail says why)
+    SAFETY_STOP = "safety_stop"  # a joint over the safety factor's speed: back to trajectory control
 
 
 class LowLevelControl:
     def __init__(self, config: LowLevelConfig, joints: TorqueJoints,
-                 gravity: Callable[[np.ndarray], np.ndarray]) -> None:
+                 gravity: Callable[[np.ndarray], np.ndarray], setup: TorqueSetup) -> None:
         self.config = config
         self.joints = joints
         self.gravity = gravity
+        #: Table 5.1's setup (the Kinova API changes it between cycles, in the same thread as :meth:`step`)
+        self.setup = setup
         self._latest: Optional[tuple[TorqueCommand, float]] = None
+        #: when the safety factor stopped torque control (monotonic), until the client has been quiet
+        self._stopped_at: Optional[float] = None
         self._lock = threading.Lock()
 
     @property
     def active(self) -> bool:
         return self.joints.torque_mode
 
-    def receive(self, command: TorqueCommand, now_s: float) -> None:
-        """A decoded, valid command (any thread)."""
+    def receive(self, command: TorqueCommand, now_s: float) -> str:
+        """A decoded, valid command (any thread). Returns why it is refused ('' when taken)."""
         with self._lock:
+            if self._stopped_at is not None:
+                last = self._latest[1] if self._latest is not None else self._stopped_at
+                if now_s - last <= self.config.release_s:
+                    self._latest = (None, now_s)  # the client is still sending: the quiet time starts again
+                    return ("the torque safety factor returned the arm to trajectory control; stop sending for "
+                            f"{self.config.release_s * 1e3:.0f} ms to start torque control again")
+                self._stopped_at = None
             self._latest = (command, now_s)
+        return ""
 
-    def step(self, now_s: float, q: np.ndarray) -> tuple[Outcome, str]:
-        """One low-level cycle (the loop thread): engage, apply, hold or release."""
+    def step(self, now_s: float, q: np.ndarray, dq: np.ndarray) -> tuple[Outcome, str]:
+        """One low-level cycle (the loop thread): engage, apply, hold, release, or stop at the safety factor."""
         with self._lock:
             latest = self._latest
-        if latest is None:
+        if latest is None or latest[0] is None:
             return Outcome.IDLE, ""
         command, received = latest
         age = now_s - received
+        if self.joints.torque_mode and age <= self.config.release_s:
+            fast = over_safety_speed(self.setup, dq)
+            if fast:
+                return self._safety_stop(latest, fast, dq)
         outcome = Outcome.APPLIED
         if not self.joints.torque_mode:
             if age > self.config.watchdog_s:  # an old command does not start torque control
@@ -109,11 +133,25 @@ class LowLevelControl:
         if age > self.config.watchdog_s:
             self.joints.set_torques(np.zeros(len(q)))
             return Outcome.WATCHDOG, f"command {age * 1e3:.1f} ms old"
-        torques = np.asarray(command.torques, dtype=float)
-        if not command.gravity_compensation:  # the client's torques include gravity; the actuators add it too
-            torques = torques - self.gravity(q)
+        torques = np.asarray(command.torques, dtype=float) + damping_torque(self.setup, dq)
+        if not command.gravity_compensation or not arm_compensates_gravity(self.setup):
+            torques = torques - self.gravity(q)  # what the actuators add that the arm is not to have
         self.joints.set_torques(torques)
         return outcome, ""
+
+    def _safety_stop(self, latest, fast: list[int], dq) -> tuple[Outcome, str]:
+        threshold = np.degrees(safety_speed_threshold(self.setup))
+        detail = ", ".join(f"joint {i + 1} at {abs(np.degrees(dq[i])):.0f}°/s (threshold {threshold[i]:.0f}°/s)"
+                           for i in fast)
+        with self._lock:  # a command that came meanwhile is refused too: the client has not paused
+            self._stopped_at = latest[1]
+            self._latest = (None, self._latest[1] if self._latest is not None else latest[1])
+        try:
+            self.joints.leave_torque_mode()
+        except Exception as exc:  # still in torque mode: zero extra torque, and the next cycle tries again
+            self.joints.set_torques(np.zeros(len(dq)))
+            return Outcome.REFUSED, f"the safety factor's stop failed to leave torque mode: {exc}"
+        return Outcome.SAFETY_STOP, detail
 
     def _forget(self, latest) -> None:
         with self._lock:

@@ -72,6 +72,7 @@ from services.robot.dsp import DSPConfig, KinovaDSP, for_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.kinova_api import KinovaApi
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
+from services.robot.torque_setup import TorqueSetup
 from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
@@ -241,6 +242,8 @@ class RobotNode(Service):
         self.kin = ArmKinematics(self.arm)
         #: the bus loop's own kinematics workspace (ArmKinematics is not thread-safe; the DSP worker uses ``kin``)
         self.gravity_kin = ArmKinematics(self.arm)
+        #: the torque-mode setup (Table 5.1's functions): the Kinova API sets it, low-level control applies it
+        self.torque_setup = TorqueSetup(self.arm)
         #: the loop's period: the bus cycle (a backend without a joint-level bus runs at its DSP's cycle)
         self.cycle_s = CYCLE_S
         self.hardware: Optional[RobotHardware] = None
@@ -330,7 +333,8 @@ class RobotNode(Service):
             keys = self.keys
             self.state_pub = self.publisher(keys.robot_state, "state")
             self.lowlevel_pub = self.publisher(keys.lowlevel_state, "lowlevel_state")
-            self.lowlevel = LowLevelControl(self.config.lowlevel, _TorqueJoints(self), self.gravity_kin.gravity)
+            self.lowlevel = LowLevelControl(self.config.lowlevel, _TorqueJoints(self), self.gravity_kin.gravity,
+                                            self.torque_setup)
             self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
             self.subscribe(keys.lowlevel_command, TorqueCommand, self._on_torque, "lowlevel_command")
             self.queryable(keys.robot_api_all, self._on_api)
@@ -352,7 +356,7 @@ class RobotNode(Service):
     def make_api(self):
         """What answers ``robot/api/*`` (``call(function, argument) -> ApiReply``): the emulated Kinova API on the
         DSP by default."""
-        return KinovaApi(_CoreView(self.core, self.kin), self.core.dsp)
+        return KinovaApi(_CoreView(self.core, self.kin), self.core.dsp, self.torque_setup, self.hardware)
 
     def declare_outputs(self) -> None:
         """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
@@ -447,7 +451,10 @@ class RobotNode(Service):
             self.counters.inc(f"refused.lowlevel_{rejection.kind}")
             self.refuse("lowlevel_command", rejection.reason)
             return
-        self.lowlevel.receive(command, time.monotonic())
+        refusal = self.lowlevel.receive(command, time.monotonic())
+        if refusal:
+            self.counters.inc("refused.lowlevel_after_safety_stop")
+            self.refuse("lowlevel_command", refusal)
 
     def _on_api(self, query: zenoh.Query) -> None:
         function = str(query.key_expr).rsplit("/", 1)[-1]
@@ -872,8 +879,11 @@ class RobotNode(Service):
 
     def _lowlevel_step(self) -> None:
         """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""
-        outcome, detail = self.lowlevel.step(time.monotonic(), self.core.reading.q)
-        if outcome is Outcome.ENGAGED:
+        outcome, detail = self.lowlevel.step(time.monotonic(), self.core.reading.q, self.core.reading.dq)
+        if outcome is Outcome.SAFETY_STOP:
+            self.counters.inc("lowlevel.safety_stops")
+            self.log.warning("torque safety factor: back to trajectory control (%s)", detail)
+        elif outcome is Outcome.ENGAGED:
             self.log.info("low-level torque control engaged")
         elif outcome is Outcome.RELEASED:
             self.log.info("low-level torque control released %s", detail)

@@ -225,6 +225,15 @@ BINDINGS: dict[str, Binding] = {
     **{name: _NO_ARGUMENT for name in _ACTIONS},
     "SendBasicTrajectory": Binding("int(TrajectoryPoint)", (TrajectoryPoint,)),
     **{name: Binding(f"int({c_type.__name__}&)", (_ref(c_type),)) for name, (c_type, _) in _GETTERS.items()},
+    # the torque-mode setup of seed 003's Table 5.1, passed to the arm as a client gives it
+    "SetTorqueSafetyFactor": Binding("int(float)", (ctypes.c_float,)),
+    "SetTorqueVibrationController": Binding("int(float)", (ctypes.c_float,)),
+    "SetTorqueActuatorGain": Binding("int(float*)", (_ref(ctypes.c_float),)),
+    "SetTorqueActuatorDamping": Binding("int(float*)", (_ref(ctypes.c_float),)),
+    "SetGravityType": Binding("int(GRAVITY_TYPE)", (ctypes.c_int,)),
+    "SetGravityOptimalZParam": Binding("int(float*)", (_ref(ctypes.c_float),)),
+    "SetTorqueZero": Binding("int(int)", (ctypes.c_int,)),
+    "SetJointZero": Binding("int(int)", (ctypes.c_int,)),
 }
 #: how each transport starts: the USB command layer's InitAPI; the Ethernet one's InitEthernetAPI (the USB
 #: header declares an InitEthernetAPI too, but Kinova's USB library does not export it)
@@ -401,9 +410,22 @@ class KinovaSdk:
         if function in _GETTERS:
             code, value = self.get(function)
             return kinova.API_FUNCTIONS[function][1](code=code, result=value)
+        if function in kinova.TORQUE_SETUP_FUNCTIONS:
+            return kinova.ApiReply(code=self.raw(function, *_torque_setup_arguments(argument)))
         # zones and client configurations: the SDK's structs hold more than mfvs's types describe
         return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
                                message=f"{function} is not available through the kinova_sdk backend")
+
+
+def _torque_setup_arguments(argument) -> tuple:
+    """A Table 5.1 argument as the command layer takes it."""
+    if isinstance(argument, kinova.FloatArgument):
+        return (ctypes.c_float(argument.value),)
+    if isinstance(argument, (kinova.CommandArray, kinova.GravityParameters)):
+        return ((ctypes.c_float * len(argument.values))(*argument.values),)
+    if isinstance(argument, kinova.GravityTypeArgument):
+        return (int(argument.type),)
+    return (int(argument.address),)  # ActuatorAddress
 
 
 FLOAT32_MAX = 3.4028234663852886e38

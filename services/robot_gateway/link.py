@@ -328,6 +328,11 @@ class LinkHardware:
         except LinkError as exc:
             raise HardwareError(str(exc)) from exc
 
+    def zero_torque_sensor(self, joint: int) -> None:
+        raise HardwareError("SetTorqueZero over RS-485: none of the actuators' RS-485 messages that are public "
+                            "(kinova.md) zeroes a torque sensor; zero them through Kinova's SDK (the kinova_sdk "
+                            "backend) or Kinova's Development Center")
+
     def close(self) -> None:
         self.link.bus.close()
 

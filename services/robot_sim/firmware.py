@@ -1,4 +1,4 @@
-"""The seven JACO-2 actuators' own firmware, emulated on the MuJoCo joints: what each actuator does with the
+"""The JACO-2 actuators' own firmware, emulated on the MuJoCo joints: what each actuator does with the
 commands its bus brings, one bus cycle (2 ms) at a time, on the simulated arm's timeline.
 
 Nothing here knows about buses, threads or wall time: :class:`~services.robot_sim.bus_device.ActuatorBusDevice`
@@ -24,6 +24,9 @@ Per actuator:
   torque must match the measured one.
 * Faults (joint limits, torque, reference mismatch, a bad command) latch, are reported once, and make the
   actuator hold its position until CLEAR_FAULT_FLAG.
+* In both modes the motors give at most their data sheet's peak torque and, in the direction they turn, what the
+  torque-speed line allows; the joints' Coulomb friction acts in torque mode only; the torque sensors read a bias
+  and noise of the data sheet's (docs/robot.md, "The actuators as their data sheets give them").
 
 Where the emulation departs from the real actuators (whose firmware is not public): the 0x17 layout, the
 interpolation across a cycle and the one cycle of extrapolation on a missed target are mfvs's choices (what
@@ -81,9 +84,7 @@ def check_actuators(config: ActuatorConfig, arm: ArmDescription) -> None:
         raise ValueError(f"actuators.mirrored_joints are joint numbers 1..{arm.n_joints}")
 
 
-#: N·m per A of a geared motor, and a steady temperature: emulation constants for the reported current and
-#: temperature (nothing in the simulation heats up)
-TORQUE_PER_AMPERE = 0.08
+#: a steady temperature: an emulation constant for the reported temperature (nothing in the simulation heats up)
 ACTUATOR_TEMPERATURE_C = 35.0
 #: how long a target's reference moves: across its bus cycle, then on along its rate for the extrapolated cycles
 GOES_ON_S = (1 + EXTRAPOLATED_CYCLES) * CYCLE_S
@@ -138,6 +139,23 @@ class ActuatorFirmware:
         self.counters = counters or Counters()
         self.n = arm.n_joints
         self.torque_limit = model.actuator_ctrlrange[: self.n, 1].copy()
+        specs = [j.spec for j in arm.joints]
+        #: the motors' torque-speed line (the data sheets' stall torque falling to 0 at the no-load speed): the most
+        #: torque each actuator gives in the direction it turns, besides its peak (software limitation)
+        self._stall = np.array([a.stall_torque_nm for a in specs])
+        self._no_load = np.array([a.no_load_speed for a in specs])
+        #: output torque per motor current (the data sheets' torque gradient): the current each actuator reports
+        self._torque_per_ampere = np.array([a.torque_gradient_nm_per_a for a in specs])
+        #: the joints' Coulomb friction (the emulated arm's, arm.true_friction_nm; see :meth:`apply` for where)
+        self._coulomb = arm.true_friction_nm.copy()
+        #: the torque sensors: noise of the data sheets' precision (±2σ), a bias within their temperature drift
+        #: (fixed per arm and joint) that SetTorqueZero's offset (:meth:`zero_torque`) takes out where it is
+        #: called; seeded, so a lockstep run repeats to the bit
+        self._sensor_sigma = np.array([a.torque_sensor_precision_nm / 2.0 for a in specs])
+        sensors = np.random.default_rng(list(arm.name.encode()))
+        self._sensor_bias = sensors.uniform(-1.0, 1.0, self.n) * np.array([a.torque_sensor_drift_nm for a in specs])
+        self._sensor_zero = np.zeros(self.n)
+        self._sensor_noise = np.random.default_rng(0)
         self.lower, self.upper = arm.model_limits()
         self.actuators = [Actuator(i, address) for i, address in enumerate(actuator_addresses(self.config, arm))]
         self.by_address = {a.address: a for a in self.actuators}
@@ -168,13 +186,26 @@ class ActuatorFirmware:
         """What the actuators' encoders read (physical degrees) at these model angles."""
         return (np.asarray(q, dtype=float) - self._pivot_model) / self._deg_to_model
 
+    def applied_torque_nm(self) -> np.ndarray:
+        """What each motor gives now, in the actuators' own sign (N·m)."""
+        return self._torque_sign * self.data.actuator_force[: self.n]
+
+    def sensed_torque_nm(self) -> np.ndarray:
+        """What each actuator's torque sensor reads: the applied torque, its bias less its zero, and its noise."""
+        return (self.applied_torque_nm() + self._sensor_bias - self._sensor_zero
+                + self._sensor_noise.normal(0.0, self._sensor_sigma))
+
+    def zero_torque(self, i: int) -> None:
+        """SetTorqueZero: actuator ``i``'s torque sensor reads 0 now (its bias, and whatever load it carries, taken
+        as zero: right only where gravity puts no torque on the joint, seed 003's calibration pose)."""
+        self._sensor_zero[i] = self.applied_torque_nm()[i] + self._sensor_bias[i]
+
     def values(self, stamp_ns: int) -> ActuatorValues:
         d = self.data
         q, dq = d.qpos[: self.n], d.qvel[: self.n]
-        torque = self._torque_sign * d.actuator_force[: self.n]
         return ActuatorValues(
             position_deg=self.physical_deg(q), velocity_dps=dq / self._deg_to_model,
-            torque_nm=torque, current_a=torque / TORQUE_PER_AMPERE,
+            torque_nm=self.sensed_torque_nm(), current_a=self.applied_torque_nm() / self._torque_per_ampere,
             temperature_c=np.full(self.n, ACTUATOR_TEMPERATURE_C),
             mode=np.array([int(a.mode) for a in self.actuators]),
             fault=np.array([int(a.fault) for a in self.actuators]), stamp_ns=stamp_ns)
@@ -217,7 +248,7 @@ class ActuatorFirmware:
     def validate_torque(self, i: int, expected_nm: float) -> bool:
         cfg = self.config
         a = self.actuators[i]
-        measured = float(self._torque_sign[i] * self.data.actuator_force[i])
+        measured = float(self.sensed_torque_nm()[i])
         ok = math.isfinite(expected_nm) and abs(expected_nm - measured) <= max(
             cfg.validation_tolerance_nm, cfg.validation_tolerance_fraction * abs(measured))
         if ok:
@@ -365,10 +396,21 @@ class ActuatorFirmware:
         tau = gravity + self._friction * rate + inertia * (
             SERVO_BANDWIDTH_RPS**2 * (self._pivot_model + self._deg_to_model * reference_deg - q)
             + 2.0 * SERVO_BANDWIDTH_RPS * (rate - dq))
+        # the joints' Coulomb friction acts where an actuator is in torque mode; in position mode the actuator's own
+        # position loop, on the motor's encoder ahead of its 110-160:1 gear, rejects it (the joint-level servo
+        # emulated here is far softer than that loop and would leave the friction as an error it never has)
+        self.model.dof_frictionloss[:n] = np.where(torque_mode, self._coulomb, 0.0)
         if torque_mode.any():
             commanded = self._torque_sign * torque_nm + (gravity if self.config.gravity_compensation else 0.0)
             tau = np.where(torque_mode, commanded, tau)
         in_first_cycle = started & (ahead < CYCLE_S - 1e-9) & ~torque_mode
         if in_first_cycle.any():
             tau += self._mass[:n, :n] @ np.where(in_first_cycle, self._deg_to_model * accel_dps2, 0.0)
-        np.clip(tau, -self.torque_limit, self.torque_limit, out=d.ctrl[:n])
+        # what the motors can give: the peak (software limitation), and, in the direction each turns, the torque-speed
+        # line from the stall torque to zero at the no-load speed
+        along = np.minimum(self.torque_limit, np.maximum(self._stall * (1.0 - np.abs(dq) / self._no_load), 0.0))
+        upper = np.where(dq > 0.0, along, self.torque_limit)
+        lower = np.where(dq < 0.0, -along, -self.torque_limit)
+        np.clip(tau, lower, upper, out=d.ctrl[:n])
+        if np.any(d.ctrl[:n] != tau):
+            self.counters.inc("torque.limited_ms")  # a physics step (1 ms) in which some motor gave less than asked

@@ -85,5 +85,9 @@ class SimulatedHardware:
         for i in range(self.sim.arm.n_joints):
             self.sim.firmware.switch_mode(i, r.ControlModeRequest.POSITION)
 
+    def zero_torque_sensor(self, joint: int) -> None:
+        """SetTorqueZero: the actuator's torque sensor reads 0 where it stands."""
+        self.sim.firmware.zero_torque(joint)
+
     def close(self) -> None:
         pass

@@ -197,6 +197,15 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
     spec.visual.headlight.diffuse = [0.4, 0.4, 0.4]
 
+    # the emulated arm's own truth, where it departs from the description (the controllers' model): heavier links
+    # where the description says, Coulomb friction at every joint (arm.true_link_mass_scale, true_friction_nm)
+    for i, (link, scale) in enumerate(zip(arm.link_names, arm.true_link_mass_scale)):
+        if scale != 1.0:
+            body = spec.body(link)
+            body.mass = body.mass * float(scale)
+            body.inertia = [float(v) * float(scale) for v in body.inertia]
+        spec.joint(arm.joints[i].name).frictionloss = float(arm.true_friction_nm[i])
+
     for i, joint_spec in enumerate(arm.joints):
         motor = spec.add_actuator(name=f"motor_{i + 1}", target=joint_spec.name)
         motor.trntype = mujoco.mjtTrn.mjTRN_JOINT

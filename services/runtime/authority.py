@@ -70,6 +70,16 @@ def writes(keys: Keys, services=DEFAULT_SERVICES) -> dict[str, list[str]]:
     }
 
 
+#: the tools an identity runs under its own credentials, announced in their own names (liveliness token, health):
+#: the operator's console (`mfvs console`) acts as the operator and says how it is doing as ``console``
+TOOLS = {"operator": ("console",)}
+
+
+def announces(identity: str) -> list[str]:
+    """The names an identity declares liveliness and health under: its own and its tools'."""
+    return [identity, *TOOLS.get(identity, ())]
+
+
 #: the Kinova API functions anyone may call (they read the arm); the others move it or change its zones/limits
 READ_API_FUNCTIONS = sorted(set(kinova.API_FUNCTIONS) - kinova.MUTATING_API_FUNCTIONS)
 
@@ -122,11 +132,13 @@ def access_control(services, match: str) -> dict:
     subjects = []
     for service in services:
         subjects.append({"id": service, match: [service]})
+        names = announces(service)
         own = [{"id": f"{service}_writes", "messages": ["put", "delete"],
-                "key_exprs": write.get(service, []) + [keys.health(service)]},
-               {"id": f"{service}_alive", "messages": ["liveliness_token"], "key_exprs": [keys.liveliness(service)]},
+                "key_exprs": write.get(service, []) + [keys.health(n) for n in names]},
+               {"id": f"{service}_alive", "messages": ["liveliness_token"],
+                "key_exprs": [keys.liveliness(n) for n in names]},
                {"id": f"{service}_queryables", "messages": ["declare_queryable"],
-                "key_exprs": answer.get(service, []) + [keys.health(service)]}]
+                "key_exprs": answer.get(service, []) + [keys.health(n) for n in names]}]
         if service in query:
             own.append({"id": f"{service}_queries", "messages": ["query"], "key_exprs": query[service]})
         for rule in own:

@@ -114,6 +114,16 @@ def query_health(session: zenoh.Session, keys: Keys, timeout_s: float = 2.0) -> 
     return found
 
 
+def service_condition(health: ServiceHealth | None) -> str:
+    """How a service is doing, by its health: ``healthy``, ``degraded`` (running, not keeping up: the reasons are in
+    ``health.degraded``), ``unhealthy`` (it says it is not), or ``unknown`` (alive, no health heard)."""
+    if health is None:
+        return "unknown"
+    if not health.healthy:
+        return "unhealthy"
+    return "degraded" if health.degraded else "healthy"
+
+
 def alive_services(session: zenoh.Session, keys: Keys, timeout_s: float = 1.0) -> list[str]:
     """The services whose liveliness tokens the router knows now, by name."""
     return sorted(str(r.ok.key_expr).rsplit("/", 1)[-1]

@@ -190,3 +190,25 @@ def test_lockstep_is_bit_identical_run_to_run_and_through_the_gateway(tmp_path):
         log = trajectory(other)
         mismatched = [(a["iteration"], [k for k in a if a[k] != b.get(k)]) for a, b in zip(reference, log) if a != b]
         assert len(log) == len(reference) and not mismatched, mismatched[:5]
+
+
+def test_a_status_the_controller_sends_again_for_the_same_frame_is_one_iteration():
+    """A lockstep retry (the robot publishes a tick again when its answer is late, as on a loaded machine) makes
+    the controller send its answer to that frame again: the runner logs the iteration once, so the trajectory log
+    does not change under load; a new frame's status is logged."""
+    import threading
+
+    from protocol import messages as m
+    from services.servo import _Watcher
+
+    watcher = _Watcher.__new__(_Watcher)
+    watcher.lock, watcher.statuses = threading.Condition(), []
+    def status(seq, stamp):
+        return m.ControllerStatus(header=m.Header(seq=seq, source_stamp_ns=stamp), law="adaptive-pd-mixed",
+                                  status=m.ControllerState.CONVERGING, iteration=seq)
+
+    first = status(7, 1_000)
+    watcher._on_status(first)
+    watcher._on_status(m.decode(m.encode(first), m.ControllerStatus))  # the same answer, again
+    watcher._on_status(status(8, 1_033))
+    assert [status.iteration for status in watcher.statuses] == [7, 8]

@@ -10,12 +10,14 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
+from services.robot.torque_setup import TorqueSetup
 from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses
 from services.model.arm import load_arm
 from tests.stack import KEYS, Recorder, next_seq, wait_for
+from tests.helpers import ARM, computed_torque_options_for_the_emulated_arm
 
 
 
@@ -40,47 +42,103 @@ class FakeJoints:
         self.torques = np.array(torques)
 
 
+#: joints at rest
+STILL = np.zeros(7)
+
+
+def undamped() -> TorqueSetup:
+    """The torque-mode setup with no actuator damping (so a test's torques arrive as it sent them)."""
+    setup = TorqueSetup(ARM)
+    setup.actuator_damping = np.zeros(7)
+    return setup
+
+
 def torque_command(torques, gravity_compensation=True):
     return m.TorqueCommand(header=m.Header(), torques=list(torques), gravity_compensation=gravity_compensation)
 
 
 def test_state_machine_engages_applies_holds_and_releases():
     joints = FakeJoints()
-    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.full(7, 2.0))
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.full(7, 2.0), setup=undamped())
     q = np.zeros(7)
-    assert control.step(0.0, q) == (Outcome.IDLE, "")
+    assert control.step(0.0, q, STILL) == (Outcome.IDLE, "")
     control.receive(torque_command([1.0] * 7), 0.0)
-    assert control.step(0.010, q)[0] is Outcome.IDLE  # too old to start torque control
+    assert control.step(0.010, q, STILL)[0] is Outcome.IDLE  # too old to start torque control
     control.receive(torque_command([1.0] * 7), 1.000)
-    assert control.step(1.002, q)[0] is Outcome.ENGAGED and joints.torque_mode
+    assert control.step(1.002, q, STILL)[0] is Outcome.ENGAGED and joints.torque_mode
     assert joints.torques.tolist() == [1.0] * 7
     control.receive(torque_command([3.0] * 7, gravity_compensation=False), 1.004)
-    assert control.step(1.006, q)[0] is Outcome.APPLIED
+    assert control.step(1.006, q, STILL)[0] is Outcome.APPLIED
     assert joints.torques.tolist() == [1.0] * 7  # the client's gravity removed: the actuators add it
-    assert control.step(1.010, q)[0] is Outcome.WATCHDOG and not joints.torques.any()
-    outcome, detail = control.step(1.300, q)
+    assert control.step(1.010, q, STILL)[0] is Outcome.WATCHDOG and not joints.torques.any()
+    outcome, detail = control.step(1.300, q, STILL)
     assert outcome is Outcome.RELEASED and not joints.torque_mode and "296 ms" in detail
-    assert control.step(1.302, q)[0] is Outcome.IDLE
+    assert control.step(1.302, q, STILL)[0] is Outcome.IDLE
 
 
 def test_state_machine_reports_a_refused_switch():
     joints = FakeJoints(refuse=True)
-    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.zeros(7))
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.zeros(7), setup=undamped())
     control.receive(torque_command([0.0] * 7), 0.0)
-    outcome, detail = control.step(0.001, np.zeros(7))
+    outcome, detail = control.step(0.001, np.zeros(7), STILL)
     assert outcome is Outcome.REFUSED and "validation failed" in detail
     assert joints.leaves == 1  # joints that switched before the failure are put back
-    assert control.step(0.002, np.zeros(7))[0] is Outcome.IDLE  # not retried with the same command
+    assert control.step(0.002, np.zeros(7), STILL)[0] is Outcome.IDLE  # not retried with the same command
 
 
 def test_a_failed_release_is_retried_until_the_joints_are_back_in_position_mode():
     joints = FakeJoints(stuck=2)
-    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.zeros(7))
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.zeros(7), setup=undamped())
     control.receive(torque_command([1.0] * 7), 0.0)
-    assert control.step(0.001, np.zeros(7))[0] is Outcome.ENGAGED
-    assert control.step(0.3, np.zeros(7))[0] is Outcome.REFUSED and not joints.torques.any()
-    assert control.step(0.302, np.zeros(7))[0] is Outcome.REFUSED and joints.torque_mode
-    assert control.step(0.304, np.zeros(7))[0] is Outcome.RELEASED and not joints.torque_mode
+    assert control.step(0.001, np.zeros(7), STILL)[0] is Outcome.ENGAGED
+    assert control.step(0.3, np.zeros(7), STILL)[0] is Outcome.REFUSED and not joints.torques.any()
+    assert control.step(0.302, np.zeros(7), STILL)[0] is Outcome.REFUSED and joints.torque_mode
+    assert control.step(0.304, np.zeros(7), STILL)[0] is Outcome.RELEASED and not joints.torque_mode
+
+
+def test_the_safety_factor_returns_the_arm_to_trajectory_control_until_the_client_pauses():
+    """A joint faster than the safety factor allows (Table 5.1: "the robot stops and changes back to trajectory
+    control"): the joints leave torque mode that cycle, and torque commands are refused while the client keeps
+    sending; after it has been quiet for release_s, a command starts torque control again."""
+    joints, setup = FakeJoints(), undamped()
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.zeros(7), setup=setup)
+    threshold = ARM.max_speed / (1.0 - setup.safety_factor)
+    control.receive(torque_command([0.5] * 7), 0.0)
+    assert control.step(0.001, STILL, STILL)[0] is Outcome.ENGAGED
+    control.receive(torque_command([0.5] * 7), 0.002)
+    just_under = STILL.copy()
+    just_under[4] = 0.99 * threshold[4]
+    assert control.step(0.003, STILL, just_under)[0] is Outcome.APPLIED and joints.torque_mode
+    too_fast = STILL.copy()
+    too_fast[4] = -1.01 * threshold[4]
+    outcome, detail = control.step(0.004, STILL, too_fast)
+    assert outcome is Outcome.SAFETY_STOP and not joints.torque_mode and "joint 5" in detail
+    for t in (0.006, 0.1, 0.3):  # the client keeps sending: refused, and the quiet time starts again each time
+        assert "safety factor" in control.receive(torque_command([0.5] * 7), t)
+        assert control.step(t + 0.001, STILL, STILL)[0] is Outcome.IDLE and not joints.torque_mode
+    assert control.receive(torque_command([0.5] * 7), 0.3 + LowLevelConfig().release_s + 0.01) == ""
+    assert control.step(0.3 + LowLevelConfig().release_s + 0.011, STILL, STILL)[0] is Outcome.ENGAGED
+
+
+def test_a_safety_factor_of_one_never_stops_and_damping_and_gravity_follow_the_setup():
+    """Table 5.1 as the thesis set it: safety factor 1 (disabled), actuator damping 0, gravity type OPTIMAL with
+    every parameter 0 (the arm's own gravity compensation off: the emulated actuators' is taken back out)."""
+    joints, setup = FakeJoints(), TorqueSetup(ARM)
+    gravity = np.arange(7.0)
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: gravity, setup=setup)
+    fast = np.full(7, 10.0)  # rad/s: far beyond any joint's speed
+    control.receive(torque_command([1.0] * 7), 0.0)
+    assert control.step(0.001, STILL, fast)[0] is Outcome.ENGAGED
+    assert control.step(0.002, STILL, fast)[0] is Outcome.SAFETY_STOP  # the default factor stops it
+    setup.safety_factor = 1.0
+    control.receive(torque_command([1.0] * 7), 0.5)
+    assert control.step(0.501, STILL, fast)[0] is Outcome.ENGAGED
+    assert joints.torques == pytest.approx(1.0 - setup.actuator_damping * fast)  # the default damping
+    setup.actuator_damping = np.zeros(7)
+    setup.gravity_type, setup.optimal_z = kinova.GRAVITY_TYPE.OPTIMAL, np.zeros(kinova.GRAVITY_PARAM_SIZE)
+    control.receive(torque_command([1.0] * 7), 0.502)
+    assert control.step(0.503, STILL, fast)[0] is Outcome.APPLIED
+    assert joints.torques == pytest.approx(1.0 - gravity)
 
 
 def test_timing_is_validated():
@@ -165,15 +223,17 @@ def test_low_level_torque_api_with_its_watchdog(robot):
 
 def test_computed_torque_over_the_low_level_zenoh_api(robot, router):
     """Seed 003's computed torque (eq. 4.16-4.18 with feed-forward) as the torque controller service, a zenoh client
-    of the low-level API, tracks the eq. 5.1 cubic within 1°; low-level states of another arm's joint count are
-    refused and counted, and the run goes on."""
-    from services.controller.torque_controllers import ControllerOptions
+    of the low-level API, tracks the eq. 5.1 cubic within 3°: the wrist joints' torque-mode friction (0.17 N·m)
+    against their stiffness, each torque a zenoh round trip late (over the bus, in-process, the same law keeps within
+    1°: test_torque_controllers_bus.py). Low-level states of another arm's joint count are refused and counted, and
+    the run goes on."""
     from services.torque_controller.service import TorqueControllerConfig, TorqueControllerService
 
     client = robot.client
     low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
     assert wait_for(lambda: len(low) > 20)
-    options = ControllerOptions(tf_s=2.0, joint_displacement_deg=[10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
+    options = computed_torque_options_for_the_emulated_arm(
+        tf_s=2.0, joint_displacement_deg=[10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
     service = TorqueControllerService(TorqueControllerConfig(
         controller="computed-torque", options=options, duration_s=2.3, realtime_priority=0,
         zenoh=router.client_config())).start()
@@ -194,7 +254,7 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot, router):
     print(f"computed torque over zenoh ({robot.name}): max joint error {errors.max():.3f}° over {len(errors)} "
           f"states; missed {timing['missed']} (late {timing['late']}), latency p99 {timing['latency_ms']['p99']} ms")
     assert len(errors) > 300
-    assert errors.max() < 1.0
+    assert errors.max() < 3.0
 
 
 def test_lockstep_robot_sim_refuses_torque_commands(router):
@@ -232,3 +292,33 @@ def test_a_torque_or_joint_velocity_command_for_another_arm_is_refused(router):
     finally:
         client.close()
         service.stop()
+
+
+def api_call(client, function, argument) -> kinova.ApiReply:
+    replies = list(client.get(KEYS.robot_api(function), payload=m.encode(argument), timeout=10.0))
+    return m.decode(replies[0].ok.payload.to_bytes(), kinova.ApiReply)
+
+
+def test_a_joint_faster_than_the_torque_safety_factor_allows_returns_the_arm_to_trajectory_control(robot):
+    """SetTorqueSafetyFactor(0) through the Kinova API: the threshold is each joint's rated speed. A client that
+    drives the last joint faster (a constant torque on it) sees the arm back in position mode, holding, its further
+    torque commands refused while it keeps sending (counted); the DSP drives the arm again."""
+    client = robot.client
+    low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
+    assert wait_for(lambda: len(low) > 20)
+    assert api_call(client, "SetTorqueSafetyFactor", kinova.FloatArgument(value=0.0)).code == \
+        kinova.ErrorCode.NO_ERROR_KINOVA
+    publisher = client.declare_publisher(KEYS.lowlevel_command)
+    torques = [0.0] * 6 + [1.5]  # the last (K-58) joint: ~36 rad/s² against its inertia, past 48 °/s in ~25 ms
+    start = time.monotonic()
+    for k in range(250):  # 0.5 s at 500 Hz
+        time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
+        publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=next_seq(), stamp_ns=time.time_ns()),
+                                               torques=torques)))
+    assert wait_for(lambda: robot.counter("lowlevel.safety_stops") == 1, timeout=3), robot.health().errors
+    assert robot.counter("refused.lowlevel_after_safety_stop") > 10  # the client kept sending: all refused
+    assert low.last().mode is m.ActuatorMode.POSITION
+    speeds = [abs(np.degrees(state.dq[6])) for state in low.snapshot() if state.mode is m.ActuatorMode.TORQUE]
+    assert speeds and max(speeds) < 3 * ARM.max_speed_dps[6]  # stopped soon after the threshold, not at will
+    time.sleep(0.3)  # the arm holds: the last joint comes to rest under the DSP
+    assert abs(np.degrees(low.last().dq[6])) < 5.0

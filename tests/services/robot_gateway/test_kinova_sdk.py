@@ -70,6 +70,7 @@ def _hooks(path):
     lib.FakeCalls.restype = lib.FakeActiveSerial.restype = ctypes.c_char_p
     lib.FakeLastPoint.argtypes = [ctypes.POINTER(sdk_mod.TrajectoryPoint)]
     lib.FakeEthernet.argtypes = [ctypes.POINTER(sdk_mod.EthernetCommConfig)]
+    lib.FakeTorqueSetup.restype = ctypes.c_float
     lib.FakeReset()
     return lib
 
@@ -111,6 +112,25 @@ def test_the_arm_opens_with_kinovas_start_up_sequence_and_closes_with_stop_contr
     session.close()  # once
     assert calls(fake)[len(STARTUP):] == ["EraseAllTrajectories", "StopControlAPI", "CloseAPI"]
     assert fake.FakeCount(b"initialized") == 0
+
+
+def test_table_5_1_reaches_the_arm_through_the_sdk_as_the_client_gave_it(library, fake):
+    """The torque-mode setup through the kinova_sdk backend: each function called with the client's value (arrays
+    as float pointers, the gravity type as its enum's int, an address as an int)."""
+    sdk, session = open_fake_arm(library)
+    for function, argument in [
+            ("SetTorqueSafetyFactor", kinova.FloatArgument(value=0.75)),
+            ("SetTorqueVibrationController", kinova.FloatArgument(value=1.0)),
+            ("SetTorqueActuatorGain", kinova.CommandArray(values=[0.0] * 69 + [2.5])),
+            ("SetTorqueActuatorDamping", kinova.CommandArray(values=[0.0] * 5 + [0.25] + [0.0] * 64)),
+            ("SetGravityType", kinova.GravityTypeArgument(type=kinova.GRAVITY_TYPE.OPTIMAL)),
+            ("SetGravityOptimalZParam", kinova.GravityParameters(values=[0.0] * 41 + [3.5])),
+            ("SetTorqueZero", kinova.ActuatorAddress(address=0x15)),
+            ("SetJointZero", kinova.ActuatorAddress(address=0x11))]:
+        assert sdk.call(function, argument).code == kinova.ErrorCode.NO_ERROR_KINOVA, function
+    assert [fake.FakeTorqueSetup(i) for i in range(8)] == [0.75, 1.0, 2.5, 0.25, 1.0, 3.5, 0x15, 0x11]
+    assert calls(fake)[-2:] == ["SetTorqueZero", "SetJointZero"]
+    session.close()
 
 
 def test_the_arm_is_chosen_by_serial_number_and_two_without_one_is_an_error(library, fake):

@@ -69,7 +69,12 @@ STRUCTS = (sdk_mod.CartesianInfo, sdk_mod.AngularInfo, sdk_mod.FingersPosition, 
            sdk_mod.CartesianPosition, sdk_mod.UserPosition, sdk_mod.Limitation, sdk_mod.TrajectoryPoint,
            sdk_mod.TrajectoryFIFO, sdk_mod.KinovaDevice, sdk_mod.EthernetCommConfig)
 #: every enum the backend uses, as named in the header
-ENUMS = (kinova.ErrorCode, kinova.POSITION_TYPE, kinova.HAND_MODE, kinova.GENERALCONTROL_TYPE, kinova.ShapeType)
+ENUMS = (kinova.ErrorCode, kinova.POSITION_TYPE, kinova.HAND_MODE, kinova.GENERALCONTROL_TYPE, kinova.ShapeType,
+         kinova.GRAVITY_TYPE)
+#: the header's array sizes, by the names protocol.kinova gives them
+CONSTANTS = {"COMMAND_SIZE": kinova.TORQUE_COMMAND_SIZE, "GRAVITY_PARAM_SIZE": kinova.GRAVITY_PARAM_SIZE,
+             "OPTIMAL_Z_PARAM_SIZE": kinova.OPTIMAL_Z_PARAM_SIZE,
+             "OPTIMAL_Z_PARAM_SIZE_7DOF": kinova.OPTIMAL_Z_PARAM_SIZE_7DOF}
 
 
 def _program(header: str, prefix: str, transport: str) -> str:
@@ -86,6 +91,8 @@ def _program(header: str, prefix: str, transport: str) -> str:
     for enum in ENUMS:
         for member in enum:
             lines.append(f'std::printf("value {member.name} %ld\\n", (long)({member.name}));')
+    for name in CONSTANTS:
+        lines.append(f'std::printf("value {name} %ld\\n", (long)({name}));')
     init, init_binding = sdk_mod.INIT_BINDINGS[transport]
     for name, binding in {**sdk_mod.BINDINGS, init: init_binding}.items():
         pointer = binding.cpp.replace("(", "(*)(", 1)
@@ -129,6 +136,9 @@ def test_every_struct_enum_and_function_is_the_headers(transport, tmp_path, usb_
         for member in enum:
             if facts[f"value {member.name}"] != member.value:
                 mismatched.append(f"{member.name} = {facts[f'value {member.name}']} in the header, {member.value} here")
+    for name, value in CONSTANTS.items():
+        if facts[f"value {name}"] != value:
+            mismatched.append(f"{name} = {facts[f'value {name}']} in the header, {value} here")
     for name, binding in {**sdk_mod.BINDINGS, init: sdk_mod.INIT_BINDINGS[transport][1]}.items():
         if facts[f"type {name}"] != 1:
             mismatched.append(f"{prefix}{name} is not declared as {binding.cpp} in {header}")
@@ -140,7 +150,8 @@ def test_every_struct_enum_and_function_is_the_headers(transport, tmp_path, usb_
 def test_the_ctypes_argument_types_pass_what_the_declared_types_say():
     """Each binding's C++ type and its ctypes argument types say the same: T& and T* are pointers, T by value is
     the struct itself (what the compiled check above holds against the header)."""
-    ctypes_by_name = {struct.__name__: struct for struct in STRUCTS} | {"int": ctypes.c_int}
+    ctypes_by_name = {struct.__name__: struct for struct in STRUCTS} | {
+        "int": ctypes.c_int, "float": ctypes.c_float, "GRAVITY_TYPE": ctypes.c_int}
     for name, binding in {**sdk_mod.BINDINGS, **dict(sdk_mod.INIT_BINDINGS.values())}.items():
         inside = re.fullmatch(r"int\((.*)\)", binding.cpp).group(1)
         params = [p.strip() for p in inside.split(",") if p.strip()]

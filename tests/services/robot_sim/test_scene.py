@@ -108,21 +108,47 @@ def test_scene_config_validation():
         SceneConfig(timestep_s=0.01)
 
 
-def test_physics_model_matches_pinocchio_gravity(rng):
-    """The inertial description is the same for MuJoCo's physics and Pinocchio's dynamics."""
+@pytest.mark.parametrize("name", ["j2s7s300", "j2n6s300"])
+def test_the_emulated_arm_is_its_description_heavier_where_its_emulation_says_and_with_friction(name, rng):
+    """The simulated arm's gravity is Pinocchio's of the description with the links scaled as the description's
+    emulation section says (the model the controllers use is wrong by exactly that, on purpose); its joints carry
+    a fraction of the actuators' smallest backdriving torque as Coulomb friction (which the firmware applies in
+    torque mode only: test_firmware.py), and its motors their peak torques."""
     import mujoco
+    import pinocchio as pin
 
+    from services.model.arm import load_arm
     from services.model.kinematics import ArmKinematics
-    from tests.helpers import random_q
 
-    sim = Simulation(render=False)
-    kin = ArmKinematics(ARM)
+    arm = load_arm(name)
+    sim = Simulation(render=False, arm=arm)
+    true_model = arm.load_pinocchio().model.copy()
+    for i, scale in enumerate(arm.true_link_mass_scale, start=1):
+        true_model.inertias[i] = pin.Inertia(true_model.inertias[i].mass * scale, true_model.inertias[i].lever,
+                                             true_model.inertias[i].inertia * scale)
+    true_data, nominal = true_model.createData(), ArmKinematics(arm)
+    n = arm.n_joints
+    differs = False
     for _ in range(20):
-        q = random_q(rng)
-        sim.data.qpos[:7] = q
+        q = random_q_for(arm, rng)
+        sim.data.qpos[:n] = q
         sim.data.qvel[:] = 0
         mujoco.mj_forward(sim.model, sim.data)
-        assert np.allclose(sim.data.qfrc_bias[:7], kin.gravity(q), atol=1e-6)
+        assert np.allclose(sim.data.qfrc_bias[:n], pin.computeGeneralizedGravity(true_model, true_data, q), atol=1e-6)
+        differs |= not np.allclose(sim.data.qfrc_bias[:n], nominal.gravity(q), atol=1e-3)
+    assert differs  # the hand's extra mass shows in gravity
+    assert sim.model.dof_frictionloss[:n].tolist() == pytest.approx(
+        [arm.torque_mode_friction_fraction * j.spec.backdriving_torque_nm[0] for j in arm.joints])
+    assert 0.0 < arm.torque_mode_friction_fraction < 1.0
+    assert sim.model.actuator_ctrlrange[:, 1].tolist() == [j.spec.peak_torque_nm for j in arm.joints]
+
+
+def random_q_for(arm, rng):
+    lower, upper = arm.model_limits()
+    q = rng.uniform(-np.pi, np.pi, arm.n_joints)
+    limited = np.isfinite(lower)
+    q[limited] = rng.uniform(lower[limited] + 0.05, upper[limited] - 0.05)
+    return q
 
 
 def test_target_below_the_floor_is_refused():

@@ -13,7 +13,7 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
-from services.runtime.authority import DEFAULT_SERVICES, write_deployment
+from services.runtime.authority import DEFAULT_SERVICES, announces, write_deployment
 from services.runtime.transport import Router, ZenohConfig, free_loopback_port, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import KEYS, Recorder, next_seq, wait_for
@@ -257,7 +257,7 @@ def concrete_keys() -> list[str]:
     k = KEYS
     return [k.camera_image, k.camera_info, k.features, k.vision_goal, k.desired_twist, k.desired_joint_velocity,
             k.controller_status, k.robot_command, k.safety_status, k.estop, k.robot_state, k.lowlevel_command,
-            k.lowlevel_state, k.clock] + [k.health(s) for s in DEFAULT_SERVICES]
+            k.lowlevel_state, k.clock] + [k.health(s) for s in (*DEFAULT_SERVICES, "console")]
 
 
 def test_each_identity_writes_exactly_its_own_keys(deployment):
@@ -269,7 +269,7 @@ def test_each_identity_writes_exactly_its_own_keys(deployment):
     rules = writes(Keys.all_robots())
 
     def allowed(identity, key):  # zenoh's rule: the key expression is included in one of the identity's
-        own = rules.get(identity, []) + [Keys.all_robots().health(identity)]
+        own = rules.get(identity, []) + [Keys.all_robots().health(name) for name in announces(identity)]
         return any(zenoh.KeyExpr(rule).includes(zenoh.KeyExpr(key)) for rule in own)
 
     listener = session_as(deployment, "robot_sim")
@@ -368,3 +368,27 @@ def test_with_a_camera_identity_the_camera_keys_are_its_alone_and_the_operator_m
         for s in (operator, rogue, robot, listener):
             s.close()
         queryable  # kept declared until here
+
+
+def test_the_console_acts_as_the_operator_and_says_how_it_is_doing_in_its_own_name(deployment):
+    """`mfvs console` with the operator's config: alive and answering health as ``console`` (so `mfvs status`
+    lists it); its e-stop is the operator's; the operator's identity announces no other service."""
+    from services.console.service import ConsoleConfig, ConsoleService
+    from services.runtime.service import query_health
+
+    console = ConsoleService(ConsoleConfig(zenoh=ZenohConfig(
+        connect=[deployment.endpoint], config_file=str(deployment.client_configs["operator"])))).start()
+    observer = session_as(deployment, "vision")
+    try:
+        assert wait_for(lambda: "console" in query_health(observer, KEYS, 1.0), timeout=10)
+        alive = [str(r.ok.key_expr) for r in observer.liveliness().get(KEYS.liveliness_all, timeout=2) if r.ok]
+        assert KEYS.liveliness("console") in alive
+        impostor = session_as(deployment, "operator")
+        impostor.liveliness().declare_token(KEYS.liveliness("safety"))
+        time.sleep(0.5)
+        alive = [str(r.ok.key_expr) for r in observer.liveliness().get(KEYS.liveliness_all, timeout=2) if r.ok]
+        assert KEYS.liveliness("safety") not in alive
+        impostor.close()
+    finally:
+        observer.close()
+        console.stop()

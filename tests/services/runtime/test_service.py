@@ -18,7 +18,7 @@ from services.runtime.clock import SimulatedClock, WallClock, make_clock
 from services.runtime.config import ConfigError, apply_override, config_from_text, load_config
 from services.runtime.logs import RateLimitedLogger
 from services.runtime.metrics import Counters, RateMeter
-from services.runtime.service import Service, ServiceConfig
+from services.runtime.service import Service, ServiceConfig, service_condition
 from services.runtime.transport import Router, ZenohConfig, open_session, to_zenoh_config
 from tests.stack import wait_for
 from tests.helpers import REPO
@@ -139,7 +139,7 @@ def test_service_lifecycle_liveliness_health_and_bad_input(router, client):
 SERVICE_SCRIPT = textwrap.dedent(
     """
     import sys
-    from services.runtime.service import Service, ServiceConfig
+    from services.runtime.service import Service, ServiceConfig, service_condition
     from services.runtime.transport import ZenohConfig
     cfg = ServiceConfig(zenoh=ZenohConfig(connect=[sys.argv[1]]), health_period_s=0.1)
     class Idle(Service):
@@ -406,6 +406,17 @@ def test_a_loop_below_its_rate_or_overrunning_is_degraded_in_status(router, hz, 
             assert wait_for(lambda: condition()["condition"] == "healthy", timeout=5)  # not grown since
     finally:
         service.stop()
+
+
+def test_a_services_condition_is_read_off_its_health():
+    def health(healthy=True, degraded=()):
+        return m.ServiceHealth(header=m.Header(), service="vision", pid=1, healthy=healthy, state="running",
+                               uptime_s=1.0, degraded=list(degraded))
+
+    assert service_condition(health()) == "healthy"
+    assert service_condition(health(degraded=["image at 20.0 Hz (nominal 30)"])) == "degraded"
+    assert service_condition(health(healthy=False, degraded=["late"])) == "unhealthy"
+    assert service_condition(None) == "unknown"
 
 
 def test_state_history_finds_the_state_of_a_frame():

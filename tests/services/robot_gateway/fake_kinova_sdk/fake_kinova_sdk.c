@@ -175,10 +175,28 @@ int API(GetGlobalTrajectoryInfo)(TrajectoryFIFO *out) {
     return NO_ERROR_KINOVA;
 }
 
+/* the torque-mode setup of seed 003's Table 5.1: each call recorded with its value (FakeTorqueSetup) */
+static float torque_setup[8];
+static int setup_call(const char *name, int slot, float value) {
+    record(name);
+    if (!initialized) return ERROR_API_NOT_INITIALIZED;
+    torque_setup[slot] = value;
+    return NO_ERROR_KINOVA;
+}
+int API(SetTorqueSafetyFactor)(float factor) { return setup_call("SetTorqueSafetyFactor", 0, factor); }
+int API(SetTorqueVibrationController)(float status) { return setup_call("SetTorqueVibrationController", 1, status); }
+int API(SetTorqueActuatorGain)(float command[70]) { return setup_call("SetTorqueActuatorGain", 2, command[69]); }
+int API(SetTorqueActuatorDamping)(float command[70]) { return setup_call("SetTorqueActuatorDamping", 3, command[5]); }
+int API(SetGravityType)(int type) { return setup_call("SetGravityType", 4, (float)type); }
+int API(SetGravityOptimalZParam)(float command[42]) { return setup_call("SetGravityOptimalZParam", 5, command[41]); }
+int API(SetTorqueZero)(int address) { return setup_call("SetTorqueZero", 6, (float)address); }
+int API(SetJointZero)(int address) { return setup_call("SetJointZero", 7, (float)address); }
+
 /* test hooks */
 void FakeReset(void) {
     initialized = 0; init_code = NO_ERROR_KINOVA; fail_code = 0; home_delay_ms = 0;
     points = erased = homed = homing = 0; calls[0] = 0;
+    memset(torque_setup, 0, sizeof torque_setup);
     memset(&active, 0, sizeof active);
     memset(devices, 0, sizeof devices);
     device_count = 1;
@@ -203,6 +221,7 @@ void FakeDevices(const char *spec) {
     }
 }
 const char *FakeCalls(void) { return calls; }
+float FakeTorqueSetup(int slot) { return torque_setup[slot]; }
 const char *FakeActiveSerial(void) { return active.SerialNumber; }
 void FakeEthernet(EthernetCommConfig *out) { *out = ethernet; }
 void FakeLastPoint(TrajectoryPoint *out) { *out = last_point; }

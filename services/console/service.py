@@ -1,0 +1,198 @@
+"""The console's side toward the stack: a service like the others (liveliness, health with its counters, every
+input decoded and validated) that follows what the page shows, encodes the camera's frames to JPEG in a thread of
+its own (the newest frame only: a page that cannot keep up loses frames, it never makes them queue), and carries
+out the page's requests with the functions `mfvs task` and `mfvs estop` use, as the identity of its zenoh config
+(the operator's, behind authority). It publishes nothing the robot acts on: its only writes are the e-stop (the
+operator's key) and its own health; the task is asked of the controller."""
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable, Optional
+
+from protocol import messages as m
+from protocol.conventions import ClockMode
+from services.console.core import Action, Command, ConsoleModel, frame_packet
+from services.controller.task_client import TaskUnavailable, call_task
+from services.safety.estop_client import EStopClient
+from services.launcher import describe_task
+from services.observe.foxglove_view import jpeg
+from services.runtime.service import Service, ServiceConfig, query_health
+from services.runtime.threads import start_thread
+
+
+class ConsoleConfig(ServiceConfig):
+    #: the page's JPEG quality (the viewer's copy; vision gets the raw frame)
+    jpeg_quality: int = 80
+    #: how long an action waits for the controller's answer or safety's confirmation (s)
+    action_timeout_s: float = 5.0
+    #: how often each service's health and the task are asked (s)
+    poll_period_s: float = 1.0
+
+
+class ConsoleService(Service):
+    name = "console"
+
+    def __init__(self, config: Optional[ConsoleConfig] = None, **kwargs) -> None:
+        super().__init__(config or ConsoleConfig(), **kwargs)
+        self.config: ConsoleConfig
+        self.model = ConsoleModel()
+        #: guards the model: zenoh's callback threads write it, the web side reads it
+        self.lock = threading.Lock()
+        #: where encoded frames and overlays go (the web side sets them); whether anyone watches now
+        self.on_frame: Callable[[bytes], None] = lambda packet: None
+        self.on_overlay: Callable[[dict], None] = lambda overlay: None
+        self.wants_frames: Callable[[], bool] = lambda: False
+        #: pages open and shown the stack now (the web side keeps it)
+        self.pages_open = 0
+        self._newest_image: Optional[tuple[m.Image, int]] = None
+        self._image_arrived = threading.Condition()
+        #: whether capture stamps are wall time (realtime) or the simulator's (lockstep): the page reads a frame's
+        #: delay off its stamp only for the first
+        self.wall_stamps = True
+        self._estop: Optional[EStopClient] = None
+        self._threads: list[threading.Thread] = []
+
+    # ------------------------------------------------------------------ lifecycle
+    def on_start(self) -> None:
+        k = self.keys
+        self.subscribe(k.camera_image, m.Image, self._on_image, "image")
+        self.subscribe(k.camera_info, m.CameraInfo, self._locked(self.model.on_camera_info, timed=False),
+                       "camera_info")
+        self.subscribe(k.features, m.Features, self._on_features, "features")
+        self.subscribe(k.robot_state, m.RobotState, self._on_state, "robot_state")
+        self.subscribe(k.controller_status, m.ControllerStatus, self._locked(self.model.on_controller),
+                       "controller_status")
+        self.subscribe(k.safety_status, m.SafetyStatus, self._locked(self.model.on_safety), "safety_status")
+        self.subscribe(k.estop, m.EStop, self._locked(self.model.on_estop), "estop")
+        self.subscribe(k.clock, m.SimClock, self._on_clock, "sim_clock")
+        self._estop = EStopClient(self.session, k)
+        self._threads = [start_thread(self._encode_frames, "console-jpeg"),
+                         start_thread(self._poll, "console-poll")]
+
+    def on_stop(self) -> None:
+        with self._image_arrived:
+            self._image_arrived.notify_all()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
+        if self._estop is not None:
+            self._estop.close()
+
+    def check_health(self) -> tuple[bool, str]:
+        rates = self.rates.snapshot()
+        with self.lock:
+            arm = self.model.arm
+        robot = ("no robot state yet" if arm is None else f"arm {arm.name}" if arm.description is not None
+                 else f"arm {arm.name} not described here")
+        return True, (f"pages={self.pages_open} frames {rates.get('frames.sent', 0.0):.1f}/s "
+                      f"(encoded {rates.get('frames.encoded', 0.0):.1f}/s) {robot}")
+
+    # ------------------------------------------------------------------ inputs
+    def _locked(self, update, timed: bool = True):
+        def handler(message, _recv_ns: int) -> None:
+            with self.lock:
+                if timed:
+                    update(message, time.time())
+                else:
+                    update(message)
+        return handler
+
+    def _on_image(self, image: m.Image, _recv_ns: int) -> None:
+        with self._image_arrived:
+            self._newest_image = (image, time.time_ns())  # an older one not yet encoded is dropped
+            self._image_arrived.notify()
+
+    def _on_features(self, features: m.Features, _recv_ns: int) -> None:
+        with self.lock:
+            overlay = self.model.on_features(features, time.time())
+        if self.wants_frames():
+            self.on_overlay(overlay)
+
+    def _on_state(self, state: m.RobotState, _recv_ns: int) -> None:
+        with self.lock:
+            problem = self.model.on_state(state, time.time())
+        if problem:  # shown without the arm's ranges and limits; counted each state, as safety counts its refusals
+            self.counters.inc("arm.not_described")
+            self.limited_log.warning("arm", "console: the robot's arm: %s", problem)
+
+    def _on_clock(self, tick: m.SimClock, _recv_ns: int) -> None:
+        self.wall_stamps = ClockMode(tick.mode) is ClockMode.REALTIME
+
+    # ------------------------------------------------------------------ threads
+    def _encode_frames(self) -> None:
+        while not self.stop_requested:
+            with self._image_arrived:
+                self._image_arrived.wait_for(lambda: self._newest_image is not None or self.stop_requested,
+                                             timeout=0.5)
+                newest, self._newest_image = self._newest_image, None
+            if newest is None or not self.wants_frames():
+                continue
+            image, received_ns = newest
+            try:
+                encoded = jpeg(image, self.config.jpeg_quality)
+            except Exception as exc:  # an image OpenCV cannot encode: not shown, counted, the next one may be
+                self.counters.inc("errors.encode")
+                self.limited_log.warning("encode", "console: could not encode a frame: %s", exc)
+                continue
+            header = {"seq": image.header.seq, "capture_ns": image.header.source_stamp_ns or image.header.stamp_ns,
+                      "received_ns": received_ns, "encoded_ns": time.time_ns(), "wall_stamps": self.wall_stamps,
+                      "width": image.width, "height": image.height}
+            self.rates.tick("frames.encoded")
+            self.on_frame(frame_packet(encoded, header))
+
+    def _poll(self) -> None:
+        """Each service's health and the task, every poll period (what `mfvs status` and `mfvs task status` ask)."""
+        while not self._stop_event.wait(self.config.poll_period_s):
+            session = self.session
+            if session is None:
+                return
+            try:
+                found = query_health(session, self.keys, timeout_s=0.8 * self.config.poll_period_s)
+                task: Optional[m.TaskStatus] = call_task(session, self.keys, m.GET_TASK,
+                                                         timeout_s=0.8 * self.config.poll_period_s)
+            except TaskUnavailable:
+                task = None
+            except Exception:  # the session is closing
+                if self.stop_requested:
+                    return
+                self.limited_log.warning("poll", "console: could not ask the stack's health and task")
+                continue
+            now = time.time()
+            with self.lock:
+                self.model.on_health(found, now)
+                self.model.on_task(task, now)
+
+    # ------------------------------------------------------------------ the page's requests
+    def refused(self, reason: str, message: str) -> None:
+        """A request of the page's that the console did not carry out: counted, logged, shown in its log."""
+        self.counters.inc(f"refused.{reason}")
+        self.limited_log.warning(f"refused:{reason}", "console: refused (%s): %s", reason, message)
+        with self.lock:
+            self.model.note("console", "warning", f"refused: {message}", time.time())
+
+    def perform(self, command: Command) -> tuple[bool, str]:
+        """Carry out a request the rules let through (blocking: up to the action timeout); (done, what happened)."""
+        self.counters.inc(f"actions.{command.action.value}")
+        with self.lock:
+            self.model.note("console", "info", f"{command.operator} asks: {command.action.value.replace('_', ' ')}"
+                            + (f" ({command.reason})" if command.reason else ""), time.time())
+        if command.action in (Action.TASK_START, Action.TASK_STOP):
+            function = m.START_TASK if command.action is Action.TASK_START else m.STOP_TASK
+            try:
+                status = call_task(self.session, self.keys, function,
+                                   m.TaskRequest(operator=command.operator, reason=command.reason),
+                                   self.config.action_timeout_s)
+            except TaskUnavailable as exc:
+                return False, f"{exc} (is the controller up? may this identity ask it?)"
+            with self.lock:
+                self.model.on_task(status, time.time())
+            return status.ok, describe_task(status)
+        reset = command.action is Action.ESTOP_RELEASE
+        assert self._estop is not None
+        status = self._estop.send(reset, command.operator, command.reason, self.config.action_timeout_s)
+        if status is None:
+            return False, (f"e-stop {'release' if reset else 'request'} sent, but safety did not confirm it within "
+                           f"{self.config.action_timeout_s:g} s")
+        with self.lock:
+            self.model.on_safety(status, time.time())
+        return True, f"e-stop {'released' if reset else 'engaged'}: safety reports {status.state.value}"

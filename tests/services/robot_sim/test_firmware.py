@@ -1,0 +1,74 @@
+"""The emulated actuators as their data sheets give them (services/model/actuators.yaml): what a motor can give,
+where friction acts, what the torque sensors read."""
+import numpy as np
+import pytest
+
+from services.model.arm import load_arm
+from services.model.kinematics import ArmKinematics
+from services.robot.hardware import JointTargets
+from services.robot_sim.hardware import SimulatedHardware
+from services.robot_sim.sim import Simulation
+from services.runtime.metrics import Counters
+
+
+def in_torque_mode(name: str):
+    arm = load_arm(name)
+    counters = Counters()
+    sim = Simulation(render=False, arm=arm, counters=counters)
+    hardware = SimulatedHardware(sim)
+    reading = hardware.read()
+    for _ in range(100):  # 0.2 s holding where it starts: the motors carry the arm's weight
+        reading = hardware.exchange(JointTargets(q=reading.q))
+    hardware.enter_torque_mode(ArmKinematics(arm).gravity(reading.q))
+    return arm, sim, hardware, counters, reading
+
+
+@pytest.mark.parametrize("name", ["j2s7s300", "j2n6s300"])
+def test_a_torque_demand_above_the_peak_is_held_at_the_peak_and_along_the_torque_speed_line(name):
+    """Every joint asked for three times its peak, in torque mode: no motor gives more than its actuator's peak
+    (the data sheet's software limitation), and once turning, no more than the torque-speed line allows in the
+    direction it turns (stall torque falling to 0 at the no-load speed); the firmware counts the limited steps."""
+    arm, sim, hardware, counters, reading = in_torque_mode(name)
+    peak = np.array([j.peak_torque_nm for j in arm.joints])
+    stall = np.array([j.spec.stall_torque_nm for j in arm.joints])
+    no_load = np.array([j.spec.no_load_speed for j in arm.joints])
+    demand = 3.0 * peak * np.where(np.arange(arm.n_joints) % 2 == 0, 1.0, -1.0)
+    applied, speeds = [], []
+    for _ in range(40):  # 80 ms: the wrist joints reach a fair share of their no-load speed
+        reading = hardware.exchange(JointTargets(q=reading.q, torques=demand))
+        applied.append(np.abs(sim.firmware.applied_torque_nm()))
+        speeds.append(np.abs(reading.dq))
+    applied, speeds = np.array(applied), np.array(speeds)
+    assert np.all(applied <= peak + 1e-9)
+    assert np.any(np.isclose(applied, peak))  # held at the peak, not below it
+    along_line = np.maximum(stall * (1.0 - speeds / no_load), 0.0)
+    assert np.all(applied <= np.maximum(np.minimum(along_line, peak), 0.0) + 0.05 * peak)  # a cycle's lag
+    assert counters.get("torque.limited_ms") > 0
+
+
+@pytest.mark.parametrize("name", ["j2s7s300", "j2n6s300"])
+def test_friction_acts_in_torque_mode_only(name):
+    """The joints' Coulomb friction (the description's emulation section) is in the physics while the actuators
+    are in torque mode; in position mode their own position loop rejects it."""
+    arm, sim, hardware, _, reading = in_torque_mode(name)
+    hardware.exchange(JointTargets(q=reading.q, torques=np.zeros(arm.n_joints)))
+    assert sim.model.dof_frictionloss[: arm.n_joints] == pytest.approx(arm.true_friction_nm)
+    assert np.all(arm.true_friction_nm > 0)
+    hardware.leave_torque_mode()
+    hardware.exchange(JointTargets(q=reading.q))
+    assert not sim.model.dof_frictionloss[: arm.n_joints].any()
+
+
+def test_the_torque_sensors_read_a_bias_and_noise_until_zeroed():
+    """The sensors read the applied torque plus a bias within the data sheet's drift (±0.3 N·m) and noise of its
+    precision (±0.4 N·m as 2σ); SetTorqueZero takes the bias, with whatever load the joint carries, out."""
+    arm = load_arm("j2n6s300")
+    sim = Simulation(render=False, arm=arm)
+    firmware = sim.firmware
+    errors = np.array([firmware.sensed_torque_nm() - firmware.applied_torque_nm() for _ in range(2000)])
+    bias, noise = errors.mean(axis=0), errors.std(axis=0)
+    assert np.all(np.abs(bias) <= 0.3 + 0.02) and np.any(np.abs(bias) > 0.02)
+    assert noise == pytest.approx(np.full(arm.n_joints, 0.2), rel=0.1)
+    firmware.zero_torque(5)
+    after = np.array([firmware.sensed_torque_nm()[5] for _ in range(2000)])
+    assert abs(after.mean()) < 0.03  # the joint reads 0 where it stands (load and bias taken as zero)
