@@ -4,14 +4,19 @@
 
 It takes the robot's arm from its states (the same description, by name and fingerprint; one it was not started
 for is refused), reads X0 from the arm's own Cartesian report (``GetCartesianPosition``, as the thesis read X0 from
-its arm) and answers each low-level state with a :class:`~protocol.messages.TorqueCommand` (its own sequence
-numbers and stamps, ``gravity_compensation: false``: the thesis switched the arm's own off). The subscriber keeps
+its arm), makes the torque-mode setup of the thesis's Table 5.1 through the arm's Kinova API
+(:func:`services.robot.torque_setup.table_5_1`: safety factor 1, vibration controller 1, damping 0, gravity OPTIMAL
+with every optimal-Z parameter 0 so the arm adds no gravity, actuator gain 0) before its first torque, and answers
+each low-level state with a :class:`~protocol.messages.TorqueCommand` (its own sequence numbers and stamps, the
+controller's whole torque, its ĝ(q) included: ``gravity_compensation: false``, which says so; with the arm's
+gravity off the robot adds none either way). The subscriber keeps
 only the newest state; a worker thread answers it, so a late host skips states (counted) instead of answering old
 ones. At the end it asks the robot for its own counters (``lowlevel.watchdog``, late and missed cycles) and writes
 the run's log.
 """
 from __future__ import annotations
 
+import enum
 import itertools
 import threading
 import time
@@ -22,11 +27,12 @@ import msgspec
 import numpy as np
 
 from protocol import kinova
-from protocol.messages import LowLevelState, ProtocolError, RobotState, TorqueCommand, decode
+from protocol.messages import LowLevelState, ProtocolError, RobotState, TorqueCommand, decode, encode
 from services.controller.torque_controllers import (CONTROLLERS, TASK_CONTROLLERS, ControllerOptions,
                                                     make_controller)
 from services.model.arm import ArmError, check_arm_name, declared_arm
 from services.robot.node import ROBOT_SERVICES
+from services.robot.torque_setup import table_5_1
 from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread
 from services.torque_controller.core import TorqueRun
@@ -36,9 +42,18 @@ from services.torque_controller.core import TorqueRun
 #: run, not a missed cycle
 COUNTERS_BEFORE_END_S = 0.1
 #: the robot's counters a run reports (their growth during the run)
-ROBOT_COUNTERS = ("lowlevel.watchdog", "cycles.late", "cycles.missed", "cycles.arm_missed", "dsp.overruns",
+ROBOT_COUNTERS = ("lowlevel.watchdog", "lowlevel.safety_stops", "refused.lowlevel_after_safety_stop",
+                  "torque.limited_ms", "cycles.late", "cycles.missed", "cycles.arm_missed", "dsp.overruns",
                   "rejected.lowlevel_command", "refused.lowlevel_sequence", "refused.lowlevel_stale",
                   "refused.joint_count")
+#: the thesis's calibration, which the runs leave out (the log says so)
+CALIBRATION_NOT_APPLIED = {
+    "SetTorqueZero": "the controllers read no torque sensor (their laws use q and q̇ only), and the thesis zeroed "
+                     "the sensors at [*, 180, 180, 0, 0, 180]° where gravity loads no joint, a pose away from the "
+                     "runs' start; over RS-485 the call does not exist",
+    "SetJointZero": "the emulated position sensors never slip (the thesis re-zeroed after sudden stops); the "
+                    "emulated arm refuses it",
+}
 
 
 class TorqueControllerConfig(ServiceConfig):
@@ -47,6 +62,9 @@ class TorqueControllerConfig(ServiceConfig):
     #: one of services.controller.torque_controllers.CONTROLLERS
     controller: str = ""
     options: ControllerOptions = msgspec.field(default_factory=ControllerOptions)
+    #: make the thesis's Table 5.1 torque-mode setup through the Kinova API before the first torque (false: the
+    #: arm's setup as it is, its defaults unless someone changed them)
+    table_5_1: bool = True
     #: how long the run lasts (s); null: the controller's reference and ``hold_s`` after it
     duration_s: Optional[float] = None
     hold_s: float = 4.0
@@ -93,6 +111,8 @@ class TorqueControllerService(Service):
         self._robot_before: dict = {}
         self._robot_after: Optional[dict] = None
         self._counters_thread: Optional[threading.Thread] = None
+        #: the torque-mode setup this run made (the Kinova API's answer to each call), for the log
+        self.torque_setup: dict = {}
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -187,6 +207,8 @@ class TorqueControllerService(Service):
         self.run_ = run
         self._wait("low-level state", lambda: self._pending, cfg.robot_timeout_s)
         x0 = self._cartesian_position() if cfg.controller in TASK_CONTROLLERS else None
+        if cfg.table_5_1:
+            self._apply_table_5_1()
         self._robot_before = self._robot_counters()
         first, arrival = self._wait("low-level state", self._take_pending, cfg.robot_timeout_s)
         with self._cond:
@@ -214,20 +236,38 @@ class TorqueControllerService(Service):
         pending, self._pending = self._pending, None
         return pending
 
-    def _cartesian_position(self) -> np.ndarray:
-        """X0 as the arm reports it (GetCartesianPosition: position and XYZ Euler angles)."""
-        for reply in self.session.get(self.keys.robot_api("GetCartesianPosition"), timeout=5.0):
+    def _call_api(self, function: str, argument=None):
+        """One Kinova API function on the robot (``robot/api/<function>``); its reply, or why there is none."""
+        reply_type = kinova.API_FUNCTIONS[function][1]
+        payload = None if argument is None else encode(argument)
+        for reply in self.session.get(self.keys.robot_api(function), payload=payload, timeout=5.0):
             if reply.ok is None:
                 continue
             try:
-                answer = decode(reply.ok.payload.to_bytes(), kinova.CartesianPositionReply)
+                answer = decode(reply.ok.payload.to_bytes(), reply_type)
             except ProtocolError as exc:
-                raise RuntimeError(f"GetCartesianPosition: {exc}") from None
+                raise RuntimeError(f"{function}: {exc}") from None
             if answer.code != kinova.ErrorCode.NO_ERROR_KINOVA:
-                raise RuntimeError(f"GetCartesianPosition refused: {answer.message}")
-            c = answer.result.Coordinates
-            return np.array([c.X, c.Y, c.Z, c.ThetaX, c.ThetaY, c.ThetaZ])
-        raise RuntimeError("the robot did not answer GetCartesianPosition")
+                raise RuntimeError(f"{function} refused (code {answer.code}): {answer.message}")
+            return answer
+        raise RuntimeError(f"the robot did not answer {function}")
+
+    def _cartesian_position(self) -> np.ndarray:
+        """X0 as the arm reports it (GetCartesianPosition: position and XYZ Euler angles)."""
+        c = self._call_api("GetCartesianPosition").result.Coordinates
+        return np.array([c.X, c.Y, c.Z, c.ThetaX, c.ThetaY, c.ThetaZ])
+
+    def _apply_table_5_1(self) -> None:
+        """The thesis's torque-mode setup, call by call in its order; a refused call ends the run before any torque
+        (a controller written for the arm without gravity compensation must not run on one with it)."""
+        applied = []
+        self.torque_setup = {"table": "seed 003 Table 5.1", "applied": applied,
+                             "not_applied": dict(CALIBRATION_NOT_APPLIED)}
+        for function, argument in table_5_1():
+            self._call_api(function, argument)
+            applied.append({"function": function, "argument": _summary(argument)})
+        self.log.info("%s: Table 5.1 applied: %s", self.name,
+                      ", ".join(f"{a['function']}({a['argument']})" for a in applied))
 
     def _robot_counters(self) -> dict:
         """The robot's own counters and loop rate, from its health (the gateway's where there is one: robot_sim
@@ -261,10 +301,23 @@ class TorqueControllerService(Service):
                          "counters": {k: after["errors"].get(k, 0) - before.get("errors", {}).get(k, 0)
                                       for k in ROBOT_COUNTERS}}
             if self.config.log:
-                run.save(Path(self.config.log), failure=self.failure, robot=robot,
+                run.save(Path(self.config.log), failure=self.failure, robot=robot, torque_setup=self.torque_setup,
                          refused_states=self.counters.get("refused.joint_count"))
             timing = run.timing.summary()
             self.log.info("%s: %s; answered %d states, missed %d (late %d, superseded %d, unseen %d); robot %s",
                           self.name, self.failure or "completed", timing["answered"], timing["missed"],
                           timing["late"], timing["superseded"], timing["unseen"], robot.get("counters"))
         self.request_stop()
+
+
+def _summary(argument: msgspec.Struct) -> str:
+    """A Kinova API argument in a line: an enum by its name, an array of one repeated value as ``n × v``."""
+    parts = []
+    for key in argument.__struct_fields__:
+        value = getattr(argument, key)
+        if isinstance(value, enum.Enum):
+            value = value.name
+        elif isinstance(value, list) and value and all(v == value[0] for v in value):
+            value = f"{len(value)} × {value[0]:g}"
+        parts.append(f"{key}={value}")
+    return ", ".join(parts)

@@ -10,7 +10,7 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
-from services.robot.torque_setup import TorqueSetup
+from services.robot.torque_setup import TorqueSetup, table_5_1
 from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
@@ -225,13 +225,16 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot, router):
     """Seed 003's computed torque (eq. 4.16-4.18 with feed-forward) as the torque controller service, a zenoh client
     of the low-level API, tracks the eq. 5.1 cubic within 3°: the wrist joints' torque-mode friction (0.17 N·m)
     against their stiffness, each torque a zenoh round trip late (over the bus, in-process, the same law keeps within
-    1°: test_torque_controllers_bus.py). Low-level states of another arm's joint count are refused and counted, and
-    the run goes on."""
+    1°: test_torque_controllers_bus.py). Before its first torque it makes the thesis's Table 5.1 setup through the
+    Kinova API (the arm then adds no gravity, damps nothing, never stops for speed), which the robot's health shows
+    and the run's log records. Low-level states of another arm's joint count are refused and counted, and the run
+    goes on."""
     from services.torque_controller.service import TorqueControllerConfig, TorqueControllerService
 
     client = robot.client
     low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
     assert wait_for(lambda: len(low) > 20)
+    assert "torque setup: safety factor 0.5" in robot.health().detail  # the emulated arm's factory default
     options = computed_torque_options_for_the_emulated_arm(
         tf_s=2.0, joint_displacement_deg=[10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
     service = TorqueControllerService(TorqueControllerConfig(
@@ -248,6 +251,9 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot, router):
         service.stop()
     assert not service.failure
     assert service.counters.get("refused.joint_count") == 3
+    assert [a["function"] for a in service.torque_setup["applied"]] == [f for f, _ in table_5_1()]
+    assert (f"torque setup: safety factor off, damping {[0.0] * ARM.n_joints}, gravity none"
+            in robot.health().detail)
     run = service.run_
     errors = run.arrays()["joint_error_deg"]
     timing = run.timing.summary()
