@@ -18,7 +18,10 @@ joint-pd-last-low-rotors the same with the motors' rotor inertia in the model: w
 null-space-mass-rotors   (c) with the rotor inertia in M̂: why W = M̂ changes what it changes
 =======================  =========================================================================================
 
-X0 is the arm's own Cartesian report at HOME (GetCartesianPosition); Xf is eq. 5.2's on the thesis's j2n6s300 and
+Each controller makes the thesis's Table 5.1 torque-mode setup through the arm's Kinova API before its first torque
+(safety factor 1, damping 0, gravity OPTIMAL with every optimal-Z parameter 0, gain 0: the arm adds no gravity, so
+the controllers add their ĝ(q)); its log records the calls. X0 is the arm's own Cartesian report at HOME
+(GetCartesianPosition); Xf is eq. 5.2's on the thesis's j2n6s300 and
 X0 moved as eq. 5.2 moves it on another arm (whether it can be reached is computed and reported). ``quick`` runs
 the five controllers on a 3 s reference (3/16 of the motion: the thesis's speeds) for a look, or a test.
 """
@@ -194,7 +197,6 @@ def run_row(spec: TorqueRunSpec, result: dict, arm: ArmDescription, quick: bool)
     limits = np.asarray(meta["torque_limits_nm"])
     durations = _durations(t)
     over_command = np.any(np.abs(a["tau_command"]) > limits, axis=1) if len(t) else np.zeros(0, bool)
-    at_limit = np.any(np.abs(a["tau_measured"]) >= limits - 1e-3, axis=1) if len(t) else np.zeros(0, bool)
     timing, robot = meta["timing"], meta.get("robot", {})
     robot_counters = robot.get("counters", {})
     failure = meta.get("failure") or ""
@@ -212,13 +214,18 @@ def run_row(spec: TorqueRunSpec, result: dict, arm: ArmDescription, quick: bool)
             "position_mm": round(float(position_mm[min(end_of_motion, len(t) - 1)]), 3),
             "orientation_deg": round(float(orientation_deg[min(end_of_motion, len(t) - 1)]), 3)},
         "saturation_s": round(float(durations[over_command].sum()), 3),
-        "saturation_robot_s": round(float(durations[at_limit].sum()), 3),
+        # the actuators' own count (robot_sim's: physics steps of 1 ms in which some motor gave less than asked,
+        # at its peak or its torque-speed line); the measured torques carry the sensors' noise and bias
+        "saturation_robot_s": None if robot_counters.get("torque.limited_ms") is None else
+        round(robot_counters["torque.limited_ms"] / 1e3, 3),
         "saturated_joints": [i + 1 for i in range(len(limits)) if len(t) and
                              np.any(np.abs(a["tau_command"][:, i]) > limits[i])],
         "peak_torque_fraction": None if not len(t) else
         [round(float(v), 3) for v in (np.abs(a["tau_command"]).max(axis=0) / limits)],
         "missed_cycles": timing["missed"], "timing": timing, "faults": meta.get("faults", {}),
         "robot_watchdog": robot_counters.get("lowlevel.watchdog"),
+        "safety_stops": robot_counters.get("lowlevel.safety_stops"),
+        "torque_setup": meta.get("torque_setup") or None,
         "robot_counters": robot_counters, "robot_bus_hz": robot.get("bus_cycle_hz"),
         "torque_mode_fraction": round(float(np.mean(a["torque_mode"])), 4) if len(t) else 0.0,
         "x0": meta.get("x0"), "xf": meta.get("xf"), "target": meta.get("target"),
@@ -420,15 +427,34 @@ def reference_target(arm: ArmDescription, quick: bool) -> dict:
 
 def model_error(arm: ArmDescription) -> dict:
     """How the controllers' model (the links alone, as the thesis's CAD model) differs from the emulated arm, at
-    home: the diagonal of M̂ against the arm's, and the friction it does not know."""
-    cad, full = laws.DynamicsModel(arm), laws.DynamicsModel(arm, rotor_inertia=True, friction=True)
-    m_cad, m_arm = np.diag(cad.mass(arm.home)), np.diag(full.mass(arm.home))
+    home: the diagonal of M̂ against the arm's (robot_sim's MuJoCo model: the rotors' inertia, the heavier hand),
+    the friction it does not know, and the gravity the arm's hand adds beyond the model's."""
+    import mujoco
+
+    from services.robot_sim.scene import CameraConfig, SceneConfig, build_model
+
+    true_model = build_model(SceneConfig(camera=CameraConfig(enabled=False)), arm)
+    data = mujoco.MjData(true_model)
+    n = arm.n_joints
+    data.qpos[:n] = arm.home
+    mujoco.mj_forward(true_model, data)
+    full = np.zeros((true_model.nv, true_model.nv))
+    mujoco.mj_fullM(true_model, data, full)
+    cad = laws.DynamicsModel(arm)
+    m_cad, m_arm = np.diag(cad.mass(arm.home)), np.diag(full)[:n]
     return {"mass_diagonal_model": [round(float(v), 4) for v in m_cad],
             "mass_diagonal_arm": [round(float(v), 4) for v in m_arm],
             "model_over_arm": [round(float(v), 3) for v in m_cad / m_arm],
             "rotor_inertia_kg_m2": arm.armature.tolist(), "viscous_friction_nm_s_per_rad": arm.damping.tolist(),
+            "coulomb_friction_nm": [round(float(v), 3) for v in arm.true_friction_nm],
+            "link_mass_scale": arm.true_link_mass_scale.tolist(),
+            "gravity_model_nm": [round(float(v), 3) for v in cad.gravity(arm.home)],
+            "gravity_arm_nm": [round(float(v), 3) for v in data.qfrc_bias[:n]],
             "torque_limits_nm": laws.torque_limits(arm).tolist(),
-            "gravity": "ĝ(q) is exact: the emulated arm's links are the description's"}
+            "gravity": ("The arm's gravity (its hand heavier than the model's) is not what the controllers face: with "
+                        "Table 5.1's gravity off, the robot node takes the model's ĝ(q) out of what the emulated "
+                        "actuators add, which is the arm's own gravity (and Coriolis), so the gravity left to the "
+                        "controllers is the model's: their ĝ(q) is exact in effect")}
 
 
 def _timing_summary(rows: dict) -> dict:
@@ -440,11 +466,15 @@ def _timing_summary(rows: dict) -> dict:
             "arrival_jitter_p99_ms": max(r["timing"]["arrival_jitter_ms"]["p99"] or 0.0 for r in done),
             "missed_cycles": sum(r["missed_cycles"] for r in done),
             "answered": sum(r["timing"]["answered"] for r in done),
-            "robot_watchdog": sum(r["robot_watchdog"] or 0 for r in done)}
+            "robot_watchdog": sum(r["robot_watchdog"] or 0 for r in done),
+            "safety_stops": sum(r["safety_stops"] or 0 for r in done)}
 
 
 #: the choices where the thesis is silent (docs/torque.md says why)
 CHOICES = [
+    "Table 5.1 made by each controller through the Kinova API before its first torque (the arm adds no gravity); "
+    "the thesis's calibration (SetTorqueZero at [*, 180, 180, 0, 0, 180]°, SetJointZero) is not: no controller "
+    "reads a torque sensor, and the emulated position sensors never slip",
     "(a)-(c) add the model's gravity ĝ(q) (not stated by the thesis); the literal law runs as jt-pid-no-gravity",
     "D terms on the error's rate (reference velocity less J·q̇), not on −J·q̇ alone",
     "integrals weighed by each step's duration (the thesis's fixed 10 ms step has none)",
@@ -489,14 +519,25 @@ def report_markdown(output: dict, out_dir: Path) -> str:
     lines += ["## The model against the arm", "",
               "The controllers' M̂(q) is the links' alone (the description's masses, centres, inertias: the thesis's "
               "eq. 3.35 from its CAD model); the emulated arm also has the motors' rotor inertia reflected through "
-              "the gears and viscous friction, which the thesis's model did not have either.", "",
+              "the gears, a hand heavier than described, viscous and Coulomb friction and its actuators' peak "
+              "torques, which the thesis's model did not have either.", "",
               "| joint | " + " | ".join(str(i + 1) for i in range(len(model["mass_diagonal_model"]))) + " |",
               "|---|" + "---|" * len(model["mass_diagonal_model"]),
               "| M̂ii, model (kg m²) | " + " | ".join(f"{v:.4f}" for v in model["mass_diagonal_model"]) + " |",
               "| Mii, arm | " + " | ".join(f"{v:.4f}" for v in model["mass_diagonal_arm"]) + " |",
               "| model / arm | " + " | ".join(f"{v:.2f}" for v in model["model_over_arm"]) + " |",
+              "| Coulomb friction in torque mode (N·m) | " + " | ".join(f"{v:g}" for v in model["coulomb_friction_nm"])
+              + " |",
+              "| gravity at home, model (N·m) | " + " | ".join(f"{v:.2f}" for v in model["gravity_model_nm"]) + " |",
+              "| gravity at home, arm (N·m) | " + " | ".join(f"{v:.2f}" for v in model["gravity_arm_nm"]) + " |",
               "| torque limit (N·m) | " + " | ".join(f"{v:g}" for v in model["torque_limits_nm"]) + " |", "",
               f"{model['gravity']}.", ""]
+    setup = next((row["torque_setup"] for row in output["runs"] if row.get("torque_setup")), None)
+    if setup:
+        lines += ["## The torque-mode setup", "",
+                  f"Each controller made {setup['table']} through the arm's Kinova API before its first torque: "
+                  + ", ".join(f"{a['function']}({a['argument']})" for a in setup["applied"]) + ". Not made: "
+                  + "; ".join(f"{f}: {why}" for f, why in setup["not_applied"].items()) + ".", ""]
     if output["arm"] != THESIS_ARM:
         n = len(model["torque_limits_nm"])
         kp = laws.per_joint_gains(laws.TABLE_5_3_KP, n)
@@ -520,13 +561,13 @@ def report_markdown(output: dict, out_dir: Path) -> str:
             continue
         p, o = row["position_mm"], row["orientation_deg"]
         lines += ["| position RMS / max / final (mm) | orientation RMS / max / final (deg) | saturation (s, commanded "
-                  "/ robot) | missed cycles (late+superseded+unseen) | robot watchdog | status |",
-                  "|---|---|---|---|---|---|",
+                  "/ actuators) | missed cycles (late+superseded+unseen) | robot watchdog | safety stops | status |",
+                  "|---|---|---|---|---|---|---|",
                   f"| {_f(p['rms'])} / {_f(p['max'])} / {_f(p['final'])} | {_f(o['rms'])} / {_f(o['max'])} / "
                   f"{_f(o['final'])} | {_f(row['saturation_s'])} / {_f(row['saturation_robot_s'])} | "
                   f"{row['missed_cycles']} ({row['timing']['late']}+{row['timing']['superseded']}+"
                   f"{row['timing']['unseen']}) of {row['timing']['answered']} | {_f(row['robot_watchdog'])} | "
-                  f"{row['status']}{': ' + row['failure'] if row['failure'] else ''} |", ""]
+                  f"{_f(row['safety_stops'])} | {row['status']}{': ' + row['failure'] if row['failure'] else ''} |", ""]
         if row.get("faults"):
             lines += ["The robot reported: " + "; ".join(f"{fault} ({count} states)"
                                                          for fault, count in row["faults"].items()), ""]
