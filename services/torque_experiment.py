@@ -450,7 +450,7 @@ def model_error(arm: ArmDescription) -> dict:
             "link_mass_scale": arm.true_link_mass_scale.tolist(),
             "gravity_model_nm": [round(float(v), 3) for v in cad.gravity(arm.home)],
             "gravity_arm_nm": [round(float(v), 3) for v in data.qfrc_bias[:n]],
-            "torque_limits_nm": laws.torque_limits(arm).tolist(),
+            "torque_limits_nm": arm.max_torque.tolist(),
             "gravity": ("The arm's gravity (its hand heavier than the model's) is not what the controllers face: with "
                         "Table 5.1's gravity off, the robot node takes the model's ĝ(q) out of what the emulated "
                         "actuators add, which is the arm's own gravity (and Coriolis), so the gravity left to the "

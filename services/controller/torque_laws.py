@@ -88,12 +88,6 @@ def per_joint_gains(table, n_joints: int) -> np.ndarray:
     raise ValueError(f"no mapping of a {len(table)}-joint gain table onto {n_joints} joints")
 
 
-def torque_limits(arm: ArmDescription) -> np.ndarray:
-    """Each joint's torque limit (N·m) from the arm's description: its actuator's peak torque where the description
-    gives one (``peak_torque_nm``), else the torque the emulated actuator may give (``max_torque_nm``)."""
-    return np.array([float(getattr(j, "peak_torque_nm", None) or j.max_torque_nm) for j in arm.joints])
-
-
 # ------------------------------------------------------------------------------------------------ references
 
 

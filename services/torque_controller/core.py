@@ -26,7 +26,6 @@ from typing import Optional
 import numpy as np
 
 from protocol.messages import ActuatorMode, LowLevelState
-from services.controller import torque_laws as laws
 from services.controller.torque_controllers import Start, TorqueController
 from services.robot.hardware import CYCLE_NS, CYCLE_S
 
@@ -110,7 +109,7 @@ class TorqueRun:
         self.controller = controller
         self.arm = controller.arm
         self.duration_s = duration_s
-        self.limits = laws.torque_limits(self.arm)
+        self.limits = self.arm.max_torque.copy()  # each actuator's peak (its data sheet)
         self.timing = ClientTiming()
         self.start: Optional[Start] = None
         self.start_ns: Optional[int] = None

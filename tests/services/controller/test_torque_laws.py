@@ -127,10 +127,6 @@ def test_kinematics_is_in_the_thesis_mixed_frame(rng):
     assert frames.rotation_log(kin.R.T @ after.R) / h == pytest.approx(kin.J_w @ dq, abs=1e-5)
 
 
-def test_torque_limits_come_from_the_description():
-    assert laws.torque_limits(ARM6) == pytest.approx([j.max_torque_nm for j in ARM6.joints])
-
-
 # ------------------------------------------------------------------------------------------------ the laws
 def _kin(rng, arm=ARM6):
     return laws.DynamicsModel(arm).kinematics(arm.home + rng.normal(scale=0.2, size=arm.n_joints))
