@@ -370,7 +370,7 @@ def _torque_experiment(args: argparse.Namespace) -> int:
             print(f"mfvs experiment: torque-control takes no {flag} (it starts every run from the arm's home)",
                   file=sys.stderr)
             return 2
-    if args.arm is not None and _arm_or_exit("experiment", args.arm) is None:
+    if args.arm is not None and arm_or_exit("experiment", args.arm) is None:
         return 2
     stream = sys.stderr if args.json else sys.stdout
 
