@@ -330,17 +330,22 @@ def _print_experiment(output: dict) -> None:
 
 
 def _cmd_experiment(args: argparse.Namespace) -> int:
-    from services.experiments import EXPERIMENTS, run_experiment
+    from services.experiments import EXPERIMENTS, experiment_names, run_experiment
     from services.runtime.config import ConfigError
 
-    if args.name not in EXPERIMENTS:
-        close = difflib.get_close_matches(args.name, list(EXPERIMENTS), n=1)
+    if args.name not in experiment_names():
+        close = difflib.get_close_matches(args.name, experiment_names(), n=1)
         hint = f"; did you mean {close[0]!r}?" if close else ""
-        print(f"mfvs experiment: unknown experiment {args.name!r}{hint}; known: {', '.join(EXPERIMENTS)}",
+        print(f"mfvs experiment: unknown experiment {args.name!r}{hint}; known: {', '.join(experiment_names())}",
               file=sys.stderr)
         return 2
     if args.profile not in ("sim", "gateway"):
         print(f"mfvs experiment: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
+        return 2
+    if args.name not in EXPERIMENTS:
+        return _torque_experiment(args)
+    if args.quick:
+        print(f"mfvs experiment: --quick is torque-control's, not {args.name}'s", file=sys.stderr)
         return 2
     if args.random_starts is not None:
         return _random_starts_experiment(args)
@@ -355,6 +360,47 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
         print(json.dumps(output), flush=True)
     else:
         _print_experiment(output)
+    return 0
+
+
+def _torque_experiment(args: argparse.Namespace) -> int:
+    """``mfvs experiment torque-control``: seed 003's chapter 5 in realtime (services.torque_experiment)."""
+    from services.torque_experiment import run_torque_control
+
+    for flag, given in (("--scenario", args.scenario is not None), ("--random-starts", args.random_starts is not None)):
+        if given:
+            print(f"mfvs experiment: torque-control takes no {flag} (it starts every run from the arm's home)",
+                  file=sys.stderr)
+            return 2
+    if args.arm is not None and arm_or_exit("experiment", args.arm) is None:
+        return 2
+    stream = sys.stderr if args.json else sys.stdout
+
+    def progress(row: dict) -> None:
+        if row["status"] == "failed":
+            print(f"  {row['label']:26s} failed: {row['failure']}", file=stream, flush=True)
+            return
+        p, o = row["position_mm"], row["orientation_deg"]
+        print(f"  {row['label']:26s} {row['status']:9s} position RMS/max/final {p['rms']:.2f}/{p['max']:.2f}/"
+              f"{p['final']:.2f} mm  orientation {o['rms']:.2f}/{o['max']:.2f}/{o['final']:.2f}°  saturated "
+              f"{row['saturation_s']:.2f} s  missed {row['missed_cycles']}/{row['timing']['answered']}  safety stops "
+              f"{row['safety_stops'] if row['safety_stops'] is not None else '?'}",
+              file=stream, flush=True)
+
+    print(f"torque-control on the {args.arm or 'j2n6s300'} ({args.profile} profile, realtime; about "
+          f"{'30 s' if args.quick else '4 min'})", file=stream, flush=True)
+    output = run_torque_control(args.arm, args.out, args.profile, quick=args.quick, progress=progress)
+    if args.json:
+        print(json.dumps(output), flush=True)
+        return 0
+    for obs in output["summary"]["observations"]:
+        print(f"  [{obs['verdict']}] {obs['thesis']}: {obs['measured']}")
+    target = output["summary"]["target"]
+    if not target["reachable"]:
+        print(f"  Xf is not reachable: the nearest pose is {target['nearest']['position_mm']} mm and "
+              f"{target['nearest']['orientation_deg']}° away")
+    if output["report"]:
+        print(f"report: {output['report']}")
     return 0
 
 
@@ -600,8 +646,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     experiment = sub.add_parser("experiment", help="reproduce one of the seed papers' experiments (seed 000: "
                                                    "table3, part-a, part-b, part-c, part-d; seed 002: constraints; "
-                                                   "seed 004: tracking-region) and report it beside the paper")
-    experiment.add_argument("name", help="table3, part-a, part-b, part-c, part-d, constraints or tracking-region")
+                                                   "seed 003: torque-control; seed 004: tracking-region) and report "
+                                                   "it beside the paper")
+    experiment.add_argument("name", help="table3, part-a, part-b, part-c, part-d, constraints, torque-control or "
+                                         "tracking-region")
     experiment.add_argument("--scenario", default=None,
                             help="the same comparison from this scenario's start and goal (seed 000: its law and "
                                  "gains are replaced by the experiment's; constraints: its constraints are the "
@@ -614,7 +662,10 @@ def build_parser() -> argparse.ArgumentParser:
                             help="table3 from N random Table-2-like starts (the tag placed at random around "
                                  "--scenario's, or table2.yaml's), each written as a scenario file to run again")
     experiment.add_argument("--seed", type=int, default=1, help="the random starts' draws (default 1)")
-    add_arm_option(experiment, default=None, what="the scenario's")
+    experiment.add_argument("--quick", action="store_true",
+                            help="torque-control: the five controllers on a 3 s reference (3/16 of the motion, the "
+                                 "same speeds), without the runs that check the thesis's observations")
+    add_arm_option(experiment, default=None, what="the scenario's; torque-control: j2n6s300")
     experiment.set_defaults(func=_cmd_experiment)
 
     demo = sub.add_parser("demo", help="for a new user: run part-a and table3 with a line per run, write the "

@@ -14,6 +14,8 @@ constraints       seed 002 section 9.1-like: one task in which every constraint 
                   gradient error (eq. 49): max φ against the chattering band T_s·u⁺ (eq. 43), time active
 tracking-region   seed 004: a target moving at 10 cm/s, tracked on two translational axes without the
                   manipulability term and on four axes with it: distance tracked before failure, its cause
+torque-control    seed 003 chapter 5: five torque controllers over the 500 Hz low-level API, in realtime, each
+                  a process of its own (:mod:`services.torque_experiment`; not a servo comparison)
 ================  ========================================================================================
 
 Each experiment has a default start (``examples/scenarios/``); ``--scenario`` runs the same comparison from a
@@ -408,6 +410,23 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
 )}
 
 
+#: experiments that are not servo comparisons from a scenario: each has its own runner (name → its module)
+OTHER_EXPERIMENTS = {"torque-control": "services.torque_experiment"}
+
+
+def experiment_names() -> list[str]:
+    return [*EXPERIMENTS, *OTHER_EXPERIMENTS]
+
+
+def write_results(output: dict, out: Path, markdown: Callable[[dict, Path], str]) -> None:
+    """An experiment's ``report.md`` (``markdown(output, out)``) and ``result.json`` in ``out``, beside its figures;
+    ``output["report"]`` names the report."""
+    report = out / "report.md"
+    report.write_text(markdown(output, out))
+    output["report"] = str(report)
+    (out / "result.json").write_text(json.dumps(output, indent=2) + "\n")
+
+
 def _copy(scenario: Scenario) -> Scenario:
     return msgspec.convert(msgspec.to_builtins(scenario), Scenario)
 
@@ -472,10 +491,7 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
             if experiment.figures is not None:
                 plots += experiment.figures(trajectories, rows, out, base)
             output["plots"] = [str(p) for p in plots]
-            report = out / "report.md"
-            report.write_text(report_markdown(output, out))
-            output["report"] = str(report)
-            (out / "result.json").write_text(json.dumps(output, indent=2) + "\n")
+            write_results(output, out, report_markdown)
     return output
 
 
@@ -585,10 +601,7 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
         result["plots"] = [str(p) for p in random_starts_plots(runs, per_start, out, laws=list(TABLE3_PAPER),
                                                                paper=TABLE3_PAPER,
                                                                clearly_faster_pct=CLEARLY_FASTER_PCT)]
-        report = out / "report.md"
-        report.write_text(random_starts_report(result, out))
-        result["report"] = str(report)
-        (out / "result.json").write_text(json.dumps(result, indent=2) + "\n")
+        write_results(result, out, random_starts_report)
     return result
 
 

@@ -440,3 +440,146 @@ def random_starts_plots(runs: list[dict], starts: list[dict], out_dir: Path, *, 
     gain.grid(alpha=0.3, axis="y")
     _save(fig, out_dir / "random_starts.png", paths)
     return paths
+
+
+# ------------------------------------------------------------------------------------------------ seed 003
+_POSE_NAMES = ("x (m)", "y (m)", "z (m)", "α (rad)", "β (rad)", "γ (rad)")
+
+
+def _unwrapped_pose(x: np.ndarray) -> np.ndarray:
+    """[p; XYZ Euler] samples with the angles unwrapped (a reported angle jumps by 2π where it crosses ±π)."""
+    x = np.array(x, dtype=float, copy=True)
+    if len(x):
+        x[:, 3:] = np.unwrap(x[:, 3:], axis=0)
+    return x
+
+
+def _joint_grid(plt, n: int):
+    """A figure with a panel per joint, two to a row (a spare panel hidden), and its panels in joint order."""
+    rows = (n + 1) // 2
+    fig, axes = plt.subplots(rows, 2, figsize=(10.0, 2.0 * rows + 0.8), sharex=True, squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.axis("off")
+    for ax in axes[-1]:
+        ax.set_xlabel("time (s)")
+    return fig, list(axes.flat[:n])
+
+
+def torque_run_plots(arrays: dict, meta: dict, out_dir: Path, *, arm: ArmDescription, label: str) -> list[Path]:
+    """One torque-control run's figures (seed 003 Figs. 5.1-5.5): a task run's position and XYZ Euler angles
+    against the reference, a joint run's joints against the sinusoid; and every run's torques against the joints'
+    limits (commanded: what the controller asked, gravity included)."""
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    paths: list[Path] = []
+    t = arrays["t"]
+    if not len(t):
+        return paths
+    tf = meta.get("reference_s")
+    if np.isfinite(arrays["x_d"]).all():
+        x, x_d = _unwrapped_pose(arrays["x"]), _unwrapped_pose(arrays["x_d"])
+        x_d[:, 3:] += np.round((x[:1, 3:] - x_d[:1, 3:]) / (2 * np.pi)) * 2 * np.pi  # the same turn as measured
+        fig, axes = plt.subplots(2, 3, figsize=(12.0, 6.2), sharex=True)
+        for k, ax in enumerate(axes.flat):
+            ax.plot(t, x_d[:, k], "--", color="0.35", lw=1.2, label="reference (eq. 5.1)")
+            ax.plot(t, x[:, k], lw=1.3, color="tab:blue", label="measured")
+            ax.set_ylabel(_POSE_NAMES[k])
+            ax.grid(alpha=0.3)
+            if tf:
+                ax.axvline(tf, color="tab:gray", ls=":", lw=0.8)
+        for ax in axes[1]:
+            ax.set_xlabel("time (s)")
+        axes[0][0].legend(fontsize=8)
+        fig.suptitle(f"{label} on the {arm.name}: position and XYZ Euler angles against the reference", fontsize=10)
+        _save(fig, out_dir / "pose.png", paths)
+
+        fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.0, 5.2), sharex=True)
+        top.plot(t, arrays["position_error_m"] * 1e3, lw=1.2)
+        top.set_ylabel("position error (mm)")
+        bottom.plot(t, arrays["orientation_error_deg"], lw=1.2, color="tab:orange")
+        bottom.set_ylabel("orientation error (deg)")
+        bottom.set_xlabel("time (s)")
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3)
+            if tf:
+                ax.axvline(tf, color="tab:gray", ls=":", lw=0.8)
+        top.set_title(f"{label}: tracking error", fontsize=10)
+        _save(fig, out_dir / "error.png", paths)
+    else:
+        n = arm.n_joints
+        q0 = arrays["q"][0] if meta.get("q0") is None else np.asarray(meta["q0"])
+        fig, axes = _joint_grid(plt, n)
+        for i, ax in enumerate(axes):
+            ax.plot(t, np.degrees(arrays["q_d"][:, i] - q0[i]), "--", color="0.35", lw=1.1, label="q_d (eq. 5.3)")
+            ax.plot(t, np.degrees(arrays["q"][:, i] - q0[i]), lw=1.3, label="q")
+            ax.set_ylabel(f"joint {i + 1} (deg)")
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=8)
+        fig.suptitle(f"{label} on the {arm.name}: each joint about its start against the sinusoid", fontsize=10)
+        _save(fig, out_dir / "joints.png", paths)
+
+    limits = np.asarray(meta["torque_limits_nm"])
+    fig, axes = _joint_grid(plt, len(limits))
+    for i, ax in enumerate(axes):
+        ax.plot(t, arrays["tau_command"][:, i], lw=1.0, label="commanded")
+        ax.plot(t, arrays["tau_measured"][:, i], lw=0.8, alpha=0.7, label="measured (the actuator's)")
+        for sign in (1, -1):
+            ax.axhline(sign * limits[i], color="tab:red", ls="--", lw=0.8)
+        peak = max(float(np.abs(arrays["tau_command"][:, i]).max()), float(np.abs(arrays["tau_measured"][:, i]).max()))
+        if peak < 0.5 * limits[i]:  # far from the limits: show the torque, not the empty band up to them
+            ax.set_ylim(-1.15 * max(peak, 1e-3), 1.15 * max(peak, 1e-3))
+        ax.set_ylabel(f"τ{i + 1} (N·m)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"{label}: joint torques (dashed: the limits, where in range)", fontsize=10)
+    _save(fig, out_dir / "torques.png", paths)
+
+    if len(arrays.get("latency_ms", ())) == len(t):
+        fig, ax = plt.subplots(figsize=(8.0, 3.4))
+        ax.semilogy(t, np.maximum(arrays["latency_ms"], 1e-3), ".", ms=1.5, label="state's stamp → answer sent")
+        ax.semilogy(t, np.maximum(arrays["response_ms"], 1e-3), ".", ms=1.5, label="state's arrival → answer sent")
+        ax.axhline(2.0, color="tab:red", ls="--", lw=0.8, label="a bus cycle (2 ms)")
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("ms")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7, markerscale=6)
+        ax.set_title(f"{label}: the low-level loop, answer by answer", fontsize=10)
+        _save(fig, out_dir / "timing.png", paths)
+    return paths
+
+
+def torque_comparison_plots(runs: dict[str, dict], metas: dict[str, dict], out_dir: Path, *,
+                            arm: ArmDescription) -> list[Path]:
+    """The torque-control runs side by side: each task run's position and orientation error, each joint run's
+    worst joint error."""
+    plt = _pyplot()
+    out_dir = Path(out_dir)
+    paths: list[Path] = []
+    task = {k: v for k, v in runs.items() if len(v["t"]) and np.isfinite(v["x_d"]).all()}
+    joint = {k: v for k, v in runs.items() if len(v["t"]) and k not in task}
+    if task:
+        fig, (top, bottom) = plt.subplots(2, 1, figsize=(8.0, 6.4), sharex=True)
+        for label, a in task.items():
+            top.plot(a["t"], a["position_error_m"] * 1e3, lw=1.1, label=label)
+            bottom.plot(a["t"], a["orientation_error_deg"], lw=1.1, label=label)
+        top.set_yscale("log")
+        top.set_ylim(bottom=1e-2)  # the first sample is at the reference: its zero would stretch the axis
+        top.set_ylabel("position error (mm)")
+        bottom.set_ylabel("orientation error (deg)")
+        bottom.set_xlabel("time (s)")
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3, which="both")
+        top.legend(fontsize=7, ncol=2)
+        top.set_title(f"task-space controllers on the {arm.name}", fontsize=10)
+        _save(fig, out_dir / "task_errors.png", paths)
+    if joint:
+        fig, ax = plt.subplots(figsize=(8.0, 3.8))
+        for label, a in joint.items():
+            ax.plot(a["t"], np.degrees(np.abs(a["q_d"] - a["q"])).max(axis=1), lw=1.1, label=label)
+        ax.set_ylabel("largest joint error (deg)")
+        ax.set_xlabel("time (s)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        ax.set_title(f"joint-space controllers on the {arm.name}", fontsize=10)
+        _save(fig, out_dir / "joint_errors.png", paths)
+    return paths

@@ -11,15 +11,16 @@ ARM = load_arm("j2s7s300")
 ARM_DECLARED = {"arm": ARM.name, "arm_digest": ARM.digest}
 
 
-def computed_torque_for_the_emulated_arm(arm=ARM):
-    """Seed 003's computed torque with gains that hold the emulated arm's joints through their torque-mode friction:
-    the K-58 wrist joints, light behind their friction, nine times stiffer (seed 003 §5.4 likewise needed a far
-    higher gain on joint 6 than on the others)."""
-    from services.controller.computed_torque import ComputedTorque
+def computed_torque_options_for_the_emulated_arm(arm=ARM, **options):
+    """The options of seed 003's computed torque (the ``computed-torque`` controller) with gains that hold the
+    emulated arm's joints through their torque-mode friction: the K-58 wrist joints, light behind their friction,
+    nine times stiffer (seed 003 §5.4 likewise needed a far higher gain on joint 6 than on the others)."""
+    from services.controller.torque_controllers import ControllerOptions
 
     wrist = np.array([j.actuator == "K-58" for j in arm.joints])
     kp = np.where(wrist, 900.0, 100.0)
-    return ComputedTorque(arm, kp=kp, kd=2.0 * np.sqrt(kp))
+    return ControllerOptions(kp=kp.tolist(), kd=(2.0 * np.sqrt(kp)).tolist(), **options)
+
 
 #: the repository's root (the tests sit in folders that mirror the code's)
 REPO = Path(__file__).resolve().parents[1]

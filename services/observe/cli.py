@@ -170,7 +170,7 @@ def _cmd_replay(args) -> int:
     finally:
         session.close()
     out = {"published": report.published, "frames": report.frames, "unanswered_frames": report.unanswered,
-           "not_replayed": report.not_replayed, "seconds": round(report.seconds, 3)}
+           "frames_sent_again": report.retries, "not_replayed": report.not_replayed, "seconds": round(report.seconds, 3)}
     if args.json:
         print(json.dumps(out))
     else:
@@ -178,7 +178,7 @@ def _cmd_replay(args) -> int:
             print(file=sys.stderr)
         print(f"replayed {sum(report.published.values())} messages ({report.frames} frames) in "
               f"{report.seconds:.1f} s; {report.not_replayed} commands and health messages not replayed"
-              + (f"; {report.unanswered} frames unanswered" if args.lockstep else ""))
+              + (f"; {report.unanswered} frames unanswered, {report.retries} sent again" if args.lockstep else ""))
     return 0 if report.unanswered == 0 else 1
 
 

@@ -31,6 +31,10 @@ COMMAND_TYPES = (m.RobotCommand, m.TorqueCommand, m.EStop)
 NOT_REPLAYED = COMMAND_TYPES + (m.ServiceHealth,)
 #: how long lockstep waits for a frame's answers before going on (counted as unanswered)
 ANSWER_TIMEOUT_S = 5.0
+#: lockstep sends a frame still unanswered after this again, as the robot's lockstep retry does: zenoh drops a
+#: sample on a congested queue (a starved host's frame or answer), and vision and the controller answer a frame
+#: delivered again with the answer they gave it
+RETRY_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -102,6 +106,8 @@ class ReplayReport:
     unanswered: int = 0
     #: the source stamps of the first frames left unanswered (ns)
     unanswered_stamps: list = field(default_factory=list)
+    #: frames sent again because their answers were late (:data:`RETRY_S`)
+    retries: int = 0
     seconds: float = 0.0
 
 
@@ -136,7 +142,8 @@ class _Answers:
 
 
 def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep: bool = False,
-           answer_patterns=("vision/features",), alive=None, progress=None) -> ReplayReport:
+           answer_patterns=("vision/features",), alive=None, progress=None,
+           retry_s: float = RETRY_S) -> ReplayReport:
     """Publish the recording at ``path`` under ``keys``'s prefix. ``alive``: the services alive on the stack
     (for the robot check; looked up when None). ``progress(report)`` after each camera frame."""
     if rate <= 0:
@@ -175,6 +182,18 @@ def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep
     unsynced = [key for suffix, key in (answer_suffixes.items() if lockstep else ()) if suffix not in sync]
     publishers = {}
     unanswered: set[int] = set()
+    sent_frame: dict[int, bytes] = {}  # the last frame sent, by its stamp: what a retry sends again
+
+    def answered(stamp: int, wanted=None) -> bool:
+        deadline = time.monotonic() + ANSWER_TIMEOUT_S
+        while not answers.wait(stamp, min(retry_s, max(0.0, deadline - time.monotonic())), wanted):
+            if time.monotonic() >= deadline:
+                return False
+            if stamp in sent_frame:
+                publishers[image_suffix].put(sent_frame[stamp])
+                report.retries += 1
+        return True
+
     try:
         start = time.monotonic()
         first = messages[0].log_time
@@ -183,13 +202,13 @@ def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep
             if recorded.suffix in sync:
                 key = sync[recorded.suffix]
                 stamp = m.decode(recorded.payload, answers.types[key]).header.source_stamp_ns
-                if stamp not in unanswered and not answers.wait(stamp, ANSWER_TIMEOUT_S, [key]):
+                if stamp not in unanswered and not answered(stamp, [key]):
                     unanswered.add(stamp)
                 continue
             is_frame = recorded.suffix == image_suffix
             if lockstep:
                 if is_frame and last_frame is not None and unsynced:
-                    if not answers.wait(last_frame, ANSWER_TIMEOUT_S, unsynced):
+                    if not answered(last_frame, unsynced):
                         unanswered.add(last_frame)
             else:
                 delay = start + (recorded.log_time - first) / 1e9 / rate - time.monotonic()
@@ -203,9 +222,10 @@ def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep
             if is_frame:
                 report.frames += 1
                 last_frame = m.decode(recorded.payload, m.Image).header.stamp_ns
+                sent_frame = {last_frame: recorded.payload}
                 if progress is not None:
                     progress(report)
-        if lockstep and last_frame is not None and not answers.wait(last_frame, ANSWER_TIMEOUT_S):
+        if lockstep and last_frame is not None and not answered(last_frame):
             unanswered.add(last_frame)
         report.unanswered = len(unanswered)
         report.unanswered_stamps = sorted(unanswered)[:20]

@@ -399,7 +399,12 @@ class RobotNode(Service):
                       f"missed_per_s={timing.missed_per_s:.1f} work_ms={work['p50_ms']:.2f}/{work['p99_ms']:.2f} "
                       f"exchange_ms={exchange['p50_ms']:.2f}/{exchange['p99_ms']:.2f} "
                       f"wake_lag_ms={lag['p50_ms']:.2f}/{lag['p99_ms']:.2f} dsp_ms={dsp['p50_ms']:.2f}/"
-                      f"{dsp['p99_ms']:.2f} command_wait_ms={wait['p50_ms']:.2f}/{wait['p99_ms']:.2f} (p50/p99)")
+                      f"{dsp['p99_ms']:.2f} command_wait_ms={wait['p50_ms']:.2f}/{wait['p99_ms']:.2f} (p50/p99)"
+                      + (f"; {setup}" if (setup := self.torque_setup_summary()) else ""))
+
+    def torque_setup_summary(self) -> str:
+        """The torque-mode setup (Table 5.1) low-level control applies, for the health's detail."""
+        return self.torque_setup.describe()
 
     def arm_summary(self) -> str:
         """The arm this node runs, and what drives its joints (the first part of its health's detail)."""

@@ -51,6 +51,21 @@ DEFAULT_ACTUATOR_DAMPING = 0.2
 MAX_ACTUATOR_DAMPING = 20.0
 
 
+def table_5_1() -> list[tuple[str, object]]:
+    """Seed 003's Table 5.1 (L2257-2293), the setup the thesis made before torque control, as Kinova API calls in
+    its order: safety factor 1 (disabled), vibration controller 1, actuator damping 0, gravity type OPTIMAL with
+    every optimal-Z parameter 0 (the arm adds no gravity), actuator gain 0. The thesis prints "0" for the arrays;
+    every element 0 is the reading (seed003_facts §5). Its calibration (SetTorqueZero in the pose where gravity
+    loads no joint, SetJointZero after sudden stops) is not here: it needs that pose, and acts on the sensors."""
+    zeros = [0.0] * kinova.TORQUE_COMMAND_SIZE
+    return [("SetTorqueSafetyFactor", kinova.FloatArgument(value=1.0)),
+            ("SetTorqueVibrationController", kinova.FloatArgument(value=1.0)),
+            ("SetTorqueActuatorDamping", kinova.CommandArray(values=zeros)),
+            ("SetGravityType", kinova.GravityTypeArgument(type=kinova.GRAVITY_TYPE.OPTIMAL)),
+            ("SetGravityOptimalZParam", kinova.GravityParameters(values=[0.0] * kinova.GRAVITY_PARAM_SIZE)),
+            ("SetTorqueActuatorGain", kinova.CommandArray(values=zeros))]
+
+
 #: the functions :func:`configure` applies (the rest of Table 5.1, SetTorqueZero and SetJointZero, act on hardware)
 TORQUE_SETUP_SETTERS = frozenset({"SetTorqueSafetyFactor", "SetTorqueVibrationController", "SetTorqueActuatorGain",
                                   "SetTorqueActuatorDamping", "SetGravityType", "SetGravityOptimalZParam"})

@@ -252,6 +252,9 @@ class SdkGatewayService(RobotNode):
     def arm_summary(self) -> str:
         return f"arm {self.arm.name}: {self.arm.n_joints} joints behind Kinova's SDK"
 
+    def torque_setup_summary(self) -> str:
+        return ""  # the arm holds its own: the SDK passes Table 5.1's calls to it and cannot read them back
+
     def lowlevel_unavailable(self) -> str:
         return "the kinova_sdk backend has no low-level torque API (the USB layer offers none); use the rs485 backend"
 

@@ -13,7 +13,8 @@ commands only ``safety``, low-level torque commands only ``torque_controller`` (
 dynamics and so bypasses safety: give that identity only to a tested one), robot state only the robot services,
 camera images and the clock only ``robot_sim``, features only ``vision``, the controller's outputs only
 ``controller``, the e-stop and the goal only ``operator``; queries to the Kinova API functions that move the arm
-or change its zones and limits only ``safety`` (everyone may read); a liveliness token and a health key only in
+or change its zones and limits only ``safety`` (everyone may read), the torque-mode setup (Table 5.1's functions)
+also ``torque_controller``; a liveliness token and a health key only in
 its own name. The rules act on ingress to the router (an egress rule would also drop what the router forwards to
 the robot). Services must run as zenoh clients of the
 router: access control lives there. The generated files hold secrets (keys, passwords): keep them out of git.
@@ -90,7 +91,9 @@ def queries(keys: Keys) -> dict[str, list[str]]:
             # the person starts and stops the servo task (the stack comes up idle), and runs the commissioning check
             # (the robot moves itself for it, at their confirmation)
             "operator": [keys.vision_api("set_goal"), keys.controller_api(m.START_TASK),
-                         keys.controller_api(m.STOP_TASK), keys.robot_check_arm]}
+                         keys.controller_api(m.STOP_TASK), keys.robot_check_arm],
+            # the torque-mode setup (seed 003's Table 5.1) is made by the client that commands the torques
+            "torque_controller": sorted(keys.robot_api(f) for f in kinova.TORQUE_SETUP_FUNCTIONS)}
 
 
 def everyone_queries(keys: Keys) -> list[str]:

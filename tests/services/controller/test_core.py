@@ -173,11 +173,15 @@ def test_task_queries_validate_their_payload(router):
     answered (ok false, the reason) and counted, and change nothing."""
     from services.runtime.transport import open_session
     from services.controller.task_client import call_task, start_task
-    from tests.stack import KEYS
+    from tests.stack import KEYS, wait_for
 
     service = ControllerService(ControllerConfig(zenoh=router.client_config())).start()
     client = open_session(router.client_config())
     try:
+        # the queryables reach the router some time after start(): a get before then has nobody to answer it
+        assert wait_for(lambda: any(r.ok is not None for r in client.get(KEYS.controller_api(m.GET_TASK),
+                                                                          timeout=1.0)), timeout=10)
+
         def raw(function, payload):
             replies = [r for r in client.get(KEYS.controller_api(function), payload=payload, timeout=5.0)]
             assert len(replies) == 1 and replies[0].ok is not None, function

@@ -10,14 +10,14 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
-from services.robot.torque_setup import TorqueSetup
+from services.robot.torque_setup import TorqueSetup, table_5_1
 from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses
 from services.model.arm import load_arm
 from tests.stack import KEYS, Recorder, next_seq, wait_for
-from tests.helpers import ARM, computed_torque_for_the_emulated_arm
+from tests.helpers import ARM, computed_torque_options_for_the_emulated_arm
 
 
 
@@ -221,27 +221,46 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     assert wait_for(lambda: len(states) > 5 and states.last().applied_command is not None)
 
 
-def test_computed_torque_over_the_low_level_zenoh_api(robot):
-    """Seed 003's computed torque as a zenoh client of the low-level API tracks the eq. 5.1 cubic within 3°: the
-    wrist joints' torque-mode friction (0.17 N·m) against their stiffness, each torque a zenoh round trip late (over
-    the bus, in-process, the same law keeps within 1°: test_computed_torque.py)."""
-    from services.controller.torque_client import CubicTorqueClient
+def test_computed_torque_over_the_low_level_zenoh_api(robot, router):
+    """Seed 003's computed torque (eq. 4.16-4.18 with feed-forward) as the torque controller service, a zenoh client
+    of the low-level API, tracks the eq. 5.1 cubic within 3°: the wrist joints' torque-mode friction (0.17 N·m)
+    against their stiffness, each torque a zenoh round trip late (over the bus, in-process, the same law keeps within
+    1°: test_torque_controllers_bus.py). Before its first torque it makes the thesis's Table 5.1 setup through the
+    Kinova API (the arm then adds no gravity, damps nothing, never stops for speed), which the robot's health shows
+    and the run's log records. Low-level states of another arm's joint count are refused and counted, and the run
+    goes on."""
+    from services.torque_controller.service import TorqueControllerConfig, TorqueControllerService
 
     client = robot.client
     low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
     assert wait_for(lambda: len(low) > 20)
-    q0 = np.array(low.last().q)
-    qf = q0 + np.radians([10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
-    controller = CubicTorqueClient(client, KEYS, q0, qf, duration_s=2.0, controller=computed_torque_for_the_emulated_arm())
+    assert "torque setup: safety factor 0.5" in robot.health().detail  # the emulated arm's factory default
+    options = computed_torque_options_for_the_emulated_arm(
+        tf_s=2.0, joint_displacement_deg=[10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
+    service = TorqueControllerService(TorqueControllerConfig(
+        controller="computed-torque", options=options, duration_s=2.3, realtime_priority=0,
+        zenoh=router.client_config())).start()
     try:
-        assert controller.done.wait(15.0)
+        assert wait_for(lambda: service.run_ is not None and service.run_.start is not None, timeout=15)
+        wrong = m.LowLevelState(header=m.Header(stamp_ns=time.time_ns()), mode=m.ActuatorMode.TORQUE, q=[0.0] * 6,
+                                dq=[0.0] * 6, tau=[0.0] * 6, current_a=[0.0] * 6, temperature_c=[0.0] * 6)
+        for _ in range(3):
+            client.put(KEYS.lowlevel_state, m.encode(wrong))
+        assert service.finished.wait(15.0), service.failure
     finally:
-        controller.close()
-    errors = controller.errors_deg
-    print(f"computed torque over zenoh ({robot.name}): max joint error {max(errors):.3f}° over "
-          f"{len(errors)} states")
+        service.stop()
+    assert not service.failure
+    assert service.counters.get("refused.joint_count") == 3
+    assert [a["function"] for a in service.torque_setup["applied"]] == [f for f, _ in table_5_1()]
+    assert (f"torque setup: safety factor off, damping {[0.0] * ARM.n_joints}, gravity none"
+            in robot.health().detail)
+    run = service.run_
+    errors = run.arrays()["joint_error_deg"]
+    timing = run.timing.summary()
+    print(f"computed torque over zenoh ({robot.name}): max joint error {errors.max():.3f}° over {len(errors)} "
+          f"states; missed {timing['missed']} (late {timing['late']}), latency p99 {timing['latency_ms']['p99']} ms")
     assert len(errors) > 300
-    assert max(errors) < 3.0
+    assert errors.max() < 3.0
 
 
 def test_lockstep_robot_sim_refuses_torque_commands(router):

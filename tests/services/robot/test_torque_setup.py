@@ -11,7 +11,8 @@ from services.model.arm import load_arm
 from services.robot.dsp import DSPConfig, KinovaDSP
 from services.robot.kinova_api import KinovaApi
 from services.robot.torque_setup import (MAX_ACTUATOR_DAMPING, TorqueSetup, arm_compensates_gravity, configure,
-                                         damping_torque, joint_of_address, over_safety_speed, safety_speed_threshold)
+                                         damping_torque, joint_of_address, over_safety_speed, safety_speed_threshold,
+                                         table_5_1)
 from services.model.kinematics import ArmKinematics
 
 SIX = load_arm("j2n6s300")
@@ -32,15 +33,15 @@ def test_table_5_1_as_the_thesis_set_it():
     """Safety factor 1, vibration controller 1, damping 0, gravity OPTIMAL with every parameter 0, gain 0."""
     setup = TorqueSetup(SIX)
     assert arm_compensates_gravity(setup) and np.all(setup.actuator_damping > 0)
-    for function, argument in [
-            ("SetTorqueSafetyFactor", kinova.FloatArgument(value=1.0)),
-            ("SetTorqueVibrationController", kinova.FloatArgument(value=1.0)),
-            ("SetTorqueActuatorDamping", kinova.CommandArray()),
-            ("SetGravityType", kinova.GravityTypeArgument(type=kinova.GRAVITY_TYPE.OPTIMAL)),
-            ("SetGravityOptimalZParam", kinova.GravityParameters()),
-            ("SetTorqueActuatorGain", kinova.CommandArray())]:
+    calls = table_5_1()
+    assert [function for function, _ in calls] == [  # the thesis's order
+        "SetTorqueSafetyFactor", "SetTorqueVibrationController", "SetTorqueActuatorDamping", "SetGravityType",
+        "SetGravityOptimalZParam", "SetTorqueActuatorGain"]
+    for function, argument in calls:
         assert configure(setup, function, argument) == "", function
-    assert setup.safety_factor == 1.0 and not setup.actuator_damping.any() and not setup.actuator_gain.any()
+    assert setup.safety_factor == 1.0 and setup.vibration_controller == 1.0
+    assert not setup.actuator_damping.any() and not setup.actuator_gain.any()
+    assert setup.gravity_type is kinova.GRAVITY_TYPE.OPTIMAL
     assert not arm_compensates_gravity(setup)
     assert not damping_torque(setup, np.ones(6)).any()
     # any other parameter set, or the manual type: the arm compensates with its own model

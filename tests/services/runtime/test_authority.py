@@ -151,7 +151,8 @@ def test_only_the_operator_starts_and_stops_the_task(deployment):
 
 def test_only_the_torque_controller_identity_commands_torques(deployment, robot):
     """Low-level torque commands bypass safety: only the identity given to a tested torque controller may send
-    them."""
+    them, and make the torque-mode setup before (Table 5.1's functions; safety may too, as it may every function
+    that changes how the arm moves)."""
     def torques_from(name):
         session = session_as(deployment, name)
         publisher = session.declare_publisher(KEYS.lowlevel_command)
@@ -163,9 +164,21 @@ def test_only_the_torque_controller_identity_commands_torques(deployment, robot)
                                                    torques=[0.0] * 7)))
         session.close()
 
+    def safety_factor_from(name):
+        session = session_as(deployment, name)
+        replies = [r for r in session.get(KEYS.robot_api("SetTorqueSafetyFactor"), timeout=3.0,
+                                          payload=m.encode(kinova.FloatArgument(value=1.0))) if r.ok is not None]
+        session.close()
+        return [m.decode(r.ok.payload.to_bytes(), kinova.ApiReply).code for r in replies]
+
     for name in ("safety", "controller", "operator"):
         torques_from(name)
         assert not robot.lowlevel.active and "lowlevel_command" not in robot.rates.snapshot(), name
+    for name in ("controller", "operator", "vision"):  # Table 5.1's setup: the torque client's (and safety's)
+        assert safety_factor_from(name) == [], name
+    assert robot.torque_setup.safety_factor < 1.0
+    assert safety_factor_from("torque_controller") == [kinova.ErrorCode.NO_ERROR_KINOVA]
+    assert robot.torque_setup.safety_factor == 1.0
     torques_from("torque_controller")
     assert robot.rates.snapshot().get("lowlevel_command", 0) > 0
     assert wait_for(lambda: not robot.lowlevel.active, timeout=2)  # released 250 ms after the last command

@@ -1,4 +1,4 @@
-"""`mfvs bench NAME --arm ARM`: every benchmark on an arm takes it as every command does (an unknown arm: one line,
+"""bench/stack.py and the benchmarks on an arm: `mfvs bench NAME --arm ARM`: every benchmark on an arm takes it as every command does (an unknown arm: one line,
 exit 2, nothing started), and the helpers they share (bench/stack.py)."""
 import importlib
 import json

@@ -1,0 +1,50 @@
+"""Seed 003's computed-torque control over the RS-485 link, in torque mode, against robot_sim's actuators."""
+import time
+
+import numpy as np
+
+from services.controller.torque_controllers import make_controller
+from services.robot_gateway.link import LinkError, expected_torques_physical
+from services.stack import simulated_link
+from services.model.arm import load_arm
+from tests.helpers import computed_torque_options_for_the_emulated_arm
+
+ARM = load_arm("j2s7s300")
+
+
+def test_computed_torque_tracks_the_cubic_within_one_degree_over_the_bus():
+    """Seed 003's computed torque, in this process, over the emulated RS-485 bus at 500 Hz."""
+    with simulated_link(settle_s=0.3) as (runner, link):
+        with runner.lock:
+            q0 = runner.sim.q
+        link.switch_to_torque(expected_torques_physical(ARM, q0))
+        tf = 2.0
+        controller = make_controller("computed-torque", ARM, computed_torque_options_for_the_emulated_arm(
+            tf_s=tf, joint_displacement_deg=[10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0]))
+        controller.begin(q0)
+        reading = link.command(ARM.model_to_physical_deg(q0), np.zeros(7))
+        errors = []
+        failed = 0
+        start = last = time.monotonic()
+        while (now := time.monotonic()) - start < tf + 0.5:
+            q = ARM.physical_deg_to_model(reading.position_deg)
+            dq = ARM.physical_rate_to_model(reading.velocity_dps)
+            step = controller.step(now - start, now - last, q, dq)
+            last = now
+            errors.append(step.joint_error_deg)
+            # the actuators add their own gravity compensation on the bus: the law's ĝ(q) is taken off
+            tau = step.tau - controller.model.gravity(q)
+            try:
+                reading = link.command(reading.position_deg, ARM.sign * tau)  # safety reference: where it is
+            except LinkError:  # a host stall past the link's timeout: counted, as the gateway counts it
+                failed += 1
+        link.switch_to_position()
+    p90, p99 = (float(v) for v in np.percentile(errors, [90, 99]))
+    print(f"computed torque over the bus: max joint error {max(errors):.3f}° (p90 {p90:.3f}°, p99 {p99:.3f}°) over "
+          f"{len(errors)} cycles, {failed} exchanges failed")
+    assert len(errors) > 500  # at least one exchange per 2 ms cycle of the arm for 2.5 s
+    assert failed <= 0.05 * len(errors), f"{failed} of {len(errors)} exchanges failed"
+    # within 1° but for the cycles after the host stalled this client (the arm keeps its last torque meanwhile,
+    # against the wrist's torque-mode friction): 0.4° at the 99th percentile on a quiet host, 1.8° once at a load
+    # of 12, where stalls touched more than 1 % of the cycles; a stall never turns into more than a few degrees
+    assert p90 < 1.0 and max(errors) < 6.0, f"max joint error {max(errors):.3f}°, p90 {p90:.3f}°"
