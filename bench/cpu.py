@@ -2,9 +2,10 @@
 every process of a stack (with its children), per profile, while it servos onto the tag (`mfvs up`, realtime, on free ports).
 
 ``python -m bench.cpu [--json] [--seconds S] [--profiles sim,gateway] [--arm NAME]`` or ``mfvs bench cpu``.
-``--json`` prints ``{"arm", "seconds", "profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb", "threads":
-{name: cpu_pct}}}, "total_cpu_pct", "total_rss_mb"}}}``; ``--threads`` also prints each process's threads by their
-kernel names.
+``--json`` prints ``{"arm", "seconds", "profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb", "pss_mb",
+"threads": {name: cpu_pct}}}, "total_cpu_pct", "total_rss_mb", "total_pss_mb"}}}``; ``--threads`` also prints each
+process's threads by their kernel names. RSS sums count each shared library once per process that maps it; PSS
+divides a shared page among them.
 """
 from __future__ import annotations
 
@@ -55,15 +56,20 @@ def _cpu_seconds_of(pid: int) -> float:
     return _stat_cpu(f"/proc/{pid}/stat")[1]
 
 
-def _rss_mb_of(pid: int) -> float:
+def _proc_mb(path: str, field: str) -> float:
+    """A ``field: N kB`` line of a /proc file, in MB (0 when the process is gone)."""
     try:
-        with open(f"/proc/{pid}/status") as f:
+        with open(path) as f:
             for line in f:
-                if line.startswith("VmRSS:"):
+                if line.startswith(field):
                     return int(line.split()[1]) / 1024
     except OSError:
         pass
     return 0.0
+
+
+def _rss_mb_of(pid: int) -> float:
+    return _proc_mb(f"/proc/{pid}/status", "VmRSS:")
 
 
 def cpu_seconds(pid: int) -> float:
@@ -92,6 +98,17 @@ def rss_mb(pid: int) -> float:
     return sum(_rss_mb_of(p) for p in process_tree(pid))
 
 
+def _pss_mb_of(pid: int) -> float:
+    return _proc_mb(f"/proc/{pid}/smaps_rollup", "Pss:")
+
+
+def pss_mb(pid: int) -> float:
+    """Proportional resident memory (MB) of a process and its children: each shared page divided among the
+    processes that map it, so that a stack's sum counts the libraries every service maps (numpy, zenoh, MuJoCo,
+    pinocchio) once, where the sum of RSS counts them once per process."""
+    return sum(_pss_mb_of(p) for p in process_tree(pid))
+
+
 def measure(profile_name: str, seconds: float, settle_s: float = 3.0, arm: str = DEFAULT_ARM) -> dict:
     with servoing_stack(profile_on_arm(profile_name, arm), "bench cpu"):
         try:
@@ -111,12 +128,13 @@ def measure(profile_name: str, seconds: float, settle_s: float = 3.0, arm: str =
                 threads = {thread: round(100.0 * (cpu - threads_before.get(thread, 0.0)) / elapsed, 1)
                            for thread, cpu in threads_after.items()}
                 result[name] = {"cpu_pct": round(100.0 * (cpu_after - cpu_before) / elapsed, 1),
-                                "rss_mb": round(rss_mb(pid), 1),
+                                "rss_mb": round(rss_mb(pid), 1), "pss_mb": round(pss_mb(pid), 1),
                                 "threads": dict(sorted(threads.items(), key=lambda kv: -kv[1]))}
         finally:
             normal_priority()
     return {"processes": result, "total_cpu_pct": round(sum(r["cpu_pct"] for r in result.values()), 1),
-            "total_rss_mb": round(sum(r["rss_mb"] for r in result.values()), 1)}
+            "total_rss_mb": round(sum(r["rss_mb"] for r in result.values()), 1),
+            "total_pss_mb": round(sum(r["pss_mb"] for r in result.values()), 1)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,9 +153,11 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"arm": args.arm, "seconds": args.seconds, "profiles": results}))
         return 0
     for name, r in results.items():
-        print(f"{name} ({args.arm}): {r['total_cpu_pct']:.0f} % of a core, {r['total_rss_mb']:.0f} MB")
+        print(f"{name} ({args.arm}): {r['total_cpu_pct']:.0f} % of a core, {r['total_rss_mb']:.0f} MB resident "
+              f"(RSS), {r['total_pss_mb']:.0f} MB proportional (PSS: shared libraries counted once)")
         for process, figures in sorted(r["processes"].items(), key=lambda kv: -kv[1]["cpu_pct"]):
-            print(f"  {process:14s} {figures['cpu_pct']:5.1f} %  {figures['rss_mb']:6.0f} MB")
+            print(f"  {process:14s} {figures['cpu_pct']:5.1f} %  {figures['rss_mb']:6.0f} MB  "
+                  f"PSS {figures['pss_mb']:4.0f} MB")
             if args.threads:
                 for thread, pct in figures["threads"].items():
                     if pct >= 1.0:

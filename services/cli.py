@@ -24,7 +24,9 @@ def _cmd_router(args: argparse.Namespace) -> int:
     from services.runtime.transport import Router
 
     from services.robot.pacing import request_realtime
+    from services.runtime import iteration_profile
 
+    iteration_profile.install("router")  # mfvs bench lockstep: the router's CPU; nothing unless it asks
     # the router carries the command path (safety to the robot): it must not wait behind the rest of the host
     request_realtime(args.realtime_priority, "router")
     stop = threading.Event()
@@ -537,7 +539,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 BENCHMARKS = {"loops": "bench.loops", "vision": "bench.vision", "laws": "bench.laws", "latency": "bench.latency",
               "rs485": "bench.rs485", "swap": "bench.swap", "cpu": "bench.cpu", "gateway": "bench.gateway",
-              "load": "bench.load", "soak": "bench.soak", "console": "bench.console", "lowlevel": "bench.lowlevel"}
+              "load": "bench.load", "soak": "bench.soak", "console": "bench.console", "lowlevel": "bench.lowlevel",
+              "lockstep": "bench.lockstep"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
@@ -717,7 +720,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "soak: servo tasks back to back through random faults, and the unsafe events; console: "
                        "frames per second and capture → page delay of the console in headless Chromium; lowlevel: "
                        "the 500 Hz low-level torque loop as a client sees it (state rate, jitter, missed cycles, "
-                       "watchdog, command → state); every benchmark on an arm takes --arm NAME")
+                       "watchdog, command → state); lockstep: where a lockstep iteration's wall time goes "
+                       "(--identity: runs bit-identical to main's); every benchmark on an arm takes --arm NAME")
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=_cmd_bench)

@@ -382,7 +382,8 @@ FRAME_LOSS_COUNTERS = {("robot_sim", "frames.dropped"): "camera.dropped", ("visi
 
 
 #: the robot node's lockstep waits that ran out (wall time): the arm went on without the pipeline's answer
-LOCKSTEP_TIMEOUT_COUNTERS = ("lockstep.timeouts.frame", "lockstep.timeouts.cycle")
+LOCKSTEP_TIMEOUT_COUNTERS = ("lockstep.timeouts.frame", "lockstep.timeouts.cycle",
+                             "lockstep.timeouts.answerers")
 
 
 def _frames_lost(session, keys: Keys) -> tuple[dict, int]:

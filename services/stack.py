@@ -145,6 +145,11 @@ def write_config(directory: Path, name: str, config) -> str:
     return str(path)
 
 
+#: lockstep: how long the robot waits, before its first cycle, to see the safety the stack started before it (it
+#: is alive: this is the time its liveliness takes to reach the robot's new session; seconds only on a stalled host)
+ANSWERERS_SEEN_TIMEOUT_S = 10.0
+
+
 def wait_alive(zenoh: ZenohConfig, robot_id: str, names, processes, timeout_s: float, logs: Path) -> None:
     """Until every one of ``names`` has declared its liveliness (services declare it after their subscriptions);
     raises if one of ``processes`` exits first or ``timeout_s`` passes."""
@@ -295,6 +300,9 @@ class LocalStack:
             for service_cfg in (cfg.safety, cfg.vision, cfg.controller, cfg.robot):
                 service_cfg.zenoh = client
                 service_cfg.clock = cfg.clock
+            if cfg.clock is ClockMode.LOCKSTEP:  # safety is up before the robot starts: its first tick waits for it
+                cfg.robot.lockstep = msgspec.structs.replace(cfg.robot.lockstep,
+                                                             await_answerers_s=ANSWERERS_SEEN_TIMEOUT_S)
             for name in PIPELINE:
                 self._spawn(name, getattr(cfg, name))
             self._wait_alive(PIPELINE)

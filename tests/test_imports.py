@@ -74,3 +74,15 @@ def test_no_import_cycles():
 
 def test_the_cycle_finder_finds_a_cycle():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_robot_sim_in_api_mode_loads_no_python_can():
+    """python-can (13 MB resident) is the actuator_bus mode's: robot_sim imports the bus module for its config in
+    every mode, and python-can comes with the first bus opened."""
+    import subprocess
+    import sys
+
+    probe = ("import sys, services.robot_sim.service; assert 'can' not in sys.modules; "
+             "from services.robot.rs485_bus import BusConfig, RS485Bus; RS485Bus(BusConfig(channel='probe')).close(); "
+             "assert 'can' in sys.modules")
+    subprocess.run([sys.executable, "-c", probe], cwd=REPO, check=True, timeout=120)

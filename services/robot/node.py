@@ -125,6 +125,10 @@ class LockstepConfig(ConfigStruct):
     link_timeout_s: float = 5.0
     #: the robot node waits for the pipeline's answers while one of these services is alive (liveliness)
     answered_by: list[str] = msgspec.field(default_factory=lambda: ["safety"])
+    #: before its first cycle, wait this long at most for one of ``answered_by`` to be alive and the outputs they
+    #: answer to be subscribed (0: do not wait); a stack that started them before the robot sets it. Not there by
+    #: then: counted (lockstep.timeouts.answerers), the run is not repeatable
+    await_answerers_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not (self.retry_s > 0 and self.cycle_timeout_s > 0 and self.frame_timeout_s > 0):
@@ -316,6 +320,9 @@ class RobotNode(Service):
 
     def on_loop_start(self) -> None:
         """The realtime loop is about to run its first cycle (robot_sim starts its arm's time now)."""
+
+    def on_lockstep_end(self) -> None:
+        """The lockstep loop's thread is about to end (robot_sim frees the renderer that thread rendered with)."""
 
     def lowlevel_unavailable(self) -> str:
         """Why torque commands are refused ('' when the low-level API is offered)."""
@@ -631,8 +638,38 @@ class RobotNode(Service):
                  self.finished)
 
     def _run_lockstep(self) -> None:
-        while not self.done():
-            self.bus_cycle()
+        try:
+            self._await_answerers()
+            while not self.done():
+                self.bus_cycle()
+        finally:
+            self.on_lockstep_end()
+
+    def _await_answerers(self) -> None:
+        """Before the first cycle, until an answerer is alive and the outputs it answers have their subscribers (at
+        most ``lockstep.await_answerers_s``). Both reach a session that just opened on zenoh's thread, some time
+        after it opens (a liveliness query then finds nobody either, measured): a loop that did not wait ran its
+        first ticks unanswered, or took no frame for nobody matched the camera's images, and a run differed from
+        the next on a busy host."""
+        patience = self.config.lockstep.await_answerers_s
+        if patience <= 0:
+            return
+        deadline = time.monotonic() + patience
+        with self.command_cond:
+            while not (self._answerers and self.lockstep_outputs_matched()) and not self.stop_requested:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self.counters.inc("lockstep.timeouts.answerers")
+                    self.log.warning("lockstep: %s after %.1f s: the arm runs on", "its outputs unmatched"
+                                     if self._answerers else f"none of {', '.join(self.config.lockstep.answered_by)}"
+                                     " alive", patience)
+                    return
+                # the liveliness callback wakes this; a subscriber matched does not (polled), nor a stop
+                self.command_cond.wait(min(left, 0.1 if not self._answerers else 0.005))
+
+    def lockstep_outputs_matched(self) -> bool:
+        """Whether what the pipeline answers (robot_sim: its camera's images) has its subscribers."""
+        return True
 
     #: counters whose growth means the robot's own loop did not keep up (mfvs status shows it degraded); the
     #: cycles the arm ran without a frame for other reasons (transport jitter) are in the missed rate only

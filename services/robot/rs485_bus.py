@@ -22,7 +22,6 @@ import collections
 import time
 from typing import Optional
 
-import can
 import msgspec
 import numpy as np
 
@@ -52,6 +51,13 @@ class BusError(RuntimeError):
     """The bus itself failed (interface down, the hub gone): counted as ``bus.errors``; callers hold the arm."""
 
 
+def _python_can():
+    """python-can, imported when a bus opens: robot_sim imports this module for :class:`BusConfig` in every mode,
+    and python-can's 13 MB resident are the actuator_bus mode's only."""
+    import can
+    return can
+
+
 class RS485Bus:
     def __init__(self, config: BusConfig | None = None, counters: Counters | None = None) -> None:
         self.config = config or BusConfig()
@@ -59,6 +65,7 @@ class RS485Bus:
         options = dict(self.config.options)
         if self.config.interface == "virtual":
             options.setdefault("preserve_timestamps", True)  # the sender's stamps (the emulated arm's timeline)
+        can = self._can = _python_can()
         self._bus = can.Bus(interface=self.config.interface, channel=self.config.channel, fd=True, **options)
         self._raw = hasattr(self._bus, "send_raw") and hasattr(self._bus, "recv_raw")
         #: the interface moves a batch as one block of equal-sized frames (mfvs_hub): no Python object per frame
@@ -68,7 +75,7 @@ class RS485Bus:
         self.arm_timeline = self.config.interface in SENDER_STAMPED_INTERFACES
         self.last_error = ""
 
-    def _failed(self, exc: can.CanError) -> BusError:
+    def _failed(self, exc: Exception) -> BusError:  # a python-can CanError
         self.counters.inc("bus.errors")
         self.last_error = str(exc)
         return BusError(str(exc))
@@ -84,7 +91,7 @@ class RS485Bus:
         if self._block:
             try:
                 self._bus.send_block(batch["destination"], raw, MESSAGE_SIZE, timestamp)
-            except can.CanError as exc:
+            except self._can.CanError as exc:
                 raise self._failed(exc) from exc
             return
         payloads = [raw[i : i + MESSAGE_SIZE] for i in range(0, len(raw), MESSAGE_SIZE)]
@@ -93,7 +100,8 @@ class RS485Bus:
             if self._raw:
                 self._bus.send_raw(ids, payloads, timestamp)
                 return
-            frames = [can.Message(timestamp=timestamp, arbitration_id=i, data=p, is_fd=True, is_extended_id=False)
+            frames = [self._can.Message(timestamp=timestamp, arbitration_id=i, data=p, is_fd=True,
+                                        is_extended_id=False)
                       for i, p in zip(ids, payloads)]
             batch_send = getattr(self._bus, "send_batch", None)
             if batch_send is not None:
@@ -101,7 +109,7 @@ class RS485Bus:
             else:
                 for frame in frames:
                     self._bus.send(frame)
-        except can.CanError as exc:
+        except self._can.CanError as exc:
             raise self._failed(exc) from exc
 
     def recv_batch(self, timeout: Optional[float] = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -122,7 +130,7 @@ class RS485Bus:
                 while frame is not None:
                     items.append((frame.arbitration_id, frame.timestamp, bytes(frame.data)))
                     frame = self._bus.recv(0.0)
-        except can.CanError as exc:
+        except self._can.CanError as exc:
             raise self._failed(exc) from exc
         return self._decode(items)
 
@@ -167,8 +175,9 @@ class RS485Bus:
     def send_raw(self, data: bytes, arbitration_id: int = 0) -> None:
         """Put arbitrary bytes on the bus (tests of garbled frames)."""
         try:
-            self._bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_fd=True, is_extended_id=False))
-        except can.CanError as exc:
+            self._bus.send(self._can.Message(arbitration_id=arbitration_id, data=data, is_fd=True,
+                                             is_extended_id=False))
+        except self._can.CanError as exc:
             raise self._failed(exc) from exc
 
     def recv(self, timeout: Optional[float] = 0.0) -> Optional[RS485Message]:

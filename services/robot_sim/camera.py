@@ -9,6 +9,11 @@ then ran back to back with the host's frames of both lumped into one cycle (the 
 one cycle, twice the commanded speed, for as long). In a process the renderer has its own lock. The camera's
 thread here only hands it a snapshot and waits for the pixels (waiting releases the lock); taking the snapshot
 costs the robot's loop a few copies, and nothing the loop does later can change a frame being rendered.
+
+In lockstep (:class:`LoopCamera`) robot_sim's loop renders the frame itself, in its own thread: it waits for the
+frame's answer anyway, so nothing stalls that would run meanwhile, and the trips to a process and back (the
+thread's and the process's wake-ups, the pixels through a pipe, about a millisecond a frame) and the process's
+memory go. The same :class:`FrameRenderer` renders the same pixels either way.
 """
 from __future__ import annotations
 
@@ -45,12 +50,49 @@ class RenderError(RuntimeError):
     """The renderer failed a frame, could not start, or its process is gone."""
 
 
+class FrameRenderer:
+    """A camera's frames from snapshots of the world (the arm's joints and the target; the same at the exposure's
+    start, or None; the frame's stamp): its pixels (H×W×3 RGB, or H×W grey as vision's own conversion gives it),
+    through the camera's imperfections when it has them. Rendered from a copy of the world of its own, so that
+    nothing the simulation does meanwhile changes a frame. Its GL context is made current in the thread that
+    renders: render and close it from one thread."""
+
+    def __init__(self, model: mujoco.MjModel, camera_id: int, width: int, height: int,
+                 encoding: ImageEncoding = ImageEncoding.RGB8, imaging: Optional[ImagingConfig] = None,
+                 camera_matrix: Optional[np.ndarray] = None) -> None:
+        self.model, self.camera_id, self.encoding = model, camera_id, encoding
+        self.imaging, self.camera_matrix = imaging, camera_matrix
+        self.data = mujoco.MjData(model)
+        self.renderer = scene_mod.renderer(model, height, width)
+        self.pixels = np.empty((height, width, 3), dtype=np.uint8)
+
+    def render(self, qpos: np.ndarray, mocap_pos: np.ndarray, mocap_quat: np.ndarray, start=None,
+               stamp_ns: int = 0) -> np.ndarray:
+        model, data, camera_id, imaging = self.model, self.data, self.camera_id, self.imaging
+        data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = qpos, mocap_pos, mocap_quat
+        mujoco.mj_forward(model, data)
+        self.renderer.update_scene(data, camera=camera_id)
+        self.renderer.render(out=self.pixels)
+        out = cv2.cvtColor(self.pixels, cv2.COLOR_RGB2GRAY) if self.encoding is ImageEncoding.MONO8 else self.pixels
+        if imaging is not None:
+            if start is not None:
+                corners_end = imaging_mod.target_corners_px(model, data, camera_id, self.camera_matrix)
+                data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = start
+                mujoco.mj_kinematics(model, data)
+                corners_start = imaging_mod.target_corners_px(model, data, camera_id, self.camera_matrix)
+                out = imaging_mod.motion_blur(out, corners_end, corners_start, imaging.blur_samples)
+            out = imaging_mod.expose(out, imaging, stamp_ns)
+        return out
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
 def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, height: int,
                   realtime_priority: int, encoding: ImageEncoding = ImageEncoding.RGB8,
                   imaging: Optional[ImagingConfig] = None, camera_matrix: Optional[np.ndarray] = None) -> None:
-    """The renderer's process: a snapshot in (joint positions, target pose; the same at the exposure's start, or
-    None; the frame's stamp), its pixels out (RGB, or grey as vision's own conversion gives it), through the
-    camera's imperfections when it has them, until the pipe closes or a None comes."""
+    """The renderer's process: a snapshot in, its frame's pixels out (:class:`FrameRenderer`), until the pipe closes
+    or a None comes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is robot_sim's to handle: it closes us
     name_os_thread("robot_sim-render")
     mujoco_module()  # a spawned interpreter: its MuJoCo warnings to the log too, not to MUJOCO_LOG.TXT
@@ -63,9 +105,7 @@ def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, heigh
         os.environ.setdefault("LP_NUM_THREADS", "0")
     normal_priority()  # the renderer's threads (llvmpipe's) are created now and must not run at realtime priority
     try:
-        data = mujoco.MjData(model)
-        renderer = mujoco.Renderer(model, height, width)
-        pixels = np.empty((height, width, 3), dtype=np.uint8)
+        renderer = FrameRenderer(model, camera_id, width, height, encoding, imaging, camera_matrix)
     except Exception as exc:  # no EGL, no display: say why, once
         conn.send(f"no renderer: {exc}")
         return
@@ -80,20 +120,7 @@ def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, heigh
             if snapshot is None:
                 return
             try:
-                qpos, mocap_pos, mocap_quat, start, stamp_ns = snapshot
-                data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = qpos, mocap_pos, mocap_quat
-                mujoco.mj_forward(model, data)
-                renderer.update_scene(data, camera=camera_id)
-                renderer.render(out=pixels)
-                out = cv2.cvtColor(pixels, cv2.COLOR_RGB2GRAY) if encoding is ImageEncoding.MONO8 else pixels
-                if imaging is not None:
-                    if start is not None:
-                        corners_end = imaging_mod.target_corners_px(model, data, camera_id, camera_matrix)
-                        data.qpos[:], data.mocap_pos[:], data.mocap_quat[:] = start
-                        mujoco.mj_kinematics(model, data)
-                        corners_start = imaging_mod.target_corners_px(model, data, camera_id, camera_matrix)
-                        out = imaging_mod.motion_blur(out, corners_end, corners_start, imaging.blur_samples)
-                    out = imaging_mod.expose(out, imaging, stamp_ns)
+                out = renderer.render(*snapshot)
             except Exception as exc:
                 conn.send(f"render failed: {exc}")
                 continue
@@ -160,27 +187,58 @@ class Snapshot:
     qpos: np.ndarray
     mocap_pos: np.ndarray
     mocap_quat: np.ndarray
-    done: threading.Event
     #: the world when the shutter opened (qpos, mocap_pos, mocap_quat), for the motion blur; None without one
     start: Optional[tuple] = None
+    #: set once the frame is published (or failed), by the camera's thread
+    done: Optional[threading.Event] = None
 
 
-class SimCamera:
+class _Camera:
+    """What both cameras share: the snapshot of the world a frame is rendered from, and the frame published."""
+
     def __init__(self, sim: Simulation, publish: Callable[[Image], None], header: Callable[..., Header],
-                 on_failure: Callable[[], None], realtime_priority: int = 0) -> None:
+                 on_failure: Callable[[], None]) -> None:
         self.sim = sim
-        #: the renderer's priority once it exists (0: normal), just below the robot's loop; the renderer's own
-        #: threads (llvmpipe's) are created before, at normal priority, and keep it
-        self.realtime_priority = realtime_priority
         self._publish = publish
         self._header = header
         self._on_failure = on_failure
+        #: the last image published (published again when a lockstep answer is late)
+        self.last_image: Optional[Image] = None
+
+    def snapshot(self, stamp_ns: int) -> Snapshot:
+        """The world now (and at the exposure's start, with a motion blur), for a frame stamped ``stamp_ns``."""
+        d = self.sim.data
+        imaging = self.sim.scene.camera.imaging
+        start = None
+        if imaging is not None and imaging.exposure_s > 0:
+            start = self.sim.world_at(self.sim.time_ns - int(imaging.exposure_s * 1e9))
+        return Snapshot(stamp_ns, d.qpos.copy(), d.mocap_pos.copy(), d.mocap_quat.copy(), start)
+
+    def _publish_frame(self, snapshot: Snapshot, pixels: bytes) -> None:
+        cam = self.sim.scene.camera
+        header = self._header("image", stamp_ns=snapshot.stamp_ns, source_stamp_ns=snapshot.stamp_ns)
+        image = Image(header=header, width=cam.width, height=cam.height, encoding=cam.encoding, data=pixels)
+        self.last_image = image
+        self._publish(image)
+
+    def info(self, header: Header) -> CameraInfo:
+        return scene_mod.camera_info(self.sim.scene.camera, header)
+
+
+class SimCamera(_Camera):
+    """Renders in a process of its own (:class:`RenderProcess`), fed by a thread of its own: the robot's loop only
+    takes the snapshot (:meth:`capture`) and goes on, as a camera's own hardware would let it."""
+
+    def __init__(self, sim: Simulation, publish: Callable[[Image], None], header: Callable[..., Header],
+                 on_failure: Callable[[], None], realtime_priority: int = 0) -> None:
+        super().__init__(sim, publish, header, on_failure)
+        #: the renderer's priority once it exists (0: normal), just below the robot's loop; the renderer's own
+        #: threads (llvmpipe's) are created before, at normal priority, and keep it
+        self.realtime_priority = realtime_priority
         self._queue: queue.Queue = queue.Queue(maxsize=1)
         self._stopping = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._renderer: Optional[RenderProcess] = None
-        #: the last image published (published again when a lockstep answer is late)
-        self.last_image: Optional[Image] = None
 
     @property
     def renderer_pid(self) -> Optional[int]:
@@ -214,23 +272,22 @@ class SimCamera:
             self._renderer = None
 
     def capture(self, stamp_ns: int) -> Optional[threading.Event]:
-        """Snapshot the world now for a frame stamped ``stamp_ns``; None when the renderer is still busy with the
-        last one (the frame is dropped)."""
-        d = self.sim.data
-        done = threading.Event()
-        imaging = self.sim.scene.camera.imaging
-        start = None
-        if imaging is not None and imaging.exposure_s > 0:
-            start = self.sim.world_at(self.sim.time_ns - int(imaging.exposure_s * 1e9))
-        snapshot = Snapshot(stamp_ns, d.qpos.copy(), d.mocap_pos.copy(), d.mocap_quat.copy(), done, start)
+        """Snapshot the world now for a frame stamped ``stamp_ns``, to be rendered and published by the camera's
+        thread: the event it sets then; None when the renderer is still busy with the last one (the frame is
+        dropped)."""
+        snapshot = self.snapshot(stamp_ns)
+        snapshot.done = threading.Event()
         try:
             self._queue.put_nowait(snapshot)
         except queue.Full:
             return None
-        return done
+        return snapshot.done
+
+    def deliver(self, frame: threading.Event, timeout_s: float) -> None:
+        """Until the frame :meth:`capture` gave ``frame`` for is published (at most ``timeout_s``)."""
+        frame.wait(timeout=timeout_s)
 
     def _render_loop(self) -> None:
-        cam = self.sim.scene.camera
         while not self._stopping.is_set():
             try:
                 snapshot = self._queue.get(timeout=0.1)
@@ -243,15 +300,63 @@ class SimCamera:
                     raise RenderError("no renderer")
                 pixels = self._renderer.render(snapshot.qpos, snapshot.mocap_pos, snapshot.mocap_quat,
                                                snapshot.start, snapshot.stamp_ns)
-                header = self._header("image", stamp_ns=snapshot.stamp_ns, source_stamp_ns=snapshot.stamp_ns)
-                image = Image(header=header, width=cam.width, height=cam.height, encoding=cam.encoding,
-                              data=pixels)
-                self.last_image = image
-                self._publish(image)
+                self._publish_frame(snapshot, pixels)
             except Exception:
                 self._on_failure()
             finally:
                 snapshot.done.set()
 
-    def info(self, header: Header) -> CameraInfo:
-        return scene_mod.camera_info(self.sim.scene.camera, header)
+
+class LoopCamera(_Camera):
+    """Renders in the thread that delivers the frame: robot_sim's loop in lockstep, which waits for each frame's
+    answer anyway. The render process exists for the realtime loop, which must not hold the interpreter lock for
+    a frame (module docstring); in lockstep a frame handed to another process and back only cost its trips (about
+    a millisecond a frame: the thread's and the process's wake-ups, the pixels through a pipe). The same
+    :class:`FrameRenderer` renders the same pixels. Its GL context is the rendering thread's: that thread closes
+    it (:meth:`close_renderer`)."""
+
+    def __init__(self, sim: Simulation, publish: Callable[[Image], None], header: Callable[..., Header],
+                 on_failure: Callable[[], None]) -> None:
+        super().__init__(sim, publish, header, on_failure)
+        self._renderer: Optional[FrameRenderer] = None
+        self._unavailable = False
+
+    renderer_pid = None
+
+    def start(self) -> None:
+        """Nothing to start: the renderer is made by the thread that renders, at its first frame."""
+
+    def capture(self, stamp_ns: int) -> Snapshot:
+        """Snapshot the world now for a frame stamped ``stamp_ns`` (rendered when it is delivered)."""
+        return self.snapshot(stamp_ns)
+
+    def deliver(self, frame: Snapshot, timeout_s: float) -> None:
+        """Render the frame :meth:`capture` took and publish it, in this thread (``timeout_s``: unused, nothing is
+        waited for)."""
+        try:
+            if self._renderer is None:
+                if self._unavailable:
+                    raise RenderError("no renderer")
+                cam = self.sim.scene.camera
+                try:
+                    self._renderer = FrameRenderer(self.sim.model, self.sim.camera_id, cam.width, cam.height,
+                                                   cam.encoding, cam.imaging, cam.matrix())
+                except Exception as exc:  # no EGL, no display: say why, once
+                    self._unavailable = True
+                    log.error("camera: no renderer: %s", exc)
+                    raise
+            pixels = self._renderer.render(frame.qpos, frame.mocap_pos, frame.mocap_quat, frame.start,
+                                           frame.stamp_ns)
+            self._publish_frame(frame, pixels.tobytes())
+        except Exception:
+            self._on_failure()
+
+    def close_renderer(self) -> None:
+        """Free the renderer; from the thread that rendered (its GL context is current there)."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def stop(self) -> None:
+        if self._renderer is not None:  # the rendering thread did not close it: it is gone, and so is its context
+            log.warning("camera: the renderer was left open by its thread")

@@ -37,7 +37,7 @@ from services.runtime.service import Service
 from services.robot.hardware import CYCLE_NS, CYCLE_S, DSP_CYCLE_NS, ActuatorValues
 from services.robot.node import ROBOT_SERVICES, RobotNode, RobotNodeConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig
-from services.robot_sim.camera import SimCamera
+from services.robot_sim.camera import LoopCamera, SimCamera
 from services.model.arm import load_arm
 from services.robot_sim.firmware import ActuatorConfig, check_actuators
 from services.robot_sim.hardware import SimulatedHardware
@@ -78,9 +78,14 @@ class RobotSimConfig(RobotNodeConfig):
 class _SimulationOutputs:
     """What both modes publish besides the robot: camera images and info, and the clock with its frame stamps."""
 
-    def __init__(self, service: Service, sim: Simulation, config: RobotSimConfig, epoch_ns: int) -> None:
+    def __init__(self, service: Service, sim: Simulation, config: RobotSimConfig, epoch_ns: int,
+                 render_in_loop: bool = False) -> None:
+        """``render_in_loop``: in lockstep, the thread that runs the arm's cycles (and calls :meth:`at_boundary`,
+        :meth:`tick`) renders the frames itself (:class:`~services.robot_sim.camera.LoopCamera`); it must then
+        call :meth:`loop_ended` as it ends."""
         self.service, self.sim, self.config = service, sim, config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
+        self.render_in_loop = render_in_loop and self.lockstep
         self.epoch_ns = epoch_ns
         #: realtime: frames are taken this long after a DSP tick (the camera's trigger: fixed, or moved to where the
         #: commands' measured paths are applied soonest); lockstep: at the tick
@@ -88,9 +93,9 @@ class _SimulationOutputs:
         auto = offset == "auto" and not self.lockstep
         self.trigger = TriggerPhase(0 if self.lockstep else DEFAULT_TRIGGER_MS[config.mode] if auto else offset,
                                     TRIGGER_OFFSETS_MS, auto, cycle_ms=DSP_CYCLE_NS / 1e6)
-        self.camera: Optional[SimCamera] = None
-        #: the frame taken at the last DSP tick: (capture stamp, rendered event)
-        self.frame: Optional[tuple[int, threading.Event]] = None
+        self.camera: Optional[SimCamera | LoopCamera] = None
+        #: the frame taken at the last DSP tick: (capture stamp, what the camera delivers it by)
+        self.frame: Optional[tuple[int, object]] = None
         self._next_info = 0.0
 
     @property
@@ -110,11 +115,19 @@ class _SimulationOutputs:
             # whichever robot node applies the commands (this process's, or robot_gateway's): the trace says when
             # each reached it; decisions are made on this thread, the loop only reads the offset
             service.subscribe(keys.robot_state, RobotState, self._on_robot_state, "robot_state")
-        self.camera = SimCamera(self.sim, self.image_pub.put, service.header, self._render_failed,
-                                realtime_priority=max(0, self.config.realtime_priority - 1)
-                                if not self.lockstep else 0)
+        if self.render_in_loop:
+            self.camera = LoopCamera(self.sim, self.image_pub.put, service.header, self._render_failed)
+        else:
+            self.camera = SimCamera(self.sim, self.image_pub.put, service.header, self._render_failed,
+                                    realtime_priority=max(0, self.config.realtime_priority - 1)
+                                    if not self.lockstep else 0)
         self.camera.start()
         self._camera_info_now_and_then()  # before the first frame: vision cannot use a frame without it
+
+    def loop_ended(self) -> None:
+        """The thread that rendered the frames ends (``render_in_loop``): its renderer goes with it."""
+        if isinstance(self.camera, LoopCamera):
+            self.camera.close_renderer()
 
     def stop(self) -> None:
         if self.camera is not None:
@@ -160,20 +173,20 @@ class _SimulationOutputs:
         if not self.image_pub.matching:  # nobody looks: rendering is read-only, so skipping changes nothing else
             self.service.counters.inc("frames.unobserved")
             return
-        done = self.camera.capture(stamp)
-        if done is None:
+        taken = self.camera.capture(stamp)
+        if taken is None:
             self.service.counters.inc("frames.dropped")
             return
-        self.frame = (stamp, done)
+        self.frame = (stamp, taken)
 
     def tick(self, tick_ns: int) -> Optional[int]:
         """A DSP tick: the clock (with this tick's frame stamp) and, now and then, the camera info; in lockstep
         the frame is rendered and out before this returns. The frame's stamp, if one was taken at this tick."""
         frame_stamp = None
         if self.frame is not None and self.frame[0] == tick_ns:
-            frame_stamp, done = self.frame
+            frame_stamp, taken = self.frame
             if self.lockstep:
-                done.wait(timeout=10.0)
+                self.camera.deliver(taken, timeout_s=10.0)
         self.clock_pub.put(SimClock(header=self.service.header("clock", stamp_ns=tick_ns), sim_time_ns=tick_ns,
                                     mode=ClockMode(self.config.clock).value, frame_stamp_ns=frame_stamp or 0))
         self._camera_info_now_and_then()
@@ -219,7 +232,7 @@ class RobotSimService(RobotNode):
         epoch = _epoch(self.config)
         if self.lockstep:
             self.clock.advance_to(epoch)
-        self.outputs = _SimulationOutputs(self, self.sim, self.config, epoch)
+        self.outputs = _SimulationOutputs(self, self.sim, self.config, epoch, render_in_loop=True)
         hardware = SimulatedHardware(self.sim, epoch, on_boundary=self._at_boundary)
         return hardware, hardware.read()
 
@@ -234,6 +247,12 @@ class RobotSimService(RobotNode):
 
     def on_lockstep_retry(self, tick_ns: int) -> None:
         self.outputs.retry(tick_ns)
+
+    def on_lockstep_end(self) -> None:
+        self.outputs.loop_ended()
+
+    def lockstep_outputs_matched(self) -> bool:
+        return not self.outputs.renders or self.outputs.image_pub.matching
 
     def on_loop_start(self) -> None:
         self.hardware.epoch_ns = time.time_ns() - self.sim.time_ns  # the arm's time starts now, as wall time

@@ -172,7 +172,7 @@ class Simulation:
             raise RuntimeError("this simulation was created with render=False")
         if self._renderer is None:
             cam = self.scene.camera
-            self._renderer = mujoco.Renderer(self.model, cam.height, cam.width)
+            self._renderer = scene_mod.renderer(self.model, cam.height, cam.width)
         mujoco.mj_forward(self.model, self.data)
         self._renderer.update_scene(self.data, camera=self._camera_id)
         image = self._renderer.render().copy()

@@ -34,6 +34,7 @@ from services.runtime.logs import RateLimitedLogger
 from services.runtime.metrics import Counters, Rates
 from services.runtime.threads import start_thread
 from services.runtime.faults import FaultInjector
+from services.runtime import iteration_profile
 from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session, publisher_options
 
 M = TypeVar("M", bound=msgspec.Struct)
@@ -468,6 +469,7 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
         print(f"{service_type.name}: {exc}", file=sys.stderr)
         return 2
     setup_logging(config.log_level)
+    iteration_profile.install(service_type.name)  # mfvs bench lockstep's timers; nothing unless it asks
     code = 1
     try:
         prepared = prepare(config) if prepare is not None else {}

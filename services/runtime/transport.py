@@ -24,6 +24,11 @@ def loopback_endpoint(port: int, host: str = "127.0.0.1", scheme: str = "tcp") -
     return f"{scheme}/{host}:{port}"
 
 
+#: the shared-memory pool of a session that publishes large messages: four 640×480 RGB frames (a larger message
+#: than the pool has room for goes without shared memory, as any message under zenoh's threshold does)
+SHM_POOL_BYTES = 4 << 20
+
+
 class ZenohConfig(ConfigStruct):
     #: client: talk through the router (the deployment default, where access control lives); peer; router
     mode: Literal["client", "peer", "router"] = "client"
@@ -80,6 +85,13 @@ def to_zenoh_config(cfg: ZenohConfig) -> zenoh.Config:
             conf.insert_json5("connect/endpoints", json.dumps(connect))
         if listen:
             conf.insert_json5("listen/endpoints", json.dumps(listen))
+        if not cfg.config_file:  # a file's own choices stand
+            # images go through zenoh's shared memory: a pool of a few in flight, not zenoh's 16 MiB, whose pages
+            # every session on the way (the publisher, the router, each subscriber) ended up holding resident
+            conf.insert_json5("transport/shared_memory/transport_optimization/pool_size", str(SHM_POOL_BYTES))
+            if cfg.mode == "router" and not cfg.multicast_scouting:
+                # nobody to scout for: zenoh's default waits half a second for peers before the router opens
+                conf.insert_json5("scouting/delay", "0")
     except Exception as exc:
         raise ConfigError("zenoh", f"rejected by zenoh ({exc})", "zenoh") from None
     return conf

@@ -195,3 +195,77 @@ def test_camera_renders_in_its_own_process_the_frame_the_simulation_would(encodi
         sim.close()
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "mono8"])
+def test_in_lockstep_the_loop_renders_the_frame_the_render_process_would(encoding):
+    """Lockstep's loop waits for each frame's answer anyway: it renders the frame itself (no render process, no
+    thread, no pipe), the same pixels as the render process, in the thread that delivers it, which also frees the
+    renderer (its GL context is that thread's)."""
+    import multiprocessing
+    import threading
+
+    from protocol.messages import Header, ImageEncoding
+    from services.robot_sim.camera import LoopCamera, SimCamera
+
+    cfg = SceneConfig(camera=CameraConfig(encoding=ImageEncoding(encoding)),
+                      target=TargetConfig(pose_in_camera=PoseConfig(xyz=(0.02, -0.01, 0.4), rpy_deg=(170, 5, 20))))
+    sim = Simulation(cfg)
+    sim.data.qpos[:] += 0.01
+    header = lambda *_, **kw: Header(**kw)  # noqa: E731
+    in_process, in_loop, failures = [], [], []
+    reference = SimCamera(sim, in_process.append, header, lambda: failures.append("process"))
+    reference.start()
+    try:
+        done = reference.capture(stamp_ns=7)
+        reference.deliver(done, timeout_s=30.0)
+    finally:
+        reference.stop()
+    camera = LoopCamera(sim, in_loop.append, header, lambda: failures.append("loop"))
+    camera.start()
+    rendering_threads = []
+
+    def loop():  # as robot_sim's loop: capture at the boundary, deliver at the tick, free the renderer at its end
+        frame = camera.capture(stamp_ns=7)
+        sim.data.qpos[:] += 0.05  # physics moves on after the boundary: the frame is the snapshot's
+        camera.deliver(frame, timeout_s=0.0)
+        rendering_threads.append(threading.current_thread().name)
+        camera.close_renderer()
+
+    thread = threading.Thread(target=loop, name="robot-loop")
+    thread.start()
+    thread.join()
+    camera.stop()
+    sim.close()
+    assert not failures and len(in_process) == len(in_loop) == 1
+    assert camera.renderer_pid is None and not multiprocessing.active_children()
+    assert in_loop[0].data == in_process[0].data and in_loop[0].header.source_stamp_ns == 7
+    assert camera.last_image is in_loop[0] and rendering_threads == ["robot-loop"]
+
+
+def test_the_renderer_holds_no_shadow_map_and_a_scene_buffer_its_size_for_the_same_pixels():
+    """No light casts shadows: MuJoCo's default 4096² shadow map (64 MB in every GL context) and its 10,000-geom
+    scene buffer (9 MB) bought nothing. The frames are the ones the defaults gave."""
+    import mujoco
+
+    from services.robot_sim import scene as scene_mod
+
+    sim = Simulation(SceneConfig())
+    sim.data.qpos[:] += 0.02
+    mujoco.mj_forward(sim.model, sim.data)
+    assert sim.model.vis.quality.shadowsize == 0
+    height, width = sim.scene.camera.height, sim.scene.camera.width
+    frames = []
+    for shadowsize, make in ((0, scene_mod.renderer), (4096, mujoco.Renderer)):
+        sim.model.vis.quality.shadowsize = shadowsize
+        renderer = make(sim.model, height, width)
+        try:
+            renderer.update_scene(sim.data, camera=sim.camera_id)
+            frames.append(renderer.render().copy())
+            if make is scene_mod.renderer:
+                assert renderer.scene.maxgeom < 1000 and renderer.scene.ngeom <= renderer.scene.maxgeom
+        finally:
+            renderer.close()
+    sim.model.vis.quality.shadowsize = 0
+    sim.close()
+    assert frames[0].any() and np.array_equal(frames[0], frames[1])

@@ -12,6 +12,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
 from services.robot.dsp import DSPConfig, motion_limits
+from services.robot.node import LockstepConfig
 from services.runtime.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import next_seq, wait_for
@@ -326,3 +327,41 @@ def test_realtime_camera_trigger_moves_to_where_slow_commands_are_applied_soones
     finally:
         service.stop()
         state_pub.undeclare()
+
+
+@pytest.mark.parametrize("late", ["safety", "image subscriber"])
+def test_lockstep_waits_for_its_answerers_before_its_first_tick(router, client, late):
+    """Who is alive and who subscribes reach the robot's new session on zenoh's thread some time after it opens: a
+    loop that did not wait ran its first ticks unanswered, or skipped its first frame for nobody subscribed yet,
+    and a run differed from the next. Told to (as the stack tells it), the robot waits for safety and for vision's
+    subscription before its first cycle; here one of them comes late."""
+    declare_safety = lambda: client.liveliness().declare_token(KEYS.liveliness("safety"))  # noqa: E731
+    declare_vision = lambda: client.declare_subscriber(KEYS.camera_image, lambda sample: None)  # noqa: E731
+    declared = [declare_vision() if late == "safety" else declare_safety()]
+    config = RobotSimConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config(),
+                            lockstep=LockstepConfig(await_answerers_s=30.0))
+    robot = RobotSimService(config)
+    robot.start()
+    try:
+        time.sleep(0.6)  # longer than a tick's wait for its answer: nothing ran
+        assert robot.sim.time_ns == 0 and robot.counters.get("lockstep.timeouts.cycle") == 0
+        declared.append(declare_safety() if late == "safety" else declare_vision())
+        # nobody answers: the first tick waits its cycle_timeout_s, then the arm goes on; its frame was taken
+        assert wait_for(lambda: robot.counters.get("lockstep.timeouts.frame") >= 1, timeout=10)
+        assert robot.counters.get("lockstep.timeouts.answerers") == 0
+        assert robot.counters.get("frames.unobserved") == 0
+    finally:
+        robot.stop()
+        for declaration in declared:
+            declaration.undeclare()
+
+
+def test_lockstep_without_its_answerers_runs_on_and_counts_it(router):
+    robot = RobotSimService(RobotSimConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config(),
+                                           lockstep=LockstepConfig(await_answerers_s=0.2)))
+    robot.start()
+    try:
+        assert wait_for(lambda: robot.sim.time_ns > 0, timeout=10)
+        assert robot.counters.get("lockstep.timeouts.answerers") == 1
+    finally:
+        robot.stop()

@@ -444,3 +444,31 @@ def test_threads_carry_their_names_to_the_kernel():
 
     start_thread(record, "mfvs-test-named-thread").join(timeout=5.0)
     assert seen["comm"] == "mfvs-test-named"  # the kernel keeps the first 15 bytes
+
+
+def test_sessions_share_memory_in_a_small_pool_and_a_router_opens_without_scouting(tmp_path):
+    """zenoh's 16 MiB shared-memory pool ended up resident in every session an image passed through, and a router
+    with nobody to scout for waited half a second to open. A message larger than the pool still arrives (without
+    shared memory); a zenoh config file's own choices stand."""
+    from services.runtime.transport import SHM_POOL_BYTES
+
+    client = to_zenoh_config(ZenohConfig())
+    assert json.loads(client.get_json("transport/shared_memory/transport_optimization/pool_size")) == SHM_POOL_BYTES
+    started = time.monotonic()
+    with Router(port=0) as router:
+        assert time.monotonic() - started < 0.4
+        sender, receiver = open_session(router.client_config()), open_session(router.client_config())
+        sizes = []
+        receiver.declare_subscriber("mfvs/test/big", lambda sample: sizes.append(len(sample.payload.to_bytes())))
+        time.sleep(0.3)
+        publisher = sender.declare_publisher("mfvs/test/big")
+        wanted = [300_000, 2 * SHM_POOL_BYTES, 300_000]
+        for size in wanted:
+            publisher.put(bytes(size))
+        assert wait_for(lambda: len(sizes) == 3, timeout=10) and sizes == wanted
+        sender.close()
+        receiver.close()
+    own = tmp_path / "zenoh.json5"
+    own.write_text('{transport: {shared_memory: {transport_optimization: {pool_size: 33554432}}}}')
+    from_file = to_zenoh_config(ZenohConfig(config_file=str(own)))
+    assert json.loads(from_file.get_json("transport/shared_memory/transport_optimization/pool_size")) == 32 << 20
