@@ -388,7 +388,7 @@ def run_torque_control(arm_name: Optional[str] = None, out_dir: Optional[str | P
                     progress(rows[spec.label])
         summary = {"target": target, "observations": observations(rows, arrays, arm, quick),
                    "timing": _timing_summary(rows), "choices": CHOICES,
-                   "model": model_error(arm)}
+                   "model": model_error(arm, profile)}
         output = {"experiment": NAME, "seed": "003", "title": TITLE, "paper": PAPER, "arm": arm.name,
                   "profile": profile, "quick": quick, "runs": list(rows.values()), "summary": summary,
                   "report": None, "plots": [],
@@ -425,7 +425,7 @@ def reference_target(arm: ArmDescription, quick: bool) -> dict:
                         "weighting": f"1 rad counted as {laws.ORIENTATION_WEIGHT_M} m"}}
 
 
-def model_error(arm: ArmDescription) -> dict:
+def model_error(arm: ArmDescription, profile: str = "sim") -> dict:
     """How the controllers' model (the links alone, as the thesis's CAD model) differs from the emulated arm, at
     home: the diagonal of M̂ against the arm's (robot_sim's MuJoCo model: the rotors' inertia, the heavier hand),
     the friction it does not know, and the gravity the arm's hand adds beyond the model's."""
@@ -451,10 +451,19 @@ def model_error(arm: ArmDescription) -> dict:
             "gravity_model_nm": [round(float(v), 3) for v in cad.gravity(arm.home)],
             "gravity_arm_nm": [round(float(v), 3) for v in data.qfrc_bias[:n]],
             "torque_limits_nm": arm.max_torque.tolist(),
-            "gravity": ("The arm's gravity (its hand heavier than the model's) is not what the controllers face: with "
-                        "Table 5.1's gravity off, the robot node takes the model's ĝ(q) out of what the emulated "
-                        "actuators add, which is the arm's own gravity (and Coriolis), so the gravity left to the "
-                        "controllers is the model's: their ĝ(q) is exact in effect")}
+            "gravity": GRAVITY_FACED[profile]}
+
+
+#: what gravity the controllers face after Table 5.1, by profile (services/robot/lowlevel.py)
+GRAVITY_FACED = {
+    "sim": ("The controllers face the arm's true gravity: with Table 5.1's gravity off, robot_sim's actuators add "
+            "none, so the hand's extra weight, which their ĝ(q) does not know, is theirs to hold (as a real arm "
+            "with its compensation off leaves a CAD model's error to the client)"),
+    "gateway": ("The arm's gravity (its hand heavier than the model's) is not what the controllers face: the "
+                "emulated actuators on the RS-485 bus cannot be told to stop adding theirs (no public message does "
+                "it), so the robot node takes the model's ĝ(q) back out of the arm's own gravity (and Coriolis): "
+                "the gravity left to the controllers is the model's, their ĝ(q) exact in effect"),
+}
 
 
 def _timing_summary(rows: dict) -> dict:

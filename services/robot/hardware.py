@@ -136,4 +136,8 @@ class RobotHardware(Protocol):
         """SetTorqueZero: the joint's torque sensor reads 0 where it stands (raises :class:`HardwareError` where the
         hardware cannot)."""
 
+    def set_gravity_compensation(self, on: bool) -> bool:
+        """The arm's own gravity compensation in torque mode on or off (Table 5.1's gravity setup); False where the
+        hardware has no way to switch it (the host then takes its model's gravity back out of what it sends)."""
+
     def close(self) -> None: ...

@@ -9,8 +9,10 @@ depend on what drives the arm:
 * after ``release_s`` without commands the joints return to position mode, holding where they are, under the DSP
   (the real actuators' own torque-inactivity timeout is the same 250 ms);
 * ``gravity_compensation: false`` means the client's torques already include gravity: since the actuators add it,
-  the model's gravity torque is subtracted; so is it when the arm's own compensation is off (Table 5.1's optimal-Z
-  parameters all 0), where the emulated actuators, which always add it, would otherwise;
+  the model's gravity torque is subtracted. When the arm's own compensation is off (Table 5.1's optimal-Z
+  parameters all 0) the actuators are told to stop adding it where they can (the simulator's), so the client faces
+  the arm's true gravity; where they cannot (the emulated RS-485 bus has no message for it) the model's gravity is
+  subtracted, and the client faces the model's;
 * the torque-mode setup of Table 5.1 (:mod:`services.robot.torque_setup`) applies here, for every robot alike: the
   actuators' damping is added to each command, and a joint faster than the safety factor allows returns the arm to
   trajectory control (position mode, holding where it is); torque commands are then refused until the client has
@@ -54,6 +56,9 @@ class TorqueJoints(Protocol):
 
     def set_torques(self, torques: np.ndarray) -> None:
         """Extra joint torques (model sign, N·m) on top of the gravity compensation."""
+
+    def set_gravity_compensation(self, on: bool) -> bool:
+        """The actuators' own gravity compensation on or off; False where they cannot switch it."""
 
 
 class Outcome(enum.Enum):
@@ -131,11 +136,20 @@ class LowLevelControl:
             self._forget(latest)
             return Outcome.RELEASED, f"after {age * 1e3:.0f} ms without commands"
         if age > self.config.watchdog_s:
+            # the emulation's hold on a stale command: zero extra torque on the arm's gravity compensation, even
+            # where Table 5.1 switched it off (a real arm would leave it off and let the joints fall until its
+            # 250 ms fallback); a stalled client is not made to drop the arm
+            self.joints.set_gravity_compensation(True)
             self.joints.set_torques(np.zeros(len(q)))
             return Outcome.WATCHDOG, f"command {age * 1e3:.1f} ms old"
         torques = np.asarray(command.torques, dtype=float) + damping_torque(self.setup, dq)
-        if not command.gravity_compensation or not arm_compensates_gravity(self.setup):
-            torques = torques - self.gravity(q)  # what the actuators add that the arm is not to have
+        arm_gravity = arm_compensates_gravity(self.setup)
+        switched = self.joints.set_gravity_compensation(arm_gravity)
+        actuators_add_gravity = arm_gravity or not switched
+        if actuators_add_gravity and (not command.gravity_compensation or not arm_gravity):
+            # what the actuators add that the arm is not to have, as far as the model knows it: where they cannot
+            # switch their compensation off (RS-485), the arm's true gravity differs from it by the model's error
+            torques = torques - self.gravity(q)
         self.joints.set_torques(torques)
         return outcome, ""
 

@@ -213,6 +213,8 @@ class _TorqueJoints:
 
     def __init__(self, node: "RobotNode") -> None:
         self.node = node
+        self._gravity_compensation: Optional[bool] = None  # as last asked of the hardware
+        self._switches_gravity = False
 
     @property
     def torque_mode(self) -> bool:
@@ -232,6 +234,12 @@ class _TorqueJoints:
     def set_torques(self, torques) -> None:
         with self.node._core_lock:
             self.node.core.torques = np.asarray(torques, dtype=float).copy()
+
+    def set_gravity_compensation(self, on: bool) -> bool:
+        if on is not self._gravity_compensation:
+            self._switches_gravity = self.node.hardware.set_gravity_compensation(on)
+            self._gravity_compensation = on
+        return self._switches_gravity
 
 
 class RobotNode(Service):

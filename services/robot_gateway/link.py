@@ -333,6 +333,10 @@ class LinkHardware:
                             "(kinova.md) zeroes a torque sensor; zero them through Kinova's SDK (the kinova_sdk "
                             "backend) or Kinova's Development Center")
 
+    def set_gravity_compensation(self, on: bool) -> bool:
+        # no public RS-485 message switches it (0x213 "torque feed-forward" is named in kinova.md, not described)
+        return False
+
     def close(self) -> None:
         self.link.bus.close()
 

@@ -169,6 +169,9 @@ class _NoJoints:
     def leave_torque_mode(self) -> None:
         pass
 
+    def set_gravity_compensation(self, on: bool) -> bool:
+        return False  # no torque mode here; the arm's own setup is the SDK's (Table 5.1's calls go to the arm)
+
     def close(self) -> None:
         self.session.close()
 

@@ -148,6 +148,8 @@ class ActuatorFirmware:
         self._torque_per_ampere = np.array([a.torque_gradient_nm_per_a for a in specs])
         #: the joints' Coulomb friction (the emulated arm's, arm.true_friction_nm; see :meth:`apply` for where)
         self._coulomb = arm.true_friction_nm.copy()
+        #: whether torque mode adds the arm's gravity compensation (Table 5.1's gravity setup switches it off)
+        self.compensating_gravity = self.config.gravity_compensation
         #: the torque sensors: noise of the data sheets' precision (±2σ), a bias within their temperature drift
         #: (fixed per arm and joint) that SetTorqueZero's offset (:meth:`zero_torque`) takes out where it is
         #: called; seeded, so a lockstep run repeats to the bit
@@ -194,6 +196,11 @@ class ActuatorFirmware:
         """What each actuator's torque sensor reads: the applied torque, its bias less its zero, and its noise."""
         return (self.applied_torque_nm() + self._sensor_bias - self._sensor_zero
                 + self._sensor_noise.normal(0.0, self._sensor_sigma))
+
+    def set_gravity_compensation(self, on: bool) -> None:
+        """The arm's own gravity compensation in torque mode, on or off (Table 5.1's ``SetGravityType`` and
+        ``SetGravityOptimalZParam``, as the robot's torque setup applies them)."""
+        self.compensating_gravity = bool(on) and self.config.gravity_compensation
 
     def zero_torque(self, i: int) -> None:
         """SetTorqueZero: actuator ``i``'s torque sensor reads 0 now (its bias, and whatever load it carries, taken
@@ -401,7 +408,7 @@ class ActuatorFirmware:
         # emulated here is far softer than that loop and would leave the friction as an error it never has)
         self.model.dof_frictionloss[:n] = np.where(torque_mode, self._coulomb, 0.0)
         if torque_mode.any():
-            commanded = self._torque_sign * torque_nm + (gravity if self.config.gravity_compensation else 0.0)
+            commanded = self._torque_sign * torque_nm + (gravity if self.compensating_gravity else 0.0)
             tau = np.where(torque_mode, commanded, tau)
         in_first_cycle = started & (ahead < CYCLE_S - 1e-9) & ~torque_mode
         if in_first_cycle.any():

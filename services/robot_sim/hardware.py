@@ -89,5 +89,9 @@ class SimulatedHardware:
         """SetTorqueZero: the actuator's torque sensor reads 0 where it stands."""
         self.sim.firmware.zero_torque(joint)
 
+    def set_gravity_compensation(self, on: bool) -> bool:
+        self.sim.firmware.set_gravity_compensation(on)
+        return True
+
     def close(self) -> None:
         pass

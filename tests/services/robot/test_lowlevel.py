@@ -22,9 +22,16 @@ from tests.helpers import ARM, computed_torque_options_for_the_emulated_arm
 
 
 class FakeJoints:
-    def __init__(self, refuse=False, stuck=0):
+    def __init__(self, refuse=False, stuck=0, switches_gravity=False):
         self.torque_mode, self.torques, self.refuse, self.stuck = False, None, refuse, stuck
         self.leaves = 0
+        #: whether these actuators can switch their own gravity compensation (the simulator's; not the bus's)
+        self.switches_gravity, self.compensating_gravity = switches_gravity, True
+
+    def set_gravity_compensation(self, on):
+        if self.switches_gravity:
+            self.compensating_gravity = on
+        return self.switches_gravity
 
     def enter_torque_mode(self):
         if self.refuse:
@@ -138,7 +145,27 @@ def test_a_safety_factor_of_one_never_stops_and_damping_and_gravity_follow_the_s
     setup.gravity_type, setup.optimal_z = kinova.GRAVITY_TYPE.OPTIMAL, np.zeros(kinova.GRAVITY_PARAM_SIZE)
     control.receive(torque_command([1.0] * 7), 0.502)
     assert control.step(0.503, STILL, fast)[0] is Outcome.APPLIED
-    assert joints.torques == pytest.approx(1.0 - gravity)
+    assert joints.torques == pytest.approx(1.0 - gravity)  # actuators that cannot stop adding it: taken back out
+
+
+def test_with_the_arm_s_gravity_off_actuators_that_can_stop_adding_it_do_and_the_watchdog_turns_it_back_on():
+    """Table 5.1's gravity setup on actuators that can switch their compensation (the simulator's): they stop
+    adding gravity and the client's torques arrive as sent, so the client faces the arm's true gravity, not the
+    model's (seed 003's situation: a CAD ĝ against the real arm). A stale command holds the arm on its own
+    compensation again (the emulation's choice: a stalled client does not drop the arm)."""
+    joints, setup = FakeJoints(switches_gravity=True), undamped()
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.arange(7.0), setup=setup)
+    control.receive(torque_command([1.0] * 7), 0.0)
+    assert control.step(0.001, STILL, STILL)[0] is Outcome.ENGAGED and joints.compensating_gravity
+    assert joints.torques.tolist() == [1.0] * 7
+    setup.gravity_type, setup.optimal_z = kinova.GRAVITY_TYPE.OPTIMAL, np.zeros(kinova.GRAVITY_PARAM_SIZE)
+    control.receive(torque_command([1.0] * 7), 0.002)
+    assert control.step(0.003, STILL, STILL)[0] is Outcome.APPLIED
+    assert not joints.compensating_gravity and joints.torques.tolist() == [1.0] * 7  # nothing taken out
+    control.receive(torque_command([3.0] * 7, gravity_compensation=False), 0.004)
+    assert control.step(0.005, STILL, STILL)[0] is Outcome.APPLIED and joints.torques.tolist() == [3.0] * 7
+    assert control.step(0.020, STILL, STILL)[0] is Outcome.WATCHDOG
+    assert joints.compensating_gravity and not joints.torques.any()
 
 
 def test_timing_is_validated():
@@ -298,6 +325,43 @@ def test_a_torque_or_joint_velocity_command_for_another_arm_is_refused(router):
     finally:
         client.close()
         service.stop()
+
+
+def test_after_table_5_1_the_client_faces_the_arm_s_true_gravity_where_the_actuators_can_switch_theirs_off(robot):
+    """Table 5.1's setup (the arm's gravity compensation off) and a client that sends exactly the description's
+    gravity ĝ(q) as its whole torque (``gravity_compensation: false``). robot_sim's actuators stop adding their
+    compensation, so the arm's true gravity (its hand 30 % heavier than described) pulls it away from where it
+    was, the way the missing torque pulls, as a real arm with its compensation off leaves a CAD model's error to
+    the client (seed 003's situation). The gateway's actuators on the emulated RS-485 bus cannot be told (no
+    public message does it): the robot takes the model's gravity back out of what they add, and the arm holds."""
+    from services.model.kinematics import ArmKinematics
+    from tests.helpers import gravity_the_description_misses
+
+    client = robot.client
+    low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
+    assert wait_for(lambda: len(low) > 20)
+    for function, argument in table_5_1():
+        assert api_call(client, function, argument).code == kinova.ErrorCode.NO_ERROR_KINOVA, function
+    assert wait_for(lambda: "gravity none" in robot.health().detail)
+    model = ArmKinematics(ARM)
+    q0 = np.array(low.last().q)
+    publisher = client.declare_publisher(KEYS.lowlevel_command)
+    start = time.monotonic()
+    for k in range(150):  # 0.3 s at 500 Hz, each torque ĝ at the newest state's q
+        time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
+        publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=next_seq(), stamp_ns=time.time_ns()),
+                                               torques=model.gravity(low.last().q).tolist(),
+                                               gravity_compensation=False)))
+    assert low.last().mode is m.ActuatorMode.TORQUE
+    moved = np.array(low.last().q) - q0
+    missed = gravity_the_description_misses(ARM, q0)
+    loaded = np.abs(missed) > 0.5  # N·m: the joints the hand's extra weight loads (2 and 4 at home)
+    print(f"{robot.name}: moved {np.round(np.degrees(moved), 2).tolist()}° under ĝ; missed {missed.round(2)} N·m")
+    if robot.name == "robot_sim":
+        assert loaded.any() and np.all(np.sign(moved[loaded]) == -np.sign(missed[loaded]))
+        assert np.degrees(np.abs(moved)).max() > 1.0
+    else:
+        assert np.degrees(np.abs(moved)).max() < 0.5
 
 
 def api_call(client, function, argument) -> kinova.ApiReply:
