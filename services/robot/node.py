@@ -213,8 +213,6 @@ class _TorqueJoints:
 
     def __init__(self, node: "RobotNode") -> None:
         self.node = node
-        self._gravity_compensation: Optional[bool] = None  # as last asked of the hardware
-        self._switches_gravity = False
 
     @property
     def torque_mode(self) -> bool:
@@ -236,10 +234,7 @@ class _TorqueJoints:
             self.node.core.torques = np.asarray(torques, dtype=float).copy()
 
     def set_gravity_compensation(self, on: bool) -> bool:
-        if on is not self._gravity_compensation:
-            self._switches_gravity = self.node.hardware.set_gravity_compensation(on)
-            self._gravity_compensation = on
-        return self._switches_gravity
+        return self.node.hardware.set_gravity_compensation(on)
 
 
 class RobotNode(Service):
