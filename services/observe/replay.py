@@ -182,22 +182,22 @@ def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep
     unsynced = [key for suffix, key in (answer_suffixes.items() if lockstep else ()) if suffix not in sync]
     publishers = {}
     unanswered: set[int] = set()
-    sent_frame: dict[int, bytes] = {}  # the last frame sent, by its stamp: what a retry sends again
+    last_frame: Optional[int] = None
+    last_payload = b""  # the last frame sent: what a retry sends again
 
     def answered(stamp: int, wanted=None) -> bool:
         deadline = time.monotonic() + ANSWER_TIMEOUT_S
         while not answers.wait(stamp, min(retry_s, max(0.0, deadline - time.monotonic())), wanted):
             if time.monotonic() >= deadline:
                 return False
-            if stamp in sent_frame:
-                publishers[image_suffix].put(sent_frame[stamp])
+            if stamp == last_frame:
+                publishers[image_suffix].put(last_payload)
                 report.retries += 1
         return True
 
     try:
         start = time.monotonic()
         first = messages[0].log_time
-        last_frame: Optional[int] = None
         for recorded in messages:
             if recorded.suffix in sync:
                 key = sync[recorded.suffix]
@@ -222,7 +222,7 @@ def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep
             if is_frame:
                 report.frames += 1
                 last_frame = m.decode(recorded.payload, m.Image).header.stamp_ns
-                sent_frame = {last_frame: recorded.payload}
+                last_payload = recorded.payload
                 if progress is not None:
                     progress(report)
         if lockstep and last_frame is not None and not answered(last_frame):
