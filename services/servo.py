@@ -598,7 +598,7 @@ def _record(status: m.ControllerStatus, watcher: _Watcher, kin: ArmKinematics, z
     stamp = status.header.source_stamp_ns
     refusal = ""
     with watcher.lock:
-        state = watcher.state_for_frame(stamp)
+        state = watcher.state_for_frame(stamp, answer_timeout_s)
         if status.status is m.ControllerState.CONVERGING:  # the law commanded: safety answers this frame
             answer = watcher.answer_for_frame(stamp, answer_timeout_s)
             if answer is not None and answer.mode in (m.CommandMode.STOP, m.CommandMode.EMERGENCY_STOP):

@@ -283,7 +283,8 @@ class LocalStack:
         self.config = config
         self._before_robot = before_robot
         self.timeout_s = timeout_s
-        self.router = RouterProcess()
+        # lockstep at normal priority (as its services, see services.runtime.service.service_main)
+        self.router = RouterProcess(realtime_priority=0 if config.clock is ClockMode.LOCKSTEP else 30)
         self.processes: dict[str, subprocess.Popen] = {}
         self.robot_processes: Optional[RobotProcesses] = None
         self._files = tempfile.TemporaryDirectory(prefix="mfvs-stack-")

@@ -323,7 +323,7 @@ class Service:
 
     def publisher(self, key: str, stream: str, **options) -> TypedPublisher:
         assert self.session is not None, "publisher() belongs in on_start()"
-        options = {**publisher_options(key), **options}
+        options = {**publisher_options(key, lockstep=self.clock.mode is ClockMode.LOCKSTEP), **options}
         typed = TypedPublisher(self.session.declare_publisher(key, **options), self.rates, key, stream, self._faults)
         self._declared.append(typed)
         return typed
@@ -473,7 +473,9 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
     code = 1
     try:
         prepared = prepare(config) if prepare is not None else {}
-        priority = getattr(config, "realtime_priority", 0)
+        # lockstep at normal priority: nothing in it waits on wall time, and a lockstep loop is CPU-bound (a realtime
+        # one starves the other processes of its own stack, and of every stack beside it, mfvs experiment --jobs)
+        priority = 0 if ClockMode(config.clock) is ClockMode.LOCKSTEP else getattr(config, "realtime_priority", 0)
         if priority > 0:
             # the whole process, before zenoh starts its threads (they inherit it), all at one priority: a loop at
             # realtime priority that waits for the interpreter lock held by a thread of lower priority would wait

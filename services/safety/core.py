@@ -9,7 +9,8 @@ that takes the time and returns what to do, in order: :class:`Send` a robot comm
 (:mod:`services.safety.service`) decodes, calls, and carries those out.
 
 Lockstep: a desired command is checked against the state of the tick its frame was captured at, and waits for
-that state if it has not arrived; every robot state is answered with the held command checked against it.
+that state if it has not arrived; every robot state is answered with the held command checked against it, before
+any command that waited for it (the order a state and a command arrive in is the host's, not the run's).
 """
 from __future__ import annotations
 
@@ -150,10 +151,13 @@ class SafetyCore:
         if overspeed is not None:
             out += self._protective_stop(overspeed)
         if self.lockstep:
+            # the tick's answer first, then the commands derived from its frame, whichever reached safety first:
+            # the order in which they arrive depends on the host (each subscriber has its own thread), and each
+            # check moves the checker's ramp on, so the other order would answer the same frame differently
+            out += self.cycle(now_ns, stamp_ns=stamp, state=state)
             waiting, self.waiting = self.waiting, []
             for candidate in waiting:
                 out += self.desired(candidate, now_ns)
-            out += self.cycle(now_ns, stamp_ns=stamp, state=state)  # the answer to this tick
         return out
 
     def estop(self, message: EStop) -> list[Action]:

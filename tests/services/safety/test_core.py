@@ -114,10 +114,29 @@ def test_lockstep_checks_a_command_against_its_frame_s_state_and_answers_every_t
     frame = 10 * S
     waiting = safety.desired(twist(frame), frame)  # its frame's state has not arrived yet
     assert waiting == [] and len(safety.waiting) == 1
-    actions = safety.state(state(frame), frame)  # the tick: the waiting command, then the tick's answer
+    actions = safety.state(state(frame), frame)  # the tick's answer (nothing held yet: a stop), then the command
     modes = [c.mode for c in sends(actions)]
-    assert modes == [m.CommandMode.CARTESIAN_VELOCITY, m.CommandMode.CARTESIAN_VELOCITY]
-    assert [a.stamp_ns for a in actions if isinstance(a, Send)] == [None, frame]
+    assert modes == [m.CommandMode.STOP, m.CommandMode.CARTESIAN_VELOCITY]
+    assert [a.stamp_ns for a in actions if isinstance(a, Send)] == [frame, None]
+
+
+def test_lockstep_answers_a_frame_the_same_whichever_of_its_state_and_command_arrives_first():
+    """Each subscriber has its own thread, so the host decides whether a tick's state or the command derived from
+    that tick's frame reaches safety first; each check moves the ramp on (the checker remembers the last command),
+    so the answers must not depend on it."""
+    def run(command_first: bool) -> list:
+        safety = core(lockstep=True)
+        out = []
+        for k in range(4):  # a held command that grows each frame: the ramp limits every step
+            tick = 10 * S + k * 10_000_000
+            command = twist(tick, linear=(0.04 * (k + 1), 0.0, 0.0))
+            inputs = [lambda: safety.desired(command, tick), lambda: safety.state(state(tick), tick)]
+            for give in (inputs if command_first else inputs[::-1]):
+                out += [(c.mode, c.twist.linear if c.twist is not None else None, c.header.source_stamp_ns)
+                        for c in sends(give())]
+        return out
+
+    assert run(command_first=True) == run(command_first=False)
 
 
 def test_safety_started_for_another_arm_than_the_robots_sends_only_stops():
