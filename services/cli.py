@@ -293,21 +293,45 @@ def _cmd_servo(args: argparse.Namespace) -> int:
     return 0 if result.converged else 1
 
 
+def add_jobs_option(parser: argparse.ArgumentParser) -> None:
+    from services.run_pool import default_jobs
+
+    parser.add_argument("--jobs", type=int, default=default_jobs(), metavar="N",
+                        help=f"lockstep runs side by side, each on a stack of its own (default: the cores, "
+                             f"{default_jobs()} here); every run gives the same numbers however many run beside it "
+                             "(torque-control runs in realtime, one controller at a time, and takes none)")
+
+
+def _jobs_or_exit(command: str, jobs: int) -> bool:
+    if jobs < 1:
+        print(f"mfvs {command}: --jobs must be at least 1, not {jobs}", file=sys.stderr)
+        return False
+    return True
+
+
 def _experiment_progress(name: str, quiet: bool):
-    """After each run a line (on stderr with --json); during it, on a terminal, a progress line."""
+    """After each run a line (on stderr with --json); during the runs, on a terminal, one progress line, the run
+    it shows the last to report (runs side by side take turns on it)."""
     from services.runtime.progress import ProgressLine
 
-    line: dict = {}
+    bars: dict = {}
+    ended: set = set()
+    shown: list = []
 
     def on_iteration(label: str, scenario, record) -> None:
-        if line.get("label") != label:
-            line.update(label=label, bar=ProgressLine(f"{name} {label}", scenario.convergence.error_norm,
-                                                      scenario.convergence.max_iterations, enabled=not quiet))
-        line["bar"].update(record.iteration, record.error_norm)
+        if label in ended:  # a record still on its way from a run that has ended
+            return
+        if label not in bars:
+            bars[label] = ProgressLine(f"{name} {label}", scenario.convergence.error_norm,
+                                       scenario.convergence.max_iterations, enabled=not quiet)
+        bars[label].update(record.iteration, record.error_norm)
+        shown[:] = [bars[label]]
 
     def progress(label: str, result) -> None:
-        if line.get("label") == label:
-            line["bar"].done()
+        ended.add(label)
+        bars.pop(label, None)
+        if shown:
+            shown.pop().done()
         final = "–" if result.final_error_norm is None else f"{result.final_error_norm:.2e}"
         print(f"  {name} {label:22s} {result.status:14s} {result.iterations:5d} iterations  final ‖e‖ {final}  "
               f"({result.wall_time_s:.0f} s)", file=sys.stderr if quiet else sys.stdout, flush=True)
@@ -347,12 +371,14 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     if args.quick:
         print(f"mfvs experiment: --quick is torque-control's, not {args.name}'s", file=sys.stderr)
         return 2
+    if not _jobs_or_exit("experiment", args.jobs):
+        return 2
     if args.random_starts is not None:
         return _random_starts_experiment(args)
     try:
         progress = _experiment_progress(args.name, args.json)
         output = run_experiment(args.name, args.scenario, args.out, progress, profile=args.profile,
-                                on_iteration=progress.on_iteration, arm=args.arm)
+                                on_iteration=progress.on_iteration, arm=args.arm, jobs=args.jobs)
     except ConfigError as exc:
         print(f"mfvs experiment: {exc}", file=sys.stderr)
         return 2
@@ -423,7 +449,8 @@ def _random_starts_experiment(args: argparse.Namespace) -> int:
     progress = _experiment_progress(args.name, args.json)
     try:
         output = run_random_starts(args.name, args.random_starts, args.seed, args.scenario, args.out, starts_dir,
-                                   progress, profile=args.profile, on_iteration=progress.on_iteration, arm=args.arm)
+                                   progress, profile=args.profile, on_iteration=progress.on_iteration, arm=args.arm,
+                                   jobs=args.jobs)
     except (ConfigError, ValueError) as exc:
         print(f"mfvs experiment: {exc}", file=sys.stderr)
         return 2
@@ -452,18 +479,22 @@ def _random_starts_experiment(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from services.experiments import run_experiment
+    from services.experiments import run_experiments
 
+    if not _jobs_or_exit("demo", args.jobs):
+        return 2
     out = Path(args.out).resolve()
-    print(f"mfvs demo: seed 000's Part A and Table 3 on the emulated JACO-2 (MuJoCo, the real services, lockstep); "
-          f"figures and reports go to {out}", flush=True)
+    print(f"mfvs demo: seed 000's Part A and Table 3 on the emulated JACO-2 (MuJoCo, the real services, lockstep, "
+          f"{args.jobs} run{'s' if args.jobs > 1 else ''} at a time); figures and reports go to {out}", flush=True)
+    progress = _experiment_progress("demo", False)
+    # Table 3's runs first, the longest first: the pool then ends together
+    outputs = dict(zip(("table3", "part-a"), run_experiments(["table3", "part-a"], out, progress,
+                                                             on_iteration=progress.on_iteration, jobs=args.jobs)))
     reports = []
     for name in ("part-a", "table3"):
         print(f"{name}:", flush=True)
-        progress = _experiment_progress(name, False)
-        output = run_experiment(name, None, out / name, progress, on_iteration=progress.on_iteration)
-        _print_experiment(output)
-        reports.append(output["report"])
+        _print_experiment(outputs[name])
+        reports.append(outputs[name]["report"])
     print(f"\ndone. Open {reports[0]} and {reports[1]} (figures beside them: errors.png, features.png and each "
           f"run's own folder).")
     return 0
@@ -665,6 +696,7 @@ def build_parser() -> argparse.ArgumentParser:
     experiment.add_argument("--quick", action="store_true",
                             help="torque-control: the five controllers on a 3 s reference (3/16 of the motion, the "
                                  "same speeds), without the runs that check the thesis's observations")
+    add_jobs_option(experiment)
     add_arm_option(experiment, default=None, what="the scenario's; torque-control: j2n6s300")
     experiment.set_defaults(func=_cmd_experiment)
 
@@ -672,6 +704,7 @@ def build_parser() -> argparse.ArgumentParser:
                                        "figures and reports, say where to look")
     demo.add_argument("--out", default="mfvs-demo", help="directory for the figures and reports (default: "
                                                          "./mfvs-demo)")
+    add_jobs_option(demo)
     demo.set_defaults(func=_cmd_demo)
 
     from services.calibration.cli import add_parser as add_calibrate

@@ -46,7 +46,8 @@ from services.model.arm import load_arm
 from services.plots import comparison_plots, constraint_plots, random_starts_plots, tracking_plots
 from services.robot_sim.scene import target_in_base
 from services.runtime.config import ConfigError
-from services.servo import Scenario, ServoResult, load_scenario, on_arm, read_log, run, stack_config
+from services.run_pool import RunTask, run_tasks
+from services.servo import Scenario, ServoResult, load_scenario, on_arm, read_log, stack_config
 from services.starts import TABLE2_LIKE, Start, quartiles, write_starts
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "examples" / "scenarios"
@@ -439,14 +440,21 @@ def default_scenario(experiment: "Experiment", arm: Optional[str] = None) -> Pat
     return own if arm is not None and own.is_file() else shared
 
 
-def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_dir: Optional[str | Path] = None,
-                   progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
-                   on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
-                   arm: Optional[str] = None) -> dict:
-    """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal) on ``arm`` (None: the
-    scenario's); ``progress(label, result)`` after each run, ``on_iteration(label, scenario, iteration_record)``
-    during it. Returns ``{"experiment", "title", "paper", "scenario", "arm", "runs": [...], "summary": {...},
-    "report", "plots"}``."""
+@dataclass
+class PlannedExperiment:
+    """An experiment's runs, planned from its start: each spec with the scenario it runs."""
+
+    name: str
+    experiment: Experiment
+    path: Path
+    base: Scenario
+    runs: list[tuple[RunSpec, Scenario]]
+
+
+def plan_experiment(name: str, scenario_path: Optional[str | Path] = None, arm: Optional[str] = None
+                    ) -> PlannedExperiment:
+    """Experiment ``name``'s runs from its start (or ``scenario_path``'s start and goal) on ``arm`` (None: the
+    scenario's). KeyError for an unknown experiment, ConfigError for a scenario that does not load."""
     if name not in EXPERIMENTS:
         raise KeyError(f"unknown experiment {name!r}; known: {', '.join(EXPERIMENTS)}")
     experiment = EXPERIMENTS[name]
@@ -458,41 +466,98 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
     base.clock = ClockMode.LOCKSTEP  # every experiment is a function of its scenario
     if not experiment.keep_law_options:
         base.law_options = {}
+    runs = []
+    for spec in experiment.runs:
+        scenario = _copy(base)
+        scenario.law, scenario.gains = spec.law, spec.gains
+        scenario.law_options = {**scenario.law_options, **spec.options}
+        runs.append((spec, scenario))
+    return PlannedExperiment(name, experiment, path, base, runs)
+
+
+def experiment_tasks(plan: PlannedExperiment, root: Path, profile: str, plots: bool, prefix: str = ""
+                     ) -> list[RunTask]:
+    """The plan's runs as tasks, each logging into ``root/<label>``, labelled ``prefix + label``."""
+    return [RunTask(prefix + spec.label, scenario, root / spec.label, profile, plots) for spec, scenario in plan.runs]
+
+
+def finish_experiment(plan: PlannedExperiment, results: list[ServoResult], profile: str,
+                      out_dir: Optional[Path]) -> dict:
+    """The experiment's output from its runs' results (in the plan's order; their logs still on disk); with
+    ``out_dir`` its comparison figures and report there."""
+    experiment = plan.experiment
     rows: dict[str, dict] = {}
     trajectories: dict[str, list[dict]] = {}
+    for (spec, scenario), result in zip(plan.runs, results):
+        records = read_log(result.trajectory_log)
+        trajectories[spec.label] = records
+        rows[spec.label] = _row(spec, result, records, scenario.robot.arm)
+        if experiment.run_figures is not None:
+            rows[spec.label].update(experiment.run_figures(scenario, result, records))
+        rows[spec.label]["plots"] = result.plots if out_dir is not None else []
+    output = {"experiment": plan.name, "seed": experiment.seed, "title": experiment.title,
+              "paper": experiment.paper, "scenario": str(plan.path), "arm": plan.base.robot.arm, "profile": profile,
+              "runs": list(rows.values()),
+              "summary": experiment.summarize(rows, trajectories), "report": None, "plots": [],
+              # every run waited for every answer: the same numbers on a rerun (on this machine)
+              "repeatable": all(row["lockstep_timeouts"] == 0 for row in rows.values())}
+    if out_dir is not None:
+        out = Path(out_dir)
+        base = plan.base
+        plots = comparison_plots(trajectories, out, title=experiment.title,
+                                 threshold=base.convergence.error_norm, zone_distance=experiment.zone_distance,
+                                 goal=base.goal.features, camera=base.camera)
+        if experiment.figures is not None:
+            plots += experiment.figures(trajectories, rows, out, base)
+        output["plots"] = [str(p) for p in plots]
+        write_results(output, out, report_markdown)
+    return output
+
+
+def _pool_callbacks(progress: Optional[Callable[[str, ServoResult], None]],
+                    on_iteration: Optional[Callable[[str, Scenario, object], None]]):
+    """The pool's (on_iteration, on_done) for the experiments' (label, ...) callbacks."""
+    each = None if on_iteration is None else (lambda task, record: on_iteration(task.label, task.scenario, record))
+    done = None if progress is None else (lambda task, result: progress(task.label, result))
+    return each, done
+
+
+def run_experiments(names: list[str], out_dir: Optional[str | Path] = None,
+                    progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
+                    on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
+                    jobs: int = 1) -> list[dict]:
+    """Several experiments from their own starts, their runs side by side (``jobs`` at a time), each output in
+    ``out_dir/<name>``; the outputs in the order of ``names``. Progress labels are ``<name> <run label>``."""
+    plans = [plan_experiment(name) for name in names]
+    with tempfile.TemporaryDirectory(prefix="mfvs-experiments-") as scratch:
+        root = Path(out_dir) if out_dir is not None else Path(scratch)
+        tasks = [experiment_tasks(plan, root / plan.name, profile, out_dir is not None, prefix=f"{plan.name} ")
+                 for plan in plans]
+        results = run_tasks([task for group in tasks for task in group], jobs, *_pool_callbacks(progress,
+                                                                                                on_iteration))
+        outputs, at = [], 0
+        for plan in plans:
+            outputs.append(finish_experiment(plan, results[at:at + len(plan.runs)], profile,
+                                             None if out_dir is None else root / plan.name))
+            at += len(plan.runs)
+    return outputs
+
+
+def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_dir: Optional[str | Path] = None,
+                   progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
+                   on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
+                   arm: Optional[str] = None, jobs: int = 1) -> dict:
+    """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal) on ``arm`` (None: the
+    scenario's), ``jobs`` runs at a time (:mod:`services.run_pool`: the same numbers as one at a time);
+    ``progress(label, result)`` after each run, ``on_iteration(label, scenario, iteration_record)`` during it.
+    Returns ``{"experiment", "title", "paper", "scenario", "arm", "runs": [...], "summary": {...}, "report",
+    "plots"}``, the runs in the experiment's order."""
+    plan = plan_experiment(name, scenario_path, arm)
     with tempfile.TemporaryDirectory(prefix=f"mfvs-{name}-") as scratch:
         root = Path(out_dir) if out_dir is not None else Path(scratch)
-        for spec in experiment.runs:
-            scenario = _copy(base)
-            scenario.law, scenario.gains = spec.law, spec.gains
-            scenario.law_options = {**scenario.law_options, **spec.options}
-            each = None if on_iteration is None else (
-                lambda record, label=spec.label, s=scenario: on_iteration(label, s, record))
-            result = run(scenario, root / spec.label, each, profile=profile, plots=out_dir is not None)
-            records = read_log(result.trajectory_log)
-            trajectories[spec.label] = records
-            rows[spec.label] = _row(spec, result, records, scenario.robot.arm)
-            if experiment.run_figures is not None:
-                rows[spec.label].update(experiment.run_figures(scenario, result, records))
-            rows[spec.label]["plots"] = result.plots if out_dir is not None else []
-            if progress is not None:
-                progress(spec.label, result)
-        output = {"experiment": name, "seed": experiment.seed, "title": experiment.title,
-                  "paper": experiment.paper, "scenario": str(path), "arm": base.robot.arm, "profile": profile,
-                  "runs": list(rows.values()),
-                  "summary": experiment.summarize(rows, trajectories), "report": None, "plots": [],
-                  # every run waited for every answer: the same numbers on a rerun (on this machine)
-                  "repeatable": all(row["lockstep_timeouts"] == 0 for row in rows.values())}
-        if out_dir is not None:
-            out = Path(out_dir)
-            plots = comparison_plots(trajectories, out, title=experiment.title,
-                                     threshold=base.convergence.error_norm, zone_distance=experiment.zone_distance,
-                                     goal=base.goal.features, camera=base.camera)
-            if experiment.figures is not None:
-                plots += experiment.figures(trajectories, rows, out, base)
-            output["plots"] = [str(p) for p in plots]
-            write_results(output, out, report_markdown)
-    return output
+        results = run_tasks(experiment_tasks(plan, root, profile, out_dir is not None), jobs,
+                            *_pool_callbacks(progress, on_iteration))
+        return finish_experiment(plan, results, profile, None if out_dir is None else Path(out_dir))
 
 
 # ------------------------------------------------------------------------------------------------ random starts
@@ -561,12 +626,13 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
                       out_dir: Optional[str | Path] = None, starts_dir: Optional[str | Path] = None,
                       progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
                       on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
-                      arm: Optional[str] = None) -> dict:
+                      arm: Optional[str] = None, jobs: int = 1) -> dict:
     """Experiment ``name`` from ``count`` random starts drawn with ``seed`` (:mod:`services.starts`, the tag placed
     at random as in Table 2, around the base scenario's), each start's scenario written to ``starts_dir`` (default
     ``out_dir/starts``) so it can be run again with ``--scenario``. Every run carries ``start`` (which start it ran);
     the summary gives each law's iterations (median, quartiles) and failures, and per start the proposed law's
-    improvement over its baseline and whether the four laws came in the paper's order."""
+    improvement over its baseline and whether the four laws came in the paper's order. Every start's runs go
+    through one pool, ``jobs`` at a time (:mod:`services.run_pool`), the results in the starts' order."""
     if name not in RANDOM_START_EXPERIMENTS:
         raise KeyError(f"--random-starts runs {', '.join(RANDOM_START_EXPERIMENTS)}, not {name!r}")
     experiment = EXPERIMENTS[name]
@@ -576,20 +642,24 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
             raise ValueError("random starts need a directory to write their scenarios to (out_dir or starts_dir)")
         starts_dir = Path(out_dir) / "starts"
     starts = write_starts(base, count, seed, Path(starts_dir), arm=arm)
+    plans = [plan_experiment(name, start.scenario, arm) for start in starts]
     runs, per_start = [], []
-    for start in starts:
-        label = f"start{start.index}"
-        output = run_experiment(
-            name, start.scenario, None if out_dir is None else Path(out_dir) / label,
-            None if progress is None else (lambda run_label, result: progress(f"{label} {run_label}", result)),
-            profile=profile, arm=arm,
-            on_iteration=None if on_iteration is None else (
-                lambda run_label, scenario, record: on_iteration(f"{label} {run_label}", scenario, record)))
-        rows = {row["label"]: row for row in output["runs"]}
-        for row in output["runs"]:
-            row["start"] = start.to_json()
-            runs.append(row)
-        per_start.append(_start_summary(start, rows) | {"repeatable": output["repeatable"]})
+    with tempfile.TemporaryDirectory(prefix=f"mfvs-{name}-starts-") as scratch:
+        root = Path(out_dir) if out_dir is not None else Path(scratch)
+        tasks = [task for start, plan in zip(starts, plans) for task in experiment_tasks(
+            plan, root / f"start{start.index}", profile, out_dir is not None, prefix=f"start{start.index} ")]
+        results = run_tasks(tasks, jobs, *_pool_callbacks(progress, on_iteration))
+        at = 0
+        for start, plan in zip(starts, plans):
+            label = f"start{start.index}"
+            output = finish_experiment(plan, results[at:at + len(plan.runs)], profile,
+                                       None if out_dir is None else Path(out_dir) / label)
+            at += len(plan.runs)
+            rows = {row["label"]: row for row in output["runs"]}
+            for row in output["runs"]:
+                row["start"] = start.to_json()
+                runs.append(row)
+            per_start.append(_start_summary(start, rows) | {"repeatable": output["repeatable"]})
     result = {"experiment": name, "seed": experiment.seed, "title": f"{experiment.title}, over {count} random starts",
               "paper": experiment.paper, "scenario": str(base), "arm": runs[0]["arm"] if runs else arm,
               "profile": profile, "random_starts": {"count": count, "seed": seed, "ranges": dataclasses.asdict(TABLE2_LIKE),

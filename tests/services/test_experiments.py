@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from tests.helpers import CpuLoad
 from services.experiments import (EXPERIMENTS, SCENARIOS, TABLE3_PAPER, improvement_pct, run_experiment,
                                   straightness)
 
@@ -53,6 +54,29 @@ def test_table3_in_the_papers_order_with_the_mixed_law_a_quarter_faster(tmp_path
     assert (tmp_path / "errors.png").stat().st_size > 1000
     assert all((tmp_path / law / "error.png").exists() for law in TABLE3_PAPER)
     assert "adaptive-pd-mixed" in out.stderr  # a line per run, on stderr with --json
+
+
+def test_runs_side_by_side_and_beside_cpu_hogs_log_exactly_what_one_run_at_a_time_logs(tmp_path):
+    """`--jobs 2` (each run on a stack of its own, two at a time) with two CPU hogs beside them against `--jobs 1` on
+    a quiet host: every trajectory log the same byte for byte, the runs in the experiment's order (issue 35)."""
+    def experiment(jobs: int, out: Path) -> dict:
+        done = subprocess.run([MFVS, "experiment", "part-a", "--json", "--jobs", str(jobs), "--out", str(out)],
+                              capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr[-2000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    alone = experiment(1, tmp_path / "alone")
+    with CpuLoad(2):
+        side_by_side = experiment(2, tmp_path / "side_by_side")
+    check_shape(side_by_side, "part-a")
+    labels = [spec.label for spec in EXPERIMENTS["part-a"].runs]
+    for label in labels:
+        assert (tmp_path / "alone" / label / "trajectory.jsonl").read_bytes() == \
+            (tmp_path / "side_by_side" / label / "trajectory.jsonl").read_bytes(), label
+
+    def numbers(output: dict) -> list:
+        return [{k: v for k, v in row.items() if k != "plots"} for row in output["runs"]]
+    assert numbers(side_by_side) == numbers(alone) and side_by_side["summary"] == alone["summary"]
 
 
 def test_part_a_the_end_effector_twist_fails_where_the_mixed_one_converges():
@@ -154,6 +178,9 @@ def test_experiment_arguments_are_checked():
     out = subprocess.run([MFVS, "experiment", "table3", "--scenario", "/nonexistent.yaml"], capture_output=True,
                          text=True, timeout=60)
     assert out.returncode == 2 and "nonexistent" in out.stderr
+    for command in (["experiment", "table3"], ["demo"]):
+        out = subprocess.run([MFVS, *command, "--jobs", "0"], capture_output=True, text=True, timeout=60)
+        assert out.returncode == 2 and "--jobs must be at least 1, not 0" in out.stderr
 
 
 def test_the_summary_figures():

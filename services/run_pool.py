@@ -1,0 +1,133 @@
+"""Lockstep runs side by side: ``mfvs experiment --jobs N`` and ``mfvs demo``.
+
+Each run is :func:`services.servo.run` with a whole stack of its own (its router on a port it picks, its run
+directory, its renderer, its processes), so runs share nothing but the host. In lockstep a run's numbers do not
+depend on how fast the host is (the robot waits for every answer; messages block rather than drop), so a run gives
+the same trajectory log whether it ran alone or beside others; the results come back in the order the runs were
+given, whatever order they finish in.
+
+``jobs`` 1 runs them one after another in this process, as before. More run in that many worker processes (spawned,
+not forked: a fork would copy this process's zenoh sessions and threads; and pyplot, which draws a run's figures,
+is not thread-safe). Per-iteration progress comes back through a queue and is handed to ``on_iteration`` on a
+thread of this process.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import threading
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Callable, Optional
+
+if TYPE_CHECKING:  # the CLI's parser reads default_jobs(): no numpy, MuJoCo or zenoh for that
+    from services.servo import Scenario, ServoResult
+
+
+@dataclass
+class RunTask:
+    """One run: ``label`` names it in progress lines, ``out_dir`` receives its log (and figures with ``plots``)."""
+
+    label: str
+    scenario: Scenario
+    out_dir: Path
+    profile: str = "sim"
+    plots: bool = False
+
+
+def default_jobs() -> int:
+    """The cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def check_jobs(jobs: int) -> int:
+    if jobs < 1:
+        raise ValueError(f"--jobs must be at least 1, not {jobs}")
+    return jobs
+
+
+OnIteration = Callable[[RunTask, object], None]
+OnDone = Callable[[RunTask, "ServoResult"], None]
+
+
+def run_tasks(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIteration] = None,
+              on_done: Optional[OnDone] = None) -> list[ServoResult]:
+    """Every task's result, in the tasks' order. ``on_iteration(task, record)`` during a run, ``on_done(task,
+    result)`` as each run ends (in the order they end)."""
+    check_jobs(jobs)
+    if jobs == 1 or len(tasks) <= 1:
+        return [_run_here(task, on_iteration, on_done) for task in tasks]
+    return _run_in_workers(tasks, min(jobs, len(tasks)), on_iteration, on_done)
+
+
+def _run_here(task: RunTask, on_iteration: Optional[OnIteration], on_done: Optional[OnDone]) -> ServoResult:
+    from services.servo import run
+
+    each = None if on_iteration is None else (lambda record: on_iteration(task, record))
+    result = run(task.scenario, task.out_dir, each, profile=task.profile, plots=task.plots)
+    if on_done is not None:
+        on_done(task, result)
+    return result
+
+
+# ------------------------------------------------------------------------------------------------ workers
+_progress_queue = None
+
+
+def _init_worker(progress_queue) -> None:
+    global _progress_queue
+    _progress_queue = progress_queue
+
+
+def _run_in_worker(index: int, task: RunTask) -> ServoResult:
+    from services.servo import run
+
+    sink = _progress_queue
+    each = None if sink is None else (lambda record: sink.put((index, record)))
+    return run(task.scenario, task.out_dir, each, profile=task.profile, plots=task.plots)
+
+
+def _run_in_workers(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIteration],
+                    on_done: Optional[OnDone]) -> list[ServoResult]:
+    context = multiprocessing.get_context("spawn")
+    progress = context.Queue() if on_iteration is not None else None
+    relay: Optional[threading.Thread] = None
+    if progress is not None:
+        def forward() -> None:
+            while True:
+                item = progress.get()
+                if item is None:
+                    return
+                index, record = item
+                on_iteration(tasks[index], record)
+
+        relay = threading.Thread(target=forward, name="run-pool-progress", daemon=True)
+        relay.start()
+    results: list[Optional[ServoResult]] = [None] * len(tasks)
+    try:
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=context, initializer=_init_worker,
+                                 initargs=(progress,)) as pool:
+            pending = {pool.submit(_run_in_worker, i, task): i for i, task in enumerate(tasks)}
+            try:
+                while pending:
+                    done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in done:
+                        index = pending.pop(future)
+                        results[index] = future.result()  # a run that raised raises here, as it would alone
+                        if on_done is not None:
+                            on_done(tasks[index], results[index])
+            except BaseException:
+                for future in pending:
+                    future.cancel()
+                raise
+    finally:
+        if progress is not None:
+            progress.put(None)
+            relay.join(timeout=5.0)
+            progress.close()
+    return results  # type: ignore[return-value]
+
