@@ -170,10 +170,16 @@ def wait_alive(zenoh: ZenohConfig, robot_id: str, names, processes, timeout_s: f
         session.close()
 
 
-def stop_processes(processes) -> None:
-    """Terminate each of ``processes`` in order, waiting for it (killed after 20 s)."""
+def stop_processes(processes, together: bool = False) -> None:
+    """Terminate each of ``processes`` in order, waiting for it (killed after 20 s); ``together``: terminate them all
+    first, then wait for each (they stop side by side)."""
+    processes = list(processes)
+    if together:
+        for process in processes:
+            process.terminate()
     for process in processes:
-        process.terminate()
+        if not together:
+            process.terminate()
         try:
             process.wait(timeout=20)
         except subprocess.TimeoutExpired:
@@ -345,9 +351,10 @@ class LocalStack:
         if self.robot_processes is not None:
             self.robot_processes.__exit__(None, None, None)
             self.robot_processes = None
-        # the robot first: it stops the arm while safety listens
-        stop_processes([self.processes.pop(name) for name in ("robot_sim", *reversed(PIPELINE))
-                        if name in self.processes])
+        # the robot first: it stops the arm while safety listens; then the pipeline, side by side
+        stop_processes([self.processes.pop("robot_sim")] if "robot_sim" in self.processes else [])
+        stop_processes([self.processes.pop(name) for name in reversed(PIPELINE) if name in self.processes],
+                       together=True)
         self.router.__exit__(None, None, None)
         if not self._keep_files:
             self._files.cleanup()

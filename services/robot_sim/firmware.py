@@ -168,6 +168,7 @@ class ActuatorFirmware:
         # way about its home angle
         direction = np.array([-1.0 if i + 1 in self.config.mirrored_joints else 1.0 for i in range(self.n)])
         self._deg_to_model = arm.sign * direction * (math.pi / 180.0)
+        self._zero_rate = self._deg_to_model * 0.0  # a reference at rest, as apply's product gives it (signed zeros)
         self._pivot_model = arm.sign * np.radians(arm.home_deg * (1.0 - direction)) + arm.offset
         #: an actuator's torque (its sign) to the model's joint torque
         self._torque_sign = arm.sign * direction
@@ -372,14 +373,24 @@ class ActuatorFirmware:
     # ------------------------------------------------------------------ physics
     def _segments(self) -> tuple:
         """The actuators' references as arrays, for :meth:`apply` (rebuilt only after a change: apply runs every
-        physics step, the references change at boundaries and on mode switches)."""
+        physics step, the references change at boundaries and on mode switches), with what follows from them alone:
+        whether any actuator is in torque mode, and the reference's rate in the model's units."""
         if self._segments_version != self._version:
             acts = self.actuators
+            torque_mode = np.array([a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE
+                                    for a in acts])
+            rate_dps = np.array([a.target_rate_dps for a in acts])
+            taken_s = np.array([a.target_time_s for a in acts])
             self._segment_arrays = (
-                np.array([a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE for a in acts]),
-                np.array([a.torque_nm for a in acts]), np.array([a.target_deg for a in acts]),
-                np.array([a.target_rate_dps for a in acts]), np.array([a.target_accel_dps2 for a in acts]),
-                np.array([a.target_time_s for a in acts]), np.array([a.last_target_deg for a in acts]))
+                torque_mode, np.array([a.torque_nm for a in acts]), np.array([a.target_deg for a in acts]),
+                rate_dps, np.array([a.target_accel_dps2 for a in acts]), taken_s,
+                np.array([a.last_target_deg for a in acts]), bool(torque_mode.any()), self._deg_to_model * rate_dps,
+                # every reference taken at one boundary (the host sends all joints each cycle): apply's choices
+                # are then one per step, not one per joint
+                float(taken_s[0]) if bool((taken_s == taken_s[0]).all()) else None)
+            # the joints' Coulomb friction acts where an actuator is in torque mode (see apply); it changes only
+            # with the modes
+            self.model.dof_frictionloss[: self.n] = np.where(torque_mode, self._coulomb, 0.0)
             self._segments_version = self._version
         return self._segment_arrays
 
@@ -392,26 +403,35 @@ class ActuatorFirmware:
         gravity = d.qfrc_bias[:n]  # at rest this is the gravity torque; it also cancels Coriolis terms
         mujoco.mj_fullM(self.model, d, self._mass)
         inertia = self._mass.diagonal()[:n]
-        torque_mode, torque_nm, start_deg, rate_dps, accel_dps2, taken_s, last_deg = self._segments()
+        (torque_mode, torque_nm, start_deg, rate_dps, accel_dps2, taken_s, last_deg, any_torque, rate_model,
+         taken_together) = self._segments()
         # follow the reference (_reference_deg, for all seven at once), with the inertia, friction and gravity its
         # motion needs as feed-forward (the segment's change of rate during the cycle it was taken in)
-        ahead = t_s - taken_s
-        started = ahead >= 0.0
-        reference_deg = np.where(started, start_deg + rate_dps * np.minimum(np.maximum(ahead, 0.0), GOES_ON_S),
-                                 last_deg)
-        rate = self._deg_to_model * np.where(started & (ahead < GOES_ON_S - 1e-9), rate_dps, 0.0)
+        if taken_together is not None:  # the same arithmetic, its choices made once for every joint
+            ahead = t_s - taken_together
+            started = ahead >= 0.0
+            reference_deg = start_deg + rate_dps * min(max(ahead, 0.0), GOES_ON_S) if started else last_deg
+            rate = rate_model if started and ahead < GOES_ON_S - 1e-9 else self._zero_rate
+            in_first_cycle = started and ahead < CYCLE_S - 1e-9
+        else:
+            ahead = t_s - taken_s
+            started = ahead >= 0.0
+            reference_deg = np.where(started, start_deg + rate_dps * np.minimum(np.maximum(ahead, 0.0), GOES_ON_S),
+                                     last_deg)
+            rate = self._deg_to_model * np.where(started & (ahead < GOES_ON_S - 1e-9), rate_dps, 0.0)
+            in_first_cycle = started & (ahead < CYCLE_S - 1e-9)
         tau = gravity + self._friction * rate + inertia * (
             SERVO_BANDWIDTH_RPS**2 * (self._pivot_model + self._deg_to_model * reference_deg - q)
             + 2.0 * SERVO_BANDWIDTH_RPS * (rate - dq))
-        # the joints' Coulomb friction acts where an actuator is in torque mode; in position mode the actuator's own
-        # position loop, on the motor's encoder ahead of its 110-160:1 gear, rejects it (the joint-level servo
-        # emulated here is far softer than that loop and would leave the friction as an error it never has)
-        self.model.dof_frictionloss[:n] = np.where(torque_mode, self._coulomb, 0.0)
-        if torque_mode.any():
+        # the joints' Coulomb friction acts where an actuator is in torque mode (set with the modes, _segments); in
+        # position mode the actuator's own position loop, on the motor's encoder ahead of its 110-160:1 gear, rejects
+        # it (the joint-level servo emulated here is far softer than that loop and would leave the friction as an
+        # error it never has)
+        if any_torque:
             commanded = self._torque_sign * torque_nm + (gravity if self.compensating_gravity else 0.0)
             tau = np.where(torque_mode, commanded, tau)
-        in_first_cycle = started & (ahead < CYCLE_S - 1e-9) & ~torque_mode
-        if in_first_cycle.any():
+            in_first_cycle = np.logical_and(in_first_cycle, ~torque_mode)
+        if in_first_cycle.any() if isinstance(in_first_cycle, np.ndarray) else in_first_cycle:
             tau += self._mass[:n, :n] @ np.where(in_first_cycle, self._deg_to_model * accel_dps2, 0.0)
         # what the motors can give: the peak (software limitation), and, in the direction each turns, the torque-speed
         # line from the stall torque to zero at the no-load speed
@@ -419,5 +439,5 @@ class ActuatorFirmware:
         upper = np.where(dq > 0.0, along, self.torque_limit)
         lower = np.where(dq < 0.0, -along, -self.torque_limit)
         np.clip(tau, lower, upper, out=d.ctrl[:n])
-        if np.any(d.ctrl[:n] != tau):
+        if (d.ctrl[:n] != tau).any():
             self.counters.inc("torque.limited_ms")  # a physics step (1 ms) in which some motor gave less than asked
