@@ -76,6 +76,7 @@ class ControllerConfig(ServiceConfig):
 
 class ControllerService(Service):
     name = "controller"
+    clock_from_inputs = True  # the robot states (features are answered at their frame's state)
 
     def __init__(self, config: ControllerConfig | None = None, **kw) -> None:
         config = config or ControllerConfig()

@@ -148,6 +148,10 @@ class Service:
     name = "service"
     #: in lockstep, take simulated time from the simulator's clock messages (the simulator itself does not)
     follows_sim_clock = True
+    #: in lockstep, every input the service acts on is stamped by the simulator (``subscribe(sim_stamped=True)``),
+    #: and its clock follows them alone: the clock's own messages (one every DSP tick, 3.3 a frame) would only move
+    #: it to where its next input moves it anyway (the robot waits for the pipeline's answer at every tick)
+    clock_from_inputs = False
 
     def __init__(self, config: ServiceConfig | None = None, *, name: str | None = None, clock=None) -> None:
         self.config = config or ServiceConfig()
@@ -201,7 +205,7 @@ class Service:
             if self.config.faults_file:
                 self._faults = FaultInjector(self.config.faults_file, self.counters, self.log, self.name)
             try:
-                if isinstance(self.clock, SimulatedClock) and self.follows_sim_clock:
+                if isinstance(self.clock, SimulatedClock) and self.follows_sim_clock and not self.clock_from_inputs:
                     self.subscribe(self.keys.clock, SimClock, self._on_sim_clock, "sim_clock")
                 self.on_start()
                 self._token = self.session.liveliness().declare_token(self.keys.liveliness(self.name))

@@ -108,6 +108,7 @@ class VisionConfig(ServiceConfig):
 
 class VisionService(Service):
     name = "vision"
+    clock_from_inputs = True  # the images
 
     def __init__(self, config: VisionConfig | None = None, **kw) -> None:
         config = config or VisionConfig()
