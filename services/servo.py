@@ -487,9 +487,9 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
             states = list(watcher.states)
             with watcher.lock:  # features and commands may reach us after their status (each subscriber has
                 # its own thread; the last ones may still be on their way): complete the log with what came later
-                watcher.lock.wait_for(lambda: all(
-                    r.stamp_ns in watcher.features and (r.stamp_ns in watcher.commands or r.status not in (
-                        "converging", "converged")) for r in records), timeout=2.0)  # the law answers those
+                watcher.lock.wait_for(lambda: all(  # the controller answers every frame (zero when it does not act)
+                    r.stamp_ns in watcher.features and r.stamp_ns in watcher.commands for r in records),
+                    timeout=2.0)
                 for record in records:
                     _fill_inputs(record, watcher)
             frames_lost, lockstep_timeouts = _frames_lost(session, Keys(config.robot.robot_id))

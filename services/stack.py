@@ -35,6 +35,7 @@ from services.robot_sim.service import RobotSimConfig
 from services.launcher import ProfileService, gateway_robot_services, service_command, spawn
 from services.robot_sim.sim import Simulation
 from services.safety.service import SafetyConfig
+from services.warm_start import spawn_warm
 from services.vision.service import VisionConfig
 
 REPO = Path(__file__).resolve().parents[1]
@@ -328,9 +329,11 @@ class LocalStack:
         return self
 
     def _spawn(self, name: str, config) -> None:
-        self.processes[name] = spawn(service_command(ProfileService(name=name, config=write_config(self.logs, name,
-                                                                                                   config))),
-                                     self.logs / f"{name}.log")
+        command = service_command(ProfileService(name=name, config=write_config(self.logs, name, config)))
+        if self.config.clock is ClockMode.LOCKSTEP:  # imports shared (services.warm_start): nothing it computes
+            self.processes[name] = spawn_warm(command, self.logs / f"{name}.log", REPO)
+        else:
+            self.processes[name] = spawn(command, self.logs / f"{name}.log")
 
     def _wait_alive(self, names) -> None:
         wait_alive(self.router.client_config(), self.config.robot.robot_id, names, self.processes.values(),

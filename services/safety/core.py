@@ -112,6 +112,11 @@ class SafetyCore:
         self.states: StateHistory[RobotState] = StateHistory()
         #: lockstep: desired commands whose frame's robot state has not arrived yet
         self.waiting: list[HeldCommand] = []
+        #: lockstep: the last command sent at each tick answered, and the answer to each frame; a repeat of either
+        #: (the robot's lockstep retry publishes its state and frame again) is answered the same, not checked again,
+        #: since each check moves the ramp on and a run would then depend on when the host made it retry
+        self._tick_answers: dict[int, Send] = {}
+        self._frame_answers: dict[int, Send] = {}
         self.estop_latched = False
         self.estop_reason = ""
         self.alive: set[str] = set()
@@ -125,14 +130,42 @@ class SafetyCore:
             self.alive.add(name)
             return []
         self.alive.discard(name)
+        self._forget_answers()
         if name in self.upstream and self.held is not None:
             self.held = None
             return [self._refuse(f"liveliness: {name} is gone"), self._stop_now()]
         return []
 
     def state(self, state: RobotState, now_ns: int) -> list[Action]:
-        """A robot state; in lockstep ``now_ns`` is its stamp, and it is answered (the waiting commands first)."""
+        """A robot state; in lockstep ``now_ns`` is its stamp, and it is answered (then the commands that waited for
+        it); a state answered before, with what was last sent at its tick."""
         stamp = state.header.stamp_ns
+        if self.lockstep and stamp in self._tick_answers:
+            return [Count("repeated.state"), self._tick_answers[stamp]]
+        out = self._state(state, stamp, now_ns)
+        if self.lockstep:
+            self._remember(out, tick_ns=stamp)
+        return out
+
+    def _remember(self, actions: list[Action], tick_ns: int, frame_ns: Optional[int] = None) -> None:
+        """Lockstep: the last command of ``actions`` as what was sent at ``tick_ns`` (and, with ``frame_ns``, as
+        the answer to that frame)."""
+        sent = [action for action in actions if isinstance(action, Send)]
+        if not sent:
+            return
+        self._tick_answers[tick_ns] = sent[-1]
+        if frame_ns is not None:
+            self._frame_answers[frame_ns] = sent[-1]
+        for answers in (self._tick_answers, self._frame_answers):
+            while len(answers) > 16:
+                del answers[next(iter(answers))]
+
+    def _forget_answers(self) -> None:
+        """After a stop of safety's own (e-stop, protective stop, liveliness lost): a repeat is answered anew."""
+        self._tick_answers.clear()
+        self._frame_answers.clear()
+
+    def _state(self, state: RobotState, stamp: int, now_ns: int) -> list[Action]:
         out: list[Action] = []
         arm, self.wrong_arm = declared_arm(state.arm, state.arm_digest, len(state.q), self.expected_arm, self.arm)
         if arm is None:  # not an arm these checks are for: a stop answers, nothing else is done with it
@@ -170,6 +203,7 @@ class SafetyCore:
         self.estop_latched = True
         self.estop_reason = f"{message.operator or 'operator'}: {message.reason or 'e-stop'}"
         self.held = None
+        self._forget_answers()
         return [Count("estop.triggers"), Note(logging.WARNING, f"E-STOP engaged ({self.estop_reason})"),
                 self._stop_now()]
 
@@ -178,10 +212,19 @@ class SafetyCore:
         answers its frame."""
         state = None
         if self.lockstep:  # checked against the state of the tick its frame was captured at
-            state, ready = self.states.for_input(candidate.source.source_stamp_ns)
+            frame = candidate.source.source_stamp_ns
+            if frame in self._frame_answers:
+                return [Count("repeated.command"), self._frame_answers[frame]]
+            state, ready = self.states.for_input(frame)
             if not ready:
                 self.waiting.append(candidate)
                 return []
+            out = self._desired(candidate, now_ns, state)
+            self._remember(out, tick_ns=now_ns, frame_ns=frame)
+            return out
+        return self._desired(candidate, now_ns, state)
+
+    def _desired(self, candidate: HeldCommand, now_ns: int, state: Optional[RobotState]) -> list[Action]:
         if self.estop_latched:
             refused = self._refuse(f"estop: latched ({self.estop_reason})")
             return [refused, self._send(Decision(refusal=self.last_refusal), candidate)]  # the frame's answer
@@ -208,12 +251,14 @@ class SafetyCore:
 
     def stop(self, reason: str) -> list[Action]:
         """A stop now (the service stopping: leave the arm stopping rather than holding a last command)."""
+        self._forget_answers()
         return [self._send(Decision(refusal=reason), None)]
 
     # ------------------------------------------------------------------ checks of the moment
     def _protective_stop(self, reason: str) -> list[Action]:
         """Latched like the e-stop (and released the same way): the arm does something it was not told to."""
         out: list[Action] = [Count("overspeed.trips")]
+        self._forget_answers()
         if not self.estop_latched:
             out.append(self._refuse(f"protective_stop: {reason}"))
             self.estop_latched = True
@@ -244,10 +289,19 @@ class SafetyCore:
     def input_problem(self, header: Header, now_ns: int) -> Optional[str]:
         """Why a desired command may not move the arm now (liveliness, freshness both ways, convention), or None."""
         lim = self.limits
-        missing = [name for name in self.upstream if name not in self.alive]
+        alive = self.alive
+        if self.lockstep:
+            # a message is proof that what made it was alive when the arm was where it says: the services on its
+            # trace, the robot whose state safety holds. Their liveliness tokens reach safety whenever the host
+            # delivers them (a first frame could be answered before vision's token was seen, on a busy host); a
+            # token withdrawn still stops the arm at once (:meth:`liveliness`)
+            alive = alive | {hop.service for hop in header.trace}
+            if self.robot_state is not None:
+                alive = alive | set(self.robots)
+        missing = [name for name in self.upstream if name not in alive]
         if missing:
             return f"liveliness: {', '.join(missing)} not alive"
-        if not any(name in self.alive for name in self.robots):
+        if not any(name in alive for name in self.robots):
             return "liveliness: no robot alive"
         age = (now_ns - header.stamp_ns) * 1e-9
         if -age > lim.future_skew_s or -(now_ns - header.source_stamp_ns) * 1e-9 > lim.future_skew_s:

@@ -139,6 +139,63 @@ def test_lockstep_answers_a_frame_the_same_whichever_of_its_state_and_command_ar
     assert run(command_first=True) == run(command_first=False)
 
 
+def test_lockstep_answers_a_repeated_state_or_command_as_before_without_checking_it_again():
+    """The robot's lockstep retry publishes a tick's state and frame again when an answer is slow (wall time): safety
+    answers them with what it sent, so that the ramp (which each check moves on) and every later answer are what
+    they are without the retry. After an e-stop a repeat is answered anew: never motion again."""
+    def run(repeat: bool):
+        safety = core(lockstep=True)
+        out = []
+        for k in range(4):
+            tick = 10 * S + k * 10_000_000
+            command = twist(tick, linear=(0.05 * (k + 1), 0.0, 0.0))
+            steps = [lambda: safety.state(state(tick), tick), lambda: safety.desired(command, tick)]
+            if repeat:
+                steps += steps
+            for step in steps:
+                actions = step()
+                out.append([(c.mode, c.twist.linear if c.twist is not None else None) for c in sends(actions)])
+        return safety, out
+
+    once, answers = run(repeat=False)
+    twice, repeated = run(repeat=True)
+    assert [a for k, a in enumerate(repeated) if k % 4 < 2] == answers  # the first of each, as without repeats
+    # a repeat of the tick's state or of its frame's command: the last command sent at that tick (the frame's)
+    assert [a for k, a in enumerate(repeated) if k % 4 >= 2] == [a for k, a in enumerate(answers) for _ in (0, 1)
+                                                                 if k % 2 == 1]
+    assert np.allclose(twice.checker.last_twist_base, once.checker.last_twist_base)
+    last = 10 * S + 30_000_000
+    twice.estop(m.EStop(header=m.Header(), reason="test"))
+    assert [c.mode for c in sends(twice.state(state(last), last))] == [m.CommandMode.EMERGENCY_STOP]
+
+
+def test_lockstep_takes_a_command_s_trace_and_a_robot_state_as_proof_of_life_before_their_tokens_arrive():
+    """Liveliness tokens reach safety in wall time: on a busy host a lockstep run's first frame could come before
+    vision's token was seen, and the run would differ from the next. In lockstep the services on a command's trace,
+    and the robot whose state safety holds, are alive; in realtime only their tokens say so. A token withdrawn
+    stops the arm in both."""
+    def fresh(lockstep: bool) -> SafetyCore:
+        return SafetyCore(SafetyLimits(), upstream=["vision", "controller"], robots=["robot_sim"], rate_hz=100.0,
+                          lockstep=lockstep)
+
+    frame = 10 * S
+    command = twist(frame)
+    command.twist.header.trace = [m.Hop(service="vision", recv_ns=frame, pub_ns=frame),
+                                  m.Hop(service="controller", recv_ns=frame, pub_ns=frame)]
+    lockstep = fresh(True)
+    lockstep.state(state(frame), frame)
+    assert [c.mode for c in sends(lockstep.desired(command, frame))] == [m.CommandMode.CARTESIAN_VELOCITY]
+    untraced = fresh(True)
+    untraced.state(state(frame), frame)
+    assert refusals(untraced.desired(twist(frame), frame)) == ["liveliness: vision, controller not alive"]
+    realtime = fresh(False)
+    realtime.state(state(frame), frame)
+    assert refusals(realtime.desired(command, frame)) == ["liveliness: vision, controller not alive"]
+    lockstep.liveliness("vision", True)
+    withdrawn = lockstep.liveliness("vision", False)
+    assert refusals(withdrawn) == ["liveliness: vision is gone"] and lockstep.held is None
+
+
 def test_safety_started_for_another_arm_than_the_robots_sends_only_stops():
     """Safety started for the 6-DoF, the robot declaring the 7-DoF: the state is refused (``arm``), a desired
     command gets a stop, nothing moves (issue 32); safety left to the robot's arm checks for the robot's."""
