@@ -6,14 +6,14 @@ depend on how fast the host is (the robot waits for every answer; messages block
 the same trajectory log whether it ran alone or beside others; the results come back in the order the runs were
 given, whatever order they finish in.
 
-``jobs`` 1 runs them one after another in this process, as before. More run in that many worker processes (spawned,
-not forked: a fork would copy this process's zenoh sessions and threads; and pyplot, which draws a run's figures,
-is not thread-safe). Per-iteration progress comes back through a queue and is handed to ``on_iteration`` on a
+``jobs`` 1 runs them one after another in this process, as before. More run in that many worker processes, forked
+from the warm server of :mod:`services.warm_start` (never from this process, whose zenoh sessions and threads a
+fork would copy; and processes, not threads: pyplot, which draws a run's figures, is not thread-safe), with this
+process's environment. Per-iteration progress comes back through a queue and is handed to ``on_iteration`` on a
 thread of this process.
 """
 from __future__ import annotations
 
-import multiprocessing
 import os
 import threading
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -78,9 +78,12 @@ def _run_here(task: RunTask, on_iteration: Optional[OnIteration], on_done: Optio
 _progress_queue = None
 
 
-def _init_worker(progress_queue) -> None:
+def _init_worker(progress_queue, environment: dict) -> None:
     global _progress_queue
     _progress_queue = progress_queue
+    # a fork of the warm server has the server's environment: the caller's is what a run must see
+    os.environ.clear()
+    os.environ.update(environment)
 
 
 def _run_in_worker(index: int, task: RunTask) -> ServoResult:
@@ -93,7 +96,9 @@ def _run_in_worker(index: int, task: RunTask) -> ServoResult:
 
 def _run_in_workers(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIteration],
                     on_done: Optional[OnDone]) -> list[ServoResult]:
-    context = multiprocessing.get_context("spawn")
+    from services.warm_start import WarmContext
+
+    context = WarmContext()
     progress = context.Queue() if on_iteration is not None else None
     relay: Optional[threading.Thread] = None
     if progress is not None:
@@ -110,7 +115,7 @@ def _run_in_workers(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIt
     results: list[Optional[ServoResult]] = [None] * len(tasks)
     try:
         with ProcessPoolExecutor(max_workers=jobs, mp_context=context, initializer=_init_worker,
-                                 initargs=(progress,)) as pool:
+                                 initargs=(progress, dict(os.environ))) as pool:
             pending = {pool.submit(_run_in_worker, i, task): i for i, task in enumerate(tasks)}
             try:
                 while pending:

@@ -27,36 +27,34 @@ from multiprocessing import forkserver, popen_forkserver, process, reduction, sp
 from pathlib import Path
 from typing import Optional
 
-#: what the fork server imports before its first fork: every service a local lockstep stack runs
+#: what the fork server imports before its first fork: every service a local lockstep stack runs, and the runner
+#: of experiments (services.run_pool's workers are forked from it too)
 PRELOADED = ("services.safety.service", "services.vision.service", "services.controller.service",
-             "services.robot_sim.service")
+             "services.robot_sim.service", "services.servo", "services.run_pool")
 
 _server_lock = threading.Lock()
-_context: Optional[multiprocessing.context.BaseContext] = None
+_server_started = False
 
 
-def _fork_context():
-    """The fork server's context, the server started on first use (with the environment it must import in)."""
-    global _context
+def _ensure_server() -> None:
+    """The fork server, started on first use (with the environment it must import in)."""
+    global _server_started
     with _server_lock:
-        if _context is None:
-            context = multiprocessing.get_context("forkserver")
-            context.set_forkserver_preload(list(PRELOADED))
-            server_env = {"OPENBLAS_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-            saved = {name: os.environ.get(name) for name in server_env}
-            os.environ.update(server_env)  # the server copies this process's environment as it starts
-            try:
-                from multiprocessing import forkserver
-
-                forkserver.ensure_running()
-            finally:
-                for name, value in saved.items():
-                    if value is None:
-                        os.environ.pop(name, None)
-                    else:
-                        os.environ[name] = value
-            _context = context
-        return _context
+        if _server_started:
+            return
+        multiprocessing.get_context("forkserver").set_forkserver_preload(list(PRELOADED))
+        server_env = {"OPENBLAS_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+        saved = {name: os.environ.get(name) for name in server_env}
+        os.environ.update(server_env)  # the server copies this process's environment as it starts
+        try:
+            forkserver.ensure_running()
+        finally:
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
+                else:
+                    os.environ[name] = value
+        _server_started = True
 
 
 def _run_module(module: str, argv: list[str], env: dict, log: str, cwd: str) -> None:
@@ -108,12 +106,22 @@ class _ServicePopen(popen_forkserver.Popen):
         self.pid = forkserver.read_signed(self.sentinel)
 
 
-class _ServiceProcess(process.BaseProcess):
+class WarmProcessObject(process.BaseProcess):
+    """A process forked from the fork server, knowing nothing of this process's ``__main__``."""
+
     _start_method = "forkserver"
 
     @staticmethod
     def _Popen(process_obj):
+        _ensure_server()
         return _ServicePopen(process_obj)
+
+
+class WarmContext(multiprocessing.context.ForkServerContext):
+    """multiprocessing's forkserver context, its processes :class:`WarmProcessObject` (for a process pool whose
+    workers start with the experiments' imports done: ``ProcessPoolExecutor(mp_context=WarmContext())``)."""
+
+    Process = WarmProcessObject
 
 
 class WarmProcess:
@@ -154,7 +162,7 @@ def spawn_warm(args: list[str], log: Path, cwd: Path) -> WarmProcess:
         raise ValueError(f"not a `python -m module` command: {args}")
     env = dict(os.environ)
     env.setdefault("MUJOCO_GL", "egl")
-    _fork_context()
-    process = _ServiceProcess(target=_run_module, args=(args[2], args[3:], env, str(log), str(cwd)), name=args[2])
+    process = WarmProcessObject(target=_run_module, args=(args[2], args[3:], env, str(log), str(cwd)),
+                                name=args[2])
     process.start()
     return WarmProcess(args, process)
