@@ -514,12 +514,31 @@ def finish_experiment(plan: PlannedExperiment, results: list[ServoResult], profi
     return output
 
 
-def _pool_callbacks(progress: Optional[Callable[[str, ServoResult], None]],
-                    on_iteration: Optional[Callable[[str, Scenario, object], None]]):
-    """The pool's (on_iteration, on_done) for the experiments' (label, ...) callbacks."""
+def _run_plans(plans: list[PlannedExperiment], roots: list[Path], out_dirs: list[Optional[Path]], prefixes: list[str],
+               profile: str, jobs: int, progress: Optional[Callable[[str, ServoResult], None]],
+               on_iteration: Optional[Callable[[str, Scenario, object], None]]) -> list[dict]:
+    """Every plan's runs through one pool (``jobs`` at a time), plan ``i``'s logs under ``roots[i]``; each plan's
+    output (:func:`finish_experiment`: its figures and report in ``out_dirs[i]``) made as soon as its last run
+    ends, while the other plans' runs go on. The outputs in the plans' order."""
+    tasks, owner = [], {}
+    for i, (plan, root, prefix) in enumerate(zip(plans, roots, prefixes)):
+        for k, task in enumerate(experiment_tasks(plan, root, profile, out_dirs[i] is not None, prefix=prefix)):
+            owner[id(task)] = (i, k)
+            tasks.append(task)
+    results: list[list[Optional[ServoResult]]] = [[None] * len(plan.runs) for plan in plans]
+    outputs: list[Optional[dict]] = [None] * len(plans)
+
+    def done(task: RunTask, result: ServoResult) -> None:
+        i, k = owner[id(task)]
+        results[i][k] = result
+        if progress is not None:
+            progress(task.label, result)
+        if all(r is not None for r in results[i]):
+            outputs[i] = finish_experiment(plans[i], results[i], profile, out_dirs[i])
+
     each = None if on_iteration is None else (lambda task, record: on_iteration(task.label, task.scenario, record))
-    done = None if progress is None else (lambda task, result: progress(task.label, result))
-    return each, done
+    run_tasks(tasks, jobs, each, done)
+    return outputs  # type: ignore[return-value]
 
 
 def run_experiments(names: list[str], out_dir: Optional[str | Path] = None,
@@ -531,16 +550,9 @@ def run_experiments(names: list[str], out_dir: Optional[str | Path] = None,
     plans = [plan_experiment(name) for name in names]
     with tempfile.TemporaryDirectory(prefix="mfvs-experiments-") as scratch:
         root = Path(out_dir) if out_dir is not None else Path(scratch)
-        tasks = [experiment_tasks(plan, root / plan.name, profile, out_dir is not None, prefix=f"{plan.name} ")
-                 for plan in plans]
-        results = run_tasks([task for group in tasks for task in group], jobs, *_pool_callbacks(progress,
-                                                                                                on_iteration))
-        outputs, at = [], 0
-        for plan in plans:
-            outputs.append(finish_experiment(plan, results[at:at + len(plan.runs)], profile,
-                                             None if out_dir is None else root / plan.name))
-            at += len(plan.runs)
-    return outputs
+        return _run_plans(plans, [root / plan.name for plan in plans],
+                          [None if out_dir is None else root / plan.name for plan in plans],
+                          [f"{plan.name} " for plan in plans], profile, jobs, progress, on_iteration)
 
 
 def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_dir: Optional[str | Path] = None,
@@ -555,9 +567,8 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
     plan = plan_experiment(name, scenario_path, arm)
     with tempfile.TemporaryDirectory(prefix=f"mfvs-{name}-") as scratch:
         root = Path(out_dir) if out_dir is not None else Path(scratch)
-        results = run_tasks(experiment_tasks(plan, root, profile, out_dir is not None), jobs,
-                            *_pool_callbacks(progress, on_iteration))
-        return finish_experiment(plan, results, profile, None if out_dir is None else Path(out_dir))
+        return _run_plans([plan], [root], [None if out_dir is None else Path(out_dir)], [""], profile, jobs,
+                          progress, on_iteration)[0]
 
 
 # ------------------------------------------------------------------------------------------------ random starts
@@ -646,15 +657,11 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
     runs, per_start = [], []
     with tempfile.TemporaryDirectory(prefix=f"mfvs-{name}-starts-") as scratch:
         root = Path(out_dir) if out_dir is not None else Path(scratch)
-        tasks = [task for start, plan in zip(starts, plans) for task in experiment_tasks(
-            plan, root / f"start{start.index}", profile, out_dir is not None, prefix=f"start{start.index} ")]
-        results = run_tasks(tasks, jobs, *_pool_callbacks(progress, on_iteration))
-        at = 0
-        for start, plan in zip(starts, plans):
-            label = f"start{start.index}"
-            output = finish_experiment(plan, results[at:at + len(plan.runs)], profile,
-                                       None if out_dir is None else Path(out_dir) / label)
-            at += len(plan.runs)
+        labels = [f"start{start.index}" for start in starts]
+        outputs = _run_plans(plans, [root / label for label in labels],
+                             [None if out_dir is None else Path(out_dir) / label for label in labels],
+                             [f"{label} " for label in labels], profile, jobs, progress, on_iteration)
+        for start, output in zip(starts, outputs):
             rows = {row["label"]: row for row in output["runs"]}
             for row in output["runs"]:
                 row["start"] = start.to_json()
