@@ -303,8 +303,12 @@ def add_jobs_option(parser: argparse.ArgumentParser) -> None:
 
 
 def _jobs_or_exit(command: str, jobs: int) -> bool:
-    if jobs < 1:
-        print(f"mfvs {command}: --jobs must be at least 1, not {jobs}", file=sys.stderr)
+    from services.run_pool import check_jobs
+
+    try:
+        check_jobs(jobs)
+    except ValueError as exc:
+        print(f"mfvs {command}: {exc}", file=sys.stderr)
         return False
     return True
 

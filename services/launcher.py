@@ -189,10 +189,16 @@ def read_stack() -> Optional[dict]:
         return None
 
 
-def spawn(args: list[str], log: Path, exit_file: Optional[Path] = None) -> subprocess.Popen:
-    """A service (or the router, or the hub) as a background process of its own session, logging to ``log``."""
+def service_environment() -> dict:
+    """The environment a service runs in: this process's, rendering through EGL unless it says otherwise."""
     env = dict(os.environ)
     env.setdefault("MUJOCO_GL", "egl")
+    return env
+
+
+def spawn(args: list[str], log: Path, exit_file: Optional[Path] = None) -> subprocess.Popen:
+    """A service (or the router, or the hub) as a background process of its own session, logging to ``log``."""
+    env = service_environment()
     if exit_file is not None:
         exit_file.unlink(missing_ok=True)
         env[EXIT_FILE_ENV] = str(exit_file)

@@ -64,11 +64,14 @@ def run_tasks(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIteratio
     return _run_in_workers(tasks, min(jobs, len(tasks)), on_iteration, on_done)
 
 
-def _run_here(task: RunTask, on_iteration: Optional[OnIteration], on_done: Optional[OnDone]) -> ServoResult:
+def _run(task: RunTask, each: Optional[Callable[[object], None]]) -> ServoResult:
     from services.servo import run
 
-    each = None if on_iteration is None else (lambda record: on_iteration(task, record))
-    result = run(task.scenario, task.out_dir, each, profile=task.profile, plots=task.plots)
+    return run(task.scenario, task.out_dir, each, profile=task.profile, plots=task.plots)
+
+
+def _run_here(task: RunTask, on_iteration: Optional[OnIteration], on_done: Optional[OnDone]) -> ServoResult:
+    result = _run(task, None if on_iteration is None else (lambda record: on_iteration(task, record)))
     if on_done is not None:
         on_done(task, result)
     return result
@@ -87,11 +90,8 @@ def _init_worker(progress_queue, environment: dict) -> None:
 
 
 def _run_in_worker(index: int, task: RunTask) -> ServoResult:
-    from services.servo import run
-
     sink = _progress_queue
-    each = None if sink is None else (lambda record: sink.put((index, record)))
-    return run(task.scenario, task.out_dir, each, profile=task.profile, plots=task.plots)
+    return _run(task, None if sink is None else (lambda record: sink.put((index, record))))
 
 
 def _run_in_workers(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIteration],

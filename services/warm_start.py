@@ -160,9 +160,9 @@ def spawn_warm(args: list[str], log: Path, cwd: Path) -> WarmProcess:
     forked from the fork server, logging to ``log``."""
     if len(args) < 3 or args[1] != "-m":
         raise ValueError(f"not a `python -m module` command: {args}")
-    env = dict(os.environ)
-    env.setdefault("MUJOCO_GL", "egl")
-    process = WarmProcessObject(target=_run_module, args=(args[2], args[3:], env, str(log), str(cwd)),
+    from services.launcher import service_environment
+
+    process = WarmProcessObject(target=_run_module, args=(args[2], args[3:], service_environment(), str(log), str(cwd)),
                                 name=args[2])
     process.start()
     return WarmProcess(args, process)
