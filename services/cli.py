@@ -25,6 +25,7 @@ def _cmd_router(args: argparse.Namespace) -> int:
 
     from services.robot.pacing import request_realtime
     from services.runtime import iteration_profile
+    from services.runtime.threads import wait_until_set
 
     iteration_profile.install("router")  # mfvs bench lockstep: the router's CPU; nothing unless it asks
     # the router carries the command path (safety to the robot): it must not wait behind the rest of the host
@@ -48,7 +49,7 @@ def _cmd_router(args: argparse.Namespace) -> int:
         return 1
     with router:
         print(json.dumps({"router": router.endpoint, "zid": router.zid}), flush=True)
-        stop.wait()
+        wait_until_set(stop)
     return 0
 
 

@@ -1,4 +1,7 @@
 """Shared test helpers: random configurations and reference kinematics through Pinocchio."""
+import ctypes
+import ctypes.util
+import os
 from pathlib import Path
 
 import numpy as np
@@ -150,3 +153,15 @@ def iterations_in_a_late_loop(law, tag_in_camera: np.ndarray, camera_in_ee: np.n
         dq = dq / max(1.0, float(np.max(np.abs(dq) / (ARM.max_speed * 0.8))))
         commands.append((t + rng.uniform(*command_delay_s), dq))
     return None
+
+
+def signal_a_thread_not_the_main(pid: int, sig: int) -> str:
+    """Send ``sig`` to one thread of process ``pid`` other than its main thread (as the kernel may deliver a signal
+    sent to the process: to any thread not blocking it); that thread's kernel name."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    others = sorted(int(tid) for tid in os.listdir(f"/proc/{pid}/task") if int(tid) != pid)
+    assert others, f"process {pid} has no thread besides its main one"
+    tid = others[0]
+    if libc.tgkill(pid, tid, sig) != 0:
+        raise OSError(ctypes.get_errno(), f"tgkill({pid}, {tid}) failed")
+    return Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()

@@ -32,7 +32,7 @@ from services.runtime.clock import SimulatedClock, WallClock, make_clock
 from services.runtime.config import ConfigStruct
 from services.runtime.logs import RateLimitedLogger
 from services.runtime.metrics import Counters, Rates
-from services.runtime.threads import start_thread
+from services.runtime.threads import start_thread, wait_until_set
 from services.runtime.faults import FaultInjector
 from services.runtime import iteration_profile
 from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session, publisher_options
@@ -274,8 +274,7 @@ class Service:
                 signal.signal(sig, lambda *_: self.request_stop())
         self.start()
         try:
-            while not self._stop_event.wait(0.2):
-                pass
+            wait_until_set(self._stop_event)
         finally:
             self.stop()
         return 0

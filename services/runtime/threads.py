@@ -38,6 +38,20 @@ def start_thread(target: Callable[[], object], name: str, daemon: bool = True) -
     return thread
 
 
+#: how often a waiting main thread runs the signal handlers that may have been tripped meanwhile
+SIGNAL_CHECK_S = 0.2
+
+
+def wait_until_set(event: threading.Event) -> None:
+    """Until ``event`` is set, on the main thread of a process whose SIGTERM/SIGINT handlers set it. The kernel
+    hands a signal sent to the process to any of its threads: when that is one of zenoh's, Python only notes it, and
+    runs the handler when the main thread next runs Python code, which a wait without a timeout never does (mfvs
+    router then ignored SIGTERM until its stack killed it 10 s later, about one lockstep run in ten with the
+    stack's processes on one core). Waking now and then runs it."""
+    while not event.wait(SIGNAL_CHECK_S):
+        pass
+
+
 def run_loop(body: Callable[[], object], what: str, log, counters, finished: threading.Event) -> None:
     """Run a service's loop ``body`` to its end: a failure is logged (``what`` failed) and counted
     (``errors.loop``), never raised into the thread, and ``finished`` is set however it ends."""

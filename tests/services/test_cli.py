@@ -9,6 +9,7 @@ from pathlib import Path
 
 from services.runtime.transport import ZenohConfig, open_session
 from services.model.arm import load_arm
+from tests.helpers import signal_a_thread_not_the_main
 
 ARM = load_arm("j2s7s300")
 
@@ -96,6 +97,18 @@ def test_router_command_serves_and_stops_on_sigterm():
         assert got == [b"x"]
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_the_router_stops_on_a_sigterm_that_one_of_zenohs_threads_received():
+    proc = subprocess.Popen([mfvs_executable(), "router", "--port", "0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        json.loads(proc.stdout.readline())  # listening: zenoh's threads run
+        thread = signal_a_thread_not_the_main(proc.pid, signal.SIGTERM)
+        assert proc.wait(timeout=5) == 0, f"SIGTERM on thread {thread!r} left the router running"
     finally:
         if proc.poll() is None:
             proc.kill()

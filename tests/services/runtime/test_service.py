@@ -21,8 +21,7 @@ from services.runtime.metrics import Counters, RateMeter
 from services.runtime.service import Service, ServiceConfig, service_condition
 from services.runtime.transport import Router, ZenohConfig, open_session, to_zenoh_config
 from tests.stack import wait_for
-from tests.helpers import REPO
-from tests.helpers import ARM_DECLARED
+from tests.helpers import ARM_DECLARED, REPO, signal_a_thread_not_the_main
 
 
 
@@ -151,14 +150,18 @@ SERVICE_SCRIPT = textwrap.dedent(
 )
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_service_process_stops_cleanly_on_signal(router, client, sig):
+@pytest.mark.parametrize("sig, to", [(signal.SIGTERM, "process"), (signal.SIGINT, "process"),
+                                     (signal.SIGTERM, "a thread not the main")])
+def test_service_process_stops_cleanly_on_signal(router, client, sig, to):
     keys = Keys()
     proc = subprocess.Popen([sys.executable, "-c", SERVICE_SCRIPT, router.endpoint], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert wait_for(lambda: any(True for _ in client.liveliness().get(keys.liveliness("idle"))), timeout=20)
-        proc.send_signal(sig)
+        if to == "process":
+            proc.send_signal(sig)
+        else:  # the kernel may hand a signal sent to the process to any thread: one of zenoh's
+            signal_a_thread_not_the_main(proc.pid, sig)
         out, err = proc.communicate(timeout=10)
     finally:
         if proc.poll() is None:
