@@ -57,8 +57,9 @@ def _ensure_server() -> None:
         _server_started = True
 
 
-def _run_module(module: str, argv: list[str], env: dict, log: str, cwd: str) -> None:
-    """In the forked child: ``python -m module *argv`` with this environment, output to ``log``."""
+def _run_module(module: str, argv: list[str], env: dict, log: str, cwd: str, cores: set[int]) -> None:
+    """In the forked child: ``python -m module *argv`` with this environment, on these cores, output to ``log``."""
+    os.sched_setaffinity(0, cores)  # the caller's, as a process it spawned would inherit them (services.run_pool)
     os.setsid()  # a session of its own, as launcher.spawn gives: a terminal's Ctrl-C is the stack's to handle
     out = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     os.dup2(out, 1)
@@ -162,7 +163,7 @@ def spawn_warm(args: list[str], log: Path, cwd: Path) -> WarmProcess:
         raise ValueError(f"not a `python -m module` command: {args}")
     from services.launcher import service_environment
 
-    process = WarmProcessObject(target=_run_module, args=(args[2], args[3:], service_environment(), str(log), str(cwd)),
-                                name=args[2])
+    process = WarmProcessObject(target=_run_module, name=args[2], args=(
+        args[2], args[3:], service_environment(), str(log), str(cwd), os.sched_getaffinity(0)))
     process.start()
     return WarmProcess(args, process)

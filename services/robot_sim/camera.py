@@ -46,6 +46,15 @@ log = logging.getLogger("mfvs.robot_sim.camera")
 RENDERER_START_TIMEOUT_S = 60.0
 
 
+def render_on_calling_thread_if_one_core() -> None:
+    """llvmpipe (Mesa's CPU rasteriser) splits a frame across a thread per core it counts. A process allowed one
+    core only (a lockstep run pinned beside others: services.run_pool) gains nothing from them but their hand-offs:
+    it renders on the calling thread (the same pixels: measured, Table 3's logs byte for byte). A variable the user
+    set wins; a GPU driver ignores it. Call before the first GL context is made."""
+    if len(os.sched_getaffinity(0)) == 1:
+        os.environ.setdefault("LP_NUM_THREADS", "0")
+
+
 class RenderError(RuntimeError):
     """The renderer failed a frame, could not start, or its process is gone."""
 
@@ -338,6 +347,7 @@ class LoopCamera(_Camera):
                 if self._unavailable:
                     raise RenderError("no renderer")
                 cam = self.sim.scene.camera
+                render_on_calling_thread_if_one_core()
                 try:
                     self._renderer = FrameRenderer(self.sim.model, self.sim.camera_id, cam.width, cam.height,
                                                    cam.encoding, cam.imaging, cam.matrix())

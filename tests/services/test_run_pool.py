@@ -1,0 +1,69 @@
+"""services.run_pool's workers and services.warm_start's services: where they run."""
+import os
+import subprocess
+import sys
+from concurrent.futures import ProcessPoolExecutor
+
+import pytest
+
+from services.robot_sim.camera import render_on_calling_thread_if_one_core
+from services.run_pool import _init_worker, worker_cores
+from services.warm_start import WarmContext, spawn_warm
+from tests.helpers import REPO
+from tests.stack import wait_for
+
+CORES = sorted(os.sched_getaffinity(0))
+several_cores = pytest.mark.skipif(len(CORES) < 2, reason="needs a host with two cores or more")
+
+
+def test_workers_take_one_core_each_round_the_cores():
+    assert [worker_cores([0, 1], k) for k in range(5)] == [{0}, {1}, {0}, {1}, {0}]
+    assert [worker_cores({5, 2, 9}, k) for k in range(4)] == [{2}, {5}, {9}, {2}]
+    assert worker_cores([3], 7) == {3}
+
+
+@several_cores
+def test_pool_workers_run_on_one_core_of_the_callers():
+    context = WarmContext()
+    with ProcessPoolExecutor(max_workers=2, mp_context=context, initializer=_init_worker,
+                             initargs=(None, dict(os.environ), context.Value("i", 0), CORES)) as pool:
+        seen = list(pool.map(os.sched_getaffinity, [0] * 6))
+    assert all(len(cores) == 1 and cores <= set(CORES) for cores in seen), seen
+
+
+@several_cores
+def test_a_warm_service_runs_on_the_cores_of_the_process_that_started_it(tmp_path):
+    before = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {CORES[-1]})
+    try:  # the fork server was started with every core (by an earlier test, or now, inheriting this one's)
+        process = spawn_warm([sys.executable, "-m", "services.cli", "router", "--port", "0"],
+                             tmp_path / "router.log", REPO)
+    finally:
+        os.sched_setaffinity(0, before)
+    try:
+        log = tmp_path / "router.log"
+        assert wait_for(lambda: log.exists() and '"router"' in log.read_text(), timeout=20)  # the module runs
+        status = f"/proc/{process.pid}/status"
+        allowed = next(line for line in open(status) if line.startswith("Cpus_allowed_list:")).split()[1]
+        assert allowed == str(CORES[-1])
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+
+
+def test_a_renderer_allowed_one_core_renders_on_its_calling_thread():
+    script = ("import os, sys; os.sched_setaffinity(0, {int(sys.argv[1])} if sys.argv[1] != 'all' else "
+              "os.sched_getaffinity(0));"
+              "from services.robot_sim.camera import render_on_calling_thread_if_one_core as rule; rule();"
+              "print(os.environ.get('LP_NUM_THREADS'))")
+
+    def threads(cores: str, **env) -> str:
+        environment = {k: v for k, v in os.environ.items() if k != "LP_NUM_THREADS"} | env
+        return subprocess.run([sys.executable, "-c", script, cores], cwd=REPO, env=environment, text=True,
+                              capture_output=True, check=True).stdout.strip()
+
+    assert threads(str(CORES[0])) == "0"
+    assert threads(str(CORES[0]), LP_NUM_THREADS="2") == "2"  # the user's choice stands
+    if len(CORES) > 1:
+        assert threads("all") == "None"
+    assert callable(render_on_calling_thread_if_one_core)
