@@ -105,8 +105,11 @@ def pin_process(cores: set[int]) -> None:
     os.sched_setaffinity(0, cores)
 
 
-def _init_worker(progress_queue, environment: dict, workers_started, cores: list[int]) -> None:
+def _init_worker(progress_queue, environment: dict, workers_started, cores: list[int], server: str) -> None:
     global _progress_queue
+    from services.warm_start import fork_from_server_at
+
+    fork_from_server_at(server)  # the stacks' services come from the server this worker came from
     _progress_queue = progress_queue
     # a fork of the warm server has the server's environment: the caller's is what a run must see
     os.environ.clear()
@@ -124,7 +127,7 @@ def _run_in_worker(index: int, task: RunTask) -> ServoResult:
 
 def _run_in_workers(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIteration],
                     on_done: Optional[OnDone]) -> list[ServoResult]:
-    from services.warm_start import WarmContext
+    from services.warm_start import WarmContext, server_address
 
     context = WarmContext()
     progress = context.Queue() if on_iteration is not None else None
@@ -145,7 +148,8 @@ def _run_in_workers(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIt
     results: list[Optional[ServoResult]] = [None] * len(tasks)
     try:
         with ProcessPoolExecutor(max_workers=jobs, mp_context=context, initializer=_init_worker,
-                                 initargs=(progress, dict(os.environ), workers_started, cores)) as pool:
+                                 initargs=(progress, dict(os.environ), workers_started, cores,
+                                           server_address())) as pool:
             pending = {pool.submit(_run_in_worker, i, task): i for i, task in enumerate(tasks)}
             try:
                 while pending:

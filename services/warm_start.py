@@ -12,6 +12,10 @@ Fork safety: the server must have no thread but its own when it forks, and the l
 than one core: the server is started with ``OPENBLAS_NUM_THREADS=1``, so the services it forks run their (small,
 7×7) linear algebra on the calling thread. Realtime stacks keep starting every service as a process of its own
 (:func:`services.launcher.spawn`), as ``mfvs up`` does.
+
+The workers of :mod:`services.run_pool` are forks of the same server, and fork their stacks' services from it too
+(:func:`fork_from_server_at`): one server for a whole experiment. This leans further on CPython's forkserver
+internals (the server's address and "alive" descriptor, 3.8-3.13), like :class:`_ServicePopen`.
 """
 from __future__ import annotations
 
@@ -54,6 +58,28 @@ def _ensure_server() -> None:
                     os.environ.pop(name, None)
                 else:
                     os.environ[name] = value
+        _server_started = True
+
+
+def server_address() -> str:
+    """The fork server's address (started if it was not): a process forked from it may fork from it too
+    (:func:`fork_from_server_at`)."""
+    _ensure_server()
+    return forkserver._forkserver._forkserver_address
+
+
+def fork_from_server_at(address: str) -> None:
+    """In a process the fork server forked (services.run_pool's workers): fork services from that same server
+    instead of starting a server of its own (0.3-0.4 s of imports a worker, before its first run). Such a process
+    holds the server's "alive" descriptor already (multiprocessing hands it to every child of the server); what it
+    lacks is the address, and a ``ensure_running`` that would start a server because it did not start this one."""
+    global _server_started
+    server = forkserver._forkserver
+    if server._forkserver_alive_fd is None:
+        raise RuntimeError("not a process the fork server forked")
+    with _server_lock:
+        server._forkserver_address = address
+        server.ensure_running = lambda: None  # the server runs: its caller keeps it (and it them) alive
         _server_started = True
 
 

@@ -8,7 +8,7 @@ import pytest
 
 from services.robot_sim.camera import render_on_calling_thread_if_one_core
 from services.run_pool import _init_worker, worker_cores
-from services.warm_start import WarmContext, spawn_warm
+from services.warm_start import WarmContext, server_address, spawn_warm
 from tests.helpers import REPO
 from tests.stack import wait_for
 
@@ -26,9 +26,19 @@ def test_workers_take_one_core_each_round_the_cores():
 def test_pool_workers_run_on_one_core_of_the_callers():
     context = WarmContext()
     with ProcessPoolExecutor(max_workers=2, mp_context=context, initializer=_init_worker,
-                             initargs=(None, dict(os.environ), context.Value("i", 0), CORES)) as pool:
+                             initargs=(None, dict(os.environ), context.Value("i", 0), CORES,
+                                       server_address())) as pool:
         seen = list(pool.map(os.sched_getaffinity, [0] * 6))
     assert all(len(cores) == 1 and cores <= set(CORES) for cores in seen), seen
+
+
+def test_pool_workers_fork_their_stacks_from_the_server_they_came_from():
+    context = WarmContext()
+    with ProcessPoolExecutor(max_workers=2, mp_context=context, initializer=_init_worker,
+                             initargs=(None, dict(os.environ), context.Value("i", 0), CORES,
+                                       server_address())) as pool:
+        addresses = {pool.submit(server_address).result() for _ in range(4)}  # else: a server of its own
+    assert addresses == {server_address()}
 
 
 @several_cores
