@@ -298,9 +298,9 @@ def add_jobs_option(parser: argparse.ArgumentParser) -> None:
     from services.run_pool import default_jobs
 
     parser.add_argument("--jobs", type=int, default=default_jobs(), metavar="N",
-                        help=f"lockstep runs side by side, each on a stack of its own (default: the cores, "
-                             f"{default_jobs()} here); every run gives the same numbers however many run beside it "
-                             "(torque-control runs in realtime, one controller at a time, and takes none)")
+                        help=f"lockstep runs side by side, each on a stack and a core of its own (default: the "
+                             f"cores, {default_jobs()} here); every run gives the same numbers however many run "
+                             "beside it (torque-control runs in realtime, one controller at a time, and takes none)")
 
 
 def _jobs_or_exit(command: str, jobs: int) -> bool:
