@@ -46,7 +46,7 @@ def wait_until_set(event: threading.Event) -> None:
     """Until ``event`` is set, on the main thread of a process whose SIGTERM/SIGINT handlers set it. The kernel
     hands a signal sent to the process to any of its threads: when that is one of zenoh's, Python only notes it, and
     runs the handler when the main thread next runs Python code, which a wait without a timeout never does (mfvs
-    router then ignored SIGTERM until its stack killed it 10 s later, about one lockstep run in ten with the
+    router then ignored SIGTERM until its stack killed it 10 s later, about one lockstep run in twenty with the
     stack's processes on one core). Waking now and then runs it."""
     while not event.wait(SIGNAL_CHECK_S):
         pass
