@@ -37,11 +37,15 @@ from protocol.messages import (
 )
 from services.model import frames
 from services.model import tag as tags
+from services.runtime.clock import SimulatedClock
 from services.runtime.config import ConfigStruct, PoseConfig
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import start_thread
 from services.vision import features as F
 from services.vision.core import VisionCore
+
+#: lockstep: how long the first frame without camera info waits for it (the robot's own wait for a frame's answer)
+CAMERA_INFO_WAIT_S = 2.0
 
 #: seed 000 Table 2's desired square (±0.1666 at 0.2888 m), in this project's corner order
 TABLE2_GOAL = ((-0.1666, -0.1666), (0.1666, -0.1666), (0.1666, 0.1666), (-0.1666, 0.1666))
@@ -125,6 +129,8 @@ class VisionService(Service):
         self._last_answer: Optional[tuple[int, Features]] = None
         self._wake = threading.Condition(self._lock)
         self._worker: Optional[threading.Thread] = None
+        #: lockstep: the first frame without camera info waits for it (CAMERA_INFO_WAIT_S at most, once)
+        self._await_info = True
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -170,8 +176,9 @@ class VisionService(Service):
         self._on_camera_info(info, 0)
 
     def _on_camera_info(self, info: CameraInfo, _recv_ns: int) -> None:
-        with self._lock:
+        with self._wake:
             self._info = info
+            self._wake.notify_all()
 
     def _on_image(self, image: Image, recv_ns: int) -> None:
         with self._wake:
@@ -221,6 +228,13 @@ class VisionService(Service):
                     self._wake.wait(0.2)
                 if self.stop_requested:
                     return
+                if self._info is None and self._await_info and isinstance(self.clock, SimulatedClock):
+                    # lockstep: a frame waits for the camera info rather than being refused, once. The info and
+                    # the frame come on subscribers of their own, in the host's order: a replay that sent the
+                    # info first had its first frame refused now and then.
+                    self._wake.wait_for(lambda: self._info is not None or self.stop_requested,
+                                        timeout=CAMERA_INFO_WAIT_S)
+                    self._await_info = False
                 image, recv_ns = self._pending
                 self._pending = None
             try:

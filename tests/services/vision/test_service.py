@@ -105,3 +105,30 @@ def test_goal_queryables_and_bad_inputs(stack):
     n = len(downstream.features)
     assert wait_for(lambda: len(downstream.features) > n + 3)  # still serving
     assert vision.state == "running"
+
+
+def test_in_lockstep_a_frame_that_came_before_the_camera_info_waits_for_it(router):
+    """The camera info and a frame come on subscribers of their own, in the host's order: in lockstep the frame
+    waits for the info (a replay once had its first frame refused for want of it); in realtime it is refused."""
+    from services.robot_sim.scene import CameraConfig, camera_info
+
+    camera = CameraConfig()
+    for clock, refused in ((ClockMode.LOCKSTEP, False), (ClockMode.REALTIME, True)):
+        vision = VisionService(VisionConfig(clock=clock, zenoh=router.client_config()))
+        vision.start()
+        try:
+            vision._info = None  # nobody answered its query: there is no camera on this router
+            answers = []
+            vision.features_pub.put = answers.append
+            stamp = 1_000_000_000 if clock is ClockMode.LOCKSTEP else time.time_ns()
+            header = m.Header(stamp_ns=stamp, source_stamp_ns=stamp, seq=next_seq())
+            vision._on_image(m.Image(header=header, width=camera.width, height=camera.height,
+                                     encoding=camera.encoding,
+                                     data=bytes(camera.width * camera.height * m.CHANNELS[camera.encoding])), 0)
+            time.sleep(0.2)  # the info comes later, on another thread
+            vision._on_camera_info(camera_info(camera, m.Header(stamp_ns=stamp, seq=next_seq())), 0)
+            assert wait_for(lambda: answers, timeout=5)
+            no_info = answers[0].status is m.FeatureStatus.INVALID_IMAGE and "camera info" in answers[0].detail
+            assert no_info is refused, (clock, answers[0].status, answers[0].detail)
+        finally:
+            vision.stop()
