@@ -96,13 +96,13 @@ def worker_cores(cores: set[int] | list[int], worker: int) -> set[int]:
 
 
 def pin_process(cores: set[int]) -> None:
-    """This process and every thread it has to ``cores`` (threads and processes it starts later inherit them)."""
+    """This process and every thread it has (the main one among them) to ``cores``; threads and processes it starts
+    later inherit them."""
     for task in os.listdir("/proc/self/task"):
         try:
             os.sched_setaffinity(int(task), cores)
         except (ProcessLookupError, PermissionError):  # a thread that ended meanwhile
             pass
-    os.sched_setaffinity(0, cores)
 
 
 def _init_worker(progress_queue, environment: dict, workers_started, cores: list[int], server: str) -> None:

@@ -6,7 +6,6 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
-from services.robot_sim.camera import render_on_calling_thread_if_one_core
 from services.run_pool import _init_worker, worker_cores
 from services.warm_start import WarmContext, server_address, spawn_warm
 from tests.helpers import REPO
@@ -76,4 +75,3 @@ def test_a_renderer_allowed_one_core_renders_on_its_calling_thread():
     assert threads(str(CORES[0]), LP_NUM_THREADS="2") == "2"  # the user's choice stands
     if len(CORES) > 1:
         assert threads("all") == "None"
-    assert callable(render_on_calling_thread_if_one_core)

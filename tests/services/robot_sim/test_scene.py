@@ -200,13 +200,14 @@ def test_camera_renders_in_its_own_process_the_frame_the_simulation_would(encodi
 def test_the_realtime_camera_starts_one_process_its_renderer_and_no_other():
     """The render process is a plain subprocess: multiprocessing's spawn also started a resource tracker (a third
     interpreter, 13 MB resident) for shared memory nobody used."""
+    import json
     import re
     import subprocess
     import sys
     from pathlib import Path
 
     script = (
-        "import glob, os\n"
+        "import glob, json, os\n"
         "from protocol.messages import Header\n"
         "from services.robot_sim.camera import SimCamera\n"
         "from services.robot_sim.sim import Simulation\n"
@@ -214,12 +215,12 @@ def test_the_realtime_camera_starts_one_process_its_renderer_and_no_other():
         "camera = SimCamera(sim, lambda image: None, lambda *_, **kw: Header(**kw), lambda: None)\n"
         "camera.start()\n"
         "children = {c for f in glob.glob(f'/proc/{os.getpid()}/task/*/children') for c in open(f).read().split()}\n"
-        "print([open(f'/proc/{c}/cmdline').read().replace(chr(0), ' ').strip() for c in children])\n"
+        "print(json.dumps([open(f'/proc/{c}/cmdline').read().replace(chr(0), ' ').strip() for c in children]))\n"
         "camera.stop()\n"
         "sim.close()\n")
     out = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[3], text=True,
                          capture_output=True, timeout=120, check=True).stdout
-    children = eval(out.strip().splitlines()[-1])
+    children = json.loads(out.strip().splitlines()[-1])
     assert len(children) == 1 and re.fullmatch(r".* -m services\.robot_sim\.render_server \d+", children[0]), children
 
 
