@@ -1,10 +1,16 @@
 """services/stack.py's rigs: the robot's side as processes carries one arm."""
+import subprocess
+import sys
+import threading
+import time
+
 import pytest
 
+from protocol.keys import Keys
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig
-from services.runtime.transport import ZenohConfig
-from services.stack import RobotProcesses
+from services.runtime.transport import ZenohConfig, open_session
+from services.stack import RobotProcesses, wait_alive
 
 
 def test_the_gateway_runs_the_robot_s_arm_and_a_gateway_for_another_is_refused():
@@ -15,3 +21,44 @@ def test_the_gateway_runs_the_robot_s_arm_and_a_gateway_for_another_is_refused()
     # robot_sim alone has no gateway to disagree with
     assert RobotProcesses(ZenohConfig(), RobotSimConfig(arm="j2n6s300"), GatewayConfig(), profile="sim").robot.arm \
         == "j2n6s300"
+
+
+def _token(router, robot_id: str, name: str):
+    session = open_session(router.client_config())
+    return session, session.liveliness().declare_token(Keys(robot_id).liveliness(name))
+
+
+def test_a_stack_is_up_as_soon_as_its_services_declare_their_liveliness(router, tmp_path):
+    sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    sessions = [_token(router, "arm1", "safety")]
+    try:
+        def declare_later() -> None:
+            time.sleep(0.3)
+            sessions.append(_token(router, "arm1", "vision"))
+
+        threading.Thread(target=declare_later).start()
+        start = time.monotonic()
+        wait_alive(router.client_config(), "arm1", ["safety", "vision"], [sleeper], 10.0, tmp_path)
+        took = time.monotonic() - start
+        # not before the second token (the first was declared before the wait began: the subscriber's history)
+        assert 0.3 <= took < 5.0
+        # a token of another robot's is not this robot's service
+        with pytest.raises(RuntimeError, match=r"controller not alive \(exited: \[\]"):
+            other = _token(router, "arm2", "controller")
+            sessions.append(other)
+            wait_alive(router.client_config(), "arm1", ["controller"], [sleeper], 0.5, tmp_path)
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+        for session, token in sessions:
+            token.undeclare()
+            session.close()
+
+
+def test_a_stack_whose_process_exits_before_its_liveliness_fails_at_once_naming_it(router, tmp_path):
+    quitter = subprocess.Popen([sys.executable, "-c", "pass"])
+    quitter.wait()
+    start = time.monotonic()
+    with pytest.raises(RuntimeError, match=rf"safety not alive \(exited: .*-c.*pass.*logs in {tmp_path}"):
+        wait_alive(router.client_config(), "arm1", ["safety"], [quitter], 30.0, tmp_path)
+    assert time.monotonic() - start < 10.0  # not the 30 s timeout
