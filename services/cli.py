@@ -359,6 +359,10 @@ def _print_experiment(output: dict) -> None:
 
 
 def _cmd_experiment(args: argparse.Namespace) -> int:
+    if args.jobs > 1:  # runs side by side fork from the warm server (services.run_pool): its imports beside ours
+        from services.warm_start import start_server
+
+        start_server()
     from services.experiments import EXPERIMENTS, experiment_names, run_experiment
     from services.runtime.config import ConfigError
 
@@ -484,6 +488,9 @@ def _random_starts_experiment(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from services.warm_start import start_server
+
+    start_server()  # lockstep stacks fork from the warm server: its imports beside ours
     from services.experiments import run_experiments
 
     if not _jobs_or_exit("demo", args.jobs):
