@@ -316,8 +316,10 @@ def _jobs_or_exit(command: str, jobs: int) -> bool:
 
 def _experiment_progress(name: str, quiet: bool):
     """After each run a line (on stderr with --json); during the runs, on a terminal, one progress line, the run
-    it shows the last to report (runs side by side take turns on it)."""
-    from services.runtime.progress import ProgressLine
+    it shows the last to report (runs side by side take turns on it). Its ``on_iteration`` is None when no line
+    would show: the runs then send their iterations nowhere (with ``--jobs`` each went from its worker to this
+    process, an iteration at a time)."""
+    from services.runtime.progress import ProgressLine, shows
 
     bars: dict = {}
     ended: set = set()
@@ -340,7 +342,7 @@ def _experiment_progress(name: str, quiet: bool):
         final = "–" if result.final_error_norm is None else f"{result.final_error_norm:.2e}"
         print(f"  {name} {label:22s} {result.status:14s} {result.iterations:5d} iterations  final ‖e‖ {final}  "
               f"({result.wall_time_s:.0f} s)", file=sys.stderr if quiet else sys.stdout, flush=True)
-    progress.on_iteration = on_iteration
+    progress.on_iteration = on_iteration if shows(not quiet) else None
     return progress
 
 

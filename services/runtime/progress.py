@@ -29,13 +29,19 @@ def iterations_left(errors: Sequence[float], threshold: float, iteration: int, m
     return min(ceiling, math.ceil(math.log(recent[-1] / threshold) / rate))
 
 
+def shows(enabled: bool = True, stream=None) -> bool:
+    """Whether a progress line on ``stream`` (default: stderr) would be seen: ``enabled`` and a terminal."""
+    stream = stream if stream is not None else sys.stderr
+    return enabled and hasattr(stream, "isatty") and stream.isatty()
+
+
 class ProgressLine:
     """``update(iteration, error_norm)`` rewrites one line; ``done()`` ends it. Silent unless ``stream`` is a
     terminal and ``enabled``."""
 
     def __init__(self, task: str, threshold: float, max_iterations: int, enabled: bool = True, stream=None) -> None:
         self.stream = stream if stream is not None else sys.stderr
-        self.enabled = enabled and hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.enabled = shows(enabled, self.stream)
         self.task, self.threshold, self.max_iterations = task, threshold, max_iterations
         self.errors: list[float] = []
         self.start = time.monotonic()

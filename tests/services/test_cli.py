@@ -1,4 +1,5 @@
 """The installed `mfvs` console script."""
+import io
 import json
 import shutil
 import signal
@@ -142,3 +143,26 @@ def test_a_config_files_endpoints_win_and_a_conflicting_port_is_an_error(tmp_pat
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(timeout=10)
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_experiments_send_their_iterations_to_the_command_only_where_a_progress_line_shows_them(monkeypatch):
+    from types import SimpleNamespace
+
+    from services import cli
+
+    scenario = SimpleNamespace(convergence=SimpleNamespace(error_norm=5e-5, max_iterations=100))
+    record = SimpleNamespace(iteration=3, error_norm=1e-2)
+    # not a terminal (a pipe, a log file, CI), or --json: the runs send nothing an iteration
+    assert cli._experiment_progress("table3", quiet=False).on_iteration is None
+    terminal = _Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    assert cli._experiment_progress("table3", quiet=True).on_iteration is None
+    on_iteration = cli._experiment_progress("table3", quiet=False).on_iteration
+    assert on_iteration is not None
+    on_iteration("p-joint", scenario, record)
+    assert "table3 p-joint: iteration     3" in terminal.getvalue()
