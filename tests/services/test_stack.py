@@ -1,4 +1,6 @@
-"""services/stack.py's rigs: the robot's side as processes carries one arm."""
+"""services/stack.py's rigs: the robot's side as processes carries one arm; a stack is up when its services' liveliness
+says so; a lockstep stack's router is forked warm."""
+import json
 import subprocess
 import sys
 import threading
@@ -10,7 +12,7 @@ from protocol.keys import Keys
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig
 from services.runtime.transport import ZenohConfig, open_session
-from services.stack import RobotProcesses, wait_alive
+from services.stack import RobotProcesses, _endpoint_line, wait_alive
 
 
 def test_the_gateway_runs_the_robot_s_arm_and_a_gateway_for_another_is_refused():
@@ -62,3 +64,47 @@ def test_a_stack_whose_process_exits_before_its_liveliness_fails_at_once_naming_
     with pytest.raises(RuntimeError, match=rf"safety not alive \(exited: .*-c.*pass.*logs in {tmp_path}"):
         wait_alive(router.client_config(), "arm1", ["safety"], [quitter], 30.0, tmp_path)
     assert time.monotonic() - start < 10.0  # not the 30 s timeout
+
+
+def test_a_warm_router_s_endpoint_is_read_from_its_log_whatever_it_logged_before(tmp_path):
+    log = tmp_path / "router.log"
+    writer = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\n"
+        "f = open(sys.argv[1], 'a')\n"
+        "f.write('2026-11-26 WARN zenoh: something first\\n'); f.flush(); time.sleep(0.2)\n"
+        "f.write('{\"router\": \"tcp/127.0.0.1:1234\", '); f.flush(); time.sleep(0.2)\n"  # half a line: not yet
+        "f.write('\"zid\": \"ab\"}\\n'); f.flush(); time.sleep(30)\n"), str(log)])
+    try:
+        line = _endpoint_line(log, writer, 10.0)
+        assert json.loads(line) == {"router": "tcp/127.0.0.1:1234", "zid": "ab"}
+    finally:
+        writer.kill()
+        writer.wait()
+    quitter = subprocess.Popen([sys.executable, "-c", "import sys; open(sys.argv[1], 'w').write('bad config\\n')",
+                                str(tmp_path / "quit.log")])
+    quitter.wait()
+    start = time.monotonic()
+    assert _endpoint_line(tmp_path / "quit.log", quitter, 30.0) == "bad config\n"  # what it said, at once
+    assert time.monotonic() - start < 10.0
+
+
+def test_a_lockstep_stack_s_router_is_forked_warm_and_serves(tmp_path):
+    from services.stack import RouterProcess
+    from services.warm_start import WarmProcess
+
+    with RouterProcess(realtime_priority=0, warm_log=tmp_path / "router.log") as router:
+        assert isinstance(router.process, WarmProcess)
+        session = open_session(router.client_config())
+        try:
+            got = []
+            subscriber = session.declare_subscriber("check/**", lambda sample: got.append(sample.payload.to_bytes()))
+            deadline = time.monotonic() + 10.0
+            while not got and time.monotonic() < deadline:
+                session.put("check/a", b"through the router")
+                time.sleep(0.05)
+            subscriber.undeclare()
+        finally:
+            session.close()
+        assert got and got[0] == b"through the router"
+        process = router.process
+    assert process.poll() is not None  # stopped with the context
