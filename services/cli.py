@@ -492,11 +492,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     from services.warm_start import start_server
 
+    if not _jobs_or_exit("demo", args.jobs):
+        return 2
     start_server()  # lockstep stacks fork from the warm server: its imports beside ours
     from services.experiments import run_experiments
 
-    if not _jobs_or_exit("demo", args.jobs):
-        return 2
     out = Path(args.out).resolve()
     print(f"mfvs demo: seed 000's Part A and Table 3 on the emulated JACO-2 (MuJoCo, the real services, lockstep, "
           f"{args.jobs} run{'s' if args.jobs > 1 else ''} at a time); figures and reports go to {out}", flush=True)

@@ -20,7 +20,7 @@ from typing import Callable, Optional
 
 import msgspec
 import yaml
-import zenoh as zenoh_api
+from zenoh import SampleKind
 
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
@@ -199,7 +199,7 @@ def wait_alive(zenoh: ZenohConfig, robot_id: str, names, processes, timeout_s: f
     def on_token(sample) -> None:
         name = str(sample.key_expr).rsplit("/", 1)[-1]
         with changed:
-            if sample.kind == zenoh_api.SampleKind.PUT:
+            if sample.kind == SampleKind.PUT:
                 alive.add(name)
             else:
                 alive.discard(name)

@@ -40,8 +40,9 @@ _server_lock = threading.Lock()
 _server_started = False
 
 
-def _ensure_server() -> None:
-    """The fork server, started on first use (with the environment it must import in)."""
+def start_server() -> None:
+    """The fork server, started if it is not running (with the environment it must import in): on first use, or
+    earlier by a command whose own imports its imports (~0.35 s of CPU) can then run beside, on another core."""
     global _server_started
     with _server_lock:
         if _server_started:
@@ -61,17 +62,10 @@ def _ensure_server() -> None:
         _server_started = True
 
 
-def start_server() -> None:
-    """Start the fork server now, if it is not running: its imports (~0.35 s of CPU) then run beside the caller's
-    own (an experiment's command imports its runner for as long), on another core, rather than before its first
-    stack."""
-    _ensure_server()
-
-
 def server_address() -> str:
     """The fork server's address (started if it was not): a process forked from it may fork from it too
     (:func:`fork_from_server_at`)."""
-    _ensure_server()
+    start_server()
     return forkserver._forkserver._forkserver_address
 
 
@@ -147,7 +141,7 @@ class WarmProcessObject(process.BaseProcess):
 
     @staticmethod
     def _Popen(process_obj):
-        _ensure_server()
+        start_server()
         return _ServicePopen(process_obj)
 
 
