@@ -98,6 +98,11 @@ def rss_mb(pid: int) -> float:
     return sum(_rss_mb_of(p) for p in process_tree(pid))
 
 
+def peak_rss_mb(pid: int) -> float:
+    """The most a process has held resident since it started (MB; VmHWM)."""
+    return _proc_mb(f"/proc/{pid}/status", "VmHWM:")
+
+
 def _pss_mb_of(pid: int) -> float:
     return _proc_mb(f"/proc/{pid}/smaps_rollup", "Pss:")
 

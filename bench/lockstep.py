@@ -5,7 +5,9 @@ the real services (sim profile; by default Table 3's p-joint run from examples/s
 process timing its part of each iteration (:mod:`services.runtime.iteration_profile`), and per iteration the wall
 time split by where it goes: the robot's loop (physics, the emulated actuators and bus, the robot node, the state
 out), rendering, the waits for the pipeline and what filled them (detection, the law, safety, messages, and the
-hand-offs between processes), with the CPU each process spent. The machine's load (``uptime``) is printed with
+hand-offs between processes), with the CPU each process spent, every service a process of its own as deployed
+(``--processes``); then the same run composed, as experiments run it (:mod:`services.composed`: the services in one
+process on one zenoh session), its wall time and CPU per iteration. The machine's load (``uptime``) is printed with
 the figures: on a shared 2-core host they mean nothing without it.
 
 ``mfvs bench lockstep --identity [--base REV] [--hogs N]``: runs Table 3 from table2.yaml (its four laws),
@@ -27,7 +29,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench.cpu import cpu_seconds, process_tree
+from bench.cpu import cpu_seconds, peak_rss_mb, process_tree
 from bench.stack import unknown_arm
 from services.cli import add_arm_option
 from services.controller.laws import LAW_NAMES
@@ -83,7 +85,8 @@ def profile_run(scenario, hogs: int = 0) -> dict:
         os.environ[ip.PROFILE_DIR_ENV] = directory
         try:
             load_before = load()
-            result = run(scenario, None, progress, plots=False)
+            # every service a process of its own: each times its part (the composed run is composed_run's)
+            result = run(scenario, None, progress, plots=False, processes=True)
             load_after = load()
         finally:
             if previous is None:
@@ -112,6 +115,57 @@ def profile_run(scenario, hogs: int = 0) -> dict:
         "per_iteration_ms": figures["rows"],
         "cpu_per_iteration_ms": {name: round(1e3 * s / frames, 3) for name, s in sorted(cpu.items())},
     }
+
+
+def composed_run(scenario, hogs: int = 0) -> dict:
+    """Run ``scenario`` composed (:mod:`services.composed`, as experiments run it): wall time and CPU per iteration,
+    from the first iteration the runner saw to the last; the CPU is this process's (the services, their renderer
+    and the runner) and its children's that the run started (none in lockstep, where robot_sim renders in its
+    loop's thread)."""
+    window: dict = {}
+
+    def progress(record) -> None:
+        now = time.monotonic()
+        if "first" not in window:  # the run's children (the warm server is older)
+            window["children_cpu"] = sum(cpu_seconds(pid) for pid in process_tree(os.getpid())[1:]
+                                         if pid not in older)
+            window["cpu"] = time.process_time()
+            window["first"] = (record.iteration, now)
+        window["last"] = (record.iteration, now)
+
+    children_before = os.times()
+    with cpu_hogs(hogs):
+        older = set(process_tree(os.getpid()))
+        load_before = load()
+        result = run(scenario, None, progress, plots=False)
+        load_after = load()
+    children_after = os.times()
+    (first_it, first_t), (last_it, last_t) = window["first"], window["last"]
+    iterations = max(1, last_it - first_it)
+    services = time.process_time() - window["cpu"]
+    # the run's children have ended (and been waited for): their whole CPU is among this process's children's
+    children = (children_after.children_user + children_after.children_system - children_before.children_user
+                - children_before.children_system) - window["children_cpu"]
+    return {"iterations": result.iterations, "status": result.status, "final_error_norm": result.final_error_norm,
+            "wall_time_s": result.wall_time_s, "lockstep_timeouts": result.lockstep_timeouts, "stack": result.stack,
+            "load_before": load_before, "load_after": load_after,
+            "iteration_ms": round(1e3 * (last_t - first_t) / iterations, 3),
+            # the whole run in this process: its peak is the composed stack's (and the runner's) memory
+            "peak_rss_mb": round(peak_rss_mb(os.getpid()), 1),
+            "cpu_per_iteration_ms": {"the process": round(1e3 * services / iterations, 3),
+                                     "its children": round(1e3 * children / iterations, 3)}}
+
+
+def print_composed(figures: dict) -> None:
+    error = figures["final_error_norm"]
+    error = "none" if error is None else f"{error:.6e}"
+    cpu = figures["cpu_per_iteration_ms"]
+    print(f"\ncomposed (the services in one process, as experiments run): {figures['status']}, {figures['iterations']} "
+          f"iterations, final ‖e‖ {error}, lockstep timeouts {figures['lockstep_timeouts']}; load "
+          f"{figures['load_before']} before, {figures['load_after']} after")
+    print(f"wall: run {figures['wall_time_s']:.2f} s; {figures['iteration_ms']:.2f} ms per iteration as the runner saw "
+          f"them; CPU per iteration (ms): " + ", ".join(f"{name} {ms:.2f}" for name, ms in cpu.items())
+          + f"; total {sum(cpu.values()):.2f}; the process's peak resident memory {figures['peak_rss_mb']:.0f} MB")
 
 
 #: the rows of the split: (key, what it is); indented keys are parts of the row above
@@ -349,12 +403,14 @@ def main(argv: list[str] | None = None) -> int:
         scenario.law = args.law
         scenario.gains = TABLE3_GAINS.get(args.law, scenario.gains)
     figures = profile_run(scenario, args.hogs)
+    figures["composed"] = composed_run(scenario, args.hogs)
     if args.json:
         print(json.dumps(figures))
     else:
         camera = scenario.camera
         print_profile(figures, f"{Path(args.scenario).name}, law {scenario.law}, {camera.width}×{camera.height}, "
-                               "sim profile, lockstep")
+                               "sim profile, lockstep, every service a process of its own (--processes)")
+        print_composed(figures["composed"])
     return 0
 
 

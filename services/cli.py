@@ -278,7 +278,7 @@ def _cmd_servo(args: argparse.Namespace) -> int:
             print(f"iteration {record.iteration:4d}  {record.status:12s}  ‖e‖ = {record.error_norm:.3e}", flush=True)
 
     result = run(scenario, Path(args.out) if args.out else None, progress, profile=args.profile,
-                 record=Path(args.record) if args.record else None)
+                 record=Path(args.record) if args.record else None, processes=args.processes)
     if args.json:
         print(json.dumps(result.to_json()), flush=True)
     else:
@@ -292,6 +292,13 @@ def _cmd_servo(args: argparse.Namespace) -> int:
         if args.record:
             print(f"recording: {args.record} (mfvs replay {args.record}; open it in Foxglove)")
     return 0 if result.converged else 1
+
+
+def add_processes_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--processes", action="store_true",
+                        help="in lockstep with the sim profile, every service a process of its own with a router, as "
+                             "deployed (the same numbers, slower); by default they run composed in the runner's "
+                             "process, on one zenoh session")
 
 
 def add_jobs_option(parser: argparse.ArgumentParser) -> None:
@@ -360,8 +367,15 @@ def _print_experiment(output: dict) -> None:
         print(f"report: {output['report']}")
 
 
+def _uses_warm_server(jobs: int, processes: bool, profile: str = "sim") -> bool:
+    """Whether a command's lockstep runs fork from the warm server (:mod:`services.warm_start`): runs side by side
+    are its forks (:mod:`services.run_pool`), and so are the services of a stack of processes; a composed run alone
+    needs none."""
+    return jobs > 1 or processes or profile != "sim"
+
+
 def _cmd_experiment(args: argparse.Namespace) -> int:
-    if args.jobs > 1:  # runs side by side fork from the warm server (services.run_pool): its imports beside ours
+    if _uses_warm_server(args.jobs, args.processes, args.profile):  # started now, its imports beside ours
         from services.warm_start import start_server
 
         start_server()
@@ -389,7 +403,8 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
     try:
         progress = _experiment_progress(args.name, args.json)
         output = run_experiment(args.name, args.scenario, args.out, progress, profile=args.profile,
-                                on_iteration=progress.on_iteration, arm=args.arm, jobs=args.jobs)
+                                on_iteration=progress.on_iteration, arm=args.arm, jobs=args.jobs,
+                                processes=args.processes)
     except ConfigError as exc:
         print(f"mfvs experiment: {exc}", file=sys.stderr)
         return 2
@@ -461,7 +476,7 @@ def _random_starts_experiment(args: argparse.Namespace) -> int:
     try:
         output = run_random_starts(args.name, args.random_starts, args.seed, args.scenario, args.out, starts_dir,
                                    progress, profile=args.profile, on_iteration=progress.on_iteration, arm=args.arm,
-                                   jobs=args.jobs)
+                                   jobs=args.jobs, processes=args.processes)
     except (ConfigError, ValueError) as exc:
         print(f"mfvs experiment: {exc}", file=sys.stderr)
         return 2
@@ -494,7 +509,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     if not _jobs_or_exit("demo", args.jobs):
         return 2
-    start_server()  # lockstep stacks fork from the warm server: its imports beside ours
+    if _uses_warm_server(args.jobs, args.processes):
+        start_server()  # started now, its imports beside ours
     from services.experiments import run_experiments
 
     out = Path(args.out).resolve()
@@ -503,7 +519,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     progress = _experiment_progress("demo", False)
     # Table 3's runs first, the longest first: the pool then ends together
     outputs = dict(zip(("table3", "part-a"), run_experiments(["table3", "part-a"], out, progress,
-                                                             on_iteration=progress.on_iteration, jobs=args.jobs)))
+                                                             on_iteration=progress.on_iteration, jobs=args.jobs,
+                                                             processes=args.processes)))
     reports = []
     for name in ("part-a", "table3"):
         print(f"{name}:", flush=True)
@@ -694,6 +711,7 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     add_arm_option(servo, default=None, what="the scenario's robot.arm")
     servo.add_argument("--record", metavar="FILE.mcap", help="record every topic of the run into this MCAP file "
                        "(as `mfvs record` does)")
+    add_processes_option(servo)
     servo.set_defaults(func=_cmd_servo)
 
     experiment = sub.add_parser("experiment", help="reproduce one of the seed papers' experiments (seed 000: "
@@ -718,6 +736,7 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
                             help="torque-control: the five controllers on a 3 s reference (3/16 of the motion, the "
                                  "same speeds), without the runs that check the thesis's observations")
     add_jobs_option(experiment)
+    add_processes_option(experiment)
     add_arm_option(experiment, default=None, what="the scenario's; torque-control: j2n6s300")
     experiment.set_defaults(func=_cmd_experiment)
 
@@ -726,6 +745,7 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     demo.add_argument("--out", default="mfvs-demo", help="directory for the figures and reports (default: "
                                                          "./mfvs-demo)")
     add_jobs_option(demo)
+    add_processes_option(demo)
     demo.set_defaults(func=_cmd_demo)
 
     from services.calibration.cli import add_parser as add_calibrate

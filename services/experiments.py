@@ -475,10 +475,11 @@ def plan_experiment(name: str, scenario_path: Optional[str | Path] = None, arm: 
     return PlannedExperiment(name, experiment, path, base, runs)
 
 
-def experiment_tasks(plan: PlannedExperiment, root: Path, profile: str, plots: bool, prefix: str = ""
-                     ) -> list[RunTask]:
+def experiment_tasks(plan: PlannedExperiment, root: Path, profile: str, plots: bool, prefix: str = "",
+                     processes: bool = False) -> list[RunTask]:
     """The plan's runs as tasks, each logging into ``root/<label>``, labelled ``prefix + label``."""
-    return [RunTask(prefix + spec.label, scenario, root / spec.label, profile, plots) for spec, scenario in plan.runs]
+    return [RunTask(prefix + spec.label, scenario, root / spec.label, profile, plots, processes)
+            for spec, scenario in plan.runs]
 
 
 def finish_experiment(plan: PlannedExperiment, results: list[ServoResult], profile: str,
@@ -497,7 +498,7 @@ def finish_experiment(plan: PlannedExperiment, results: list[ServoResult], profi
         rows[spec.label]["plots"] = result.plots if out_dir is not None else []
     output = {"experiment": plan.name, "seed": experiment.seed, "title": experiment.title,
               "paper": experiment.paper, "scenario": str(plan.path), "arm": plan.base.robot.arm, "profile": profile,
-              "runs": list(rows.values()),
+              "stack": results[0].stack if results else None, "runs": list(rows.values()),
               "summary": experiment.summarize(rows, trajectories), "report": None, "plots": [],
               # every run waited for every answer: the same numbers on a rerun (on this machine)
               "repeatable": all(row["lockstep_timeouts"] == 0 for row in rows.values())}
@@ -516,13 +517,14 @@ def finish_experiment(plan: PlannedExperiment, results: list[ServoResult], profi
 
 def _run_plans(plans: list[PlannedExperiment], roots: list[Path], out_dirs: list[Optional[Path]], prefixes: list[str],
                profile: str, jobs: int, progress: Optional[Callable[[str, ServoResult], None]],
-               on_iteration: Optional[Callable[[str, Scenario, object], None]]) -> list[dict]:
+               on_iteration: Optional[Callable[[str, Scenario, object], None]], processes: bool = False) -> list[dict]:
     """Every plan's runs through one pool (``jobs`` at a time), plan ``i``'s logs under ``roots[i]``; each plan's
     output (:func:`finish_experiment`: its figures and report in ``out_dirs[i]``) made as soon as its last run
     ends, while the other plans' runs go on. The outputs in the plans' order."""
     tasks, owner = [], {}
     for i, (plan, root, prefix) in enumerate(zip(plans, roots, prefixes)):
-        for k, task in enumerate(experiment_tasks(plan, root, profile, out_dirs[i] is not None, prefix=prefix)):
+        for k, task in enumerate(experiment_tasks(plan, root, profile, out_dirs[i] is not None, prefix=prefix,
+                                                  processes=processes)):
             owner[id(task)] = (i, k)
             tasks.append(task)
     results: list[list[Optional[ServoResult]]] = [[None] * len(plan.runs) for plan in plans]
@@ -544,7 +546,7 @@ def _run_plans(plans: list[PlannedExperiment], roots: list[Path], out_dirs: list
 def run_experiments(names: list[str], out_dir: Optional[str | Path] = None,
                     progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
                     on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
-                    jobs: int = 1) -> list[dict]:
+                    jobs: int = 1, processes: bool = False) -> list[dict]:
     """Several experiments from their own starts, their runs side by side (``jobs`` at a time), each output in
     ``out_dir/<name>``; the outputs in the order of ``names``. Progress labels are ``<name> <run label>``."""
     plans = [plan_experiment(name) for name in names]
@@ -552,13 +554,13 @@ def run_experiments(names: list[str], out_dir: Optional[str | Path] = None,
         root = Path(out_dir) if out_dir is not None else Path(scratch)
         return _run_plans(plans, [root / plan.name for plan in plans],
                           [None if out_dir is None else root / plan.name for plan in plans],
-                          [f"{plan.name} " for plan in plans], profile, jobs, progress, on_iteration)
+                          [f"{plan.name} " for plan in plans], profile, jobs, progress, on_iteration, processes)
 
 
 def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_dir: Optional[str | Path] = None,
                    progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
                    on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
-                   arm: Optional[str] = None, jobs: int = 1) -> dict:
+                   arm: Optional[str] = None, jobs: int = 1, processes: bool = False) -> dict:
     """Run experiment ``name`` from its start (or ``scenario_path``'s start and goal) on ``arm`` (None: the
     scenario's), ``jobs`` runs at a time (:mod:`services.run_pool`: the same numbers as one at a time);
     ``progress(label, result)`` after each run, ``on_iteration(label, scenario, iteration_record)`` during it.
@@ -568,7 +570,7 @@ def run_experiment(name: str, scenario_path: Optional[str | Path] = None, out_di
     with tempfile.TemporaryDirectory(prefix=f"mfvs-{name}-") as scratch:
         root = Path(out_dir) if out_dir is not None else Path(scratch)
         return _run_plans([plan], [root], [None if out_dir is None else Path(out_dir)], [""], profile, jobs,
-                          progress, on_iteration)[0]
+                          progress, on_iteration, processes)[0]
 
 
 # ------------------------------------------------------------------------------------------------ random starts
@@ -637,7 +639,7 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
                       out_dir: Optional[str | Path] = None, starts_dir: Optional[str | Path] = None,
                       progress: Optional[Callable[[str, ServoResult], None]] = None, profile: str = "sim",
                       on_iteration: Optional[Callable[[str, Scenario, object], None]] = None,
-                      arm: Optional[str] = None, jobs: int = 1) -> dict:
+                      arm: Optional[str] = None, jobs: int = 1, processes: bool = False) -> dict:
     """Experiment ``name`` from ``count`` random starts drawn with ``seed`` (:mod:`services.starts`, the tag placed
     at random as in Table 2, around the base scenario's), each start's scenario written to ``starts_dir`` (default
     ``out_dir/starts``) so it can be run again with ``--scenario``. Every run carries ``start`` (which start it ran);
@@ -660,7 +662,7 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
         labels = [f"start{start.index}" for start in starts]
         outputs = _run_plans(plans, [root / label for label in labels],
                              [None if out_dir is None else Path(out_dir) / label for label in labels],
-                             [f"{label} " for label in labels], profile, jobs, progress, on_iteration)
+                             [f"{label} " for label in labels], profile, jobs, progress, on_iteration, processes)
         for start, output in zip(starts, outputs):
             rows = {row["label"]: row for row in output["runs"]}
             for row in output["runs"]:
@@ -669,7 +671,7 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
             per_start.append(_start_summary(start, rows) | {"repeatable": output["repeatable"]})
     result = {"experiment": name, "seed": experiment.seed, "title": f"{experiment.title}, over {count} random starts",
               "paper": experiment.paper, "scenario": str(base), "arm": runs[0]["arm"] if runs else arm,
-              "profile": profile, "random_starts": {"count": count, "seed": seed, "ranges": dataclasses.asdict(TABLE2_LIKE),
+              "profile": profile, "stack": outputs[0]["stack"] if outputs else None, "random_starts": {"count": count, "seed": seed, "ranges": dataclasses.asdict(TABLE2_LIKE),
                                 "scenarios": str(starts_dir)},
               "runs": runs, "starts": per_start, "summary": _random_starts_summary(per_start, runs),
               "repeatable": all(s["repeatable"] for s in per_start), "report": None, "plots": []}

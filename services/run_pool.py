@@ -1,7 +1,7 @@
 """Lockstep runs side by side: ``mfvs experiment --jobs N`` and ``mfvs demo``.
 
-Each run is :func:`services.servo.run` with a whole stack of its own (its router on a port it picks, its run
-directory, its renderer, its processes), so runs share nothing but the host. In lockstep a run's numbers do not
+Each run is :func:`services.servo.run` with a whole stack of its own (composed in the process that runs it, or its
+router on a port it picks and its processes; its run directory, its renderer), so runs share nothing but the host. In lockstep a run's numbers do not
 depend on how fast the host is (the robot waits for every answer; messages block rather than drop), so a run gives
 the same trajectory log whether it ran alone or beside others; the results come back in the order the runs were
 given, whatever order they finish in.
@@ -42,6 +42,8 @@ class RunTask:
     out_dir: Path
     profile: str = "sim"
     plots: bool = False
+    #: every service a process of its own, as deployed, rather than composed (:func:`services.servo.run`)
+    processes: bool = False
 
 
 def default_jobs() -> int:
@@ -75,7 +77,7 @@ def run_tasks(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIteratio
 def _run(task: RunTask, each: Optional[Callable[[object], None]]) -> ServoResult:
     from services.servo import run
 
-    return run(task.scenario, task.out_dir, each, profile=task.profile, plots=task.plots)
+    return run(task.scenario, task.out_dir, each, profile=task.profile, plots=task.plots, processes=task.processes)
 
 
 def _run_here(task: RunTask, on_iteration: Optional[OnIteration], on_done: Optional[OnDone]) -> ServoResult:

@@ -27,7 +27,6 @@ from services.runtime.config import ConfigError, ConfigStruct, load_config
 from services.model.kinematics import ArmKinematics, manipulability
 from services.robot.zones import nearest_zone
 from services.runtime.service import query_health
-from services.runtime.transport import open_session
 from services.controller.law import Gains, LawConfig
 from services.controller.laws import JOINT_LAWS, LAW_NAMES
 from services.controller.service import ControllerConfig
@@ -37,6 +36,7 @@ from services.robot.dsp import DSPConfig, for_arm
 from services.robot.node import ROBOT_SERVICES
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
+from services.composed import ComposedStack, composable
 from services.stack import LocalStack, StackConfig
 from services.runtime.jsonsafe import json_safe
 from services.vision.service import GoalConfig, TagConfig, VisionConfig
@@ -253,6 +253,9 @@ class ServoResult:
     #: answer: a host too loaded for the wait (``lockstep.frame_timeout_s``); the run is then not a function of its
     #: scenario alone, and a rerun may differ
     lockstep_timeouts: int = 0
+    #: how its stack ran: ``composed`` (the services in the runner's process, :mod:`services.composed`) or
+    #: ``processes`` (each service a process of its own, as deployed)
+    stack: str = ""
 
     def to_json(self) -> dict:
         return {
@@ -267,7 +270,7 @@ class ServoResult:
             "initial_error_norm": self.initial_error_norm, "max_error_norm": self.max_error_norm,
             "robot_limits_hit": self.robot_limits_hit, "min_zone_distance_m": self.min_zone_distance_m,
             "last_refusal": self.last_refusal, "safety": self.safety, "robot_limits": self.robot_limits,
-            "lockstep_timeouts": self.lockstep_timeouts,
+            "lockstep_timeouts": self.lockstep_timeouts, "stack": self.stack,
         }
 
 
@@ -399,14 +402,19 @@ def _frames_lost(session, keys: Keys) -> tuple[dict, int]:
 
 
 def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim",
-        plots: bool = True, record: Optional[Path] = None) -> ServoResult:
+        plots: bool = True, record: Optional[Path] = None, processes: bool = False) -> ServoResult:
     """Run the scenario through a local stack; ``progress(iteration_record)`` is called per iteration. The gateway
     profile drives the simulated arm through robot_gateway and its RS-485 bus (the hub, robot_sim's actuators and
     the gateway as processes), in the scenario's clock mode. With ``out_dir`` the trajectory log, the result and
     (unless ``plots`` is false) the figures are written there; with ``record`` every topic of the stack, from
-    before the robot's first message, goes into that MCAP file (``mfvs record``'s)."""
+    before the robot's first message, goes into that MCAP file (``mfvs record``'s).
+
+    The sim profile in lockstep runs composed (:mod:`services.composed`: the services in this process, the same
+    run byte for byte, faster) unless ``processes`` asks for every service in a process of its own, as deployed;
+    anything else always runs as processes."""
     config = stack_config(scenario)
     config.profile = profile
+    stack_type = ComposedStack if composable(config) and not processes else LocalStack
     joint_output = config.controller.law in JOINT_LAWS
     arm = load_arm(scenario.robot.arm)
     kin = ArmKinematics(arm)
@@ -416,9 +424,9 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     status = "timeout"
     observer: dict = {}
 
-    def watch(stack: LocalStack) -> None:  # before the robot's first message
+    def watch(stack) -> None:  # before the robot's first message
         keys = Keys(config.robot.robot_id)
-        observer["session"] = open_session(stack.router.client_config())
+        observer["session"] = stack.open_session()
         observer["watcher"] = _Watcher(observer["session"], keys, joint_output)
         if record is not None:
             from services.observe.record import Recorder
@@ -430,7 +438,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
             raise RuntimeError(f"the controller did not start the task: {started.message}")
 
     try:
-        stack_context = LocalStack(config, before_robot=watch)
+        stack_context = stack_type(config, before_robot=watch)
         stack = stack_context.__enter__()
     except BaseException:
         if observer:
@@ -536,6 +544,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
         safety=safety,
         last_refusal=next((r.safety_refusal for r in reversed(records) if r.safety_refusal), ""),
         robot_limits=msgspec.to_builtins(states[-1].limits) if states and states[-1].limits is not None else None,
+        stack="composed" if stack_type is ComposedStack else "processes",
     )
     result.detail = _why(result, converging)
     if out_dir is not None:

@@ -9,17 +9,20 @@ import contextlib
 import itertools
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
 
 import msgspec
 import yaml
+import zenoh
 from zenoh import SampleKind
 
 from protocol.conventions import ClockMode
@@ -41,6 +44,24 @@ from services.vision.service import VisionConfig
 
 REPO = Path(__file__).resolve().parents[1]
 _rig_channels = itertools.count()
+
+
+class StackLogs:
+    """The directory of a stack's logs and configs: removed when the stack stops (or, never started, when it is
+    collected), kept once :meth:`keep` was called (a start that failed names it in its error). Not
+    :class:`tempfile.TemporaryDirectory`, which removes its directory when the object is collected, whatever its
+    owner meant: the logs a failed start named were gone by the time anyone looked."""
+
+    def __init__(self, prefix: str) -> None:
+        self.path = Path(tempfile.mkdtemp(prefix=prefix))
+        self._removal = weakref.finalize(self, shutil.rmtree, self.path, ignore_errors=True)
+
+    def keep(self) -> None:
+        self._removal.detach()
+
+    def close(self) -> None:
+        """Remove the directory, unless it is kept."""
+        self._removal()
 
 
 @contextlib.contextmanager
@@ -265,9 +286,8 @@ class RobotProcesses:
             raise ValueError(f"the robot's side mixes arms (robot_sim {self.robot.arm}, robot_gateway "
                              f"{self.gateway.arm}): one arm for the whole stack")
         self.processes: list[subprocess.Popen] = []
-        self._files = tempfile.TemporaryDirectory(prefix="mfvs-robot-")
-        self.logs = Path(self._files.name)
-        self._keep_files = False
+        self._logs = StackLogs("mfvs-robot-")
+        self.logs = self._logs.path
 
     def __enter__(self) -> "RobotProcesses":
         try:
@@ -283,7 +303,7 @@ class RobotProcesses:
             wait_alive(self.zenoh, self.robot.robot_id, (services[-1].name,), self.processes, self.timeout_s,
                        self.logs)
         except BaseException:
-            self._keep_files = True
+            self._logs.keep()
             self.__exit__(None, None, None)
             raise
         return self
@@ -305,8 +325,7 @@ class RobotProcesses:
     def __exit__(self, *exc) -> None:
         stop_processes(reversed(self.processes))  # the gateway, then the actuators, then the hub
         self.processes.clear()
-        if not self._keep_files:
-            self._files.cleanup()
+        self._logs.close()
 
 
 @dataclass
@@ -323,6 +342,11 @@ class StackConfig:
 
 #: the pipeline's services, started (and alive) before the robot, so that they hear its first frame
 PIPELINE = ("safety", "vision", "controller")
+
+
+def lockstep_robot(robot: RobotSimConfig) -> None:
+    """The robot of a local lockstep stack: safety is up before the robot starts, so its first tick waits for it."""
+    robot.lockstep = msgspec.structs.replace(robot.lockstep, await_answerers_s=ANSWERERS_SEEN_TIMEOUT_S)
 
 
 class LocalStack:
@@ -344,13 +368,12 @@ class LocalStack:
         self.timeout_s = timeout_s
         self.processes: dict[str, subprocess.Popen] = {}
         self.robot_processes: Optional[RobotProcesses] = None
-        self._files = tempfile.TemporaryDirectory(prefix="mfvs-stack-")
-        self.logs = Path(self._files.name)
+        self._logs = StackLogs("mfvs-stack-")
+        self.logs = self._logs.path
         # lockstep: at normal priority (as its services, see services.runtime.service.service_main), and warm
         lockstep = config.clock is ClockMode.LOCKSTEP
         self.router = RouterProcess(realtime_priority=0 if lockstep else 30,
                                     warm_log=self.logs / "router.log" if lockstep else None)
-        self._keep_files = False
 
     def __enter__(self) -> "LocalStack":
         cfg = self.config
@@ -362,9 +385,8 @@ class LocalStack:
             for service_cfg in (cfg.safety, cfg.vision, cfg.controller, cfg.robot):
                 service_cfg.zenoh = client
                 service_cfg.clock = cfg.clock
-            if cfg.clock is ClockMode.LOCKSTEP:  # safety is up before the robot starts: its first tick waits for it
-                cfg.robot.lockstep = msgspec.structs.replace(cfg.robot.lockstep,
-                                                             await_answerers_s=ANSWERERS_SEEN_TIMEOUT_S)
+            if cfg.clock is ClockMode.LOCKSTEP:
+                lockstep_robot(cfg.robot)
             for name in PIPELINE:
                 self._spawn(name, getattr(cfg, name))
             self._wait_alive(PIPELINE)
@@ -377,7 +399,7 @@ class LocalStack:
                 self._spawn("robot_sim", cfg.robot)
                 self._wait_alive(("robot_sim",))
         except BaseException:
-            self._keep_files = True
+            self._logs.keep()
             self.__exit__(None, None, None)
             raise
         return self
@@ -404,6 +426,10 @@ class LocalStack:
     def endpoint(self) -> str:
         return self.router.endpoint
 
+    def open_session(self) -> zenoh.Session:
+        """A session of a client of the stack (its router's)."""
+        return open_session(self.router.client_config())
+
     def __exit__(self, *exc) -> None:
         if self.robot_processes is not None:
             self.robot_processes.__exit__(None, None, None)
@@ -413,5 +439,4 @@ class LocalStack:
         stop_processes([self.processes.pop(name) for name in reversed(PIPELINE) if name in self.processes],
                        together=True)
         self.router.__exit__(None, None, None)
-        if not self._keep_files:
-            self._files.cleanup()
+        self._logs.close()

@@ -13,8 +13,9 @@ than one core: the server is started with ``OPENBLAS_NUM_THREADS=1``, so the ser
 7×7) linear algebra on the calling thread. Realtime stacks keep starting every service as a process of its own
 (:func:`services.launcher.spawn`), as ``mfvs up`` does.
 
-The workers of :mod:`services.run_pool` are forks of the same server, and fork their stacks' services from it too
-(:func:`fork_from_server_at`): one server for a whole experiment. This leans further on CPython's forkserver
+The workers of :mod:`services.run_pool` are forks of the same server (a composed run, :mod:`services.composed`,
+then runs its services in the worker itself, imported already), and fork their stacks' services from it too when
+each runs as a process (``--processes``; :func:`fork_from_server_at`): one server for a whole experiment. This leans further on CPython's forkserver
 internals (the server's address and "alive" descriptor, 3.8-3.13), like :class:`_ServicePopen`.
 """
 from __future__ import annotations

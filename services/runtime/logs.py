@@ -5,14 +5,20 @@ import logging
 import threading
 import time
 
-_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
-def setup_logging(level: str = "info") -> None:
+def log_level(level: str) -> int:
+    """A config's log level (``debug``, ``info``, ...) as :mod:`logging`'s number."""
     numeric = logging.getLevelName(level.upper())
     if not isinstance(numeric, int):
         raise ValueError(f"unknown log level {level!r}")
-    logging.basicConfig(level=numeric, format=_FORMAT)
+    return numeric
+
+
+def setup_logging(level: str = "info") -> None:
+    numeric = log_level(level)
+    logging.basicConfig(level=numeric, format=LOG_FORMAT)
     logging.getLogger().setLevel(numeric)
 
 

@@ -166,6 +166,7 @@ class Service:
         self.rates = Rates()
         self.state = "created"
         self.session: zenoh.Session | None = None
+        self._owns_session = True
         self._declared: list = []
         #: what the service takes from the network, as declared in on_start (each validated and counted)
         self.inputs: list[DeclaredInput] = []
@@ -195,13 +196,17 @@ class Service:
         return True, ""
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self) -> "Service":
+    def start(self, session: zenoh.Session | None = None) -> "Service":
+        """``session``: a zenoh session to declare on instead of opening one from the config's ``zenoh`` (the
+        services of a composed lockstep stack share one, :mod:`services.composed`); it stays open when the service
+        stops (whoever opened it closes it)."""
         with self._lifecycle_lock:
             if self.state != "created":
                 raise RuntimeError(f"{self.name}: start() in state {self.state}")
             self.state = "starting"
             self._started_monotonic = time.monotonic()
-            self.session = open_session(self.config.zenoh)
+            self._owns_session = session is None
+            self.session = open_session(self.config.zenoh) if session is None else session
             if self.config.faults_file:
                 self._faults = FaultInjector(self.config.faults_file, self.counters, self.log, self.name)
             try:
@@ -264,7 +269,8 @@ class Service:
                 pass
             self._token = None
         if self.session is not None:
-            self.session.close()
+            if self._owns_session:
+                self.session.close()
             self.session = None
 
     def run(self) -> int:

@@ -1,6 +1,8 @@
 """services/stack.py's rigs: the robot's side as processes carries one arm; a stack is up when its services' liveliness
 says so; a lockstep stack's router is forked warm."""
+import gc
 import json
+import shutil
 import subprocess
 import sys
 import threading
@@ -12,7 +14,7 @@ from protocol.keys import Keys
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig
 from services.runtime.transport import ZenohConfig, open_session
-from services.stack import RobotProcesses, _endpoint_line, wait_alive
+from services.stack import RobotProcesses, StackLogs, _endpoint_line, wait_alive
 
 
 def test_the_gateway_runs_the_robot_s_arm_and_a_gateway_for_another_is_refused():
@@ -23,6 +25,21 @@ def test_the_gateway_runs_the_robot_s_arm_and_a_gateway_for_another_is_refused()
     # robot_sim alone has no gateway to disagree with
     assert RobotProcesses(ZenohConfig(), RobotSimConfig(arm="j2n6s300"), GatewayConfig(), profile="sim").robot.arm \
         == "j2n6s300"
+
+
+def test_a_stack_s_logs_go_when_it_stops_and_stay_when_kept_even_once_the_stack_is_gone():
+    stopped, kept, dropped = StackLogs("mfvs-test-"), StackLogs("mfvs-test-"), StackLogs("mfvs-test-")
+    paths = [stopped.path, kept.path, dropped.path]
+    assert all(path.is_dir() for path in paths)
+    stopped.close()
+    kept.keep()
+    kept.close()  # a failed start keeps them, whatever stops after
+    del stopped, kept, dropped  # never started, never stopped: collected
+    gc.collect()
+    try:
+        assert [path.is_dir() for path in paths] == [False, True, False]
+    finally:
+        shutil.rmtree(paths[1], ignore_errors=True)
 
 
 def _token(router, robot_id: str, name: str):

@@ -1,0 +1,172 @@
+"""A lockstep stack composed in one process: the same services, on one zenoh session.
+
+What ROS 2 calls composition (several nodes in one container process, talking through intra-process
+communication): safety, vision, the controller and robot_sim run here as the very objects their processes would
+run (:func:`services.runtime.service.service_main` builds the same ones from the same configs), each declaring its
+subscribers, publishers, queryables and liveliness token on one zenoh session that has no network at all (peer
+mode, no listen endpoint, no scouting): zenoh delivers every message within the session, as bytes, encoded and
+decoded and validated as over a network. robot_sim renders its camera in its loop's thread, as it does in lockstep
+as a process (:class:`services.robot_sim.camera.LoopCamera`).
+
+Only for lockstep, where what a run computes does not depend on how its processes are scheduled (the robot waits for
+every answer; :mod:`services.runtime.service`): a run composed gives the same trajectory log, byte for byte, as
+the same run with every service a process of its own (:class:`services.stack.LocalStack`;
+``tests/services/test_composed.py``, ``mfvs bench lockstep --identity``). What it saves is what a run spends moving
+messages between five processes: the router's hop, the sockets, a dozen process switches an iteration (Table 3's
+run on one core: 11.8-12.4 → 8.1-9.0 ms an iteration). In realtime the services keep a process each: in one
+interpreter they take turns on its lock, and the arm's 500 Hz loop with them (:class:`~services.stack.LocalStack`).
+
+What differs from processes, besides speed: a native crash in one service (MuJoCo, OpenCV, zenoh) ends the whole
+run rather than its process, and the services' logs go to their files here through :mod:`logging` handlers of this
+process (``<name>.log``, kept when the start fails) rather than through each process's stderr.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+from pathlib import Path
+from typing import Callable, Optional
+
+import zenoh
+
+from protocol.conventions import ClockMode
+from services.controller.service import ControllerService
+from services.robot_sim.service import robot_sim_service
+from services.runtime.logs import LOG_FORMAT, log_level
+from services.runtime.service import Service
+from services.safety.service import SafetyService
+from services.stack import PIPELINE, StackConfig, StackLogs, lockstep_robot
+from services.vision.service import VisionService
+
+#: the services of a composed stack by name, as their processes build them (``python -m services.<name>``)
+SERVICE_TYPES: dict[str, Callable[..., Service]] = {"safety": SafetyService, "vision": VisionService,
+                                                    "controller": ControllerService, "robot_sim": robot_sim_service}
+
+
+def composable(config: StackConfig) -> bool:
+    """Whether this stack can run composed: lockstep, with robot_sim driving its simulated arm itself (the gateway
+    profile's emulated bus runs between processes, as on a real arm)."""
+    return config.clock is ClockMode.LOCKSTEP and config.profile == "sim"
+
+
+def open_local_session() -> zenoh.Session:
+    """A zenoh session that reaches nothing beyond this process: peer mode with no endpoint to listen on or connect
+    to, no scouting (without the empty listen list zenoh opens a TCP port of its choice)."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps("peer"))
+    conf.insert_json5("listen/endpoints", "[]")
+    conf.insert_json5("connect/endpoints", "[]")
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    return zenoh.open(conf)
+
+
+class SharedSession:
+    """The composed stack's session as a client of it sees it (the runner, a recorder): everything but ``close``,
+    which the stack does when it stops."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._session = session
+
+    def __getattr__(self, name: str):
+        return getattr(self._session, name)
+
+    def close(self) -> None:
+        pass
+
+
+@contextlib.contextmanager
+def _service_logs(directory: Path, levels: dict[str, str]):
+    """Each service's log records (its logger ``mfvs.<name>`` and the loggers under it) into ``<name>.log`` in
+    ``directory``, at its configured level, and not to this process's own handlers, while the block runs."""
+    saved = []
+    try:
+        for name, level in levels.items():
+            logger = logging.getLogger(f"mfvs.{name}")
+            handler = logging.FileHandler(directory / f"{name}.log")
+            handler.setFormatter(logging.Formatter(LOG_FORMAT))
+            saved.append((logger, handler, logger.level, logger.propagate))
+            logger.addHandler(handler)
+            logger.setLevel(log_level(level))
+            logger.propagate = False
+        yield
+    finally:
+        for logger, handler, level, propagate in saved:
+            logger.removeHandler(handler)
+            handler.close()
+            logger.setLevel(level)
+            logger.propagate = propagate
+
+
+class ComposedStack:
+    """The sim profile's services in lockstep, in this process on one session (see the module's docstring): the
+    same interface as :class:`services.stack.LocalStack` for a runner (``open_session``, ``robot_alive``,
+    ``before_robot``, ``logs``). Use as a context manager."""
+
+    def __init__(self, config: StackConfig, before_robot: Optional[Callable[["ComposedStack"], None]] = None) -> None:
+        if not composable(config):
+            raise ValueError(f"a composed stack runs the sim profile in lockstep, not the {config.profile} profile "
+                             f"in {config.clock.value}")
+        self.config = config
+        self._before_robot = before_robot
+        self.services: dict[str, Service] = {}
+        self.session: Optional[zenoh.Session] = None
+        self._logs = StackLogs("mfvs-stack-")
+        self.logs = self._logs.path
+        self._log_context: Optional[contextlib.AbstractContextManager] = None
+
+    def __enter__(self) -> "ComposedStack":
+        cfg = self.config
+        service_configs = {"safety": cfg.safety, "vision": cfg.vision, "controller": cfg.controller,
+                           "robot_sim": cfg.robot}
+        for service_cfg in service_configs.values():
+            service_cfg.clock = cfg.clock
+        lockstep_robot(cfg.robot)
+        self._log_context = _service_logs(self.logs, {name: c.log_level for name, c in service_configs.items()})
+        self._log_context.__enter__()
+        try:
+            self.session = open_local_session()
+            for name in PIPELINE:
+                self._start(name, service_configs[name])
+            if self._before_robot is not None:
+                self._before_robot(self)
+            self._start("robot_sim", cfg.robot)
+        except BaseException:
+            self._logs.keep()
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def _start(self, name: str, config) -> None:
+        try:
+            service = SERVICE_TYPES[name](config)
+        except (ValueError, OSError) as exc:  # what the config names cannot be had (service_main's StartupError)
+            raise RuntimeError(f"{name} did not start: {exc} (logs in {self.logs})") from exc
+        service.start(session=self.session)
+        self.services[name] = service
+
+    def open_session(self) -> SharedSession:
+        """The stack's session, for a client of it in this process (closing it leaves the stack's open)."""
+        if self.session is None:
+            raise RuntimeError("the composed stack is not running")
+        return SharedSession(self.session)
+
+    def robot_alive(self) -> bool:
+        """The robot service still runs (as its process would: a loop that ended leaves it serving)."""
+        robot = self.services.get("robot_sim")
+        return robot is not None and robot.state == "running"
+
+    def __exit__(self, *exc) -> None:
+        # the robot first: it stops the arm while safety listens; then the pipeline, in reverse
+        for name in ("robot_sim", *reversed(PIPELINE)):
+            service = self.services.pop(name, None)
+            if service is not None:
+                service.stop()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        if self._log_context is not None:
+            self._log_context.__exit__(None, None, None)
+            self._log_context = None
+        self._logs.close()

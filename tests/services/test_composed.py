@@ -1,0 +1,108 @@
+"""A lockstep stack composed in one process (services/composed.py): its session reaches nothing outside the
+process, it refuses what it cannot run, and its services' logs are theirs. That a composed run logs exactly what the
+same run as processes logs: tests/services/test_servo.py."""
+import logging
+import os
+import shutil
+import threading
+
+import pytest
+
+from protocol.conventions import ClockMode
+from protocol.keys import Keys
+from services.composed import ComposedStack, composable, open_local_session
+from services.runtime.service import query_health
+from services.servo import load_scenario, stack_config
+from tests.helpers import REPO
+
+EASY = REPO / "examples" / "scenarios" / "easy.yaml"
+
+
+def _listening_socket_inodes() -> set[str]:
+    """The inodes of every TCP socket in LISTEN state on this host (IPv4 and IPv6)."""
+    inodes = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for line in list(f)[1:]:
+                fields = line.split()
+                if fields[3] == "0A":  # TCP_LISTEN
+                    inodes.add(fields[9])
+    return inodes
+
+
+def _my_socket_inodes() -> set[str]:
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[len("socket:["):-1])
+    return inodes
+
+
+def test_the_local_session_listens_on_no_port_and_delivers_within_itself():
+    before = _my_socket_inodes() & _listening_socket_inodes()
+    session = open_local_session()
+    try:
+        assert _my_socket_inodes() & _listening_socket_inodes() == before
+        got = threading.Event()
+        subscriber = session.declare_subscriber("mfvs/test/composed", lambda sample: got.set())
+        session.put("mfvs/test/composed", b"x")
+        assert got.wait(5.0)
+        subscriber.undeclare()
+    finally:
+        session.close()
+
+
+def test_only_the_sim_profile_in_lockstep_is_composed():
+    config = stack_config(load_scenario(EASY))
+    assert config.clock is ClockMode.LOCKSTEP and composable(config)
+    config.profile = "gateway"
+    assert not composable(config)
+    with pytest.raises(ValueError, match="gateway profile"):
+        ComposedStack(config)
+    config.profile, config.clock = "sim", ClockMode.REALTIME
+    with pytest.raises(ValueError, match="realtime"):
+        ComposedStack(config)
+
+
+def test_a_composed_stack_answers_health_logs_each_service_to_its_file_and_keeps_them_when_its_start_fails():
+    """The services come up on the stack's session (their health answers there), each logging into ``<name>.log``
+    rather than this process's handlers; a start that fails stops what started, leaves this process's logging as it
+    was, and keeps the logs."""
+    config = stack_config(load_scenario(EASY))
+    seen: dict = {}
+    root_records: list[logging.LogRecord] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            root_records.append(record)
+
+    collect = Collect(level=logging.DEBUG)
+    logging.getLogger().addHandler(collect)
+
+    def before_robot(stack: ComposedStack) -> None:
+        session = stack.open_session()
+        session.close()  # a client's close: the stack's session stays open
+        seen["health"] = query_health(session, Keys(config.robot.robot_id))
+        seen["logs"] = stack.logs
+        raise RuntimeError("the observer failed")
+
+    try:
+        with pytest.raises(RuntimeError, match="the observer failed"):
+            with ComposedStack(config, before_robot=before_robot):
+                pass
+    finally:
+        logging.getLogger().removeHandler(collect)
+    assert set(seen["health"]) == {"safety", "vision", "controller"}
+    logs = seen["logs"]
+    assert logs.is_dir(), "the logs of a stack that failed to start are kept"
+    assert "safety started" in (logs / "safety.log").read_text()
+    assert "vision started" in (logs / "vision.log").read_text()
+    assert not [r for r in root_records if r.name.startswith(("mfvs.safety", "mfvs.vision", "mfvs.controller"))]
+    assert logging.getLogger("mfvs.safety").propagate and not logging.getLogger("mfvs.safety").handlers
+    alive = [t.name for t in threading.enumerate() if t.name.startswith(("safety", "vision", "controller"))]
+    assert not alive, f"threads of the stopped services: {alive}"
+    shutil.rmtree(logs)
