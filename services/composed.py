@@ -23,6 +23,8 @@ process (``<name>.log``, kept when the start fails) rather than through each pro
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import json
 import logging
 from pathlib import Path
@@ -60,6 +62,18 @@ def open_local_session() -> zenoh.Session:
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "false")
     return zenoh.open(conf)
+
+
+def return_freed_memory() -> None:
+    """Give the memory freed in this process back to the system (glibc's ``malloc_trim``; nothing elsewhere). glibc
+    keeps what a thread frees in that thread's arena, and every composed run starts threads of its own: a process
+    running one composed run after another (an experiment's runs in one process, a worker of ``--jobs``) grew by
+    ~20 MB a run, to ~500 MB after 16 runs; trimmed after each, by ~1 MB a run (24 runs measured)."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
 
 
 class SharedSession:
@@ -170,3 +184,4 @@ class ComposedStack:
             self._log_context.__exit__(None, None, None)
             self._log_context = None
         self._logs.close()
+        return_freed_memory()
