@@ -100,7 +100,10 @@ class FakePipeline:
 
 
 def ee_speeds(states):
-    """EE linear speed between successive robot states (m/s), from the reported Kinova pose."""
+    """EE linear speed between successive robot states (m/s), from the reported Kinova pose. A tick's state sent
+    again (a lockstep retry, when the answer to it was late on a loaded host) is that tick's, once: two states with
+    one stamp made a 0/0 speed."""
+    states = [s for i, s in enumerate(states) if i == 0 or s.header.stamp_ns != states[i - 1].header.stamp_ns]
     xyz = np.array([[s.pose.X, s.pose.Y, s.pose.Z] for s in states])
     t = np.array([s.header.stamp_ns for s in states]) * 1e-9
     return np.linalg.norm(np.diff(xyz, axis=0), axis=1) / np.diff(t), t[1:]
