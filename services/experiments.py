@@ -671,7 +671,8 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
             per_start.append(_start_summary(start, rows) | {"repeatable": output["repeatable"]})
     result = {"experiment": name, "seed": experiment.seed, "title": f"{experiment.title}, over {count} random starts",
               "paper": experiment.paper, "scenario": str(base), "arm": runs[0]["arm"] if runs else arm,
-              "profile": profile, "stack": outputs[0]["stack"] if outputs else None, "random_starts": {"count": count, "seed": seed, "ranges": dataclasses.asdict(TABLE2_LIKE),
+              "profile": profile, "stack": outputs[0]["stack"] if outputs else None,
+              "random_starts": {"count": count, "seed": seed, "ranges": dataclasses.asdict(TABLE2_LIKE),
                                 "scenarios": str(starts_dir)},
               "runs": runs, "starts": per_start, "summary": _random_starts_summary(per_start, runs),
               "repeatable": all(s["repeatable"] for s in per_start), "report": None, "plots": []}

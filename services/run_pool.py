@@ -1,8 +1,8 @@
 """Lockstep runs side by side: ``mfvs experiment --jobs N`` and ``mfvs demo``.
 
 Each run is :func:`services.servo.run` with a whole stack of its own (composed in the process that runs it, or its
-router on a port it picks and its processes; its run directory, its renderer), so runs share nothing but the host. In lockstep a run's numbers do not
-depend on how fast the host is (the robot waits for every answer; messages block rather than drop), so a run gives
+router on a port it picks and its processes; its run directory, its renderer), so runs share nothing but the host.
+In lockstep a run's numbers do not depend on how fast the host is (the robot waits for every answer; messages block rather than drop), so a run gives
 the same trajectory log whether it ran alone or beside others; the results come back in the order the runs were
 given, whatever order they finish in.
 

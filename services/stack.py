@@ -22,8 +22,7 @@ from typing import Callable, Optional
 
 import msgspec
 import yaml
-import zenoh
-from zenoh import SampleKind
+from zenoh import SampleKind, Session
 
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
@@ -426,7 +425,7 @@ class LocalStack:
     def endpoint(self) -> str:
         return self.router.endpoint
 
-    def open_session(self) -> zenoh.Session:
+    def open_session(self) -> Session:
         """A session of a client of the stack (its router's)."""
         return open_session(self.router.client_config())
 
