@@ -89,24 +89,37 @@ class SharedSession:
     def close(self) -> None:
         pass
 
+    def __enter__(self) -> "SharedSession":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+#: the loggers of libraries that one service of a composed stack alone uses, logged with its own (MuJoCo's warnings,
+#: :func:`services.model.arm.mujoco_module`, are robot_sim's)
+LIBRARY_LOGGERS = {"robot_sim": ("mujoco",)}
+
 
 @contextlib.contextmanager
 def _service_logs(directory: Path, levels: dict[str, str]):
-    """Each service's log records (its logger ``mfvs.<name>`` and the loggers under it) into ``<name>.log`` in
-    ``directory``, at its configured level, and not to this process's own handlers, while the block runs."""
+    """Each service's log records (its logger ``mfvs.<name>``, the loggers under it and its libraries') into
+    ``<name>.log`` in ``directory``, at its configured level, and not to this process's own handlers, while the
+    block runs. (Python's ``warnings`` still go to this process's stderr.)"""
     saved = []
     try:
         for name, level in levels.items():
-            logger = logging.getLogger(f"mfvs.{name}")
             handler = logging.FileHandler(directory / f"{name}.log")
             handler.setFormatter(logging.Formatter(LOG_FORMAT))
-            saved.append((logger, handler, logger.level, logger.propagate))
-            logger.addHandler(handler)
-            logger.setLevel(log_level(level))
-            logger.propagate = False
+            for logger_name in (f"mfvs.{name}", *LIBRARY_LOGGERS.get(name, ())):
+                logger = logging.getLogger(logger_name)
+                saved.append((logger, handler, logger.level, logger.propagate))
+                logger.addHandler(handler)
+                logger.setLevel(log_level(level))
+                logger.propagate = False
         yield
     finally:
-        for logger, handler, level, propagate in saved:
+        for logger, handler, level, propagate in reversed(saved):
             logger.removeHandler(handler)
             handler.close()
             logger.setLevel(level)
@@ -157,8 +170,10 @@ class ComposedStack:
             service = SERVICE_TYPES[name](config)
         except (ValueError, OSError) as exc:  # what the config names cannot be had (service_main's StartupError)
             raise RuntimeError(f"{name} did not start: {exc} (logs in {self.logs})") from exc
-        service.start(session=self.session)
+        # the stack stops it even when its start fails halfway: in a process of its own the threads its on_start
+        # began ended with the process, here they would go on in the runner's
         self.services[name] = service
+        service.start(session=self.session)
 
     def open_session(self) -> SharedSession:
         """The stack's session, for a client of it in this process (closing it leaves the stack's open)."""
@@ -172,16 +187,25 @@ class ComposedStack:
         return robot is not None and robot.state == "running"
 
     def __exit__(self, *exc) -> None:
-        # the robot first: it stops the arm while safety listens; then the pipeline, in reverse
-        for name in ("robot_sim", *reversed(PIPELINE)):
-            service = self.services.pop(name, None)
-            if service is not None:
-                service.stop()
+        """Every step is taken even when one before it fails (or a Ctrl-C comes during a stop's joins): the
+        services, the session, this process's logging and the memory are the runner's afterwards."""
+        with contextlib.ExitStack() as steps:  # its callbacks run last-in first-out, each whatever the others did
+            steps.callback(return_freed_memory)
+            steps.callback(self._logs.close)
+            steps.callback(self._restore_logging)
+            steps.callback(self._close_session)
+            # the robot first: it stops the arm while safety listens; then the pipeline, in reverse
+            for name in (*PIPELINE, "robot_sim"):
+                service = self.services.pop(name, None)
+                if service is not None:
+                    steps.callback(service.stop)
+
+    def _close_session(self) -> None:
         if self.session is not None:
-            self.session.close()
-            self.session = None
+            session, self.session = self.session, None
+            session.close()
+
+    def _restore_logging(self) -> None:
         if self._log_context is not None:
-            self._log_context.__exit__(None, None, None)
-            self._log_context = None
-        self._logs.close()
-        return_freed_memory()
+            context, self._log_context = self._log_context, None
+            context.__exit__(None, None, None)

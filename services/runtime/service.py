@@ -220,6 +220,7 @@ class Service:
                 self.state = "running"
                 self._health_thread = start_thread(self._health_loop, f"{self.name}-health")
             except BaseException:
+                self._stop_event.set()  # what on_start began stops (in a process of its own, the process ends too)
                 self._teardown()
                 self.state = "failed"
                 raise

@@ -34,14 +34,13 @@ def test_the_profile_of_a_run_has_every_row_and_they_add_up_to_the_iteration():
 
 def test_the_composed_run_is_timed_as_the_same_run(tmp_path):
     """The bench's composed figures are of a composed run, the same run as the profiled one (25 iterations), with
-    its CPU and memory."""
+    its CPU."""
     scenario = load_scenario(SCENARIOS / "easy.yaml")
     scenario.convergence.max_iterations = 25
     figures = composed_run(scenario)
     assert (figures["stack"], figures["iterations"], figures["lockstep_timeouts"]) == ("composed", 25, 0)
-    assert figures["iteration_ms"] > 0 and figures["peak_rss_mb"] > 100
-    assert figures["cpu_per_iteration_ms"]["the process"] > 0
-    assert figures["cpu_per_iteration_ms"]["its children"] >= 0
+    assert figures["iteration_ms"] > 0 and figures["cpu_per_iteration_ms"]["the process"] > 0
+    assert figures["cpu_per_iteration_ms"]["its children"] == 0  # lockstep renders in robot_sim's loop thread
 
 
 def _identity_set(root, logs):
