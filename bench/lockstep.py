@@ -7,7 +7,9 @@ time split by where it goes: the robot's loop (physics, the emulated actuators a
 out), rendering, the waits for the pipeline and what filled them (detection, the law, safety, messages, and the
 hand-offs between processes), with the CPU each process spent, every service a process of its own as deployed
 (``--processes``); then the same run composed, as experiments run it (:mod:`services.composed`: the services in one
-process on one zenoh session), its wall time and CPU per iteration. The machine's load (``uptime``) is printed with
+process on one zenoh session), split the same way with every service's functions timed in that one process (the
+rows then overlap: a service's thread may run while the loop thread waits for the interpreter lock inside one of
+its own rows), and its wall time and CPU per iteration. The machine's load (``uptime``) is printed with
 the figures: on a shared 2-core host they mean nothing without it.
 
 ``mfvs bench lockstep --identity [--base REV] [--hogs N]``: runs Table 3 from table2.yaml (its four laws),
@@ -118,7 +120,8 @@ def profile_run(scenario, hogs: int = 0) -> dict:
 
 
 def composed_run(scenario, hogs: int = 0) -> dict:
-    """Run ``scenario`` composed (:mod:`services.composed`, as experiments run it): wall time and CPU per iteration,
+    """Run ``scenario`` composed (:mod:`services.composed`, as experiments run it), every service's functions timed
+    in this process where they run: the same split as :func:`profile_run`'s, and wall time and CPU per iteration
     from the first iteration the runner saw to the last; the CPU is this process's (the services, their renderer
     and the runner) and its children's that the run started (none in lockstep, where robot_sim renders in its
     loop's thread)."""
@@ -135,12 +138,18 @@ def composed_run(scenario, hogs: int = 0) -> dict:
 
     _reset_peak_rss()  # the peak is then the composed run's, not the profiled run's runner's before it
     children_before = os.times()
-    with cpu_hogs(hogs):
-        older = set(process_tree(os.getpid()))
-        load_before = load()
-        result = run(scenario, None, progress, plots=False)
-        load_after = load()
+    ip.install_composed()
+    try:
+        with cpu_hogs(hogs):
+            older = set(process_tree(os.getpid()))
+            load_before = load()
+            result = run(scenario, None, progress, plots=False)
+            load_after = load()
+        profile = ip.profile_now("composed")
+    finally:
+        ip.uninstall()
     children_after = os.times()
+    figures = split({process: profile for process in ip.COMPOSED}, composed=True)
     (first_it, first_t), (last_it, last_t) = window["first"], window["last"]
     iterations = max(1, last_it - first_it)
     services = time.process_time() - window["cpu"]
@@ -151,6 +160,8 @@ def composed_run(scenario, hogs: int = 0) -> dict:
             "wall_time_s": result.wall_time_s, "lockstep_timeouts": result.lockstep_timeouts, "stack": result.stack,
             "load_before": load_before, "load_after": load_after,
             "iteration_ms": round(1e3 * (last_t - first_t) / iterations, 3),
+            "loop_s": round(figures["loop_ms"] / 1e3, 3), "frames": figures["frames"],
+            "per_iteration_ms": figures["rows"],
             # the whole run in this process: its peak is the composed stack's and the runner's memory
             "peak_rss_mb": round(peak_rss_mb(os.getpid()), 1),
             "cpu_per_iteration_ms": {"the process": round(1e3 * services / iterations, 3),
@@ -173,8 +184,13 @@ def print_composed(figures: dict) -> None:
     print(f"\ncomposed (the services in one process, as experiments run): {figures['status']}, {figures['iterations']} "
           f"iterations, final ‖e‖ {error}, lockstep timeouts {figures['lockstep_timeouts']}; load "
           f"{figures['load_before']} before, {figures['load_after']} after")
-    print(f"wall: run {figures['wall_time_s']:.2f} s; {figures['iteration_ms']:.2f} ms per iteration as the runner saw "
-          f"them; CPU per iteration (ms): " + ", ".join(f"{name} {ms:.2f}" for name, ms in cpu.items())
+    print(f"wall: run {figures['wall_time_s']:.2f} s; loop {figures['loop_s']:.2f} s for {figures['frames']} frames; "
+          f"{figures['iteration_ms']:.2f} ms per iteration as the runner saw them")
+    # one interpreter: a service's work on its own thread may run while the loop thread is inside one of its own rows
+    # (waiting for the interpreter lock), so the rows overlap and the rest can come out below zero
+    print_rows(figures["per_iteration_ms"], "the rest (below 0: the rows overlapped under one lock)")
+    print("\nCPU per iteration (ms), from the loop's first iteration to the stack's stop: "
+          + ", ".join(f"{name} {ms:.2f}" for name, ms in cpu.items())
           + f"; total {sum(cpu.values()):.2f}; the process's peak resident memory {figures['peak_rss_mb']:.0f} MB")
 
 
@@ -200,9 +216,10 @@ ROWS = (
 )
 
 
-def split(profiles: dict[str, dict]) -> dict:
+def split(profiles: dict[str, dict], composed: bool = False) -> dict:
     """Per iteration (a frame rendered), in ms: where robot_sim's loop thread spent its time, and what filled its
-    waits. The rows add up to the loop's time per frame."""
+    waits. The rows add up to the loop's time per frame. ``composed``: every process's name maps to the one profile
+    of the process they all ran in."""
     robot = profiles["robot_sim"]
     frames = max(1, ip.calls(robot, ip.FRAMES_LABEL, returned=True))
 
@@ -224,8 +241,10 @@ def split(profiles: dict[str, dict]) -> dict:
         "  law": other("controller", "law"),
         "  safety": other("safety", "safety"),
         "  services": other("vision", "vision") + other("controller", "controller"),
-        "  messages": ip.exclusive_ms(robot, "decode") + sum(
-            other(p, label) for p in ("vision", "controller", "safety") for label in ("publish", "decode")),
+        # the loop's own puts are its rows'; composed, every other thread's puts and every decode are the services'
+        "  messages": (ip.exclusive_ms(robot, "decode") + ip.exclusive_ms(robot, "publish") - loop("publish")
+                       if composed else ip.exclusive_ms(robot, "decode") + sum(
+                           other(p, label) for p in ("vision", "controller", "safety") for label in ("publish", "decode"))),
     }
     rows["robot_loop"] = sum(rows[k] for k in ("  physics", "  actuators", "  bus", "  node", "  state", "  publish",
                                                 "  frame_snapshot"))
@@ -239,6 +258,16 @@ def split(profiles: dict[str, dict]) -> dict:
     return {"frames": frames, "loop_ms": total, "rows": out}
 
 
+def print_rows(rows: dict, handoffs: str = "") -> None:
+    """The split, a row a line (``handoffs``: what the rest is, where it is not :data:`ROWS`' words)."""
+    print("\nper iteration (ms of wall time)")
+    for key, what in ROWS:
+        indent = "  " if key.startswith("  ") else ""
+        what = handoffs if key == "  handoffs" and handoffs else what
+        print(f"  {indent}{what:<{58 - len(indent)}} {rows[key]:7.3f}")
+    print(f"  {'total (robot_sim loop time per frame)':<58} {rows['total']:7.3f}")
+
+
 def print_profile(figures: dict, label: str) -> None:
     print(f"mfvs bench lockstep: {label}")
     print(f"load (uptime) {figures['load_before']} before, {figures['load_after']} after"
@@ -249,12 +278,7 @@ def print_profile(figures: dict, label: str) -> None:
           f"{figures['lockstep_timeouts']}")
     print(f"wall: run {figures['wall_time_s']:.2f} s (start-up and stop included); loop {figures['loop_s']:.2f} s for "
           f"{figures['frames']} frames; {figures['iteration_ms']:.2f} ms per iteration as the runner saw them")
-    print("\nper iteration (ms of wall time)")
-    rows = figures["per_iteration_ms"]
-    for key, what in ROWS:
-        indent = "  " if key.startswith("  ") else ""
-        print(f"  {indent}{what:<{58 - len(indent)}} {rows[key]:7.3f}")
-    print(f"  {'total (robot_sim loop time per frame)':<58} {rows['total']:7.3f}")
+    print_rows(figures["per_iteration_ms"])
     cpu = figures["cpu_per_iteration_ms"]
     print("\nCPU per iteration (ms), from the loop's first iteration to the stack's stop: "
           + ", ".join(f"{name} {ms:.2f}" for name, ms in cpu.items())

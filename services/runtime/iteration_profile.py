@@ -3,7 +3,9 @@
 Off unless the environment names a directory (:data:`PROFILE_DIR_ENV`): then :func:`install`, which every service
 process calls at start, wraps the functions listed in :data:`TIMED` for that process with a timer, and at exit the
 process writes its timers and CPU time to ``<dir>/<process>-<pid>.json``. Off, nothing is wrapped: the code that
-runs is the code as written, at no cost.
+runs is the code as written, at no cost. A composed stack's services (:mod:`services.composed`) share the bench's
+process: :func:`install_composed` times all of theirs there, :func:`profile_now` reads the profile, and
+:func:`uninstall` puts the functions back.
 
 A timer adds each call's wall time to its label, per thread, both inclusive and exclusive of the timed calls it
 makes itself (a thread's timed calls nest): the exclusive times of one thread's outermost function and everything
@@ -134,6 +136,26 @@ def _resolve(name: str) -> tuple[object, str, Callable]:
     return owner, attribute, getattr(owner, attribute)
 
 
+#: the services of a composed stack (:mod:`services.composed`), all timed in the one process they share
+COMPOSED = ("robot_sim", "vision", "controller", "safety")
+
+#: what is wrapped now: (owner, attribute, the function as it was), to put back (:func:`uninstall`)
+_wrapped: list[tuple[object, str, Callable]] = []
+
+
+def _wrap(process: str) -> None:
+    for name, label in TIMED.get(process, {}).items():
+        owner, attribute, function = _resolve(name)
+        if isinstance(owner, type):
+            # a method the class inherits is timed on the class that defines it (once for every subclass)
+            owner = next(klass for klass in owner.__mro__ if attribute in vars(klass))
+            function = vars(owner)[attribute]
+        if getattr(function, "__wrapped_by_profile__", False):  # another process's, under the same label
+            continue
+        setattr(owner, attribute, _timers.wrap(label, function))
+        _wrapped.append((owner, attribute, function))
+
+
 def install(process: str) -> bool:
     """Time ``process``'s functions (:data:`TIMED`) and write the profile at exit, when the environment asks for a
     profile; otherwise do nothing. Whether it is on."""
@@ -142,29 +164,45 @@ def install(process: str) -> bool:
     if not directory or _timers is not None:
         return False
     _timers = _Timers()
-    for name, label in TIMED.get(process, {}).items():
-        owner, attribute, function = _resolve(name)
-        if isinstance(owner, type):
-            # a method the class inherits is timed on the class that defines it (once for every subclass)
-            owner = next(klass for klass in owner.__mro__ if attribute in vars(klass))
-            function = vars(owner)[attribute]
-        if getattr(function, "__wrapped_by_profile__", False):
-            continue
-        setattr(owner, attribute, _timers.wrap(label, function))
+    _wrap(process)
     atexit.register(_write, Path(directory), process)
     return True
 
 
-def _write(directory: Path, process: str) -> None:
-    """The profile: the timers, and the CPU the process (and its children, robot_sim's renderer) spent in all."""
+def install_composed() -> None:
+    """Time the functions of every service of a composed stack in this process, where they all run: read the profile
+    with :func:`profile_now` when the run is over, then :func:`uninstall`."""
+    global _timers
+    if _timers is not None:
+        raise RuntimeError("a profile is installed in this process already")
+    _timers = _Timers()
+    for process in COMPOSED:
+        _wrap(process)
+
+
+def uninstall() -> None:
+    """Every timed function as it was, and no profile."""
+    global _timers
+    while _wrapped:
+        owner, attribute, function = _wrapped.pop()
+        setattr(owner, attribute, function)
+    _timers = None
+
+
+def profile_now(process: str) -> dict:
+    """The profile so far: the timers, and the CPU the process (and its children, robot_sim's renderer) spent in
+    all."""
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    profile = {"process": process, "pid": os.getpid(), "cpu_s": time.process_time(),
-               "children_cpu_s": children.ru_utime + children.ru_stime,
-               "timers": [{"thread": thread, "label": label, "inclusive_ns": t[0], "exclusive_ns": t[1],
-                           "calls": t[2], "returned": t[3]}
-                          for (thread, label), t in sorted(_timers.totals.items())]}
+    return {"process": process, "pid": os.getpid(), "cpu_s": time.process_time(),
+            "children_cpu_s": children.ru_utime + children.ru_stime,
+            "timers": [{"thread": thread, "label": label, "inclusive_ns": t[0], "exclusive_ns": t[1],
+                        "calls": t[2], "returned": t[3]}
+                       for (thread, label), t in sorted(_timers.totals.items())]}
+
+
+def _write(directory: Path, process: str) -> None:
     directory.mkdir(parents=True, exist_ok=True)
-    (directory / f"{process}-{os.getpid()}.json").write_text(json.dumps(profile))
+    (directory / f"{process}-{os.getpid()}.json").write_text(json.dumps(profile_now(process)))
 
 
 def read_profiles(directory: Path) -> dict[str, dict]:
