@@ -124,15 +124,8 @@ class RouterProcess:
 
     def __exit__(self, *exc) -> None:
         if self.process is not None:
-            self.process.terminate()
-            try:
-                self.process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-            if self.process.stdout is not None:
-                self.process.stdout.close()
-            self.process = None
+            process, self.process = self.process, None
+            stop_processes([process], timeout_s=ROUTER_STOP_TIMEOUT_S)
 
 
 #: how often a warm router's log is read for its endpoint
@@ -243,9 +236,15 @@ def wait_alive(zenoh: ZenohConfig, robot_id: str, names, processes, timeout_s: f
         session.close()
 
 
-def stop_processes(processes, together: bool = False) -> None:
-    """Terminate each of ``processes`` in order, waiting for it (killed after 20 s); ``together``: terminate them all
-    first, then wait for each (they stop side by side)."""
+#: how long a stack's process has to stop once told (SIGTERM) before it is killed; a router, which stops a session
+#: and nothing else, less
+STOP_TIMEOUT_S = 20.0
+ROUTER_STOP_TIMEOUT_S = 10.0
+
+
+def stop_processes(processes, together: bool = False, timeout_s: float = STOP_TIMEOUT_S) -> None:
+    """Terminate each of ``processes`` in order, waiting for it (killed after ``timeout_s``); ``together``: terminate
+    them all first, then wait for each (they stop side by side)."""
     processes = list(processes)
     if together:
         for process in processes:
@@ -254,7 +253,7 @@ def stop_processes(processes, together: bool = False) -> None:
         if not together:
             process.terminate()
         try:
-            process.wait(timeout=20)
+            process.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
