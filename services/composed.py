@@ -145,8 +145,7 @@ class ComposedStack:
 
     def __enter__(self) -> "ComposedStack":
         cfg = self.config
-        service_configs = {"safety": cfg.safety, "vision": cfg.vision, "controller": cfg.controller,
-                           "robot_sim": cfg.robot}
+        service_configs = cfg.services()
         for service_cfg in service_configs.values():
             service_cfg.clock = cfg.clock
         lockstep_robot(cfg.robot)

@@ -2,9 +2,9 @@
 
 Each run is :func:`services.servo.run` with a whole stack of its own (composed in the process that runs it, or its
 router on a port it picks and its processes; its run directory, its renderer), so runs share nothing but the host.
-In lockstep a run's numbers do not depend on how fast the host is (the robot waits for every answer; messages block rather than drop), so a run gives
-the same trajectory log whether it ran alone or beside others; the results come back in the order the runs were
-given, whatever order they finish in.
+In lockstep a run's numbers do not depend on how fast the host is (the robot waits for every answer; messages block
+rather than drop), so a run gives the same trajectory log whether it ran alone or beside others; the results come
+back in the order the runs were given, whatever order they finish in.
 
 ``jobs`` 1 runs them one after another in this process, as before. More run in that many worker processes, forked
 from the warm server of :mod:`services.warm_start` (never from this process, whose zenoh sessions and threads a

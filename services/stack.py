@@ -337,6 +337,10 @@ class StackConfig:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 
+    def services(self) -> dict:
+        """Each service's config, by the service's name."""
+        return {"safety": self.safety, "vision": self.vision, "controller": self.controller, "robot_sim": self.robot}
+
 
 #: the pipeline's services, started (and alive) before the robot, so that they hear its first frame
 PIPELINE = ("safety", "vision", "controller")
@@ -380,13 +384,13 @@ class LocalStack:
         self.router.__enter__()
         try:
             client = self.router.client_config()
-            for service_cfg in (cfg.safety, cfg.vision, cfg.controller, cfg.robot):
+            for service_cfg in cfg.services().values():
                 service_cfg.zenoh = client
                 service_cfg.clock = cfg.clock
             if cfg.clock is ClockMode.LOCKSTEP:
                 lockstep_robot(cfg.robot)
             for name in PIPELINE:
-                self._spawn(name, getattr(cfg, name))
+                self._spawn(name, cfg.services()[name])
             self._wait_alive(PIPELINE)
             if self._before_robot is not None:
                 self._before_robot(self)

@@ -15,8 +15,9 @@ than one core: the server is started with ``OPENBLAS_NUM_THREADS=1``, so the ser
 
 The workers of :mod:`services.run_pool` are forks of the same server (a composed run, :mod:`services.composed`,
 then runs its services in the worker itself, imported already), and fork their stacks' services from it too when
-each runs as a process (``--processes``; :func:`fork_from_server_at`): one server for a whole experiment. This leans further on CPython's forkserver
-internals (the server's address and "alive" descriptor, 3.8-3.13), like :class:`_ServicePopen`.
+each runs as a process (``--processes``; :func:`fork_from_server_at`): one server for a whole experiment. This
+leans further on CPython's forkserver internals (the server's address and "alive" descriptor, 3.8-3.13), like
+:class:`_ServicePopen`.
 """
 from __future__ import annotations
 
