@@ -296,6 +296,9 @@ def test_the_router_killed_mid_motion_and_restarted_the_arm_rests_and_every_serv
         names = {s.name for s in sim_profile(port).services}
         assert wait_for(lambda: names <= set(alive_services(client, KEYS)), timeout=60, period=0.5), \
             f"back: {alive_services(client, KEYS)}"
+        # services alive to this client say its session is back, not that a state has reached it since: wait for one
+        assert wait_for(lambda: any(s.header.stamp_ns > kill_ns + 1_000_000_000 for s in states.snapshot()),
+                        timeout=30), "no state heard since the router came back"
         back = [s for s in states.snapshot() if s.header.stamp_ns > kill_ns + 1_000_000_000]
         assert back and ee_speed(kin, back[0]) < 1e-3, "the arm moved on without its pipeline"
         assert wait_for(lambda: ee_speed(kin, states.last()) > 0.02, timeout=30), "the task did not go on"
