@@ -1,18 +1,29 @@
 """What each service costs per second of running: CPU (% of one core, user + system) and resident memory (MB) of
 every process of a stack (with its children), per profile, while it servos onto the tag (`mfvs up`, realtime, on free ports).
 
-``python -m bench.cpu [--json] [--seconds S] [--profiles sim,gateway] [--arm NAME]`` or ``mfvs bench cpu``.
-``--json`` prints ``{"arm", "seconds", "profiles": {name: {"processes": {process: {"cpu_pct", "rss_mb", "pss_mb",
-"threads": {name: cpu_pct}}}, "total_cpu_pct", "total_rss_mb", "total_pss_mb"}}}``; ``--threads`` also prints each
-process's threads by their kernel names. RSS sums count each shared library once per process that maps it; PSS
-divides a shared page among them.
+``python -m bench.cpu [--json] [--seconds S] [--profiles sim,gateway] [--arm NAME] [--threads] [--maps]`` or
+``mfvs bench cpu``. ``--json`` prints ``{"arm", "seconds", "profiles": {name: {"processes": {process: {"cpu_pct",
+"rss_mb", "pss_mb", "threads": {name: cpu_pct}, "mappings": {name: rss_mb}}}, "total_cpu_pct", "total_rss_mb",
+"total_pss_mb", "resident_mb"}}}``; ``--threads`` also prints each process's threads by their kernel names, ``--maps``
+where each process's resident memory lies (each library, the heap, anonymous memory).
+
+Three sums of a stack's memory: RSS counts each page once per process that maps it (NumPy, zenoh, libpython,
+Pinocchio in every service); PSS divides a shared page among the processes that map it, outside the stack too; the
+stack's resident memory counts every physical page its processes hold once (their page frames, from
+``/proc/PID/pagemap``): what the machine gives the stack. That last needs the page frame numbers, which the kernel
+shows only to a process with CAP_SYS_ADMIN (None without).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import time
+from collections import Counter
+from typing import Optional
+
+import numpy as np
 
 from bench.stack import profile_on_arm, servoing_stack, unknown_arm
 from services.cli import add_arm_option
@@ -114,6 +125,86 @@ def pss_mb(pid: int) -> float:
     return sum(_pss_mb_of(p) for p in process_tree(pid))
 
 
+PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
+_PAGE_PRESENT = np.uint64(1 << 63)
+_PAGE_FRAME = np.uint64((1 << 55) - 1)
+_MAPPING_LINE = re.compile(r"^([0-9a-f]+)-([0-9a-f]+) \S+ \S+ \S+ \S+\s*(.*)$")
+
+
+def resident_mappings(pid: int) -> list[tuple[int, int, str, int]]:
+    """A process's mappings that hold resident memory: (start, end, name, RSS in kB), from /proc/PID/smaps (the
+    name is the mapped file's path, or ``[heap]``, ``[stack]``, '' for anonymous memory); [] when it is gone."""
+    out, current = [], None
+    try:
+        with open(f"/proc/{pid}/smaps") as f:
+            for line in f:
+                header = _MAPPING_LINE.match(line)
+                if header:
+                    current = (int(header[1], 16), int(header[2], 16), header[3].strip())
+                elif line.startswith("Rss:") and current is not None:
+                    kb = int(line.split()[1])
+                    if kb:
+                        out.append((*current, kb))
+    except OSError:
+        return []
+    return out
+
+
+def resident_frames(pid: int) -> Optional[np.ndarray]:
+    """The physical page frames a process holds resident (its mappings' present pages, /proc/PID/pagemap), or None
+    when the kernel hides them (without CAP_SYS_ADMIN it reports frame 0 for every page)."""
+    frames = []
+    try:
+        with open(f"/proc/{pid}/pagemap", "rb") as pagemap:
+            for start, end, _name, _kb in resident_mappings(pid):
+                pagemap.seek(start // PAGE_BYTES * 8)
+                entries = np.frombuffer(pagemap.read((end - start) // PAGE_BYTES * 8), dtype=np.uint64)
+                frames.append(entries[(entries & _PAGE_PRESENT) != 0] & _PAGE_FRAME)
+    except OSError:
+        return np.empty(0, dtype=np.uint64)  # gone meanwhile: it holds nothing
+    held = np.concatenate(frames) if frames else np.empty(0, dtype=np.uint64)
+    return None if held.size and not held.any() else held
+
+
+def resident_mb(pids) -> Optional[float]:
+    """The memory the processes ``pids`` (and their children) hold resident, each physical page once however many
+    of them map it (MB); None when page frames cannot be read."""
+    held = []
+    for pid in pids:
+        for process in process_tree(pid):
+            frames = resident_frames(process)
+            if frames is None:
+                return None
+            held.append(frames)
+    return np.unique(np.concatenate(held)).size * PAGE_BYTES / 2**20 if held else 0.0
+
+
+def mapping_name(path: str) -> str:
+    """A mapping as the breakdown names it: a library by its file (a package's by the package: ``numpy``,
+    ``cv2``, ``zenoh``), the heap, anonymous memory."""
+    if not path:
+        return "anonymous"
+    if path.startswith("["):
+        return path
+    if path.startswith("/dev/shm/") and path.endswith(".zenoh"):
+        return "zenoh's shared memory"
+    package = re.search(r"/site-packages/([^/]+)/", path)
+    if package:
+        # wheels' bundled libraries: numpy.libs, opencv_python_headless.libs; cmeel.prefix holds Pinocchio's C++
+        # libraries and their own (coal, eigenpy, Boost, urdfdom)
+        return {"cmeel.prefix": "pinocchio's libraries (cmeel.prefix)"}.get(package[1], package[1])
+    return re.sub(r"\.so[.0-9]*$", "", os.path.basename(path))
+
+
+def mappings_mb(pid: int) -> dict[str, float]:
+    """Where a process's (and its children's) resident memory lies: MB per :func:`mapping_name`, largest first."""
+    total: Counter = Counter()
+    for process in process_tree(pid):
+        for _start, _end, name, kb in resident_mappings(process):
+            total[mapping_name(name)] += kb / 1024
+    return {name: round(mb, 1) for name, mb in total.most_common()}
+
+
 def measure(profile_name: str, seconds: float, settle_s: float = 3.0, arm: str = DEFAULT_ARM) -> dict:
     with servoing_stack(profile_on_arm(profile_name, arm), "bench cpu"):
         try:
@@ -134,12 +225,15 @@ def measure(profile_name: str, seconds: float, settle_s: float = 3.0, arm: str =
                            for thread, cpu in threads_after.items()}
                 result[name] = {"cpu_pct": round(100.0 * (cpu_after - cpu_before) / elapsed, 1),
                                 "rss_mb": round(rss_mb(pid), 1), "pss_mb": round(pss_mb(pid), 1),
-                                "threads": dict(sorted(threads.items(), key=lambda kv: -kv[1]))}
+                                "threads": dict(sorted(threads.items(), key=lambda kv: -kv[1])),
+                                "mappings": mappings_mb(pid)}
+            resident = resident_mb(processes.values())
         finally:
             normal_priority()
     return {"processes": result, "total_cpu_pct": round(sum(r["cpu_pct"] for r in result.values()), 1),
             "total_rss_mb": round(sum(r["rss_mb"] for r in result.values()), 1),
-            "total_pss_mb": round(sum(r["pss_mb"] for r in result.values()), 1)}
+            "total_pss_mb": round(sum(r["pss_mb"] for r in result.values()), 1),
+            "resident_mb": None if resident is None else round(resident, 1)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -149,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profiles", default="sim,gateway", help="comma-separated profiles (default sim,gateway)")
     parser.add_argument("--threads", action="store_true",
                         help="also each process's threads (by kernel name) costing 1 %% of a core or more")
+    parser.add_argument("--maps", action="store_true",
+                        help="also where each process's resident memory lies (libraries, heap, anonymous), 1 MB or more")
     add_arm_option(parser)
     args = parser.parse_args(argv)
     if unknown_arm(parser, args):
@@ -158,8 +254,11 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({"arm": args.arm, "seconds": args.seconds, "profiles": results}))
         return 0
     for name, r in results.items():
-        print(f"{name} ({args.arm}): {r['total_cpu_pct']:.0f} % of a core, {r['total_rss_mb']:.0f} MB resident "
-              f"(RSS), {r['total_pss_mb']:.0f} MB proportional (PSS: shared libraries counted once)")
+        resident = "unknown (page frames need CAP_SYS_ADMIN)" if r["resident_mb"] is None else \
+            f"{r['resident_mb']:.0f} MB"
+        print(f"{name} ({args.arm}): {r['total_cpu_pct']:.0f} % of a core; resident {resident} (every page once), "
+              f"{r['total_rss_mb']:.0f} MB summed RSS (a shared page once per process), {r['total_pss_mb']:.0f} MB "
+              f"summed PSS (a shared page divided among its processes)")
         for process, figures in sorted(r["processes"].items(), key=lambda kv: -kv[1]["cpu_pct"]):
             print(f"  {process:14s} {figures['cpu_pct']:5.1f} %  {figures['rss_mb']:6.0f} MB  "
                   f"PSS {figures['pss_mb']:4.0f} MB")
@@ -167,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
                 for thread, pct in figures["threads"].items():
                     if pct >= 1.0:
                         print(f"      {thread:16s} {pct:5.1f} %")
+            if args.maps:
+                print("      " + ", ".join(f"{mapping} {mb:.0f}" for mapping, mb in figures["mappings"].items()
+                                          if mb >= 1.0) + " (MB)")
     return 0
 
 
