@@ -68,7 +68,7 @@ class VisionCore:
     def __init__(self, config) -> None:
         self.config = config
         self.detector = F.TagDetector(config.tag.family, config.refinement, layout=config.tag.layout,
-                                      backend=config.detector)
+                                      backend=config.detector, apriltag_corrected_bits=config.apriltag_corrected_bits)
         self.tracker = F.TagTracker(self.detector, config.roi)
         self.goal = Goal.from_config(config.goal, config.tag.size_m)
         #: the last features seen in a usable image (what a taught goal takes)

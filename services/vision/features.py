@@ -53,11 +53,23 @@ _ARUCO_METHOD = {
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-3)
 
 
-def _apriltag_detector(family: str, quad_decimate: float):
+#: the bit errors the AprilTag library corrects in a tag's code by default (apriltag_detector_add_family)
+APRILTAG_CORRECTED_BITS = 2
+
+
+def _apriltag_detector(family: str, quad_decimate: float, corrected_bits: int = APRILTAG_CORRECTED_BITS):
     """The AprilTag library's detector (pupil-apriltags), torn down in the right order: pupil-apriltags 1.0.4
     frees the tag families before the detector that still points at them (apriltag_detector_destroy then reads
     freed memory: an intermittent segfault, pupil-labs/apriltags#46; the order duckietown/lib-dt-apriltags#26
-    fixed)."""
+    fixed).
+
+    ``corrected_bits``: a tag read with up to this many wrong cells still decodes. The library decodes through a
+    table of every code with that many bits flipped: for tag36h11 36 MB at 2 bits (its default, the only value
+    pupil-apriltags passes), 1 MB at 1 bit, 28 kB at 0 (apriltag 3.1's sizes: it allots permutations where
+    combinations do, fixed upstream in AprilRobotics/apriltag#414). Another value rebuilds the family's table
+    (the 2-bit one is freed)."""
+    if not 0 <= corrected_bits <= APRILTAG_CORRECTED_BITS:
+        raise ValueError(f"apriltag corrected bits must be 0 to {APRILTAG_CORRECTED_BITS}, not {corrected_bits}")
     from pupil_apriltags import Detector
 
     class OrderedTeardownDetector(Detector):
@@ -72,7 +84,13 @@ def _apriltag_detector(family: str, quad_decimate: float):
                 destroy.restype = None
                 destroy(tag_family)
 
-    return OrderedTeardownDetector(families=family, nthreads=1, quad_decimate=quad_decimate, refine_edges=1)
+    detector = OrderedTeardownDetector(families=family, nthreads=1, quad_decimate=quad_decimate, refine_edges=1)
+    if corrected_bits != APRILTAG_CORRECTED_BITS:
+        libc, tag_family = detector.libc, detector.tag_families[family]
+        libc.apriltag_detector_remove_family.restype = None  # frees the family's decode table
+        libc.apriltag_detector_remove_family(detector.tag_detector_ptr, tag_family)
+        libc.apriltag_detector_add_family_bits(detector.tag_detector_ptr, tag_family, corrected_bits)
+    return detector
 
 
 @dataclass
@@ -87,7 +105,8 @@ class TagDetector:
 
     def __init__(self, family: str = "tag36h11", refinement: Refinement | str | None = None,
                  subpix_window: int = 3, layout: tags.TagLayout | str = tags.TagLayout.OFFICIAL,
-                 backend: Backend | str = Backend.ARUCO, quad_decimate: float = 1.0) -> None:
+                 backend: Backend | str = Backend.ARUCO, quad_decimate: float = 1.0,
+                 apriltag_corrected_bits: int = APRILTAG_CORRECTED_BITS) -> None:
         self.backend = Backend(backend)
         if refinement is None:  # each backend's own
             refinement = Refinement.APRILTAG if self.backend is Backend.APRILTAG else Refinement.APRILTAG_SUBPIX
@@ -103,7 +122,7 @@ class TagDetector:
             if self.refinement is Refinement.CONTOUR:
                 raise ValueError("refinement contour is aruco's; the apriltag detector takes subpix or none")
             # one thread: the services share two cores; no decimation by default: a 3-m tag is 20 px wide
-            self._apriltag = _apriltag_detector(family, quad_decimate)
+            self._apriltag = _apriltag_detector(family, quad_decimate, apriltag_corrected_bits)
             return
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = _ARUCO_METHOD[self.refinement]

@@ -18,7 +18,7 @@ says and publishes.
 from __future__ import annotations
 
 import threading
-from typing import Optional
+from typing import Annotated, Optional
 
 import msgspec
 import zenoh
@@ -101,6 +101,11 @@ class VisionConfig(ServiceConfig):
     #: apriltag_subpix: either detector's quads, then OpenCV's sub-pixel corner search (the same corners from both,
     #: within 0.002 px); none (apriltag) / apriltag (aruco): as detected; see features.Refinement
     refinement: F.Refinement = F.Refinement.APRILTAG_SUBPIX
+    #: the apriltag detector's error correction: a tag read with up to this many wrong cells still decodes (0-2; 2
+    #: is the AprilTag library's default). For tag36h11 its table holds 36 MB of vision's memory at 2, 1 MB at 1;
+    #: at 1 about one detection in twenty of small, blurred, noisy tags is lost (features.APRILTAG_CORRECTED_BITS)
+    apriltag_corrected_bits: Annotated[int, msgspec.Meta(ge=0, le=F.APRILTAG_CORRECTED_BITS)] = \
+        F.APRILTAG_CORRECTED_BITS
     roi: F.RoiConfig = msgspec.field(default_factory=F.RoiConfig)
     #: an image older than this (capture to processing, in the service's clock) gets status stale
     max_image_age_s: float = IMAGE_AGE_BUDGET_S

@@ -4,6 +4,7 @@ import time
 
 import cv2
 import msgpack
+import msgspec
 import numpy as np
 import pytest
 
@@ -334,3 +335,44 @@ def test_the_vision_core_needs_no_service_and_takes_time_from_its_caller(backend
     again = core.process(image_message(image, captured), info, now_ns=captured)
     assert again.status is m.FeatureStatus.STALE and "not newer" in again.refusal
     assert core.goal_from(m.VisionGoal(header=m.Header(), teach=True)).description == "teach"
+
+
+def _official_tag_with_cells_misread(*cells: tuple[int, int]) -> np.ndarray:
+    """The official tag36h11 id 0, 20 px a cell, with these data cells (row, column of its 6×6) inverted: what a
+    camera reads when those cells come out wrong."""
+    from pathlib import Path
+
+    image = cv2.imread(str(Path(__file__).parents[1] / "model" / "data" / "tag36_11_00000.png"), cv2.IMREAD_GRAYSCALE)
+    for row, column in cells:  # 10×10: a white ring, the black border, then the 6×6 data cells
+        image[2 + row, 2 + column] = 255 - image[2 + row, 2 + column]
+    big = cv2.resize(image, (200, 200), interpolation=cv2.INTER_NEAREST)
+    return cv2.copyMakeBorder(big, 60, 60, 60, 60, cv2.BORDER_CONSTANT, value=255)
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
+
+
+def test_the_apriltag_detector_corrects_as_many_wrong_cells_as_configured():
+    """AprilTag's default corrects two misread cells; one bit corrected loses a tag with two, keeps one with one;
+    and its decode table shrinks from tens of MB to about one."""
+    before = _rss_mb()
+    library_default = F.TagDetector(backend="apriltag")
+    with_two = _rss_mb() - before
+    before = _rss_mb()
+    one_bit = F.TagDetector(backend="apriltag", apriltag_corrected_bits=1)
+    with_one = _rss_mb() - before
+    none = F.TagDetector(backend="apriltag", apriltag_corrected_bits=0)
+    assert with_two > 25 and with_one < 5, (with_two, with_one)
+    clean, one_wrong, two_wrong = (_official_tag_with_cells_misread(*cells)
+                                   for cells in ((), ((1, 1),), ((1, 1), (4, 3))))
+    assert all(d.find(clean, 0) is not None for d in (library_default, one_bit, none))
+    assert library_default.find(one_wrong, 0) is not None and one_bit.find(one_wrong, 0) is not None
+    assert none.find(one_wrong, 0) is None
+    assert library_default.find(two_wrong, 0) is not None
+    assert one_bit.find(two_wrong, 0) is None
+    with pytest.raises(ValueError, match="corrected bits"):
+        F.TagDetector(backend="apriltag", apriltag_corrected_bits=3)
+    with pytest.raises(msgspec.ValidationError):
+        msgspec.convert({"apriltag_corrected_bits": 3}, VisionConfig)
