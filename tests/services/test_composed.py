@@ -13,7 +13,7 @@ import pytest
 
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
-from services.composed import ComposedStack, composable, open_local_session
+from services.composed import CallbackExecutor, ComposedStack, SharedSession, composable, open_local_session
 from services.runtime.service import Service, query_health
 from services.servo import load_scenario, stack_config
 from services.vision.service import VisionService
@@ -177,3 +177,91 @@ def test_a_stop_that_fails_leaves_the_rest_stopped_and_this_process_as_it_was(mo
         stack.__exit__(None, None, None)
     assert not _threads_of("safety", "controller", "robot_sim")
     assert stack.session is None and _logging_restored() and not stack.logs.exists()
+
+
+@pytest.fixture
+def executed_session():
+    session = open_local_session()
+    executor = CallbackExecutor()
+    try:
+        yield SharedSession(session, executor), executor
+    finally:
+        executor.close()
+        session.close()
+
+
+def _wait_for(condition, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
+
+def test_every_subscriber_callback_runs_on_the_executor_in_arrival_order(executed_session):
+    """Two subscribers' samples, published alternately from this thread, and one published from within a callback:
+    every callback on the executor's one thread (never the publisher's), in the order the samples were put; the
+    nested put waits its turn instead of running inside the callback that made it."""
+    session, _ = executed_session
+    seen, all_put = [], threading.Event()
+
+    def on_b(sample):
+        seen.append((threading.current_thread().name, "b", sample.payload.to_bytes()))
+        all_put.wait(5.0)  # the first one holds the executor until every sample of this thread is queued
+
+    def on_a(sample):
+        seen.append((threading.current_thread().name, "a", sample.payload.to_bytes()))
+        if sample.payload.to_bytes() == b"3":
+            session.put("mfvs/test/b", b"from a")
+            seen.append((threading.current_thread().name, "a", b"after its put"))
+
+    subscribers = [session.declare_subscriber("mfvs/test/a", on_a), session.declare_subscriber("mfvs/test/b", on_b)]
+    for i in range(10):
+        session.put("mfvs/test/a" if i % 2 else "mfvs/test/b", str(i).encode())
+    all_put.set()
+    assert _wait_for(lambda: len(seen) == 12)
+    assert {thread for thread, _, _ in seen} == {"composed-callbacks"}
+    assert [(key, payload) for _, key, payload in seen] == [
+        ("b", b"0"), ("a", b"1"), ("b", b"2"), ("a", b"3"), ("a", b"after its put"), ("b", b"4"), ("a", b"5"),
+        ("b", b"6"), ("a", b"7"), ("b", b"8"), ("a", b"9"), ("b", b"from a")]
+    for subscriber in subscribers:
+        subscriber.undeclare()
+
+
+def test_the_executor_goes_on_past_a_failing_callback_and_drops_an_undeclared_subscriber_samples(executed_session):
+    session, executor = executed_session
+    release, seen = threading.Event(), []
+
+    def blocking_then_failing(sample):
+        release.wait(5.0)
+        raise RuntimeError("a runner's callback failed")
+
+    first = session.declare_subscriber("mfvs/test/first", blocking_then_failing)
+    second = session.declare_subscriber("mfvs/test/second", lambda sample: seen.append(sample.payload.to_bytes()))
+    session.put("mfvs/test/first", b"x")  # holds the executor until released
+    session.put("mfvs/test/second", b"queued, then undeclared")
+    second.undeclare()
+    third = session.declare_subscriber("mfvs/test/second",
+                                       lambda sample: seen.append(b"third " + sample.payload.to_bytes()))
+    session.put("mfvs/test/second", b"after")
+    release.set()
+    assert _wait_for(lambda: seen == [b"third after"])
+    assert executor.failures == 1
+    first.undeclare()
+    third.undeclare()
+
+
+def test_a_closed_executor_drops_what_is_queued_and_its_thread_ends():
+    executor, ran, release = CallbackExecutor(), [], threading.Event()
+    executor.submit(lambda _: release.wait(5.0), None)
+    executor.submit(ran.append, "dropped")
+    closing = threading.Thread(target=executor.close)
+    closing.start()
+    assert _wait_for(lambda: executor._closed)  # closed while the first still runs: the second was queued
+    release.set()
+    closing.join(10.0)
+    assert not closing.is_alive() and not executor._thread.is_alive()
+    executor.submit(ran.append, "after close")
+    time.sleep(0.05)
+    assert ran == []
