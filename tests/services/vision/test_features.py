@@ -1,5 +1,7 @@
 """vision on frames rendered by robot_sim at known poses (real MuJoCo EGL rendering, real OpenCV detection)."""
 import math
+import subprocess
+import sys
 import time
 
 import cv2
@@ -16,6 +18,7 @@ from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, ca
 from services.robot_sim.sim import Simulation
 from services.vision import features as F
 from services.vision.service import TABLE2_DEPTH, TABLE2_GOAL, VisionConfig, VisionService
+from tests.helpers import REPO
 
 
 def render(pose_in_camera: PoseConfig, camera: CameraConfig | None = None, tag_id: int = 0, floor: bool = False):
@@ -349,22 +352,28 @@ def _official_tag_with_cells_misread(*cells: tuple[int, int]) -> np.ndarray:
     return cv2.copyMakeBorder(big, 60, 60, 60, 60, cv2.BORDER_CONSTANT, value=255)
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
+def _detector_table_mb(corrected_bits: int) -> float:
+    """What building the apriltag detector adds to a fresh process's resident memory (MB): in this process, memory
+    an earlier detector freed is reused without showing."""
+    script = ("from services.vision.features import TagDetector\n"
+              "def rss():\n"
+              "    with open('/proc/self/status') as f:\n"
+              "        return next(int(l.split()[1]) for l in f if l.startswith('VmRSS:')) / 1024\n"
+              "before = rss()\n"
+              f"detector = TagDetector(backend='apriltag', apriltag_corrected_bits={corrected_bits})\n"
+              "print(rss() - before)\n")
+    return float(subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                                cwd=REPO, timeout=120).stdout)
 
 
 def test_the_apriltag_detector_corrects_as_many_wrong_cells_as_configured():
     """AprilTag's default corrects two misread cells; one bit corrected loses a tag with two, keeps one with one;
     and its decode table shrinks from tens of MB to about one."""
-    before = _rss_mb()
-    library_default = F.TagDetector(backend="apriltag")
-    with_two = _rss_mb() - before
-    before = _rss_mb()
-    one_bit = F.TagDetector(backend="apriltag", apriltag_corrected_bits=1)
-    with_one = _rss_mb() - before
-    none = F.TagDetector(backend="apriltag", apriltag_corrected_bits=0)
+    with_two, with_one = _detector_table_mb(2), _detector_table_mb(1)
     assert with_two > 25 and with_one < 5, (with_two, with_one)
+    library_default = F.TagDetector(backend="apriltag")
+    one_bit = F.TagDetector(backend="apriltag", apriltag_corrected_bits=1)
+    none = F.TagDetector(backend="apriltag", apriltag_corrected_bits=0)
     clean, one_wrong, two_wrong = (_official_tag_with_cells_misread(*cells)
                                    for cells in ((), ((1, 1),), ((1, 1), (4, 3))))
     assert all(d.find(clean, 0) is not None for d in (library_default, one_bit, none))
