@@ -120,11 +120,23 @@ def profile_run(scenario, hogs: int = 0) -> dict:
 
 
 def composed_run(scenario, hogs: int = 0) -> dict:
-    """Run ``scenario`` composed (:mod:`services.composed`, as experiments run it), every service's functions timed
-    in this process where they run: the same split as :func:`profile_run`'s, and wall time and CPU per iteration
-    from the first iteration the runner saw to the last; the CPU is this process's (the services, their renderer
-    and the runner) and its children's that the run started (none in lockstep, where robot_sim renders in its
-    loop's thread)."""
+    """Run ``scenario`` composed (:mod:`services.composed`, as experiments run it) twice: as it is, for wall time
+    and CPU per iteration from the first iteration the runner saw to the last (the CPU is this process's: the
+    services, their renderer and the runner; and its children's that the run started, none in lockstep, where
+    robot_sim renders in its loop's thread) and the process's peak memory; then with every service's functions
+    timed in this process where they run, for the same split as :func:`profile_run`'s. The timers cost time of
+    their own (Python around every timed call, on the loop's thread and on the services'): the split's run is
+    slower, and says by how much (``profiled_iteration_ms``)."""
+    _reset_peak_rss()  # the peak is then the composed run's, not the profiled run's runner's before it
+    figures = _timed_composed_run(scenario, hogs, profiled=False)
+    figures["peak_rss_mb"] = round(peak_rss_mb(os.getpid()), 1)  # the stack's and the runner's, in this process
+    split_run = _timed_composed_run(scenario, hogs, profiled=True)
+    figures.update({"profiled_iteration_ms": split_run["iteration_ms"], "loop_s": split_run["loop_s"],
+                    "frames": split_run["frames"], "per_iteration_ms": split_run["per_iteration_ms"]})
+    return figures
+
+
+def _timed_composed_run(scenario, hogs: int, profiled: bool) -> dict:
     window: dict = {}
 
     def progress(record) -> None:
@@ -136,36 +148,37 @@ def composed_run(scenario, hogs: int = 0) -> dict:
             window["first"] = (record.iteration, now)
         window["last"] = (record.iteration, now)
 
-    _reset_peak_rss()  # the peak is then the composed run's, not the profiled run's runner's before it
     children_before = os.times()
-    ip.install_composed()
+    if profiled:
+        ip.install_composed()
     try:
         with cpu_hogs(hogs):
             older = set(process_tree(os.getpid()))
             load_before = load()
             result = run(scenario, None, progress, plots=False)
             load_after = load()
-        profile = ip.profile_now("composed")
+        profile = ip.profile_now("composed") if profiled else None
     finally:
-        ip.uninstall()
+        if profiled:
+            ip.uninstall()
     children_after = os.times()
-    figures = split({process: profile for process in ip.COMPOSED}, composed=True)
     (first_it, first_t), (last_it, last_t) = window["first"], window["last"]
     iterations = max(1, last_it - first_it)
     services = time.process_time() - window["cpu"]
     # the run's children have ended (and been waited for): their whole CPU is among this process's children's
     children = (children_after.children_user + children_after.children_system - children_before.children_user
                 - children_before.children_system) - window["children_cpu"]
-    return {"iterations": result.iterations, "status": result.status, "final_error_norm": result.final_error_norm,
-            "wall_time_s": result.wall_time_s, "lockstep_timeouts": result.lockstep_timeouts, "stack": result.stack,
-            "load_before": load_before, "load_after": load_after,
-            "iteration_ms": round(1e3 * (last_t - first_t) / iterations, 3),
-            "loop_s": round(figures["loop_ms"] / 1e3, 3), "frames": figures["frames"],
-            "per_iteration_ms": figures["rows"],
-            # the whole run in this process: its peak is the composed stack's and the runner's memory
-            "peak_rss_mb": round(peak_rss_mb(os.getpid()), 1),
-            "cpu_per_iteration_ms": {"the process": round(1e3 * services / iterations, 3),
-                                     "its children": round(1e3 * children / iterations, 3)}}
+    figures = {"iterations": result.iterations, "status": result.status, "final_error_norm": result.final_error_norm,
+               "wall_time_s": result.wall_time_s, "lockstep_timeouts": result.lockstep_timeouts,
+               "stack": result.stack, "load_before": load_before, "load_after": load_after,
+               "iteration_ms": round(1e3 * (last_t - first_t) / iterations, 3),
+               "cpu_per_iteration_ms": {"the process": round(1e3 * services / iterations, 3),
+                                        "its children": round(1e3 * children / iterations, 3)}}
+    if profile is not None:
+        split_figures = split({process: profile for process in ip.COMPOSED}, composed=True)
+        figures.update({"loop_s": round(split_figures["loop_ms"] / 1e3, 3), "frames": split_figures["frames"],
+                        "per_iteration_ms": split_figures["rows"]})
+    return figures
 
 
 def _reset_peak_rss() -> None:
@@ -184,14 +197,16 @@ def print_composed(figures: dict) -> None:
     print(f"\ncomposed (the services in one process, as experiments run): {figures['status']}, {figures['iterations']} "
           f"iterations, final ‖e‖ {error}, lockstep timeouts {figures['lockstep_timeouts']}; load "
           f"{figures['load_before']} before, {figures['load_after']} after")
-    print(f"wall: run {figures['wall_time_s']:.2f} s; loop {figures['loop_s']:.2f} s for {figures['frames']} frames; "
-          f"{figures['iteration_ms']:.2f} ms per iteration as the runner saw them")
+    print(f"wall: run {figures['wall_time_s']:.2f} s; {figures['iteration_ms']:.2f} ms per iteration as the runner saw "
+          f"them")
+    print("CPU per iteration (ms), from the loop's first iteration to the stack's stop: "
+          + ", ".join(f"{name} {ms:.2f}" for name, ms in cpu.items())
+          + f"; total {sum(cpu.values()):.2f}; the process's peak resident memory {figures['peak_rss_mb']:.0f} MB")
+    print(f"\nthe same run again with every service's functions timed: {figures['profiled_iteration_ms']:.2f} ms per "
+          f"iteration (the timers' own cost); loop {figures['loop_s']:.2f} s for {figures['frames']} frames")
     # one interpreter: a service's work on its own thread may run while the loop thread is inside one of its own rows
     # (waiting for the interpreter lock), so the rows overlap and the rest can come out below zero
     print_rows(figures["per_iteration_ms"], "the rest (below 0: the rows overlapped under one lock)")
-    print("\nCPU per iteration (ms), from the loop's first iteration to the stack's stop: "
-          + ", ".join(f"{name} {ms:.2f}" for name, ms in cpu.items())
-          + f"; total {sum(cpu.values()):.2f}; the process's peak resident memory {figures['peak_rss_mb']:.0f} MB")
 
 
 #: the rows of the split: (key, what it is); indented keys are parts of the row above

@@ -41,7 +41,7 @@ import zenoh
 from protocol.conventions import ClockMode
 from services.controller.service import ControllerService
 from services.robot_sim.service import robot_sim_service
-from services.runtime.logs import LOG_FORMAT, log_level
+from services.runtime.logs import LOG_FORMAT, RateLimitedLogger, log_level
 from services.runtime.service import Service
 from services.runtime.threads import start_thread
 from services.safety.service import SafetyService
@@ -102,6 +102,7 @@ class CallbackExecutor:
         self._ready = threading.Condition(threading.Lock())
         self._closed = False
         self.failures = 0
+        self._limited_log = RateLimitedLogger(log)
         self._thread = start_thread(self._run, name)
 
     def submit(self, callback: Callable[[Any], None], sample: Any) -> None:
@@ -120,9 +121,11 @@ class CallbackExecutor:
                 callback, sample = self._queue.popleft()
             try:
                 callback(sample)
-            except Exception:  # the services catch their handlers' failures: this is a runner's or a recorder's
+            except Exception as exc:  # the services catch their handlers' failures: this is a runner's or a recorder's
                 self.failures += 1
-                log.exception("a subscriber's callback failed (%d so far)", self.failures)
+                if self._limited_log.error(type(exc).__name__, "a subscriber's callback failed (%d so far): %r",
+                                           self.failures, exc):
+                    log.debug("callback failure", exc_info=True)
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Stop the thread; callbacks still queued are dropped (their subscribers' services have stopped)."""

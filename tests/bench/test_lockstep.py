@@ -34,14 +34,16 @@ def test_the_profile_of_a_run_has_every_row_and_they_add_up_to_the_iteration():
 
 
 def test_the_composed_run_is_timed_as_the_same_run(tmp_path):
-    """The bench's composed figures are of a composed run, the same run as the profiled one (25 iterations), split
-    as the processes' run is, with its CPU; the timers are gone afterwards."""
+    """The bench's composed figures are of composed runs of the same run as the profiled one (25 iterations): one
+    as it is for the time and CPU, one timed for the split as the processes' run is; the timers are gone
+    afterwards."""
     scenario = load_scenario(SCENARIOS / "easy.yaml")
     scenario.convergence.max_iterations = 25
     figures = composed_run(scenario)
     assert not getattr(VisionCore.process, "__wrapped_by_profile__", False)
     assert (figures["stack"], figures["iterations"], figures["lockstep_timeouts"]) == ("composed", 25, 0)
     assert figures["iteration_ms"] > 0 and figures["cpu_per_iteration_ms"]["the process"] > 0
+    assert figures["profiled_iteration_ms"] > 0 and figures["frames"] >= 25
     assert figures["cpu_per_iteration_ms"]["its children"] == 0  # lockstep renders in robot_sim's loop thread
     # every service's part timed in the one process they shared (a function renamed would show as 0)
     rows = figures["per_iteration_ms"]
