@@ -91,7 +91,7 @@ class CallbackExecutor:
     ``put`` (``handlers.Callback(indirect=False)``): an append and a wake-up, so no service's code runs inside zenoh
     or inside a publisher's critical section. zenoh's default runs each subscriber's callbacks on a Python thread of
     its own instead: about 25 deliveries an iteration, each a thread to wake that then waits its turn for the
-    interpreter's lock (p-joint: 8.1-8.3 → 7.3-7.4 ms an iteration).
+    interpreter's lock (p-joint on two cores: 8.9-9.8 → 8.5-8.8 ms an iteration, interleaved in one hour).
 
     One thread runs them all, so a callback must not wait for another one: the services' and the runner's take
     their own locks briefly and notify (a vision frame goes to vision's worker, the law runs in the controller's
