@@ -128,6 +128,8 @@ def pss_mb(pid: int) -> float:
 PAGE_BYTES = os.sysconf("SC_PAGE_SIZE")
 _PAGE_PRESENT = np.uint64(1 << 63)
 _PAGE_FRAME = np.uint64((1 << 55) - 1)
+#: pagemap entries read at once (8 MB)
+_PAGEMAP_SLICE = 1 << 20
 _MAPPING_LINE = re.compile(r"^([0-9a-f]+)-([0-9a-f]+) \S+ \S+ \S+ \S+\s*(.*)$")
 
 
@@ -157,9 +159,12 @@ def resident_frames(pid: int) -> Optional[np.ndarray]:
     try:
         with open(f"/proc/{pid}/pagemap", "rb") as pagemap:
             for start, end, _name, _kb in resident_mappings(pid):
-                pagemap.seek(start // PAGE_BYTES * 8)
-                entries = np.frombuffer(pagemap.read((end - start) // PAGE_BYTES * 8), dtype=np.uint64)
-                frames.append(entries[(entries & _PAGE_PRESENT) != 0] & _PAGE_FRAME)
+                # a large reservation with a few pages resident is read a slice at a time (8 bytes a page)
+                for first in range(start // PAGE_BYTES, end // PAGE_BYTES, _PAGEMAP_SLICE):
+                    pagemap.seek(first * 8)
+                    count = min(_PAGEMAP_SLICE, end // PAGE_BYTES - first)
+                    entries = np.frombuffer(pagemap.read(count * 8), dtype=np.uint64)
+                    frames.append(entries[(entries & _PAGE_PRESENT) != 0] & _PAGE_FRAME)
     except OSError:
         return np.empty(0, dtype=np.uint64)  # gone meanwhile: it holds nothing
     held = np.concatenate(frames) if frames else np.empty(0, dtype=np.uint64)
