@@ -301,6 +301,10 @@ class ActuatorFirmware:
         joint limits. Faults to report go to :attr:`reports`."""
         self._version += 1
         self.now_s = now_s
+        # the joints outside their ranges now (nothing in the loop below moves them; an unlimited joint's range is
+        # infinite, a NaN angle is outside none)
+        q = self.data.qpos[: self.n]
+        outside = ((q < self.lower) | (q > self.upper)).tolist()
         for a in self.actuators:
             pending, count = a.pending, a.pending_count
             a.pending, a.pending_count = None, 0
@@ -316,7 +320,8 @@ class ActuatorFirmware:
             if a.mode is r.ControlModeRequest.TORQUE and now_s - a.last_torque_s > self.config.torque_timeout_s:
                 self._hold(a)
                 self.counters.inc("torque_timeouts")
-            self._check_limits(a)
+            if outside[a.index]:
+                self._report(a, self.fault(a.index, r.ActuatorError.POSITION_LIMIT))
 
     def _take(self, a: Actuator, position_deg: float, torque_nm: float) -> None:
         if a.mode is r.ControlModeRequest.POSITION:
@@ -361,14 +366,6 @@ class ActuatorFirmware:
         a.target_rate_dps = rate
         a.target_accel_dps2 = min(max(accel, -MAX_REFERENCE_ACCEL_DPS2), MAX_REFERENCE_ACCEL_DPS2)
         a.target_time_s = self.now_s
-
-    def _check_limits(self, a: Actuator) -> None:
-        i = a.index
-        if not np.isfinite(self.lower[i]):
-            return
-        q = self.data.qpos[i]
-        if q < self.lower[i] or q > self.upper[i]:
-            self._report(a, self.fault(i, r.ActuatorError.POSITION_LIMIT))
 
     # ------------------------------------------------------------------ physics
     def _segments(self) -> tuple:

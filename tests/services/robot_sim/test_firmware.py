@@ -72,3 +72,33 @@ def test_the_torque_sensors_read_a_bias_and_noise_until_zeroed():
     firmware.zero_torque(5)
     after = np.array([firmware.sensed_torque_nm()[5] for _ in range(2000)])
     assert abs(after.mean()) < 0.03  # the joint reads 0 where it stands (load and bias taken as zero)
+
+
+def test_a_joint_past_its_range_faults_its_actuator_once_and_a_continuous_joint_never():
+    """The j2n6s300's joint 2 put past its upper limit and joint 3 below its lower one, joint 1 (continuous) turned
+    three times round: at the next boundary actuators 2 and 3 latch a position-limit fault, reported once each in
+    actuator order; actuator 1 goes on; the boundary after reports nothing new."""
+    from protocol import rs485 as r
+
+    arm = load_arm("j2n6s300")
+    counters = Counters()
+    sim = Simulation(render=False, arm=arm, counters=counters)
+    firmware = sim.firmware
+    lower, upper = arm.model_limits()
+    assert np.isinf(lower[0]) and np.isfinite(lower[1]) and np.isfinite(lower[2])
+    sim.data.qpos[0] += 6 * np.pi
+    sim.data.qpos[1] = upper[1] + 0.01
+    sim.data.qpos[2] = lower[2] - 0.01
+    for i in range(arm.n_joints):
+        firmware.command(i, firmware.position_deg(i), 0.0)
+    firmware.begin_cycle(1.0)
+    faults = [a.fault for a in firmware.actuators]
+    assert faults[1] == faults[2] == r.ActuatorError.POSITION_LIMIT
+    assert all(f == r.ActuatorError.NONE for i, f in enumerate(faults) if i not in (1, 2))
+    addresses = [a.address for a in firmware.actuators]
+    assert firmware.reports == [(addresses[1], r.ActuatorError.POSITION_LIMIT),
+                                (addresses[2], r.ActuatorError.POSITION_LIMIT)]
+    assert counters.snapshot().get("faults.position_limit") == 2
+    firmware.reports.clear()
+    firmware.begin_cycle(1.002)
+    assert firmware.reports == [] and counters.snapshot().get("faults.position_limit") == 2
