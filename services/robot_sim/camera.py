@@ -52,13 +52,29 @@ _REPO = Path(__file__).resolve().parents[2]
 RENDERER_START_TIMEOUT_S = 60.0
 
 
-def render_on_calling_thread_if_one_core() -> None:
-    """llvmpipe (Mesa's CPU rasteriser) splits a frame across a thread per core it counts. A process allowed one
-    core only (a lockstep run pinned beside others: services.run_pool) gains nothing from them but their hand-offs:
-    it renders on the calling thread (the same pixels: measured, Table 3's logs byte for byte). A variable the user
-    set wins; a GPU driver ignores it. Call before the first GL context is made."""
-    if len(os.sched_getaffinity(0)) == 1:
-        os.environ.setdefault("LP_NUM_THREADS", "0")
+#: llvmpipe's rasteriser threads for a lockstep frame, per core the renderer may use (more than one core)
+LOCKSTEP_RASTERISER_THREADS_PER_CORE = 2
+
+
+def choose_rasteriser_threads(realtime: bool) -> None:
+    """How many threads llvmpipe (Mesa's CPU rasteriser) splits a frame across, the one rule for every renderer
+    of robot_sim; it sets ``LP_NUM_THREADS`` unless the user did (a GPU driver ignores it). Call before the
+    process's first GL context is made. The same pixels whatever the count (llvmpipe renders each tile alone:
+    measured, Table 3's logs and the lockstep identity bench byte for byte).
+
+    * realtime: none, the calling thread renders (``0``). On a shared 2-core host its threads at normal priority
+      cost a quarter more CPU than one (10.5 against 8.5 ms a 640x480 frame) and waited behind vision and the
+      services: frames came late and were dropped. The renderer's own thread, at the camera's priority, renders
+      as a camera's own hardware would, on time;
+    * lockstep allowed one core (a run pinned beside others: services.run_pool): none either, threads there gain
+      nothing but their hand-offs;
+    * lockstep on more cores: two a core. llvmpipe's default, one a core, split a frame unevenly in a composed
+      run on this 2-core machine (0.7 and 1.55 ms of CPU a frame; the caller, submitting and waiting, shares a
+      core with one of them): 3.2 ms a frame. Four threads took 0.16-0.94 ms each: 2.3 ms a frame, Table 3's
+      p-joint 9.6-10.3 → 8.8-9.1 ms an iteration (interleaved runs). Measured on 2 cores only."""
+    cores = len(os.sched_getaffinity(0))
+    threads = 0 if realtime or cores == 1 else LOCKSTEP_RASTERISER_THREADS_PER_CORE * cores
+    os.environ.setdefault("LP_NUM_THREADS", str(threads))
 
 
 class RenderError(RuntimeError):
@@ -111,13 +127,8 @@ def _serve_frames(conn, model: mujoco.MjModel, camera_id: int, width: int, heigh
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is robot_sim's to handle: it closes us
     name_os_thread("robot_sim-render")
     mujoco_module()  # a spawned interpreter: its MuJoCo warnings to the log too, not to MUJOCO_LOG.TXT
-    if realtime_priority > 0:
-        # llvmpipe (Mesa's CPU rasteriser) splits a frame across a thread per core by default. In realtime, on a
-        # shared 2-core host, those threads at normal priority cost a quarter more CPU than one (10.5 against 8.5
-        # ms a 640x480 frame) and waited behind vision and the services: frames came late and were dropped. One
-        # thread, this one, at the camera's priority renders as a camera's own hardware would, on time. (Lockstep
-        # keeps the threads: there the wall time of a frame is what counts. A GPU driver ignores the variable.)
-        os.environ.setdefault("LP_NUM_THREADS", "0")
+    if realtime_priority > 0:  # without it, llvmpipe's own default (the renderer then shares the cores anyway)
+        choose_rasteriser_threads(realtime=True)
     normal_priority()  # the renderer's threads (llvmpipe's) are created now and must not run at realtime priority
     try:
         renderer = FrameRenderer(model, camera_id, width, height, encoding, imaging, camera_matrix)
@@ -368,7 +379,7 @@ class LoopCamera(_Camera):
                 if self._unavailable:
                     raise RenderError("no renderer")
                 cam = self.sim.scene.camera
-                render_on_calling_thread_if_one_core()
+                choose_rasteriser_threads(realtime=False)
                 try:
                     self._renderer = FrameRenderer(self.sim.model, self.sim.camera_id, cam.width, cam.height,
                                                    cam.encoding, cam.imaging, cam.matrix())

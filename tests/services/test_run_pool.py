@@ -60,18 +60,21 @@ def test_a_warm_service_runs_on_the_cores_of_the_process_that_started_it(tmp_pat
         process.wait(timeout=10)
 
 
-def test_a_renderer_allowed_one_core_renders_on_its_calling_thread():
+def test_rasteriser_threads_one_rule_for_every_renderer():
     script = ("import os, sys; os.sched_setaffinity(0, {int(sys.argv[1])} if sys.argv[1] != 'all' else "
               "os.sched_getaffinity(0));"
-              "from services.robot_sim.camera import render_on_calling_thread_if_one_core as rule; rule();"
+              "from services.robot_sim.camera import choose_rasteriser_threads as rule;"
+              "rule(realtime=sys.argv[2] == 'rt');"
               "print(os.environ.get('LP_NUM_THREADS'))")
 
-    def threads(cores: str, **env) -> str:
+    def threads(cores: str, realtime: bool = False, **env) -> str:
         environment = {k: v for k, v in os.environ.items() if k != "LP_NUM_THREADS"} | env
-        return subprocess.run([sys.executable, "-c", script, cores], cwd=REPO, env=environment, text=True,
-                              capture_output=True, check=True).stdout.strip()
+        return subprocess.run([sys.executable, "-c", script, cores, "rt" if realtime else "lockstep"], cwd=REPO,
+                              env=environment, text=True, capture_output=True, check=True).stdout.strip()
 
-    assert threads(str(CORES[0])) == "0"
+    assert threads(str(CORES[0])) == "0"  # lockstep allowed one core: the calling thread renders
     assert threads(str(CORES[0]), LP_NUM_THREADS="2") == "2"  # the user's choice stands
+    assert threads("all", realtime=True) == "0"  # realtime: the renderer's own thread, at the camera's priority
+    assert threads("all", realtime=True, LP_NUM_THREADS="3") == "3"
     if len(CORES) > 1:
-        assert threads("all") == "None"
+        assert threads("all") == str(2 * len(CORES))  # lockstep on more cores: two a core
