@@ -35,7 +35,6 @@ servo drives commonly do); the torque timeout and the gravity compensation follo
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Optional
 
 import msgspec
@@ -84,6 +83,14 @@ def check_actuators(config: ActuatorConfig, arm: ArmDescription) -> None:
         raise ValueError(f"actuators.mirrored_joints are joint numbers 1..{arm.n_joints}")
 
 
+# the modes and errors as plain ints, for the arrays (an IntEnum's members are slow to look up in a hot path)
+POSITION, TORQUE = int(r.ControlModeRequest.POSITION), int(r.ControlModeRequest.TORQUE)
+NO_FAULT = int(r.ActuatorError.NONE)
+try:  # np.clip's own ufunc: the same values without its Python wrappers (~1.4 µs a call, four calls a cycle)
+    from numpy._core.umath import clip as _clip
+except ImportError:  # NumPy 1.x
+    _clip = np.clip
+
 #: a steady temperature: an emulation constant for the reported temperature (nothing in the simulation heats up)
 ACTUATOR_TEMPERATURE_C = 35.0
 #: how long a target's reference moves: across its bus cycle, then on along its rate for the extrapolated cycles
@@ -101,34 +108,47 @@ HOST_GONE_S = 0.25
 SERVO_BANDWIDTH_RPS = 150.0
 
 
-@dataclass
-class Actuator:
-    index: int
-    address: int
-    mode: r.ControlModeRequest = r.ControlModeRequest.POSITION
-    #: the reference's segment across the cycle from ``target_time_s``: start position (deg), rate (deg/s) and
-    #: the change of rate from the segment before (deg/s²); it ends at ``last_target_deg``
-    target_deg: float = 0.0
-    target_rate_dps: float = 0.0
-    target_accel_dps2: float = 0.0
-    target_time_s: float = -math.inf
-    #: the last target taken: where the reference arrives, and holds until the next
-    last_target_deg: float = 0.0
-    #: the newest 0x14 of this cycle (position deg, torque N·m), taken at the next boundary; and how many came
-    pending: Optional[tuple[float, float]] = None
-    pending_count: int = 0
-    last_command_s: float = -math.inf
-    torque_nm: float = 0.0
-    last_torque_s: float = -math.inf
-    validated_s: float = -math.inf
-    fault: r.ActuatorError = r.ActuatorError.NONE
-    reported: set = field(default_factory=set)
+class ActuatorView:
+    """One actuator's state as its firmware holds it (read-only: the firmware's arrays, element ``index``)."""
+
+    def __init__(self, firmware: "ActuatorFirmware", index: int, address: int) -> None:
+        self._firmware, self.index, self.address = firmware, index, address
+
+    @property
+    def mode(self) -> r.ControlModeRequest:
+        return r.ControlModeRequest(int(self._firmware.mode[self.index]))
+
+    @property
+    def fault(self) -> r.ActuatorError:
+        return r.ActuatorError(int(self._firmware.fault_code[self.index]))
+
+    @property
+    def pending(self) -> Optional[tuple[float, float]]:
+        """The newest 0x14 of this cycle (position deg, torque N·m), not yet taken; None if none came."""
+        f, i = self._firmware, self.index
+        return (float(f.pending_deg[i]), float(f.pending_torque_nm[i])) if f.pending_count[i] else None
+
+    def __getattr__(self, name: str):
+        if name in ActuatorFirmware.PER_ACTUATOR:
+            return float(getattr(self._firmware, name)[self.index])
+        raise AttributeError(name)
 
 
 class ActuatorFirmware:
-    """The seven actuators on a MuJoCo arm: bus commands go in between cycle boundaries (:meth:`command`,
+    """The arm's actuators on a MuJoCo arm: bus commands go in between cycle boundaries (:meth:`command`,
     :meth:`validate_torque`, :meth:`switch_mode`, :meth:`clear_fault`); :meth:`begin_cycle` takes them at a
-    boundary; :meth:`apply` sets the joint torques every physics step."""
+    boundary; :meth:`apply` sets the joint torques every physics step.
+
+    Each actuator's state is an element of arrays, one array per quantity (:attr:`PER_ACTUATOR` and the modes,
+    faults and pending commands), so that a boundary and a physics step are a few whole-array operations for the
+    whole arm, not Python per actuator; :attr:`actuators` views them one actuator at a time."""
+
+    #: the reference's segment across the cycle from ``target_time_s``: start position (deg), rate (deg/s) and the
+    #: change of rate from the segment before (deg/s²); it ends at ``last_target_deg``, the last target taken, where
+    #: the reference arrives and holds until the next. Then: when the host last sent a command, the torque
+    #: commanded (torque mode), when it came, when the torque was last validated
+    PER_ACTUATOR = ("target_deg", "target_rate_dps", "target_accel_dps2", "target_time_s", "last_target_deg",
+                    "last_command_s", "torque_nm", "last_torque_s", "validated_s")
 
     def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, arm: ArmDescription,
                  config: ActuatorConfig | None = None, counters: Counters | None = None) -> None:
@@ -137,7 +157,7 @@ class ActuatorFirmware:
         self.config = config or ActuatorConfig()
         check_actuators(self.config, arm)
         self.counters = counters or Counters()
-        self.n = arm.n_joints
+        n = self.n = arm.n_joints
         self.torque_limit = model.actuator_ctrlrange[: self.n, 1].copy()
         specs = [j.spec for j in arm.joints]
         #: the motors' torque-speed line (the data sheets' stall torque falling to 0 at the no-load speed): the most
@@ -159,9 +179,27 @@ class ActuatorFirmware:
         self._sensor_zero = np.zeros(self.n)
         self._sensor_noise = np.random.default_rng(0)
         self.lower, self.upper = arm.model_limits()
-        self.actuators = [Actuator(i, address) for i, address in enumerate(actuator_addresses(self.config, arm))]
+        self.addresses = np.array(actuator_addresses(self.config, arm))
+        # the state (class docstring)
+        for name in self.PER_ACTUATOR:  # times (``_s``) start at never
+            setattr(self, name, np.full(n, -math.inf if name.endswith("_s") else 0.0))
+        self.mode = np.full(n, int(POSITION))
+        self.fault_code = np.full(n, int(NO_FAULT))
+        #: the newest 0x14 of the cycle (position deg, torque N·m), taken at the next boundary, and how many came
+        self.pending_deg, self.pending_torque_nm = np.zeros(n), np.zeros(n)
+        self.pending_count = np.zeros(n, dtype=int)
+        #: a clamped torque is reported once (until the fault flag is cleared), not latched
+        self.torque_reported = np.zeros(n, dtype=bool)
+        self.actuators = [ActuatorView(self, i, int(address)) for i, address in enumerate(self.addresses)]
         self.by_address = {a.address: a for a in self.actuators}
         self._mass = np.zeros((model.nv, model.nv))
+        # views of what apply reads and writes every physics step (MjData's arrays stay where they are: its
+        # attributes make a new view at each access)
+        self._joint_mass, self._inertia = self._mass[:n, :n], self._mass.diagonal()[:n]
+        # (qfrc_bias: at rest the gravity torque; it also cancels Coriolis terms)
+        self._q, self._dq, self._gravity = data.qpos[:n], data.qvel[:n], data.qfrc_bias[:n]
+        self._ctrl = data.ctrl[:n]
+        self._negative_torque_limit = -self.torque_limit
         self._friction = model.dof_damping[: self.n].copy()
         # the actuators' encoders and motors against the model's joints: model = _pivot_model + _deg_to_model·deg
         # (physical degrees, the bus's unit, to the model's radians, sign included); a mirrored joint turns the other
@@ -176,7 +214,7 @@ class ActuatorFirmware:
         self.now_s = 0.0
         #: reports raised at a boundary (joint limits) for the bus to carry: (address, error)
         self.reports: list[tuple[int, r.ActuatorError]] = []
-        #: bumped by every change of an actuator's reference or mode (apply's arrays follow it)
+        #: bumped by every change of an actuator's reference or mode (what apply derives from them follows it)
         self._version, self._segments_version, self._segment_arrays = 0, -1, ()
         self.hold_all()
 
@@ -214,174 +252,202 @@ class ActuatorFirmware:
         return ActuatorValues(
             position_deg=self.physical_deg(q), velocity_dps=dq / self._deg_to_model,
             torque_nm=self.sensed_torque_nm(), current_a=self.applied_torque_nm() / self._torque_per_ampere,
-            temperature_c=np.full(self.n, ACTUATOR_TEMPERATURE_C),
-            mode=np.array([int(a.mode) for a in self.actuators]),
-            fault=np.array([int(a.fault) for a in self.actuators]), stamp_ns=stamp_ns)
+            temperature_c=np.full(self.n, ACTUATOR_TEMPERATURE_C), mode=self.mode.copy(),
+            fault=self.fault_code.copy(), stamp_ns=stamp_ns)
 
     def commanded(self, i: int) -> tuple[float, float]:
         """The newest position target and torque the actuator received (what its 0x17 reports), taken or not."""
-        a = self.actuators[i]
-        if a.pending is not None:
-            return a.pending
-        return a.last_target_deg, a.torque_nm
+        if self.pending_count[i]:
+            return float(self.pending_deg[i]), float(self.pending_torque_nm[i])
+        return float(self.last_target_deg[i]), float(self.torque_nm[i])
 
     def position_deg(self, i: int) -> float:
         return float((self.data.qpos[i] - self._pivot_model[i]) / self._deg_to_model[i])
 
     def hold_all(self) -> None:
         """Every actuator in position mode, holding where its joint is (at start and after a reset)."""
-        for a in self.actuators:
-            a.mode = r.ControlModeRequest.POSITION
-            a.fault = r.ActuatorError.NONE
-            a.reported.clear()
-            a.pending, a.pending_count = None, 0
-            a.last_command_s = -math.inf
-            self._hold(a)
+        self.fault_code[:] = NO_FAULT
+        self.torque_reported[:] = False
+        self.pending_count[:] = 0
+        self.last_command_s[:] = -math.inf
+        self._hold(slice(None))
 
-    def _hold(self, a: Actuator) -> None:
+    def _hold(self, which) -> None:
+        """The actuators ``which`` (an index, a mask or a slice) in position mode, holding where they are."""
         self._version += 1
-        a.mode = r.ControlModeRequest.POSITION
-        a.target_deg = a.last_target_deg = self.position_deg(a.index)
-        a.target_rate_dps = a.target_accel_dps2 = 0.0
-        a.target_time_s = -math.inf
-        a.torque_nm = 0.0
+        self.mode[which] = POSITION
+        self.target_deg[which] = self.last_target_deg[which] = self.physical_deg(self.data.qpos[: self.n])[which]
+        self.target_rate_dps[which] = self.target_accel_dps2[which] = 0.0
+        self.target_time_s[which] = -math.inf
+        self.torque_nm[which] = 0.0
 
     # ------------------------------------------------------------------ commands (between boundaries)
     def command(self, i: int, position_deg: float, torque_nm: float) -> None:
         """A 0x14 for actuator ``i``: taken at the next boundary (the newest of a cycle wins)."""
-        a = self.actuators[i]
-        a.pending = (position_deg, torque_nm)
-        a.pending_count += 1
+        self.pending_deg[i], self.pending_torque_nm[i] = position_deg, torque_nm
+        self.pending_count[i] += 1
+
+    def command_all(self, position_deg: np.ndarray, torque_nm: np.ndarray) -> None:
+        """A 0x14 for every actuator, in joint order (the in-process host's batch)."""
+        self.pending_deg[:], self.pending_torque_nm[:] = position_deg, torque_nm
+        self.pending_count += 1
 
     def validate_torque(self, i: int, expected_nm: float) -> bool:
         cfg = self.config
-        a = self.actuators[i]
         measured = float(self.sensed_torque_nm()[i])
         ok = math.isfinite(expected_nm) and abs(expected_nm - measured) <= max(
             cfg.validation_tolerance_nm, cfg.validation_tolerance_fraction * abs(measured))
         if ok:
-            a.validated_s = self.now_s
+            self.validated_s[i] = self.now_s
         return ok
 
     def switch_mode(self, i: int, wanted: int) -> r.ControlModeReply:
         self._version += 1
-        a = self.actuators[i]
-        if wanted == r.ControlModeRequest.POSITION:
-            self._hold(a)
+        if wanted == POSITION:
+            self._hold(i)
             return r.ControlModeReply.POSITION_OK
-        recent = self.now_s - a.validated_s <= self.config.validation_lifetime_s
-        if wanted == r.ControlModeRequest.TORQUE and recent and a.fault is r.ActuatorError.NONE:
-            a.mode = r.ControlModeRequest.TORQUE
-            a.torque_nm = 0.0
-            a.last_torque_s = self.now_s
-            a.pending, a.pending_count = None, 0
+        recent = self.now_s - self.validated_s[i] <= self.config.validation_lifetime_s
+        if wanted == TORQUE and recent and self.fault_code[i] == NO_FAULT:
+            self.mode[i] = TORQUE
+            self.torque_nm[i] = 0.0
+            self.last_torque_s[i] = self.now_s
+            self.pending_count[i] = 0
             return r.ControlModeReply.TORQUE_OK
         self.counters.inc("mode_switch_refused")
         return r.ControlModeReply.REFUSED
 
     def clear_fault(self, i: int) -> None:
         self._version += 1
-        a = self.actuators[i]
-        a.fault = r.ActuatorError.NONE
-        a.reported.clear()
+        self.fault_code[i] = NO_FAULT
+        self.torque_reported[i] = False
 
     def fault(self, i: int, error: r.ActuatorError) -> Optional[r.ActuatorError]:
         """Latch a fault (reported once: returns it when it is new)."""
-        a = self.actuators[i]
-        if a.fault is r.ActuatorError.NONE:
-            a.fault = error
-            self._hold(a)
-            self.counters.inc(f"faults.{error.name.lower()}")
+        if self.fault_code[i] == NO_FAULT:
+            self._latch(np.arange(self.n) == i, error)
             return error
         return None
+
+    def _latch(self, new: np.ndarray, error: r.ActuatorError) -> None:
+        """Latch ``error`` on the actuators of the mask ``new`` (none of which has a fault): they hold."""
+        if not np.count_nonzero(new):
+            return
+        self.fault_code[new] = error
+        self._hold(new)
+        self.counters.inc(f"faults.{error.name.lower()}", int(np.count_nonzero(new)))
 
     # ------------------------------------------------------------------ the cycle boundary
     def begin_cycle(self, now_s: float) -> None:
         """Take the commands of the cycle that ended (the newest per actuator), time out torque mode, check the
-        joint limits. Faults to report go to :attr:`reports`."""
+        joint limits. Faults to report go to :attr:`reports`, actuator by actuator in order (a command's report
+        before a joint limit's)."""
         self._version += 1
         self.now_s = now_s
-        # the joints outside their ranges now (nothing in the loop below moves them; an unlimited joint's range is
-        # infinite, a NaN angle is outside none)
-        q = self.data.qpos[: self.n]
-        outside = ((q < self.lower) | (q > self.upper)).tolist()
-        for a in self.actuators:
-            pending, count = a.pending, a.pending_count
-            a.pending, a.pending_count = None, 0
-            if count > 1:
-                self.counters.inc("frames.superseded", count - 1)
-            if pending is None:
-                if now_s - a.last_command_s <= HOST_GONE_S:
-                    self.counters.inc("frames.missed")
-            else:
-                a.last_command_s = now_s
-                if a.fault is r.ActuatorError.NONE:
-                    self._take(a, *pending)
-            if a.mode is r.ControlModeRequest.TORQUE and now_s - a.last_torque_s > self.config.torque_timeout_s:
-                self._hold(a)
-                self.counters.inc("torque_timeouts")
-            if outside[a.index]:
-                self._report(a, self.fault(a.index, r.ActuatorError.POSITION_LIMIT))
+        n = self.n
+        # the joints outside their ranges now (nothing below moves them; an unlimited joint's range is infinite, a
+        # NaN angle is outside none)
+        q = self.data.qpos[:n]
+        outside = (q < self.lower) | (q > self.upper)
+        count = self.pending_count
+        came = count > 0
+        came_count = np.count_nonzero(came)
+        every_one_came = came_count == n
+        superseded = int(count.sum()) - int(came_count)
+        if superseded:
+            self.counters.inc("frames.superseded", superseded)
+        if every_one_came:
+            self.last_command_s.fill(now_s)
+        else:
+            missed = int(np.count_nonzero(~came & (now_s - self.last_command_s <= HOST_GONE_S)))
+            if missed:
+                self.counters.inc("frames.missed", missed)
+            self.last_command_s[came] = now_s
+        count.fill(0)
+        torque_mode = self.mode == TORQUE
+        if every_one_came and not np.count_nonzero(self.fault_code) and not np.count_nonzero(torque_mode):
+            self._follow(slice(None))  # the host's batch, every actuator following it (the hot path)
+            command_report = None
+        else:
+            taken = came & (self.fault_code == NO_FAULT)
+            if np.count_nonzero(taken & ~torque_mode):
+                self._follow(taken & ~torque_mode)
+            command_report = self._take_torques(taken & torque_mode) if np.count_nonzero(taken & torque_mode) else None
+            timed_out = (self.mode == TORQUE) & (now_s - self.last_torque_s > self.config.torque_timeout_s)
+            if np.count_nonzero(timed_out):
+                self._hold(timed_out)
+                self.counters.inc("torque_timeouts", int(np.count_nonzero(timed_out)))
+        past_limit = None
+        if np.count_nonzero(outside):
+            past_limit = outside & (self.fault_code == NO_FAULT)
+            self._latch(past_limit, r.ActuatorError.POSITION_LIMIT)
+        if command_report is not None or past_limit is not None:
+            for i in range(n):
+                if command_report is not None and command_report[i] != NO_FAULT:
+                    self.reports.append((int(self.addresses[i]), r.ActuatorError(int(command_report[i]))))
+                if past_limit is not None and past_limit[i]:
+                    self.reports.append((int(self.addresses[i]), r.ActuatorError.POSITION_LIMIT))
 
-    def _take(self, a: Actuator, position_deg: float, torque_nm: float) -> None:
-        if a.mode is r.ControlModeRequest.POSITION:
-            self._follow(a, position_deg)
-            return
-        if abs(position_deg - self.position_deg(a.index)) > self.config.reference_tolerance_deg:
-            self._report(a, self.fault(a.index, r.ActuatorError.RELATIVE_POSITION))
-            return
-        limit = float(self.torque_limit[a.index])
-        torque = min(max(torque_nm, -limit), limit)
-        if torque != torque_nm and r.ActuatorError.TORQUE not in a.reported:
-            a.reported.add(r.ActuatorError.TORQUE)  # clamped: reported once, not latched
-            self._report(a, r.ActuatorError.TORQUE)
-        a.torque_nm = torque
-        a.last_torque_s = self.now_s
+    def _take_torques(self, taking: np.ndarray) -> np.ndarray:
+        """Torque mode takes the commands of the actuators ``taking``: each a torque, checked against where the
+        host thinks the joint is; what each reports (ActuatorError codes, NONE for nothing)."""
+        report = np.full(self.n, int(NO_FAULT))
+        position = self.physical_deg(self.data.qpos[: self.n])
+        off = taking & (np.abs(self.pending_deg - position) > self.config.reference_tolerance_deg)
+        if np.count_nonzero(off):
+            self._latch(off, r.ActuatorError.RELATIVE_POSITION)
+            report[off] = r.ActuatorError.RELATIVE_POSITION
+        accepted = taking & ~off
+        asked = self.pending_torque_nm[accepted]
+        torque = _clip(asked, -self.torque_limit[accepted], self.torque_limit[accepted])
+        clamped = np.zeros(self.n, dtype=bool)
+        clamped[accepted] = torque != asked
+        first_clamp = clamped & ~self.torque_reported
+        self.torque_reported |= first_clamp  # clamped: reported once, not latched
+        report[first_clamp] = r.ActuatorError.TORQUE
+        self.torque_nm[accepted] = torque
+        self.last_torque_s[accepted] = self.now_s
+        return report
 
-    def _report(self, a: Actuator, error: Optional[r.ActuatorError]) -> None:
-        if error is not None:
-            self.reports.append((a.address, error))
+    def reference(self, t_s: float, which=slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """Where the references of the actuators ``which`` are at ``t_s`` (deg) and their rates (deg/s): along their
+        segments during the cycle and, without a new target, along the same rate for one more cycle; then they
+        hold there."""
+        ahead = t_s - self.target_time_s[which]
+        start_deg, rate_dps = self.target_deg[which], self.target_rate_dps[which]
+        started = ahead >= 0.0
+        along = started & (ahead < GOES_ON_S - 1e-9)
+        position = np.where(started, start_deg + rate_dps * np.where(along, ahead, GOES_ON_S),
+                            self.last_target_deg[which])
+        return position, np.where(along, rate_dps, 0.0)
 
-    def _reference_deg(self, a: Actuator, t_s: float) -> tuple[float, float]:
-        """The reference's position and rate at ``t_s``: along its segment during the cycle and, without a new
-        target, along the same rate for one more cycle; then it holds there."""
-        ahead = t_s - a.target_time_s
-        if 0.0 <= ahead < GOES_ON_S - 1e-9:
-            return a.target_deg + a.target_rate_dps * ahead, a.target_rate_dps
-        if ahead >= 0.0:
-            return a.target_deg + a.target_rate_dps * GOES_ON_S, 0.0
-        return a.last_target_deg, 0.0
-
-    def _follow(self, a: Actuator, position_deg: float) -> None:
-        """A new position target at this boundary: a segment from where the reference is to the target, across the
-        cycle."""
-        start, _ = self._reference_deg(a, self.now_s)
-        ahead = self.now_s - a.target_time_s
+    def _follow(self, following) -> None:
+        """New position targets at this boundary for the actuators ``following`` (a mask or a slice): a segment
+        from where each reference is to its target, across the cycle."""
+        start, _ = self.reference(self.now_s, following)
+        ahead = self.now_s - self.target_time_s[following]
         # the rate the reference moved at up to now (at the end of its one cycle of going on, it still moved)
-        rate_before = a.target_rate_dps if 0.0 <= ahead <= GOES_ON_S + 1e-9 else 0.0
-        rate = (position_deg - start) / CYCLE_S
-        rate = min(max(rate, -MAX_REFERENCE_RATE_DPS), MAX_REFERENCE_RATE_DPS)  # a glitch, not a trajectory
-        accel = (rate - rate_before) / CYCLE_S
-        a.target_deg, a.last_target_deg = start, position_deg
-        a.target_rate_dps = rate
-        a.target_accel_dps2 = min(max(accel, -MAX_REFERENCE_ACCEL_DPS2), MAX_REFERENCE_ACCEL_DPS2)
-        a.target_time_s = self.now_s
+        rate_before = np.where((ahead >= 0.0) & (ahead <= GOES_ON_S + 1e-9), self.target_rate_dps[following], 0.0)
+        target = self.pending_deg[following]
+        # a glitch, not a trajectory: the bounds only cut those
+        rate = _clip((target - start) / CYCLE_S, -MAX_REFERENCE_RATE_DPS, MAX_REFERENCE_RATE_DPS)
+        self.target_deg[following], self.last_target_deg[following] = start, target
+        self.target_rate_dps[following] = rate
+        self.target_accel_dps2[following] = _clip((rate - rate_before) / CYCLE_S, -MAX_REFERENCE_ACCEL_DPS2,
+                                                  MAX_REFERENCE_ACCEL_DPS2)
+        self.target_time_s[following] = self.now_s
 
     # ------------------------------------------------------------------ physics
     def _segments(self) -> tuple:
-        """The actuators' references as arrays, for :meth:`apply` (rebuilt only after a change: apply runs every
-        physics step, the references change at boundaries and on mode switches), with what follows from them alone:
-        whether any actuator is in torque mode, and the reference's rate in the model's units."""
+        """The actuators' references, for :meth:`apply`, with what follows from them alone (derived again only after
+        a change: apply runs every physics step, the references change at boundaries and on mode switches): which
+        actuators are in torque mode, whether any is, the reference's rate and change of rate in the model's units."""
         if self._segments_version != self._version:
-            acts = self.actuators
-            torque_mode = np.array([a.mode is r.ControlModeRequest.TORQUE and a.fault is r.ActuatorError.NONE
-                                    for a in acts])
-            rate_dps = np.array([a.target_rate_dps for a in acts])
-            taken_s = np.array([a.target_time_s for a in acts])
+            torque_mode = (self.mode == TORQUE) & (self.fault_code == NO_FAULT)
+            taken_s = self.target_time_s
             self._segment_arrays = (
-                torque_mode, np.array([a.torque_nm for a in acts]), np.array([a.target_deg for a in acts]),
-                rate_dps, np.array([a.target_accel_dps2 for a in acts]), taken_s,
-                np.array([a.last_target_deg for a in acts]), bool(torque_mode.any()), self._deg_to_model * rate_dps,
+                torque_mode, self.torque_nm, self.target_deg, self.target_rate_dps,
+                self._deg_to_model * self.target_accel_dps2, taken_s,
+                self.last_target_deg, bool(np.count_nonzero(torque_mode)), self._deg_to_model * self.target_rate_dps,
                 # every reference taken at one boundary (the host sends all joints each cycle): apply's choices
                 # are then one per step, not one per joint
                 float(taken_s[0]) if bool((taken_s == taken_s[0]).all()) else None)
@@ -394,16 +460,13 @@ class ActuatorFirmware:
     def apply(self, t_s: float) -> None:
         """The actuators' torques for the physics step starting at ``t_s`` (the arm's timeline). Runs every physics
         step (1 kHz): a handful of whole-array operations, no per-joint Python."""
-        d = self.data
-        n = self.n
-        q, dq = d.qpos[:n], d.qvel[:n]
-        gravity = d.qfrc_bias[:n]  # at rest this is the gravity torque; it also cancels Coriolis terms
-        mujoco.mj_fullM(self.model, d, self._mass)
-        inertia = self._mass.diagonal()[:n]
-        (torque_mode, torque_nm, start_deg, rate_dps, accel_dps2, taken_s, last_deg, any_torque, rate_model,
+        q, dq, gravity = self._q, self._dq, self._gravity
+        mujoco.mj_fullM(self.model, self.data, self._mass)
+        (torque_mode, torque_nm, start_deg, rate_dps, accel_model, taken_s, last_deg, any_torque, rate_model,
          taken_together) = self._segments()
-        # follow the reference (_reference_deg, for all seven at once), with the inertia, friction and gravity its
-        # motion needs as feed-forward (the segment's change of rate during the cycle it was taken in)
+        # follow the reference (:meth:`reference`, but for the last 1e-9 s of its cycle of going on), with the
+        # inertia, friction and gravity its motion needs as feed-forward (the segment's change of rate during the
+        # cycle it was taken in)
         if taken_together is not None:  # the same arithmetic, its choices made once for every joint
             ahead = t_s - taken_together
             started = ahead >= 0.0
@@ -417,7 +480,7 @@ class ActuatorFirmware:
                                      last_deg)
             rate = self._deg_to_model * np.where(started & (ahead < GOES_ON_S - 1e-9), rate_dps, 0.0)
             in_first_cycle = started & (ahead < CYCLE_S - 1e-9)
-        tau = gravity + self._friction * rate + inertia * (
+        tau = gravity + self._friction * rate + self._inertia * (
             SERVO_BANDWIDTH_RPS**2 * (self._pivot_model + self._deg_to_model * reference_deg - q)
             + 2.0 * SERVO_BANDWIDTH_RPS * (rate - dq))
         # the joints' Coulomb friction acts where an actuator is in torque mode (set with the modes, _segments); in
@@ -428,13 +491,16 @@ class ActuatorFirmware:
             commanded = self._torque_sign * torque_nm + (gravity if self.compensating_gravity else 0.0)
             tau = np.where(torque_mode, commanded, tau)
             in_first_cycle = np.logical_and(in_first_cycle, ~torque_mode)
-        if in_first_cycle.any() if isinstance(in_first_cycle, np.ndarray) else in_first_cycle:
-            tau += self._mass[:n, :n] @ np.where(in_first_cycle, self._deg_to_model * accel_dps2, 0.0)
+        if isinstance(in_first_cycle, np.ndarray):
+            if np.count_nonzero(in_first_cycle):
+                tau += self._joint_mass @ np.where(in_first_cycle, accel_model, 0.0)
+        elif in_first_cycle:
+            tau += self._joint_mass @ accel_model
         # what the motors can give: the peak (software limitation), and, in the direction each turns, the torque-speed
         # line from the stall torque to zero at the no-load speed
         along = np.minimum(self.torque_limit, np.maximum(self._stall * (1.0 - np.abs(dq) / self._no_load), 0.0))
         upper = np.where(dq > 0.0, along, self.torque_limit)
-        lower = np.where(dq < 0.0, -along, -self.torque_limit)
-        np.clip(tau, lower, upper, out=d.ctrl[:n])
-        if (d.ctrl[:n] != tau).any():
+        lower = np.where(dq < 0.0, -along, self._negative_torque_limit)
+        ctrl = _clip(tau, lower, upper, out=self._ctrl)
+        if np.count_nonzero(ctrl != tau):
             self.counters.inc("torque.limited_ms")  # a physics step (1 ms) in which some motor gave less than asked

@@ -55,8 +55,7 @@ class SimulatedHardware:
         position_deg, torque_nm = physical_targets(targets, self.sim.arm)
         position_deg, torque_nm = float32(position_deg), float32(torque_nm)
         firmware = self.sim.firmware
-        for i in range(self.sim.arm.n_joints):
-            firmware.command(i, float(position_deg[i]), float(torque_nm[i]))
+        firmware.command_all(position_deg, torque_nm)
         values = self.sim.begin_cycle()
         # the physical arm's own report, whatever its description says (MuJoCo's last kinematics: a physics step,
         # 1 ms, behind a moving arm, as a real arm's report lags its joints)

@@ -115,7 +115,7 @@ def test_a_target_is_reached_at_the_end_of_the_cycle_that_takes_it(rig):
     rig.cycle(1)
     assert actuator.last_target_deg == f32(home + 0.01)
     assert actuator.target_rate_dps == pytest.approx((f32(home + 0.01) - home) / 0.002, rel=1e-3)
-    assert rig.firmware._reference_deg(actuator, actuator.target_time_s + 0.001)[0] == \
+    assert rig.firmware.reference(actuator.target_time_s + 0.001)[0][5] == \
         pytest.approx((home + f32(home + 0.01)) / 2, abs=1e-4)
 
 
@@ -132,10 +132,12 @@ def test_a_missed_cycle_goes_on_one_cycle_then_holds_and_superseded_ones_are_cou
     assert rate == pytest.approx(0.02 / 0.002, rel=1e-3)
     rig.cycle(1)  # nothing came
     assert rig.firmware.counters.get("frames.missed") >= 1
-    assert rig.firmware._reference_deg(actuator, actuator.target_time_s + 0.003) == pytest.approx(
-        (start + rate * 0.003, rate))
-    assert rig.firmware._reference_deg(actuator, actuator.target_time_s + 0.0045) == pytest.approx(
-        (start + rate * 0.004, 0.0))  # it went on one cycle, and holds there
+    def reference(t_s: float) -> tuple[float, float]:
+        position, rate = rig.firmware.reference(t_s)
+        return position[1], rate[1]
+
+    assert reference(actuator.target_time_s + 0.003) == pytest.approx((start + rate * 0.003, rate))
+    assert reference(actuator.target_time_s + 0.0045) == pytest.approx((start + rate * 0.004, 0.0))  # it went on one cycle, and holds there
     # the late target and the next one come in the same cycle: the newer wins, from where the reference went on
     rig.host.send(r.PositionTorqueCommand(home + 0.10, 0.0).to_message(address))
     rig.host.send(r.PositionTorqueCommand(home + 0.12, 0.0).to_message(address))
