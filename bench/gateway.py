@@ -27,6 +27,7 @@ from protocol import messages as m
 from protocol.keys import Keys
 from services.model.kinematics import ArmKinematics
 from services.runtime.transport import open_session
+from bench.hogs import cpu_hogs
 from bench.stack import measured_arm, unknown_arm
 from services.cli import add_arm_option
 from services.model.arm import DEFAULT_ARM, load_arm
@@ -37,10 +38,6 @@ from services.stack import RobotProcesses, RouterProcess
 REPO = Path(__file__).resolve().parents[1]
 LINEAR = np.array([0.04, -0.03, 0.03])
 ROTATIONAL = np.array([0.0, 0.0, 0.2])
-
-
-def _spin(count: int) -> list[subprocess.Popen]:
-    return [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
 
 
 def _command_source(endpoint: str, seconds: float) -> subprocess.Popen:
@@ -70,17 +67,12 @@ def run_once(load: int, seconds: float, arm: str = DEFAULT_ARM) -> dict:
             time.sleep(0.05)
         description = load_arm(measured_arm(arm, {s.arm for s in states}))  # the robot's, as its states declare it
         kin, limit = ArmKinematics(description), arm_limits(description).linear_speed_mps
-        hogs = _spin(load)
-        try:
+        with cpu_hogs(load):
             time.sleep(0.3)
             source = _command_source(router.endpoint, seconds)
             source.wait(timeout=seconds + 30)
             time.sleep(0.1)
             gateway, actuators = _health(client, keys, "robot_gateway"), _health(client, keys, "robot_sim")
-        finally:
-            for hog in hogs:
-                hog.kill()
-                hog.wait()
         snapshot = list(states)
         client.close()
     moving = [s for s in snapshot if s.applied_command is not None]

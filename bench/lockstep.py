@@ -21,7 +21,6 @@ load). The base's logs are kept per commit and reused (``--fresh`` runs it again
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import shutil
@@ -32,6 +31,7 @@ import time
 from pathlib import Path
 
 from bench.cpu import cpu_seconds, peak_rss_mb, process_tree
+from bench.hogs import cpu_hogs
 from bench.stack import unknown_arm
 from services.cli import add_arm_option
 from services.controller.laws import LAW_NAMES
@@ -52,18 +52,6 @@ IDENTITY_RUNS = (
 
 
 # ------------------------------------------------------------------------------------------------ load
-@contextlib.contextmanager
-def cpu_hogs(n: int):
-    """``n`` processes spinning on a core each (``python -c 'while True: pass'``) for as long as the block runs."""
-    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
-    try:
-        yield
-    finally:
-        for hog in hogs:
-            hog.kill()
-            hog.wait()
-
-
 def load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
 

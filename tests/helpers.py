@@ -62,32 +62,6 @@ class PinArm(ArmKinematics):
         super().__init__(arm)
 
 
-class CpuLoad:
-    """Keeps every core busy (one spinning process per core, at normal priority), as another program on a shared
-    machine would: a context manager. What runs beside it must stay correct: late, counted, never faster. (Plain
-    processes, not multiprocessing's: those would re-import the caller's main module.)"""
-
-    def __init__(self, processes: int | None = None) -> None:
-        import os
-
-        self.count = processes if processes is not None else (os.cpu_count() or 1)
-        self._procs = []
-
-    def __enter__(self) -> "CpuLoad":
-        import subprocess
-        import sys
-
-        for _ in range(self.count):
-            self._procs.append(subprocess.Popen([sys.executable, "-c", "while True: pass"]))
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for process in self._procs:
-            process.kill()
-            process.wait(timeout=5)
-        self._procs.clear()
-
-
 #: seed 000 Table 2's goal: the square ±0.1666 (normalised) at 0.2888 m
 GOAL_SQUARE = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.helpers import CpuLoad
+from bench.hogs import cpu_hogs
 from services.experiments import (EXPERIMENTS, SCENARIOS, TABLE3_PAPER, improvement_pct, run_experiment,
                                   straightness)
 
@@ -66,7 +66,7 @@ def test_runs_side_by_side_and_beside_cpu_hogs_log_exactly_what_one_run_at_a_tim
         return json.loads(done.stdout.strip().splitlines()[-1])
 
     alone = experiment(1, tmp_path / "alone")
-    with CpuLoad(2):
+    with cpu_hogs(2):
         side_by_side = experiment(2, tmp_path / "side_by_side")
     check_shape(side_by_side, "part-a")
     labels = [spec.label for spec in EXPERIMENTS["part-a"].runs]

@@ -19,7 +19,8 @@ from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
 from services.stack import RobotProcesses, RouterProcess
-from tests.helpers import REPO, CpuLoad
+from bench.hogs import cpu_hogs
+from tests.helpers import REPO
 from tests.stack import KEYS, Recorder, wait_for
 from services.model.arm import load_arm
 
@@ -38,7 +39,7 @@ def test_same_keys_and_same_motion_as_robot_sim():
     within 2 %, never more than 2 % faster, and slower than commanded by at most 2 % plus the cycles the counters
     say were lost meanwhile."""
     linear = np.array([0.04, -0.03, 0.03])
-    with RouterProcess() as router, RobotProcesses(router.client_config()), CpuLoad():
+    with RouterProcess() as router, RobotProcesses(router.client_config()), cpu_hogs():
         client = open_session(router.client_config())
         try:
             states = Recorder(client, KEYS.robot_state, m.RobotState)
