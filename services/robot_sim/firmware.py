@@ -346,13 +346,12 @@ class ActuatorFirmware:
         n = self.n
         # the joints outside their ranges now (nothing below moves them; an unlimited joint's range is infinite, a
         # NaN angle is outside none)
-        q = self.data.qpos[:n]
-        outside = (q < self.lower) | (q > self.upper)
+        outside = (self._q < self.lower) | (self._q > self.upper)
         count = self.pending_count
         came = count > 0
-        came_count = np.count_nonzero(came)
+        came_count = int(np.count_nonzero(count))
         every_one_came = came_count == n
-        superseded = int(count.sum()) - int(came_count)
+        superseded = int(np.add.reduce(count)) - came_count
         if superseded:
             self.counters.inc("frames.superseded", superseded)
         if every_one_came:
@@ -412,21 +411,25 @@ class ActuatorFirmware:
         """Where the references of the actuators ``which`` are at ``t_s`` (deg) and their rates (deg/s): along their
         segments during the cycle and, without a new target, along the same rate for one more cycle; then they
         hold there."""
-        ahead = t_s - self.target_time_s[which]
-        start_deg, rate_dps = self.target_deg[which], self.target_rate_dps[which]
+        position, _, along = self._reference(t_s - self.target_time_s[which], which)
+        return position, np.where(along, self.target_rate_dps[which], 0.0)
+
+    def _reference(self, ahead: np.ndarray, which) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`reference`'s position ``ahead`` of each segment's start, whether the segment started, whether the
+        reference still moves along it."""
         started = ahead >= 0.0
         along = started & (ahead < GOES_ON_S - 1e-9)
-        position = np.where(started, start_deg + rate_dps * np.where(along, ahead, GOES_ON_S),
-                            self.last_target_deg[which])
-        return position, np.where(along, rate_dps, 0.0)
+        position = np.where(started, self.target_deg[which] + self.target_rate_dps[which] * np.where(
+            along, ahead, GOES_ON_S), self.last_target_deg[which])
+        return position, started, along
 
     def _follow(self, following) -> None:
         """New position targets at this boundary for the actuators ``following`` (a mask or a slice): a segment
         from where each reference is to its target, across the cycle."""
-        start, _ = self.reference(self.now_s, following)
         ahead = self.now_s - self.target_time_s[following]
+        start, started, _ = self._reference(ahead, following)
         # the rate the reference moved at up to now (at the end of its one cycle of going on, it still moved)
-        rate_before = np.where((ahead >= 0.0) & (ahead <= GOES_ON_S + 1e-9), self.target_rate_dps[following], 0.0)
+        rate_before = np.where(started & (ahead <= GOES_ON_S + 1e-9), self.target_rate_dps[following], 0.0)
         target = self.pending_deg[following]
         # a glitch, not a trajectory: the bounds only cut those
         rate = _clip((target - start) / CYCLE_S, -MAX_REFERENCE_RATE_DPS, MAX_REFERENCE_RATE_DPS)
