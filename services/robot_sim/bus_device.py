@@ -90,10 +90,8 @@ class ActuatorBusDevice:
         firmware = self.firmware
         values = np.zeros((len(joints), 3, 4))
         values[:, 0] = np.stack([v.current_a, v.position_deg, v.velocity_dps, v.torque_nm], axis=1)[joints]
-        for row, j in enumerate(joints):
-            target, torque = firmware.commanded(j)
-            actuator = firmware.actuators[j]
-            values[row, 2] = (target, torque, float(actuator.mode), float(actuator.fault))
+        target, torque = firmware.commanded()
+        values[:, 2] = np.array([target, torque, firmware.mode, firmware.fault_code]).T[joints]
         out = self._reply_template[joints].reshape(-1)  # a copy: the ids and addresses of each joint's three
         out["data"] = values.reshape(-1, 4)
         # AllValues2: int16 [ax, ay, az (×0.001 g), temperature (×0.01 °C)], zero-filled

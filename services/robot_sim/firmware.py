@@ -255,11 +255,11 @@ class ActuatorFirmware:
             temperature_c=np.full(self.n, ACTUATOR_TEMPERATURE_C), mode=self.mode.copy(),
             fault=self.fault_code.copy(), stamp_ns=stamp_ns)
 
-    def commanded(self, i: int) -> tuple[float, float]:
-        """The newest position target and torque the actuator received (what its 0x17 reports), taken or not."""
-        if self.pending_count[i]:
-            return float(self.pending_deg[i]), float(self.pending_torque_nm[i])
-        return float(self.last_target_deg[i]), float(self.torque_nm[i])
+    def commanded(self) -> tuple[np.ndarray, np.ndarray]:
+        """The newest position target and torque each actuator received (what its 0x17 reports), taken or not."""
+        pending = self.pending_count > 0
+        return (np.where(pending, self.pending_deg, self.last_target_deg),
+                np.where(pending, self.pending_torque_nm, self.torque_nm))
 
     def position_deg(self, i: int) -> float:
         return float((self.data.qpos[i] - self._pivot_model[i]) / self._deg_to_model[i])
