@@ -54,13 +54,16 @@ RENDERER_START_TIMEOUT_S = 60.0
 
 #: llvmpipe's rasteriser threads for a lockstep frame, per core the renderer may use (more than one core)
 LOCKSTEP_RASTERISER_THREADS_PER_CORE = 2
+#: the LP_NUM_THREADS that mfvs chose (a value that differs is the user's)
+_CHOSEN_BY_MFVS = "MFVS_LP_NUM_THREADS_CHOSEN"
 
 
 def choose_rasteriser_threads(realtime: bool) -> None:
     """How many threads llvmpipe (Mesa's CPU rasteriser) splits a frame across, the one rule for every renderer
     of robot_sim; it sets ``LP_NUM_THREADS`` unless the user did (a GPU driver ignores it). Call before the
-    process's first GL context is made. The same pixels whatever the count (llvmpipe renders each tile alone:
-    measured, Table 3's logs and the lockstep identity bench byte for byte).
+    process's first GL context is made (llvmpipe reads the variable as it starts). The same pixels whatever the
+    count (llvmpipe renders each tile alone: measured, Table 3's logs and the lockstep identity bench byte for
+    byte).
 
     * realtime: none, the calling thread renders (``0``). On a shared 2-core host its threads at normal priority
       cost a quarter more CPU than one (10.5 against 8.5 ms a 640x480 frame) and waited behind vision and the
@@ -72,9 +75,14 @@ def choose_rasteriser_threads(realtime: bool) -> None:
       run on this 2-core machine (0.7 and 1.55 ms of CPU a frame; the caller, submitting and waiting, shares a
       core with one of them): 3.2 ms a frame. Four threads took 0.16-0.94 ms each: 2.3 ms a frame, Table 3's
       p-joint 9.6-10.3 → 8.8-9.1 ms an iteration (interleaved runs). Measured on 2 cores only."""
+    current = os.environ.get("LP_NUM_THREADS")
+    if current is not None and current != os.environ.get(_CHOSEN_BY_MFVS):
+        return  # the user's
     cores = len(os.sched_getaffinity(0))
-    threads = 0 if realtime or cores == 1 else LOCKSTEP_RASTERISER_THREADS_PER_CORE * cores
-    os.environ.setdefault("LP_NUM_THREADS", str(threads))
+    threads = str(0 if realtime or cores == 1 else LOCKSTEP_RASTERISER_THREADS_PER_CORE * cores)
+    # marked as ours: a child process inherits both and makes its own choice (a realtime renderer started by a
+    # process that rendered a lockstep frame must not render with that frame's threads)
+    os.environ["LP_NUM_THREADS"] = os.environ[_CHOSEN_BY_MFVS] = threads
 
 
 class RenderError(RuntimeError):

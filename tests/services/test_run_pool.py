@@ -68,7 +68,8 @@ def test_rasteriser_threads_one_rule_for_every_renderer():
               "print(os.environ.get('LP_NUM_THREADS'))")
 
     def threads(cores: str, realtime: bool = False, **env) -> str:
-        environment = {k: v for k, v in os.environ.items() if k != "LP_NUM_THREADS"} | env
+        environment = {k: v for k, v in os.environ.items()
+                       if k not in ("LP_NUM_THREADS", "MFVS_LP_NUM_THREADS_CHOSEN")} | env
         return subprocess.run([sys.executable, "-c", script, cores, "rt" if realtime else "lockstep"], cwd=REPO,
                               env=environment, text=True, capture_output=True, check=True).stdout.strip()
 
@@ -78,3 +79,7 @@ def test_rasteriser_threads_one_rule_for_every_renderer():
     assert threads("all", realtime=True, LP_NUM_THREADS="3") == "3"
     if len(CORES) > 1:
         assert threads("all") == str(2 * len(CORES))  # lockstep on more cores: two a core
+    # what a process inherits from one where mfvs chose (a lockstep run's threads) is chosen again, not kept
+    inherited = {"LP_NUM_THREADS": "4", "MFVS_LP_NUM_THREADS_CHOSEN": "4"}
+    assert threads("all", realtime=True, **inherited) == "0"
+    assert threads(str(CORES[0]), **inherited) == "0"
