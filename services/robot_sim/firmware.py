@@ -183,8 +183,8 @@ class ActuatorFirmware:
         # the state (class docstring)
         for name in self.PER_ACTUATOR:  # times (``_s``) start at never
             setattr(self, name, np.full(n, -math.inf if name.endswith("_s") else 0.0))
-        self.mode = np.full(n, int(POSITION))
-        self.fault_code = np.full(n, int(NO_FAULT))
+        self.mode = np.full(n, POSITION)
+        self.fault_code = np.full(n, NO_FAULT)
         #: the newest 0x14 of the cycle (position deg, torque N·m), taken at the next boundary, and how many came
         self.pending_deg, self.pending_torque_nm = np.zeros(n), np.zeros(n)
         self.pending_count = np.zeros(n, dtype=int)
@@ -231,10 +231,11 @@ class ActuatorFirmware:
         """What each motor gives now, in the actuators' own sign (N·m)."""
         return self._torque_sign * self.data.actuator_force[: self.n]
 
-    def sensed_torque_nm(self) -> np.ndarray:
-        """What each actuator's torque sensor reads: the applied torque, its bias less its zero, and its noise."""
-        return (self.applied_torque_nm() + self._sensor_bias - self._sensor_zero
-                + self._sensor_noise.normal(0.0, self._sensor_sigma))
+    def sensed_torque_nm(self, applied_nm: Optional[np.ndarray] = None) -> np.ndarray:
+        """What each actuator's torque sensor reads: the applied torque (``applied_nm``, else now's), its bias less
+        its zero, and its noise."""
+        applied_nm = self.applied_torque_nm() if applied_nm is None else applied_nm
+        return applied_nm + self._sensor_bias - self._sensor_zero + self._sensor_noise.normal(0.0, self._sensor_sigma)
 
     def set_gravity_compensation(self, on: bool) -> None:
         """The arm's own gravity compensation in torque mode, on or off (Table 5.1's ``SetGravityType`` and
@@ -247,11 +248,10 @@ class ActuatorFirmware:
         self._sensor_zero[i] = self.applied_torque_nm()[i] + self._sensor_bias[i]
 
     def values(self, stamp_ns: int) -> ActuatorValues:
-        d = self.data
-        q, dq = d.qpos[: self.n], d.qvel[: self.n]
+        applied = self.applied_torque_nm()
         return ActuatorValues(
-            position_deg=self.physical_deg(q), velocity_dps=dq / self._deg_to_model,
-            torque_nm=self.sensed_torque_nm(), current_a=self.applied_torque_nm() / self._torque_per_ampere,
+            position_deg=self.physical_deg(self._q), velocity_dps=self._dq / self._deg_to_model,
+            torque_nm=self.sensed_torque_nm(applied), current_a=applied / self._torque_per_ampere,
             temperature_c=np.full(self.n, ACTUATOR_TEMPERATURE_C), mode=self.mode.copy(),
             fault=self.fault_code.copy(), stamp_ns=stamp_ns)
 
@@ -276,7 +276,7 @@ class ActuatorFirmware:
         """The actuators ``which`` (an index, a mask or a slice) in position mode, holding where they are."""
         self._version += 1
         self.mode[which] = POSITION
-        self.target_deg[which] = self.last_target_deg[which] = self.physical_deg(self.data.qpos[: self.n])[which]
+        self.target_deg[which] = self.last_target_deg[which] = self.physical_deg(self._q)[which]
         self.target_rate_dps[which] = self.target_accel_dps2[which] = 0.0
         self.target_time_s[which] = -math.inf
         self.torque_nm[which] = 0.0
@@ -389,8 +389,8 @@ class ActuatorFirmware:
     def _take_torques(self, taking: np.ndarray) -> np.ndarray:
         """Torque mode takes the commands of the actuators ``taking``: each a torque, checked against where the
         host thinks the joint is; what each reports (ActuatorError codes, NONE for nothing)."""
-        report = np.full(self.n, int(NO_FAULT))
-        position = self.physical_deg(self.data.qpos[: self.n])
+        report = np.full(self.n, NO_FAULT)
+        position = self.physical_deg(self._q)
         off = taking & (np.abs(self.pending_deg - position) > self.config.reference_tolerance_deg)
         if np.count_nonzero(off):
             self._latch(off, r.ActuatorError.RELATIVE_POSITION)
@@ -441,16 +441,16 @@ class ActuatorFirmware:
 
     # ------------------------------------------------------------------ physics
     def _segments(self) -> tuple:
-        """The actuators' references, for :meth:`apply`, with what follows from them alone (derived again only after
+        """What follows for :meth:`apply` from the actuators' references and modes alone (derived again only after
         a change: apply runs every physics step, the references change at boundaries and on mode switches): which
-        actuators are in torque mode, whether any is, the reference's rate and change of rate in the model's units."""
+        actuators are in torque mode, whether any is, the reference's rate and change of rate in the model's units,
+        and the one time every reference was taken at, if there is one."""
         if self._segments_version != self._version:
             torque_mode = (self.mode == TORQUE) & (self.fault_code == NO_FAULT)
             taken_s = self.target_time_s
             self._segment_arrays = (
-                torque_mode, self.torque_nm, self.target_deg, self.target_rate_dps,
-                self._deg_to_model * self.target_accel_dps2, taken_s,
-                self.last_target_deg, bool(np.count_nonzero(torque_mode)), self._deg_to_model * self.target_rate_dps,
+                torque_mode, bool(np.count_nonzero(torque_mode)), self._deg_to_model * self.target_rate_dps,
+                self._deg_to_model * self.target_accel_dps2,
                 # every reference taken at one boundary (the host sends all joints each cycle): apply's choices
                 # are then one per step, not one per joint
                 float(taken_s[0]) if bool((taken_s == taken_s[0]).all()) else None)
@@ -465,8 +465,8 @@ class ActuatorFirmware:
         step (1 kHz): a handful of whole-array operations, no per-joint Python."""
         q, dq, gravity = self._q, self._dq, self._gravity
         mujoco.mj_fullM(self.model, self.data, self._mass)
-        (torque_mode, torque_nm, start_deg, rate_dps, accel_model, taken_s, last_deg, any_torque, rate_model,
-         taken_together) = self._segments()
+        torque_mode, any_torque, rate_model, accel_model, taken_together = self._segments()
+        start_deg, rate_dps, last_deg = self.target_deg, self.target_rate_dps, self.last_target_deg
         # follow the reference (:meth:`reference`, but for the last 1e-9 s of its cycle of going on), with the
         # inertia, friction and gravity its motion needs as feed-forward (the segment's change of rate during the
         # cycle it was taken in)
@@ -477,7 +477,7 @@ class ActuatorFirmware:
             rate = rate_model if started and ahead < GOES_ON_S - 1e-9 else self._zero_rate
             in_first_cycle = started and ahead < CYCLE_S - 1e-9
         else:
-            ahead = t_s - taken_s
+            ahead = t_s - self.target_time_s
             started = ahead >= 0.0
             reference_deg = np.where(started, start_deg + rate_dps * np.minimum(np.maximum(ahead, 0.0), GOES_ON_S),
                                      last_deg)
@@ -491,7 +491,7 @@ class ActuatorFirmware:
         # it (the joint-level servo emulated here is far softer than that loop and would leave the friction as an
         # error it never has)
         if any_torque:
-            commanded = self._torque_sign * torque_nm + (gravity if self.compensating_gravity else 0.0)
+            commanded = self._torque_sign * self.torque_nm + (gravity if self.compensating_gravity else 0.0)
             tau = np.where(torque_mode, commanded, tau)
             in_first_cycle = np.logical_and(in_first_cycle, ~torque_mode)
         if isinstance(in_first_cycle, np.ndarray):
