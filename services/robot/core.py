@@ -25,10 +25,12 @@ import numpy as np
 from protocol.messages import RobotCommand
 from services.robot.dsp import CommandRefused, KinovaDSP
 from services.robot.hardware import CYCLE_S, CYCLES_PER_DSP, JointReading, JointTargets
+from services.runtime.arrays import clip, constant
 
 #: a reference further than this from the measured angle is pulled back (no wind-up against a torque limit or a
 #: joint the arm cannot move)
 MAX_TRACKING_ERROR = math.radians(3.0)
+_TRACKING_BOUNDS = constant(-MAX_TRACKING_ERROR), constant(MAX_TRACKING_ERROR)
 #: the joints keep the DSP's last velocities at most this many bus cycles without a new DSP cycle (two DSP
 #: periods); then they hold where they are: a DSP that stopped deciding must not leave the arm moving
 MAX_CYCLES_WITHOUT_DSP = 2 * CYCLES_PER_DSP
@@ -46,6 +48,7 @@ class RobotCore:
     def __init__(self, dsp: KinovaDSP, reading: JointReading, cycle_s: float = CYCLE_S) -> None:
         self.dsp = dsp
         self.cycle_s = cycle_s
+        self._cycle = constant(cycle_s)  # (an operand every bus cycle: services.runtime.arrays)
         self.reading = reading
         #: the arm's joints (as many as the readings carry)
         self.n_joints = len(reading.q)
@@ -75,8 +78,8 @@ class RobotCore:
             self.stop()
             self.dsp_stale_cycles += 1
         fraction = min(1.0, (self._step - 0.5) / CYCLES_PER_DSP)  # the ramp's mean over this exchange
-        q_ref = self.q_ref + (self._dq_from + (self.dq_ref - self._dq_from) * fraction) * self.cycle_s
-        self.q_ref = q_meas + np.clip(q_ref - q_meas, -MAX_TRACKING_ERROR, MAX_TRACKING_ERROR)
+        q_ref = self.q_ref + (self._dq_from + (self.dq_ref - self._dq_from) * fraction) * self._cycle
+        self.q_ref = q_meas + clip(q_ref - q_meas, _TRACKING_BOUNDS[0], _TRACKING_BOUNDS[1])
         return JointTargets(q=self.q_ref.copy())
 
     def observe(self, reading: JointReading) -> None:

@@ -44,6 +44,7 @@ import numpy as np
 from protocol import rs485 as r
 from services.model.arm import ArmDescription
 from services.robot.hardware import CYCLE_S, EXTRAPOLATED_CYCLES, ActuatorValues
+from services.runtime.arrays import clip as _clip, constant as _constant
 from services.runtime.config import ConfigStruct
 from services.runtime.metrics import Counters
 
@@ -86,11 +87,6 @@ def check_actuators(config: ActuatorConfig, arm: ArmDescription) -> None:
 # the modes and errors as plain ints, for the arrays (an IntEnum's members are slow to look up in a hot path)
 POSITION, TORQUE = int(r.ControlModeRequest.POSITION), int(r.ControlModeRequest.TORQUE)
 NO_FAULT = int(r.ActuatorError.NONE)
-try:  # np.clip's own ufunc: the same values without its Python wrappers (~1.4 µs a call, four calls a cycle)
-    from numpy._core.umath import clip as _clip
-except ImportError:  # NumPy 1.x
-    _clip = np.clip
-
 #: a steady temperature: an emulation constant for the reported temperature (nothing in the simulation heats up)
 ACTUATOR_TEMPERATURE_C = 35.0
 #: how long a target's reference moves: across its bus cycle, then on along its rate for the extrapolated cycles
@@ -106,6 +102,12 @@ HOST_GONE_S = 0.25
 #: the heavy joints ~30 ms behind the light ones, and a Cartesian motion that needs both would come out
 #: distorted)
 SERVO_BANDWIDTH_RPS = 150.0
+# the servo law's gains and apply's other constants as operands (_constant)
+_BANDWIDTH_SQUARED, _TWICE_BANDWIDTH = _constant(SERVO_BANDWIDTH_RPS**2), _constant(2.0 * SERVO_BANDWIDTH_RPS)
+_ZERO, _ONE = _constant(0.0), _constant(1.0)
+_CYCLE = _constant(CYCLE_S)
+_RATE_BOUNDS = _constant(-MAX_REFERENCE_RATE_DPS), _constant(MAX_REFERENCE_RATE_DPS)
+_ACCEL_BOUNDS = _constant(-MAX_REFERENCE_ACCEL_DPS2), _constant(MAX_REFERENCE_ACCEL_DPS2)
 
 
 class ActuatorView:
@@ -178,6 +180,7 @@ class ActuatorFirmware:
         self._sensor_bias = sensors.uniform(-1.0, 1.0, self.n) * np.array([a.torque_sensor_drift_nm for a in specs])
         self._sensor_zero = np.zeros(self.n)
         self._sensor_noise = np.random.default_rng(0)
+        self._temperature_c = np.full(n, ACTUATOR_TEMPERATURE_C)
         self.lower, self.upper = arm.model_limits()
         self.addresses = np.array(actuator_addresses(self.config, arm))
         # the state (class docstring)
@@ -207,6 +210,11 @@ class ActuatorFirmware:
         direction = np.array([-1.0 if i + 1 in self.config.mirrored_joints else 1.0 for i in range(self.n)])
         self._deg_to_model = arm.sign * direction * (math.pi / 180.0)
         self._zero_rate = self._deg_to_model * 0.0  # a reference at rest, as apply's product gives it (signed zeros)
+        self._zero_friction = self._friction * self._zero_rate
+        # below this speed (rad/s) the torque-speed line is above the peak torque, with a margin far beyond the
+        # line's rounding (see apply); 0 where the stall torque is not above the peak (the line always computed)
+        self._full_torque_below = np.where(self._stall > self.torque_limit,
+                                           self._no_load * (1.0 - self.torque_limit / self._stall) * (1.0 - 1e-6), 0.0)
         self._pivot_model = arm.sign * np.radians(arm.home_deg * (1.0 - direction)) + arm.offset
         #: an actuator's torque (its sign) to the model's joint torque
         self._torque_sign = arm.sign * direction
@@ -235,7 +243,9 @@ class ActuatorFirmware:
         """What each actuator's torque sensor reads: the applied torque (``applied_nm``, else now's), its bias less
         its zero, and its noise."""
         applied_nm = self.applied_torque_nm() if applied_nm is None else applied_nm
-        return applied_nm + self._sensor_bias - self._sensor_zero + self._sensor_noise.normal(0.0, self._sensor_sigma)
+        # σ·z: the draws of Generator.normal(0, σ), which returns 0.0 + σ·z, at a quarter of its cost
+        noise = self._sensor_sigma * self._sensor_noise.standard_normal(self.n)
+        return applied_nm + self._sensor_bias - self._sensor_zero + noise
 
     def set_gravity_compensation(self, on: bool) -> None:
         """The arm's own gravity compensation in torque mode, on or off (Table 5.1's ``SetGravityType`` and
@@ -252,7 +262,7 @@ class ActuatorFirmware:
         return ActuatorValues(
             position_deg=self.physical_deg(self._q), velocity_dps=self._dq / self._deg_to_model,
             torque_nm=self.sensed_torque_nm(applied), current_a=applied / self._torque_per_ampere,
-            temperature_c=np.full(self.n, ACTUATOR_TEMPERATURE_C), mode=self.mode.copy(),
+            temperature_c=self._temperature_c.copy(), mode=self.mode.copy(),
             fault=self.fault_code.copy(), stamp_ns=stamp_ns)
 
     def commanded(self) -> tuple[np.ndarray, np.ndarray]:
@@ -348,15 +358,16 @@ class ActuatorFirmware:
         # NaN angle is outside none)
         outside = (self._q < self.lower) | (self._q > self.upper)
         count = self.pending_count
-        came = count > 0
         came_count = int(np.count_nonzero(count))
         every_one_came = came_count == n
         superseded = int(np.add.reduce(count)) - came_count
         if superseded:
             self.counters.inc("frames.superseded", superseded)
         if every_one_came:
+            came = None  # every one (made only where the slow path below needs it)
             self.last_command_s.fill(now_s)
         else:
+            came = count > 0
             missed = int(np.count_nonzero(~came & (now_s - self.last_command_s <= HOST_GONE_S)))
             if missed:
                 self.counters.inc("frames.missed", missed)
@@ -364,9 +375,10 @@ class ActuatorFirmware:
         count.fill(0)
         torque_mode = self.mode == TORQUE
         if every_one_came and not np.count_nonzero(self.fault_code) and not np.count_nonzero(torque_mode):
-            self._follow(slice(None))  # the host's batch, every actuator following it (the hot path)
+            self._follow_all()  # the host's batch, every actuator following it (the hot path)
             command_report = None
         else:
+            came = np.ones(n, dtype=bool) if came is None else came
             taken = came & (self.fault_code == NO_FAULT)
             if np.count_nonzero(taken & ~torque_mode):
                 self._follow(taken & ~torque_mode)
@@ -439,21 +451,45 @@ class ActuatorFirmware:
                                                   MAX_REFERENCE_ACCEL_DPS2)
         self.target_time_s[following] = self.now_s
 
+    def _follow_all(self) -> None:
+        """:meth:`_follow` for every actuator (the host's batch each cycle): where every reference was taken at one
+        boundary, the same arithmetic with its choices made once for all of them."""
+        taken_s = self.target_time_s
+        if np.count_nonzero(taken_s != taken_s[0]):
+            self._follow(slice(None))
+            return
+        ahead = self.now_s - float(taken_s[0])
+        started = ahead >= 0.0
+        if started:  # (:meth:`_reference`)
+            start = self.target_deg + self.target_rate_dps * (ahead if ahead < GOES_ON_S - 1e-9 else GOES_ON_S)
+        else:
+            start = self.last_target_deg.copy()
+        target = self.pending_deg
+        rate = _clip((target - start) / _CYCLE, _RATE_BOUNDS[0], _RATE_BOUNDS[1])
+        # the rate the reference moved at up to now: the change of rate is taken before the new rate replaces it
+        rate_before = self.target_rate_dps if started and ahead <= GOES_ON_S + 1e-9 else _ZERO
+        accel = _clip((rate - rate_before) / _CYCLE, _ACCEL_BOUNDS[0], _ACCEL_BOUNDS[1])
+        self.target_deg[...], self.last_target_deg[...] = start, target
+        self.target_rate_dps[...], self.target_accel_dps2[...] = rate, accel
+        taken_s.fill(self.now_s)
+
     # ------------------------------------------------------------------ physics
     def _segments(self) -> tuple:
         """What follows for :meth:`apply` from the actuators' references and modes alone (derived again only after
         a change: apply runs every physics step, the references change at boundaries and on mode switches): which
         actuators are in torque mode, whether any is, the reference's rate and change of rate in the model's units,
-        and the one time every reference was taken at, if there is one."""
+        the one time every reference was taken at, if there is one, and the joints' viscous friction at that
+        rate."""
         if self._segments_version != self._version:
             torque_mode = (self.mode == TORQUE) & (self.fault_code == NO_FAULT)
             taken_s = self.target_time_s
+            rate_model = self._deg_to_model * self.target_rate_dps
             self._segment_arrays = (
-                torque_mode, bool(np.count_nonzero(torque_mode)), self._deg_to_model * self.target_rate_dps,
+                torque_mode, bool(np.count_nonzero(torque_mode)), rate_model,
                 self._deg_to_model * self.target_accel_dps2,
                 # every reference taken at one boundary (the host sends all joints each cycle): apply's choices
                 # are then one per step, not one per joint
-                float(taken_s[0]) if bool((taken_s == taken_s[0]).all()) else None)
+                float(taken_s[0]) if bool((taken_s == taken_s[0]).all()) else None, self._friction * rate_model)
             # the joints' Coulomb friction acts where an actuator is in torque mode (see apply); it changes only
             # with the modes
             self.model.dof_frictionloss[: self.n] = np.where(torque_mode, self._coulomb, 0.0)
@@ -465,7 +501,7 @@ class ActuatorFirmware:
         step (1 kHz): a handful of whole-array operations, no per-joint Python."""
         q, dq, gravity = self._q, self._dq, self._gravity
         mujoco.mj_fullM(self.model, self.data, self._mass)
-        torque_mode, any_torque, rate_model, accel_model, taken_together = self._segments()
+        torque_mode, any_torque, rate_model, accel_model, taken_together, friction_rate = self._segments()
         start_deg, rate_dps, last_deg = self.target_deg, self.target_rate_dps, self.last_target_deg
         # follow the reference (:meth:`reference`, but for the last 1e-9 s of its cycle of going on), with the
         # inertia, friction and gravity its motion needs as feed-forward (the segment's change of rate during the
@@ -474,7 +510,8 @@ class ActuatorFirmware:
             ahead = t_s - taken_together
             started = ahead >= 0.0
             reference_deg = start_deg + rate_dps * min(max(ahead, 0.0), GOES_ON_S) if started else last_deg
-            rate = rate_model if started and ahead < GOES_ON_S - 1e-9 else self._zero_rate
+            moving = started and ahead < GOES_ON_S - 1e-9
+            rate, friction = (rate_model, friction_rate) if moving else (self._zero_rate, self._zero_friction)
             in_first_cycle = started and ahead < CYCLE_S - 1e-9
         else:
             ahead = t_s - self.target_time_s
@@ -482,10 +519,11 @@ class ActuatorFirmware:
             reference_deg = np.where(started, start_deg + rate_dps * np.minimum(np.maximum(ahead, 0.0), GOES_ON_S),
                                      last_deg)
             rate = self._deg_to_model * np.where(started & (ahead < GOES_ON_S - 1e-9), rate_dps, 0.0)
+            friction = self._friction * rate
             in_first_cycle = started & (ahead < CYCLE_S - 1e-9)
-        tau = gravity + self._friction * rate + self._inertia * (
-            SERVO_BANDWIDTH_RPS**2 * (self._pivot_model + self._deg_to_model * reference_deg - q)
-            + 2.0 * SERVO_BANDWIDTH_RPS * (rate - dq))
+        tau = gravity + friction + self._inertia * (
+            _BANDWIDTH_SQUARED * (self._pivot_model + self._deg_to_model * reference_deg - q)
+            + _TWICE_BANDWIDTH * (rate - dq))
         # the joints' Coulomb friction acts where an actuator is in torque mode (set with the modes, _segments); in
         # position mode the actuator's own position loop, on the motor's encoder ahead of its 110-160:1 gear, rejects
         # it (the joint-level servo emulated here is far softer than that loop and would leave the friction as an
@@ -500,10 +538,15 @@ class ActuatorFirmware:
         elif in_first_cycle:
             tau += self._joint_mass @ accel_model
         # what the motors can give: the peak (software limitation), and, in the direction each turns, the torque-speed
-        # line from the stall torque to zero at the no-load speed
-        along = np.minimum(self.torque_limit, np.maximum(self._stall * (1.0 - np.abs(dq) / self._no_load), 0.0))
-        upper = np.where(dq > 0.0, along, self.torque_limit)
-        lower = np.where(dq < 0.0, -along, self._negative_torque_limit)
-        ctrl = _clip(tau, lower, upper, out=self._ctrl)
+        # line from the stall torque to zero at the no-load speed (which leaves the peak to a joint slower than
+        # _full_torque_below: no line to compute while every joint is)
+        speed = np.abs(dq)
+        if np.count_nonzero(speed >= self._full_torque_below):
+            along = np.minimum(self.torque_limit, np.maximum(self._stall * (_ONE - speed / self._no_load), _ZERO))
+            upper = np.where(dq > _ZERO, along, self.torque_limit)
+            lower = np.where(dq < _ZERO, -along, self._negative_torque_limit)
+            ctrl = _clip(tau, lower, upper, out=self._ctrl)
+        else:
+            ctrl = _clip(tau, self._negative_torque_limit, self.torque_limit, out=self._ctrl)
         if np.count_nonzero(ctrl != tau):
             self.counters.inc("torque.limited_ms")  # a physics step (1 ms) in which some motor gave less than asked

@@ -16,6 +16,7 @@ from services.model.arm import ArmDescription
 from services.robot.hardware import (ActuatorValues, HardwareError, JointReading, JointTargets, physical_targets,
                                      reading_from_physical)
 from services.robot_sim.sim import Simulation
+from services.runtime.arrays import constant
 
 
 def float32(values) -> np.ndarray:
@@ -25,11 +26,17 @@ def float32(values) -> np.ndarray:
 
 def reading_from_values(values: ActuatorValues, arm: ArmDescription, epoch_ns: int = 0) -> JointReading:
     """The reading the 0x15-0x17 replies of this cycle carry (float32 values, the 0x16 temperature in 0.01 °C)."""
+    # the four float32 fields in one conversion each way (:func:`float32`'s, a row at a time)
+    position_deg, velocity_dps, torque_nm, current_a = np.array(
+        (values.position_deg, values.velocity_dps, values.torque_nm, values.current_a),
+        dtype=np.float32).astype(np.float64)
     return reading_from_physical(ActuatorValues(
-        position_deg=float32(values.position_deg), velocity_dps=float32(values.velocity_dps),
-        torque_nm=float32(values.torque_nm), current_a=float32(values.current_a),
-        temperature_c=np.round(values.temperature_c / 0.01) * 0.01, mode=values.mode, fault=values.fault,
+        position_deg=position_deg, velocity_dps=velocity_dps, torque_nm=torque_nm, current_a=current_a,
+        temperature_c=np.rint(values.temperature_c / _CENTI) * _CENTI, mode=values.mode, fault=values.fault,
         stamp_ns=epoch_ns + values.stamp_ns), arm)
+
+
+_CENTI = constant(0.01)
 
 
 class SimulatedHardware:
@@ -52,8 +59,9 @@ class SimulatedHardware:
         return reading
 
     def exchange(self, targets: JointTargets) -> JointReading:
-        position_deg, torque_nm = physical_targets(targets, self.sim.arm)
-        position_deg, torque_nm = float32(position_deg), float32(torque_nm)
+        # as a 0x14 carries them (float32; :func:`float32`'s conversion, both rows at once)
+        position_deg, torque_nm = np.array(physical_targets(targets, self.sim.arm), dtype=np.float32).astype(
+            np.float64)
         firmware = self.sim.firmware
         firmware.command_all(position_deg, torque_nm)
         values = self.sim.begin_cycle()

@@ -47,6 +47,31 @@ def test_a_torque_demand_above_the_peak_is_held_at_the_peak_and_along_the_torque
 
 
 @pytest.mark.parametrize("name", ["j2s7s300", "j2n6s300"])
+def test_the_motor_limit_is_the_torque_speed_line_to_the_bit_around_where_it_crosses_the_peak(name):
+    """apply skips computing the torque-speed line while every joint is slower than where the line crosses the peak
+    (less a margin): at speeds on both sides of that crossing, down to the last representable speed below it, the
+    torque given to a joint turning the way it is pushed is exactly the line's, capped at the peak."""
+    arm, sim, hardware, _, reading = in_torque_mode(name)
+    firmware, n = sim.firmware, arm.n_joints
+    peak = np.array([j.peak_torque_nm for j in arm.joints])
+    stall = np.array([j.spec.stall_torque_nm for j in arm.joints])
+    no_load = np.array([j.spec.no_load_speed for j in arm.joints])
+    direction = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    hardware.set_gravity_compensation(False)  # every joint then asks for exactly its peak (the clamped demand)
+    hardware.exchange(JointTargets(q=reading.q, torques=3.0 * peak * direction))
+    crossing = no_load * (1.0 - peak / stall)
+    assert np.all(crossing > 0)  # these actuators' stall torque is above their peak
+    near = [crossing * (1.0 + sign * 10.0**-k) for k in range(4, 16) for sign in (-1.0, 1.0)]
+    speeds = [np.zeros(n), 0.5 * crossing, *near, np.nextafter(crossing, 0.0), crossing,
+              np.nextafter(crossing, np.inf), 0.5 * (crossing + no_load), no_load]
+    for speed in speeds:
+        sim.data.qvel[:n] = direction * speed
+        firmware.apply(sim.time_ns * 1e-9)
+        line = np.minimum(peak, np.maximum(stall * (1.0 - np.abs(sim.data.qvel[:n]) / no_load), 0.0))
+        assert np.array_equal(sim.data.ctrl[:n], direction * line), speed / crossing
+
+
+@pytest.mark.parametrize("name", ["j2s7s300", "j2n6s300"])
 def test_friction_acts_in_torque_mode_only(name):
     """The joints' Coulomb friction (the description's emulation section) is in the physics while the actuators
     are in torque mode; in position mode their own position loop rejects it."""
