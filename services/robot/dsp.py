@@ -253,6 +253,7 @@ class KinovaDSP:
         self.zones: list[Zone] = list(self.config.zones)
         self.max_linear = self.config.max_linear_speed_mps
         self.max_angular = self.config.max_angular_speed_rps
+        self._motion_limits: Optional[tuple[tuple[float, float], MotionLimits]] = None
         self.status = DSPStatus()
         self._direct: Optional[object] = None
         self._last_velocity: Optional[object] = None
@@ -440,8 +441,12 @@ class KinovaDSP:
         return dq
 
     def motion_limits(self) -> MotionLimits:
-        """The limits this DSP applies now (what the robot node declares in its states)."""
-        return motion_limits(self.config, self.arm, self.max_linear, self.max_angular)
+        """The limits this DSP applies now (what the robot node declares in its states, 100 times a second: made
+        again only when the Cartesian speeds change, the rest being the DSP's configuration and the arm's)."""
+        speeds = (self.max_linear, self.max_angular)
+        if self._motion_limits is None or self._motion_limits[0] != speeds:
+            self._motion_limits = (speeds, motion_limits(self.config, self.arm, *speeds))
+        return self._motion_limits[1]
 
     def _dead_band(self, command: np.ndarray, twist_base: np.ndarray) -> np.ndarray:
         """``command`` (a twist or joint velocities) scaled by the dead-band of the end-effector motion it asks."""
