@@ -16,17 +16,20 @@ the figures: on a shared 2-core host they mean nothing without it.
 part_b.yaml and part_b_j2n6s300.yaml (the 6-DoF arm) on the code of ``REV`` (default: where this branch left main)
 and on this tree, and compares every trajectory log byte for byte and each run's iterations, status and final
 error. Exit 1 when anything differs. ``--hogs N`` runs N CPU hogs beside both (lockstep must not change under
-load). The base's logs are kept per commit and reused (``--fresh`` runs it again).
+load). The base's logs are kept per commit and reused (``--fresh`` runs it again), the four most recently used.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -362,12 +365,48 @@ def compare(base: Path, mine: Path) -> list[str]:
     return problems
 
 
-def identity(rev: str, hogs: int, fresh: bool, keep: Path | None) -> int:
-    sha = _git("rev-parse", rev)
-    cache = Path(tempfile.gettempdir()) / f"mfvs-identity-base-{sha[:12]}" / (f"hogs{hogs}" if hogs else "quiet")
-    work = Path(tempfile.mkdtemp(prefix="mfvs-identity-"))
-    snapshot(work / "tree")
+#: how many bases' logs the identity check keeps for reuse (a few MB each), the most recently used
+BASES_KEPT = 4
+BASE_PREFIX = "mfvs-identity-base-"
+
+
+def prune_bases(root: Path, kept: int = BASES_KEPT) -> list[Path]:
+    """Remove the bases' logs under ``root`` beyond the ``kept`` most recently used (nothing else expires them);
+    the ones removed."""
+    bases = sorted(root.glob(BASE_PREFIX + "*"), key=lambda path: path.stat().st_mtime, reverse=True)
+    for old in bases[kept:]:
+        shutil.rmtree(old, ignore_errors=True)
+    return bases[kept:]
+
+
+@contextlib.contextmanager
+def _terminated_as_exit():
+    """A SIGTERM ends the check through its ``finally`` (its tree copies removed), as Ctrl-C does."""
+    def leave(signum, _frame):
+        raise SystemExit(128 + signum)
+
+    if threading.current_thread() is not threading.main_thread():  # (only the main thread takes signals)
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, leave)
     try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def identity(rev: str, hogs: int, fresh: bool, keep: Path | None) -> int:
+    with _terminated_as_exit():
+        return _identity(rev, hogs, fresh, keep)
+
+
+def _identity(rev: str, hogs: int, fresh: bool, keep: Path | None) -> int:
+    sha = _git("rev-parse", rev)
+    bases = Path(tempfile.gettempdir())
+    cache = bases / f"{BASE_PREFIX}{sha[:12]}" / (f"hogs{hogs}" if hogs else "quiet")
+    work = Path(tempfile.mkdtemp(prefix="mfvs-identity-"))
+    try:
+        snapshot(work / "tree")
         print(f"base {rev} ({sha[:12]}) against this tree ({_git('rev-parse', '--short', 'HEAD')}"
               f"{', with changes not committed' if _git('status', '--porcelain', '--untracked-files=no') else ''})"
               + (f", {hogs} CPU hogs beside" if hogs else ""), flush=True)
@@ -381,6 +420,8 @@ def identity(rev: str, hogs: int, fresh: bool, keep: Path | None) -> int:
             else:
                 base_results = json.loads((cache / "identity.json").read_text())
                 print(f"base: its logs from {cache}", flush=True)
+            os.utime(cache.parent)  # used now (prune_bases keeps the most recently used)
+            prune_bases(bases)
             print(f"this tree: running (load {load()})", flush=True)
             mine = keep or work / "mine"
             mine_results = run_identity_set(work / "tree", mine)

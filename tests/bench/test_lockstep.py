@@ -1,11 +1,16 @@
 """mfvs bench lockstep: the profile of a lockstep run is complete and adds up; the identity check finds a
-difference."""
+difference, keeps a few bases' logs and leaves no tree copy behind when stopped."""
 import json
 import math
+import os
+import signal
+import subprocess
+import sys
+import time
 
 import pytest
 
-from bench.lockstep import ROWS, SCENARIOS, compare, composed_run, profile_run
+from bench.lockstep import BASE_PREFIX, REPO, ROWS, SCENARIOS, compare, composed_run, profile_run, prune_bases
 from services.servo import load_scenario
 from services.vision.core import VisionCore
 
@@ -71,3 +76,34 @@ def test_the_identity_check_finds_a_log_that_differs(tmp_path):
     assert compare(tmp_path / "a", tmp_path / "c") == []
     problems = compare(tmp_path / "a", tmp_path / "b")
     assert len(problems) == 1 and problems[0].startswith("x/trajectory.jsonl: differs from line 2")
+
+
+def test_the_identity_check_keeps_the_most_recently_used_bases_logs(tmp_path):
+    for age, name in enumerate(["aaa", "bbb", "ccc", "ddd", "eee", "fff"]):
+        base = tmp_path / f"{BASE_PREFIX}{name}"
+        (base / "quiet").mkdir(parents=True)
+        os.utime(base, (1e9 - age * 100, 1e9 - age * 100))  # aaa used last
+    (tmp_path / "mfvs-identity-elsewhere").mkdir()
+    removed = prune_bases(tmp_path, kept=4)
+    assert sorted(p.name for p in removed) == [f"{BASE_PREFIX}eee", f"{BASE_PREFIX}fff"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [f"{BASE_PREFIX}{n}" for n in ("aaa", "bbb", "ccc", "ddd")] + ["mfvs-identity-elsewhere"])
+
+
+def test_an_identity_check_stopped_with_sigterm_removes_its_tree_copy(tmp_path):
+    """The check copies this tree before it runs anything; a SIGTERM (a runner's timeout, `kill`) then ends it
+    through its cleanup, as Ctrl-C does, rather than leaving the copy in the temporary directory."""
+    env = dict(os.environ, TMPDIR=str(tmp_path))
+    check = subprocess.Popen([sys.executable, "-m", "services.cli", "bench", "lockstep", "--identity", "--base",
+                              "HEAD"], cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while not any((copy / "tree" / "README.md").exists() for copy in tmp_path.glob("mfvs-identity-*")):
+            assert check.poll() is None and time.monotonic() < deadline, check.stdout.read()
+            time.sleep(0.05)
+        check.send_signal(signal.SIGTERM)
+        output, _ = check.communicate(timeout=60)
+    finally:
+        check.kill()
+    assert check.returncode == 128 + signal.SIGTERM, output
+    assert [p.name for p in tmp_path.iterdir() if not p.name.startswith(BASE_PREFIX)] == []
