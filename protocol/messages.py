@@ -74,12 +74,58 @@ def _non_finite_path(value: Any, path: str) -> Optional[str]:
 
 _SCALARS_WITHOUT_FLOATS = (int, bool, str, bytes, type(None))
 
+_inspect = msgspec.inspect
+#: types whose values hold no float, or whose floats are checked where they are (a nested struct: a message checks
+#: its own fields as it is decoded or made); msgspec has no float enums or literals
+_WITHOUT_FLOATS_OF_THEIR_OWN = (_inspect.IntType, _inspect.BoolType, _inspect.StrType, _inspect.BytesType,
+                                _inspect.ByteArrayType, _inspect.MemoryViewType, _inspect.EnumType,
+                                _inspect.LiteralType, _inspect.NoneType, _inspect.StructType)
+
+
+def _may_hold_floats(info: _inspect.Type) -> bool:
+    """Whether a value of this (msgspec.inspect) type may hold a float that :func:`_non_finite_path` would reach."""
+    while isinstance(info, _inspect.Metadata):
+        info = info.type
+    if isinstance(info, _WITHOUT_FLOATS_OF_THEIR_OWN):
+        return False
+    if isinstance(info, (_inspect.ListType, _inspect.VarTupleType, _inspect.SetType, _inspect.FrozenSetType)):
+        return _may_hold_floats(info.item_type)
+    if isinstance(info, _inspect.TupleType):
+        return any(_may_hold_floats(item) for item in info.item_types)
+    if isinstance(info, _inspect.DictType):
+        return _may_hold_floats(info.value_type)  # (the search looks at the values)
+    if isinstance(info, _inspect.UnionType):
+        return any(_may_hold_floats(member) for member in info.types)
+    return True  # a float, or a type this does not know: searched
+
+
+#: per message type, the fields its finiteness check searches (:func:`_float_fields`)
+_FLOAT_FIELDS: dict[type, tuple[str, ...]] = {}
+
+
+def _float_fields(message_type: type) -> tuple[str, ...]:
+    """The fields of ``message_type`` whose types may hold a float of their own (the others cannot hold a NaN the
+    check would find: a state's 17 fields are searched as its three joint vectors). Made once per type, with its
+    decoder (:func:`prepare_decoders`), or at the first message of a type made elsewhere."""
+    fields = _FLOAT_FIELDS.get(message_type)
+    if fields is None:
+        with _decoders_lock:
+            fields = _float_fields_now(message_type)
+    return fields
+
+
+def _float_fields_now(message_type: type) -> tuple[str, ...]:
+    if message_type not in _FLOAT_FIELDS:
+        _FLOAT_FIELDS[message_type] = tuple(field.name for field in _inspect.type_info(message_type).fields
+                                            if _may_hold_floats(field.type))
+    return _FLOAT_FIELDS[message_type]
+
 
 class Message(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     """Base of every wire type: refuses unknown fields and non-finite floats."""
 
     def __post_init__(self) -> None:
-        for name in self.__struct_fields__:
+        for name in _FLOAT_FIELDS.get(type(self)) or _float_fields(type(self)):
             bad = _non_finite_path(getattr(self, name), name)
             if bad is not None:
                 raise ValueError(f"non-finite number (NaN or Inf) at field '{bad}'")
@@ -659,6 +705,8 @@ def prepare_decoders(message_types) -> list[msgspec.msgpack.Decoder]:
         for message_type in message_types:
             if message_type not in _decoders:
                 _decoders[message_type] = msgspec.msgpack.Decoder(message_type)
+            if isinstance(message_type, type) and issubclass(message_type, Message):
+                _float_fields_now(message_type)
         return [_decoders[message_type] for message_type in message_types]
 
 

@@ -194,3 +194,40 @@ def test_the_non_finite_check_names_the_first_bad_number_and_passes_huge_finite_
     assert m._non_finite_path([math.inf, -math.inf], "opposite") == "opposite[0]"  # inf - inf is NaN, not 0
     huge = m.JointVelocity(header=m.Header(), velocities=[1e308] * 7)  # finite: accepted
     assert huge.velocities[0] == 1e308
+
+
+def _float_paths(value, path=""):
+    """Every float in a message's plain form, by path (``a.b[2]``)."""
+    if isinstance(value, float):
+        yield path
+    elif isinstance(value, dict):
+        for key, item in value.items():
+            yield from _float_paths(item, f"{path}.{key}" if path else key)
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            yield from _float_paths(item, f"{path}[{i}]")
+
+
+def _set_at(plain, path, value):
+    parts = [p for p in path.replace("[", ".[").split(".") if p]
+    *outer, last = parts
+    for part in outer:
+        plain = plain[int(part[1:-1])] if part.startswith("[") else plain[part]
+    if last.startswith("["):
+        plain[int(last[1:-1])] = value
+    else:
+        plain[last] = value
+
+
+@pytest.mark.parametrize("message", SAMPLES, ids=lambda s: type(s).__name__)
+def test_a_nan_at_any_float_of_a_message_is_refused_and_named(message):
+    """The finiteness check searches only the fields whose types may hold a float of their own (a nested message
+    checks itself): a NaN put at every float of every sample, at any depth, is still refused, at its path."""
+    paths = list(_float_paths(m.to_builtins(message)))
+    for path in paths:
+        plain = m.to_builtins(message)
+        _set_at(plain, path, math.nan)
+        with pytest.raises(m.ProtocolError) as err:  # (a bounded float's range refuses it first)
+            m.decode(msgpack.packb(plain), type(message))
+        field = err.value.field  # (msgspec names a map's value by its map: ``rates_hz[...]``)
+        assert field == path or field.endswith("[...]") and path.startswith(field[:-5] + "."), err.value

@@ -16,7 +16,7 @@ from services.servo import load_scenario, run, stack_config
 from services.vision.service import VisionService
 from tests.helpers import REPO
 from tests.services.observe.mcap_files import read_mcap
-from tests.stack import Recorder
+from tests.stack import Recorder, wait_for
 
 KEYS = Keys()
 EASY = REPO / "examples" / "scenarios" / "easy.yaml"
@@ -73,6 +73,10 @@ def test_the_camera_stream_replayed_into_a_fresh_vision_and_controller_gives_the
             assert start_task(session, KEYS, operator="test", reason="replay").state is m.TaskState.RUNNING
             report = replay(session, path, KEYS, ["camera/*", "robot/state", "sim/clock"], lockstep=True,
                             answer_patterns=["vision/features", "controller/twist"])
+            # the replay returns once its own subscriber has the last frame's answers: these recorders get them
+            # on their own callbacks, possibly just after (a CI run once took the snapshot one twist early)
+            wait_for(lambda: set(recorded_features) <= set(by_source(features.snapshot()))
+                     and set(recorded_twists) <= set(by_source(twists.snapshot())), timeout=5.0)
             replayed_features, replayed_twists = by_source(features.snapshot()), by_source(twists.snapshot())
         finally:
             session.close()
