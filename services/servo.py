@@ -278,7 +278,11 @@ class _Watcher:
     """Collects what the runner needs from the bus: controller statuses, the commands, features, robot states."""
 
     def __init__(self, session, keys: Keys, joint_output: bool) -> None:
-        self.lock = threading.Condition()
+        #: guards everything below; each wait is on the condition of what it waits for, so that a message wakes
+        #: only a runner waiting for its kind (the runner waits for statuses; ten other messages come per frame)
+        self.lock = threading.RLock()
+        self.new_status, self.new_state, self.new_answer, self.new_input = (
+            threading.Condition(self.lock) for _ in range(4))
         self.statuses: list[m.ControllerStatus] = []
         self.features: dict[int, m.Features] = {}
         self.commands: dict[int, list] = {}
@@ -317,18 +321,18 @@ class _Watcher:
                     status.header.seq, status.header.source_stamp_ns):
                 return  # the controller's answer to a frame again (a lockstep retry): one record per frame
             self.statuses.append(status)
-            self.lock.notify_all()
+            self.new_status.notify_all()
 
     def _on_features(self, features):
         with self.lock:
             self.features[features.header.source_stamp_ns] = features
-            self.lock.notify_all()
+            self.new_input.notify_all()
 
     def _on_output(self, output):
         values = output.velocities if isinstance(output, m.JointVelocity) else [*output.linear, *output.rotational]
         with self.lock:
             self.commands[output.header.source_stamp_ns] = list(values)
-            self.lock.notify_all()
+            self.new_input.notify_all()
 
     def _on_state(self, state):
         with self.lock:
@@ -336,13 +340,13 @@ class _Watcher:
             self.states.append(state)
             self.state_at[state.header.stamp_ns] = state
             self.latest_state_stamp = max(self.latest_state_stamp, state.header.stamp_ns)
-            self.lock.notify_all()
+            self.new_state.notify_all()
 
     def state_for_frame(self, stamp_ns: int, timeout_s: float = 1.0) -> Optional[m.RobotState]:
         """The state of the tick at which the frame ``stamp_ns`` was taken (in lockstep the robot publishes one
         with that stamp; it may reach us after the controller's answer, so wait for it), else the last state
         before it, else the newest. Call with :attr:`lock` held."""
-        self.lock.wait_for(lambda: self.latest_state_stamp >= stamp_ns, timeout=timeout_s)
+        self.new_state.wait_for(lambda: self.latest_state_stamp >= stamp_ns, timeout=timeout_s)
         state = self.state_at.get(stamp_ns)
         if state is None:
             before = [s for s in self.state_at if s <= stamp_ns]
@@ -352,12 +356,12 @@ class _Watcher:
     def _on_command(self, command):
         with self.lock:  # the first command derived from a frame is safety's answer to it (later ones resend it)
             self.answers.setdefault(command.header.source_stamp_ns, command)
-            self.lock.notify_all()
+            self.new_answer.notify_all()
 
     def answer_for_frame(self, stamp_ns: int, timeout_s: float) -> Optional[m.RobotCommand]:
         """Safety's answer to the command derived from frame ``stamp_ns`` (in lockstep there is exactly one, sent
         before the robot's next tick; wait for it). Call with :attr:`lock` held."""
-        self.lock.wait_for(lambda: stamp_ns in self.answers, timeout=timeout_s)
+        self.new_answer.wait_for(lambda: stamp_ns in self.answers, timeout=timeout_s)
         return self.answers.get(stamp_ns)
 
     def _on_safety(self, status):
@@ -458,7 +462,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
             refused_streak = 0
             while time.monotonic() - started < scenario.timeout_s:
                 with watcher.lock:
-                    watcher.lock.wait_for(lambda n=seen: len(watcher.statuses) > n, timeout=1.0)
+                    watcher.new_status.wait_for(lambda n=seen: len(watcher.statuses) > n, timeout=1.0)
                     new = watcher.statuses[seen:]
                     seen = len(watcher.statuses)
                 if not new:
@@ -495,9 +499,9 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
             states = list(watcher.states)
             with watcher.lock:  # features and commands may reach us after their status (each subscriber has
                 # its own thread; the last ones may still be on their way): complete the log with what came later
-                watcher.lock.wait_for(lambda: all(  # the controller answers every frame (zero when it does not act)
-                    r.stamp_ns in watcher.features and r.stamp_ns in watcher.commands for r in records),
-                    timeout=2.0)
+                # (the controller answers every frame: zero when it does not act)
+                watcher.new_input.wait_for(lambda: all(
+                    r.stamp_ns in watcher.features and r.stamp_ns in watcher.commands for r in records), timeout=2.0)
                 for record in records:
                     _fill_inputs(record, watcher)
             frames_lost, lockstep_timeouts = _frames_lost(session, Keys(config.robot.robot_id))

@@ -206,7 +206,8 @@ def test_a_status_the_controller_sends_again_for_the_same_frame_is_one_iteration
     from services.servo import _Watcher
 
     watcher = _Watcher.__new__(_Watcher)
-    watcher.lock, watcher.statuses = threading.Condition(), []
+    watcher.lock, watcher.statuses = threading.RLock(), []
+    watcher.new_status = threading.Condition(watcher.lock)
     def status(seq, stamp):
         return m.ControllerStatus(header=m.Header(seq=seq, source_stamp_ns=stamp), law="adaptive-pd-mixed",
                                   status=m.ControllerState.CONVERGING, iteration=seq)
