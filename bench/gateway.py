@@ -26,6 +26,7 @@ import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
 from services.model.kinematics import ArmKinematics
+from services.paths import REPO
 from services.runtime.transport import open_session
 from bench.hogs import cpu_hogs
 from bench.stack import measured_arm, unknown_arm
@@ -35,7 +36,6 @@ from services.model.limits import arm_limits
 from services.robot_sim.service import RobotSimConfig
 from services.stack import RobotProcesses, RouterProcess
 
-REPO = Path(__file__).resolve().parents[1]
 LINEAR = np.array([0.04, -0.03, 0.03])
 ROTATIONAL = np.array([0.0, 0.0, 0.2])
 

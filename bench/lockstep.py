@@ -39,11 +39,10 @@ from bench.stack import unknown_arm
 from services.cli import add_arm_option
 from services.controller.laws import LAW_NAMES
 from services.experiments import TABLE3_GAINS
+from services.paths import REPO, SCENARIOS
 from services.runtime import iteration_profile as ip
 from services.servo import load_scenario, on_arm, run
 
-REPO = Path(__file__).resolve().parents[1]
-SCENARIOS = REPO / "examples" / "scenarios"
 LOOP = ip.LOOP_THREAD
 
 #: the runs the identity check compares: (name, the mfvs command's arguments)

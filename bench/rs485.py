@@ -54,7 +54,8 @@ def run_hub(seconds: float = 5.0, arm: str = DEFAULT_ARM) -> dict:
 
     from services.tools.can_hub import CanHub
     from services.runtime.transport import Router
-    from services.launcher import REPO, status
+    from services.launcher import status
+    from services.paths import REPO
 
     with Router(port=0) as router, CanHub() as hub:
         config = BusConfig(interface="mfvs_hub", channel=hub.channel)

@@ -64,6 +64,7 @@ from services.cli import add_arm_option
 from services.launcher import Profile, behind_authority, load_profile, read_stack, restart, with_arm
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.model.kinematics import ArmKinematics
+from services.paths import DEPLOY, REPO
 from services.robot.admission import AdmissionConfig
 from services.robot.dsp import DSPConfig
 from services.runtime.authority import Deployment, write_deployment
@@ -608,7 +609,7 @@ def hosts_profile(path: Path, lab: netns.Lab, deployment, faults_dir: Path, over
     """The shipped multi-host profile as a lab fills it in (the robot computer's address, access control), on
     ``arm``, each service reading its fault plan from ``faults_dir``, written to ``path``; which computer runs each
     process."""
-    profile = yaml.safe_load((netns.REPO / "deploy" / "profiles" / "multi-host.yaml").read_text())
+    profile = yaml.safe_load((DEPLOY / "profiles" / "multi-host.yaml").read_text())
     profile["router"].update(address=lab.address("robot"), config=str(deployment.router_config))
     for service in profile["services"]:
         service["zenoh_config"] = str(deployment.client_configs[service["name"]])
@@ -647,7 +648,7 @@ def run_across_hosts(minutes: float = 10.0, seed: int = 1, overrides: list[str] 
             # the soak watches from the robot's computer: its states are heard whatever happens to other cables
             inside = subprocess.run(lab.command("robot", [sys.executable, "-m", "bench.soak", "--inside",
                                                           str(run_dir / "spec.json")]),
-                                    stdout=subprocess.PIPE, text=True, cwd=netns.REPO,
+                                    stdout=subprocess.PIPE, text=True, cwd=REPO,
                                     timeout=minutes * 60 + 600)
             if inside.returncode not in (0, 1) or not inside.stdout.strip():
                 raise RuntimeError(f"the soak on the robot's computer failed (exit {inside.returncode})")

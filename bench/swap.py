@@ -40,6 +40,7 @@ import msgspec
 
 from bench.stack import unknown_arm
 from protocol.conventions import ClockMode
+from services.paths import SCENARIOS
 from services.runtime.config import ConfigError
 from services.runtime.progress import ProgressLine
 from services.robot_sim.scene import default_target_in_camera
@@ -47,7 +48,6 @@ from services.cli import add_arm_option
 from services.servo import load_scenario, on_arm, run
 from services.starts import write_starts
 
-SCENARIOS = Path(__file__).resolve().parents[1] / "examples" / "scenarios"
 #: how far a nudged lockstep start moves the tag (m): about what the arm covers at its top speed in a millisecond
 #: of realtime's timing jitter
 NUDGE_M = 5e-4

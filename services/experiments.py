@@ -43,6 +43,7 @@ import numpy as np
 from protocol.conventions import ClockMode
 from services.controller.law import Gains
 from services.model.arm import load_arm
+from services.paths import SCENARIOS
 from services.plots import comparison_plots, constraint_plots, random_starts_plots, tracking_plots
 from services.robot_sim.scene import target_in_base
 from services.runtime.config import ConfigError
@@ -50,7 +51,6 @@ from services.run_pool import RunTask, run_tasks
 from services.servo import Scenario, ServoResult, load_scenario, on_arm, read_log, stack_config
 from services.starts import TABLE2_LIKE, Start, quartiles, write_starts
 
-SCENARIOS = Path(__file__).resolve().parent.parent / "examples" / "scenarios"
 
 #: seed 000 Table 3: the gains of each law and the iterations it took to converge on the real JACO-2
 TABLE3_GAINS = {

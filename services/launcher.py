@@ -34,11 +34,11 @@ import msgspec
 
 from protocol import messages as m
 from protocol.keys import Keys
+from services.paths import REPO
 from services.runtime.config import ConfigError, ConfigStruct, config_mapping, load_config
 from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health, service_condition
 from services.runtime.transport import ZenohConfig, file_access_control, file_endpoints, open_session
 
-REPO = Path(__file__).resolve().parents[1]
 SERVICES = ("safety", "vision", "controller", "robot_sim")
 KNOWN_SERVICES = (*SERVICES, "robot_gateway", "camera")
 BUS_HUB_PORT = 7448

@@ -27,6 +27,7 @@ from zenoh import SampleKind, Session
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
 from services.model.arm import ArmDescription, load_arm
+from services.paths import REPO
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.transport import ZenohConfig, open_session
 from services.controller.service import ControllerConfig
@@ -41,7 +42,6 @@ from services.safety.service import SafetyConfig
 from services.warm_start import spawn_warm
 from services.vision.service import VisionConfig
 
-REPO = Path(__file__).resolve().parents[1]
 _rig_channels = itertools.count()
 
 

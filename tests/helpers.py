@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services import paths
 from services.model.kinematics import ArmKinematics
 from services.model.arm import load_arm
 
@@ -40,8 +41,8 @@ def gravity_the_description_misses(arm, q) -> np.ndarray:
     return data.qfrc_bias[: arm.n_joints] - ArmKinematics(arm).gravity(q)
 
 
-#: the repository's root (the tests sit in folders that mirror the code's)
-REPO = Path(__file__).resolve().parents[1]
+#: the repository's root
+REPO = paths.REPO
 
 
 def random_q(rng, margin_deg: float = 2.0) -> np.ndarray:

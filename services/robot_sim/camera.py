@@ -37,6 +37,7 @@ import numpy as np
 
 from protocol.messages import CHANNELS, CameraInfo, Header, Image, ImageEncoding
 from services.model.arm import mujoco_module
+from services.paths import REPO
 from services.robot.pacing import normal_priority, request_realtime
 from services.runtime.threads import name_os_thread, start_thread
 from services.robot_sim import imaging as imaging_mod
@@ -46,7 +47,6 @@ from services.robot_sim.sim import Simulation
 
 log = logging.getLogger("mfvs.robot_sim.camera")
 
-_REPO = Path(__file__).resolve().parents[2]
 
 #: how long the renderer's process may take to start (a spawned interpreter importing MuJoCo, an EGL context)
 RENDERER_START_TIMEOUT_S = 60.0
@@ -179,7 +179,7 @@ class RenderProcess:
         try:
             self._process = subprocess.Popen(
                 [sys.executable, "-m", "services.robot_sim.render_server", str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),), cwd=_REPO)
+                pass_fds=(theirs.fileno(),), cwd=REPO)
         finally:
             theirs.close()
         self._conn = Connection(ours.detach())

@@ -31,6 +31,7 @@ from pathlib import Path
 from protocol import kinova
 from protocol import messages as m
 from protocol.keys import Keys
+from services.paths import DEPLOY
 
 DEFAULT_SERVICES = ("safety", "robot_sim", "robot_gateway", "torque_controller", "vision", "controller", "operator")
 
@@ -38,7 +39,7 @@ DEFAULT_SERVICES = ("safety", "robot_sim", "robot_gateway", "torque_controller",
 _ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
                  "liveliness_query", "declare_liveliness_subscriber"]
 
-_GEN_CERTS = Path(__file__).resolve().parents[2] / "deploy" / "tls" / "gen_certs.sh"
+_GEN_CERTS = DEPLOY / "tls" / "gen_certs.sh"
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from services.paths import REPO
+
 MFVS = str(Path(sys.executable).parent / "mfvs")
-REPO = Path(__file__).resolve().parents[2]
 #: setns(2)'s flag for a network namespace (<sched.h>; Python has os.setns only from 3.12)
 _CLONE_NEWNET = 0x40000000
 

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from services.launcher import KNOWN_SERVICES
+from services.paths import DEPLOY, REPO
 
-REPO = Path(__file__).resolve().parents[2]
-UNITS = REPO / "deploy" / "systemd"
+UNITS = DEPLOY / "systemd"
 
 
 def _units() -> dict[str, Path]:

@@ -167,7 +167,7 @@ def test_real_arm_profile_runs_the_gateway_with_the_camera_service(tmp_path):
 
     from protocol import messages as m
     from protocol.keys import Keys
-    from services.launcher import REPO
+    from services.paths import REPO
     from services.runtime.transport import ZenohConfig, open_session
 
     env = dict(os.environ, MFVS_RUN_DIR=str(tmp_path))
@@ -209,7 +209,8 @@ def test_real_arm_profile_runs_the_gateway_with_the_camera_service(tmp_path):
 def test_shipped_profile_files_are_the_built_in_profiles():
     """deploy/profiles/*.yaml are the built-in profiles spelled out (for users to copy and change)."""
     from services.runtime.config import load_config
-    from services.launcher import REPO, Profile, load_profile
+    from services.launcher import Profile, load_profile
+    from services.paths import REPO
 
     for name in ("sim", "gateway"):
         shipped = load_config(REPO / "deploy" / "profiles" / f"{name}.yaml", Profile)

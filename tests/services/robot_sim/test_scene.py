@@ -204,7 +204,7 @@ def test_the_realtime_camera_starts_one_process_its_renderer_and_no_other():
     import re
     import subprocess
     import sys
-    from pathlib import Path
+    from services.paths import REPO
 
     script = (
         "import glob, json, os\n"
@@ -218,7 +218,7 @@ def test_the_realtime_camera_starts_one_process_its_renderer_and_no_other():
         "print(json.dumps([open(f'/proc/{c}/cmdline').read().replace(chr(0), ' ').strip() for c in children]))\n"
         "camera.stop()\n"
         "sim.close()\n")
-    out = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[3], text=True,
+    out = subprocess.run([sys.executable, "-c", script], cwd=REPO, text=True,
                          capture_output=True, timeout=120, check=True).stdout
     children = json.loads(out.strip().splitlines()[-1])
     assert len(children) == 1 and re.fullmatch(r".* -m services\.robot_sim\.render_server \d+", children[0]), children
