@@ -27,7 +27,6 @@ import subprocess
 import sys
 import threading
 from multiprocessing.connection import Connection
-from pathlib import Path
 from dataclasses import dataclass
 from typing import Callable, Optional
 

@@ -375,7 +375,7 @@ class ActuatorFirmware:
         count.fill(0)
         torque_mode = self.mode == TORQUE
         if every_one_came and not np.count_nonzero(self.fault_code) and not np.count_nonzero(torque_mode):
-            self._follow_all()  # the host's batch, every actuator following it (the hot path)
+            self._follow(slice(None))  # the host's batch, every actuator following it (the hot path)
             command_report = None
         else:
             came = np.ones(n, dtype=bool) if came is None else came
@@ -435,43 +435,35 @@ class ActuatorFirmware:
             along, ahead, GOES_ON_S), self.last_target_deg[which])
         return position, started, along
 
+    def _common_time(self) -> Optional[float]:
+        """The one boundary every reference was taken at (the host sends every joint each cycle), or None."""
+        taken_s = self.target_time_s
+        first = float(taken_s[0])
+        return None if np.count_nonzero(taken_s != first) else first
+
     def _follow(self, following) -> None:
         """New position targets at this boundary for the actuators ``following`` (a mask or a slice): a segment
         from where each reference is to its target, across the cycle."""
-        ahead = self.now_s - self.target_time_s[following]
-        start, started, _ = self._reference(ahead, following)
-        # the rate the reference moved at up to now (at the end of its one cycle of going on, it still moved)
-        rate_before = np.where(started & (ahead <= GOES_ON_S + 1e-9), self.target_rate_dps[following], 0.0)
+        common = self._common_time() if isinstance(following, slice) else None
+        if common is not None:  # (the host's batch each cycle) :meth:`_reference`'s choices made once for all
+            ahead = self.now_s - common
+            started = ahead >= 0.0
+            start = (self.target_deg + self.target_rate_dps * (ahead if ahead < GOES_ON_S - 1e-9 else GOES_ON_S)
+                     if started else self.last_target_deg.copy())
+            rate_before = self.target_rate_dps if started and ahead <= GOES_ON_S + 1e-9 else _ZERO
+        else:
+            ahead = self.now_s - self.target_time_s[following]
+            start, started, _ = self._reference(ahead, following)
+            rate_before = np.where(started & (ahead <= GOES_ON_S + 1e-9), self.target_rate_dps[following], 0.0)
+        # (rate_before: the rate the reference moved at up to now; at the end of its one cycle of going on, it still
+        # moved)
         target = self.pending_deg[following]
         # a glitch, not a trajectory: the bounds only cut those
-        rate = _clip((target - start) / CYCLE_S, -MAX_REFERENCE_RATE_DPS, MAX_REFERENCE_RATE_DPS)
+        rate = _clip((target - start) / _CYCLE, *_RATE_BOUNDS)
+        accel = _clip((rate - rate_before) / _CYCLE, *_ACCEL_BOUNDS)  # (before the new rate replaces the old)
         self.target_deg[following], self.last_target_deg[following] = start, target
-        self.target_rate_dps[following] = rate
-        self.target_accel_dps2[following] = _clip((rate - rate_before) / CYCLE_S, -MAX_REFERENCE_ACCEL_DPS2,
-                                                  MAX_REFERENCE_ACCEL_DPS2)
+        self.target_rate_dps[following], self.target_accel_dps2[following] = rate, accel
         self.target_time_s[following] = self.now_s
-
-    def _follow_all(self) -> None:
-        """:meth:`_follow` for every actuator (the host's batch each cycle): where every reference was taken at one
-        boundary, the same arithmetic with its choices made once for all of them."""
-        taken_s = self.target_time_s
-        if np.count_nonzero(taken_s != taken_s[0]):
-            self._follow(slice(None))
-            return
-        ahead = self.now_s - float(taken_s[0])
-        started = ahead >= 0.0
-        if started:  # (:meth:`_reference`)
-            start = self.target_deg + self.target_rate_dps * (ahead if ahead < GOES_ON_S - 1e-9 else GOES_ON_S)
-        else:
-            start = self.last_target_deg.copy()
-        target = self.pending_deg
-        rate = _clip((target - start) / _CYCLE, _RATE_BOUNDS[0], _RATE_BOUNDS[1])
-        # the rate the reference moved at up to now: the change of rate is taken before the new rate replaces it
-        rate_before = self.target_rate_dps if started and ahead <= GOES_ON_S + 1e-9 else _ZERO
-        accel = _clip((rate - rate_before) / _CYCLE, _ACCEL_BOUNDS[0], _ACCEL_BOUNDS[1])
-        self.target_deg[...], self.last_target_deg[...] = start, target
-        self.target_rate_dps[...], self.target_accel_dps2[...] = rate, accel
-        taken_s.fill(self.now_s)
 
     # ------------------------------------------------------------------ physics
     def _segments(self) -> tuple:
@@ -482,14 +474,13 @@ class ActuatorFirmware:
         rate."""
         if self._segments_version != self._version:
             torque_mode = (self.mode == TORQUE) & (self.fault_code == NO_FAULT)
-            taken_s = self.target_time_s
             rate_model = self._deg_to_model * self.target_rate_dps
             self._segment_arrays = (
                 torque_mode, bool(np.count_nonzero(torque_mode)), rate_model,
                 self._deg_to_model * self.target_accel_dps2,
                 # every reference taken at one boundary (the host sends all joints each cycle): apply's choices
                 # are then one per step, not one per joint
-                float(taken_s[0]) if bool((taken_s == taken_s[0]).all()) else None, self._friction * rate_model)
+                self._common_time(), self._friction * rate_model)
             # the joints' Coulomb friction acts where an actuator is in torque mode (see apply); it changes only
             # with the modes
             self.model.dof_frictionloss[: self.n] = np.where(torque_mode, self._coulomb, 0.0)

@@ -20,16 +20,15 @@ from services.runtime.arrays import constant
 
 
 def float32(values) -> np.ndarray:
-    """What a float32 field of an RS-485 frame makes of these numbers."""
-    return np.asarray(values, dtype=np.float64).astype(np.float32).astype(np.float64)
+    """What a float32 field of an RS-485 frame makes of these numbers (an array, or a sequence of them: one
+    conversion for all)."""
+    return np.array(values, dtype=np.float32).astype(np.float64)
 
 
 def reading_from_values(values: ActuatorValues, arm: ArmDescription, epoch_ns: int = 0) -> JointReading:
     """The reading the 0x15-0x17 replies of this cycle carry (float32 values, the 0x16 temperature in 0.01 °C)."""
-    # the four float32 fields in one conversion each way (:func:`float32`'s, a row at a time)
-    position_deg, velocity_dps, torque_nm, current_a = np.array(
-        (values.position_deg, values.velocity_dps, values.torque_nm, values.current_a),
-        dtype=np.float32).astype(np.float64)
+    position_deg, velocity_dps, torque_nm, current_a = float32(
+        (values.position_deg, values.velocity_dps, values.torque_nm, values.current_a))
     return reading_from_physical(ActuatorValues(
         position_deg=position_deg, velocity_dps=velocity_dps, torque_nm=torque_nm, current_a=current_a,
         temperature_c=np.rint(values.temperature_c / _CENTI) * _CENTI, mode=values.mode, fault=values.fault,
@@ -59,9 +58,7 @@ class SimulatedHardware:
         return reading
 
     def exchange(self, targets: JointTargets) -> JointReading:
-        # as a 0x14 carries them (float32; :func:`float32`'s conversion, both rows at once)
-        position_deg, torque_nm = np.array(physical_targets(targets, self.sim.arm), dtype=np.float32).astype(
-            np.float64)
+        position_deg, torque_nm = float32(physical_targets(targets, self.sim.arm))  # as a 0x14 carries them
         firmware = self.sim.firmware
         firmware.command_all(position_deg, torque_nm)
         values = self.sim.begin_cycle()
