@@ -36,18 +36,25 @@ CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 READER_PRIORITY = 90
 
 
+def children(pid: int) -> list[int]:
+    """The processes ``pid``'s threads started that still run (none when it is gone)."""
+    out = []
+    try:
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(child) for child in f.read().split()]
+    except OSError:
+        pass
+    return out
+
+
 def process_tree(pid: int) -> list[int]:
     """``pid`` and its descendants (robot_sim's camera renders in a child process: it is robot_sim's cost)."""
     out, todo = [], [pid]
     while todo:
         current = todo.pop()
         out.append(current)
-        try:
-            for task in os.listdir(f"/proc/{current}/task"):
-                with open(f"/proc/{current}/task/{task}/children") as f:
-                    todo += [int(child) for child in f.read().split()]
-        except OSError:
-            continue
+        todo += children(current)
     return out
 
 

@@ -33,7 +33,7 @@ import threading
 import time
 from pathlib import Path
 
-from bench.cpu import cpu_seconds, peak_rss_mb, process_tree
+from bench.cpu import children, cpu_seconds, peak_rss_mb, process_tree
 from bench.hogs import cpu_hogs
 from bench.stack import unknown_arm
 from services.cli import add_arm_option
@@ -126,44 +126,79 @@ def composed_run(scenario, hogs: int = 0) -> dict:
     return figures
 
 
+class _RunChildren:
+    """The CPU of the processes a run starts, from /proc, sampled on a thread of its own every ``period_s`` from
+    :meth:`start` (the run's first iteration) to :meth:`stop`: a process started and ended between two samples,
+    and a child's last ``period_s`` before it ends, go uncounted. (``os.times``' children's figure would count
+    every child this process reaps meanwhile: what ran before in it, the processes' run of ``mfvs bench
+    lockstep`` or an earlier test, was once reaped inside a composed run's window and counted as its.)"""
+
+    def __init__(self, older: set[int], period_s: float = 0.1) -> None:
+        self.older, self.period_s = older, period_s
+        self.first: dict[int, float] = {}
+        self.last: dict[int, float] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def sample(self) -> None:
+        for pid in children(os.getpid()):
+            if pid not in self.older:
+                seconds = cpu_seconds(pid)
+                self.first.setdefault(pid, seconds if self._thread is None else 0.0)  # (started since)
+                self.last[pid] = seconds
+
+    def start(self) -> None:
+        self.sample()
+        self._thread = threading.Thread(target=self._run, name="bench-run-children", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.sample()
+
+    def stop(self) -> float:
+        """The CPU (s) the run's processes spent since :meth:`start`."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        return sum(self.last[pid] - self.first[pid] for pid in self.last)
+
+
 def _timed_composed_run(scenario, hogs: int, profiled: bool) -> dict:
     window: dict = {}
 
     def progress(record) -> None:
         now = time.monotonic()
-        if "first" not in window:  # the run's children (the warm server is older)
-            window["children_cpu"] = sum(cpu_seconds(pid) for pid in process_tree(os.getpid())[1:]
-                                         if pid not in older)
+        if "first" not in window:
+            run_children.start()
             window["cpu"] = time.process_time()
             window["first"] = (record.iteration, now)
         window["last"] = (record.iteration, now)
 
-    children_before = os.times()
     if profiled:
         ip.install_composed()
     try:
         with cpu_hogs(hogs):
-            older = set(process_tree(os.getpid()))
+            run_children = _RunChildren(older=set(process_tree(os.getpid())))  # (the warm server is older)
             load_before = load()
-            result = run(scenario, None, progress, plots=False)
+            try:
+                result = run(scenario, None, progress, plots=False)
+            finally:
+                children_s = run_children.stop()
             load_after = load()
         profile = ip.profile_now("composed") if profiled else None
     finally:
         if profiled:
             ip.uninstall()
-    children_after = os.times()
     (first_it, first_t), (last_it, last_t) = window["first"], window["last"]
     iterations = max(1, last_it - first_it)
     services = time.process_time() - window["cpu"]
-    # the run's children have ended (and been waited for): their whole CPU is among this process's children's
-    children = (children_after.children_user + children_after.children_system - children_before.children_user
-                - children_before.children_system) - window["children_cpu"]
     figures = {"iterations": result.iterations, "status": result.status, "final_error_norm": result.final_error_norm,
                "wall_time_s": result.wall_time_s, "lockstep_timeouts": result.lockstep_timeouts,
                "stack": result.stack, "load_before": load_before, "load_after": load_after,
                "iteration_ms": round(1e3 * (last_t - first_t) / iterations, 3),
                "cpu_per_iteration_ms": {"the process": round(1e3 * services / iterations, 3),
-                                        "its children": round(1e3 * children / iterations, 3)}}
+                                        "its children": round(1e3 * children_s / iterations, 3)}}
     if profile is not None:
         split_figures = split({process: profile for process in ip.COMPOSED}, composed=True)
         figures.update({"loop_s": round(split_figures["loop_ms"] / 1e3, 3), "frames": split_figures["frames"],

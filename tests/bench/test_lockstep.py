@@ -10,7 +10,9 @@ import time
 
 import pytest
 
-from bench.lockstep import BASE_PREFIX, REPO, ROWS, SCENARIOS, compare, composed_run, profile_run, prune_bases
+from bench.cpu import process_tree
+from bench.lockstep import (BASE_PREFIX, REPO, ROWS, SCENARIOS, _RunChildren, compare, composed_run, profile_run,
+                            prune_bases)
 from services.servo import load_scenario
 from services.vision.core import VisionCore
 
@@ -59,6 +61,35 @@ def test_the_composed_run_is_timed_as_the_same_run(tmp_path):
     assert rows["  render_process"] == 0
     assert rows["robot_loop"] + rows["rendering"] + rows["waits"] == pytest.approx(rows["total"], abs=0.01)
 
+
+BURN = ("import sys, time\nstart = time.process_time()\nwhile time.process_time() - start < 0.2:\n    pass\n"
+        "print('burnt', flush=True)\nsys.stdin.read()\n")
+
+
+def _burnt_child() -> subprocess.Popen:
+    """A child that has spent 0.2 s of CPU and waits for its stdin to close."""
+    child = subprocess.Popen([sys.executable, "-c", BURN], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline() == "burnt\n"
+    return child
+
+
+def test_a_runs_children_are_the_processes_it_started_not_one_reaped_during_it():
+    """The composed figures' children's CPU is that of the processes the run started: a child this process had
+    before (an earlier run's, an earlier test's) and reaps during the run is not counted; one started during it is."""
+    older = _burnt_child()
+    run_children = _RunChildren(older=set(process_tree(os.getpid())), period_s=0.02)
+    reaped_before = os.times()
+    run_children.start()
+    older.stdin.close()
+    older.wait(timeout=10)  # reaped in the window: os.times() would count its 0.2 s
+    new = _burnt_child()
+    time.sleep(0.2)  # sampled
+    new.stdin.close()
+    new.wait(timeout=10)
+    spent = run_children.stop()
+    reaped_after = os.times()
+    reaped = sum(reaped_after[2:4]) - sum(reaped_before[2:4])  # what os.times counts: both children, whole
+    assert reaped >= 0.4 and 0.2 <= spent < 0.4, (reaped, spent)  # the new child's 0.2 s and its start-up
 
 def _identity_set(root, logs):
     runs = {}
