@@ -76,6 +76,12 @@ class Command(enum.IntEnum):
     TORQUE_CONFIG_CONTROL_PARAMS_2 = 0x215
 
 
+#: where a 0x02 SEND_ACTUAL_POSITION reply (and a 0x15 SEND_ALL_VALUES_1) puts each value among its four floats:
+#: float[0] the motor current (A), float[1] the position (deg), float[2] the velocity (deg/s), float[3] the torque
+#: (N·m). Kinova's RS-485 examples, abr/abr_jaco2, abr/abr_control, sammy-tri/drake-jaco-driver and
+#: farmange/libkinova all read a 0x02's position from float[1]
+CURRENT_FLOAT, POSITION_FLOAT, VELOCITY_FLOAT, TORQUE_FLOAT = 0, 1, 2, 3
+
 HOST_ADDRESS = 0x00
 #: The actuators' addresses are the arm's (its description's ``bus_addresses``: joints 1-6 at 0x10-0x15; the 7-DoF
 #: arm's seventh is not documented publicly, one driver addresses 0x19, which mfvs follows).

@@ -436,7 +436,8 @@ def _torque_experiment(args: argparse.Namespace) -> int:
         print(f"  {row['label']:26s} {row['status']:9s} position RMS/max/final {p['rms']:.2f}/{p['max']:.2f}/"
               f"{p['final']:.2f} mm  orientation {o['rms']:.2f}/{o['max']:.2f}/{o['final']:.2f}°  saturated "
               f"{row['saturation_s']:.2f} s  missed {row['missed_cycles']}/{row['timing']['answered']}  safety stops "
-              f"{row['safety_stops'] if row['safety_stops'] is not None else '?'}",
+              f"{row['safety_stops'] if row['safety_stops'] is not None else '?'}"
+              + ("" if row["host_kept_time"] else "  (this host did not keep the loop's time)"),
               file=stream, flush=True)
 
     print(f"torque-control on the {args.arm or 'j2n6s300'} ({args.profile} profile, realtime; about "

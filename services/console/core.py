@@ -70,7 +70,15 @@ class ActionMessage(msgspec.Struct, tag="action", tag_field="type", forbid_unkno
     token: Token = ""
 
 
-PageMessage = Union[AuthMessage, ActionMessage]
+class DrawnMessage(msgspec.Struct, tag="drawn", tag_field="type", forbid_unknown_fields=True):
+    """The page drew (or could not decode) the frame it was sent last, and takes the next one: the console sends
+    a page one frame at a time, so that frames never queue on the way to a page that draws slowly (each waits for
+    the page, and only the newest is encoded)."""
+
+    seq: Annotated[int, msgspec.Meta(ge=0)] = 0
+
+
+PageMessage = Union[AuthMessage, ActionMessage, DrawnMessage]
 _page_decoder = msgspec.json.Decoder(PageMessage)
 
 
@@ -85,7 +93,7 @@ class Refused(Exception):
 
 
 def parse_page_message(data: Union[str, bytes]) -> PageMessage:
-    """A message from the page: JSON text, one of the two kinds above; Refused("malformed" or "unknown_action")
+    """A message from the page: JSON text, one of the kinds above; Refused("malformed" or "unknown_action")
     otherwise."""
     if isinstance(data, (bytes, bytearray, memoryview)):
         raise Refused("malformed", "the console takes requests as JSON text, not binary messages")

@@ -1,6 +1,7 @@
 """The console's side toward the stack: a service like the others (liveliness, health with its counters, every
 input decoded and validated) that follows what the page shows, encodes the camera's frames to JPEG in a thread of
-its own (the newest frame only: a page that cannot keep up loses frames, it never makes them queue), and carries
+its own (the newest frame, and only when a page is ready to draw one: a page that cannot keep up is sent fewer
+frames, they never queue, and no frame is encoded that no page would draw), and carries
 out the page's requests with the functions `mfvs task` and `mfvs estop` use, as the identity of its zenoh config
 (the operator's, behind authority). It publishes nothing the robot acts on: its only writes are the e-stop (the
 operator's key) and its own health; the task is asked of the controller."""
@@ -52,6 +53,8 @@ class ConsoleService(Service):
         self.wall_stamps = True
         self._estop: Optional[EStopClient] = None
         self._threads: list[threading.Thread] = []
+        #: from a frame's sending to the page's word that it drew it, the last one (s)
+        self.page_draw_s = 0.0
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -85,7 +88,8 @@ class ConsoleService(Service):
         robot = ("no robot state yet" if arm is None else f"arm {arm.name}" if arm.description is not None
                  else f"arm {arm.name} not described here")
         return True, (f"pages={self.pages_open} frames {rates.get('frames.sent', 0.0):.1f}/s "
-                      f"(encoded {rates.get('frames.encoded', 0.0):.1f}/s) {robot}")
+                      f"(encoded {rates.get('frames.encoded', 0.0):.1f}/s, drawn {rates.get('frames.drawn', 0.0):.1f}/s"
+                      f" {1e3 * self.page_draw_s:.0f} ms after sending) {robot}")
 
     # ------------------------------------------------------------------ inputs
     def _locked(self, update, timed: bool = True):
@@ -119,13 +123,26 @@ class ConsoleService(Service):
         self.wall_stamps = ClockMode(tick.mode) is ClockMode.REALTIME
 
     # ------------------------------------------------------------------ threads
+    def frame_wanted(self) -> None:
+        """A page is ready for a frame (the web side, from its loop): the newest image is encoded now."""
+        with self._image_arrived:
+            self._image_arrived.notify()
+
+    def frame_drawn(self, seconds: float) -> None:
+        """A page drew a frame ``seconds`` after it was sent (the web side, from its loop)."""
+        self.rates.tick("frames.drawn")
+        self.page_draw_s = seconds
+
     def _encode_frames(self) -> None:
         while not self.stop_requested:
             with self._image_arrived:
-                self._image_arrived.wait_for(lambda: self._newest_image is not None or self.stop_requested,
-                                             timeout=0.5)
+                # the newest image waits for a page ready to draw it (an image nobody would draw is not encoded)
+                self._image_arrived.wait_for(lambda: (self._newest_image is not None and self.wants_frames())
+                                             or self.stop_requested, timeout=0.5)
+                if not self.wants_frames():
+                    continue
                 newest, self._newest_image = self._newest_image, None
-            if newest is None or not self.wants_frames():
+            if newest is None:
                 continue
             image, received_ns = newest
             try:

@@ -4,8 +4,10 @@ in the package, nothing from the internet), and one WebSocket per open page that
 
 Each request is parsed and judged by the core (:mod:`services.console.core`: the token beyond loopback, the
 rules), then carried out by the service (:class:`services.console.service.ConsoleService`) in a worker thread, so
-that an e-stop never waits behind a task request in progress. A page that reads slowly gets the newest frame,
-overlay and status when it is ready for them; what it missed is dropped and counted, never queued."""
+that an e-stop never waits behind a task request in progress. A page is sent one camera frame at a time: the next
+only once it says it drew the last (its "drawn" message), so frames never queue in a socket or a browser, and the
+console encodes a frame only when some page is ready for one (the newest then). A page gets the newest overlay and
+status when it is ready for them; what it missed is dropped and counted, never queued."""
 from __future__ import annotations
 
 import asyncio
@@ -21,8 +23,8 @@ from typing import Optional
 
 from aiohttp import WSMsgType, web
 
-from services.console.core import (MAX_PAGE_MESSAGE_BYTES, Access, ActionMessage, AuthMessage, Refused, decide,
-                                   parse_page_message)
+from services.console.core import (MAX_PAGE_MESSAGE_BYTES, Access, ActionMessage, AuthMessage, DrawnMessage, Refused,
+                                   decide, parse_page_message)
 from services.console.service import ConsoleService
 
 STATIC = Path(__file__).resolve().parent / "static"
@@ -33,6 +35,9 @@ STATUS_PERIOD_S = 0.2
 HEARTBEAT_S = 10.0
 #: answers and refusals a page has not read yet, at most (older ones are dropped)
 MAX_UNREAD_ANSWERS = 64
+#: a page that has not said it drew its frame this long after it was sent is sent the newest anyway (a page that
+#: lost one without saying so must not go dark for good); counted as frames.unacknowledged (s)
+DRAW_TIMEOUT_S = 5.0
 
 _HEADERS = {
     # the page's own files and its own WebSocket, nothing else; never framed by another site (a framed console could
@@ -57,6 +62,16 @@ class Page:
         #: the newest frame, overlay and status not yet sent (each replaces the one before)
         self.newest: dict[str, object] = {}
         self.wake = asyncio.Event()
+        #: when the frame the page has not yet said it drew was sent (monotonic s), or None
+        self.frame_sent_at: Optional[float] = None
+
+    def drawing(self, now: float) -> bool:
+        """Whether the page is still drawing the frame it was sent (and is not yet sent another)."""
+        return self.frame_sent_at is not None and now - self.frame_sent_at < DRAW_TIMEOUT_S
+
+    def wants_frame(self, now: float) -> bool:
+        """Whether a frame encoded now would be sent to this page at once."""
+        return self.authenticated and not self.drawing(now) and "frame" not in self.newest
 
     def tell(self, message: dict) -> None:
         self.answers.append(json.dumps(message))
@@ -70,17 +85,23 @@ class Page:
         return dropped
 
     async def pump(self, service: ConsoleService) -> None:
-        """Send what waits, answers first (they are few and must arrive), then the newest status, overlay, frame."""
+        """Send what waits, answers first (they are few and must arrive), then the newest status, overlay, and the
+        newest frame once the page drew the last."""
         while not self.ws.closed:
             await self.wake.wait()
             self.wake.clear()
             while self.answers:
                 await self.ws.send_str(self.answers.popleft())
             for kind in ("status", "overlay", "frame"):
+                if kind == "frame" and self.drawing(time.monotonic()):
+                    continue  # it stays the newest until the page draws the last
                 payload = self.newest.pop(kind, None)
                 if payload is None or self.ws.closed:
                     continue
                 if isinstance(payload, bytes):
+                    if self.frame_sent_at is not None:  # past DRAW_TIMEOUT_S without the page's word
+                        service.counters.inc("frames.unacknowledged")
+                    self.frame_sent_at = time.monotonic()
                     await self.ws.send_bytes(payload)
                     service.rates.tick("frames.sent")
                 else:
@@ -95,8 +116,10 @@ class ConsoleWeb:
         self.access = access
         self.ssl_context = ssl_context
         self.pages: set[Page] = set()
-        #: pages that gave the token (or needed none): read by the service's threads, written in the loop's
+        #: pages that gave the token (or needed none), and those of them a frame encoded now would go to: read by
+        #: the service's threads, written in the loop's
         self._watching = 0
+        self._wanting_frames = 0
         self.loop: Optional[asyncio.AbstractEventLoop] = None
         self.app = web.Application(middlewares=[self._headers])
         self.app.router.add_get("/", self._index)
@@ -118,7 +141,7 @@ class ConsoleWeb:
         self.service.on_frame = lambda packet: self.loop.call_soon_threadsafe(self._offer, "frame", packet)
         self.service.on_overlay = lambda overlay: self.loop.call_soon_threadsafe(self._offer, "overlay",
                                                                                    json.dumps(overlay))
-        self.service.wants_frames = lambda: self._watching > 0
+        self.service.wants_frames = lambda: self._wanting_frames > 0
         self._runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
         await self._runner.setup()
         family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
@@ -192,7 +215,12 @@ class ConsoleWeb:
         return ws
 
     def _count_watchers(self) -> None:
+        now = time.monotonic()
         self._watching = sum(p.authenticated for p in self.pages)
+        wanting = sum(p.wants_frame(now) for p in self.pages)
+        if wanting and not self._wanting_frames:
+            self.service.frame_wanted()
+        self._wanting_frames = wanting
         self.service.pages_open = self._watching
 
     # ------------------------------------------------------------------ requests
@@ -201,6 +229,15 @@ class ConsoleWeb:
             message = parse_page_message(text)
         except Refused as refusal:
             self._refuse(refusal.reason, refusal.message, page)
+            return
+        if isinstance(message, DrawnMessage):
+            if page.frame_sent_at is not None:
+                self.service.frame_drawn(time.monotonic() - page.frame_sent_at)
+            page.frame_sent_at = None
+            # a frame encoded for another page while this one drew may be old by now: the page is sent the newest
+            # image, encoded for it now
+            page.newest.pop("frame", None)
+            self._count_watchers()
             return
         if isinstance(message, AuthMessage):
             if not self.access.token_ok(message.token):
@@ -241,10 +278,13 @@ class ConsoleWeb:
         for page in self.pages:
             if page.authenticated and page.offer(kind, payload):
                 self.service.counters.inc(f"dropped.{kind}")
+        if kind == "frame":
+            self._count_watchers()
 
     async def _send_status(self) -> None:
         while True:
             await asyncio.sleep(STATUS_PERIOD_S)
+            self._count_watchers()  # a page past DRAW_TIMEOUT_S takes a frame again
             if not self._watching:
                 continue
             with self.service.lock:

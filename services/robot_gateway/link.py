@@ -127,7 +127,7 @@ class ActuatorLink:
                                    for address in self.addresses))
         replies = self._collect({(a, r.Command.SEND_ACTUAL_POSITION): 1 for a in self.addresses})
         out = np.zeros(len(self.addresses))
-        out[self._by_address(replies)] = replies["data"][:, 0]
+        out[self._by_address(replies)] = replies["data"][:, r.POSITION_FLOAT]  # float[0] is the motor current
         return out
 
     def command(self, positions_deg, torques_nm=None) -> ActuatorValues:

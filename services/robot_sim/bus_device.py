@@ -2,7 +2,9 @@
 (host 0x00, actuators at ``ActuatorConfig.addresses``). Pure: no bus, no threads, no wall time; the service feeds
 it the frames and sends what it returns, and decides when cycles end (:mod:`services.robot_sim.service`).
 
-* ``GET_ACTUAL_POSITION`` (0x01) → ``SEND_ACTUAL_POSITION`` (0x02), float[0] = position (deg, physical).
+* ``GET_ACTUAL_POSITION`` (0x01) → ``SEND_ACTUAL_POSITION`` (0x02): float [current (A), position (deg,
+  physical), velocity (deg/s), torque (N·m)], 0x15's layout: the position in float[1], where Kinova's RS-485
+  examples, abr/abr_jaco2, abr/abr_control, sammy-tri/drake-jaco-driver and farmange/libkinova all read it.
 * ``POSITION_AND_TORQUE_COMMAND`` (0x14) → one 0x15, 0x16 and 0x17 reply each, with the values of the current
   cycle (the state at its boundary); the command itself is taken at the next boundary
   (:class:`~services.robot_sim.firmware.ActuatorFirmware`). In lockstep the replies wait for that boundary, so
@@ -112,8 +114,10 @@ class ActuatorBusDevice:
         firmware = self.firmware
         command = message.command
         if command is r.Command.GET_ACTUAL_POSITION:
+            v = self.values  # the cycle's current, velocity and torque; the position as the joint is now
             return [r.RS485Message.with_floats(r.Command.SEND_ACTUAL_POSITION, address, r.HOST_ADDRESS,
-                                               [firmware.position_deg(i)])]
+                                               [float(v.current_a[i]), firmware.position_deg(i),
+                                                float(v.velocity_dps[i]), float(v.torque_nm[i])])]
         if command is r.Command.POSITION_AND_TORQUE_COMMAND:
             return r.from_records(self._commands(r.to_records([message]), np.array([i])))
         if command is r.Command.GET_TORQUE_VALIDATION_REQUEST:

