@@ -1,12 +1,12 @@
 """The console's camera in a real browser: how many frames a second a headless Chromium page draws, and how far
-behind their capture (p50, p99), on a stack in realtime with its task running (the arm moving, every service a
-process, the console one more, the browser one more: all on this machine's cores).
+behind their capture (p50, p99), on a stack in realtime, idle and then with its task running (the arm moving, every
+service a process, the console one more, the browser one more: all on this machine's cores).
 
 ``python -m bench.console [--json] [--seconds S] [--profile sim|gateway] [--arm NAME]`` or ``mfvs bench console``. The delay is
 from the frame's capture stamp (robot_sim's camera) to the page's clock once the frame is decoded and drawn; both
 clocks are this machine's. ``console_to_page_ms`` is the part from the console's receiving the frame. ``--json``
-prints ``{"profile", "arm", "fps", "delay_ms": {p50, p99, max, n}, "console_to_page_ms": {...}, "camera_hz", "encoded_hz",
-"dropped", "seconds"}``.
+prints ``{"profile", "arm", "seconds", "idle": PHASE, "task": PHASE}``, each PHASE ``{"fps", "frames",
+"delay_ms": {p50, p99, max, n}, "console_to_page_ms": {...}, "camera_hz", "encoded_hz", "drawn_hz", "dropped"}``.
 
 Debian's Chromium and chromedriver (``deploy/install.sh``) are driven by Selenium, started as this machine needs
 (headless, no sandbox as root, no background networking: the machine has no internet).
@@ -27,6 +27,8 @@ from bench.latency import stats
 from bench.stack import profile_on_arm, servoing_stack, unknown_arm
 from protocol.keys import Keys
 from services.cli import add_arm_option
+from protocol import messages as m
+from services.launcher import stack_task
 from services.runtime.service import query_health
 from services.runtime.transport import ZenohConfig, open_session
 from services.stack import ConsoleProcess
@@ -111,21 +113,25 @@ def wait_for_frames(driver, count: int, timeout_s: float = 30.0) -> dict:
     raise RuntimeError(f"the page drew {page_stats(driver)['frames']} frames in {timeout_s:g} s")
 
 
-def measure(url: str, seconds: float, while_open=dict) -> dict:
-    """Open ``url`` in headless Chromium and count what its page draws over ``seconds``, after its first frames;
-    ``while_open()``'s figures (read before the page closes) are added."""
+def measure(url: str, seconds: float, phases: dict, figures=dict) -> dict:
+    """Open ``url`` in headless Chromium and, phase after phase (its name → what begins it), count what the page
+    draws over ``seconds``, after its first frames; ``figures()`` (read at each phase's end) are added."""
+    out = {}
     with Browser() as driver:
         driver.get(url)
-        before = wait_for_frames(driver, 10)
-        time.sleep(seconds)
-        after = page_stats(driver)
-        extra = while_open()
-    frames = after["frames"] - before["frames"]
-    span_s = (after["lastAt"] - before["lastAt"]) / 1e3
-    # the page keeps its last 5000 figures: those of the measured frames are the last ``frames`` of them
-    return {"fps": round(frames / span_s, 2) if span_s > 0 else 0.0, "frames": frames,
-            "delay_ms": stats(after["delaysMs"][-frames:] if frames else []),
-            "console_to_page_ms": stats(after["consoleMs"][-frames:] if frames else []), **extra}
+        wait_for_frames(driver, 10)
+        for name, begin in phases.items():
+            begin()
+            before = page_stats(driver)
+            time.sleep(seconds)
+            after = page_stats(driver)
+            frames = after["frames"] - before["frames"]
+            span_s = (after["lastAt"] - before["lastAt"]) / 1e3 if frames else 0.0
+            # the page keeps its last 5000 figures: those of the measured frames are the last ``frames`` of them
+            out[name] = {"fps": round(frames / span_s, 2) if span_s > 0 else 0.0, "frames": frames,
+                         "delay_ms": stats(after["delaysMs"][-frames:] if frames else []),
+                         "console_to_page_ms": stats(after["consoleMs"][-frames:] if frames else []), **figures()}
+    return out
 
 
 def console_rates(endpoint: str, robot_id: str = "jaco") -> dict:
@@ -138,6 +144,7 @@ def console_rates(endpoint: str, robot_id: str = "jaco") -> dict:
         return {}
     return {"camera_hz": round(health.rates_hz.get("image", 0.0), 1),
             "encoded_hz": round(health.rates_hz.get("frames.encoded", 0.0), 1),
+            "drawn_hz": round(health.rates_hz.get("frames.drawn", 0.0), 1),
             "dropped": {k: v for k, v in health.errors.items() if k.startswith("dropped.")}}
 
 
@@ -150,19 +157,23 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if unknown_arm(parser, args):
         return 2
-    with servoing_stack(profile_on_arm(args.profile, args.arm), operator="bench-console") as endpoint:
+    with servoing_stack(profile_on_arm(args.profile, args.arm), operator="bench-console", start_task=False) as endpoint:
         with ConsoleProcess(endpoint) as console:
+            phases = {"idle": lambda: None,
+                      "task": lambda: stack_task(m.START_TASK, operator="bench-console")}
             result = {"profile": args.profile, "arm": args.arm, "seconds": args.seconds,
-                      **measure(console.url, args.seconds, lambda: console_rates(endpoint))}
+                      **measure(console.url, args.seconds, phases, lambda: console_rates(endpoint))}
     if args.json:
         print(json.dumps(result))
     else:
-        delay, part = result["delay_ms"], result["console_to_page_ms"]
-        print(f"console ({args.profile}, {args.arm}, {args.seconds:g} s, headless Chromium): {result['fps']:.1f} frames/s drawn "
-              f"(camera {result.get('camera_hz', 0):.1f} Hz, encoded {result.get('encoded_hz', 0):.1f} Hz)")
-        print(f"  capture → page: p50 {delay['p50']} ms, p99 {delay['p99']} ms, max {delay['max']} ms "
-              f"({delay['n']} frames)")
-        print(f"  console → page: p50 {part['p50']} ms, p99 {part['p99']} ms; dropped {result.get('dropped', {})}")
+        print(f"console ({args.profile}, {args.arm}, {args.seconds:g} s a phase, headless Chromium):")
+        for phase in phases:
+            r = result[phase]
+            delay, part = r["delay_ms"], r["console_to_page_ms"]
+            print(f"  {phase:4s}: {r['fps']:.1f} frames/s drawn (camera {r.get('camera_hz', 0):.1f} Hz, encoded "
+                  f"{r.get('encoded_hz', 0):.1f} Hz); capture → page p50 {delay['p50']} ms, p99 {delay['p99']} ms, "
+                  f"max {delay['max']} ms ({delay['n']} frames); console → page p50 {part['p50']} ms, p99 "
+                  f"{part['p99']} ms; dropped {r.get('dropped', {})}")
     return 0
 
 

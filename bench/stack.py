@@ -45,8 +45,9 @@ def detail_fields(detail: Optional[str]) -> dict[str, str]:
 
 
 @contextlib.contextmanager
-def servoing_stack(profile: Profile, operator: str) -> Iterator[str]:
-    """Bring ``profile`` up in realtime, start its task as ``operator``, and yield the router's endpoint."""
+def servoing_stack(profile: Profile, operator: str, start_task: bool = True) -> Iterator[str]:
+    """Bring ``profile`` up in realtime, start its task as ``operator`` (unless not ``start_task``: the caller
+    starts it, with :func:`services.launcher.stack_task`), and yield the router's endpoint."""
     previous = os.environ.get("MFVS_RUN_DIR")
     with tempfile.TemporaryDirectory(prefix="mfvs-bench-") as directory:
         os.environ["MFVS_RUN_DIR"] = directory
@@ -54,7 +55,8 @@ def servoing_stack(profile: Profile, operator: str) -> Iterator[str]:
             code, message = up(profile, "realtime")
             if code:
                 raise RuntimeError(message)
-            stack_task(m.START_TASK, operator=operator)
+            if start_task:
+                stack_task(m.START_TASK, operator=operator)
             yield profile.endpoint()
         finally:
             down()

@@ -1,9 +1,10 @@
-"""RS-485 frames over a python-can bus: the transport between a host (the gateway) and the actuators (a real arm's,
-or robot_sim's emulation).
+"""RS-485 frames over a python-can bus: the transport between a host (the gateway) and robot_sim's emulated
+actuators. It is the emulation's only: RS-485 is not CAN, and a real JACO-2's actuator bus is inside the arm, reached
+only through the base with Kinova's comm layer (USB ``OpenRS485_*``), which no CAN adapter replaces (issue 46).
 
 One RS485_Message travels as one CAN FD frame whose 20 data bytes are the message itself (20 is a valid CAN FD
 length); the arbitration id is the destination address, so receivers can filter. Any python-can interface works
-(``socketcan`` on Linux hardware, ``virtual``); mfvs's own ``mfvs_hub`` (between processes) and ``mfvs_local``
+(``socketcan`` with vcan or between the hosts of an emulation, ``virtual``); mfvs's own ``mfvs_hub`` (between processes) and ``mfvs_local``
 (between threads of one process) also carry a whole batch without a python-can object per frame, which is what a
 500 Hz loop in Python can afford. A frame that is not a valid RS-485 message (wrong length, unknown command) is
 dropped and counted (``bus.rejected``), never passed on.

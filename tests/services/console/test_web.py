@@ -308,13 +308,14 @@ def test_one_request_of_a_kind_at_a_time(stack_with_safety):
         assert safety.core.estop_latched
 
 
-class RobotStates:
-    """A robot's states every 20 ms, declaring whatever arm :attr:`declared` says (name, fingerprint, angles)."""
+class Periodic:
+    """A stand-in publisher on ``key``: ``self.publish()`` every ``period_s`` in a thread of its own, on a session
+    of its own, while the block runs."""
 
-    def __init__(self, client_config, **declared) -> None:
-        self.declared = declared
+    def __init__(self, client_config, key, period_s: float) -> None:
+        self.period_s = period_s
         self.session = open_session(client_config)
-        self.publisher = self.session.declare_publisher(KEYS.robot_state)
+        self.publisher = self.session.declare_publisher(key)
         self.stop = threading.Event()
         self.thread = threading.Thread(target=self._run, daemon=True)
 
@@ -328,14 +329,28 @@ class RobotStates:
         self.session.close()
 
     def _run(self):
-        while not self.stop.wait(0.02):
-            d = dict(self.declared)
-            n = len(d["q"])
-            state = m.RobotState(header=m.Header(stamp_ns=time.time_ns()), arm=d["arm"], arm_digest=d["digest"],
-                                 q=list(d["q"]), dq=[0.0] * n, tau=[0.0] * n,
-                                 pose=m.KinovaPose(X=0.4, Y=0.0, Z=0.5, ThetaX=0.0, ThetaY=0.0, ThetaZ=0.0),
-                                 control_mode=m.ControlMode.CARTESIAN_VELOCITY)
-            self.publisher.put(m.encode(state))
+        while not self.stop.wait(self.period_s):
+            self.publish()
+
+    def publish(self) -> None:
+        raise NotImplementedError
+
+
+class RobotStates(Periodic):
+    """A robot's states every 20 ms, declaring whatever arm :attr:`declared` says (name, fingerprint, angles)."""
+
+    def __init__(self, client_config, **declared) -> None:
+        super().__init__(client_config, KEYS.robot_state, 0.02)
+        self.declared = declared
+
+    def publish(self):
+        d = dict(self.declared)
+        n = len(d["q"])
+        state = m.RobotState(header=m.Header(stamp_ns=time.time_ns()), arm=d["arm"], arm_digest=d["digest"],
+                             q=list(d["q"]), dq=[0.0] * n, tau=[0.0] * n,
+                             pose=m.KinovaPose(X=0.4, Y=0.0, Z=0.5, ThetaX=0.0, ThetaY=0.0, ThetaZ=0.0),
+                             control_mode=m.ControlMode.CARTESIAN_VELOCITY)
+        self.publisher.put(m.encode(state))
 
 
 def test_the_page_follows_the_arm_the_robot_declares_and_counts_one_this_host_does_not_describe(stack_with_safety):
@@ -372,33 +387,19 @@ def test_the_page_follows_the_arm_the_robot_declares_and_counts_one_this_host_do
         assert console.process.poll() is None
 
 
-class Camera:
-    """A camera on the image key: a 160×120 grey frame every ``period_s``, its sequence number in the header."""
+class Camera(Periodic):
+    """A camera on the image key: a 160×120 grey frame at 30 Hz, its sequence number in the header."""
 
-    def __init__(self, client_config, period_s: float = 1 / 30) -> None:
-        self.period_s = period_s
-        self.session = open_session(client_config)
-        self.publisher = self.session.declare_publisher(KEYS.camera_image)
+    def __init__(self, client_config) -> None:
+        super().__init__(client_config, KEYS.camera_image, 1 / 30)
         self.seq = 0
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
 
-    def __enter__(self):
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self.stop.set()
-        self.thread.join(timeout=5)
-        self.session.close()
-
-    def _run(self):
-        while not self.stop.wait(self.period_s):
-            self.seq += 1
-            now = time.time_ns()
-            self.publisher.put(m.encode(m.Image(
-                header=m.Header(seq=self.seq, stamp_ns=now, source_stamp_ns=now), width=160, height=120,
-                encoding=m.ImageEncoding.MONO8, data=bytes([self.seq % 256]) * (160 * 120))))
+    def publish(self):
+        self.seq += 1
+        now = time.time_ns()
+        self.publisher.put(m.encode(m.Image(
+            header=m.Header(seq=self.seq, stamp_ns=now, source_stamp_ns=now), width=160, height=120,
+            encoding=m.ImageEncoding.MONO8, data=bytes([self.seq % 256]) * (160 * 120))))
 
 
 def test_a_page_is_sent_one_frame_at_a_time_the_newest_once_it_drew_the_last(stack_with_safety):

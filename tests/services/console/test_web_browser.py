@@ -257,14 +257,8 @@ def test_a_console_following_a_6_dof_stack_shows_its_six_joints_in_the_degrees_t
             with ConsoleProcess(stack.endpoint) as console, Browser(*DESKTOP) as driver:
                 driver.get(console.url)
                 wait_for_frames(driver, 3)
-                assert wait_for(lambda: "j2n6s300" in text(driver, "arm"), timeout=15), text(driver, "arm")
-                assert "GetAngularPosition" in text(driver, "arm") and six.title in text(driver, "arm")
-                rows = driver.find_elements(By.CSS_SELECTOR, "#joints .joint")
-                assert [r.find_element(By.CSS_SELECTOR, ".label").text for r in rows] == list(six.joint_names)
-                shown = driver.execute_script("return window.mfvsConsole.page.status.joints")
-                reported = six.model_to_physical_deg(states.last().q)
-                assert [j["deg"] for j in shown] == pytest.approx(list(reported), abs=0.5)
-                ranges = [r.find_element(By.CSS_SELECTOR, ".track").get_attribute("title") for r in rows]
+                shows_the_arm_the_robot_declares(driver, six, states)
+                ranges = [r.get_attribute("title") for r in driver.find_elements(By.CSS_SELECTOR, "#joints .track")]
                 assert ranges[1:3] == ["47° … 313°", "19° … 341°"] and ranges[0].startswith("continuous")
                 driver.find_element(By.ID, "operator").send_keys("tester")
                 click(driver, "start")
