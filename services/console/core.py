@@ -8,7 +8,8 @@ adapters that decode, lock, count and send):
   the task, engage and release the e-stop, and nothing else; the token beyond loopback, the page's own origin
   only; which request goes to the stack and which is refused, the refusal's reason (a counter's name) with a
   sentence for the page;
-* a camera frame's wire format to the page (:func:`frame_packet`).
+* a camera frame's wire format to the page (:func:`frame_packet`), and how finely frames are sent while the pages
+  are behind (:class:`FrameSize`).
 """
 from __future__ import annotations
 
@@ -551,6 +552,35 @@ class ConsoleModel:
 # ------------------------------------------------------------------------------------------------ frames
 
 _LENGTH = struct.Struct(">I")
+
+
+class FrameSize:
+    """How finely the console sends its frames: whole, or halved on each side (a quarter of the pixels to encode,
+    send, decode and draw) while the pages are behind. Behind: a frame's encoding and its page's drawing (from
+    sending to the page's word that it drew it), smoothed, take longer than a camera period, so that the page
+    cannot draw at the camera's rate. Back to whole once the halved frames take less than a third of a period
+    (halving cuts the time about fourfold: the gap keeps it from switching at every frame). Our rule, no
+    standard's."""
+
+    #: the weight of the newest frame in the smoothed time
+    SMOOTHING = 0.2
+    #: back to whole below this fraction of the camera period
+    RECOVER_FRACTION = 1 / 3
+
+    def __init__(self) -> None:
+        self.scale = 1
+        self.smoothed_s = 0.0
+
+    def on_drawn(self, encode_s: float, draw_s: float, period_s: float) -> int:
+        """A page drew a frame (``encode_s`` to encode, ``draw_s`` from sending to its word); the scale now."""
+        if not (math.isfinite(encode_s) and math.isfinite(draw_s) and period_s > 0):
+            return self.scale
+        self.smoothed_s += self.SMOOTHING * (max(0.0, encode_s) + max(0.0, draw_s) - self.smoothed_s)
+        if self.scale == 1 and self.smoothed_s > period_s:
+            self.scale = 2
+        elif self.scale == 2 and self.smoothed_s < self.RECOVER_FRACTION * period_s:
+            self.scale = 1
+        return self.scale
 
 
 def frame_packet(jpeg: bytes, header: dict) -> bytes:

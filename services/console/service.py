@@ -11,15 +11,28 @@ import threading
 import time
 from typing import Callable, Optional
 
+import cv2
+import numpy as np
+
 from protocol import messages as m
 from protocol.conventions import ClockMode
-from services.console.core import Action, Command, ConsoleModel, frame_packet
+from services.console.core import Action, Command, ConsoleModel, FrameSize, frame_packet
 from services.controller.task_client import TaskUnavailable, call_task
 from services.safety.estop_client import EStopClient
 from services.launcher import describe_task
 from services.observe.foxglove_view import jpeg
 from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread
+
+
+def halved(image: m.Image) -> m.Image:
+    """The frame at half its width and height (OpenCV's area average): what the console sends while the pages are
+    behind. The header keeps the whole frame's size, which the overlays' pixels refer to."""
+    channels = m.CHANNELS[image.encoding]
+    pixels = np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.width, channels)
+    width, height = max(1, image.width // 2), max(1, image.height // 2)
+    small = np.ascontiguousarray(cv2.resize(pixels, (width, height), interpolation=cv2.INTER_AREA))
+    return m.Image(header=image.header, width=width, height=height, encoding=image.encoding, data=small.tobytes())
 
 
 class ConsoleConfig(ServiceConfig):
@@ -53,8 +66,11 @@ class ConsoleService(Service):
         self.wall_stamps = True
         self._estop: Optional[EStopClient] = None
         self._threads: list[threading.Thread] = []
-        #: from a frame's sending to the page's word that it drew it, the last one (s)
+        #: from a frame's sending to the page's word that it drew it, the last one (s); the last frame's encoding
         self.page_draw_s = 0.0
+        self.encode_s = 0.0
+        #: whole frames, or halved while the pages are behind (written by the web side's loop, read by the encoder)
+        self.frame_size = FrameSize()
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -132,6 +148,11 @@ class ConsoleService(Service):
         """A page drew a frame ``seconds`` after it was sent (the web side, from its loop)."""
         self.rates.tick("frames.drawn")
         self.page_draw_s = seconds
+        camera_hz = self.rates.snapshot().get("image", 0.0)
+        before = self.frame_size.scale
+        after = self.frame_size.on_drawn(self.encode_s, seconds, 1.0 / camera_hz if camera_hz > 0 else 1 / 30)
+        if after != before:
+            self.counters.inc("frames.halved" if after > before else "frames.whole")
 
     def _encode_frames(self) -> None:
         while not self.stop_requested:
@@ -145,15 +166,18 @@ class ConsoleService(Service):
             if newest is None:
                 continue
             image, received_ns = newest
+            scale = self.frame_size.scale
+            started = time.perf_counter()
             try:
-                encoded = jpeg(image, self.config.jpeg_quality)
+                encoded = jpeg(image if scale == 1 else halved(image), self.config.jpeg_quality)
             except Exception as exc:  # an image OpenCV cannot encode: not shown, counted, the next one may be
                 self.counters.inc("errors.encode")
                 self.limited_log.warning("encode", "console: could not encode a frame: %s", exc)
                 continue
+            self.encode_s = time.perf_counter() - started
             header = {"seq": image.header.seq, "capture_ns": image.header.source_stamp_ns or image.header.stamp_ns,
                       "received_ns": received_ns, "encoded_ns": time.time_ns(), "wall_stamps": self.wall_stamps,
-                      "width": image.width, "height": image.height}
+                      "width": image.width, "height": image.height, "scale": scale}
             self.rates.tick("frames.encoded")
             self.on_frame(frame_packet(encoded, header))
 

@@ -146,7 +146,7 @@ function draw() {
   if (canvas.width !== header.width || canvas.height !== header.height) {
     canvas.width = header.width; canvas.height = header.height;
   }
-  ctx.drawImage(page.bitmap, 0, 0);
+  ctx.drawImage(page.bitmap, 0, 0, header.width, header.height);  // a halved frame drawn at the whole size
   const paths = page.status ? page.status.paths : [];
   paths.forEach((path, i) => {
     ctx.beginPath();
@@ -173,7 +173,9 @@ function draw() {
   const fps = frameRate(wallNowMs());
   const delays = stats.delaysMs.slice(-30);
   const delay = delays.length ? ` · ${Math.round(median(delays))} ms behind capture` : "";
-  $("camera-info").textContent = `${fps.toFixed(0)} frames/s${delay}`;
+  const halved = header.scale > 1
+    ? ` · sent at ${page.bitmap.width}×${page.bitmap.height}: this page draws slower than the camera` : "";
+  $("camera-info").textContent = `${fps.toFixed(0)} frames/s${delay}${halved}`;
 }
 
 function median(values) { const s = [...values].sort((a, b) => a - b); return s[Math.floor(s.length / 2)]; }

@@ -289,3 +289,38 @@ def test_health_task_estop_and_refusals_make_the_log_and_the_estop_state_goes_st
 def test_a_frame_packet_carries_its_header_and_jpeg():
     packet = frame_packet(b"\xff\xd8jpeg", {"capture_ns": 12, "wall_stamps": True})
     assert read_frame_packet(packet) == ({"capture_ns": 12, "wall_stamps": True}, b"\xff\xd8jpeg")
+
+
+def test_frames_are_halved_while_the_pages_draw_slower_than_the_camera_and_whole_again_once_they_keep_up():
+    from services.console.core import FrameSize
+
+    period = 1 / 30
+    size = FrameSize()
+    assert [size.on_drawn(0.004, 0.010, period) for _ in range(20)] == [1] * 20  # 14 ms a frame: it keeps up
+    # a page taking 60 ms a frame: halved once the smoothed time passes the period, not at the first slow frame
+    slow = [size.on_drawn(0.006, 0.054, period) for _ in range(20)]
+    assert slow[0] == 1 and slow[-1] == 2 and slow.index(2) >= 2
+    # halved frames at 20 ms: above a third of the period, it stays halved (no switching at every frame)
+    assert all(size.on_drawn(0.002, 0.018, period) == 2 for _ in range(40))
+    # at 6 ms it is whole again
+    back = [size.on_drawn(0.001, 0.005, period) for _ in range(40)]
+    assert back[-1] == 1 and back.count(1) == len(back) - back.index(1)
+    # what cannot be a time changes nothing
+    assert size.on_drawn(float("nan"), 1.0, period) == 1 and size.on_drawn(0.1, float("inf"), period) == 1
+    assert size.on_drawn(1.0, 1.0, 0.0) == 1
+
+
+def test_a_halved_frame_is_the_area_average_at_half_its_size_for_every_encoding():
+    import numpy as np
+
+    from services.console.service import halved
+
+    rng = np.random.default_rng(3)
+    for encoding, channels in ((m.ImageEncoding.MONO8, 1), (m.ImageEncoding.RGB8, 3)):
+        pixels = rng.integers(0, 256, (48, 64, channels), dtype=np.uint8)
+        image = m.Image(header=m.Header(seq=5), width=64, height=48, encoding=encoding, data=pixels.tobytes())
+        small = halved(image)
+        assert (small.width, small.height, small.encoding, small.header.seq) == (32, 24, encoding, 5)
+        expected = pixels.reshape(24, 2, 32, 2, channels).astype(float).mean(axis=(1, 3))
+        got = np.frombuffer(small.data, dtype=np.uint8).reshape(24, 32, channels)
+        assert np.abs(got - expected).max() <= 0.5 + 1e-9

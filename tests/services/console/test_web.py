@@ -450,3 +450,39 @@ def test_a_page_message_that_says_it_drew_is_validated():
         with pytest.raises(Refused) as refused:
             parse_page_message(bad)
         assert refused.value.reason == "malformed"
+
+
+def test_a_page_that_draws_slower_than_the_camera_is_sent_halved_frames_and_whole_ones_once_it_keeps_up(
+        stack_with_safety):
+    import cv2
+    import numpy as np
+
+    from services.console.core import read_frame_packet
+
+    router = stack_with_safety["router"]
+    with ConsoleProcess(router.endpoint) as console, Camera(router.client_config()):
+        async def session():
+            async with Page(console.url) as page:
+                async def draw(count: int, draw_s: float) -> list[tuple[dict, np.ndarray]]:
+                    drawn = []
+                    while len(drawn) < count:
+                        message = await page.ws.receive(timeout=10)
+                        if message.type == aiohttp.WSMsgType.TEXT:
+                            continue  # the status, overlays
+                        assert message.type == aiohttp.WSMsgType.BINARY, message
+                        header, jpeg = read_frame_packet(message.data)
+                        await asyncio.sleep(draw_s)  # the page's decoding and drawing
+                        drawn.append((header, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_UNCHANGED)))
+                        await page.send({"type": "drawn", "seq": header["seq"]})
+                    return drawn
+
+                slow = await draw(20, 0.1)  # three camera periods a frame
+                assert slow[0][0]["scale"] == 1 and slow[-1][0]["scale"] == 2
+                header, pixels = slow[-1]
+                assert (header["width"], header["height"]) == (160, 120) and pixels.shape[:2] == (60, 80)
+                fast = await draw(40, 0.0)
+                assert fast[-1][0]["scale"] == 1 and fast[-1][1].shape[:2] == (120, 160)
+
+        asyncio.run(session())
+        errors = console_errors(router.client_config())
+        assert errors.get("frames.halved", 0) >= 1 and errors.get("frames.whole", 0) >= 1, errors
