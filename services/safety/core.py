@@ -198,6 +198,9 @@ class SafetyCore:
             out: list[Action] = [Count("estop.resets")]
             if self.estop_latched:
                 out.append(Note(logging.WARNING, f"e-stop reset by {message.operator or 'an operator'}"))
+                # what the next cycle's stop (nothing is held after an e-stop) will say, said now: the release is
+                # confirmed by this state
+                self.safety_state = SafetyState.REFUSING if self.last_refusal else SafetyState.OK
             self.estop_latched, self.estop_reason = False, ""
             return out
         self.estop_latched = True

@@ -122,7 +122,13 @@ class SafetyService(Service):
 
     def _on_estop(self, message: EStop, _recv_ns: int) -> None:
         with self.lock:
+            before = self.core.safety_state
             self._carry_out(self.core.estop(message))
+            changed = self.core.safety_state is not before
+        if changed:
+            # said at once, not at the next status period: whoever pressed it (the console, `mfvs estop`) waits for
+            # this confirmation, and repeats the request until it comes
+            self.status_pub.put(self.status_message())
 
     def _on_twist(self, twist: Twist, recv_ns: int) -> None:
         with self.lock:

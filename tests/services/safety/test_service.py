@@ -165,6 +165,31 @@ def test_wrong_convention_and_bad_payloads_are_refused(harness):
     assert not h["safety"].core.estop_latched and h["safety"].state == "running"
 
 
+def test_an_estop_is_confirmed_at_once_not_at_the_next_status_period(router):
+    """Safety says its state as soon as an e-stop changes it: with its status every 5 s, the e-stop and its
+    release are each confirmed well within a status period, after one request each."""
+    from services.safety.estop_client import EStopClient
+
+    safety = SafetyService(SafetyConfig(zenoh=router.client_config(), status_rate_hz=0.2)).start()
+    session = open_session(router.client_config())
+    estops = Recorder(session, KEYS.estop, m.EStop)
+    try:
+        time.sleep(0.5)  # past the first status, sent as the loop starts
+        with EStopClient(session, KEYS) as client:
+            for reset in (False, True):
+                started = time.monotonic()
+                status = client.send(reset, "tester", "test", timeout_s=4.0)
+                assert status is not None and (status.state is m.SafetyState.ESTOP) != reset
+                assert time.monotonic() - started < 1.0
+        assert wait_for(lambda: len(estops) == 2, timeout=2)  # one put each: none repeated for want of an answer
+        time.sleep(0.3)
+        assert len(estops) == 2
+    finally:
+        estops.close()
+        session.close()
+        safety.stop()
+
+
 def test_mfvs_estop_command_engages_and_resets(router):
     import subprocess
     import sys
