@@ -7,7 +7,10 @@ slowdown is spread evenly rather than as long pauses.
 
 A host whose 640×480 MuJoCo frame takes 6-7 ms (against about 2 ms here) is about what ``--cpus 0.6`` gives on a
 2-core machine. This is how the test suite's verdicts are checked against a slow host (issue 49): a test whose
-verdict moves with ``--cpus`` is a design bug. Needs root and a cgroup v1 ``cpu`` hierarchy or cgroup v2 with the
+verdict moves with ``--cpus`` is a design bug. What it does not do as a slower CPU would: a burst shorter than the
+quota runs at full speed (a 1.2 ms render alone stays about 1.4 ms), and the stack's realtime threads share one
+realtime budget, so at a small ``--cpus`` a high-priority thread can hold back a lower one for longer than a slow
+CPU would (at 0.6 safety's e-stop waited behind robot_sim's realtime process). Needs root and a cgroup v1 ``cpu`` hierarchy or cgroup v2 with the
 ``cpu`` controller; ``--taskset`` also pins the tree to the given cores, and ``--hogs N`` starts N CPU hogs inside
 the cgroup beside it (another program at the services' normal priority)."""
 from __future__ import annotations
