@@ -25,9 +25,9 @@ from typing import Optional
 
 from bench.latency import stats
 from bench.stack import profile_on_arm, servoing_stack, unknown_arm
+from protocol import messages as m
 from protocol.keys import Keys
 from services.cli import add_arm_option
-from protocol import messages as m
 from services.launcher import stack_task
 from services.runtime.service import query_health
 from services.runtime.transport import ZenohConfig, open_session

@@ -20,7 +20,7 @@ from services.console.core import Action, Command, ConsoleModel, FrameSize, fram
 from services.controller.task_client import TaskUnavailable, call_task
 from services.safety.estop_client import EStopClient
 from services.launcher import describe_task
-from services.observe.foxglove_view import jpeg
+from services.observe.foxglove_view import jpeg, pixels
 from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread
 
@@ -28,10 +28,8 @@ from services.runtime.threads import start_thread
 def halved(image: m.Image) -> m.Image:
     """The frame at half its width and height (OpenCV's area average): what the console sends while the pages are
     behind. The header keeps the whole frame's size, which the overlays' pixels refer to."""
-    channels = m.CHANNELS[image.encoding]
-    pixels = np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.width, channels)
     width, height = max(1, image.width // 2), max(1, image.height // 2)
-    small = np.ascontiguousarray(cv2.resize(pixels, (width, height), interpolation=cv2.INTER_AREA))
+    small = np.ascontiguousarray(cv2.resize(pixels(image), (width, height), interpolation=cv2.INTER_AREA))
     return m.Image(header=image.header, width=width, height=height, encoding=image.encoding, data=small.tobytes())
 
 

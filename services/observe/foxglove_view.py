@@ -63,13 +63,17 @@ def _pose_quaternion(pose: m.Pose) -> fm.Quaternion:
 
 
 # ------------------------------------------------------------------------------------------------ the camera
+def pixels(image: m.Image) -> np.ndarray:
+    """The frame's pixels as an H×W×channels view of its bytes (no copy)."""
+    return np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.width, m.CHANNELS[image.encoding])
+
+
 def jpeg(image: m.Image, quality: int = 90) -> bytes:
     """The frame as JPEG (a tenth of the raw bytes: a viewer's copy; the raw frame is what vision sees)."""
-    channels = m.CHANNELS[image.encoding]
-    pixels = np.frombuffer(image.data, dtype=np.uint8).reshape(image.height, image.width, channels)
+    view = pixels(image)
     if image.encoding is m.ImageEncoding.RGB8:
-        pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
-    ok, encoded = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        view = cv2.cvtColor(view, cv2.COLOR_RGB2BGR)
+    ok, encoded = cv2.imencode(".jpg", view, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         raise ValueError(f"OpenCV could not encode a {image.width}x{image.height} {image.encoding.value} frame")
     return encoded.tobytes()

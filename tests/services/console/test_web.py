@@ -85,6 +85,17 @@ class Page:
                 raise AssertionError(f"the stream ended: {message}")
         raise AssertionError(f"nothing such arrived; received {[r['type'] for r in self.received]}")
 
+    async def next_frame(self, timeout=10.0) -> bytes:
+        """The next frame the console sends (what comes before it is kept in :attr:`received`)."""
+        while True:
+            message = await self.ws.receive(timeout=timeout)
+            if message.type == aiohttp.WSMsgType.BINARY:
+                self.frames.append(message.data)
+                return message.data
+            if message.type != aiohttp.WSMsgType.TEXT:
+                raise AssertionError(f"the stream ended: {message}")
+            self.received.append(json.loads(message.data))
+
     async def answer(self, message, timeout=10.0):
         """Send a request and wait for its result or refusal."""
         request_id = message.get("id") if isinstance(message, dict) else None
@@ -412,29 +423,18 @@ def test_a_page_is_sent_one_frame_at_a_time_the_newest_once_it_drew_the_last(sta
     with ConsoleProcess(router.endpoint) as console, Camera(router.client_config()) as camera:
         async def session():
             async with Page(console.url) as slow, Page(console.url) as drawing:
-                async def frames(page, count, draw, timeout=30.0):
-                    deadline = time.monotonic() + timeout
-                    while len(page.frames) < count and time.monotonic() < deadline:
-                        seen = len(page.frames)
-                        with contextlib.suppress(AssertionError):
-                            await page.until(lambda r: False, timeout=0.1)
-                        if draw and len(page.frames) > seen:
-                            seq = read_frame_packet(page.frames[-1])[0]["seq"]
-                            await page.send({"type": "drawn", "seq": seq})
-                    return page.frames
-
-                await frames(slow, 1, draw=False)
-                first = read_frame_packet(slow.frames[0])[0]["seq"]
+                first = read_frame_packet(await slow.next_frame(timeout=30))[0]["seq"]
                 # the other page draws 20 frames meanwhile; the one that did not draw is sent none
-                await frames(drawing, 20, draw=True)
+                for _ in range(20):
+                    seq = read_frame_packet(await drawing.next_frame())[0]["seq"]
+                    await drawing.send({"type": "drawn", "seq": seq})
                 with contextlib.suppress(AssertionError):
                     await slow.until(lambda r: False, timeout=0.5)
                 assert len(slow.frames) == 1
                 assert camera.seq > first + 20
                 # it drew: the next frame is the newest there is (the camera's, a frame or two ago at most)
                 await slow.send({"type": "drawn", "seq": first})
-                await frames(slow, 2, draw=False)
-                second = read_frame_packet(slow.frames[1])[0]["seq"]
+                second = read_frame_packet(await slow.next_frame())[0]["seq"]
                 assert second >= camera.seq - 3 > first + 1, (first, second, camera.seq)
 
         asyncio.run(session())
@@ -466,11 +466,7 @@ def test_a_page_that_draws_slower_than_the_camera_is_sent_halved_frames_and_whol
                 async def draw(count: int, draw_s: float) -> list[tuple[dict, np.ndarray]]:
                     drawn = []
                     while len(drawn) < count:
-                        message = await page.ws.receive(timeout=10)
-                        if message.type == aiohttp.WSMsgType.TEXT:
-                            continue  # the status, overlays
-                        assert message.type == aiohttp.WSMsgType.BINARY, message
-                        header, jpeg = read_frame_packet(message.data)
+                        header, jpeg = read_frame_packet(await page.next_frame())
                         await asyncio.sleep(draw_s)  # the page's decoding and drawing
                         drawn.append((header, cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_UNCHANGED)))
                         await page.send({"type": "drawn", "seq": header["seq"]})
