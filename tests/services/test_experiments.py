@@ -56,22 +56,30 @@ def test_table3_in_the_papers_order_with_the_mixed_law_a_quarter_faster(tmp_path
     assert "adaptive-pd-mixed" in out.stderr  # a line per run, on stderr with --json
 
 
-def test_runs_side_by_side_and_beside_cpu_hogs_log_exactly_what_one_run_at_a_time_logs(tmp_path):
+def part_a_by_command(jobs: int, out: Path) -> dict:
+    done = subprocess.run([MFVS, "experiment", "part-a", "--json", "--jobs", str(jobs), "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def part_a_alone(tmp_path_factory) -> tuple[dict, Path]:
+    """`mfvs experiment part-a --json --jobs 1` on a quiet host: one run the tests below share."""
+    out = tmp_path_factory.mktemp("part-a-alone")
+    return part_a_by_command(1, out), out
+
+
+def test_runs_side_by_side_and_beside_cpu_hogs_log_exactly_what_one_run_at_a_time_logs(part_a_alone, tmp_path):
     """`--jobs 2` (each run on a stack of its own, two at a time) with two CPU hogs beside them against `--jobs 1` on
     a quiet host: every trajectory log the same byte for byte, the runs in the experiment's order (issue 35)."""
-    def experiment(jobs: int, out: Path) -> dict:
-        done = subprocess.run([MFVS, "experiment", "part-a", "--json", "--jobs", str(jobs), "--out", str(out)],
-                              capture_output=True, text=True, timeout=600)
-        assert done.returncode == 0, done.stderr[-2000:]
-        return json.loads(done.stdout.strip().splitlines()[-1])
-
-    alone = experiment(1, tmp_path / "alone")
+    alone, alone_dir = part_a_alone
     with cpu_hogs(2):
-        side_by_side = experiment(2, tmp_path / "side_by_side")
+        side_by_side = part_a_by_command(2, tmp_path / "side_by_side")
     check_shape(side_by_side, "part-a")
     labels = [spec.label for spec in EXPERIMENTS["part-a"].runs]
     for label in labels:
-        assert (tmp_path / "alone" / label / "trajectory.jsonl").read_bytes() == \
+        assert (alone_dir / label / "trajectory.jsonl").read_bytes() == \
             (tmp_path / "side_by_side" / label / "trajectory.jsonl").read_bytes(), label
 
     def numbers(output: dict) -> list:
@@ -79,8 +87,8 @@ def test_runs_side_by_side_and_beside_cpu_hogs_log_exactly_what_one_run_at_a_tim
     assert numbers(side_by_side) == numbers(alone) and side_by_side["summary"] == alone["summary"]
 
 
-def test_part_a_the_end_effector_twist_fails_where_the_mixed_one_converges():
-    output = run_experiment("part-a")
+def test_part_a_the_end_effector_twist_fails_where_the_mixed_one_converges(part_a_alone):
+    output, _ = part_a_alone
     check_shape(output, "part-a")
     summary = output["summary"]
     assert summary["as_in_paper"] and summary["ee_frame_tag_left_image"] and summary["ee_frame_error_growth"] > 1.0

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from services.runtime.transport import free_loopback_port
+from tests.stack import wait_for
 
 MFVS = str(Path(sys.executable).parent / "mfvs")
 
@@ -81,9 +82,12 @@ def test_up_status_down(tmp_path):
         # a service killed outright, and one stopped, are reported dead, not dropped
         os.kill(pids["controller"], 9)
         os.kill(pids["vision"], 15)
-        time.sleep(5.0)
-        services = {s["name"]: s for s in json.loads(mfvs("status", "--json", env=env).stdout)["services"]}
-        assert services["controller"]["condition"] == "dead" and "killed" in services["controller"]["detail"]
+        def both_dead() -> bool:
+            nonlocal services
+            services = {s["name"]: s for s in json.loads(mfvs("status", "--json", env=env).stdout)["services"]}
+            return services["controller"]["condition"] == services["vision"]["condition"] == "dead"
+        assert wait_for(both_dead, timeout=30, period=0.5), services
+        assert "killed" in services["controller"]["detail"]
         assert services["vision"]["condition"] == "dead" and services["vision"]["exit_code"] == 0
         assert "DEAD" in mfvs("status", env=env).stdout
         # `mfvs restart` brings one back with its command line, and the status says it was restarted

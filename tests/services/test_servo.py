@@ -180,20 +180,19 @@ def trajectory(result) -> list[dict]:
 
 
 def test_lockstep_is_bit_identical_run_to_run_composed_as_processes_and_through_the_gateway(tmp_path):
-    """Lockstep is a function of the scenario: the same run twice (composed: the services in this process), the
-    same run with every service a process of its own and a router between them (as deployed), and through
-    robot_gateway and its RS-485 bus (the CAN hub, robot_sim's emulated arm and the gateway as processes), give the
-    same per-iteration log to the last bit: frames, features, commands, joint angles."""
+    """Lockstep is a function of the scenario: the same run composed (the services in this process), with every
+    service a process of its own and a router between them (as deployed), and through robot_gateway and its RS-485
+    bus (the CAN hub, robot_sim's emulated arm and the gateway as processes), gives the same per-iteration log to the
+    last bit: frames, features, commands, joint angles. (Three runs that agree to the bit are the same run repeated
+    as well: a composed run twice added nothing to it.)"""
     first = run(load_scenario(EASY), tmp_path / "sim1")
-    again = run(load_scenario(EASY), tmp_path / "sim2")
     processes = run(load_scenario(EASY), tmp_path / "processes", processes=True)
     gateway = run(load_scenario(EASY), tmp_path / "gateway", profile="gateway")
-    assert (first.stack, again.stack, processes.stack, gateway.stack) == (
-        "composed", "composed", "processes", "processes")
+    assert (first.stack, processes.stack, gateway.stack) == ("composed", "processes", "processes")
     assert first.converged and first.iterations > 20
     reference = trajectory(first)
     assert all(record["q"] and record["points"] for record in reference)
-    for other in (again, processes, gateway):
+    for other in (processes, gateway):
         assert other.iterations == first.iterations
         log = trajectory(other)
         mismatched = [(a["iteration"], [k for k in a if a[k] != b.get(k)]) for a, b in zip(reference, log) if a != b]
