@@ -4,13 +4,15 @@ import sys
 
 from services.runtime.service import service_main
 from services.robot_gateway.kinova_sdk import check_comm_layer, locate_command_layer, put_sdk_on_loader_path
-from services.robot_gateway.service import GatewayConfig, connect_sdk_arm, robot_gateway_service
+from services.robot_gateway.service import KINOVA_USB, GatewayConfig, connect_sdk_arm, open_bus, robot_gateway_service
 
 
 def prepare(config: GatewayConfig) -> dict:
     """robot_gateway as its own process, before anything else: with Kinova's SDK, its comm layer checked, its
     folder on the loader's path (the command layer loads the comm layer by bare name: this may execute the process
     again), and the arm opened, so that what keeps the arm from starting is the one line the process prints."""
+    if config.backend == "rs485" and config.bus.interface == KINOVA_USB:
+        return {"bus": open_bus(config, log=logging.getLogger("mfvs.robot_gateway"))}
     if config.backend != "kinova_sdk":
         return {}
     command_layer = locate_command_layer(config.sdk_library, config.sdk_transport)
@@ -23,8 +25,8 @@ def gateway_process(config: GatewayConfig, **prepared):
     try:
         return robot_gateway_service(config, **prepared)
     except BaseException:
-        if prepared:
-            prepared["connection"].close()  # CloseAPI on every way out
+        for opened in prepared.values():
+            opened.close()  # CloseAPI (CloseCommunication) on every way out
         raise
 
 

@@ -35,7 +35,11 @@ from services.robot.node import RobotNode, RobotNodeConfig
 from services.model.arm import load_arm
 from services.robot_gateway.kinova_sdk import (ArmSession, ArmStartError, KinovaSdk, SdkArm, SdkError,
                                                SdkEthernetConfig, open_arm)
+from services.robot_gateway.kinova_usb import KinovaUsbBus, locate_comm_layer, open_kinova_usb
 from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
+
+#: ``bus.interface`` for a real arm's actuator bus through Kinova's USB comm layer (services.robot_gateway.kinova_usb)
+KINOVA_USB = "kinova_usb"
 
 
 #: stamps below this are simulated time (lockstep starts at 1 s); wall-clock stamps are about 1.7e18 ns
@@ -62,6 +66,8 @@ class GatewayConfig(RobotNodeConfig):
         super().__post_init__()
         if self.backend == "kinova_sdk" and ClockMode(self.clock) is not ClockMode.REALTIME:
             raise ValueError("the kinova_sdk backend runs in realtime only (a real arm has no simulated clock)")
+        if self.bus.interface == KINOVA_USB and ClockMode(self.clock) is not ClockMode.REALTIME:
+            raise ValueError("bus.interface kinova_usb runs in realtime only (a real arm has no simulated clock)")
         arm = load_arm(self.arm)
         if self.addresses is not None and (len(self.addresses) != arm.n_joints
                                            or len(set(self.addresses)) != arm.n_joints):
@@ -77,13 +83,15 @@ class RobotGatewayService(RobotNode):
 
     name = "robot_gateway"
 
-    def __init__(self, config: GatewayConfig | None = None, **kw) -> None:
+    def __init__(self, config: GatewayConfig | None = None, bus=None, **kw) -> None:
+        """``bus``: the actuators' bus already open (the process's entry opens Kinova's comm layer first, so that
+        an arm that cannot be reached is said before anything starts); None: opened at start."""
         config = config or GatewayConfig()
         if config.backend != "rs485":
             raise ValueError("RobotGatewayService is the rs485 backend; use robot_gateway_service() for any")
         super().__init__(config, **kw)
         self.config: GatewayConfig = config
-        self.bus: Optional[RS485Bus] = None
+        self.bus: Optional[RS485Bus | KinovaUsbBus] = bus
         #: lockstep: the simulator's ticks heard so far → the stamp of the frame taken at each (0: none)
         self._ticks: dict[int, int] = {}
         self._latest_tick = 0
@@ -91,7 +99,12 @@ class RobotGatewayService(RobotNode):
 
     def open_hardware(self):
         cfg = self.config
-        self.bus = RS485Bus(cfg.bus, self.counters)
+        if self.bus is None:
+            self.bus = open_bus(cfg, self.counters, self.log)
+        elif self.bus.counters is not self.counters:  # opened by the process's entry: its counts become ours
+            for name, count in self.bus.counters.snapshot().items():
+                self.counters.inc(name, count)
+            self.bus.counters = self.counters
         timeout = cfg.lockstep.link_timeout_s if self.lockstep else cfg.link_timeout_s
         # realtime: pipelined, so that the round trip does not stretch the 2 ms cycle; lockstep: in step, so that
         # the arm behind the bus computes exactly what the simulated arm in robot_sim's process does
@@ -156,6 +169,8 @@ class _NoJoints:
 
     simulated_in_process = False
     arm_timeline = False
+    #: torque mode through the SDK goes through Kinova's DSP, which compensates the arm's gravity itself
+    actuators_compensate_gravity = True
 
     def __init__(self, session: ArmSession) -> None:
         self.session = session
@@ -281,6 +296,16 @@ class SdkGatewayService(RobotNode):
             self.counters.inc("sdk.errors")
             self.limited_log.error("sdk", "%s", exc)
             self._bus_faults = [f"sdk: {exc}"[:120]]
+
+
+def open_bus(config: GatewayConfig, counters=None, log: Optional[logging.Logger] = None):
+    """The actuators' bus the config names: through Kinova's USB comm layer (``kinova_usb``: a real arm, or
+    robot_sim's emulated base), else a python-can interface (the emulation's CAN stand-in)."""
+    if config.bus.interface != KINOVA_USB:
+        return RS485Bus(config.bus, counters)
+    arm = load_arm(config.arm)
+    return open_kinova_usb(locate_comm_layer(config.sdk_library), arm.name, arm.n_joints, counters,
+                           log or logging.getLogger("mfvs.robot_gateway"))
 
 
 def robot_gateway_service(config: GatewayConfig | None = None, **kw) -> Service:

@@ -36,6 +36,7 @@ from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
 from services.robot.hardware import CYCLE_NS, CYCLE_S, DSP_CYCLE_NS, ActuatorValues
 from services.robot.node import ROBOT_SERVICES, RobotNode, RobotNodeConfig
+from services.robot_sim import usb_base
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig
 from services.robot_sim.camera import LoopCamera, SimCamera
 from services.model.arm import load_arm
@@ -302,7 +303,7 @@ class ArmOnBusService(Service):
         cfg = self.config
         if self.lockstep:
             self.clock.advance_to(self.outputs.epoch_ns)
-        bus = RS485Bus(cfg.bus, self.counters)
+        bus = self._open_bus()
         try:
             self.outputs.declare()
         except BaseException:
@@ -316,6 +317,18 @@ class ArmOnBusService(Service):
         if not self.lockstep:
             self.declare_loop("bus_cycle", 1.0 / CYCLE_S, ("cycles.late", "cycles.dropped"))
         self.arm_on_bus.start()
+
+    def _open_bus(self):
+        """The actuators' bus: python-can's (the emulation's CAN stand-in), or behind an emulated base on USB that
+        a host reaches with Kinova's own comm layer (``interface: kinova_usb_base``, the channel the socket's
+        path: services.robot_sim.usb_base). USB carries no stamps, so it runs in realtime only."""
+        cfg = self.config
+        if cfg.bus.interface != usb_base.INTERFACE:
+            return RS485Bus(cfg.bus, self.counters)
+        if self.lockstep:
+            raise ValueError("an emulated base on USB runs in realtime only: its wire carries no stamps to keep "
+                             "lockstep with (use an mfvs_hub bus for lockstep)")
+        return usb_base.UsbBaseBus(cfg.bus.channel, model=self.arm.name, counters=self.counters)
 
     def _on_boundary(self, sim_time_ns: int) -> None:
         self.rates.tick("bus_cycle")

@@ -1,0 +1,165 @@
+"""robot_gateway's actuator bus through Kinova's own USB comm layer (``bus.interface: kinova_usb``), run with the
+real ``USBCommLayerUbuntu.so`` over the stand-in libusb (fake_libusb/) whose transfers robot_sim's emulated base
+answers (services/robot_sim/usb_base.py): the gateway as a process, on the loader's path as a user's would be
+(LD_LIBRARY_PATH names the stand-in's directory, as it would a libusb of their own). Skipped, saying why, where
+Kinova's SDK is not here."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from services.model.arm import load_arm
+from services.robot_gateway.kinova_usb import packets_for, read_capacity
+from services.stack import RouterProcess
+from services.runtime.transport import open_session
+from tests.helpers import REPO
+from tests.services.robot_gateway.test_kinova_usb_wire import comm_layer, fake_libusb  # noqa: F401 (fixtures)
+from tests.stack import KEYS, Recorder, wait_for
+
+ARM = load_arm("j2s7s300")
+
+
+def test_the_read_buffer_holds_every_record_the_library_can_write():
+    """OpenRS485_Read asks for ceil(1.2·wanted/3) packets of 3 records (docs/kinova-usb-wire.md): 50 wanted, 60
+    written; Write's QtySent counts packets."""
+    assert [read_capacity(n) for n in (1, 3, 21, 50)] == [3, 6, 27, 60]
+    assert [packets_for(n) for n in (1, 3, 4, 7, 21)] == [1, 1, 2, 3, 7]
+
+
+@pytest.fixture
+def usb_dir():
+    path = Path(tempfile.mkdtemp(prefix="mfvs-usb-", dir="/tmp"))  # short: a socket path has at most 107 bytes
+    yield path
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def usb_env(fake_libusb: Path, usb_dir: Path, devices: int = 1) -> dict:
+    """The environment of a process whose libusb is the stand-in, its device robot_sim's base at the socket."""
+    return {**os.environ, "LD_LIBRARY_PATH": str(fake_libusb.parent), "MFVS_FAKE_USB_DEVICES": str(devices),
+            "MFVS_FAKE_USB_SOCKET": str(usb_dir / "usb.sock"), "MFVS_FAKE_USB_LOG": str(usb_dir / "usb.log"),
+            "PYTHONPATH": str(REPO)}
+
+
+def gateway_command(comm_layer: Path, endpoint: str = "tcp/127.0.0.1:1", *settings: str) -> list[str]:
+    return [sys.executable, "-m", "services.robot_gateway", "--connect", endpoint, "--set", "bus.interface=kinova_usb",
+            "--set", f"sdk_library={comm_layer.parent}", "--set", "connect_timeout_s=5", *settings]
+
+
+@pytest.mark.parametrize("devices, says", [
+    (0, "InitCommunication returned 1015 (ERROR_NO_DEVICE_FOUND)"),
+    (2, "2 Kinova devices are connected"),
+])
+def test_without_exactly_one_arm_the_gateway_exits_2_with_one_line_and_never_reaches_the_bus(
+        comm_layer, fake_libusb, usb_dir, devices, says):
+    """No arm: InitCommunication's code named, exit 2, and OpenRS485_Write/Read (which crash the process with no
+    device) never called; two: refused before activation (the comm layer activates the first one it lists)."""
+    done = subprocess.run(gateway_command(comm_layer), env=usb_env(fake_libusb, usb_dir, devices), cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, (done.returncode, done.stderr[-2000:])
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and says in lines[0], done.stderr
+    wire = (usb_dir / "usb.log").read_text() if (usb_dir / "usb.log").exists() else ""
+    assert "bulk" not in wire  # no RS-485 transfer: the bus was not touched
+
+
+def test_an_arm_of_another_model_is_refused_before_activation(comm_layer, fake_libusb, usb_dir):
+    """The emulated base reports a 6-DoF arm; the gateway is configured for the 7-DoF one: refused, exit 2, the
+    activation command (700) never sent."""
+    robot = subprocess.Popen([sys.executable, "-c", BASE_ONLY, str(usb_dir / "usb.sock"), "j2n6s300"], cwd=REPO,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert robot.stdout.readline().strip() == "serving"
+        done = subprocess.run(gateway_command(comm_layer), env=usb_env(fake_libusb, usb_dir), cwd=REPO,
+                              capture_output=True, text=True, timeout=60)
+    finally:
+        robot.kill()
+        robot.wait()
+    assert done.returncode == 2 and "j2n6s300 with 6 joints" in done.stderr, done.stderr[-2000:]
+    assert "700" not in _command_ids(usb_dir / "usb.log")
+
+
+BASE_ONLY = """
+import sys, time
+from services.robot_sim.usb_base import UsbBase, UsbBaseServer
+server = UsbBaseServer(sys.argv[1], [UsbBase(lambda records: None, model=sys.argv[2])]).start()
+print("serving", flush=True)
+time.sleep(60)
+"""
+
+
+def _command_ids(log: Path) -> set[str]:
+    """The IdCommand of every command packet the host sent (interrupt OUT on endpoint 0x02)."""
+    ids = set()
+    for line in log.read_text().splitlines() if log.exists() else []:
+        if "interrupt" in line and "ep=0x02" in line and "data=" in line:
+            data = bytes.fromhex(line.split("data=")[1].split()[0])
+            ids.add(str(int.from_bytes(data[4:6], "little")))
+    return ids
+
+
+def test_the_gateway_drives_robot_sims_arm_through_kinovas_comm_layer(comm_layer, fake_libusb, usb_dir):
+    """robot_sim's actuators behind its emulated base on USB, robot_gateway on ``kinova_usb`` with Kinova's real
+    comm layer, both processes on a router: the activation is logged with what it costs, the arm's state is
+    published at home (the 0x02 positions read right), and a joint velocity command moves the joint it names in
+    its direction."""
+    with RouterProcess() as router:
+        robot = subprocess.Popen(
+            [sys.executable, "-m", "services.robot_sim", "--connect", router.endpoint, "--set", "mode=actuator_bus",
+             "--set", "bus.interface=kinova_usb_base", "--set", f"bus.channel={usb_dir / 'usb.sock'}"],
+            cwd=REPO, stdout=subprocess.DEVNULL, stderr=open(usb_dir / "robot_sim.log", "w"))
+        gateway = None
+        try:
+            assert wait_for(lambda: (usb_dir / "usb.sock").exists() or robot.poll() is not None, timeout=60)
+            gateway_log = open(usb_dir / "gateway.log", "w")
+            gateway = subprocess.Popen(gateway_command(comm_layer, router.endpoint),
+                                       env=usb_env(fake_libusb, usb_dir), cwd=REPO, stdout=gateway_log,
+                                       stderr=subprocess.STDOUT)
+            client = open_session(router.client_config())
+            states = Recorder(client, KEYS.robot_state, m.RobotState)
+            assert wait_for(lambda: len(states) > 20 or gateway.poll() is not None, timeout=60), \
+                (usb_dir / "gateway.log").read_text()[-3000:]
+            assert np.array(states.last().q) == pytest.approx(ARM.home, abs=1e-3)
+            log = (usb_dir / "gateway.log").read_text()
+            assert "joystick and Kinova's high-level API stop working until the arm is power-cycled" in log
+            assert "700" in _command_ids(usb_dir / "usb.log")
+            q0 = np.array(states.last().q)
+            rates = np.zeros(ARM.n_joints)
+            rates[0] = 0.2
+            stream_joint_velocity(client, rates, seconds=1.0)
+            moved = np.array(states.last().q) - q0
+            assert moved[0] > 0.05 and np.abs(moved[1:]).max() < 0.01, moved
+            states.close()
+            client.close()
+            shutil.copy(usb_dir / "gateway.log", "/tmp/last-kinova-usb-gateway.log")
+            wire = (usb_dir / "usb.log").read_text()
+            # every 2 ms cycle: the 0x14 batch out (7 messages, 3 packets), the replies in
+            assert wire.count("libusb_bulk_transfer dev=0 ep=0x01 len=192") > 300
+            assert wire.count("libusb_bulk_transfer dev=0 ep=0x81 len=1280") > 300
+        finally:
+            for process in (gateway, robot):
+                if process is not None:
+                    process.terminate()
+                    process.wait(timeout=30)
+    assert gateway.returncode == 0, (usb_dir / "gateway.log").read_text()[-3000:]
+
+
+def stream_joint_velocity(session, rates: np.ndarray, seconds: float) -> None:
+    """Joint velocity commands on the robot's command key every 10 ms (the robot's admission wants them fresh)."""
+    import time
+
+    from tests.stack import next_seq
+
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        header = m.Header(stamp_ns=time.time_ns(), seq=next_seq())
+        command = m.RobotCommand(header=header, mode=m.CommandMode.JOINT_VELOCITY, joint_velocities=rates.tolist())
+        session.put(KEYS.robot_command, m.encode(command))
+        time.sleep(0.01)
