@@ -33,6 +33,12 @@ class AngularConvention(str, enum.Enum):
 DEFAULT_ROBOT_ANGULAR_CONVENTION = AngularConvention.SEED000
 
 
+#: In lockstep the arm's timeline starts here (ns), so that a stamp of 0 always means "none" (no source image); it
+#: advances by exactly one bus cycle per exchange with the host. A host that reaches the emulated arm through a
+#: wire that carries no stamps (USB) counts its exchanges from here to stamp what it reads.
+LOCKSTEP_EPOCH_NS = 1_000_000_000
+
+
 class ClockMode(str, enum.Enum):
     """``realtime``: wall clock, robot loops at 100/500 Hz. ``lockstep``: the simulator advances one camera
     period only when the pipeline has answered the last frame (or after a timeout)."""

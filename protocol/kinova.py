@@ -144,6 +144,11 @@ def parse_model_code(text: str) -> ModelCode | None:
     return ModelCode(family, int(version), wrist, int(joints), mode, int(fingers))
 
 
+#: the serial number robot_sim's emulated base reports on USB (services/robot_sim/usb_base.py): no Kinova arm's
+#: (theirs start PJ); a host may run such an arm in lockstep, never a real one
+EMULATED_SERIAL = "MFVS-EMULATED"
+
+
 def arm_type_refusal(device_model: str, arm_name: str, n_joints: int) -> str | None:
     """Why an arm that reports ``device_model`` must not be driven as the configured arm ``arm_name`` with
     ``n_joints`` joints (None: it may). The joint count decides; where the configured name is a model code too,

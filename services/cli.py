@@ -272,13 +272,16 @@ def _cmd_servo(args: argparse.Namespace) -> int:
     if args.profile not in ("sim", "gateway"):
         print(f"mfvs servo: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
         return 2
+    if args.bus != "hub" and args.profile != "gateway":
+        print(f"mfvs servo: --bus {args.bus} is the gateway profile's (--profile gateway)", file=sys.stderr)
+        return 2
 
     def progress(record) -> None:
         if not args.json:
             print(f"iteration {record.iteration:4d}  {record.status:12s}  ‖e‖ = {record.error_norm:.3e}", flush=True)
 
     result = run(scenario, Path(args.out) if args.out else None, progress, profile=args.profile,
-                 record=Path(args.record) if args.record else None, processes=args.processes)
+                 record=Path(args.record) if args.record else None, processes=args.processes, bus=args.bus)
     if args.json:
         print(json.dumps(result.to_json()), flush=True)
     else:
@@ -707,6 +710,11 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     servo.add_argument("--profile", default="sim",
                        help="sim (the simulator's DSP; default) or gateway (robot_gateway over the RS-485 bus, as "
                             "processes; in lockstep the same run to the bit)")
+    servo.add_argument("--bus", default="hub", choices=("hub", "kinova_usb"),
+                       help="gateway profile: how robot_gateway reaches the emulated actuators: hub (the CAN hub; "
+                            "default) or kinova_usb (robot_sim's emulated base through Kinova's own USB comm layer, "
+                            "as a real arm's bus: Kinova's SDK from $MFVS_KINOVA_SDK, a C compiler for the stand-in "
+                            "libusb)")
     servo.add_argument("--json", action="store_true", help="print one JSON object with the result")
     servo.add_argument("--out", help="directory for the trajectory log, plots and result.json")
     add_arm_option(servo, default=None, what="the scenario's robot.arm")

@@ -52,6 +52,8 @@ class ProfileService(ConfigStruct):
     zenoh_config: Optional[str] = None
     #: config overrides, each ``dotted.key=value`` (the service's ``--set``)
     set: list[str] = msgspec.field(default_factory=list)
+    #: environment variables it runs with besides the launcher's (e.g. a libusb's directory on LD_LIBRARY_PATH)
+    env: dict[str, str] = msgspec.field(default_factory=dict)
 
 
 class ProfileRouter(ConfigStruct):
@@ -138,6 +140,22 @@ def gateway_robot_services(bus_channel: str, robot_sim_config: Optional[str] = N
                            set=[*bus, "arm_check.waived=true"])]
 
 
+def usb_robot_services(socket_path: str, libusb_dir: Path, robot_sim_config: Optional[str] = None,
+                       robot_gateway_config: Optional[str] = None) -> list[ProfileService]:
+    """The gateway profile's robot side with the actuator bus reached as a real arm's is, through Kinova's USB comm
+    layer: robot_sim's actuators behind an emulated base on USB (its socket at ``socket_path``), robot_gateway on
+    ``kinova_usb`` with Kinova's comm layer (``sdk_library``, else ``$MFVS_KINOVA_SDK``) loaded over the stand-in
+    libusb in ``libusb_dir`` (services.robot_sim.usb_base). robot_sim first: the gateway's first call asks the base
+    who it is."""
+    from services.robot_sim.usb_base import host_environment
+
+    return [ProfileService(name="robot_sim", config=robot_sim_config or _shipped("robot_sim").config,
+                           set=["mode=actuator_bus", "bus.interface=kinova_usb_base", f"bus.channel={socket_path}"]),
+            ProfileService(name="robot_gateway", config=robot_gateway_config or _shipped("robot_gateway").config,
+                           set=["bus.interface=kinova_usb", "arm_check.waived=true"],
+                           env=host_environment(socket_path, libusb_dir))]
+
+
 def service_command(service: ProfileService, endpoint: Optional[str] = None, robot_id: Optional[str] = None,
                     clock: Optional[str] = None) -> list[str]:
     """The command line that runs one service of a profile (what is not given comes from its config file)."""
@@ -196,9 +214,10 @@ def service_environment() -> dict:
     return env
 
 
-def spawn(args: list[str], log: Path, exit_file: Optional[Path] = None) -> subprocess.Popen:
+def spawn(args: list[str], log: Path, exit_file: Optional[Path] = None,
+          extra_env: Optional[dict[str, str]] = None) -> subprocess.Popen:
     """A service (or the router, or the hub) as a background process of its own session, logging to ``log``."""
-    env = service_environment()
+    env = {**service_environment(), **(extra_env or {})}
     if exit_file is not None:
         exit_file.unlink(missing_ok=True)
         env[EXIT_FILE_ENV] = str(exit_file)
@@ -254,9 +273,9 @@ def up(profile: Profile, clock: Optional[str], wait_s: float = 60.0, host: Optio
         args = service_command(service, endpoint, profile.robot_id, clock)
         log = directory / f"{service.name}.log"
         exit_file = directory / f"{service.name}.exit"
-        children.append(spawn(args, log, exit_file))
+        children.append(spawn(args, log, exit_file, service.env))
         processes.append({"name": service.name, "pid": children[-1].pid, "log": str(log),
-                          "exit_file": str(exit_file), "args": args})
+                          "exit_file": str(exit_file), "args": args, "env": service.env})
     stack = {"endpoint": endpoint, "robot_id": profile.robot_id, "processes": processes, "started": time.time(),
              "zenoh_config": observer, "host": host}
     _write_stack(stack)
@@ -421,7 +440,7 @@ def restart(name: str, timeout_s: float = 10.0) -> tuple[int, str]:
         return 1, f"{name} was started by an older mfvs: its command line is not known (mfvs down; mfvs up)"
     _end([process["pid"]], timeout_s, wake=True)
     exit_file = Path(process["exit_file"]) if process.get("exit_file") else None
-    child = spawn(process["args"], Path(process["log"]), exit_file)
+    child = spawn(process["args"], Path(process["log"]), exit_file, process.get("env"))
     process.update(pid=child.pid, restarts=process.get("restarts", 0) + 1, restarted=time.time())
     _write_stack(stack)
     return 0, f"{name} restarted (pid {child.pid})"

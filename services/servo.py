@@ -406,10 +406,11 @@ def _frames_lost(session, keys: Keys) -> tuple[dict, int]:
 
 
 def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profile: str = "sim",
-        plots: bool = True, record: Optional[Path] = None, processes: bool = False) -> ServoResult:
+        plots: bool = True, record: Optional[Path] = None, processes: bool = False, bus: str = "hub") -> ServoResult:
     """Run the scenario through a local stack; ``progress(iteration_record)`` is called per iteration. The gateway
     profile drives the simulated arm through robot_gateway and its RS-485 bus (the hub, robot_sim's actuators and
-    the gateway as processes), in the scenario's clock mode. With ``out_dir`` the trajectory log, the result and
+    the gateway as processes; ``bus="kinova_usb"``: robot_sim's emulated base through Kinova's USB comm layer instead
+    of the hub), in the scenario's clock mode. With ``out_dir`` the trajectory log, the result and
     (unless ``plots`` is false) the figures are written there; with ``record`` every topic of the stack, from
     before the robot's first message, goes into that MCAP file (``mfvs record``'s).
 
@@ -417,7 +418,7 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
     run byte for byte, faster) unless ``processes`` asks for every service in a process of its own, as deployed;
     anything else always runs as processes."""
     config = stack_config(scenario)
-    config.profile = profile
+    config.profile, config.robot_bus = profile, bus
     stack_type = ComposedStack if composable(config) and not processes else LocalStack
     joint_output = config.controller.law in JOINT_LAWS
     arm = load_arm(scenario.robot.arm)

@@ -36,7 +36,8 @@ from services.robot_gateway.link import ActuatorLink
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig
 from services.robot_sim.service import RobotSimConfig
-from services.launcher import ProfileService, gateway_robot_services, service_command, spawn
+from services.robot_sim.usb_base import stand_in_libusb
+from services.launcher import ProfileService, gateway_robot_services, service_command, spawn, usb_robot_services
 from services.robot_sim.sim import Simulation
 from services.safety.service import SafetyConfig
 from services.warm_start import spawn_warm
@@ -270,9 +271,15 @@ class RobotProcesses:
 
     def __init__(self, zenoh: ZenohConfig, robot: RobotSimConfig | None = None,
                  gateway: GatewayConfig | None = None, clock: ClockMode = ClockMode.REALTIME,
-                 timeout_s: float = 60.0, profile: str = "gateway") -> None:
+                 timeout_s: float = 60.0, profile: str = "gateway", bus: str = "hub") -> None:
+        """``bus`` (gateway profile): ``hub``, the emulation's CAN hub; ``kinova_usb``, robot_sim's emulated base
+        reached through Kinova's own USB comm layer (Kinova's SDK from ``$MFVS_KINOVA_SDK`` unless the gateway's
+        config names it), as a real arm's bus is."""
         if profile not in ("gateway", "sim"):
             raise ValueError(f"unknown robot profile {profile!r} (gateway or sim)")
+        if bus not in ROBOT_BUSES:
+            raise ValueError(f"unknown robot bus {bus!r} ({' or '.join(ROBOT_BUSES)})")
+        self.bus = bus
         robot = robot or RobotSimConfig()
         self.profile = profile
         self.zenoh, self.clock, self.timeout_s = zenoh, ClockMode(clock), timeout_s
@@ -291,13 +298,19 @@ class RobotProcesses:
         try:
             # the profile's robot side as `mfvs up --profile gateway` (or sim) runs it, with these configs
             robot_sim_config = write_config(self.logs, "robot_sim", self.robot)
+            gateway_config = write_config(self.logs, "robot_gateway", self.gateway)
             if self.profile == "sim":
                 services = [ProfileService(name="robot_sim", config=robot_sim_config)]
+            elif self.bus == "kinova_usb":
+                socket_path = str(self.logs / "usb.sock")
+                services = usb_robot_services(socket_path, stand_in_libusb(), robot_sim_config, gateway_config)
             else:
-                services = gateway_robot_services(self._start_hub(), robot_sim_config,
-                                                  write_config(self.logs, "robot_gateway", self.gateway))
+                services = gateway_robot_services(self._start_hub(), robot_sim_config, gateway_config)
             for service in services:
-                self.processes.append(spawn(service_command(service), self.logs / f"{service.name}.log"))
+                if service.name == "robot_gateway" and self.bus == "kinova_usb":
+                    self._wait_for_base(Path(socket_path))
+                self.processes.append(spawn(service_command(service), self.logs / f"{service.name}.log",
+                                            extra_env=service.env))
             wait_alive(self.zenoh, self.robot.robot_id, (services[-1].name,), self.processes, self.timeout_s,
                        self.logs)
         except BaseException:
@@ -305,6 +318,14 @@ class RobotProcesses:
             self.__exit__(None, None, None)
             raise
         return self
+
+    def _wait_for_base(self, socket_path: Path) -> None:
+        """robot_sim's emulated base listening (its socket made), or the start fails naming robot_sim's log."""
+        deadline = time.monotonic() + self.timeout_s
+        while not socket_path.exists():
+            if time.monotonic() > deadline or not self.alive():
+                raise RuntimeError(f"robot_sim's emulated base did not come up (log {self.logs / 'robot_sim.log'})")
+            time.sleep(0.05)
 
     def _start_hub(self) -> str:
         """The CAN hub on a port it picks itself (no window for another program to take it); its channel."""
@@ -332,6 +353,8 @@ class StackConfig:
     #: sim: robot_sim drives its simulated arm itself; gateway: robot_sim's actuators on an RS-485 bus (the CAN
     #: hub) driven by robot_gateway
     profile: str = "sim"
+    #: gateway profile: how robot_gateway reaches the actuators (ROBOT_BUSES: the CAN hub, or Kinova's USB comm layer)
+    robot_bus: str = "hub"
     robot: RobotSimConfig = field(default_factory=RobotSimConfig)
     vision: VisionConfig = field(default_factory=VisionConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
@@ -341,6 +364,9 @@ class StackConfig:
         """Each service's config, by the service's name."""
         return {"safety": self.safety, "vision": self.vision, "controller": self.controller, "robot_sim": self.robot}
 
+
+#: how the gateway profile's robot side reaches the emulated arm's actuators (RobotProcesses)
+ROBOT_BUSES = ("hub", "kinova_usb")
 
 #: the pipeline's services, started (and alive) before the robot, so that they hear its first frame
 PIPELINE = ("safety", "vision", "controller")
@@ -395,8 +421,8 @@ class LocalStack:
             if self._before_robot is not None:
                 self._before_robot(self)
             if cfg.profile == "gateway":
-                self.robot_processes = RobotProcesses(client, cfg.robot, clock=cfg.clock,
-                                                      timeout_s=self.timeout_s).__enter__()
+                self.robot_processes = RobotProcesses(client, cfg.robot, clock=cfg.clock, timeout_s=self.timeout_s,
+                                                      bus=cfg.robot_bus).__enter__()
             else:
                 self._spawn("robot_sim", cfg.robot)
                 self._wait_alive(("robot_sim",))

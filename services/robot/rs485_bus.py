@@ -60,6 +60,9 @@ def _python_can():
 
 
 class RS485Bus:
+    #: looking at what has arrived is a look at a queue, no traffic (the actuator link drains before every request)
+    polling_is_free = True
+
     def __init__(self, config: BusConfig | None = None, counters: Counters | None = None) -> None:
         self.config = config or BusConfig()
         self.counters = counters or Counters()

@@ -155,9 +155,14 @@ class KinovaUsbBus:
 
     #: the USB wire carries no stamps: replies are stamped when they are read
     arm_timeline = False
+    #: every look at what has arrived is a USB read through the library (the actuator link does not poll it)
+    polling_is_free = False
 
-    def __init__(self, comm: CommLayer, counters: Counters | None = None) -> None:
+    def __init__(self, comm: CommLayer, counters: Counters | None = None, device: KinovaDevice | None = None) -> None:
         self.comm = comm
+        #: the arm whose bus this is, as the comm layer lists it
+        self.serial = device.SerialNumber.decode(errors="replace") if device is not None else ""
+        self.model = device.Model.decode(errors="replace") if device is not None else ""
         self.counters = counters or Counters()
         self.last_error = ""
         self._lock = threading.Lock()
@@ -265,11 +270,13 @@ def devices(comm: CommLayer) -> list[KinovaDevice]:
 
 
 def open_kinova_usb(comm_layer: Path, arm_name: str, n_joints: int, counters: Counters | None = None,
-                    logger: logging.Logger = log) -> KinovaUsbBus:
+                    logger: logging.Logger = log, emulated_only: bool = False) -> KinovaUsbBus:
     """The arm's RS-485 bus through the comm layer at ``comm_layer``, activated: InitCommunication (1, else one
     line naming the code), exactly one Kinova device (activation goes to the first one listed), its model the
     configured arm's (:func:`protocol.kinova.arm_type_refusal`), then OpenRS485_Activate and the base read until
-    it has nothing queued. Raises :class:`ArmStartError` (one line a person can act on), the library closed."""
+    it has nothing queued. ``emulated_only`` (lockstep, which exchanges as fast as the arm answers): refused, before
+    activation, unless the arm is robot_sim's emulated base (``protocol.kinova.EMULATED_SERIAL``), a real one keeping
+    wall time. Raises :class:`ArmStartError` (one line a person can act on), the library closed."""
     comm = CommLayer.load(comm_layer)
     code = comm.init()
     if code != OK:
@@ -288,9 +295,13 @@ def open_kinova_usb(comm_layer: Path, arm_name: str, n_joints: int, counters: Co
         refusal = kinova.arm_type_refusal(model, arm_name, n_joints)
         if refusal:
             raise ArmStartError(f"refusing the arm's RS-485 bus: {refusal}")
+        serial = arm.SerialNumber.decode(errors="replace")
+        if emulated_only and serial != kinova.EMULATED_SERIAL:
+            raise ArmStartError(f"lockstep needs robot_sim's emulated actuators; arm {serial} keeps wall time: run it "
+                                "in realtime")
         logger.warning("activating the RS-485 bus of arm %s (%s): its joystick and Kinova's high-level API stop "
-                       "working until the arm is power-cycled", arm.SerialNumber.decode(errors="replace"), model)
-        bus = KinovaUsbBus(comm, counters)
+                       "working until the arm is power-cycled", serial, model)
+        bus = KinovaUsbBus(comm, counters, arm)
         code = bus._call("activate", comm.activate)
         if code != OK:
             raise ArmStartError(f"Kinova's comm layer: {comm.spelling}Activate returned {describe(code)}")

@@ -7,6 +7,7 @@ unexpected reply, a NACK or an actuator error report is counted and raised as :c
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Callable, Optional
 
@@ -16,8 +17,8 @@ from protocol import rs485 as r
 from services.model.arm import ArmDescription
 from services.runtime.metrics import Counters
 from services.robot.rs485_bus import BusError, RS485Bus
-from services.robot.hardware import (ActuatorValues, HardwareError, JointReading, JointTargets, physical_targets,
-                                     reading_from_physical)
+from services.robot.hardware import (CYCLE_NS, ActuatorValues, HardwareError, JointReading, JointTargets,
+                                     physical_targets, reading_from_physical)
 
 
 class LinkError(RuntimeError):
@@ -43,12 +44,21 @@ class ActuatorLink:
         self._joint_of[self.addresses] = np.arange(len(self.addresses))
         #: replies received past the last collected request's (the next request's, in a pipeline)
         self._carry: Optional[tuple[np.ndarray, np.ndarray]] = None
+        #: take what is still queued before every request where looking costs nothing (python-can's queue); where
+        #: every look is a transfer (Kinova's USB comm layer: a read each time) only before the first request and
+        #: after a failed exchange, the only times a late reply can be waiting
+        self.drain_every_request = getattr(bus, "polling_is_free", True)
+        self._drain_next = True
 
     def _request(self, batch: np.ndarray) -> None:
         """Send a request batch in one write, after taking what is still queued: the late replies of an exchange
         that timed out would otherwise answer this one, and every later reading would be a cycle old."""
         try:
-            stale, _ = self.bus.recv_batch(0.0)
+            if self.drain_every_request or self._drain_next:
+                stale, _ = self.bus.recv_batch(0.0)
+                self._drain_next = False
+            else:
+                stale = r.records(0)
             if self._carry is not None:
                 stale = np.concatenate([self._carry[0], stale])
                 self._carry = None
@@ -59,7 +69,12 @@ class ActuatorLink:
                     self.counters.inc("link.stale_replies", int(np.count_nonzero(~errors)))
             self.bus.send_batch(batch)
         except BusError as exc:
-            raise LinkError(f"bus failure: {exc}") from exc
+            raise self._failure(f"bus failure: {exc}") from exc
+
+    def _failure(self, message: str) -> LinkError:
+        """A failed exchange: late replies may follow, so the next request takes what is queued first."""
+        self._drain_next = True
+        return LinkError(message)
 
     def _record_errors(self, reports: np.ndarray) -> None:
         for source, code in zip(reports["source"].tolist(), reports["data"].view("<u4")[:, 1].tolist()):
@@ -76,10 +91,10 @@ class ActuatorLink:
         try:
             batch, stamps = self.bus.recv_batch(max(0.0, deadline - time.monotonic()))
         except BusError as exc:
-            raise LinkError(f"bus failure: {exc}") from exc
+            raise self._failure(f"bus failure: {exc}") from exc
         if len(batch) == 0:
             self.counters.inc("link.timeouts")
-            raise LinkError(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(missing())}")
+            raise self._failure(f"no reply within {self.timeout_s * 1e3:.1f} ms from {', '.join(missing())}")
         return batch, stamps
 
     def _report(self, command: int, source: int, batch: np.ndarray, k: int) -> bool:
@@ -89,7 +104,7 @@ class ActuatorLink:
             return True
         if command == _NACK:
             self.counters.inc("link.nacks")
-            raise LinkError(f"actuator 0x{source:02X} refused the request (NACK)")
+            raise self._failure(f"actuator 0x{source:02X} refused the request (NACK)")
         return False
 
     def _collect(self, expected: dict[tuple[int, r.Command], int]) -> np.ndarray:
@@ -150,7 +165,7 @@ class ActuatorLink:
         try:
             self.bus.send_batch(batch)
         except BusError as exc:
-            raise LinkError(f"bus failure: {exc}") from exc
+            raise self._failure(f"bus failure: {exc}") from exc
 
     def collect_command(self, deadline: float) -> ActuatorValues:
         """The replies to a 0x14 batch, waiting until ``deadline`` (monotonic) at most."""
@@ -159,7 +174,7 @@ class ActuatorLink:
         v3 = table[:, 2]["data"].astype(np.float64)
         if not (np.isfinite(v1).all() and np.isfinite(v3).all()):
             self.counters.inc("link.bad_values")
-            raise LinkError("an actuator reported a non-finite value")
+            raise self._failure("an actuator reported a non-finite value")
         temperature = table[:, 1]["data"].view("<i2")[:, 3] * 0.01
         return ActuatorValues(position_deg=v1[:, 1], velocity_dps=v1[:, 2], torque_nm=v1[:, 3], current_a=v1[:, 0],
                                temperature_c=temperature, mode=v3[:, 2], fault=v3[:, 3], stamp_ns=self.last_stamp_ns)
@@ -254,13 +269,26 @@ class LinkHardware:
     exchange, and the first after a failure, wait for their own replies."""
 
     simulated_in_process = False
+    #: over RS-485 the base's DSP is bypassed and no actuator computes the arm's gravity (kinova.md; abr/abr_jaco2
+    #: sends host-computed gravity torques): the host sends it with every torque
+    actuators_compensate_gravity = False
 
-    def __init__(self, link: ActuatorLink, arm: ArmDescription, pipelined: bool = True) -> None:
+    def __init__(self, link: ActuatorLink, arm: ArmDescription, pipelined: bool = True,
+                 counted_from_ns: Optional[int] = None) -> None:
+        """``counted_from_ns``: the emulated arm in lockstep behind a wire that carries no stamps (Kinova's USB
+        comm layer): its timeline is counted here instead, this plus one bus cycle per exchange sent (the arm
+        steps once per host batch, from ``protocol.conventions.LOCKSTEP_EPOCH_NS``); in step only."""
+        if counted_from_ns is not None and pipelined:
+            raise ValueError("a counted timeline needs exchanges in step (lockstep), not pipelined")
         self.link = link
         self.arm = arm
-        #: the replies carry the emulated arm's own stamps (the bus says whether its interface keeps them)
-        self.arm_timeline = link.bus.arm_timeline
+        self.counted_from_ns = counted_from_ns
+        #: the readings are stamped on the emulated arm's own timeline: the replies' stamps (the bus says whether
+        #: its interface keeps them), or counted here
+        self.arm_timeline = link.bus.arm_timeline or counted_from_ns is not None
         self.pipelined = pipelined
+        #: 0x14 batches sent so far (the counted timeline's cycles)
+        self._sent = 0
         #: when the request whose replies are still to be collected went out (None: none is)
         self._outstanding: Optional[float] = None
         #: the next exchange waits for its own replies (at start, after a failure, after a mode switch)
@@ -274,8 +302,12 @@ class LinkHardware:
         except LinkError as exc:
             raise HardwareError(str(exc)) from exc
         zeros = np.zeros(len(positions))
+        stamp = self.link.last_stamp_ns if self.counted_from_ns is None else self._counted_stamp(self._sent)
         return reading_from_physical(ActuatorValues(positions, zeros, zeros, zeros, zeros, zeros.astype(int),
-                                                    zeros.astype(int), self.link.last_stamp_ns), self.arm)
+                                                    zeros.astype(int), stamp), self.arm)
+
+    def _counted_stamp(self, cycle: int) -> int:
+        return self.counted_from_ns + cycle * CYCLE_NS
 
     def exchange(self, targets: JointTargets) -> JointReading:
         position_deg, torque_nm = physical_targets(targets, self.arm)
@@ -286,7 +318,10 @@ class LinkHardware:
             # good as its delay: it gets the replies of its own cycle)
             if self._resync or not self.pipelined or torques is not None:
                 link.send_command(position_deg, torques, drain=True)
+                cycle, self._sent = self._sent, self._sent + 1
                 reading = link.collect_command(time.monotonic() + link.timeout_s)
+                if self.counted_from_ns is not None:
+                    reading = dataclasses.replace(reading, stamp_ns=self._counted_stamp(cycle))
                 self._resync = False
             else:  # this cycle's targets out on time; then the previous cycle's replies (or, right after an
                 # exchange in step, its reading again)

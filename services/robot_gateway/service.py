@@ -26,7 +26,7 @@ from typing import Literal, Optional
 import msgspec
 
 from protocol import rs485 as r
-from protocol.conventions import ClockMode
+from protocol.conventions import LOCKSTEP_EPOCH_NS, ClockMode
 from protocol.messages import SimClock
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
@@ -66,8 +66,6 @@ class GatewayConfig(RobotNodeConfig):
         super().__post_init__()
         if self.backend == "kinova_sdk" and ClockMode(self.clock) is not ClockMode.REALTIME:
             raise ValueError("the kinova_sdk backend runs in realtime only (a real arm has no simulated clock)")
-        if self.bus.interface == KINOVA_USB and ClockMode(self.clock) is not ClockMode.REALTIME:
-            raise ValueError("bus.interface kinova_usb runs in realtime only (a real arm has no simulated clock)")
         arm = load_arm(self.arm)
         if self.addresses is not None and (len(self.addresses) != arm.n_joints
                                            or len(set(self.addresses)) != arm.n_joints):
@@ -108,9 +106,9 @@ class RobotGatewayService(RobotNode):
         timeout = cfg.lockstep.link_timeout_s if self.lockstep else cfg.link_timeout_s
         # realtime: pipelined, so that the round trip does not stretch the 2 ms cycle; lockstep: in step, so that
         # the arm behind the bus computes exactly what the simulated arm in robot_sim's process does
-        hardware = LinkHardware(ActuatorLink(self.bus, cfg.bus_addresses(), timeout, self.counters), self.arm,
-                                pipelined=not self.lockstep)
         try:
+            hardware = LinkHardware(ActuatorLink(self.bus, cfg.bus_addresses(), timeout, self.counters), self.arm,
+                                    pipelined=not self.lockstep, counted_from_ns=self._counted_timeline())
             reading = self._connect(hardware)
             if self.lockstep and reading.stamp_ns >= SIMULATED_TIME_LIMIT_NS:
                 # in lockstep the gateway exchanges as fast as the arm answers: only an arm on a simulated clock
@@ -122,6 +120,13 @@ class RobotGatewayService(RobotNode):
             self.bus.close()  # a start that fails leaves no socket behind
             self.bus = None
             raise
+
+    def _counted_timeline(self) -> Optional[int]:
+        """In lockstep on a bus that carries no stamps (Kinova's USB comm layer), where the arm's timeline starts
+        (:func:`open_bus` has checked that the arm is robot_sim's emulation, which steps once per exchange)."""
+        if not self.lockstep or self.bus.arm_timeline:
+            return None
+        return LOCKSTEP_EPOCH_NS
 
     def arm_summary(self) -> str:
         addresses = self.config.bus_addresses()
@@ -304,8 +309,10 @@ def open_bus(config: GatewayConfig, counters=None, log: Optional[logging.Logger]
     if config.bus.interface != KINOVA_USB:
         return RS485Bus(config.bus, counters)
     arm = load_arm(config.arm)
+    # lockstep exchanges as fast as the arm answers: only robot_sim's emulated base steps once per exchange
     return open_kinova_usb(locate_comm_layer(config.sdk_library), arm.name, arm.n_joints, counters,
-                           log or logging.getLogger("mfvs.robot_gateway"))
+                           log or logging.getLogger("mfvs.robot_gateway"),
+                           emulated_only=ClockMode(config.clock) is ClockMode.LOCKSTEP)
 
 
 def robot_gateway_service(config: GatewayConfig | None = None, **kw) -> Service:

@@ -29,7 +29,7 @@ from typing import Literal, Optional
 import msgspec
 import zenoh
 
-from protocol.conventions import ClockMode
+from protocol.conventions import LOCKSTEP_EPOCH_NS, ClockMode
 from protocol.messages import RobotState, SimClock, encode
 from services.robot.arm_check import ArmCheckConfig
 from services.robot.rs485_bus import BusConfig, RS485Bus
@@ -47,8 +47,6 @@ from services.robot_sim.scene import DEFAULT_TRIGGER_MS, TRIGGER_OFFSETS_MS, Sce
 from services.robot_sim.trigger_phase import TriggerPhase
 from services.robot_sim.sim import Simulation
 
-#: simulated time in lockstep starts here, so that a stamp of 0 always means "none" (no source image)
-LOCKSTEP_EPOCH_NS = 1_000_000_000
 class RobotSimConfig(RobotNodeConfig):
     #: a simulated arm is its description (MuJoCo builds it from the same one): the check is waived unless its
     #: actuators are told to disagree (actuators.mirrored_joints)
@@ -321,13 +319,10 @@ class ArmOnBusService(Service):
     def _open_bus(self):
         """The actuators' bus: python-can's (the emulation's CAN stand-in), or behind an emulated base on USB that
         a host reaches with Kinova's own comm layer (``interface: kinova_usb_base``, the channel the socket's
-        path: services.robot_sim.usb_base). USB carries no stamps, so it runs in realtime only."""
+        path: services.robot_sim.usb_base)."""
         cfg = self.config
         if cfg.bus.interface != usb_base.INTERFACE:
             return RS485Bus(cfg.bus, self.counters)
-        if self.lockstep:
-            raise ValueError("an emulated base on USB runs in realtime only: its wire carries no stamps to keep "
-                             "lockstep with (use an mfvs_hub bus for lockstep)")
         return usb_base.UsbBaseBus(cfg.bus.channel, model=self.arm.name, counters=self.counters)
 
     def _on_boundary(self, sim_time_ns: int) -> None:

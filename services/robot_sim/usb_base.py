@@ -4,7 +4,7 @@
 transfers the comm layer expects, and it hands the RS-485 messages that ``OpenRS485_Write`` packs to a callback
 (``forward(records)``, numpy records of :data:`protocol.rs485.MESSAGE_DTYPE`); replies given to
 :meth:`UsbBase.deliver` come back through ``OpenRS485_Read``. :class:`UsbBaseServer` serves it on a Unix socket
-with the framing of the stand-in libusb (``tests/services/robot_gateway/fake_libusb/fake_libusb.c``), so the real
+with the framing of the stand-in libusb (``services/robot_sim/libusb_stand_in.c``), so the real
 comm layer can run over it with no arm. Every layout here is the comm layer's, read from its disassembly; the
 offsets cited are in ``USBCommLayerUbuntu.so`` (x86-64, from kinova-ros), see ``docs/kinova-usb-wire.md``.
 
@@ -16,18 +16,22 @@ what is queued at once, as a short transfer) and what it returns when none are (
 """
 from __future__ import annotations
 
+import hashlib
 import os
+import shutil
 import socket
 import socketserver
 import struct
+import subprocess
 import threading
 import time
 from collections import deque
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from protocol import rs485
+from protocol import kinova, rs485
 
 # ------------------------------------------------------------------------------------ endpoints and codes
 #: command packets: interrupt OUT then interrupt IN, 64 bytes each (SendPacketInternal, 0x83d0 and 0x8443)
@@ -288,11 +292,12 @@ IN_WAIT_S = 0.005
 class UsbBaseBus:
     """The arm's side of its base, as robot_sim's actuators use a bus (``send_batch``/``recv_batch``): what the
     host writes through the comm layer arrives here; what the actuators send goes back through the host's reads.
-    USB carries no stamps, so the host stamps replies when it reads them (no lockstep through it)."""
+    USB carries no stamps: a host stamps replies when it reads them, or in lockstep counts its exchanges (the
+    arm's serial number, ``protocol.kinova.EMULATED_SERIAL``, tells it the arm is this emulation)."""
 
     arm_timeline = False
 
-    def __init__(self, path: str, model: str, counters=None, serial: str = "PJ00000001030703130",
+    def __init__(self, path: str, model: str, counters=None, serial: str = kinova.EMULATED_SERIAL,
                  in_wait_s: float = IN_WAIT_S) -> None:
         self.counters = counters
         self._incoming: deque[tuple[Records, int]] = deque()
@@ -321,3 +326,42 @@ class UsbBaseBus:
 
     def close(self) -> None:
         self.server.close()
+
+
+# ================================================================================= the host's side: a stand-in libusb
+#: the stand-in libusb's source (C): Kinova's comm layer, loaded over it, reaches an emulated base's socket
+STAND_IN_SOURCE = Path(__file__).with_name("libusb_stand_in.c")
+#: the environment variable naming that socket in the host's process
+SOCKET_ENV = "MFVS_FAKE_USB_SOCKET"
+
+
+def stand_in_libusb(cache: Path | None = None) -> Path:
+    """The directory holding the stand-in ``libusb-1.0.so.0``, built with the system C compiler once per version
+    of its source (under ``$XDG_CACHE_HOME/mfvs``, else ``~/.cache/mfvs``). Raises RuntimeError, saying what is
+    missing, where it cannot be built."""
+    source = STAND_IN_SOURCE.read_bytes()
+    base = cache or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "mfvs"
+    directory = base / f"libusb-stand-in-{hashlib.sha256(source).hexdigest()[:12]}"
+    library = directory / "libusb-1.0.so.0"
+    if library.is_file():
+        return directory
+    compiler = shutil.which("cc") or shutil.which("gcc")
+    if compiler is None:
+        raise RuntimeError("no C compiler (cc or gcc) to build the stand-in libusb: bash deploy/install.sh installs "
+                           "gcc")
+    directory.mkdir(parents=True, exist_ok=True)
+    partial = directory / f".libusb-{os.getpid()}.so"
+    built = subprocess.run([compiler, "-shared", "-fPIC", "-O1", "-Wall", "-Werror", "-Wl,-soname,libusb-1.0.so.0",
+                            "-o", str(partial), str(STAND_IN_SOURCE), "-lpthread"], capture_output=True, text=True)
+    if built.returncode != 0:
+        raise RuntimeError(f"the stand-in libusb did not build: {built.stderr.strip()[-500:]}")
+    os.replace(partial, library)  # atomic: two processes building at once both end with a whole file
+    return directory
+
+
+def host_environment(socket_path: str, libusb_dir: Path) -> dict[str, str]:
+    """What a host process (robot_gateway on ``bus.interface: kinova_usb``) needs in its environment to reach the
+    emulated base at ``socket_path`` through Kinova's comm layer: the stand-in first on the loader's path (the comm
+    layer links libusb-1.0.so.0 by name), and the socket."""
+    path = os.environ.get("LD_LIBRARY_PATH", "")
+    return {"LD_LIBRARY_PATH": f"{libusb_dir}{os.pathsep + path if path else ''}", SOCKET_ENV: socket_path}

@@ -1,8 +1,8 @@
 """robot_gateway's actuator bus through Kinova's own USB comm layer (``bus.interface: kinova_usb``), run with the
-real ``USBCommLayerUbuntu.so`` over the stand-in libusb (fake_libusb/) whose transfers robot_sim's emulated base
-answers (services/robot_sim/usb_base.py): the gateway as a process, on the loader's path as a user's would be
-(LD_LIBRARY_PATH names the stand-in's directory, as it would a libusb of their own). Skipped, saying why, where
-Kinova's SDK is not here."""
+real ``USBCommLayerUbuntu.so`` over the stand-in libusb (services/robot_sim/libusb_stand_in.c) whose transfers
+robot_sim's emulated base answers (services/robot_sim/usb_base.py): the gateway as a process, on the loader's path
+as a user's would be (LD_LIBRARY_PATH names the stand-in's directory, as it would a libusb of their own). Skipped,
+saying why, where Kinova's SDK is not here."""
 from __future__ import annotations
 
 import os
@@ -163,3 +163,39 @@ def stream_joint_velocity(session, rates: np.ndarray, seconds: float) -> None:
         command = m.RobotCommand(header=header, mode=m.CommandMode.JOINT_VELOCITY, joint_velocities=rates.tolist())
         session.put(KEYS.robot_command, m.encode(command))
         time.sleep(0.01)
+
+
+def test_a_servo_task_through_kinovas_comm_layer_is_the_same_run_as_the_simulated_arm(comm_layer, fake_libusb,
+                                                                                       tmp_path, monkeypatch):
+    """`mfvs servo --profile gateway --bus kinova_usb` in lockstep: robot_gateway reaches robot_sim's emulated base
+    through Kinova's real comm layer (every 0x14 batch and its replies through OpenRS485_Write/Read and the stand-in
+    libusb), counting the arm's cycles where USB carries no stamps; the run converges and its per-iteration log is
+    the sim profile's to the last bit (frames, features, commands, joint angles), as the hub's is
+    (tests/services/test_servo.py)."""
+    from services.servo import load_scenario, read_log, run
+
+    monkeypatch.setenv("MFVS_KINOVA_SDK", str(comm_layer.parent))
+    easy = REPO / "examples" / "scenarios" / "easy.yaml"
+    simulated = run(load_scenario(easy), tmp_path / "sim", plots=False)
+    usb = run(load_scenario(easy), tmp_path / "usb", profile="gateway", bus="kinova_usb", plots=False)
+    assert usb.converged and usb.iterations == simulated.iterations > 20
+    reference, log = read_log(simulated.trajectory_log), read_log(usb.trajectory_log)
+    mismatched = [(a["iteration"], [k for k in a if a[k] != b.get(k)]) for a, b in zip(reference, log) if a != b]
+    assert len(log) == len(reference) and not mismatched, mismatched[:5]
+
+
+def test_lockstep_refuses_an_arm_that_is_not_robot_sims_emulation(comm_layer, fake_libusb, usb_dir):
+    """A base that reports a real arm's serial number keeps wall time: the gateway in lockstep refuses it (it would
+    drive the arm as fast as it answers), exit 2 with one line, before any motion."""
+    robot = subprocess.Popen([sys.executable, "-c", BASE_ONLY, str(usb_dir / "usb.sock"), "j2s7s300"], cwd=REPO,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert robot.stdout.readline().strip() == "serving"
+        done = subprocess.run(gateway_command(comm_layer, "tcp/127.0.0.1:1", "--set", "clock=lockstep"),
+                              env=usb_env(fake_libusb, usb_dir), cwd=REPO, capture_output=True, text=True, timeout=60)
+    finally:
+        robot.kill()
+        robot.wait()
+    assert done.returncode == 2 and "lockstep needs robot_sim's emulated actuators" in done.stderr, \
+        done.stderr[-2000:]
+    assert "700" not in _command_ids(usb_dir / "usb.log")  # refused before activation

@@ -23,11 +23,11 @@ import numpy as np
 import pytest
 
 from protocol import rs485
+from services.robot_sim.usb_base import stand_in_libusb
 
 REPO = Path(__file__).resolve().parents[3]
 REFERENCE = REPO.parent / "shared" / "reference" / "kinova-sdk"
 SDK_ENV = "MFVS_KINOVA_SDK"
-FAKE_SOURCE = Path(__file__).with_name("fake_libusb") / "fake_libusb.c"
 COMM_LAYER = "USBCommLayerUbuntu.so"
 
 NO_ERROR, UNKNOWN_ERROR = 1, 666
@@ -56,13 +56,11 @@ def comm_layer() -> Path:
 
 @pytest.fixture(scope="module")
 def fake_libusb(tmp_path_factory) -> Path:
-    compiler = shutil.which("cc") or shutil.which("gcc")
-    if not compiler:
-        pytest.skip("no C compiler (cc/gcc) to build the stand-in libusb")
-    out = tmp_path_factory.mktemp("fake_libusb") / "libusb-1.0.so.0"
-    subprocess.run([compiler, "-shared", "-fPIC", "-O1", "-Wall", "-Werror", "-Wl,-soname,libusb-1.0.so.0",
-                    "-o", str(out), str(FAKE_SOURCE)], check=True)
-    return out
+    """The stand-in libusb-1.0.so.0 (services/robot_sim/libusb_stand_in.c), built here with the system compiler."""
+    try:
+        return stand_in_libusb(tmp_path_factory.mktemp("libusb")) / "libusb-1.0.so.0"
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
 
 
 @pytest.fixture

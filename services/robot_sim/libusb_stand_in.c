@@ -5,7 +5,8 @@
  * an emulation of the arm's base answers (services/robot_sim/usb_base.py). What the comm layer does with these
  * calls is in docs/kinova-usb-wire.md.
  *
- * Build:  cc -shared -fPIC -O1 -Wl,-soname,libusb-1.0.so.0 -o libusb-1.0.so.0 fake_libusb.c
+ * Build:  cc -shared -fPIC -O1 -Wl,-soname,libusb-1.0.so.0 -o libusb-1.0.so.0 libusb_stand_in.c
+ *         (services.robot_sim.usb_base.stand_in_libusb() does, once per version of this file)
  * Load it before the comm layer, e.g. ctypes.CDLL("<dir>/libusb-1.0.so.0", mode=ctypes.RTLD_GLOBAL), then
  * ctypes.CDLL("USBCommLayerUbuntu.so"): the comm layer's DT_NEEDED libusb-1.0.so.0 is then satisfied by this
  * already-loaded object (glibc matches the SONAME). LD_LIBRARY_PATH=<dir> works as well.
