@@ -21,7 +21,7 @@ from services.robot_gateway.kinova_usb import packets_for, read_capacity
 from services.stack import RouterProcess
 from services.runtime.transport import open_session
 from tests.helpers import REPO
-from tests.services.robot_gateway.test_kinova_usb_wire import comm_layer, fake_libusb  # noqa: F401 (fixtures)
+from tests.services.robot_gateway.test_kinova_usb_wire import _comm_layer, fake_libusb  # noqa: F401 (a fixture)
 from tests.stack import KEYS, Recorder, wait_for
 
 ARM = load_arm("j2s7s300")
@@ -32,6 +32,39 @@ def test_the_read_buffer_holds_every_record_the_library_can_write():
     written; Write's QtySent counts packets."""
     assert [read_capacity(n) for n in (1, 3, 21, 50)] == [3, 6, 27, 60]
     assert [packets_for(n) for n in (1, 3, 4, 7, 21)] == [1, 1, 2, 3, 7]
+
+
+#: the comm layer for hosts without Kinova's SDK (C, built here), checked against Kinova's below
+STAND_IN_SOURCE = Path(__file__).with_name("comm_layer_stand_in.c")
+
+
+def build_stand_in_comm_layer(directory: Path, libusb: Path) -> Path:
+    """``USBCommLayerUbuntu.so`` built from the stand-in's source, linked against the libusb at ``libusb``."""
+    out = directory / "USBCommLayerUbuntu.so"
+    subprocess.run([shutil.which("cc") or "gcc", "-shared", "-fPIC", "-O1", "-Wall", "-Werror", "-o", str(out),
+                    str(STAND_IN_SOURCE), f"-L{libusb.parent}", "-l:libusb-1.0.so.0", "-lm"], check=True)
+    return out
+
+
+@pytest.fixture(scope="module")
+def stand_in(tmp_path_factory, fake_libusb) -> Path:
+    return build_stand_in_comm_layer(tmp_path_factory.mktemp("comm_layer"), fake_libusb)
+
+
+@pytest.fixture(params=["kinova", "stand_in"])
+def comm(request, stand_in) -> Path:
+    """Each test below runs on Kinova's comm layer (skipped, saying why, where the SDK is not here) and on the
+    stand-in."""
+    return _comm_layer() if request.param == "kinova" else stand_in
+
+
+@pytest.fixture
+def kinova_or_stand_in(stand_in) -> Path:
+    """Kinova's comm layer where the SDK is here, else the stand-in (a long run made once)."""
+    try:
+        return _comm_layer()
+    except pytest.skip.Exception:
+        return stand_in
 
 
 @pytest.fixture
@@ -48,9 +81,9 @@ def usb_env(fake_libusb: Path, usb_dir: Path, devices: int = 1) -> dict:
             "PYTHONPATH": str(REPO)}
 
 
-def gateway_command(comm_layer: Path, endpoint: str = "tcp/127.0.0.1:1", *settings: str) -> list[str]:
+def gateway_command(comm: Path, endpoint: str = "tcp/127.0.0.1:1", *settings: str) -> list[str]:
     return [sys.executable, "-m", "services.robot_gateway", "--connect", endpoint, "--set", "bus.interface=kinova_usb",
-            "--set", f"sdk_library={comm_layer.parent}", "--set", "connect_timeout_s=5", *settings]
+            "--set", f"sdk_library={comm.parent}", "--set", "connect_timeout_s=5", *settings]
 
 
 @pytest.mark.parametrize("devices, says", [
@@ -58,10 +91,10 @@ def gateway_command(comm_layer: Path, endpoint: str = "tcp/127.0.0.1:1", *settin
     (2, "2 Kinova devices are connected"),
 ])
 def test_without_exactly_one_arm_the_gateway_exits_2_with_one_line_and_never_reaches_the_bus(
-        comm_layer, fake_libusb, usb_dir, devices, says):
+        comm, fake_libusb, usb_dir, devices, says):
     """No arm: InitCommunication's code named, exit 2, and OpenRS485_Write/Read (which crash the process with no
     device) never called; two: refused before activation (the comm layer activates the first one it lists)."""
-    done = subprocess.run(gateway_command(comm_layer), env=usb_env(fake_libusb, usb_dir, devices), cwd=REPO,
+    done = subprocess.run(gateway_command(comm), env=usb_env(fake_libusb, usb_dir, devices), cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2, (done.returncode, done.stderr[-2000:])
     lines = [line for line in done.stderr.splitlines() if line.strip()]
@@ -70,14 +103,14 @@ def test_without_exactly_one_arm_the_gateway_exits_2_with_one_line_and_never_rea
     assert "bulk" not in wire  # no RS-485 transfer: the bus was not touched
 
 
-def test_an_arm_of_another_model_is_refused_before_activation(comm_layer, fake_libusb, usb_dir):
+def test_an_arm_of_another_model_is_refused_before_activation(comm, fake_libusb, usb_dir):
     """The emulated base reports a 6-DoF arm; the gateway is configured for the 7-DoF one: refused, exit 2, the
     activation command (700) never sent."""
     robot = subprocess.Popen([sys.executable, "-c", BASE_ONLY, str(usb_dir / "usb.sock"), "j2n6s300"], cwd=REPO,
                              stdout=subprocess.PIPE, text=True)
     try:
         assert robot.stdout.readline().strip() == "serving"
-        done = subprocess.run(gateway_command(comm_layer), env=usb_env(fake_libusb, usb_dir), cwd=REPO,
+        done = subprocess.run(gateway_command(comm), env=usb_env(fake_libusb, usb_dir), cwd=REPO,
                               capture_output=True, text=True, timeout=60)
     finally:
         robot.kill()
@@ -105,7 +138,7 @@ def _command_ids(log: Path) -> set[str]:
     return ids
 
 
-def test_the_gateway_drives_robot_sims_arm_through_kinovas_comm_layer(comm_layer, fake_libusb, usb_dir):
+def test_the_gateway_drives_robot_sims_arm_through_kinovas_comm_layer(comm, fake_libusb, usb_dir):
     """robot_sim's actuators behind its emulated base on USB, robot_gateway on ``kinova_usb`` with Kinova's real
     comm layer, both processes on a router: the activation is logged with what it costs, the arm's state is
     published at home (the 0x02 positions read right), and a joint velocity command moves the joint it names in
@@ -119,7 +152,7 @@ def test_the_gateway_drives_robot_sims_arm_through_kinovas_comm_layer(comm_layer
         try:
             assert wait_for(lambda: (usb_dir / "usb.sock").exists() or robot.poll() is not None, timeout=60)
             gateway_log = open(usb_dir / "gateway.log", "w")
-            gateway = subprocess.Popen(gateway_command(comm_layer, router.endpoint),
+            gateway = subprocess.Popen(gateway_command(comm, router.endpoint),
                                        env=usb_env(fake_libusb, usb_dir), cwd=REPO, stdout=gateway_log,
                                        stderr=subprocess.STDOUT)
             client = open_session(router.client_config())
@@ -165,8 +198,8 @@ def stream_joint_velocity(session, rates: np.ndarray, seconds: float) -> None:
         time.sleep(0.01)
 
 
-def test_a_servo_task_through_kinovas_comm_layer_is_the_same_run_as_the_simulated_arm(comm_layer, fake_libusb,
-                                                                                       tmp_path, monkeypatch):
+def test_a_servo_task_through_kinovas_comm_layer_is_the_same_run_as_the_simulated_arm(kinova_or_stand_in, tmp_path,
+                                                                                       monkeypatch):
     """`mfvs servo --profile gateway --bus kinova_usb` in lockstep: robot_gateway reaches robot_sim's emulated base
     through Kinova's real comm layer (every 0x14 batch and its replies through OpenRS485_Write/Read and the stand-in
     libusb), counting the arm's cycles where USB carries no stamps; the run converges and its per-iteration log is
@@ -174,7 +207,7 @@ def test_a_servo_task_through_kinovas_comm_layer_is_the_same_run_as_the_simulate
     (tests/services/test_servo.py)."""
     from services.servo import load_scenario, read_log, run
 
-    monkeypatch.setenv("MFVS_KINOVA_SDK", str(comm_layer.parent))
+    monkeypatch.setenv("MFVS_KINOVA_SDK", str(kinova_or_stand_in.parent))
     easy = REPO / "examples" / "scenarios" / "easy.yaml"
     simulated = run(load_scenario(easy), tmp_path / "sim", plots=False)
     usb = run(load_scenario(easy), tmp_path / "usb", profile="gateway", bus="kinova_usb", plots=False)
@@ -184,14 +217,14 @@ def test_a_servo_task_through_kinovas_comm_layer_is_the_same_run_as_the_simulate
     assert len(log) == len(reference) and not mismatched, mismatched[:5]
 
 
-def test_lockstep_refuses_an_arm_that_is_not_robot_sims_emulation(comm_layer, fake_libusb, usb_dir):
+def test_lockstep_refuses_an_arm_that_is_not_robot_sims_emulation(comm, fake_libusb, usb_dir):
     """A base that reports a real arm's serial number keeps wall time: the gateway in lockstep refuses it (it would
     drive the arm as fast as it answers), exit 2 with one line, before any motion."""
     robot = subprocess.Popen([sys.executable, "-c", BASE_ONLY, str(usb_dir / "usb.sock"), "j2s7s300"], cwd=REPO,
                              stdout=subprocess.PIPE, text=True)
     try:
         assert robot.stdout.readline().strip() == "serving"
-        done = subprocess.run(gateway_command(comm_layer, "tcp/127.0.0.1:1", "--set", "clock=lockstep"),
+        done = subprocess.run(gateway_command(comm, "tcp/127.0.0.1:1", "--set", "clock=lockstep"),
                               env=usb_env(fake_libusb, usb_dir), cwd=REPO, capture_output=True, text=True, timeout=60)
     finally:
         robot.kill()
@@ -199,3 +232,70 @@ def test_lockstep_refuses_an_arm_that_is_not_robot_sims_emulation(comm_layer, fa
     assert done.returncode == 2 and "lockstep needs robot_sim's emulated actuators" in done.stderr, \
         done.stderr[-2000:]
     assert "700" not in _command_ids(usb_dir / "usb.log")  # refused before activation
+
+
+DRIFT_SCENARIO = """
+import json, sys
+import numpy as np
+from protocol import rs485
+from services.robot_gateway.kinova_usb import open_kinova_usb
+from services.robot_sim.usb_base import UsbBase, UsbBaseServer
+from pathlib import Path
+
+comm_layer, socket_path = Path(sys.argv[1]), sys.argv[2]
+base = UsbBase(lambda records: None, model="j2s7s300", serial="PJ00000001030703130")
+def answer(records):  # every 0x14 answered with its 0x15, 0x16, 0x17
+    replies = np.repeat(records, 3)
+    replies["command"] = np.tile([0x15, 0x16, 0x17], len(records))
+    replies["source"], replies["destination"] = np.repeat(records["destination"], 3), 0
+    server.deliver(replies)
+base.forward = answer
+server = UsbBaseServer(socket_path, [base], in_wait_s=0.002).start()
+bus = open_kinova_usb(comm_layer, "j2s7s300", 7)
+got = []
+for n in (7, 50, 1):
+    batch = rs485.position_torque_records(list(range(0x10, 0x10 + n)), np.arange(n) * 1.5, np.zeros(n))
+    bus.send_batch(batch)
+    records, _ = bus.recv_batch(0.5)
+    got.append([len(records), records.tobytes().hex()])
+got.append(len(bus.recv_batch(0.0)[0]))
+bus.close()
+print(json.dumps({"got": got, "counters": bus.counters.snapshot()}))
+"""
+
+
+def test_the_stand_in_comm_layer_puts_on_the_wire_what_kinovas_does(stand_in, fake_libusb, tmp_path):
+    """The same session (InitCommunication, GetDevices, activation, the reads until empty, writes of 7, 50 and 1
+    messages and their replies, an empty read, CloseCommunication) through Kinova's comm layer and through the
+    stand-in: every libusb call the same, in the same order, with the same bytes (but for the 55 bytes of the
+    activation packet Kinova's leaves uninitialised), and the same records and counters back."""
+    kinova = _comm_layer()
+    runs = {}
+    for name, library in (("kinova", kinova), ("stand_in", stand_in)):
+        work = Path(tempfile.mkdtemp(prefix=f"mfvs-{name}-", dir="/tmp"))
+        try:
+            env = usb_env(fake_libusb, work)
+            done = subprocess.run([sys.executable, "-c", DRIFT_SCENARIO, str(library), env["MFVS_FAKE_USB_SOCKET"]],
+                                  env=env, cwd=REPO, capture_output=True, text=True, timeout=60)
+            assert done.returncode == 0, (name, done.stderr[-2000:])
+            runs[name] = (done.stdout.strip().splitlines()[-1], _wire(work / "usb.log"))
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    assert runs["stand_in"][0] == runs["kinova"][0]
+    kinova_wire, stand_in_wire = runs["kinova"][1], runs["stand_in"][1]
+    assert len(stand_in_wire) == len(kinova_wire) > 20
+    different = [(i, a, b) for i, (a, b) in enumerate(zip(kinova_wire, stand_in_wire)) if a != b]
+    assert not different, different[:3]
+
+
+def _wire(log: Path) -> list[str]:
+    """The stand-in libusb's log, the activation packet's uninitialised bytes (Data[1:56]) blanked."""
+    lines = []
+    for line in log.read_text().splitlines():
+        if "ep=0x02" in line and "data=" in line:
+            head, data = line.split("data=")
+            packet = bytes.fromhex(data.split()[0])
+            if int.from_bytes(packet[4:6], "little") == 700:
+                line = f"{head}data={packet[:9].hex()}"
+        lines.append(line)
+    return lines
