@@ -8,11 +8,17 @@ with the framing of the stand-in libusb (``services/robot_sim/libusb_stand_in.c`
 comm layer can run over it with no arm. Every layout here is the comm layer's, read from its disassembly; the
 offsets cited are in ``USBCommLayerUbuntu.so`` (x86-64, from kinova-ros), see ``docs/kinova-usb-wire.md``.
 
-What the real base does that the binary cannot show (our choices, documented in the doc): the reply header of a
-command packet (the comm layer never reads it; we echo the command id); whether the base still answers the
-device-info command after RS-485 activation (we answer it, and nothing else but 700); what it does with RS-485
-packets before activation (we drop them); how a bulk IN ends when fewer records are queued than asked (we return
-what is queued at once, as a short transfer) and what it returns when none are (a timeout, ``empty_in``).
+Kinova's command layer (``USBCommandLayerUbuntu.so``, the high-level API, which sends its packets through the comm
+layer's ``SendPacket``) needs one more packet for ``InitAPI``/``GetAngularPosition``/``CloseAPI``: 0x69, get angular
+position (InitAPI and CloseAPI send nothing of their own). Offsets cited as "cmd 0x…" are in that binary (same SDK).
+
+What the real base does that the binaries cannot show (our choices, documented in the doc): the reply header of a
+command packet (the comm layer never reads it, the command layer checks only its sign/0x4000 bits and its data size;
+we echo the command id and give the data size); whether the base still answers the device-info command after RS-485
+activation (we answer it, and nothing else but 700); what it does with RS-485 packets before activation (we drop
+them); how a bulk IN ends when fewer records are queued than asked (we return what is queued at once, as a short
+transfer) and what it returns when none are (a timeout, ``empty_in``); that a base of device type ≠ 8 sends 6
+actuator angles, not 7 (the command layer reads 6 then).
 """
 from __future__ import annotations
 
@@ -55,6 +61,28 @@ CMD_RS485_ACTIVATE = 700
 #: DeviceType = int32 Data[44:48]
 DEVICE_INFO = struct.Struct("<20s20sBBBxi")
 SERIAL_LENGTH = 20  # KinovaDevice.SerialNumber / Model (header: SERIAL_LENGTH)
+
+# ------------------------------------------------------------------------------------ the command layer's packets
+# (offsets "cmd 0x…" in USBCommandLayerUbuntu.so; its SendGetCommand, cmd 0x202de, sends them through SendPacket)
+#: GetAngularPosition's request: IdPacket 1, TotalPacketCount 1, IdCommand 0x69, TotalDataSize 1, Data[0:4] = 1, 0,
+#: 0, 0 (cmd 0x16463-0x1649c; Data[4:56] are never initialised: stack bytes go on the wire)
+CMD_GET_ANGULAR_POSITION = 0x69
+#: AngularPosition as GetAngularPosition fills it: Actuators.Actuator1-7 (float, at +0x0 … +0x18), then
+#: Fingers.Finger1-3 (+0x1c, +0x20, +0x24) (DeserializeAngularPosition, cmd 0x2646c: stores at 0x2653a-0x26811)
+ANGULAR_ACTUATORS, ANGULAR_FINGERS = 7, 3
+#: each value is 4 bytes of the reply's data at a running index, little-endian float32 (GetFloatFromVector, cmd
+#: 0x20bd5-0x20c4b; the index starts at 0, cmd 0x16459)
+ANGULAR_VALUE = struct.Struct("<f")
+#: Actuator7 is read only when the active device's DeviceType (KinovaDevice +0x34, from GetActiveDevice at cmd
+#: 0x264b7, i.e. our DEVICE_INFO's int32) is 8 (cmd 0x266d8 ``cmp eax,0x8``; KinovaTypes.h:
+#: eRobotType_Spherical_7DOF_Service); otherwise Finger1-3 are read right after Actuator6 and Actuator7 is untouched
+DEVICE_TYPE_7DOF = 8
+#: SendGetCommand's checks of each reply header (cmd 0x203a7-0x20467): IdCommand < 0 → 2003 (first packet) / 2005;
+#: IdCommand & 0x4000 → 2004; the reply's IdCommand is not compared with the request's, TotalPacketCount not read
+REPLY_ERROR_BIT = 0x4000
+#: and its loop (cmd 0x204e7-0x20548): it appends the reply's 56 data bytes (merge, cmd 0x204ab) and asks for
+#: IdPacket + 1 until it holds ≥ the reply's TotalDataSize bytes, so a reply with TotalDataSize ≤ 56 is the only one
+#: (a negative TotalDataSize, compared unsigned, would never end the loop)
 
 # ------------------------------------------------------------------------------------ RS-485 packets
 #: OpenRS485_Write/Read's packet: byte 0 = records in this packet (Write 0x877c/0x8930; Read 0x904d, capped at 3
@@ -106,16 +134,34 @@ def _fixed(text: str) -> bytes:
     return raw.ljust(SERIAL_LENGTH, b"\0")
 
 
+def angular_position_data(values: Sequence[float], device_type: int) -> bytes:
+    """GetAngularPosition's reply data: ``values`` are AngularPosition's 10 floats in degrees (Actuator1-7, then
+    Finger1-3); Actuator7 goes on the wire only for device type 8 (the command layer reads it only then)."""
+    values = [float(v) for v in values]
+    if len(values) != ANGULAR_ACTUATORS + ANGULAR_FINGERS:
+        raise ValueError(f"angular position: {ANGULAR_ACTUATORS} actuator + {ANGULAR_FINGERS} finger values, "
+                         f"not {len(values)}")
+    actuators = values[:ANGULAR_ACTUATORS] if device_type == DEVICE_TYPE_7DOF else values[:ANGULAR_ACTUATORS - 1]
+    return b"".join(ANGULAR_VALUE.pack(v) for v in actuators + values[ANGULAR_ACTUATORS:])
+
+
 class UsbBase:
     """One arm's base on USB. ``out(endpoint, data) -> (status, taken)``, ``in_(endpoint, length) -> (status,
-    data)`` are the two transfer directions; statuses are libusb's (0, -7 timeout, -4 no device)."""
+    data)`` are the two transfer directions; statuses are libusb's (0, -7 timeout, -4 no device).
+
+    ``angular_position``: the arm's joint angles in degrees, 7 actuators then 3 fingers — a callable returning them
+    (asked at each request) or a fixed sequence; settable. With it the base answers the command layer's
+    GetAngularPosition (0x69) before RS-485 activation; without it (None, the default) 0x69 is ignored like any
+    other high-level command. For 7 actuators on the wire give ``device_type=8`` (see DEVICE_TYPE_7DOF)."""
 
     def __init__(self, forward: Callable[[Records], None], serial: str = "PJ00000001030703130",
                  model: str = "JACO2 7DOF", version: tuple[int, int, int] = (6, 2, 5), device_type: int = 0,
-                 empty_in: str = "timeout") -> None:
+                 empty_in: str = "timeout",
+                 angular_position: Callable[[], Sequence[float]] | Sequence[float] | None = None) -> None:
         if empty_in not in ("timeout", "zero_length"):
             raise ValueError("empty_in is 'timeout' or 'zero_length'")
         self.forward = forward
+        self.angular_position = angular_position
         self.serial, self.model, self.version, self.device_type = serial, model, version, device_type
         self._serial_field, self._model_field = _fixed(serial), _fixed(model)
         self.empty_in = empty_in
@@ -152,8 +198,14 @@ class UsbBase:
         elif command == CMD_RS485_ACTIVATE:
             self.rs485_active = True
             self._command_replies.append(command_packet(CMD_RS485_ACTIVATE))
+        elif command == CMD_GET_ANGULAR_POSITION and not self.rs485_active and self.angular_position is not None:
+            # one reply packet: header (1, 1, 0x69, data size ≤ 56) ends SendGetCommand's loop (our choice of header)
+            source = self.angular_position
+            data = angular_position_data(source() if callable(source) else source, self.device_type)
+            self._command_replies.append(command_packet(CMD_GET_ANGULAR_POSITION, data))
         else:
-            # the high-level protocol is not emulated here (what the real arm does with it after 700 is unknown)
+            # the rest of the high-level protocol is not emulated here, nor 0x69 after 700 (what the real arm does
+            # with high-level packets after 700 is unknown; the comm layer no longer sends them: 1021)
             self.ignored_commands.append(command)
 
     # ---- the host's IN transfers
@@ -298,11 +350,13 @@ class UsbBaseBus:
     arm_timeline = False
 
     def __init__(self, path: str, model: str, counters=None, serial: str = kinova.EMULATED_SERIAL,
-                 in_wait_s: float = IN_WAIT_S) -> None:
+                 in_wait_s: float = IN_WAIT_S, device_type: int = 0,
+                 angular_position: Callable[[], Sequence[float]] | Sequence[float] | None = None) -> None:
         self.counters = counters
         self._incoming: deque[tuple[Records, int]] = deque()
         self._arrived = threading.Condition()
-        self.base = UsbBase(self._from_host, serial=serial, model=model)
+        self.base = UsbBase(self._from_host, serial=serial, model=model, device_type=device_type,
+                            angular_position=angular_position)
         self.server = UsbBaseServer(path, [self.base], in_wait_s=in_wait_s).start()
 
     def _from_host(self, records: Records) -> None:
@@ -359,9 +413,13 @@ def stand_in_libusb(cache: Path | None = None) -> Path:
     return directory
 
 
-def host_environment(socket_path: str, libusb_dir: Path) -> dict[str, str]:
+def host_environment(socket_path: str, libusb_dir: Path, kinova_lib_dir: Path | None = None) -> dict[str, str]:
     """What a host process (robot_gateway on ``bus.interface: kinova_usb``) needs in its environment to reach the
     emulated base at ``socket_path`` through Kinova's comm layer: the stand-in first on the loader's path (the comm
-    layer links libusb-1.0.so.0 by name), and the socket."""
+    layer links libusb-1.0.so.0 by name), and the socket. ``kinova_lib_dir``: the SDK's library directory, put
+    second, for a host that uses the command layer (its InitAPI does ``dlopen("USBCommLayerUbuntu.so")`` by bare
+    name, cmd 0x11a97, and the comm layer has no SONAME: only the loader's search path finds it). The loader reads
+    LD_LIBRARY_PATH when the process starts: this is for a child's environment, not ``os.environ``."""
     path = os.environ.get("LD_LIBRARY_PATH", "")
-    return {"LD_LIBRARY_PATH": f"{libusb_dir}{os.pathsep + path if path else ''}", SOCKET_ENV: socket_path}
+    dirs = [str(libusb_dir)] + ([str(kinova_lib_dir)] if kinova_lib_dir else []) + ([path] if path else [])
+    return {"LD_LIBRARY_PATH": os.pathsep.join(dirs), SOCKET_ENV: socket_path}

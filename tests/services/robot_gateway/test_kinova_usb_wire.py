@@ -5,7 +5,11 @@ arm base (:mod:`services.robot_sim.usb_base`) answers: what the binary puts on t
 
 Each scenario runs in its own Python process (the comm layer keeps global state and crashes on some calls), which
 loads the stand-in with RTLD_GLOBAL before the comm layer, serves the base on a Unix socket from a thread, and
-prints one JSON line; the stand-in's call log shows the wire."""
+prints one JSON line; the stand-in's call log shows the wire.
+
+Kinova's command layer (``USBCommandLayerUbuntu.so``: InitAPI, GetAngularPosition, CloseAPI) runs the same way, but
+its process is started with ``LD_LIBRARY_PATH=<stand-in dir>:<SDK lib dir>`` and loads nothing beforehand: InitAPI
+``dlopen``s the comm layer by bare name, which only the loader's search path resolves."""
 from __future__ import annotations
 
 import ctypes
@@ -29,10 +33,15 @@ REPO = Path(__file__).resolve().parents[3]
 REFERENCE = REPO.parent / "shared" / "reference" / "kinova-sdk"
 SDK_ENV = "MFVS_KINOVA_SDK"
 COMM_LAYER = "USBCommLayerUbuntu.so"
+COMMAND_LAYER = "USBCommandLayerUbuntu.so"
 
 NO_ERROR, UNKNOWN_ERROR = 1, 666
 ERROR_NOT_INITIALIZED, ERROR_NO_DEVICE_FOUND, ERROR_OPERATION_INCOMPLETED, ERROR_RS485_TIMEOUT = 1010, 1015, 1016, 1020
 SIGSEGV = -11
+ERROR_LOAD_COMM_DLL, JACO_NACK_FIRST, JACO_COMM_FAILED = 2002, 2003, 2004
+ERROR_FUNCTION_NOT_ACCESSIBLE = 1021
+#: joint angles the base is given (degrees: Actuator1-7, Finger1-3); not exact in float32 on purpose
+ANGLES = [180.1, -45.25, 270.3, 89.9, -0.001, 123.456, 359.99, 6.5, 7000.7, -1e-3]
 SERIAL, MODEL = "PJ00000001030703130", "JACO2 7DOF"
 
 
@@ -63,15 +72,31 @@ def fake_libusb(tmp_path_factory) -> Path:
         pytest.skip(str(exc))
 
 
+@pytest.fixture(scope="module")
+def command_layer(comm_layer) -> Path:
+    path = comm_layer.with_name(COMMAND_LAYER)
+    if not path.is_file():
+        pytest.skip(f"no {COMMAND_LAYER} beside {comm_layer}")
+    return path
+
+
 @pytest.fixture
 def run(comm_layer, fake_libusb):
-    """run(scenario, devices=1, serve=True, **options) -> (result dict or None, log lines, returncode)."""
+    """run(scenario, devices=1, serve=True, library_path=False, **options) -> (result dict or None, log lines,
+    returncode). ``library_path``: start the child with the stand-in's directory, then the SDK's, first on
+    LD_LIBRARY_PATH (what the command layer needs); else the inherited environment as is."""
     workdir = Path(tempfile.mkdtemp(prefix="mfvs-usb-", dir="/tmp"))  # short: a socket path has ≤ 107 bytes
 
-    def _run(scenario: str, devices: int = 1, serve: bool = True, **options):
+    def _run(scenario: str, devices: int = 1, serve: bool = True, library_path: bool = False, **options):
         log = workdir / f"{scenario}.log"
+        if log.exists():
+            log.unlink()
         env = {**os.environ, "MFVS_FAKE_USB_DEVICES": str(devices), "MFVS_FAKE_USB_LOG": str(log),
                "MFVS_FAKE_USB_SOCKET": str(workdir / "usb.sock"), "PYTHONPATH": str(REPO)}
+        if library_path:  # first, before whatever the environment had
+            env["LD_LIBRARY_PATH"] = os.pathsep.join(
+                [str(fake_libusb.parent), str(comm_layer.parent)] + ([env["LD_LIBRARY_PATH"]] if env.get(
+                    "LD_LIBRARY_PATH") else []))
         config = {"scenario": scenario, "fake": str(fake_libusb), "comm": str(comm_layer), "devices": devices,
                   "serve": serve, **options}
         proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(config)], env=env, cwd=REPO,
@@ -119,15 +144,23 @@ def child() -> None:
     cfg = json.loads(sys.argv[1])
     forwarded: list[np.ndarray] = []
     bases = [UsbBase(forwarded.append, serial=f"{SERIAL[:-1]}{i}", model=cfg.get("model", MODEL),
-                     empty_in=cfg.get("empty_in", "timeout")) for i in range(cfg["devices"])]
+                     empty_in=cfg.get("empty_in", "timeout"), device_type=cfg.get("device_type", 0),
+                     angular_position=cfg.get("angles")) for i in range(cfg["devices"])]
     server = None
     if cfg["serve"]:
         server = UsbBaseServer(os.environ["MFVS_FAKE_USB_SOCKET"], bases, in_wait_s=cfg.get("in_wait_s", 0.0)).start()
+    out: dict = {}
+    scenario = cfg["scenario"]
+    if scenario == "api":  # the command layer, loaded alone: the loader's path finds the stand-in and the comm layer
+        _api(cfg, out)
+        print("RESULT " + json.dumps(out), flush=True)
+        if server:
+            server.close()
+        return
     ctypes.CDLL(cfg["fake"], mode=ctypes.RTLD_GLOBAL)
     comm = ctypes.CDLL(cfg["comm"])
     for name in ("OpenRS485_Write", "OpenRS485_Read"):
         getattr(comm, name).argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.POINTER(ctypes.c_int)]
-    out: dict = {}
 
     def write(batch: np.ndarray, qty: int) -> tuple[int, int]:
         sent = ctypes.c_int(-99)
@@ -151,7 +184,6 @@ def child() -> None:
                  "version": [d.VersionMajor, d.VersionMinor, d.VersionRelease], "type": d.DeviceType,
                  "id": d.DeviceID} for d in table[:n]]
 
-    scenario = cfg["scenario"]
     if scenario == "init":
         out["activate_before_init"] = comm.OpenRS485_Activate()
         out["init"] = comm.InitCommunication()
@@ -194,6 +226,54 @@ def child() -> None:
     print("RESULT " + json.dumps(out), flush=True)
     if server:
         server.close()
+
+
+def _kinova_mutex_value() -> int | None:
+    """The value of the named semaphore "KinovaMutex" (/dev/shm/sem.KinovaMutex) that the command layer creates and
+    shares between all its processes; None when it does not exist."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    libc.sem_open.restype, libc.sem_open.argtypes = ctypes.c_void_p, [ctypes.c_char_p, ctypes.c_int]
+    sem = libc.sem_open(b"/KinovaMutex", 0)
+    if not sem:
+        return None
+    value = ctypes.c_int(-1)
+    libc.sem_getvalue(ctypes.c_void_p(sem), ctypes.byref(value))
+    libc.sem_close(ctypes.c_void_p(sem))
+    return value.value
+
+
+def _api(cfg: dict, out: dict) -> None:
+    """InitAPI [, InitAPI again] [, the comm layer's OpenRS485_Activate], GetAngularPosition, CloseAPI; ``marks``:
+    how many stand-in log lines there were after each step (to split the wire by call)."""
+    log = Path(os.environ["MFVS_FAKE_USB_LOG"])
+    marks = out["marks"] = {}
+
+    def mark(step: str) -> None:
+        marks[step] = len(log.read_text().splitlines()) if log.exists() else 0
+
+    api = ctypes.CDLL(str(Path(cfg["comm"]).with_name(COMMAND_LAYER)))
+    out["init"] = api.InitAPI()
+    mark("init")
+    if cfg.get("init_again"):
+        out["init_again"] = api.InitAPI()
+        mark("init_again")
+    if out["init"] == ERROR_LOAD_COMM_DLL:
+        return
+    comm = ctypes.CDLL(COMM_LAYER)  # by bare name, as InitAPI did: the very object InitAPI loaded
+    out["same_comm"] = ctypes.cast(comm.SendPacket, ctypes.c_void_p).value == ctypes.cast(
+        ctypes.CDLL(cfg["comm"]).SendPacket, ctypes.c_void_p).value
+    if cfg.get("activate"):
+        out["activate"] = comm.OpenRS485_Activate()
+        mark("activate")
+    angles = (ctypes.c_float * 10)(*([-1.0] * 10))  # AngularPosition: Actuators.Actuator1-7, Fingers.Finger1-3
+    before = _kinova_mutex_value()
+    out["get"] = api.GetAngularPosition(ctypes.byref(angles))
+    after = _kinova_mutex_value()
+    out["mutex_change"] = None if before is None or after is None else after - before
+    out["angles"] = list(angles)
+    mark("get")
+    out["close"] = api.CloseAPI()
+    mark("close")
 
 
 # ------------------------------------------------------------------------------------------------ log helpers
@@ -362,6 +442,82 @@ def test_read_with_no_device_crashes(run):
     assert rc == SIGSEGV and result == {"init": ERROR_NO_DEVICE_FOUND}
 
 
+# ------------------------------------------------------------------------------------------------ the command layer
+def _header(packet: bytes) -> tuple[int, int, int, int]:
+    return tuple(np.frombuffer(packet[:8], "<i2").tolist())
+
+
+def test_init_api_sends_only_the_device_info_packet_and_returns_1(run, command_layer):
+    result, log, rc = run("api", library_path=True, angles=ANGLES, device_type=8, init_again=True)
+    assert rc == 0
+    assert (result["init"], result["init_again"]) == (NO_ERROR, NO_ERROR)
+    assert result["same_comm"]
+    init = log[:result["marks"]["init"]]
+    assert [c["data"][:8] for c in calls(init, "libusb_interrupt_transfer") if c["ep"] == "0x02"] == [
+        bytes.fromhex("0100 0100 7900 0100")]  # InitCommunication's GetDeviceInfo, nothing of InitAPI's own
+    assert result["marks"]["init_again"] == result["marks"]["init"]  # already initialised: nothing at all
+    # CloseAPI: CloseCommunication only (libusb_exit), no packet
+    assert [line.split()[0] for line in log[result["marks"]["get"]:result["marks"]["close"]]] == ["libusb_exit"]
+    assert result["close"] == NO_ERROR
+
+
+@pytest.mark.parametrize("device_type, sent", [(8, 7), (0, 6)])
+def test_get_angular_position_returns_the_base_angles(run, command_layer, device_type, sent):
+    result, log, rc = run("api", library_path=True, angles=ANGLES, device_type=device_type)
+    assert rc == 0 and result["get"] == NO_ERROR
+    expected = np.float32(ANGLES).tolist()
+    if sent == 6:  # device type ≠ 8: the library reads 6 actuators then the fingers; Actuator7 is left as it was
+        expected[6] = -1.0
+    assert result["angles"] == expected  # exact: the float32 the base packed
+    out, back = calls(log[result["marks"]["init"]:result["marks"]["get"]], "libusb_interrupt_transfer")
+    assert (out["ep"], _header(out["data"]), out["data"][8:12]) == ("0x02", (1, 1, 0x69, 1), bytes((1, 0, 0, 0)))
+    assert (back["ep"], back["status"], _header(back["data"])) == ("0x82", "0", (1, 1, 0x69, 4 * (sent + 3)))
+    assert result["mutex_change"] == 0
+
+
+def test_get_angular_position_after_rs485_activation_is_refused_with_1021(run, command_layer):
+    result, log, rc = run("api", library_path=True, angles=ANGLES, device_type=8, activate=True)
+    assert rc == 0 and result["activate"] == NO_ERROR
+    # the comm layer's SendPacket refuses (1021) and SendGetCommand returns it: nothing goes on the wire, the angles
+    # are untouched, and KinovaMutex is left taken (one count fewer: SendGetCommand skips its sem_post there)
+    assert result["get"] == ERROR_FUNCTION_NOT_ACCESSIBLE
+    assert result["angles"] == [-1.0] * 10
+    assert result["marks"]["get"] == result["marks"]["activate"]
+    assert result["mutex_change"] == -1
+    assert result["close"] == NO_ERROR
+
+
+def test_command_layer_with_no_base(run, command_layer):
+    # no socket: InitCommunication still lists the device (GetDeviceInfo's failure is ignored) → InitAPI 1;
+    # GetAngularPosition: SendPacket fails (1011) → SendGetCommand's "result ≠ 1" → 1015, KinovaMutex left taken
+    result, log, rc = run("api", serve=False, library_path=True)
+    assert rc == 0
+    assert result["init"] == NO_ERROR
+    assert result["get"] == ERROR_NO_DEVICE_FOUND and result["angles"] == [-1.0] * 10
+    assert result["mutex_change"] == -1
+    assert {c["status"] for c in calls(log, "libusb_interrupt_transfer")} == {"-4"}
+
+
+def test_base_without_angles_ignores_0x69(run, command_layer):
+    result, _, _ = run("api", library_path=True)  # UsbBase(angular_position=None): the IN times out
+    assert (result["init"], result["get"]) == (NO_ERROR, ERROR_NO_DEVICE_FOUND)
+
+
+def test_init_api_with_no_device_gives_1015_then_1(run, command_layer):
+    result, _, rc = run("api", devices=0, library_path=True, init_again=True)
+    assert rc == 0
+    assert (result["init"], result["init_again"]) == (ERROR_NO_DEVICE_FOUND, NO_ERROR)  # m_APIIsInit set anyway
+    assert result["get"] == ERROR_NO_DEVICE_FOUND  # SendPacket: 1010 (comm not initialised) → 1015
+
+
+def test_init_api_without_the_library_path_gives_2002(run, command_layer):
+    if any(Path(d or ".").resolve() == command_layer.parent.resolve()
+           for d in os.environ.get("LD_LIBRARY_PATH", "").split(os.pathsep) if d):
+        pytest.skip("the SDK's library directory is already on this environment's LD_LIBRARY_PATH")
+    result, log, rc = run("api", library_path=False, angles=ANGLES)
+    assert rc == 0 and result["init"] == ERROR_LOAD_COMM_DLL and log == []
+
+
 # ------------------------------------------------------------------------------------------------ the base alone
 # (no SDK needed: the layouts above, from the emulation's side)
 def test_base_round_trip_without_the_sdk():
@@ -394,3 +550,29 @@ def test_base_rejects_a_model_string_the_library_would_not_terminate():
 
     with pytest.raises(ValueError):
         ub.UsbBase(lambda records: None, model="J" * 20)
+
+
+def test_base_answers_angular_position_until_activation_without_the_sdk():
+    from services.robot_sim import usb_base as ub
+
+    angles = list(ANGLES)
+    base = ub.UsbBase(lambda records: None, device_type=ub.DEVICE_TYPE_7DOF, angular_position=lambda: angles)
+    request = ub.command_packet(ub.CMD_GET_ANGULAR_POSITION, bytes((1, 0, 0, 0)), total_data_size=1)
+    base.out(ub.EP_COMMAND_OUT, request)
+    status, reply = base.in_(ub.EP_COMMAND_IN, 64)
+    assert status == 0 and _header(reply) == (1, 1, 0x69, 40)
+    assert np.frombuffer(reply[8:48], "<f4").tolist() == np.float32(ANGLES).tolist() and reply[48:] == bytes(16)
+    angles[0] = 1.0  # asked at each request
+    base.out(ub.EP_COMMAND_OUT, request)
+    assert np.frombuffer(base.in_(ub.EP_COMMAND_IN, 64)[1][8:12], "<f4")[0] == 1.0
+    base.device_type = 0  # 6 actuators on the wire, then the fingers
+    base.out(ub.EP_COMMAND_OUT, request)
+    reply = base.in_(ub.EP_COMMAND_IN, 64)[1]
+    assert _header(reply)[3] == 36 and np.frombuffer(reply[32:44], "<f4").tolist() == np.float32(ANGLES[7:]).tolist()
+    base.out(ub.EP_COMMAND_OUT, ub.command_packet(ub.CMD_RS485_ACTIVATE, total_data_size=64))
+    base.in_(ub.EP_COMMAND_IN, 64)
+    base.out(ub.EP_COMMAND_OUT, request)  # after 700: ignored, as every high-level command
+    assert base.in_(ub.EP_COMMAND_IN, 64) == (ub.LIBUSB_ERROR_TIMEOUT, b"")
+    assert base.ignored_commands == [ub.CMD_GET_ANGULAR_POSITION]
+    with pytest.raises(ValueError):
+        ub.angular_position_data(ANGLES[:7], 8)
