@@ -3,9 +3,9 @@ as a torque client sees it.
 
 A realtime robot runs as deployed, each part a process of its own (:class:`services.stack.RobotProcesses`: robot_sim
 alone, or the gateway profile's CAN hub, emulated actuators and robot_gateway), on the arm ``--arm`` names. A client
-in this process sends zero-extra-torque TorqueCommands at 500 Hz (its sending thread at realtime priority where the
-OS grants it, as safety's resend loop runs): the joints go to torque mode and the arm holds under the robot's
-gravity compensation. After a warm-up, over ``--seconds``:
+in this process sends TorqueCommands at 500 Hz (its sending thread at realtime priority where the OS grants it, as
+safety's resend loop runs): the joints go to torque mode and the arm holds under the robot's gravity compensation
+and the client's light hold about where it found the arm (:data:`HOLD_RPS`). After a warm-up, over ``--seconds``:
 
 * the low-level states heard: their rate; the period between two of them as heard, and its jitter (|period − 2 ms|,
   p50/p99/max: the cycle-to-cycle jitter a client sees); cycles the arm ran without an exchange (gaps in the
@@ -14,7 +14,7 @@ gravity compensation. After a warm-up, over ``--seconds``:
 * the robot's own account (its health): the bus loop's rate, and its wake-up lag and work per cycle over its last
   2500 cycles (5 s: a shorter window shows some of the warm-up too), and its counters over the window: late cycles, missed cycles (the loop did not run them), cycles the arm ran without the loop's
   exchange, failed exchanges, ``lowlevel.watchdog`` (cycles whose newest torque command was older than the
-  watchdog, 5 ms: the arm held zero extra torque), torque safety stops and refused torque commands;
+  watchdog, 5 ms: the arm held on its gravity alone), torque safety stops and refused torque commands;
 * with the gateway profile, the emulated actuators' own 500 Hz cycle (rate, jitter p99);
 * the client: its commands, their rate, the slots it woke too late for (skipped, not sent late in a burst) and its
   send jitter, and ``command_to_state_ms``: from a command's send to the
@@ -38,7 +38,8 @@ from bench.stack import detail_fields, measured_arm, unknown_arm
 from protocol import messages as m
 from protocol.keys import Keys
 from services.cli import add_arm_option
-from services.model.arm import DEFAULT_ARM, load_arm
+from services.controller.torque_laws import DynamicsModel
+from services.model.arm import DEFAULT_ARM, ArmDescription, load_arm
 from services.robot.hardware import CYCLE_NS, CYCLE_S
 from services.robot.pacing import normal_priority, request_realtime
 from services.robot_sim.service import RobotSimConfig
@@ -57,17 +58,31 @@ REFUSALS = "refused.lowlevel_"
 CLIENT_PRIORITY = 30
 #: before the window: torque mode engaged, the routes warm
 WARM_UP_S = 1.0
+#: the client's hold about the angles it found (on top of the robot's gravity compensation): critically damped at
+#: this natural frequency (rad/s) for each joint's inertia. Behind the gateway the robot's compensation is the
+#: description's ĝ(q) (the actuators add none over RS-485), which misses the emulated hand's extra weight: without
+#: the hold, zero extra torque lets the arm sag tens of degrees over a run
+HOLD_RPS = 20.0
+
+
+def hold_gains(arm: ArmDescription) -> tuple[np.ndarray, np.ndarray]:
+    """The hold's stiffness (N·m/rad) and damping (N·m·s/rad) per joint, from the model's inertia at home."""
+    inertia = np.diag(DynamicsModel(arm).mass(arm.home))
+    return inertia * HOLD_RPS**2, 2.0 * inertia * HOLD_RPS
 
 
 class TorqueSender:
-    """Zero extra torque on every joint at 500 Hz, from a thread of its own, until stopped; the send times
+    """The hold's torques (:data:`HOLD_RPS`, from the newest state ``latest()`` gives) at 500 Hz, from a thread of
+    its own, until stopped; the send times
     (``time.time_ns()``). A slot the thread woke too late for (more than a cycle) is skipped, as the robot's loop
     skips one for a remote arm (the figures count them): a torque for a past cycle is worth nothing, and a burst of
     them would only queue behind each other."""
 
-    def __init__(self, session, keys: Keys, n_joints: int) -> None:
+    def __init__(self, session, keys: Keys, arm: ArmDescription, latest) -> None:
         self.publisher = GuardedPublisher.declare(session, keys.lowlevel_command)
-        self.n_joints = n_joints
+        self.latest = latest
+        self.stiffness, self.damping = hold_gains(arm)
+        self._hold_q: np.ndarray | None = None
         self.sent_ns: list[int] = []
         # the robot refuses a sequence number not above the sender's last: start above any earlier run's
         self._seq = time.time_ns() // 1000
@@ -89,11 +104,18 @@ class TorqueSender:
                 self._seq += 1
                 now = time.time_ns()
                 self.publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=self._seq, stamp_ns=now),
-                                                            torques=[0.0] * self.n_joints)))
+                                                            torques=self._hold_torques().tolist())))
                 self.sent_ns.append(now)
                 k += 1
         finally:
             normal_priority()
+
+    def _hold_torques(self) -> np.ndarray:
+        state = self.latest()
+        q, dq = np.asarray(state.q), np.asarray(state.dq)
+        if self._hold_q is None:
+            self._hold_q = q
+        return self.stiffness * (self._hold_q - q) - self.damping * dq
 
     def stop(self) -> None:
         self._stop.set()
@@ -175,7 +197,8 @@ def run(seconds: float = 10.0, profile: str = "sim", arm: str = DEFAULT_ARM) -> 
     robot = ROBOTS[profile]
     names = (robot, "robot_sim") if profile == "gateway" else (robot,)
     keys = Keys()
-    n_joints = load_arm(arm).n_joints
+    description = load_arm(arm)
+    n_joints = description.n_joints
     with RouterProcess() as router, RobotProcesses(router.client_config(), RobotSimConfig(arm=arm), profile=profile):
         session = open_session(router.client_config())
         heard: list[tuple[int, m.LowLevelState]] = []
@@ -190,7 +213,7 @@ def run(seconds: float = 10.0, profile: str = "sim", arm: str = DEFAULT_ARM) -> 
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"the robot published {len(heard)} low-level states in 30 s")
                 time.sleep(0.05)
-            sender = TorqueSender(session, keys, n_joints).start()
+            sender = TorqueSender(session, keys, description, lambda: heard[-1][1]).start()
             try:
                 time.sleep(WARM_UP_S)
                 before = _healths(session, keys, names)
@@ -217,7 +240,7 @@ def run(seconds: float = 10.0, profile: str = "sim", arm: str = DEFAULT_ARM) -> 
 def print_result(r: dict) -> None:
     s, loop, client, c = r["states"], r["loop"], r["client"], r["loop"]["counters"]
     print(f"low-level torque loop: the {r['arm']} ({r['joints']} joints), {r['profile']} profile ({r['robot']}), "
-          f"{r['seconds']:g} s, zero extra torque at 500 Hz")
+          f"{r['seconds']:g} s, a light hold at 500 Hz")
     j = s["jitter_ms"]
     print(f"  states heard {s['rate_hz']}/s (the robot publishes {loop['lowlevel_state_hz']}/s, its bus loop "
           f"{loop['bus_rate_hz']}/s); jitter |period − 2 ms| p50 {j['p50']} ms, p99 {j['p99']} ms, max {j['max']} ms; "

@@ -472,10 +472,10 @@ GRAVITY_FACED = {
     "sim": ("The controllers face the arm's true gravity: with Table 5.1's gravity off, robot_sim's actuators add "
             "none, so the hand's extra weight, which their ĝ(q) does not know, is theirs to hold (as a real arm "
             "with its compensation off leaves a CAD model's error to the client)"),
-    "gateway": ("The arm's gravity (its hand heavier than the model's) is not what the controllers face: the "
-                "emulated actuators on the RS-485 bus cannot be told to stop adding theirs (no public message does "
-                "it), so the robot node takes the model's ĝ(q) back out of the arm's own gravity (and Coriolis): "
-                "the gravity left to the controllers is the model's, their ĝ(q) exact in effect"),
+    "gateway": ("The controllers face the arm's true gravity, as in the sim profile: over the RS-485 bus the "
+                "emulated actuators add none (the base's DSP is bypassed, as on a real arm), and with Table 5.1's "
+                "gravity off the robot node sends none of its own either, so the hand's extra weight, which their "
+                "ĝ(q) does not know, is theirs to hold"),
 }
 
 

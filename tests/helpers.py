@@ -26,19 +26,28 @@ def computed_torque_options_for_the_emulated_arm(arm=ARM, **options):
     return ControllerOptions(kp=kp.tolist(), kd=(2.0 * np.sqrt(kp)).tolist(), **options)
 
 
-def gravity_the_description_misses(arm, q) -> np.ndarray:
-    """The emulated arm's gravity torque less its description's at model angles ``q`` (N·m): mostly the hand's
-    extra 30 % (services/model/arm.py's emulation). The truth is robot_sim's own MuJoCo model at rest."""
+def emulated_arm_gravity(arm):
+    """The emulated arm's own gravity torque (N·m) as a function of model angles: robot_sim's MuJoCo model at rest,
+    built once (a host's torque loop can call it every cycle)."""
     import mujoco
 
-    from services.model.kinematics import ArmKinematics
     from services.robot_sim.scene import CameraConfig, SceneConfig, build_model
 
     true_model = build_model(SceneConfig(camera=CameraConfig(enabled=False)), arm)
     data = mujoco.MjData(true_model)
-    data.qpos[: arm.n_joints] = q
-    mujoco.mj_forward(true_model, data)
-    return data.qfrc_bias[: arm.n_joints] - ArmKinematics(arm).gravity(q)
+
+    def gravity(q) -> np.ndarray:
+        data.qpos[: arm.n_joints] = q
+        mujoco.mj_forward(true_model, data)
+        return data.qfrc_bias[: arm.n_joints].copy()
+
+    return gravity
+
+
+def gravity_the_description_misses(arm, q) -> np.ndarray:
+    """The emulated arm's gravity torque less its description's at model angles ``q`` (N·m): mostly the hand's
+    extra 30 % (services/model/arm.py's emulation). The truth is robot_sim's own MuJoCo model at rest."""
+    return emulated_arm_gravity(arm)(q) - ArmKinematics(arm).gravity(q)
 
 
 #: the repository's root

@@ -68,8 +68,9 @@ class JointReading:
 @dataclass
 class JointTargets:
     """One bus cycle's command, model units: position targets; in torque mode ``torques`` (model sign, N·m, on
-    top of the actuators' gravity compensation) with ``q`` the actuators' safety reference (where the joints
-    are)."""
+    top of whatever gravity the actuators add themselves: none on an RS-485 bus, where the host's gravity is in
+    ``torques``; see :attr:`RobotHardware.actuators_compensate_gravity`) with ``q`` the actuators' safety reference
+    (where the joints are)."""
 
     q: np.ndarray
     torques: Optional[np.ndarray] = None
@@ -121,6 +122,12 @@ class RobotHardware(Protocol):
     #: emulated actuators', whose camera is triggered on it): the robot node then runs its DSP when a reading's
     #: stamp crosses that grid, in phase with the camera. False (a real arm: receive times): every fifth cycle.
     arm_timeline: bool
+    #: True when the actuators add the arm's gravity themselves in torque mode (Kinova's DSP does, through the SDK;
+    #: the simulator's actuators in robot_sim's process stand for it), which :meth:`set_gravity_compensation` may
+    #: switch off. False on an RS-485 bus: the base's DSP is bypassed and a single actuator cannot compute the
+    #: arm's gravity (kinova.md; abr/abr_jaco2 sends host-computed gravity torques), so the host sends its model's
+    #: gravity with every torque (services.robot.lowlevel)
+    actuators_compensate_gravity: bool
 
     def exchange(self, targets: JointTargets) -> JointReading:
         """Send this cycle's targets, return the joints' state (raises :class:`HardwareError`)."""
@@ -137,7 +144,8 @@ class RobotHardware(Protocol):
         hardware cannot)."""
 
     def set_gravity_compensation(self, on: bool) -> bool:
-        """The arm's own gravity compensation in torque mode on or off (Table 5.1's gravity setup); False where the
-        hardware has no way to switch it (the host then takes its model's gravity back out of what it sends)."""
+        """The actuators' own gravity compensation in torque mode on or off (Table 5.1's gravity setup), where
+        :attr:`actuators_compensate_gravity`; False where the hardware has no way to switch it (the host then takes
+        its model's gravity back out of what it sends)."""
 
     def close(self) -> None: ...

@@ -218,8 +218,13 @@ class _TorqueJoints:
     def torque_mode(self) -> bool:
         return self.node.core.torque_mode
 
+    @property
+    def actuators_compensate_gravity(self) -> bool:
+        return self.node.hardware.actuators_compensate_gravity
+
     def enter_torque_mode(self) -> None:
         node = self.node
+        # what the joints measure now: the arm's gravity load, whichever side compensates it in torque mode
         node.hardware.enter_torque_mode(node.gravity_kin.gravity(node.core.reading.q))
         with node._core_lock:
             node.core.enter_torque_mode()

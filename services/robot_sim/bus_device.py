@@ -17,6 +17,9 @@ it the frames and sends what it returns, and decides when cycles end (:mod:`serv
   (0x204): 1 position OK, 257 torque OK, 0 refused.
 * ``CLEAR_FAULT_FLAG`` (0x33), ``START_SERVO``/``STOP_SERVO`` → ``ACK`` (0x3F); other commands → ``NACK``.
 * Faults are reported with ``REPORT_ERROR`` (0x30) once (the firmware latches them).
+* Torque mode adds no gravity compensation: driven over RS-485 the base's DSP is bypassed (kinova.md), and the
+  host sends the arm's gravity with its torques (as abr/abr_jaco2 does), whatever ``actuators.gravity_compensation``
+  says for the api mode.
 """
 from __future__ import annotations
 
@@ -34,6 +37,8 @@ class ActuatorBusDevice:
     def __init__(self, sim: Simulation, counters: Counters | None = None, defer_replies: bool = False) -> None:
         self.sim = sim
         self.firmware = sim.firmware
+        # driven over their bus, the actuators have no DSP to compute the arm's gravity: the host sends it
+        self.firmware.bypass_dsp()
         self.counters = counters or self.firmware.counters
         #: lockstep: a 0x14's replies go out at the boundary that takes it (with the state it acts from)
         self.defer_replies = defer_replies

@@ -18,7 +18,8 @@ Per actuator:
   joint.
 * Torque mode: the target's position is the host's idea of where the joint is (more than
   ``reference_tolerance_deg`` off latches a RELATIVE_POSITION fault), its torque is clamped to the actuator's
-  limit (a TORQUE report once), gravity compensation is added (the real DSP's option), and after
+  limit (a TORQUE report once), gravity compensation is added (the real DSP's option; never on the RS-485 bus,
+  :meth:`ActuatorFirmware.bypass_dsp`), and after
   ``torque_timeout_s`` (250 ms) without a torque command the actuator falls back to holding its position.
 * Switching to torque mode needs a torque validation of the last ``validation_lifetime_s``: the host's expected
   torque must match the measured one.
@@ -53,6 +54,8 @@ class ActuatorConfig(ConfigStruct):
     #: the actuators' bus addresses, joint by joint; null: the arm description's
     addresses: Optional[list[int]] = None
     torque_timeout_s: float = 0.25
+    #: torque mode adds the arm's gravity, as Kinova's DSP does (robot_sim's api mode, where the node stands for the
+    #: DSP); over the RS-485 bus (actuator_bus mode) the DSP is bypassed and it is off whatever this says
     gravity_compensation: bool = True
     reference_tolerance_deg: float = 10.0
     #: torque validation: the host's expected torque must match the measured one within this (N·m or fraction)
@@ -170,8 +173,11 @@ class ActuatorFirmware:
         self._torque_per_ampere = np.array([a.torque_gradient_nm_per_a for a in specs])
         #: the joints' Coulomb friction (the emulated arm's, arm.true_friction_nm; see :meth:`apply` for where)
         self._coulomb = arm.true_friction_nm.copy()
-        #: whether torque mode adds the arm's gravity compensation (Table 5.1's gravity setup switches it off)
-        self.compensating_gravity = self.config.gravity_compensation
+        #: whether torque mode can add the arm's gravity compensation at all (the DSP's, as the config says; never
+        #: once driven over the bus, :meth:`bypass_dsp`), and whether it does now (Table 5.1's gravity setup
+        #: switches it off)
+        self.gravity_compensation_available = self.config.gravity_compensation
+        self.compensating_gravity = self.gravity_compensation_available
         #: the torque sensors: noise of the data sheets' precision (±2σ), a bias within their temperature drift
         #: (fixed per arm and joint) that SetTorqueZero's offset (:meth:`zero_torque`) takes out where it is
         #: called; seeded, so a lockstep run repeats to the bit
@@ -250,7 +256,14 @@ class ActuatorFirmware:
     def set_gravity_compensation(self, on: bool) -> None:
         """The arm's own gravity compensation in torque mode, on or off (Table 5.1's ``SetGravityType`` and
         ``SetGravityOptimalZParam``, as the robot's torque setup applies them)."""
-        self.compensating_gravity = bool(on) and self.config.gravity_compensation
+        self.compensating_gravity = bool(on) and self.gravity_compensation_available
+
+    def bypass_dsp(self) -> None:
+        """The actuators driven over their RS-485 bus: the base's DSP, which computes the arm's gravity, is
+        bypassed, and a single actuator cannot compute it, so torque mode adds no gravity compensation (kinova.md:
+        "In RS-485 mode the base's DSP is bypassed: no gravity compensation"; abr/abr_jaco2's torque driver sends
+        host-computed gravity torques). The host holds the arm up (services.robot.lowlevel)."""
+        self.gravity_compensation_available = self.compensating_gravity = False
 
     def zero_torque(self, i: int) -> None:
         """SetTorqueZero: actuator ``i``'s torque sensor reads 0 now (its bias, and whatever load it carries, taken

@@ -93,6 +93,12 @@ class SimulatedHardware:
         """SetTorqueZero: the actuator's torque sensor reads 0 where it stands."""
         self.sim.firmware.zero_torque(joint)
 
+    @property
+    def actuators_compensate_gravity(self) -> bool:
+        """The simulator's actuators in this process stand for Kinova's DSP driving the arm: they add its gravity
+        unless their config says they have no compensation (``actuators.gravity_compensation``)."""
+        return self.sim.firmware.gravity_compensation_available
+
     def set_gravity_compensation(self, on: bool) -> bool:
         self.sim.firmware.set_gravity_compensation(on)
         return True

@@ -5,8 +5,8 @@ each low-level state it takes (with the wall time) and publishes the torque it r
   state's own stamp (the arm's time), so a late host or transport costs tracking only through the delay of the
   answer, never through a reference that runs ahead.
 * It ends ``duration_s`` later (the reference's motion and a hold), or when the controller gives up (an error
-  beyond its abort thresholds): then it answers nothing more, and the robot holds the arm (the actuators' own
-  gravity compensation after the 5 ms watchdog, position mode after 250 ms).
+  beyond its abort thresholds): then it answers nothing more, and the robot holds the arm (on its gravity alone
+  after the 5 ms watchdog, position mode after 250 ms).
 * Timing, from the client's side: states received, answered, *late* (answered more than a bus cycle, 2 ms, after
   the state could first have been answered: its stamp plus the smallest stamp-to-arrival delay of the run, which
   is the robot's own pipeline (about 0.3 ms from robot_sim, a bus cycle more through the gateway, whose reading

@@ -21,8 +21,8 @@ def test_a_short_run_reports_every_figure_of_the_loop(profile, arm, joints, caps
     assert states["n"] > 100 and states["rate_hz"] > 0
     assert _stats_complete(states["period_ms"]) and _stats_complete(states["jitter_ms"])
     assert states["lost"] >= 0 and states["arm_cycles_without_exchange"] >= 0
-    assert states["torque_mode_share"] > 0.5  # zero extra torque put the joints in torque mode
-    assert states["drift_deg_max"] < 5.0  # and the arm held under gravity compensation
+    assert states["torque_mode_share"] > 0.5  # the client's torques put the joints in torque mode
+    assert states["drift_deg_max"] < 5.0  # and the arm held (the robot's gravity and the client's light hold)
     assert client["commands"] > 100 and client["slots_skipped"] >= 0 and _stats_complete(client["send_jitter_ms"])
     assert _stats_complete(client["command_to_state_ms"]) and client["command_to_state_ms"]["p50"] > 0
     assert loop["bus_rate_hz"] > 0 and loop["lowlevel_state_hz"] > 0

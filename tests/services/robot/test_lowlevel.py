@@ -22,13 +22,16 @@ from tests.helpers import ARM, computed_torque_options_for_the_emulated_arm
 
 
 class FakeJoints:
-    def __init__(self, refuse=False, stuck=0, switches_gravity=False):
+    def __init__(self, refuse=False, stuck=0, switches_gravity=False, compensates=True):
         self.torque_mode, self.torques, self.refuse, self.stuck = False, None, refuse, stuck
         self.leaves = 0
-        #: whether these actuators can switch their own gravity compensation (the simulator's; not the bus's)
-        self.switches_gravity, self.compensating_gravity = switches_gravity, True
+        #: whether these actuators add the arm's gravity themselves (a DSP's, the simulator's; not the RS-485
+        #: bus's), and whether they can switch it off (the simulator's)
+        self.actuators_compensate_gravity = compensates
+        self.switches_gravity, self.compensating_gravity = switches_gravity, compensates
 
     def set_gravity_compensation(self, on):
+        assert self.actuators_compensate_gravity, "actuators without compensation are not told to switch it"
         if self.switches_gravity:
             self.compensating_gravity = on
         return self.switches_gravity
@@ -168,6 +171,62 @@ def test_with_the_arm_s_gravity_off_actuators_that_can_stop_adding_it_do_and_the
     assert joints.compensating_gravity and not joints.torques.any()
 
 
+#: the kinds of joints the composition is checked on: on the RS-485 bus (no gravity of their own), the simulator's
+#: (their own compensation, which Table 5.1 switches off), and ones that add gravity and cannot be told to stop
+JOINT_KINDS = {"bus": dict(compensates=False), "switching": dict(switches_gravity=True),
+               "fixed": dict(switches_gravity=False)}
+#: the model's gravity in the composition tests
+MODEL_GRAVITY = np.arange(7.0)
+
+
+@pytest.mark.parametrize("kind, arm_gravity, on_top, factor", [
+    # the bus: the host adds the model's gravity where the arm is to have it and the client's torque lacks it
+    ("bus", True, True, 1), ("bus", True, False, 0), ("bus", False, True, 0), ("bus", False, False, 0),
+    # the simulator's actuators add it, and stop for Table 5.1: what they add that the arm is not to have goes out
+    ("switching", True, True, 0), ("switching", True, False, -1), ("switching", False, True, 0),
+    ("switching", False, False, 0),
+    # actuators that always add it: taken out wherever the arm is not to have it from them
+    ("fixed", True, True, 0), ("fixed", True, False, -1), ("fixed", False, True, -1), ("fixed", False, False, -1),
+])
+def test_what_is_sent_for_each_combination_of_actuators_arm_gravity_and_client(kind, arm_gravity, on_top, factor):
+    """The torque sent: the client's, plus the model's gravity as many times as the arm's gravity setup (Table
+    5.1's), whether the client's torque comes on top of gravity compensation, and whether the actuators add gravity
+    themselves call for (services.robot.lowlevel.model_gravity_factor)."""
+    joints, setup = FakeJoints(**JOINT_KINDS[kind]), undamped()
+    if not arm_gravity:
+        setup.gravity_type, setup.optimal_z = kinova.GRAVITY_TYPE.OPTIMAL, np.zeros(kinova.GRAVITY_PARAM_SIZE)
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: MODEL_GRAVITY, setup=setup)
+    control.receive(torque_command([1.0] * 7, gravity_compensation=on_top), 0.0)
+    assert control.step(0.001, STILL, STILL)[0] is Outcome.ENGAGED
+    assert joints.torques == pytest.approx(1.0 + factor * MODEL_GRAVITY)
+
+
+def test_over_the_bus_the_host_s_gravity_comes_with_the_first_torque_and_holds_a_stale_client():
+    """Actuators on the RS-485 bus add no gravity: the host's model gravity at the measured angles goes with every
+    torque on top of compensation, from the cycle that engages torque mode; a stale command, and a release or a
+    safety stop that the joints do not take, are held by that gravity (and no other torque), never by zero."""
+    joints, setup = FakeJoints(compensates=False), undamped()
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: 10.0 * q, setup=setup)
+    q = np.linspace(0.1, 0.7, 7)
+    control.receive(torque_command([1.0] * 7), 0.0)
+    assert control.step(0.001, q, STILL)[0] is Outcome.ENGAGED
+    assert joints.torques == pytest.approx(1.0 + 10.0 * q)
+    sagged = q + 0.05
+    assert control.step(0.010, sagged, STILL)[0] is Outcome.WATCHDOG
+    assert joints.torques == pytest.approx(10.0 * sagged)  # at the measured angles
+    setup.gravity_type, setup.optimal_z = kinova.GRAVITY_TYPE.OPTIMAL, np.zeros(kinova.GRAVITY_PARAM_SIZE)
+    assert control.step(0.020, q, STILL)[0] is Outcome.WATCHDOG
+    assert joints.torques == pytest.approx(10.0 * q)  # even with Table 5.1's gravity off: the arm is not dropped
+    joints.stuck = 1
+    assert control.step(0.300, q, STILL)[0] is Outcome.REFUSED  # the release not taken: held by gravity
+    assert joints.torques == pytest.approx(10.0 * q)
+    setup.safety_factor = 0.0
+    control.receive(torque_command([1.0] * 7), 0.400)
+    joints.torque_mode, joints.stuck = True, 1
+    assert control.step(0.401, q, np.full(7, 10.0))[0] is Outcome.REFUSED  # the safety stop not taken: held too
+    assert joints.torques == pytest.approx(10.0 * q)
+
+
 def test_timing_is_validated():
     with pytest.raises(ValueError, match="watchdog_s < release_s"):
         LowLevelConfig(watchdog_s=0.3, release_s=0.25)
@@ -211,8 +270,19 @@ def robot_command():
 
 def test_low_level_torque_api_with_its_watchdog(robot):
     """Torque commands on robot/lowlevel/command put the joints in torque mode (the ~500 Hz low-level state says
-    so); robot commands are refused meanwhile; without torque commands the arm holds, and after 250 ms it is back
-    under the high-level DSP."""
+    so); robot commands are refused meanwhile; without torque commands the arm's gravity holds it, and after
+    250 ms it is back under the high-level DSP. The client holds the arm still on top of the robot's gravity
+    compensation: on robot_sim that is the actuators' own, the arm's true gravity, and it adds nothing; behind the
+    gateway the actuators add none (RS-485) and the robot sends its description's ĝ(q), so the client adds what
+    the description misses of the arm. The hold after it stops is then the robot's alone: exact on robot_sim;
+    behind the gateway ĝ at the measured angles, which lets the heavier hand sag a little in its 250 ms (zero
+    torque there, the hold before, would let the arm fall: test_link.py)."""
+    from services.model.kinematics import ArmKinematics
+    from tests.helpers import emulated_arm_gravity
+
+    model, arm_gravity = ArmKinematics(ARM), emulated_arm_gravity(ARM)
+    on_top = ((lambda q: np.zeros(ARM.n_joints)) if robot.name == "robot_sim"
+              else (lambda q: arm_gravity(q) - model.gravity(q)))
     client = robot.client
     low = Recorder(client, KEYS.lowlevel_state, m.LowLevelState)
     assert wait_for(lambda: len(low) > 50)
@@ -223,10 +293,10 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     api_call = threading.Thread(target=lambda: api_replies.extend(client.get(KEYS.robot_api("MoveHome"),
                                                                              timeout=5.0)))
     start = time.monotonic()
-    for k in range(200):  # 0.4 s of zero extra torque at 500 Hz: gravity compensation holds the arm
+    for k in range(200):  # 0.4 s at 500 Hz
         time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
         publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=next_seq(), stamp_ns=time.time_ns()),
-                                               torques=[0.0] * 7)))
+                                               torques=on_top(low.last().q).tolist())))
         if k == 100:
             client.put(KEYS.robot_command, robot_command())  # refused while torque control is active
             api_call.start()  # and so is a motion through the Kinova API
@@ -234,11 +304,16 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     reply = m.decode(api_replies[0].ok.payload.to_bytes(), kinova.ApiReply)
     assert reply.code == kinova.ErrorCode.ERROR_INVALID_PARAM and "torque control" in reply.message
     assert low.last().mode is m.ActuatorMode.TORQUE
-    assert np.degrees(np.abs(np.array(low.last().q) - q0)).max() < 1.0
+    q_stopped = np.array(low.last().q)
+    assert np.degrees(np.abs(q_stopped - q0)).max() < 1.0
     assert wait_for(lambda: robot.counter("rejected.command") == 1)  # refused, and counted
     assert wait_for(lambda: robot.counter("lowlevel.watchdog") > 0, timeout=2)
     assert wait_for(lambda: low.last().mode is m.ActuatorMode.POSITION, timeout=2)  # the 250 ms fallback
-    assert np.degrees(np.abs(np.array(low.last().q) - q0)).max() < 1.0
+    sagged = np.degrees(np.array(low.last().q) - q_stopped)
+    print(f"{robot.name}: the hold moved the arm {sagged.round(2).tolist()}°")
+    # none on robot_sim; behind the gateway, the hand's weight that ĝ misses (0.9 N·m at joint 4) for the hold's
+    # 250 ms: 3.6° here, where a hold of zero torque would let it fall about 24° (test_link.py)
+    assert np.abs(sagged).max() < (1.0 if robot.name == "robot_sim" else 5.0)
     assert robot.health().rates_hz["pub.lowlevel_state"] > 200  # ~500 Hz nominal; generous on a shared machine
     # and the DSP drives the arm again
     states = Recorder(client, KEYS.robot_state, m.RobotState)
@@ -327,13 +402,13 @@ def test_a_torque_or_joint_velocity_command_for_another_arm_is_refused(router):
         service.stop()
 
 
-def test_after_table_5_1_the_client_faces_the_arm_s_true_gravity_where_the_actuators_can_switch_theirs_off(robot):
+def test_after_table_5_1_the_client_faces_the_arm_s_true_gravity(robot):
     """Table 5.1's setup (the arm's gravity compensation off) and a client that sends exactly the description's
-    gravity ĝ(q) as its whole torque (``gravity_compensation: false``). robot_sim's actuators stop adding their
-    compensation, so the arm's true gravity (its hand 30 % heavier than described) pulls it away from where it
-    was, the way the missing torque pulls, as a real arm with its compensation off leaves a CAD model's error to
-    the client (seed 003's situation). The gateway's actuators on the emulated RS-485 bus cannot be told (no
-    public message does it): the robot takes the model's gravity back out of what they add, and the arm holds."""
+    gravity ĝ(q) as its whole torque (``gravity_compensation: false``). The arm's true gravity (its hand 30 %
+    heavier than described) pulls it away from where it was, the way the missing torque pulls, as a real arm with
+    its compensation off leaves a CAD model's error to the client (seed 003's situation): on robot_sim its
+    actuators stop adding their compensation; behind the gateway the actuators on the RS-485 bus add none and the
+    robot adds none either (the client's torque includes gravity), so both robots give the client the same arm."""
     from services.model.kinematics import ArmKinematics
     from tests.helpers import gravity_the_description_misses
 
@@ -357,11 +432,8 @@ def test_after_table_5_1_the_client_faces_the_arm_s_true_gravity_where_the_actua
     missed = gravity_the_description_misses(ARM, q0)
     loaded = np.abs(missed) > 0.5  # N·m: the joints the hand's extra weight loads (2 and 4 at home)
     print(f"{robot.name}: moved {np.round(np.degrees(moved), 2).tolist()}° under ĝ; missed {missed.round(2)} N·m")
-    if robot.name == "robot_sim":
-        assert loaded.any() and np.all(np.sign(moved[loaded]) == -np.sign(missed[loaded]))
-        assert np.degrees(np.abs(moved)).max() > 1.0
-    else:
-        assert np.degrees(np.abs(moved)).max() < 0.5
+    assert loaded.any() and np.all(np.sign(moved[loaded]) == -np.sign(missed[loaded]))
+    assert np.degrees(np.abs(moved)).max() > 1.0
 
 
 def api_call(client, function, argument) -> kinova.ApiReply:

@@ -13,6 +13,7 @@ from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.robot_sim.bus_device import ActuatorBusDevice
 from services.robot_sim.sim import Simulation
 from services.model.arm import load_arm
+from services.model.kinematics import ArmKinematics
 
 ARM = load_arm("j2s7s300")
 
@@ -215,7 +216,7 @@ def test_torque_mode_falls_back_to_position_after_250_ms_without_torque_commands
     rig.cycle(50)
     assert r.parse_switch_mode_reply(torque_mode(rig)) is r.ControlModeReply.TORQUE_OK
     position = float(ARM.model_to_physical_deg(rig.sim.q)[2])
-    for _ in range(50):  # 100 ms of zero torque commands: gravity compensation holds the arm
+    for _ in range(50):  # 100 ms of zero torque commands: joint 3 carries almost no gravity at home
         rig.host.send(r.PositionTorqueCommand(position, 0.0).to_message(0x12))
         rig.cycle(1)
     actuator = rig.firmware.by_address[0x12]
@@ -226,6 +227,37 @@ def test_torque_mode_falls_back_to_position_after_250_ms_without_torque_commands
     fallback = rig.firmware.now_s
     assert fallback - last_command == pytest.approx(0.25, abs=0.0025)  # 250 ms ± one 2 ms cycle
     assert rig.firmware.counters.get("torque_timeouts") == 1
+
+
+def test_on_its_bus_the_arm_adds_no_gravity_in_torque_mode_as_the_api_mode_s_actuators_do(rig):
+    """Over RS-485 the base's DSP is bypassed (kinova.md: no gravity compensation; abr/abr_jaco2 sends
+    host-computed gravity torques): joint 4, loaded by the forearm and hand at home, falls under zero torque in
+    100 ms, and nothing turns the compensation on (no bus message does; the api mode's switch does not reach it).
+    The same arm in robot_sim's process, standing for Kinova's DSP, holds under zero extra torque."""
+    from services.robot.hardware import JointTargets
+    from services.robot_sim.hardware import SimulatedHardware
+
+    rig.firmware.set_gravity_compensation(True)
+    assert not rig.firmware.compensating_gravity
+    rig.cycle(50)
+    assert r.parse_switch_mode_reply(torque_mode(rig, 0x13)) is r.ControlModeReply.TORQUE_OK
+    start = float(ARM.model_to_physical_deg(rig.sim.q)[3])
+    for _ in range(50):
+        rig.host.send(r.PositionTorqueCommand(float(ARM.model_to_physical_deg(rig.sim.q)[3]), 0.0).to_message(0x13))
+        rig.cycle(1)
+    fell = float(ARM.model_to_physical_deg(rig.sim.q)[3]) - start
+    api = SimulatedHardware(Simulation(render=False))
+    reading = api.read()
+    for _ in range(50):
+        reading = api.exchange(JointTargets(q=reading.q))
+    api.enter_torque_mode(ArmKinematics(ARM).gravity(reading.q))
+    held = reading.q
+    for _ in range(50):
+        reading = api.exchange(JointTargets(q=reading.q, torques=np.zeros(7)))
+    print(f"joint 4 under zero torque for 100 ms: {fell:.2f}° on the bus, "
+          f"{np.degrees(reading.q - held)[3]:.3f}° in robot_sim's process")
+    assert abs(fell) > 2.0  # about 4° here
+    assert np.degrees(np.abs(reading.q - held)).max() < 0.05
 
 
 def test_torque_over_the_limit_is_clamped_and_reported_once(rig):
