@@ -28,7 +28,15 @@ _HEADER = struct.Struct("<hBB")
 _FRAME = struct.Struct("<hBB16s")
 _FLOATS = struct.Struct("<4f")
 _UINTS = struct.Struct("<4I")
-_TORQUE_CMD = struct.Struct("<3fI")
+_TORQUE_CMD = struct.Struct("<fIfI")
+_POSITION_CMD = struct.Struct("<2f2I")
+#: 0x14's uint32[2] in position mode: 1 asks for the extended answer, 0x15, 0x16 and 0x17 (Kinova's RS-485 example);
+#: libkinova sends 0 to a single actuator and expects two replies
+EXTENDED_ANSWER = 1
+#: 0x14's torque-mode gain word: Kp ×1000 as a u16 and the damping (abr/abr_jaco2 sends Kp 1000-1750 with damping
+#: 0 to a 6-DoF arm; what the gain scales is not public): 1000, the least it sends, and no damping: our choice
+TORQUE_KP = 1000
+TORQUE_DAMPING = 0
 
 
 class RS485Error(ValueError):
@@ -43,12 +51,17 @@ class Command(enum.IntEnum):
     STOP_SERVO = 0x04
     GET_POSITION_COMMAND = 0x10
     SEND_POSITION_CURRENT = 0x11
+    #: the PID bypass (Kinova's header): float[0] = float[1] = the value, -1..1, with Kp, Ki, Kd set to 0 first
+    FEEDTHROUGH = 0x09
     #: host → actuator: position and torque command; the actuator answers 0x15, 0x16 and 0x17
     POSITION_AND_TORQUE_COMMAND = 0x14
     SEND_ALL_VALUES_1 = 0x15
     SEND_ALL_VALUES_2 = 0x16
     SEND_ALL_VALUES_3 = 0x17
     POSITION_MAX_MIN = 0x21
+    #: farmange/libkinova's (a stand-alone actuator's)
+    SPEED_ACCEL_MAX = 0x22
+    CURRENT_TORQUE_MAX = 0x23
     KP_GAIN = 0x24
     KI_KD_GAIN = 0x25
     PROGRAM_JOINT_ZERO = 0x26
@@ -60,6 +73,13 @@ class Command(enum.IntEnum):
     SEND_TEMPERATURE = 0x2F
     REPORT_ERROR = 0x30
     CLEAR_FAULT_FLAG = 0x33
+    # in Kinova's header, never sent by mfvs: known so that a real actuator's use of them is not garbage to the codec
+    SET_PID_FILTERS = 0x40
+    SET_ZERO_TORQUESENSOR = 0x41
+    SET_GAIN_TORQUESENSOR = 0x42
+    SET_CONTROL_WITH_ENCODER = 0x43
+    GET_ENCODER_STATUSES = 0x44
+    SET_PID_ADVANCED_PARAMETERS = 0x45
     NACK = 0x3E
     ACK = 0x3F
     #: a variant of 0x14 with fewer replies
@@ -202,10 +222,14 @@ def known_commands(batch: np.ndarray) -> np.ndarray:
     return _KNOWN_COMMANDS[batch["command"].view(np.uint16)]
 
 
-def position_torque_records(destinations, positions_deg, torques_nm, source: int = HOST_ADDRESS) -> np.ndarray:
-    """A batch of 0x14, one per destination (Kp, mode and damping 0): float[0] position, float[2] torque."""
+def position_torque_records(destinations, positions_deg, torques_nm=None, source: int = HOST_ADDRESS,
+                            kp: int = TORQUE_KP, damping: int = TORQUE_DAMPING) -> np.ndarray:
+    """A batch of 0x14, one per destination, in :class:`PositionTorqueCommand`'s layouts: position mode when
+    ``torques_nm`` is None (float[0] = float[1] = the target, the extended-answer flag), torque mode otherwise
+    (float[0] the safety reference, float[2] the torque, the Kp/mode/damping word)."""
     positions = np.asarray(positions_deg, dtype=np.float64)
-    torques = np.asarray(torques_nm, dtype=np.float64)
+    torque_mode = torques_nm is not None
+    torques = np.asarray(torques_nm if torque_mode else np.zeros(len(positions)), dtype=np.float64)
     if not (np.all(np.isfinite(positions)) and np.all(np.isfinite(torques))):
         raise RS485Error("non-finite position or torque in a command batch")
     batch = records(len(positions))
@@ -213,8 +237,34 @@ def position_torque_records(destinations, positions_deg, torques_nm, source: int
     batch["source"] = source
     batch["destination"] = destinations
     batch["data"][:, 0] = positions
-    batch["data"][:, 2] = torques
+    words = batch["data"].view("<u4")
+    if torque_mode:
+        batch["data"][:, 2] = torques
+        words[:, 3] = torque_word(kp, damping)
+    else:
+        batch["data"][:, 1] = positions
+        words[:, 2] = EXTENDED_ANSWER
     return batch
+
+
+def torque_word(kp: int, damping: int, mode: int = 1) -> int:
+    """0x14's uint32[3] in torque mode: (Kp:u16 << 16) | (mode:u8 << 8) | damping:u8 (abr/abr_jaco2)."""
+    if not (0 <= kp <= 0xFFFF and 0 <= mode <= 0xFF and 0 <= damping <= 0xFF):
+        raise RS485Error("kp must fit u16, mode and damping u8")
+    return (kp << 16) | (mode << 8) | damping
+
+
+def command_targets(batch: np.ndarray, torque_mode: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What a batch of 0x14 asks of actuators in the given modes (one flag per record): the position (deg), the
+    torque (N·m: float[2] in torque mode; in position mode those bytes are the extended-answer flag, no torque)
+    and whether the record is valid (finite, and in position mode float[1] equal to float[0]: the SDK's header
+    asks both halves to agree before a command is accepted; what a real actuator does otherwise is not public)."""
+    data = batch["data"].astype(np.float64)
+    position = data[:, 0]
+    torque = np.where(torque_mode, data[:, 2], 0.0)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(position) & np.isfinite(torque) & (torque_mode | (data[:, 1] == position))
+    return position, torque, valid
 
 
 def encode_batch(messages) -> bytes:
@@ -243,30 +293,48 @@ def _finite(*values: float) -> None:
 
 @dataclass(frozen=True)
 class PositionTorqueCommand:
-    """0x14: float[0] current position (deg, the actuator's safety reference), float[2] torque (N·m),
-    uint32[3] = (Kp:u16 << 16) | (mode:u8 << 8) | damping:u8."""
+    """0x14, in the two layouts the public drivers use (docs/rs485-sources.md):
+
+    * position mode (``mode`` 0): float[0] = float[1] = the target (deg; Kinova's RS-485 examples, abr/abr_jaco2,
+      drake-jaco-driver, libkinova), uint32[2] = 1, the "extended answer" flag (Kinova's example: 0x15, 0x16 and
+      0x17 back), uint32[3] = 0; no torque;
+    * torque mode (``mode`` 1): float[0] the joint's current position (the actuator's safety reference),
+      uint32[1] = 0, float[2] the torque (N·m), uint32[3] = (Kp:u16 << 16) | (mode:u8 << 8) | damping:u8
+      (abr/abr_jaco2)."""
 
     position_deg: float
-    torque_nm: float
+    torque_nm: float = 0.0
     kp: int = 0
     mode: int = 0
     damping: int = 0
 
     def to_message(self, destination: int, source: int = HOST_ADDRESS) -> RS485Message:
         _finite(self.position_deg, self.torque_nm)
-        if not (0 <= self.kp <= 0xFFFF and 0 <= self.mode <= 0xFF and 0 <= self.damping <= 0xFF):
-            raise RS485Error("kp must fit u16, mode and damping u8")
-        word = (self.kp << 16) | (self.mode << 8) | self.damping
-        data = _TORQUE_CMD.pack(self.position_deg, 0.0, self.torque_nm, word)
+        if self.mode == 0:
+            if self.torque_nm != 0.0 or self.kp or self.damping:
+                raise RS485Error("a position-mode 0x14 carries no torque, Kp or damping (its float[2] is the "
+                                 "extended-answer flag)")
+            data = _POSITION_CMD.pack(self.position_deg, self.position_deg, EXTENDED_ANSWER, 0)
+        else:
+            data = _TORQUE_CMD.pack(self.position_deg, 0, self.torque_nm, torque_word(self.kp, self.damping,
+                                                                                      self.mode))
         return RS485Message(Command.POSITION_AND_TORQUE_COMMAND, source, destination, data)
 
     @classmethod
     def from_message(cls, message: RS485Message) -> "PositionTorqueCommand":
         if message.command not in (Command.POSITION_AND_TORQUE_COMMAND, Command.POSITION_AND_TORQUE_COMMAND_REDUCED):
             raise RS485Error(f"not a position-and-torque command: {message.command.name}")
-        position, _, torque, word = _TORQUE_CMD.unpack(message.data)
+        word = message.uints[3]
+        mode = (word >> 8) & 0xFF
+        if mode == 0:
+            position, half, _, _ = _POSITION_CMD.unpack(message.data)
+            _finite(position, half)
+            if half != position:
+                raise RS485Error(f"a position-mode 0x14 with two different targets ({position}, {half})")
+            return cls(position)
+        position, _, torque, _ = _TORQUE_CMD.unpack(message.data)
         _finite(position, torque)
-        return cls(position, torque, word >> 16, (word >> 8) & 0xFF, word & 0xFF)
+        return cls(position, torque, word >> 16, mode, word & 0xFF)
 
 
 @dataclass(frozen=True)
@@ -294,33 +362,63 @@ class AllValues1:
         return cls(*values)
 
 
-_ALL_VALUES_2 = struct.Struct("<3hh8x")
+_ALL_VALUES_2 = struct.Struct("<2f4h")
+#: where a 0x16 keeps its int16 values among its eight: accelerations x, y, z (×0.001), temperature (×0.01 °C)
+ACCEL_SHORTS, TEMPERATURE_SHORT = slice(4, 7), 7
 
 
 @dataclass(frozen=True)
 class AllValues2:
-    """0x16 reply: accelerations (int16 × 0.001, in g) and temperature (int16 × 0.01 °C).
-
-    The public sources give the scalings, not the byte positions; mfvs packs int16 [ax, ay, az, temperature]
-    in the first 8 bytes and zero-fills the rest. The gateway decodes the same layout.
+    """0x16 reply: float[0] the motor's PWM, float[1] the position (deg, optical encoder), then int16 accelerations
+    x, y, z (×0.001) and the temperature (×0.01 °C, signed) in bytes 8-15: Kinova's RS-485 example
+    (``accelX = DataLong[2] & 0xFFFF`` ... ``temperature = (short)(DataLong[3] >> 16)``), abr_jaco2's first
+    version, libkinova (``DataShort[4..7]``); drake-jaco-driver reads the temperature unsigned (docs/rs485-sources.md).
     """
 
+    pwm: float
+    position_deg: float
     accel_g: tuple[float, float, float]
     temperature_c: float
 
     def to_message(self, source: int, destination: int = HOST_ADDRESS) -> RS485Message:
-        _finite(*self.accel_g, self.temperature_c)
+        _finite(self.pwm, self.position_deg, *self.accel_g, self.temperature_c)
         ints = [round(a / 0.001) for a in self.accel_g] + [round(self.temperature_c / 0.01)]
         if any(not -32768 <= v <= 32767 for v in ints):
             raise RS485Error(f"value out of int16 range after scaling: {ints}")
-        return RS485Message(Command.SEND_ALL_VALUES_2, source, destination, _ALL_VALUES_2.pack(*ints))
+        return RS485Message(Command.SEND_ALL_VALUES_2, source, destination,
+                            _ALL_VALUES_2.pack(self.pwm, self.position_deg, *ints))
 
     @classmethod
     def from_message(cls, message: RS485Message) -> "AllValues2":
         if message.command is not Command.SEND_ALL_VALUES_2:
             raise RS485Error(f"not an all-values-2 reply: {message.command.name}")
-        ax, ay, az, temp = _ALL_VALUES_2.unpack(message.data)
-        return cls((ax * 0.001, ay * 0.001, az * 0.001), temp * 0.01)
+        pwm, position, ax, ay, az, temp = _ALL_VALUES_2.unpack(message.data)
+        _finite(pwm, position)
+        return cls(pwm, position, (ax * 0.001, ay * 0.001, az * 0.001), temp * 0.01)
+
+
+@dataclass(frozen=True)
+class AllValues3:
+    """0x17 reply: float[0] the motor current (A), float[1] the absolute (magnetic) position (deg): Kinova's RS-485
+    example, abr_jaco2's first version, drake-jaco-driver. No public source says what floats 2 and 3 hold: mfvs
+    sends 0 there and reads nothing from them (no mode, no fault: the host knows the mode from its 0x204 replies
+    and the faults from 0x30 reports)."""
+
+    current_a: float
+    absolute_position_deg: float
+
+    def to_message(self, source: int, destination: int = HOST_ADDRESS) -> RS485Message:
+        _finite(self.current_a, self.absolute_position_deg)
+        return RS485Message.with_floats(Command.SEND_ALL_VALUES_3, source, destination,
+                                        (self.current_a, self.absolute_position_deg))
+
+    @classmethod
+    def from_message(cls, message: RS485Message) -> "AllValues3":
+        if message.command is not Command.SEND_ALL_VALUES_3:
+            raise RS485Error(f"not an all-values-3 reply: {message.command.name}")
+        current, position, _, _ = message.floats
+        _finite(current, position)
+        return cls(current, position)
 
 
 def switch_mode_request(mode: ControlModeRequest, destination: int, source: int = HOST_ADDRESS) -> RS485Message:

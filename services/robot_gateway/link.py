@@ -39,6 +39,11 @@ class ActuatorLink:
         self.timeout_s = timeout_s
         self.counters = counters or bus.counters
         self.errors: list[tuple[int, r.ActuatorError]] = []
+        #: per actuator, its mode as the host set it with the 0x203/0x204 handshake (0 position, 1 torque), and the
+        #: fault it last reported (0x30; kept until the gateway restarts, as the emulated firmware latches it): no
+        #: public source finds either in a reply (0x17's floats 2 and 3 are not described: docs/rs485-sources.md)
+        self.mode = np.zeros(len(self.addresses), dtype=int)
+        self.fault = np.zeros(len(self.addresses), dtype=int)
         self.last_stamp_ns = 0
         self._joint_of = np.full(256, -1)
         self._joint_of[self.addresses] = np.arange(len(self.addresses))
@@ -77,7 +82,14 @@ class ActuatorLink:
         return LinkError(message)
 
     def _record_errors(self, reports: np.ndarray) -> None:
+        """Actuators' error reports (0x30, the code in uint32[1]): each latched as its actuator's fault (the node
+        holds the arm on a fault); code 0 is "no error", not a fault; an unknown code is a fault too."""
         for source, code in zip(reports["source"].tolist(), reports["data"].view("<u4")[:, 1].tolist()):
+            if code == r.ActuatorError.NONE:
+                continue
+            joint = self._joint_of[source] if 0 <= source < len(self._joint_of) else -1
+            if joint >= 0:
+                self.fault[joint] = code
             try:
                 error = r.ActuatorError(code)
             except ValueError:
@@ -153,10 +165,8 @@ class ActuatorLink:
 
     def send_command(self, positions_deg, torques_nm=None, drain: bool = False) -> None:
         """The 0x14 batch only (``drain``: after taking what is still queued, see :meth:`_request`)."""
-        n = len(self.addresses)
-        torques = np.zeros(n) if torques_nm is None else np.asarray(torques_nm, dtype=float)
         try:
-            batch = r.position_torque_records(self.addresses, positions_deg, torques)
+            batch = r.position_torque_records(self.addresses, positions_deg, torques_nm)
         except r.RS485Error as exc:
             raise LinkError(str(exc)) from exc
         if drain:
@@ -170,14 +180,14 @@ class ActuatorLink:
     def collect_command(self, deadline: float) -> ActuatorValues:
         """The replies to a 0x14 batch, waiting until ``deadline`` (monotonic) at most."""
         table = self._collect_values(deadline)
-        v1 = table[:, 0]["data"].astype(np.float64)
-        v3 = table[:, 2]["data"].astype(np.float64)
-        if not (np.isfinite(v1).all() and np.isfinite(v3).all()):
+        v1 = table[:, 0]["data"].astype(np.float64)  # 0x15 [current, position, velocity, torque]
+        if not np.isfinite(v1).all():
             self.counters.inc("link.bad_values")
             raise self._failure("an actuator reported a non-finite value")
-        temperature = table[:, 1]["data"].view("<i2")[:, 3] * 0.01
+        temperature = table[:, 1]["data"].view("<i2")[:, r.TEMPERATURE_SHORT] * 0.01  # 0x16's int16 (×0.01 °C)
         return ActuatorValues(position_deg=v1[:, 1], velocity_dps=v1[:, 2], torque_nm=v1[:, 3], current_a=v1[:, 0],
-                               temperature_c=temperature, mode=v3[:, 2], fault=v3[:, 3], stamp_ns=self.last_stamp_ns)
+                               temperature_c=temperature, mode=self.mode.copy(), fault=self.fault.copy(),
+                               stamp_ns=self.last_stamp_ns)
 
     def _collect_values(self, deadline: float) -> np.ndarray:
         """The 0x15, 0x16 and 0x17 reply of every actuator, as a (joint, kind) table of records: the first of each
@@ -248,13 +258,23 @@ class ActuatorLink:
                                                 for a in self.addresses}))
         refused = [f"0x{m.source:02X}" for m in replies if r.parse_switch_mode_reply(m) is not
                    r.ControlModeReply.TORQUE_OK]
+        self._set_modes(replies, r.ControlModeReply.TORQUE_OK, 1)
         if refused:
             raise LinkError(f"torque mode refused by {', '.join(refused)}")
+
+    def _set_modes(self, replies, accepted: r.ControlModeReply, mode: int) -> None:
+        """Each actuator whose 0x204 says ``accepted`` is in ``mode`` now."""
+        for reply in replies:
+            joint = self._joint_of[reply.source]
+            if joint >= 0 and r.parse_switch_mode_reply(reply) is accepted:
+                self.mode[joint] = mode
 
     def switch_to_position(self) -> None:
         self._request(r.to_records(r.switch_mode_request(r.ControlModeRequest.POSITION, address)
                                    for address in self.addresses))
-        self._collect({(a, r.Command.SWITCH_CONTROL_MODE_REPLY): 1 for a in self.addresses})
+        replies = r.from_records(self._collect({(a, r.Command.SWITCH_CONTROL_MODE_REPLY): 1
+                                                for a in self.addresses}))
+        self._set_modes(replies, r.ControlModeReply.POSITION_OK, 0)
 
 
 class LinkHardware:

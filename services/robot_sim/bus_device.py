@@ -8,9 +8,14 @@ it the frames and sends what it returns, and decides when cycles end (:mod:`serv
 * ``POSITION_AND_TORQUE_COMMAND`` (0x14) → one 0x15, 0x16 and 0x17 reply each, with the values of the current
   cycle (the state at its boundary); the command itself is taken at the next boundary
   (:class:`~services.robot_sim.firmware.ActuatorFirmware`). In lockstep the replies wait for that boundary, so
-  they carry the state the command acts from. 0x17 carries float [the newest position target (deg) and torque
-  command (N·m) received, mode (0 position / 1 torque), fault code] (this layout is mfvs's; the public sources do
-  not give one).
+  they carry the state the command acts from. The command is read as the actuator's mode says
+  (:func:`protocol.rs485.command_targets`): in position mode float[0] and float[1] must agree (Kinova's header
+  asks both halves to; the public drivers send them equal) and float[2] is the extended-answer flag, not a torque;
+  in torque mode float[2] is the torque. A command that is not valid is refused with a COMMAND error report (what
+  a real actuator does then is not public: our choice). The replies' layouts are the public drivers'
+  (docs/rs485-sources.md): 0x15 [current, position, velocity, torque]; 0x16 [PWM, position, int16 ax, ay, az,
+  temperature]; 0x17 [current, absolute position, 0, 0]. PWM is not modelled (0) and the accelerometers read
+  1 g along z (our choices); the two positions are the joint's.
 * ``GET_TORQUE_VALIDATION_REQUEST`` (0x201), float[0] = the torque the host's model expects → 
   ``SEND_TORQUE_VALIDATION`` (0x202), uint32[0] = 1 when it matches the measured torque within tolerance.
 * ``SWITCH_CONTROL_MODE_REQUEST`` (0x203), uint32[0] = 0 position / 1 torque → ``SWITCH_CONTROL_MODE_REPLY``
@@ -23,13 +28,12 @@ it the frames and sends what it returns, and decides when cycles end (:mod:`serv
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from protocol import rs485 as r
 from services.runtime.metrics import Counters
 from services.robot.hardware import ActuatorValues
+from services.robot_sim.firmware import TORQUE
 from services.robot_sim.sim import Simulation
 
 
@@ -72,10 +76,10 @@ class ActuatorBusDevice:
 
     def _commands(self, batch: np.ndarray, joints: np.ndarray) -> np.ndarray:
         self.counters.inc("bus.rx.position_and_torque_command", len(batch))
-        data = batch["data"].tolist()
+        positions, torques, valid = r.command_targets(batch, self.firmware.mode[joints] == TORQUE)
         replied, reports = [], []
-        for joint, (position, _, torque, _) in zip(joints.tolist(), data):
-            if math.isfinite(position) and math.isfinite(torque):
+        for joint, position, torque, ok in zip(joints.tolist(), positions.tolist(), torques.tolist(), valid.tolist()):
+            if ok:
                 self.firmware.command(joint, position, torque)
                 self._commanded.add(joint)
                 if self.defer_replies:
@@ -94,18 +98,15 @@ class ActuatorBusDevice:
         """0x15, 0x16 and 0x17 of each of ``joints`` with this cycle's values, as a batch."""
         joints = list(joints)
         v = self.values
-        firmware = self.firmware
         values = np.zeros((len(joints), 3, 4))
         values[:, 0] = np.stack([v.current_a, v.position_deg, v.velocity_dps, v.torque_nm], axis=1)[joints]
-        target, torque = firmware.commanded()
-        values[:, 2] = np.array([target, torque, firmware.mode, firmware.fault_code]).T[joints]
+        values[:, 1, 1] = v.position_deg[joints]  # 0x16 [PWM (not modelled: 0), position, four int16 below]
+        values[:, 2, :2] = np.stack([v.current_a, v.position_deg], axis=1)[joints]  # 0x17 [current, position, 0, 0]
         out = self._reply_template[joints].reshape(-1)  # a copy: the ids and addresses of each joint's three
         out["data"] = values.reshape(-1, 4)
-        # AllValues2: int16 [ax, ay, az (×0.001 g), temperature (×0.01 °C)], zero-filled
-        ints = out["data"][1::3].view("<i2")
-        ints[:] = 0
-        ints[:, 2] = 1000
-        ints[:, 3] = np.rint(v.temperature_c[joints] / 0.01)
+        ints = out["data"][1::3].view("<i2")  # 0x16's int16 ax, ay, az (×0.001: 1 g along z), temperature (×0.01)
+        ints[:, r.ACCEL_SHORTS] = (0, 0, 1000)
+        ints[:, r.TEMPERATURE_SHORT] = np.rint(v.temperature_c[joints] / 0.01)
         return out
 
     def receive(self, message: r.RS485Message) -> list[r.RS485Message]:

@@ -1,5 +1,6 @@
 import struct
 
+import numpy as np
 import pytest
 
 from protocol import rs485 as r
@@ -41,12 +42,48 @@ def test_all_values_1_reply_bytes():
     assert r.AllValues1.from_message(r.RS485Message.decode(frame)) == reply
 
 
-def test_all_values_2_scalings():
-    reply = r.AllValues2(accel_g=(0.012, -0.5, 1.0), temperature_c=36.57)
+def test_position_mode_command_bytes():
+    """Position mode as every public driver sends it: float[0] = float[1] = the target, uint32[2] = 1 (the
+    extended answer: 0x15, 0x16, 0x17 back), uint32[3] = 0; no torque may ride along (float[2] is the flag)."""
+    frame = r.PositionTorqueCommand(position_deg=181.5).to_message(0x12).encode()
+    assert frame == struct.pack("<hBB2f2I", 0x14, 0x00, 0x12, 181.5, 181.5, 1, 0)
+    assert r.PositionTorqueCommand.from_message(r.RS485Message.decode(frame)) == r.PositionTorqueCommand(181.5)
+    batch = r.position_torque_records([0x12], [181.5])
+    assert batch.tobytes() == frame
+    with pytest.raises(r.RS485Error, match="carries no torque"):
+        r.PositionTorqueCommand(181.5, torque_nm=1.0).to_message(0x12)
+    halves = struct.pack("<hBB2f2I", 0x14, 0x00, 0x12, 181.5, 90.0, 1, 0)
+    with pytest.raises(r.RS485Error, match="two different targets"):
+        r.PositionTorqueCommand.from_message(r.RS485Message.decode(halves))
+    torque = r.position_torque_records([0x12], [181.5], [2.5])
+    assert torque.tobytes() == r.PositionTorqueCommand(181.5, 2.5, kp=r.TORQUE_KP, mode=1).to_message(0x12).encode()
+
+
+def test_command_targets_read_each_record_as_its_actuators_mode_says():
+    batch = np.concatenate([r.position_torque_records([0x10], [10.0]), r.position_torque_records([0x11], [20.0], [3.0]),
+                            r.position_torque_records([0x12], [30.0])])
+    batch["data"][2, 1] = 31.0  # a position command whose halves disagree
+    position, torque, valid = r.command_targets(batch, np.array([False, True, False]))
+    assert position.tolist() == [10.0, 20.0, 30.0] and torque.tolist() == [0.0, 3.0, 0.0]
+    assert valid.tolist() == [True, True, False]
+    # the position-mode flag's bytes, read as a torque, would be 1.4e-45 N·m: never taken as one
+    assert r.command_targets(batch[:1], np.array([False]))[1][0] == 0.0
+
+
+def test_all_values_2_and_3_layouts():
+    """0x16 as Kinova's RS-485 example decodes it: float[0] PWM, float[1] position, int16 ax, ay, az (×0.001) and
+    the temperature (×0.01 °C, signed) in bytes 8-15; 0x17: float[0] current, float[1] absolute position."""
+    reply = r.AllValues2(pwm=0.25, position_deg=181.5, accel_g=(0.012, -0.5, 1.0), temperature_c=-3.57)
     frame = reply.to_message(0x10).encode()
-    assert frame[4:12] == struct.pack("<4h", 12, -500, 1000, 3657)
+    assert frame[4:] == struct.pack("<2f4h", 0.25, 181.5, 12, -500, 1000, -357)
     back = r.AllValues2.from_message(r.RS485Message.decode(frame))
-    assert back.accel_g == pytest.approx((0.012, -0.5, 1.0)) and back.temperature_c == pytest.approx(36.57)
+    assert back.accel_g == pytest.approx((0.012, -0.5, 1.0)) and back.temperature_c == pytest.approx(-3.57)
+    assert back.position_deg == 181.5
+    words = np.frombuffer(frame[4:], dtype="<u4")  # as the example reads it, from DataLong[2] and [3]
+    assert np.int16(words[3] >> 16) == -357 and np.int16(words[2] & 0xFFFF) == 12
+    three = r.AllValues3(current_a=0.4, absolute_position_deg=181.25).to_message(0x10)
+    assert three.floats == (pytest.approx(0.4), 181.25, 0.0, 0.0)
+    assert r.AllValues3.from_message(three).absolute_position_deg == 181.25
 
 
 def test_switch_mode_and_error_report():

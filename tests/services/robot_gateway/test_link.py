@@ -169,3 +169,25 @@ def test_a_duplicate_reply_in_a_full_batch_is_counted_not_taken():
     table = link._collect_values(time.monotonic() + 1.0)
     assert link.counters.get("link.unexpected") == 1
     assert np.array_equal(table, _replies(addresses, range(n)).reshape(len(addresses), 3))
+
+
+def test_mode_comes_from_the_handshake_and_faults_from_error_reports_never_from_0x17(link):
+    """No public source describes 0x17's floats 2 and 3 (docs/rs485-sources.md): the link takes each actuator's
+    mode from its 0x204 reply and its fault from its 0x30 reports (a report of code 0 is no fault; a fault stays),
+    whatever 0x17 carries."""
+    link, runner = link
+    positions = link.positions_deg()
+    assert not link.command(positions).mode.any()
+    link.switch_to_torque(ArmKinematics(ARM).gravity(ARM.home) * ARM.sign)
+    reading = link.command(positions, np.zeros(ARM.n_joints))
+    assert reading.mode.tolist() == [1] * ARM.n_joints and not reading.fault.any()
+    link.switch_to_position()
+    assert not link.command(positions).mode.any()
+    no_error = r.to_records([r.report_error(r.ActuatorError.NONE, ARM.bus_addresses[1])])
+    relative = r.to_records([r.report_error(r.ActuatorError.RELATIVE_POSITION, ARM.bus_addresses[2])])
+    link._record_errors(no_error)
+    link._record_errors(relative)
+    reading = link.command(positions)
+    assert reading.fault.tolist() == [0, 0, int(r.ActuatorError.RELATIVE_POSITION), 0, 0, 0, 0]
+    assert link.counters.get("link.actuator_errors.relative_position") == 1
+    assert link.counters.get("link.actuator_errors.none") == 0

@@ -85,25 +85,30 @@ def test_actual_position_reply_is_byte_exact_with_the_position_in_float_1(rig):
 
 def test_position_and_torque_command_gets_one_reply_of_each_kind(rig):
     target = float(ARM.home_deg[0])
-    replies = rig.request(r.PositionTorqueCommand(target, 0.0).to_message(0x10))
+    replies = rig.request(r.PositionTorqueCommand(target).to_message(0x10))
     assert [m.command for m in replies] == [r.Command.SEND_ALL_VALUES_1, r.Command.SEND_ALL_VALUES_2,
                                             r.Command.SEND_ALL_VALUES_3]
     assert all(m.source == 0x10 and m.destination == 0x00 and len(m.encode()) == 20 for m in replies)
     values = r.AllValues1.from_message(replies[0])
     assert values.position_deg == pytest.approx(f32(target), abs=0.05)
-    assert replies[1].encode()[4:12] == struct.pack("<4h", 0, 0, 1000, 3500)
-    assert replies[2].floats[0] == f32(target) and replies[2].floats[2] == 0.0  # position mode, no fault
+    # 0x16 [PWM, position, int16 ax, ay, az, temperature]; 0x17 [current, absolute position, 0, 0]
+    two = r.AllValues2.from_message(replies[1])
+    assert two.position_deg == values.position_deg and two.accel_g == (0.0, 0.0, 1.0)
+    assert two.temperature_c == pytest.approx(35.0)
+    three = r.AllValues3.from_message(replies[2])
+    assert (three.current_a, three.absolute_position_deg) == (values.current_a, values.position_deg)
+    assert replies[2].floats[2:] == (0.0, 0.0)
     # one 0x14 per actuator gets 7 × 3 replies
     for address in ARM.bus_addresses:
         i = ARM.bus_addresses.index(address)
-        rig.host.send(r.PositionTorqueCommand(float(ARM.home_deg[i]), 0.0).to_message(address))
+        rig.host.send(r.PositionTorqueCommand(float(ARM.home_deg[i])).to_message(address))
     replies = rig.cycle(1)
     assert len(replies) == 21 and {m.source for m in replies} == set(ARM.bus_addresses)
 
 
 def test_replies_are_stamped_with_the_arm_cycle_they_report(rig):
     rig.cycle(3)  # boundaries at 0, 2 and 4 ms: the third cycle runs from 4 ms
-    rig.host.send(r.PositionTorqueCommand(float(ARM.home_deg[0]), 0.0).to_message(0x10))
+    rig.host.send(r.PositionTorqueCommand(float(ARM.home_deg[0])).to_message(0x10))
     stamped = rig.cycle_stamped(1)
     # the command came during that cycle: the replies carry its values and its time
     assert {stamp for _, stamp in stamped} == {4_000_000}
@@ -112,7 +117,7 @@ def test_replies_are_stamped_with_the_arm_cycle_they_report(rig):
 def test_position_mode_moves_the_joint_to_the_target(rig):
     target = float(ARM.home_deg[3]) + 5.0
     for _ in range(400):
-        rig.host.send(r.PositionTorqueCommand(target, 0.0).to_message(0x13))
+        rig.host.send(r.PositionTorqueCommand(target).to_message(0x13))
         rig.cycle(1)
     assert ARM.model_to_physical_deg(rig.sim.q)[3] == pytest.approx(target, abs=0.1)
 
@@ -121,7 +126,7 @@ def test_a_target_is_reached_at_the_end_of_the_cycle_that_takes_it(rig):
     """Interpolated position mode: the reference moves from where it is to the new target across one cycle."""
     address, home = 0x15, float(ARM.home_deg[5])
     actuator = rig.firmware.actuators[5]
-    rig.host.send(r.PositionTorqueCommand(home + 0.01, 0.0).to_message(address))
+    rig.host.send(r.PositionTorqueCommand(home + 0.01).to_message(address))
     rig.cycle(1)
     assert actuator.last_target_deg == f32(home + 0.01)
     assert actuator.target_rate_dps == pytest.approx((f32(home + 0.01) - home) / 0.002, rel=1e-3)
@@ -136,7 +141,7 @@ def test_a_missed_cycle_goes_on_one_cycle_then_holds_and_superseded_ones_are_cou
     address, home = 0x11, float(ARM.home_deg[1])
     actuator = rig.firmware.actuators[1]
     for k in range(5):
-        rig.host.send(r.PositionTorqueCommand(home + 0.02 * k, 0.0).to_message(address))
+        rig.host.send(r.PositionTorqueCommand(home + 0.02 * k).to_message(address))
         rig.cycle(1)
     start, rate = actuator.target_deg, actuator.target_rate_dps  # the segment from the 4th target to the 5th
     assert rate == pytest.approx(0.02 / 0.002, rel=1e-3)
@@ -149,8 +154,8 @@ def test_a_missed_cycle_goes_on_one_cycle_then_holds_and_superseded_ones_are_cou
     assert reference(actuator.target_time_s + 0.003) == pytest.approx((start + rate * 0.003, rate))
     assert reference(actuator.target_time_s + 0.0045) == pytest.approx((start + rate * 0.004, 0.0))  # it went on one cycle, and holds there
     # the late target and the next one come in the same cycle: the newer wins, from where the reference went on
-    rig.host.send(r.PositionTorqueCommand(home + 0.10, 0.0).to_message(address))
-    rig.host.send(r.PositionTorqueCommand(home + 0.12, 0.0).to_message(address))
+    rig.host.send(r.PositionTorqueCommand(home + 0.10).to_message(address))
+    rig.host.send(r.PositionTorqueCommand(home + 0.12).to_message(address))
     rig.cycle(1)
     assert actuator.last_target_deg == f32(home + 0.12)
     assert rig.firmware.counters.get("frames.superseded") == 1
@@ -217,7 +222,7 @@ def test_torque_mode_falls_back_to_position_after_250_ms_without_torque_commands
     assert r.parse_switch_mode_reply(torque_mode(rig)) is r.ControlModeReply.TORQUE_OK
     position = float(ARM.model_to_physical_deg(rig.sim.q)[2])
     for _ in range(50):  # 100 ms of zero torque commands: joint 3 carries almost no gravity at home
-        rig.host.send(r.PositionTorqueCommand(position, 0.0).to_message(0x12))
+        rig.host.send(r.PositionTorqueCommand(position, 0.0, mode=1).to_message(0x12))
         rig.cycle(1)
     actuator = rig.firmware.by_address[0x12]
     assert actuator.mode is r.ControlModeRequest.TORQUE
@@ -243,7 +248,8 @@ def test_on_its_bus_the_arm_adds_no_gravity_in_torque_mode_as_the_api_mode_s_act
     assert r.parse_switch_mode_reply(torque_mode(rig, 0x13)) is r.ControlModeReply.TORQUE_OK
     start = float(ARM.model_to_physical_deg(rig.sim.q)[3])
     for _ in range(50):
-        rig.host.send(r.PositionTorqueCommand(float(ARM.model_to_physical_deg(rig.sim.q)[3]), 0.0).to_message(0x13))
+        rig.host.send(r.PositionTorqueCommand(float(ARM.model_to_physical_deg(rig.sim.q)[3]), 0.0,
+                                              mode=1).to_message(0x13))
         rig.cycle(1)
     fell = float(ARM.model_to_physical_deg(rig.sim.q)[3]) - start
     api = SimulatedHardware(Simulation(render=False))
@@ -264,18 +270,18 @@ def test_torque_over_the_limit_is_clamped_and_reported_once(rig):
     rig.cycle(50)
     torque_mode(rig)
     position = float(ARM.model_to_physical_deg(rig.sim.q)[2])
-    replies = rig.request(r.PositionTorqueCommand(position, 500.0).to_message(0x12))
+    replies = rig.request(r.PositionTorqueCommand(position, 500.0, mode=1).to_message(0x12))
     errors = [m for m in replies if m.command is r.Command.REPORT_ERROR]
     assert len(errors) == 1 and r.parse_report_error(errors[0]) is r.ActuatorError.TORQUE
     assert rig.firmware.by_address[0x12].torque_nm == pytest.approx(ARM.max_torque[2])
-    replies = rig.request(r.PositionTorqueCommand(position, 500.0).to_message(0x12))
+    replies = rig.request(r.PositionTorqueCommand(position, 500.0, mode=1).to_message(0x12))
     assert not [m for m in replies if m.command is r.Command.REPORT_ERROR]
 
 
 def test_a_wrong_safety_reference_latches_a_fault_until_cleared(rig):
     rig.cycle(50)
     torque_mode(rig)
-    replies = rig.request(r.PositionTorqueCommand(123.0, 1.0).to_message(0x12))  # far from the real angle
+    replies = rig.request(r.PositionTorqueCommand(123.0, 1.0, mode=1).to_message(0x12))  # far from the real angle
     errors = [m for m in replies if m.command is r.Command.REPORT_ERROR]
     assert r.parse_report_error(errors[0]) is r.ActuatorError.RELATIVE_POSITION
     actuator = rig.firmware.by_address[0x12]
@@ -307,8 +313,8 @@ def test_host_cycles_split_what_a_stalled_loop_finds_queued():
     from services.robot_sim.arm_on_bus import host_cycles
 
     addresses = list(ARM.bus_addresses)
-    first = r.position_torque_records(addresses, np.full(7, 1.0), np.zeros(7))
-    second = r.position_torque_records(addresses, np.full(7, 2.0), np.zeros(7))
+    first = r.position_torque_records(addresses, np.full(7, 1.0))
+    second = r.position_torque_records(addresses, np.full(7, 2.0))
     other = r.to_records([r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, addresses[0])])
     cycles = host_cycles(np.concatenate([first, other, second]))
     assert [len(c) for c in cycles] == [8, 7]
@@ -331,7 +337,7 @@ def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
         addresses = list(ARM.bus_addresses)
         start = ARM.model_to_physical_deg(sim.q)
         for k in (1, 2):
-            host.send_batch(r.position_torque_records(addresses, start + 0.01 * k, np.zeros(7)))
+            host.send_batch(r.position_torque_records(addresses, start + 0.01 * k))
         taken = []
         for _ in range(2):
             assert arm._serve(0.0, one_cycle=True) == 7
