@@ -141,18 +141,22 @@ def gateway_robot_services(bus_channel: str, robot_sim_config: Optional[str] = N
 
 
 def usb_robot_services(socket_path: str, libusb_dir: Path, robot_sim_config: Optional[str] = None,
-                       robot_gateway_config: Optional[str] = None) -> list[ProfileService]:
+                       robot_gateway_config: Optional[str] = None, high_level_check: bool = True
+                       ) -> list[ProfileService]:
     """The gateway profile's robot side with the actuator bus reached as a real arm's is, through Kinova's USB comm
     layer: robot_sim's actuators behind an emulated base on USB (its socket at ``socket_path``), robot_gateway on
     ``kinova_usb`` with Kinova's comm layer (``sdk_library``, else ``$MFVS_KINOVA_SDK``) loaded over the stand-in
     libusb in ``libusb_dir`` (services.robot_sim.usb_base). robot_sim first: the gateway's first call asks the base
-    who it is."""
+    who it is. ``high_level_check``: the gateway checks the first RS-485 positions against Kinova's high-level API
+    (the emulated base answers it); off for a comm layer without Kinova's command layer beside it (the tests'
+    stand-in)."""
     from services.robot_sim.usb_base import host_environment
 
     return [ProfileService(name="robot_sim", config=robot_sim_config or _shipped("robot_sim").config,
                            set=["mode=actuator_bus", "bus.interface=kinova_usb_base", f"bus.channel={socket_path}"]),
             ProfileService(name="robot_gateway", config=robot_gateway_config or _shipped("robot_gateway").config,
-                           set=["bus.interface=kinova_usb", "arm_check.waived=true"],
+                           set=["bus.interface=kinova_usb", "arm_check.waived=true",
+                                *([] if high_level_check else ["high_level_check_deg=null"])],
                            env=host_environment(socket_path, libusb_dir))]
 
 

@@ -33,6 +33,7 @@ from services.runtime.transport import ZenohConfig, open_session
 from services.controller.service import ControllerConfig
 from services.robot.pacing import SWITCH_INTERVAL_S
 from services.robot_gateway.link import ActuatorLink
+from services.robot_gateway.kinova_usb import has_command_layer
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig
 from services.robot_sim.service import RobotSimConfig
@@ -303,7 +304,8 @@ class RobotProcesses:
                 services = [ProfileService(name="robot_sim", config=robot_sim_config)]
             elif self.bus == "kinova_usb":
                 socket_path = str(self.logs / "usb.sock")
-                services = usb_robot_services(socket_path, stand_in_libusb(), robot_sim_config, gateway_config)
+                services = usb_robot_services(socket_path, stand_in_libusb(), robot_sim_config, gateway_config,
+                                              high_level_check=has_command_layer(self.gateway.sdk_library))
             else:
                 services = gateway_robot_services(self._start_hub(), robot_sim_config, gateway_config)
             for service in services:

@@ -173,6 +173,7 @@ class _File(msgspec.Struct, forbid_unknown_fields=True):
     joints: list[_Joint]
     home_deg: list[float]
     bus_addresses: list[int]
+    robot_type: int
     links: list[_Link]
     base: _Base
     armature: list[float]
@@ -232,6 +233,8 @@ class ArmDescription:
     reach: float
     home_deg: np.ndarray
     bus_addresses: tuple[int, ...]
+    #: Kinova's robot type for this arm (KinovaTypes.h), as its base reports it in the device list (DeviceType)
+    robot_type: int
     base_mass_kg: float
     base_com_z: float
     base_height: float
@@ -597,6 +600,7 @@ def read_description(path: Path) -> ArmDescription:
         sign=np.array([float(r.sign) for r in dh]), offset=np.array([num(r.offset) for r in dh]),
         shoulder_height=num(data.kinematics.shoulder_height), reach=num(data.kinematics.reach),
         home_deg=np.array(data.home_deg, dtype=float), bus_addresses=tuple(data.bus_addresses),
+        robot_type=data.robot_type,
         base_mass_kg=num(base.mass_kg), base_com_z=num(base.com_z), base_height=num(base.height),
         base_radius=num(base.radius), armature=np.array(data.armature, dtype=float),
         damping=np.array(data.damping, dtype=float),

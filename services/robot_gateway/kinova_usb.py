@@ -43,13 +43,15 @@ import numpy as np
 from protocol import kinova
 from protocol.rs485 import MAX_BATCH, MESSAGE_DTYPE, MESSAGES_PER_USB_PACKET, known_commands
 from services.robot.rs485_bus import BusError
-from services.robot_gateway.kinova_sdk import SDK_ENV, SDK_LIB_SUBDIR, ArmStartError, KinovaDevice, MAX_KINOVA_DEVICE
+from services.robot_gateway.kinova_sdk import (LAYERS, MAX_KINOVA_DEVICE, SDK_ENV, SDK_LIB_SUBDIR, AngularPosition,
+                                               ArmStartError, KinovaDevice)
 from services.runtime.metrics import Counters, DurationStats
 
 log = logging.getLogger("mfvs.robot_gateway.kinova_usb")
 
-#: Kinova's USB comm layer (kinova-ros: kinova_driver/lib/x86_64-linux-gnu)
-COMM_LAYER = "USBCommLayerUbuntu.so"
+#: Kinova's USB comm layer and the command layer (the high-level API) beside it (kinova-ros:
+#: kinova_driver/lib/x86_64-linux-gnu)
+COMM_LAYER, COMMAND_LAYER = LAYERS["usb"].comm_layer, LAYERS["usb"].command_layer
 #: the RS-485 functions' names as public builds of the comm layer export them (Activate, Write, Read): the SDK's
 #: header and kinova-ros's library; older SDKs; Kinova's Windows-derived builds
 RS485_SPELLINGS = (("OpenRS485_Activate", "OpenRS485_Write", "OpenRS485_Read"),
@@ -107,6 +109,16 @@ def locate_comm_layer(setting: Optional[str], environ: Optional[dict] = None) ->
     raise ArmStartError(f"Kinova's comm layer is not where {source} says: no {' or '.join(map(str, candidates))}")
 
 
+def has_command_layer(setting: Optional[str], environ: Optional[dict] = None) -> bool:
+    """Whether Kinova's command layer (``USBCommandLayerUbuntu.so``) is beside the comm layer ``setting`` names
+    (True where the comm layer is not found either: the gateway then says what is missing)."""
+    try:
+        comm_layer = locate_comm_layer(setting, environ)
+    except ArmStartError:
+        return True
+    return (comm_layer.parent / COMMAND_LAYER).is_file()
+
+
 @dataclass(frozen=True)
 class CommLayer:
     """Kinova's comm layer, loaded, with its functions bound (the RS-485 ones under whichever spelling it
@@ -123,6 +135,8 @@ class CommLayer:
 
     @classmethod
     def load(cls, path: Path) -> "CommLayer":
+        """The comm layer at ``path`` (the object already loaded, if Kinova's command layer loaded it by name from
+        there: one library, one state)."""
         try:
             library = ctypes.CDLL(str(path))
         except OSError as exc:
@@ -158,8 +172,12 @@ class KinovaUsbBus:
     #: every look at what has arrived is a USB read through the library (the actuator link does not poll it)
     polling_is_free = False
 
-    def __init__(self, comm: CommLayer, counters: Counters | None = None, device: KinovaDevice | None = None) -> None:
+    def __init__(self, comm: CommLayer, counters: Counters | None = None, device: KinovaDevice | None = None,
+                 high_level_deg: Optional[np.ndarray] = None) -> None:
         self.comm = comm
+        #: the joint angles (physical degrees) Kinova's high-level API read just before activation, that the first
+        #: RS-485 positions are checked against (None: not read)
+        self.high_level_deg = high_level_deg
         #: the arm whose bus this is, as the comm layer lists it
         self.serial = device.SerialNumber.decode(errors="replace") if device is not None else ""
         self.model = device.Model.decode(errors="replace") if device is not None else ""
@@ -269,21 +287,58 @@ def devices(comm: CommLayer) -> list[KinovaDevice]:
     return list(listed[: max(0, min(count, MAX_KINOVA_DEVICE))])
 
 
+def init_api(command_layer: Path):
+    """Kinova's command layer, loaded and initialised (InitAPI loads the comm layer by name and initialises it: the
+    process must find it on the loader's path). Raises :class:`ArmStartError` naming the code."""
+    try:
+        api = ctypes.CDLL(str(command_layer))
+    except OSError as exc:
+        raise ArmStartError(f"Kinova's command layer {command_layer} cannot be loaded: {exc}") from None
+    api.InitAPI.argtypes, api.InitAPI.restype = [], ctypes.c_int
+    api.GetAngularPosition.argtypes = [ctypes.POINTER(AngularPosition)]
+    api.GetAngularPosition.restype = ctypes.c_int
+    code = api.InitAPI()
+    if code != OK:
+        raise ArmStartError(f"Kinova's command layer: InitAPI returned {describe(code)}")
+    return api
+
+
+def high_level_angles(api, n_joints: int) -> np.ndarray:
+    """The joint angles (physical degrees) through the high-level API, before RS-485 is activated: one
+    GetAngularPosition. Once only: one that fails takes a machine-wide semaphore of Kinova's
+    (``/dev/shm/sem.KinovaMutex``) and never gives it back (docs/kinova-usb-wire.md)."""
+    position = AngularPosition()
+    code = api.GetAngularPosition(ctypes.byref(position))
+    if code != OK:
+        raise ArmStartError(f"Kinova's command layer: GetAngularPosition returned {describe(code)} (an arm whose "
+                            "RS-485 bus was activated answers no high-level call until it is power-cycled)")
+    actuators = position.Actuators
+    return np.array([getattr(actuators, f"Actuator{i + 1}") for i in range(n_joints)], dtype=float)
+
+
 def open_kinova_usb(comm_layer: Path, arm_name: str, n_joints: int, counters: Counters | None = None,
-                    logger: logging.Logger = log, emulated_only: bool = False) -> KinovaUsbBus:
+                    logger: logging.Logger = log, emulated_only: bool = False,
+                    command_layer: Optional[Path] = None) -> KinovaUsbBus:
     """The arm's RS-485 bus through the comm layer at ``comm_layer``, activated: InitCommunication (1, else one
     line naming the code), exactly one Kinova device (activation goes to the first one listed), its model the
     configured arm's (:func:`protocol.kinova.arm_type_refusal`), then OpenRS485_Activate and the base read until
     it has nothing queued. ``emulated_only`` (lockstep, which exchanges as fast as the arm answers): refused, before
     activation, unless the arm is robot_sim's emulated base (``protocol.kinova.EMULATED_SERIAL``), a real one keeping
-    wall time. Raises :class:`ArmStartError` (one line a person can act on), the library closed."""
-    comm = CommLayer.load(comm_layer)
-    code = comm.init()
-    if code != OK:
-        comm.close()
-        hint = " (is the arm on, its USB cable in, the udev rule installed?)" \
-            if code == kinova.ErrorCode.ERROR_NO_DEVICE_FOUND else ""
-        raise ArmStartError(f"Kinova's comm layer: InitCommunication returned {describe(code)}{hint}")
+    wall time. ``command_layer``: Kinova's command layer, to read the joint angles through the high-level API first
+    (:func:`init_api` initialises the comm layer itself; :func:`high_level_angles` after the device checks). Raises :class:`ArmStartError` (one line
+    a person can act on), the library closed."""
+    api = None
+    if command_layer is not None:
+        api = init_api(command_layer)
+        comm = CommLayer.load(comm_layer)  # the object InitAPI loaded, initialised
+    else:
+        comm = CommLayer.load(comm_layer)
+        code = comm.init()
+        if code != OK:
+            comm.close()
+            hint = " (is the arm on, its USB cable in, the udev rule installed?)" \
+                if code == kinova.ErrorCode.ERROR_NO_DEVICE_FOUND else ""
+            raise ArmStartError(f"Kinova's comm layer: InitCommunication returned {describe(code)}{hint}")
     try:
         arms = devices(comm)
         if len(arms) != 1:
@@ -299,9 +354,10 @@ def open_kinova_usb(comm_layer: Path, arm_name: str, n_joints: int, counters: Co
         if emulated_only and serial != kinova.EMULATED_SERIAL:
             raise ArmStartError(f"lockstep needs robot_sim's emulated actuators; arm {serial} keeps wall time: run it "
                                 "in realtime")
+        high_level_deg = None if api is None else high_level_angles(api, n_joints)
         logger.warning("activating the RS-485 bus of arm %s (%s): its joystick and Kinova's high-level API stop "
                        "working until the arm is power-cycled", serial, model)
-        bus = KinovaUsbBus(comm, counters, arm)
+        bus = KinovaUsbBus(comm, counters, arm, high_level_deg)
         code = bus._call("activate", comm.activate)
         if code != OK:
             raise ArmStartError(f"Kinova's comm layer: {comm.spelling}Activate returned {describe(code)}")

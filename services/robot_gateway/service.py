@@ -21,9 +21,11 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal, Optional
 
 import msgspec
+import numpy as np
 
 from protocol import rs485 as r
 from protocol.conventions import LOCKSTEP_EPOCH_NS, ClockMode
@@ -35,7 +37,7 @@ from services.robot.node import RobotNode, RobotNodeConfig
 from services.model.arm import load_arm
 from services.robot_gateway.kinova_sdk import (ArmSession, ArmStartError, KinovaSdk, SdkArm, SdkError,
                                                SdkEthernetConfig, open_arm)
-from services.robot_gateway.kinova_usb import KinovaUsbBus, locate_comm_layer, open_kinova_usb
+from services.robot_gateway.kinova_usb import COMMAND_LAYER, KinovaUsbBus, locate_comm_layer, open_kinova_usb
 from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
 
 #: ``bus.interface`` for a real arm's actuator bus through Kinova's USB comm layer (services.robot_gateway.kinova_usb)
@@ -60,6 +62,11 @@ class GatewayConfig(RobotNodeConfig):
     #: the serial number of the arm to drive (null: the only one connected)
     sdk_serial: Optional[str] = None
     sdk_transport: Literal["usb", "ethernet"] = "usb"
+    #: bus.interface kinova_usb: before activation, read the joint angles through Kinova's high-level API (its
+    #: command layer, beside the comm layer) and refuse to start when the first RS-485 positions differ from them
+    #: by more than this (deg): a position read from the wrong field or the wrong actuator is never acted on.
+    #: null: no check (an emulated arm behind a comm layer with no command layer)
+    high_level_check_deg: Optional[float] = 3.0
     sdk_ethernet: SdkEthernetConfig = msgspec.field(default_factory=SdkEthernetConfig)
 
     def __post_init__(self) -> None:
@@ -303,16 +310,67 @@ class SdkGatewayService(RobotNode):
             self._bus_faults = [f"sdk: {exc}"[:120]]
 
 
+def high_level_disagreement(measured_deg, expected_deg, tolerance_deg: float) -> str:
+    """The joints whose RS-485 position differs from the high-level reading by more than ``tolerance_deg``
+    (differences taken around the circle: continuous joints report any turn), as text; empty when none does."""
+    difference = (np.asarray(measured_deg) - np.asarray(expected_deg) + 180.0) % 360.0 - 180.0
+    return ", ".join(f"joint {i + 1}: {m:.2f}° on RS-485, {e:.2f}° before"
+                     for i, (m, e, d) in enumerate(zip(measured_deg, expected_deg, difference))
+                     if not abs(d) <= tolerance_deg)
+
+
 def open_bus(config: GatewayConfig, counters=None, log: Optional[logging.Logger] = None):
     """The actuators' bus the config names: through Kinova's USB comm layer (``kinova_usb``: a real arm, or
     robot_sim's emulated base), else a python-can interface (the emulation's CAN stand-in)."""
     if config.bus.interface != KINOVA_USB:
         return RS485Bus(config.bus, counters)
     arm = load_arm(config.arm)
+    comm_layer = locate_comm_layer(config.sdk_library)
     # lockstep exchanges as fast as the arm answers: only robot_sim's emulated base steps once per exchange
-    return open_kinova_usb(locate_comm_layer(config.sdk_library), arm.name, arm.n_joints, counters,
-                           log or logging.getLogger("mfvs.robot_gateway"),
-                           emulated_only=ClockMode(config.clock) is ClockMode.LOCKSTEP)
+    bus = open_kinova_usb(comm_layer, arm.name, arm.n_joints, counters, log or logging.getLogger("mfvs.robot_gateway"),
+                          emulated_only=ClockMode(config.clock) is ClockMode.LOCKSTEP,
+                          command_layer=high_level_api(config, comm_layer))
+    try:
+        check_first_positions(bus, config)
+    except BaseException:
+        bus.close()
+        raise
+    return bus
+
+
+def check_first_positions(bus: KinovaUsbBus, config: GatewayConfig) -> None:
+    """The first RS-485 positions (0x01 → 0x02) against the angles Kinova's high-level API read just before
+    activation (where it did): beyond ``high_level_check_deg`` on any joint, :class:`ArmStartError` naming them. The
+    arm is asked until it answers, for ``connect_timeout_s`` at most."""
+    if bus.high_level_deg is None:
+        return
+    link = ActuatorLink(bus, config.bus_addresses(), config.link_timeout_s, bus.counters)
+    deadline = time.monotonic() + config.connect_timeout_s
+    while True:
+        try:
+            measured = link.positions_deg()
+            break
+        except LinkError as exc:
+            if time.monotonic() > deadline:
+                raise ArmStartError(f"the actuators do not answer on RS-485: {exc}") from None
+            time.sleep(0.1)
+    off = high_level_disagreement(measured, bus.high_level_deg, config.high_level_check_deg)
+    if off:
+        raise ArmStartError(f"the first RS-485 positions disagree with GetAngularPosition read before activation "
+                            f"({off}; tolerance {config.high_level_check_deg}°): refusing to drive the arm")
+
+
+def high_level_api(config: GatewayConfig, comm_layer: Path) -> Optional[Path]:
+    """Kinova's command layer beside the comm layer, for the check of the first RS-485 positions (None: the check
+    is off); missing while the check is on: :class:`ArmStartError` saying so."""
+    if config.high_level_check_deg is None:
+        return None
+    command_layer = comm_layer.parent / COMMAND_LAYER
+    if not command_layer.is_file():
+        raise ArmStartError(f"no {command_layer.name} beside {comm_layer}: the first RS-485 positions are checked "
+                            "against Kinova's high-level API before the arm is driven (high_level_check_deg: null "
+                            "turns the check off, for an emulated arm only)")
+    return command_layer
 
 
 def robot_gateway_service(config: GatewayConfig | None = None, **kw) -> Service:

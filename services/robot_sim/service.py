@@ -323,7 +323,14 @@ class ArmOnBusService(Service):
         cfg = self.config
         if cfg.bus.interface != usb_base.INTERFACE:
             return RS485Bus(cfg.bus, self.counters)
-        return usb_base.UsbBaseBus(cfg.bus.channel, model=self.arm.name, counters=self.counters)
+        firmware = self.sim.firmware
+
+        def angles() -> list[float]:  # what Kinova's high-level API reads before RS-485 is activated (no fingers)
+            joints = [firmware.position_deg(i) for i in range(self.arm.n_joints)]
+            return joints + [0.0] * (usb_base.ANGULAR_ACTUATORS - len(joints) + usb_base.ANGULAR_FINGERS)
+
+        return usb_base.UsbBaseBus(cfg.bus.channel, model=self.arm.name, counters=self.counters,
+                                   device_type=self.arm.robot_type, angular_position=angles)
 
     def _on_boundary(self, sim_time_ns: int) -> None:
         self.rates.tick("bus_cycle")

@@ -82,12 +82,15 @@ def usb_env(fake_libusb: Path, usb_dir: Path, devices: int = 1) -> dict:
 
 
 def gateway_command(comm: Path, endpoint: str = "tcp/127.0.0.1:1", *settings: str) -> list[str]:
+    """robot_gateway on ``kinova_usb`` with the comm layer ``comm``: with Kinova's, the first RS-485 positions are
+    checked against its high-level API (its command layer beside it); the stand-in has none, so no check."""
+    check = [] if (comm.parent / "USBCommandLayerUbuntu.so").is_file() else ["--set", "high_level_check_deg=null"]
     return [sys.executable, "-m", "services.robot_gateway", "--connect", endpoint, "--set", "bus.interface=kinova_usb",
-            "--set", f"sdk_library={comm.parent}", "--set", "connect_timeout_s=5", *settings]
+            "--set", f"sdk_library={comm.parent}", "--set", "connect_timeout_s=5", *check, *settings]
 
 
 @pytest.mark.parametrize("devices, says", [
-    (0, "InitCommunication returned 1015 (ERROR_NO_DEVICE_FOUND)"),
+    (0, "returned 1015 (ERROR_NO_DEVICE_FOUND)"),
     (2, "2 Kinova devices are connected"),
 ])
 def test_without_exactly_one_arm_the_gateway_exits_2_with_one_line_and_never_reaches_the_bus(
@@ -299,3 +302,69 @@ def _wire(log: Path) -> list[str]:
                 line = f"{head}data={packet[:9].hex()}"
         lines.append(line)
     return lines
+
+
+DISAGREEING_BASE = """
+import sys, time
+import numpy as np
+from protocol import rs485
+from services.model.arm import load_arm
+from services.robot_sim.usb_base import ANGULAR_FINGERS, UsbBase, UsbBaseServer
+from protocol.kinova import EMULATED_SERIAL
+
+arm = load_arm("j2s7s300")
+high_level = arm.home_deg.copy()
+on_the_bus = high_level.copy()
+on_the_bus[2] += float(sys.argv[2])  # joint 3 somewhere else on RS-485
+
+def answer(records):  # each 0x01 answered with a 0x02: [current, position, velocity, torque]
+    asked = records[records["command"] == rs485.Command.GET_ACTUAL_POSITION]
+    replies = rs485.records(len(asked))
+    replies["command"], replies["source"] = rs485.Command.SEND_ACTUAL_POSITION, asked["destination"]
+    joints = [arm.bus_addresses.index(a) for a in asked["destination"].tolist()]
+    replies["data"][:, rs485.POSITION_FLOAT] = on_the_bus[joints]
+    replies["data"][:, rs485.CURRENT_FLOAT] = 0.8
+    server.deliver(replies)
+
+base = UsbBase(answer, serial=EMULATED_SERIAL, model=arm.name, device_type=arm.robot_type,
+               angular_position=list(high_level) + [0.0] * ANGULAR_FINGERS)
+server = UsbBaseServer(sys.argv[1], [base], in_wait_s=0.005).start()
+print("serving", flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize("offset_deg, refused", [(10.0, True), (0.5, False)])
+def test_the_first_rs485_positions_are_checked_against_the_high_level_reading(comm_layer_with_api, fake_libusb,
+                                                                             usb_dir, offset_deg, refused):
+    """Kinova's high-level API reads the joints before activation (GetAngularPosition through the command layer,
+    over the same emulated base); the gateway refuses to drive an arm whose first RS-485 positions (0x02's
+    float[1]) differ from that by more than high_level_check_deg (3°): a position read from the wrong field or the
+    wrong actuator is never acted on. Within it the start goes on (here to the router, which is not there)."""
+    base = subprocess.Popen([sys.executable, "-c", DISAGREEING_BASE, str(usb_dir / "usb.sock"), str(offset_deg)],
+                            cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert base.stdout.readline().strip() == "serving"
+        done = subprocess.run(gateway_command(comm_layer_with_api, "tcp/127.0.0.1:1"), env=usb_env(fake_libusb, usb_dir),
+                              cwd=REPO, capture_output=True, text=True, timeout=120)
+    finally:
+        base.kill()
+        base.wait()
+    says = "disagree with GetAngularPosition read before activation (joint 3:"
+    assert (says in done.stderr) == refused, done.stderr[-2000:]
+    if not refused:
+        assert "activating the RS-485 bus" in done.stderr
+
+
+def test_positions_around_the_circle_agree():
+    from services.robot_gateway.service import high_level_disagreement
+
+    assert high_level_disagreement([359.5, 10.0], [0.5, 10.0], 3.0) == ""
+    assert high_level_disagreement([90.0, 10.0], [0.8, 10.0], 3.0).startswith("joint 1: 90.00° on RS-485")
+    assert high_level_disagreement([float("nan")], [0.0], 3.0) != ""
+
+
+@pytest.fixture
+def comm_layer_with_api() -> Path:
+    """Kinova's comm layer with its command layer beside it (skipped where the SDK is not here)."""
+    return _comm_layer()
