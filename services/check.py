@@ -25,7 +25,7 @@ CHECK_TIMEOUT_S = 900.0
 def add_parser(sub, add_connection_options, operator_session) -> None:
     """``operator_session(args)``: a session to the stack's router as the operator (the command line's own)."""
     check = sub.add_parser("check", help="commissioning checks: `mfvs check arm` compares the arm with its "
-                                         "description")
+                                         "description, `mfvs check rs485` a real arm's actuator bus")
     what = check.add_subparsers(dest="what", metavar="WHAT", required=True, parser_class=type(check))
     arm = what.add_parser("arm", help="move each joint a few degrees and back; compare the arm's own Cartesian "
                                       "report with the arm description (joint directions, zeros, end-effector "
@@ -44,6 +44,59 @@ def add_parser(sub, add_connection_options, operator_session) -> None:
     arm.add_argument("--json", action="store_true", help="print one JSON object")
     add_connection_options(arm)
     arm.set_defaults(func=_cmd_check_arm, operator_session=operator_session)
+    _add_rs485_parser(what)
+
+
+def _add_rs485_parser(what) -> None:
+    rs485 = what.add_parser("rs485", help="a real arm's actuator bus through Kinova's USB comm layer, the first hour "
+                                          "on hardware: per-call latency, empty reads, the replies and layouts of "
+                                          "0x02/0x15/0x16/0x17 against Kinova's high-level reading; a report to "
+                                          "send back (nothing moves unless --torque-joint N --yes)")
+    rs485.add_argument("--arm", default=DEFAULT_ARM, metavar="NAME", help="the arm connected (default j2s7s300)")
+    rs485.add_argument("--sdk", default=None, metavar="DIR",
+                       help="Kinova's SDK: the folder of USBCommLayerUbuntu.so (default $MFVS_KINOVA_SDK)")
+    rs485.add_argument("--torque-joint", type=int, default=None, metavar="N",
+                       help="also the torque handshake on joint N alone (a wrist joint; hold or support the arm)")
+    rs485.add_argument("--yes", action="store_true", help="with --torque-joint: the arm is supported and may move")
+    rs485.add_argument("--out", default=None, metavar="FILE.md", help="write the report there (default: print it)")
+    rs485.add_argument("--json", action="store_true", help="print one JSON object")
+    rs485.set_defaults(func=_cmd_check_rs485)
+
+
+def _cmd_check_rs485(args) -> int:
+    """Exit 0: every step agrees; 1: one differs or got no reply; 2: the bus could not be opened."""
+    from services.model.arm import ArmError, load_arm
+    from services.robot_gateway.kinova_sdk import ArmStartError, put_sdk_on_loader_path
+    from services.robot_gateway.kinova_usb import COMMAND_LAYER, locate_comm_layer
+    from services.robot_gateway.rs485_check import report_markdown, run_check
+
+    try:
+        arm = load_arm(check_arm_name(args.arm))
+        if args.torque_joint is not None and not 1 <= args.torque_joint <= arm.n_joints:
+            raise ValueError(f"--torque-joint: 1 to {arm.n_joints} on the {arm.name}")
+        comm_layer = locate_comm_layer(args.sdk)
+        command_layer = comm_layer.parent / COMMAND_LAYER
+        if command_layer.is_file():
+            put_sdk_on_loader_path(command_layer, "usb")  # the command layer loads the comm layer by name
+        else:
+            command_layer = None
+        device, steps = run_check(arm, comm_layer, command_layer, args.torque_joint, args.yes)
+    except (ArmStartError, ArmError, ValueError) as exc:
+        print(f"mfvs check rs485: {exc}", file=sys.stderr)
+        return 2
+    report = report_markdown(device, steps)
+    if args.out:
+        with open(args.out, "w") as out:
+            out.write(report)
+    if args.json:
+        print(json.dumps({"device": device, "steps": [vars(step) for step in steps]}))
+    elif not args.out:
+        print(report)
+    else:
+        for step in steps:
+            print(f"{step.name}: {step.verdict}: {step.detail}")
+        print(f"report: {args.out}")
+    return 0 if all(step.verdict in ("agrees", "not run") for step in steps) else 1
 
 
 def robot_declared_arm(session, keys: Keys, timeout_s: float = 2.0) -> Optional[str]:
