@@ -340,7 +340,7 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot, router):
     options = computed_torque_options_for_the_emulated_arm(
         tf_s=2.0, joint_displacement_deg=[10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
     service = TorqueControllerService(TorqueControllerConfig(
-        controller="computed-torque", options=options, duration_s=2.3, realtime_priority=0,
+        controller="computed-torque", options=options, duration_s=2.3,
         zenoh=router.client_config())).start()
     try:
         assert wait_for(lambda: service.run_ is not None and service.run_.start is not None, timeout=15)
