@@ -438,6 +438,18 @@ def parse_switch_mode_reply(message: RS485Message) -> ControlModeReply:
         raise RS485Error(f"unknown switch-mode reply value {message.uints[0]}") from None
 
 
+def ack(command: Command, source: int, destination: int = HOST_ADDRESS) -> RS485Message:
+    """0x3F acknowledging ``command`` (uint32[0], where drake-jaco-driver reads "the command code in ACK")."""
+    return RS485Message.with_uints(Command.ACK, source, destination, [int(command)])
+
+
+def torque_config_safety(max_torque_nm: float, destination: int, source: int = HOST_ADDRESS) -> RS485Message:
+    """0x208, the torque safety configuration as abr/abr_jaco2 sends it before torque mode: float[0] the most torque
+    the actuator may give (N·m), float[1] the fraction of its top speed past which it reports an error (1: off)."""
+    _finite(max_torque_nm)
+    return RS485Message.with_floats(Command.TORQUE_CONFIG_SAFETY, source, destination, [max_torque_nm, 1.0])
+
+
 def report_error(error: ActuatorError, source: int, destination: int = HOST_ADDRESS) -> RS485Message:
     return RS485Message.with_uints(Command.REPORT_ERROR, source, destination, [0, int(error)])
 

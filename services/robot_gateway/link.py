@@ -242,6 +242,16 @@ class ActuatorLink:
             return False
         return len(np.unique(joints * 3 + kinds)) == 3 * n
 
+    def configure_torque_limits(self, max_torques_nm) -> None:
+        """0x208 to every actuator, the most torque it may give in torque mode, each acknowledged (abr/abr_jaco2
+        sends the arm's maximum torques and waits for every ACK before torque mode)."""
+        self._request(r.to_records(r.torque_config_safety(float(limit), address)
+                                   for address, limit in zip(self.addresses, max_torques_nm, strict=True)))
+        replies = r.from_records(self._collect({(a, r.Command.ACK): 1 for a in self.addresses}))
+        wrong = [f"0x{m.source:02X}" for m in replies if m.uints[0] != r.Command.TORQUE_CONFIG_SAFETY]
+        if wrong:
+            raise LinkError(f"the torque limits were not acknowledged by {', '.join(wrong)}")
+
     def switch_to_torque(self, expected_torques_nm) -> None:
         """The torque-mode handshake for every actuator: validation of the expected torques, then the switch."""
         self._request(r.to_records(
@@ -372,6 +382,7 @@ class LinkHardware:
     def enter_torque_mode(self, expected_torques: np.ndarray) -> None:
         self._settle()
         try:
+            self.link.configure_torque_limits(self.arm.max_torque)  # the description's (kinova.md: 40/80/40/20/...)
             self.link.switch_to_torque(self.arm.sign * np.asarray(expected_torques, dtype=float))
         except LinkError as exc:
             raise HardwareError(str(exc)) from exc

@@ -10,8 +10,8 @@ relies on (docs/robot.md, docs/rs485-sources.md):
    once the 0x02 positions agreed with the high-level reading: the replies each actuator sends (0x15, 0x16, 0x17,
    anything else), and their layouts against that position (0x15 float[1], 0x16 float[1] and its temperature,
    0x17 float[1]);
-5. asked for only (``--torque-joint N --yes``, the arm supported): the torque handshake on that joint alone, 0x201
-   validation with the model's gravity torque, 0x203 to torque mode, 0.2 s of torque commands carrying the model's
+5. asked for only (``--torque-joint N --yes``, the arm supported): the torque handshake on that joint alone, 0x208
+   with the description's torque limit (acknowledged), 0x201 validation with the model's gravity torque, 0x203 to torque mode, 0.2 s of torque commands carrying the model's
    gravity, 0x203 back; the 0x202 and 0x204 replies and how far the joint moved.
 
 Nothing moves unless step 5 is asked for. Each step's verdict is ``agrees``, ``differs`` or ``no reply``; the
@@ -195,6 +195,11 @@ def torque_handshake(bus: KinovaUsbBus, arm: ArmDescription, joint: int, positio
         found = [m for m in r.from_records(replies) if m.command is reply and m.source == address]
         return found[0] if found else None
 
+    limit = ask(r.torque_config_safety(float(arm.max_torque[joint - 1]), address), r.Command.ACK)
+    figures["0x208 ack"] = None if limit is None else limit.uints[0]
+    if limit is None or limit.uints[0] != r.Command.TORQUE_CONFIG_SAFETY:
+        return Step("torque handshake", "no reply" if limit is None else "differs",
+                    "the torque limit (0x208) was not acknowledged: torque mode not asked for", figures)
     validation = ask(r.RS485Message.with_floats(r.Command.GET_TORQUE_VALIDATION_REQUEST, r.HOST_ADDRESS, address,
                                                 [expected]), r.Command.SEND_TORQUE_VALIDATION)
     figures["0x202"] = None if validation is None else validation.uints[0]

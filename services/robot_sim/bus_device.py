@@ -20,7 +20,12 @@ it the frames and sends what it returns, and decides when cycles end (:mod:`serv
   ``SEND_TORQUE_VALIDATION`` (0x202), uint32[0] = 1 when it matches the measured torque within tolerance.
 * ``SWITCH_CONTROL_MODE_REQUEST`` (0x203), uint32[0] = 0 position / 1 torque → ``SWITCH_CONTROL_MODE_REPLY``
   (0x204): 1 position OK, 257 torque OK, 0 refused.
-* ``CLEAR_FAULT_FLAG`` (0x33), ``START_SERVO``/``STOP_SERVO`` → ``ACK`` (0x3F); other commands → ``NACK``.
+* ``TORQUE_CONFIG_SAFETY`` (0x208), float[0] = the most torque the actuator is to give in torque mode (N·m; float[1]
+  the speed fraction, 1 = off, not emulated) → ``ACK``, as abr/abr_jaco2 waits for; a limit that is not positive or
+  beyond what the actuator gives → ``NACK``. The other torque configuration messages (0x209-0x215), the gains
+  (0x24/0x25) and 0x200 are not emulated (``NACK``).
+* ``CLEAR_FAULT_FLAG`` (0x33), ``START_SERVO``/``STOP_SERVO`` → ``ACK`` (0x3F), uint32[0] the command acknowledged
+  (drake-jaco-driver reads it there); other commands → ``NACK``.
 * Faults are reported with ``REPORT_ERROR`` (0x30) once (the firmware latches them).
 * Torque mode adds no gravity compensation: driven over RS-485 the base's DSP is bypassed (kinova.md), and the
   host sends the arm's gravity with its torques (as abr/abr_jaco2 does), whatever ``actuators.gravity_compensation``
@@ -134,9 +139,12 @@ class ActuatorBusDevice:
             return [r.switch_mode_reply(firmware.switch_mode(i, message.uints[0]), address)]
         if command is r.Command.CLEAR_FAULT_FLAG:
             firmware.clear_fault(i)
-            return [r.RS485Message(r.Command.ACK, address, r.HOST_ADDRESS)]
+            return [r.ack(command, address)]
         if command in (r.Command.START_SERVO, r.Command.STOP_SERVO):
-            return [r.RS485Message(r.Command.ACK, address, r.HOST_ADDRESS)]
+            return [r.ack(command, address)]
+        if command is r.Command.TORQUE_CONFIG_SAFETY:
+            if firmware.configure_torque_limit(i, message.floats[0]):
+                return [r.ack(command, address)]
         self.counters.inc("bus.unsupported")
         return [r.RS485Message(r.Command.NACK, address, r.HOST_ADDRESS)]
 

@@ -89,6 +89,8 @@ def check_actuators(config: ActuatorConfig, arm: ArmDescription) -> None:
 
 # the modes and errors as plain ints, for the arrays (an IntEnum's members are slow to look up in a hot path)
 POSITION, TORQUE = int(r.ControlModeRequest.POSITION), int(r.ControlModeRequest.TORQUE)
+#: a value that crossed the bus as float32 may exceed its float64 original by this factor (2^-24 relative)
+FLOAT32_MARGIN = 1.0 + 2.0 ** -23
 NO_FAULT = int(r.ActuatorError.NONE)
 #: a steady temperature: an emulation constant for the reported temperature (nothing in the simulation heats up)
 ACTUATOR_TEMPERATURE_C = 35.0
@@ -164,6 +166,9 @@ class ActuatorFirmware:
         self.counters = counters or Counters()
         n = self.n = arm.n_joints
         self.torque_limit = model.actuator_ctrlrange[: self.n, 1].copy()
+        #: the torque each actuator gives at most in torque mode, as its host configured it (0x208, the torque
+        #: safety configuration: abr/abr_jaco2 sends the arm's maximum torques); at most ``torque_limit``
+        self.configured_torque_limit = self.torque_limit.copy()
         specs = [j.spec for j in arm.joints]
         #: the motors' torque-speed line (the data sheets' stall torque falling to 0 at the no-load speed): the most
         #: torque each actuator gives in the direction it turns, besides its peak (software limitation)
@@ -339,6 +344,15 @@ class ActuatorFirmware:
         self.counters.inc("mode_switch_refused")
         return r.ControlModeReply.REFUSED
 
+    def configure_torque_limit(self, i: int, limit_nm: float) -> bool:
+        """0x208: the most torque actuator ``i`` gives in torque mode (N·m); refused (False) unless positive, finite
+        and within what the actuator can give."""
+        if not (np.isfinite(limit_nm) and 0.0 < limit_nm <= self.torque_limit[i] * FLOAT32_MARGIN):
+            self.counters.inc("torque_config_refused")
+            return False
+        self.configured_torque_limit[i] = min(limit_nm, self.torque_limit[i])
+        return True
+
     def clear_fault(self, i: int) -> None:
         self._version += 1
         self.fault_code[i] = NO_FAULT
@@ -422,7 +436,8 @@ class ActuatorFirmware:
             report[off] = r.ActuatorError.RELATIVE_POSITION
         accepted = taking & ~off
         asked = self.pending_torque_nm[accepted]
-        torque = _clip(asked, -self.torque_limit[accepted], self.torque_limit[accepted])
+        limit = self.configured_torque_limit[accepted]
+        torque = _clip(asked, -limit, limit)
         clamped = np.zeros(self.n, dtype=bool)
         clamped[accepted] = torque != asked
         first_clamp = clamped & ~self.torque_reported

@@ -51,7 +51,8 @@ def test_every_step_agrees_on_robot_sims_emulated_base_and_the_report_is_written
     assert all(kinds == {"SEND_ALL_VALUES_1": 1, "SEND_ALL_VALUES_2": 1, "SEND_ALL_VALUES_3": 1}
                for kinds in replies.values())
     handshake = steps["torque handshake"]["figures"]
-    assert (handshake["0x202"], handshake["0x204 torque"], handshake["0x204 position"]) == (1, 257, 1)
+    assert (handshake["0x208 ack"], handshake["0x202"], handshake["0x204 torque"], handshake["0x204 position"]) == (
+        0x208, 1, 257, 1)
     assert abs(handshake["moved_deg"]) < 1.0
     report = (usb_dir / "report.md").read_text()
     assert "| 0x14 replies | agrees |" in report and "| serial | MFVS-EMULATED |" in report

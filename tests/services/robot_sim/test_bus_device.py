@@ -350,3 +350,19 @@ def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
         host.close()
         device_bus.close()
         sim.close()
+
+
+def test_the_torque_safety_configuration_is_acknowledged_and_limits_the_torque(rig):
+    """0x208 as abr/abr_jaco2 sends it before torque mode: float[0] the most torque the actuator may give, ACKed
+    (uint32[0] the command acknowledged); a torque command beyond it is clamped to it and reported once; a limit
+    beyond what the actuator can give is refused (NACK)."""
+    rig.cycle(50)
+    (ack,) = rig.request(r.torque_config_safety(5.0, 0x12))
+    assert ack.command is r.Command.ACK and ack.uints[0] == r.Command.TORQUE_CONFIG_SAFETY
+    torque_mode(rig)
+    position = float(ARM.model_to_physical_deg(rig.sim.q)[2])
+    replies = rig.request(r.PositionTorqueCommand(position, 30.0, mode=1).to_message(0x12))
+    assert [r.parse_report_error(m) for m in replies if m.command is r.Command.REPORT_ERROR] == [r.ActuatorError.TORQUE]
+    assert rig.firmware.by_address[0x12].torque_nm == pytest.approx(5.0)
+    (refused,) = rig.request(r.torque_config_safety(10 * float(ARM.max_torque[2]), 0x12))
+    assert refused.command is r.Command.NACK
