@@ -136,9 +136,16 @@ class RobotGatewayService(RobotNode):
         return LOCKSTEP_EPOCH_NS
 
     def arm_summary(self) -> str:
+        """The arm, its actuators, and how the bus is reached: the interface, its cycle, and on Kinova's comm layer
+        how long its calls take (what `mfvs status` shows of a real arm's bus)."""
         addresses = self.config.bus_addresses()
-        return (f"arm {self.arm.name}: {len(addresses)} actuators on the bus "
-                f"({', '.join(f'0x{a:02X}' for a in addresses)})")
+        summary = (f"arm {self.arm.name}: {len(addresses)} actuators on the bus "
+                   f"({', '.join(f'0x{a:02X}' for a in addresses)}) over {self.config.bus.interface}, a "
+                   f"{self.cycle_s * 1e3:g} ms cycle")
+        call_times = getattr(self.bus, "call_times", {})
+        figures = [f"{name} {stats['p50_ms']:.2f}/{stats['max_ms']:.2f}"
+                   for name, stats in ((n, d.stats()) for n, d in call_times.items() if n != "activate") if stats["n"]]
+        return summary + (f" (calls p50/max ms: {', '.join(figures)})" if figures else "")
 
     def _connect(self, hardware: LinkHardware) -> JointReading:
         """The actuators' first answer, waiting up to ``connect_timeout_s`` for them; the start fails after."""

@@ -172,6 +172,11 @@ def test_the_gateway_drives_robot_sims_arm_through_kinovas_comm_layer(comm, fake
             stream_joint_velocity(client, rates, seconds=1.0)
             moved = np.array(states.last().q) - q0
             assert moved[0] > 0.05 and np.abs(moved[1:]).max() < 0.01, moved
+            # what `mfvs status` shows of the bus: the interface, its cycle, the library's call times; its counters
+            health = [m.decode(reply.ok.payload.to_bytes(), m.ServiceHealth)
+                      for reply in client.get(KEYS.health("robot_gateway"), timeout=5.0) if reply.ok is not None]
+            assert health and "over kinova_usb, a 2 ms cycle (calls p50/max ms: write " in health[0].detail, health
+            assert health[0].errors.get("usb.messages_sent", 0) > 1000, health[0].errors
             states.close()
             client.close()
             shutil.copy(usb_dir / "gateway.log", "/tmp/last-kinova-usb-gateway.log")
