@@ -11,7 +11,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from protocol.keys import Keys
 from services.runtime.transport import ZenohConfig, open_session
-from services.robot.pacing import request_realtime
+from services.runtime.pacing import request_realtime
 
 
 def main(argv=None) -> int:

@@ -29,7 +29,7 @@ from bench.stack import profile_on_arm, servoing_stack, unknown_arm
 from services.cli import add_arm_option
 from services.launcher import read_stack
 from services.model.arm import DEFAULT_ARM
-from services.robot.pacing import normal_priority, request_realtime
+from services.runtime.pacing import normal_priority, request_realtime
 
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 #: the reader's SCHED_FIFO priority, above every loop of a stack (robot loops 40-45)

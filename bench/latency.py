@@ -26,7 +26,7 @@ from bench.stack import measured_arm, profile_on_arm, servoing_stack, unknown_ar
 from services.cli import add_arm_option
 from services.launcher import load_profile
 from services.model.arm import DEFAULT_ARM
-from services.robot.node import ROBOT_SERVICES
+from protocol.keys import ROBOT_SERVICES
 
 
 def stats(values_ms: list[float]) -> dict:

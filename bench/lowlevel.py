@@ -41,7 +41,7 @@ from services.cli import add_arm_option
 from services.controller.torque_laws import DynamicsModel
 from services.model.arm import DEFAULT_ARM, ArmDescription, load_arm
 from services.robot.hardware import CYCLE_NS, CYCLE_S
-from services.robot.pacing import normal_priority, request_realtime
+from services.runtime.pacing import normal_priority, request_realtime
 from services.robot_sim.service import RobotSimConfig
 from services.runtime.service import query_health
 from services.runtime.transport import GuardedPublisher, open_session

@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 
 from protocol import messages as m
-from services.runtime.config import PoseConfig
+from services.model.frames import PoseConfig
 from services.model import tag as tags
 from services.robot_sim.imaging import ImagingConfig, expose, motion_blur, target_corners_px
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, camera_info

@@ -9,6 +9,10 @@ from dataclasses import dataclass
 
 ROOT = "mfvs"
 
+#: the services that are a robot node (the last hop of every applied command's trace; the robot's keys are theirs):
+#: robot_sim's api mode on the simulated arm, robot_gateway in front of the emulated bus or a real arm
+ROBOT_SERVICES = ("robot_sim", "robot_gateway")
+
 # A robot id is one key chunk: no '/', no wildcards or zenoh's reserved characters.
 _ROBOT_ID = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
 _CHUNK = _ROBOT_ID

@@ -23,7 +23,7 @@ def _version() -> str:
 def _cmd_router(args: argparse.Namespace) -> int:
     from services.runtime.transport import Router
 
-    from services.robot.pacing import request_realtime
+    from services.runtime.pacing import request_realtime
     from services.runtime import iteration_profile
     from services.runtime.threads import wait_until_set
 
@@ -57,7 +57,7 @@ def _cmd_bus_hub(args: argparse.Namespace) -> int:
     from services.tools.can_hub import CanHub
     from services.runtime.logs import setup_logging
 
-    from services.robot.pacing import request_realtime
+    from services.runtime.pacing import request_realtime
 
     setup_logging("info")
     hub = CanHub(port=args.port, host=args.host)
@@ -223,7 +223,7 @@ def _cmd_task(args: argparse.Namespace) -> int:
     from protocol import messages as m
     from protocol.keys import Keys
     from services.controller.task_client import TaskUnavailable, call_task
-    from services.launcher import describe_task
+    from services.controller.task_client import describe_task
 
     try:
         session = _operator_session(args)
@@ -576,7 +576,7 @@ def _cmd_restart(args: argparse.Namespace) -> int:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
-    from services.robot.node import ROBOT_SERVICES
+    from protocol.keys import ROBOT_SERVICES
 
     from services.launcher import read_stack, status_json
 

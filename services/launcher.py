@@ -389,12 +389,6 @@ def stack_task(function: str, operator: str = "mfvs", reason: str = "", timeout_
         session.close()
 
 
-def describe_task(status: m.TaskStatus) -> str:
-    """The controller's answer to a task request in a sentence (`mfvs task`, the console)."""
-    by = f", by {status.by}" + (f": {status.reason}" if status.reason else "") if status.by else ""
-    return f"task {status.state.value} (task {status.task}{by}){': ' + status.message if status.message else ''}"
-
-
 def down(timeout_s: float = 15.0) -> tuple[int, str]:
     stack = read_stack()
     if stack is None:

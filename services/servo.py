@@ -25,7 +25,7 @@ from protocol.keys import Keys
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.runtime.config import ConfigError, ConfigStruct, load_config
 from services.model.kinematics import ArmKinematics, manipulability
-from services.robot.zones import nearest_zone
+from services.model.zones import nearest_zone
 from services.runtime.service import query_health
 from services.controller.law import Gains, LawConfig
 from services.controller.laws import JOINT_LAWS, LAW_NAMES
@@ -33,7 +33,7 @@ from services.controller.service import ControllerConfig
 from services.controller.task_client import start_task
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, check_joints_deg
 from services.robot.dsp import DSPConfig, for_arm
-from services.robot.node import ROBOT_SERVICES
+from protocol.keys import ROBOT_SERVICES
 from services.robot_sim.service import RobotSimConfig
 from services.safety.service import SafetyConfig
 from services.composed import ComposedStack, composable

@@ -31,7 +31,7 @@ from services.paths import REPO
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.transport import ZenohConfig, open_session
 from services.controller.service import ControllerConfig
-from services.robot.pacing import SWITCH_INTERVAL_S
+from services.runtime.pacing import SWITCH_INTERVAL_S
 from services.robot_gateway.link import ActuatorLink
 from services.robot_gateway.kinova_usb import has_command_layer
 from services.robot_gateway.service import GatewayConfig

@@ -17,7 +17,7 @@ import numpy as np
 import yaml
 
 from services.model import tag as tags
-from services.runtime.config import PoseConfig
+from services.model.frames import PoseConfig
 
 
 @dataclass(frozen=True)

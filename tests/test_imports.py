@@ -76,6 +76,85 @@ def test_the_cycle_finder_finds_a_cycle():
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 
+#: the layers, bottom up: a package imports only from its own layer's declared neighbours and from below. protocol is
+#: the wire contract; runtime what every service runs on; model the arms and their geometry (pure); then the
+#: services, each with the other services it is built on; the orchestration (the top-level modules of services/,
+#: bench) may import anything. ``paths`` (where the repository's folders are) is a leaf anyone may use.
+BASE = {"protocol": set(), "services.paths": set(), "services.runtime": {"protocol"},
+        "services.model": {"protocol", "services.runtime"}}
+#: a service package and the other service packages it may import, with why
+SERVICES = {
+    "services.robot": set(),
+    "services.robot_sim": {"services.robot"},        # the robot node on the simulated arm
+    "services.robot_gateway": {"services.robot"},    # the robot node on a real arm's bus
+    "services.vision": set(),
+    "services.controller": set(),
+    "services.safety": set(),
+    "services.camera": set(),
+    "services.observe": set(),
+    "services.tools": set(),
+    "services.torque_controller": {"services.controller", "services.robot"},  # the torque laws; the bus cycle
+    "services.console": {"services.controller", "services.safety", "services.observe"},  # task, e-stop, frames
+    "services.calibration": {"services.camera", "services.robot_sim"},  # the camera's files; the simulated rig
+}
+
+
+def package_of(module: str) -> str:
+    """The layer package a module belongs to (a top-level module of services/ is orchestration: itself)."""
+    parts = module.split(".")
+    if parts[0] in ("protocol", "bench"):
+        return parts[0]
+    if len(parts) == 2 and f"services.{parts[1]}" not in SERVICES and f"services.{parts[1]}" not in BASE:
+        return "orchestration"
+    return ".".join(parts[:2])
+
+
+def allowed(importer: str) -> set[str] | None:
+    """The packages ``importer`` may import besides its own (None: anything, the orchestration)."""
+    below = {"protocol", "services.paths"}
+    if importer in BASE:
+        return BASE[importer] | {"services.paths"} | set().union(*(BASE[b] for b in BASE[importer]))
+    if importer in SERVICES:
+        return below | {"services.runtime", "services.model"} | SERVICES[importer]
+    return None
+
+
+def layer_violations(graph: dict[str, set[str]]) -> list[str]:
+    out = []
+    for module, imported in sorted(graph.items()):
+        importer = package_of(module)
+        permitted = allowed(importer)
+        if permitted is None:
+            continue
+        for target in sorted(imported):
+            package = package_of(target)
+            if package != importer and package not in permitted:
+                out.append(f"{module} imports {target} ({importer} may import {', '.join(sorted(permitted))})")
+    return out
+
+
+def test_every_package_imports_only_from_its_layer_and_below():
+    """issue 47: runtime does not reach into the robot, the geometry safety shares with the robot's DSP is the
+    model's, a service does not import the launcher, and no service package imports another unless declared
+    above with the reason."""
+    assert layer_violations(import_graph()) == []
+
+
+def test_every_service_package_has_its_place_in_the_layers():
+    packages = {f"services.{d.name}" for d in (REPO / "services").iterdir()
+                if d.is_dir() and any(d.glob("*.py"))}  # (namespace packages too: runtime, observe)
+    assert packages == (set(BASE) | set(SERVICES)) - {"protocol", "services.paths"}
+
+
+def test_the_layer_check_sees_a_violation():
+    graph = {"services.runtime.service": {"services.robot.node"}, "services.console.service": {"services.stack"},
+             "services.safety.checks": {"services.model.zones"}, "services.stack": {"services.robot.node"}}
+    assert layer_violations(graph) == [
+        "services.console.service imports services.stack (services.console may import protocol, services.controller, "
+        "services.model, services.observe, services.paths, services.runtime, services.safety)",
+        "services.runtime.service imports services.robot.node (services.runtime may import protocol, services.paths)"]
+
+
 def test_robot_sim_in_api_mode_loads_no_python_can():
     """python-can (13 MB resident) is the actuator_bus mode's: robot_sim imports the bus module for its config in
     every mode, and python-can comes with the first bus opened."""

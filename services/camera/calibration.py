@@ -26,7 +26,8 @@ from typing import Optional
 import numpy as np
 import yaml
 
-from services.runtime.config import ConfigError, PoseConfig, config_from_mapping, read_yaml
+from services.runtime.config import ConfigError, config_from_mapping, read_yaml
+from services.model.frames import PoseConfig
 
 #: the coefficient counts of OpenCV's standard distortion model (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [τx τy]]]])
 DISTORTION_LENGTHS = (4, 5, 8, 12, 14)

@@ -27,8 +27,9 @@ from protocol.messages import ImageEncoding, encode
 from services.camera import core
 from services.camera.calibration import Intrinsics, read_camera_in_ee, read_intrinsics
 from services.camera.sources import DeviceSource, FrameSource, ImageFolderSource, SourceError, VideoFileSource
-from services.robot.pacing import CyclePacer
-from services.runtime.config import ConfigStruct, PoseConfig
+from services.runtime.pacing import CyclePacer
+from services.runtime.config import ConfigStruct
+from services.model.frames import PoseConfig
 from services.runtime.service import Service, ServiceConfig
 from services.runtime.threads import start_thread
 

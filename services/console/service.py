@@ -19,7 +19,7 @@ from protocol.conventions import ClockMode
 from services.console.core import Action, Command, ConsoleModel, FrameSize, frame_packet
 from services.controller.task_client import TaskUnavailable, call_task
 from services.safety.estop_client import EStopClient
-from services.launcher import describe_task
+from services.controller.task_client import describe_task
 from services.observe.foxglove_view import jpeg, pixels
 from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread

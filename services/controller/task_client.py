@@ -39,3 +39,9 @@ def start_task(session, keys: Keys, operator: str, reason: str = "", timeout_s: 
 
 def stop_task(session, keys: Keys, operator: str, reason: str = "", timeout_s: float = 5.0) -> m.TaskStatus:
     return call_task(session, keys, m.STOP_TASK, m.TaskRequest(operator=operator, reason=reason), timeout_s)
+
+
+def describe_task(status: m.TaskStatus) -> str:
+    """The controller's answer to a task request in a sentence (`mfvs task`, the console)."""
+    by = f", by {status.by}" + (f": {status.reason}" if status.reason else "") if status.by else ""
+    return f"task {status.state.value} (task {status.task}{by}){': ' + status.message if status.message else ''}"

@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from protocol.conventions import AngularConvention
+from services.runtime.config import ConfigStruct
 
 #: |cos(pitch)| below this makes B(Γ) numerically singular (pitch within ≈0.06° of ±90°).
 MIN_COS_PITCH = 1e-3
@@ -319,3 +320,17 @@ def ee_twist_from_camera(twist_cam, R_ec, t_ec) -> np.ndarray:
 def camera_twist_from_ee(twist_ee, R_ec, t_ec) -> np.ndarray:
     return motion_transform_inv(R_ec, t_ec) @ np.asarray(twist_ee, dtype=float)
 
+
+class PoseConfig(ConfigStruct):
+    """A pose as files write it: position (m) and XYZ Euler angles in degrees (R = Rx·Ry·Rz)."""
+
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if not all(math.isfinite(v) for v in (*self.xyz, *self.rpy_deg)):
+            raise ValueError("pose values must be finite")
+
+    def matrix(self) -> np.ndarray:
+        """The 4×4 homogeneous transform."""
+        return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)

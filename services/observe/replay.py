@@ -22,7 +22,7 @@ from protocol import messages as m
 from protocol.keys import Keys
 from protocol.topics import UnknownTopic, key_pattern, resolve, topic_of
 from services.observe.foxglove_view import RAW_ENCODING, RAW_TYPE
-from services.robot.node import ROBOT_SERVICES
+from protocol.keys import ROBOT_SERVICES
 from services.runtime.service import alive_services
 
 #: what a replay never publishes: these move an arm

@@ -44,7 +44,7 @@ from services.model.arm import ArmDescription
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics, normalized_jacobian, singularity_measure
 from services.model.limits import arm_limits
-from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
+from services.model.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
 
 class DeadBandShape(str, enum.Enum):

@@ -10,7 +10,7 @@ from protocol import kinova
 from services.model import frames
 from services.robot.dsp import CommandRefused, KinovaDSP
 from services.robot.torque_setup import TORQUE_SETUP_SETTERS, TorqueSetup, configure, joint_of_address
-from services.robot.zones import zone_from_kinova, zone_to_kinova
+from services.model.zones import zone_from_kinova, zone_to_kinova
 
 
 class RobotView(Protocol):

@@ -18,7 +18,7 @@ the DSP cycle runs in the loop, in order.
 
 Clock modes:
 
-* ``realtime``: the bus cycle runs every 2 ms of wall time (:class:`~services.robot.pacing.CyclePacer`), at
+* ``realtime``: the bus cycle runs every 2 ms of wall time (:class:`~services.runtime.pacing.CyclePacer`), at
   realtime priority where the OS allows; lateness is counted and reported in the state (``timing``) and health;
 * ``lockstep``: the arm's own timeline drives the loop, cycle after cycle with no pacing; at each DSP tick the node
   publishes the state of that tick and waits (``lockstep.cycle_timeout_s``) for the pipeline's answer, a command
@@ -80,11 +80,8 @@ from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import RobotCore
 from services.robot.hardware import (CYCLE_NS, CYCLE_S, CYCLES_PER_DSP, DSP_CYCLE_NS, EXTRAPOLATED_CYCLES,
                                      HardwareError, JointReading, RobotHardware)
-from services.robot.pacing import CyclePacer, request_realtime
+from services.runtime.pacing import CyclePacer, request_realtime
 
-#: the services that are a robot node (the last hop of every applied command's trace): robot_sim's api mode on the
-#: simulated arm, robot_gateway in front of the emulated bus or a real arm
-ROBOT_SERVICES = ("robot_sim", "robot_gateway")
 #: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
 #: in the DSP and run, unexpectedly, once torque control ends)
 MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})

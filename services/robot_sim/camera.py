@@ -37,7 +37,7 @@ import numpy as np
 from protocol.messages import CHANNELS, CameraInfo, Header, Image, ImageEncoding
 from services.model.arm import mujoco_module
 from services.paths import REPO
-from services.robot.pacing import normal_priority, request_realtime
+from services.runtime.pacing import normal_priority, request_realtime
 from services.runtime.threads import name_os_thread, start_thread
 from services.robot_sim import imaging as imaging_mod
 from services.robot_sim import scene as scene_mod

@@ -19,7 +19,8 @@ from services.model.board import BoardConfig, board_image
 from services.robot.hardware import CYCLE_NS, DSP_CYCLE_NS
 from services.robot_sim.imaging import ImagingConfig
 from services.model import tag as tags
-from services.runtime.config import ConfigStruct, PoseConfig
+from services.runtime.config import ConfigStruct
+from services.model.frames import PoseConfig
 
 Vec3 = tuple[float, float, float]
 

@@ -35,7 +35,8 @@ from services.robot.arm_check import ArmCheckConfig
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
 from services.robot.hardware import CYCLE_NS, CYCLE_S, DSP_CYCLE_NS, ActuatorValues
-from services.robot.node import ROBOT_SERVICES, RobotNode, RobotNodeConfig
+from protocol.keys import ROBOT_SERVICES
+from services.robot.node import RobotNode, RobotNodeConfig
 from services.robot_sim import usb_base
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig
 from services.robot_sim.camera import LoopCamera, SimCamera

@@ -37,23 +37,6 @@ class ConfigStruct(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     """Base for config sections."""
 
 
-class PoseConfig(ConfigStruct):
-    """A pose as files write it: position (m) and XYZ Euler angles in degrees (R = Rx·Ry·Rz)."""
-
-    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def __post_init__(self) -> None:
-        if not all(math.isfinite(v) for v in (*self.xyz, *self.rpy_deg)):
-            raise ValueError("pose values must be finite")
-
-    def matrix(self):
-        """The 4×4 homogeneous transform."""
-        from services.model.frames import pose_from_xyz_rpy_deg
-
-        return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
-
-
 def _parse_yaml(text: str, name: str) -> Any:
     try:
         data = yaml.safe_load(text)

@@ -490,7 +490,7 @@ def service_main(service_type: type[Service], config_type: type[ServiceConfig], 
             # the whole process, before zenoh starts its threads (they inherit it), all at one priority: a loop at
             # realtime priority that waits for the interpreter lock held by a thread of lower priority would wait
             # behind whatever preempts that thread (the rest of the host, or another realtime process)
-            from services.robot.pacing import request_realtime
+            from services.runtime.pacing import request_realtime
 
             request_realtime(priority, f"{service_type.name} process")
         try:

@@ -18,7 +18,7 @@ from services.model import frames, saturation
 from services.model.limits import stricter
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics
-from services.robot.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
+from services.model.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
 
 class SafetyLimits(ConfigStruct):

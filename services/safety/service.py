@@ -29,7 +29,7 @@ import zenoh
 
 from protocol.conventions import ClockMode
 from protocol.messages import EStop, JointVelocity, RobotState, SafetyStatus, Twist
-from services.robot.pacing import request_realtime
+from services.runtime.pacing import request_realtime
 from services.model.arm import check_arm_name
 from services.runtime.service import Service, ServiceConfig
 from services.runtime.threads import start_thread

@@ -31,7 +31,7 @@ from protocol.messages import LowLevelState, ProtocolError, RobotState, TorqueCo
 from services.controller.torque_controllers import (CONTROLLERS, TASK_CONTROLLERS, ControllerOptions,
                                                     make_controller)
 from services.model.arm import ArmError, check_arm_name, declared_arm
-from services.robot.node import ROBOT_SERVICES
+from protocol.keys import ROBOT_SERVICES
 from services.robot.torque_setup import table_5_1
 from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread

@@ -38,7 +38,8 @@ from protocol.messages import (
 from services.model import frames
 from services.model import tag as tags
 from services.runtime.clock import SimulatedClock
-from services.runtime.config import ConfigStruct, PoseConfig
+from services.runtime.config import ConfigStruct
+from services.model.frames import PoseConfig
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import start_thread
 from services.vision import features as F

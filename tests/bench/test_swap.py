@@ -3,7 +3,7 @@ import msgspec
 import numpy as np
 
 from bench.swap import NUDGE_M, SCENARIOS, first_below, nudge_offsets, nudged, realtime_against_lockstep, summarize
-from services.runtime.config import PoseConfig
+from services.model.frames import PoseConfig
 from services.servo import load_scenario
 
 

@@ -7,7 +7,7 @@ import pytest
 
 from services.experiments import SCENARIOS, _random_starts_summary, _start_summary, shaped_by
 from services.robot_sim.scene import CameraConfig
-from services.runtime.config import PoseConfig
+from services.model.frames import PoseConfig
 from services.servo import load_scenario
 from services.starts import TABLE2_LIKE, Start, all_corners_visible, corners_in_image, quartiles, random_start, \
     write_starts

@@ -7,7 +7,7 @@ import pytest
 
 from protocol.conventions import AngularConvention, DepthSource, ErrorRateSource
 from services.model import frames
-from services.runtime.config import PoseConfig
+from services.model.frames import PoseConfig
 from services.model.kinematics import ArmKinematics
 from services.controller import ibvs
 from services.controller.law import Gains, LawConfig, ServoInput

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from services.runtime.config import PoseConfig
+from services.model.frames import PoseConfig
 from tests.kinematic_loop import KinematicLoop
 from services.controller.law import ConstraintAbort, ServoInput
 from services.controller.laws import make_law

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from services.model import frames
-from services.runtime.config import PoseConfig
+from services.model.frames import PoseConfig
 from services.controller.law import ServoInput
 from services.controller.laws import make_law
 from services.controller.tracking import joint_limit_penalty

@@ -11,7 +11,7 @@ from services.model import frames
 from services.model.kinematics import ArmKinematics
 from services.robot.dsp import CommandRefused, DeadBand, DSPConfig, KinovaDSP, for_arm
 from services.robot.hardware import JointReading
-from services.robot.zones import BoxZone
+from services.model.zones import BoxZone
 from services.robot_sim.scene import SceneConfig
 from services.robot_sim.sim_robot import SimulatedRobot
 from services.model.arm import load_arm

@@ -10,7 +10,7 @@ import pytest
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode
 from services.runtime.transport import open_session
-from services.robot.zones import BoxZone, SphereZone
+from services.model.zones import BoxZone, SphereZone
 from services.robot.node import LockstepConfig
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.safety.checks import SafetyLimits

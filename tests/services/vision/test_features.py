@@ -13,7 +13,7 @@ import pytest
 from protocol import messages as m
 from services.model import frames
 from services.model import tag as tags
-from services.runtime.config import PoseConfig
+from services.model.frames import PoseConfig
 from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, camera_info
 from services.robot_sim.sim import Simulation
 from services.vision import features as F
