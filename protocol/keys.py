@@ -17,6 +17,11 @@ ROBOT_SERVICES = ("robot_sim", "robot_gateway")
 _ROBOT_ID = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")
 _CHUNK = _ROBOT_ID
 
+def last_chunk(key_expr) -> str:
+    """A key's last chunk: the service a liveliness token names, the function an API query asks for."""
+    return str(key_expr).rsplit("/", 1)[-1]
+
+
 class InvalidKeyChunk(ValueError):
     """A robot id, service name or function name that cannot be a key chunk."""
 

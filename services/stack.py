@@ -25,7 +25,7 @@ import yaml
 from zenoh import SampleKind, Session
 
 from protocol.conventions import ClockMode
-from protocol.keys import Keys
+from protocol.keys import Keys, last_chunk
 from services.model.arm import ArmDescription, load_arm
 from services.paths import REPO
 from services.robot.rs485_bus import BusConfig, RS485Bus
@@ -212,7 +212,7 @@ def wait_alive(zenoh: ZenohConfig, robot_id: str, names, processes, timeout_s: f
     changed = threading.Condition()
 
     def on_token(sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        name = last_chunk(sample.key_expr)
         with changed:
             if sample.kind == SampleKind.PUT:
                 alive.add(name)

@@ -35,6 +35,7 @@ from protocol.messages import (
     encode,
 )
 from protocol import messages
+from protocol.keys import last_chunk
 from services.model import frames
 from services.model.arm import check_arm_name
 from services.runtime.service import Service, ServiceConfig, query_argument
@@ -145,7 +146,7 @@ class ControllerService(Service):
         self.log.info("task: %s (%s%s)", reply.message, request.operator, why)
 
     def _on_task_query(self, query: zenoh.Query) -> None:
-        function = str(query.key_expr).rsplit("/", 1)[-1]
+        function = last_chunk(query.key_expr)
         try:
             if function == messages.START_TASK:
                 reply = self.start_task(query_argument(query, function, TaskRequest))

@@ -63,6 +63,7 @@ from protocol.messages import (
     encode,
     missing_fields,
 )
+from protocol.keys import last_chunk
 from services.model import frames
 from services.robot import arm_check
 from services.robot.api_calls import ApiCallQueue
@@ -440,7 +441,7 @@ class RobotNode(Service):
             self.command_cond.notify_all()
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        name = last_chunk(sample.key_expr)
         if sample.kind == zenoh.SampleKind.PUT:
             with self.command_cond:
                 self.admission.new_session(name)  # a new session of a sender numbers its commands afresh
@@ -472,7 +473,7 @@ class RobotNode(Service):
             self.refuse("lowlevel_command", refusal)
 
     def _on_api(self, query: zenoh.Query) -> None:
-        function = str(query.key_expr).rsplit("/", 1)[-1]
+        function = last_chunk(query.key_expr)
         spec = kinova.API_FUNCTIONS.get(function)
         if spec is None:
             self.refuse("api", f"unknown Kinova API function {function!r}")

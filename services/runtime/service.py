@@ -26,7 +26,7 @@ import msgspec
 import zenoh
 
 from protocol.conventions import ClockMode
-from protocol.keys import Keys
+from protocol.keys import Keys, last_chunk
 from protocol.messages import Header, Hop, ProtocolError, ServiceHealth, SimClock, decode, encode
 from services.runtime.clock import SimulatedClock, WallClock, make_clock
 from services.runtime.config import ConfigStruct
@@ -127,7 +127,7 @@ def service_condition(health: ServiceHealth | None) -> str:
 
 def alive_services(session: zenoh.Session, keys: Keys, timeout_s: float = 1.0) -> list[str]:
     """The services whose liveliness tokens the router knows now, by name."""
-    return sorted(str(r.ok.key_expr).rsplit("/", 1)[-1]
+    return sorted(last_chunk(r.ok.key_expr)
                   for r in session.liveliness().get(keys.liveliness_all, timeout=timeout_s) if r.ok)
 
 

@@ -29,6 +29,7 @@ import zenoh
 
 from protocol.conventions import ClockMode
 from protocol.messages import EStop, JointVelocity, RobotState, SafetyStatus, Twist
+from protocol.keys import last_chunk
 from services.runtime.pacing import request_realtime
 from services.model.arm import check_arm_name
 from services.runtime.service import Service, ServiceConfig
@@ -110,7 +111,7 @@ class SafetyService(Service):
 
     # ------------------------------------------------------------------ inputs: decoded, then the core decides
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        name = last_chunk(sample.key_expr)
         with self.lock:
             self._carry_out(self.core.liveliness(name, sample.kind == zenoh.SampleKind.PUT))
 
