@@ -41,6 +41,15 @@ _NO_STAMPS = np.zeros(0, dtype=np.int64)
 SENDER_STAMPED_INTERFACES = frozenset({"mfvs_hub", "mfvs_local", "virtual"})
 
 
+def known_only(batch: np.ndarray, stamps: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """The records of a received batch whose command id the codec knows, their stamps, and how many were not (a
+    garbled or unknown message never reaches a link or an actuator model): every transport's receive filter."""
+    known = known_commands(batch)
+    if known.all():
+        return batch, stamps, 0
+    return batch[known], stamps[known], int(np.count_nonzero(~known))
+
+
 class BusConfig(ConfigStruct):
     interface: str = "virtual"
     channel: str = "mfvs-rs485"
@@ -156,10 +165,9 @@ class RS485Bus:
         if len(batch) == 0:
             return _NO_MESSAGES, _NO_STAMPS
         stamps = np.where(seconds > 0, np.rint(seconds * 1e9), time.time_ns()).astype(np.int64)
-        known = known_commands(batch)
-        if not np.all(known):
-            self._reject(int(np.count_nonzero(~known)), "unknown command id")
-            batch, stamps = batch[known], stamps[known]
+        batch, stamps, rejected = known_only(batch, stamps)
+        if rejected:
+            self._reject(rejected, "unknown command id")
         return batch, stamps
 
     def _reject(self, count: int, reason: str) -> None:

@@ -41,10 +41,10 @@ from typing import Callable, Optional
 import numpy as np
 
 from protocol import kinova
-from protocol.rs485 import MAX_BATCH, MESSAGE_DTYPE, MESSAGES_PER_USB_PACKET, known_commands
-from services.robot.rs485_bus import BusError
+from protocol.rs485 import MAX_BATCH, MESSAGE_DTYPE, MESSAGES_PER_USB_PACKET
+from services.robot.rs485_bus import BusError, known_only
 from services.robot_gateway.kinova_sdk import (LAYERS, MAX_KINOVA_DEVICE, SDK_ENV, SDK_LIB_SUBDIR, AngularPosition,
-                                               ArmStartError, KinovaDevice)
+                                               ArmStartError, KinovaDevice, from_c)
 from services.runtime.metrics import Counters, DurationStats
 
 log = logging.getLogger("mfvs.robot_gateway.kinova_usb")
@@ -81,6 +81,26 @@ def read_capacity(wanted: int) -> int:
 def packets_for(messages: int) -> int:
     """How many packets ``OpenRS485_Write`` sends for ``messages`` messages: its ``QtySent`` when all went out."""
     return math.ceil(messages / MESSAGES_PER_USB_PACKET)
+
+
+#: how far the first RS-485 positions may be from Kinova's high-level reading before activation (deg) and agree
+#: (our choice: a position read from the wrong field or actuator is tens of degrees off; the two readings' own
+#: difference on a real arm is not public, ``mfvs check rs485`` measures it)
+HIGH_LEVEL_CHECK_DEG = 3.0
+
+
+def around_deg(measured_deg, expected_deg) -> np.ndarray:
+    """``measured - expected`` in degrees, taken around the circle (continuous joints report any turn)."""
+    return (np.asarray(measured_deg, dtype=float) - np.asarray(expected_deg, dtype=float) + 180.0) % 360.0 - 180.0
+
+
+def high_level_disagreement(measured_deg, expected_deg, tolerance_deg: float) -> str:
+    """The joints whose RS-485 position differs from the high-level reading by more than ``tolerance_deg``, as
+    text; empty when none does (a NaN never agrees)."""
+    return ", ".join(f"joint {i + 1}: {m:.2f}° on RS-485, {e:.2f}° before"
+                     for i, (m, e, d) in enumerate(zip(measured_deg, expected_deg, around_deg(measured_deg,
+                                                                                            expected_deg)))
+                     if not abs(d) <= tolerance_deg)
 
 
 def describe(code: int) -> str:
@@ -234,12 +254,10 @@ class KinovaUsbBus:
                 break
         if len(batch) == 0:
             return _EMPTY, _NO_STAMPS
-        stamps = np.full(len(batch), time.time_ns(), dtype=np.int64)
-        known = known_commands(batch)
-        if not known.all():
-            self.counters.inc("bus.rejected", int(np.count_nonzero(~known)))
+        batch, stamps, rejected = known_only(batch, np.full(len(batch), time.time_ns(), dtype=np.int64))
+        if rejected:
+            self.counters.inc("bus.rejected", rejected)
             self.last_error = "unknown command id"
-            batch, stamps = batch[known], stamps[known]
         return batch, stamps
 
     def _read_once(self) -> np.ndarray:
@@ -312,8 +330,7 @@ def high_level_angles(api, n_joints: int) -> np.ndarray:
     if code != OK:
         raise ArmStartError(f"Kinova's command layer: GetAngularPosition returned {describe(code)} (an arm whose "
                             "RS-485 bus was activated answers no high-level call until it is power-cycled)")
-    actuators = position.Actuators
-    return np.array([getattr(actuators, f"Actuator{i + 1}") for i in range(n_joints)], dtype=float)
+    return np.array(from_c(position, kinova.AngularPosition).Actuators.as_list()[:n_joints], dtype=float)
 
 
 def open_kinova_usb(comm_layer: Path, arm_name: str, n_joints: int, counters: Counters | None = None,
@@ -325,8 +342,8 @@ def open_kinova_usb(comm_layer: Path, arm_name: str, n_joints: int, counters: Co
     it has nothing queued. ``emulated_only`` (lockstep, which exchanges as fast as the arm answers): refused, before
     activation, unless the arm is robot_sim's emulated base (``protocol.kinova.EMULATED_SERIAL``), a real one keeping
     wall time. ``command_layer``: Kinova's command layer, to read the joint angles through the high-level API first
-    (:func:`init_api` initialises the comm layer itself; :func:`high_level_angles` after the device checks). Raises :class:`ArmStartError` (one line
-    a person can act on), the library closed."""
+    (:func:`init_api` initialises the comm layer itself; :func:`high_level_angles` after the device checks).
+    Raises :class:`ArmStartError` (one line a person can act on), the library closed."""
     api = None
     if command_layer is not None:
         api = init_api(command_layer)

@@ -30,10 +30,8 @@ import numpy as np
 
 from protocol import rs485 as r
 from services.model.arm import ArmDescription
-from services.robot_gateway.kinova_usb import KinovaUsbBus
+from services.robot_gateway.kinova_usb import HIGH_LEVEL_CHECK_DEG, KinovaUsbBus, around_deg
 
-#: how far an RS-485 position may be from the high-level reading (deg) and still agree (the gateway's default)
-AGREE_DEG = 3.0
 #: how long a step waits for replies (s)
 REPLY_WAIT_S = 0.05
 #: plausible actuator temperatures (°C): outside, the 0x16 layout is not what the sources say
@@ -54,10 +52,6 @@ def _ms(seconds: list[float]) -> dict:
         return {}
     return {"n": int(values.size), "p50_ms": round(float(np.median(values)), 3),
             "max_ms": round(float(values.max()), 3)}
-
-
-def _around(measured, expected) -> np.ndarray:
-    return (np.asarray(measured, dtype=float) - np.asarray(expected, dtype=float) + 180.0) % 360.0 - 180.0
 
 
 def _collect(bus: KinovaUsbBus, wait_s: float) -> tuple[np.ndarray, list[float]]:
@@ -123,9 +117,9 @@ def positions(bus: KinovaUsbBus, arm: ArmDescription, expected_deg: Optional[np.
     if expected_deg is None:
         return Step("0x01 → 0x02", "agrees", "every actuator answered (no high-level reading to compare)",
                     figures), position
-    off = _around(position, expected_deg)
+    off = around_deg(position, expected_deg)
     figures["float1_minus_high_level_deg"] = off.round(3).tolist()
-    agrees = bool(np.all(np.abs(off) <= AGREE_DEG))
+    agrees = bool(np.all(np.abs(off) <= HIGH_LEVEL_CHECK_DEG))
     return Step("0x01 → 0x02", "agrees" if agrees else "differs",
                 f"float[1] is the position within {np.abs(off).max():.2f}° of the high-level reading"
                 if agrees else f"float[1] is {np.abs(off).max():.1f}° from the high-level reading: the position is "
@@ -169,7 +163,7 @@ def _layouts(replies: np.ndarray, addresses: list[int], position_deg: np.ndarray
         if len(chosen) == 0:
             continue
         joints = [addresses.index(int(s)) for s in chosen["source"]]
-        out[label] = bool(np.all(np.abs(_around(chosen["data"][:, 1], position_deg[joints])) <= AGREE_DEG))
+        out[label] = bool(np.all(np.abs(around_deg(chosen["data"][:, 1], position_deg[joints])) <= HIGH_LEVEL_CHECK_DEG))
         if command is r.Command.SEND_ALL_VALUES_2:
             temperature = chosen["data"].view("<i2")[:, r.TEMPERATURE_SHORT] * 0.01
             low, high = TEMPERATURE_RANGE_C
@@ -223,7 +217,7 @@ def torque_handshake(bus: KinovaUsbBus, arm: ArmDescription, joint: int, positio
     finally:
         back = ask(r.switch_mode_request(r.ControlModeRequest.POSITION, address), r.Command.SWITCH_CONTROL_MODE_REPLY)
         figures["0x204 position"] = None if back is None else back.uints[0]
-    figures["moved_deg"] = round(float(_around(last, start)), 3)
+    figures["moved_deg"] = round(float(around_deg(last, start)), 3)
     return Step("torque handshake", "agrees", f"validated, torque mode for {seconds:.1f} s on the model's gravity "
                                               f"(joint {joint} moved {figures['moved_deg']:+.2f}°), position mode "
                                               "again", figures)

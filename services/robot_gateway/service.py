@@ -18,6 +18,7 @@ until the bus answers again.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -25,7 +26,6 @@ from pathlib import Path
 from typing import Literal, Optional
 
 import msgspec
-import numpy as np
 
 from protocol import rs485 as r
 from protocol.conventions import LOCKSTEP_EPOCH_NS, ClockMode
@@ -37,7 +37,8 @@ from services.robot.node import RobotNode, RobotNodeConfig
 from services.model.arm import load_arm
 from services.robot_gateway.kinova_sdk import (ArmSession, ArmStartError, KinovaSdk, SdkArm, SdkError,
                                                SdkEthernetConfig, open_arm)
-from services.robot_gateway.kinova_usb import COMMAND_LAYER, KinovaUsbBus, locate_comm_layer, open_kinova_usb
+from services.robot_gateway.kinova_usb import (COMMAND_LAYER, HIGH_LEVEL_CHECK_DEG, KinovaUsbBus,
+                                               high_level_disagreement, locate_comm_layer, open_kinova_usb)
 from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
 
 #: ``bus.interface`` for a real arm's actuator bus through Kinova's USB comm layer (services.robot_gateway.kinova_usb)
@@ -66,13 +67,16 @@ class GatewayConfig(RobotNodeConfig):
     #: command layer, beside the comm layer) and refuse to start when the first RS-485 positions differ from them
     #: by more than this (deg): a position read from the wrong field or the wrong actuator is never acted on.
     #: null: no check (an emulated arm behind a comm layer with no command layer)
-    high_level_check_deg: Optional[float] = 3.0
+    high_level_check_deg: Optional[float] = HIGH_LEVEL_CHECK_DEG
     sdk_ethernet: SdkEthernetConfig = msgspec.field(default_factory=SdkEthernetConfig)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.backend == "kinova_sdk" and ClockMode(self.clock) is not ClockMode.REALTIME:
             raise ValueError("the kinova_sdk backend runs in realtime only (a real arm has no simulated clock)")
+        if self.high_level_check_deg is not None and not (math.isfinite(self.high_level_check_deg)
+                                                          and self.high_level_check_deg > 0):
+            raise ValueError("high_level_check_deg must be a positive number of degrees, or null (no check)")
         arm = load_arm(self.arm)
         if self.addresses is not None and (len(self.addresses) != arm.n_joints
                                            or len(set(self.addresses)) != arm.n_joints):
@@ -315,15 +319,6 @@ class SdkGatewayService(RobotNode):
             self.counters.inc("sdk.errors")
             self.limited_log.error("sdk", "%s", exc)
             self._bus_faults = [f"sdk: {exc}"[:120]]
-
-
-def high_level_disagreement(measured_deg, expected_deg, tolerance_deg: float) -> str:
-    """The joints whose RS-485 position differs from the high-level reading by more than ``tolerance_deg``
-    (differences taken around the circle: continuous joints report any turn), as text; empty when none does."""
-    difference = (np.asarray(measured_deg) - np.asarray(expected_deg) + 180.0) % 360.0 - 180.0
-    return ", ".join(f"joint {i + 1}: {m:.2f}° on RS-485, {e:.2f}° before"
-                     for i, (m, e, d) in enumerate(zip(measured_deg, expected_deg, difference))
-                     if not abs(d) <= tolerance_deg)
 
 
 def open_bus(config: GatewayConfig, counters=None, log: Optional[logging.Logger] = None):

@@ -362,7 +362,7 @@ def test_the_first_rs485_positions_are_checked_against_the_high_level_reading(co
 
 
 def test_positions_around_the_circle_agree():
-    from services.robot_gateway.service import high_level_disagreement
+    from services.robot_gateway.kinova_usb import high_level_disagreement
 
     assert high_level_disagreement([359.5, 10.0], [0.5, 10.0], 3.0) == ""
     assert high_level_disagreement([90.0, 10.0], [0.8, 10.0], 3.0).startswith("joint 1: 90.00° on RS-485")
@@ -373,3 +373,12 @@ def test_positions_around_the_circle_agree():
 def comm_layer_with_api() -> Path:
     """Kinova's comm layer with its command layer beside it (skipped where the SDK is not here)."""
     return _comm_layer()
+
+
+@pytest.mark.parametrize("value", [-1.0, 0.0, float("nan"), float("inf")])
+def test_a_tolerance_that_is_not_a_positive_number_of_degrees_is_refused(value):
+    from services.robot_gateway.service import GatewayConfig
+
+    with pytest.raises(ValueError, match="high_level_check_deg must be a positive number of degrees"):
+        GatewayConfig(high_level_check_deg=value)
+    assert GatewayConfig(high_level_check_deg=None).high_level_check_deg is None
