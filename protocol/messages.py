@@ -22,7 +22,8 @@ from protocol.conventions import AngularConvention, Frame
 #: Bumped on any incompatible change; a message with another version is refused, never guessed at.
 #: 2: RobotState.timing, SimClock.frame_stamp_ns, ServiceHealth.degraded.
 #: 3: the arm is a choice: RobotState.arm and arm_digest; joint vectors as long as the arm's joints (1-7).
-SCHEMA_VERSION = 3
+#: 4: LowLevelState.cycle_ns (the bus period is the hardware's: 2, 2.5, 3.33 or 5 ms).
+SCHEMA_VERSION = 4
 
 #: The most joints an arm has (the Kinova API's AngularInfo: Actuator1..7). A joint vector on the wire has the
 #: robot's arm's length (RobotState.arm: 6 for the j2n6s300, 7 for the j2s7s300); each reader checks it against the
@@ -595,6 +596,9 @@ class LowLevelState(Message):
     current_a: JointVector
     temperature_c: JointVector
     faults: Annotated[list[str], msgspec.Meta(max_length=32)] = []
+    #: the bus's cycle, one state each (ns): a torque client counts the states it did not see on it (1 to 10 ms:
+    #: services.robot.hardware.BusTiming's periods, and the DSP's own 10 ms where a backend has no bus)
+    cycle_ns: Annotated[int, msgspec.Meta(ge=1_000_000, le=10_000_000)] = 2_000_000
 
     def __post_init__(self) -> None:
         super().__post_init__()

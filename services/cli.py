@@ -537,7 +537,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _cmd_up(args: argparse.Namespace) -> int:
     from services.runtime.config import ConfigError
-    from services.launcher import load_profile, up, with_arm
+    from services.launcher import load_profile, up, with_arm, with_bus_period
 
     try:
         profile = load_profile(args.profile, args.port, args.bus_port)
@@ -548,6 +548,12 @@ def _cmd_up(args: argparse.Namespace) -> int:
         if arm_or_exit("up", args.arm) is None:
             return 2
         profile = with_arm(profile, args.arm)
+    if args.bus_period is not None:
+        try:
+            profile = with_bus_period(profile, args.bus_period)
+        except ValueError as exc:
+            print(f"mfvs up: {exc}", file=sys.stderr)
+            return 2
     code, message = up(profile, args.clock, args.wait, args.host)
     print(message, file=sys.stderr if code else sys.stdout)
     return code
@@ -686,6 +692,9 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     up_cmd.add_argument("--clock", choices=["realtime", "lockstep"], default=None, help="override the clock mode")
     up_cmd.add_argument("--port", type=int, default=7447, help="router port (sim and gateway profiles)")
     up_cmd.add_argument("--bus-port", type=int, default=7448, help="CAN hub port (gateway profile)")
+    up_cmd.add_argument("--bus-period", type=float, default=None, metavar="MS",
+                        help="the actuator bus's period (ms): 2 (default), 2.5, 3.33 or 5, where USB does not "
+                             "sustain 2 ms (profiles with robot_gateway; `mfvs bench rs485 --period` measures it)")
     up_cmd.add_argument("--wait", type=float, default=60.0, help="seconds to wait for every service")
     add_arm_option(up_cmd, default=None, what="the profile's (j2s7s300 unless it sets one)")
     up_cmd.add_argument("--host", default=None,

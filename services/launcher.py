@@ -339,6 +339,20 @@ def with_arm(profile: Profile, arm: str) -> Profile:
     return msgspec.structs.replace(profile, services=services)
 
 
+def with_bus_period(profile: Profile, period_ms: float) -> Profile:
+    """The profile with its actuator bus's host period set (`mfvs up --bus-period MS`): robot_gateway paces its
+    exchanges on it, robot_sim's emulated actuators spread their targets over it; ValueError for a period that is
+    no bus period (services.robot.hardware.BusTiming) or a profile without robot_gateway (no bus to set)."""
+    from services.robot.hardware import BusTiming
+
+    timing = BusTiming.from_period_ms(period_ms)
+    if not any(s.name == "robot_gateway" for s in profile.services):
+        raise ValueError("--bus-period is the actuator bus's: a profile with robot_gateway (gateway, real-arm)")
+    services = [msgspec.structs.replace(s, set=[*s.set, f"bus.period_ms={timing.period_ms:g}"])
+                if s.name in ("robot_gateway", "robot_sim") else s for s in profile.services]
+    return msgspec.structs.replace(profile, services=services)
+
+
 def profile_arm(profile: Profile) -> str:
     """The one arm a profile runs (its robot's; the default arm where none is set); ValueError naming the services
     when they do not agree (a controller or safety started for another arm than the robot's would do nothing)."""

@@ -24,16 +24,16 @@ import numpy as np
 
 from protocol.messages import RobotCommand
 from services.robot.dsp import CommandRefused, KinovaDSP
-from services.robot.hardware import CYCLE_S, CYCLES_PER_DSP, JointReading, JointTargets
+from services.robot.hardware import DEFAULT_TIMING, BusTiming, JointReading, JointTargets
 from services.runtime.arrays import clip, constant
 
 #: a reference further than this from the measured angle is pulled back (no wind-up against a torque limit or a
 #: joint the arm cannot move)
 MAX_TRACKING_ERROR = math.radians(3.0)
 _TRACKING_BOUNDS = constant(-MAX_TRACKING_ERROR), constant(MAX_TRACKING_ERROR)
-#: the joints keep the DSP's last velocities at most this many bus cycles without a new DSP cycle (two DSP
-#: periods); then they hold where they are: a DSP that stopped deciding must not leave the arm moving
-MAX_CYCLES_WITHOUT_DSP = 2 * CYCLES_PER_DSP
+#: the joints keep the DSP's last velocities at most this many DSP periods without a new DSP cycle; then they hold
+#: where they are: a DSP that stopped deciding must not leave the arm moving
+MAX_DSP_PERIODS_WITHOUT_DSP = 2
 
 
 @dataclass(frozen=True)
@@ -45,10 +45,14 @@ class Refusal:
 
 
 class RobotCore:
-    def __init__(self, dsp: KinovaDSP, reading: JointReading, cycle_s: float = CYCLE_S) -> None:
+    def __init__(self, dsp: KinovaDSP, reading: JointReading, timing: BusTiming = DEFAULT_TIMING) -> None:
         self.dsp = dsp
-        self.cycle_s = cycle_s
-        self._cycle = constant(cycle_s)  # (an operand every bus cycle: services.runtime.arrays)
+        #: the bus's cycle: the DSP's velocities are ramped over its ``cycles_per_dsp`` exchanges
+        self.timing = timing
+        self.cycle_s = timing.period_s
+        self._cycles_per_dsp = timing.cycles_per_dsp
+        self._max_cycles_without_dsp = MAX_DSP_PERIODS_WITHOUT_DSP * timing.cycles_per_dsp
+        self._cycle = constant(self.cycle_s)  # (an operand every bus cycle: services.runtime.arrays)
         self.reading = reading
         #: the arm's joints (as many as the readings carry)
         self.n_joints = len(reading.q)
@@ -57,8 +61,8 @@ class RobotCore:
         #: exchange since the DSP cycle
         self.dq_ref = np.zeros(self.n_joints)
         self._dq_from = np.zeros(self.n_joints)
-        self._step = CYCLES_PER_DSP
-        #: bus cycles in which the DSP was too late and the joints were held (see MAX_CYCLES_WITHOUT_DSP)
+        self._step = self._cycles_per_dsp
+        #: bus cycles in which the DSP was too late and the joints were held (see MAX_DSP_PERIODS_WITHOUT_DSP)
         self.dsp_stale_cycles = 0
         #: the DSP's trajectories are to be erased at its next cycle (torque control took the joints)
         self._erase_requested = False
@@ -74,10 +78,10 @@ class RobotCore:
         if self.torque_mode:
             return JointTargets(q=q_meas.copy(), torques=self.torques.copy())
         self._step += 1
-        if self._step > MAX_CYCLES_WITHOUT_DSP and (self.dq_ref.any() or self._dq_from.any()):
+        if self._step > self._max_cycles_without_dsp and (self.dq_ref.any() or self._dq_from.any()):
             self.stop()
             self.dsp_stale_cycles += 1
-        fraction = min(1.0, (self._step - 0.5) / CYCLES_PER_DSP)  # the ramp's mean over this exchange
+        fraction = min(1.0, (self._step - 0.5) / self._cycles_per_dsp)  # the ramp's mean over this exchange
         q_ref = self.q_ref + (self._dq_from + (self.dq_ref - self._dq_from) * fraction) * self._cycle
         self.q_ref = q_meas + clip(q_ref - q_meas, _TRACKING_BOUNDS[0], _TRACKING_BOUNDS[1])
         return JointTargets(q=self.q_ref.copy())
@@ -94,7 +98,7 @@ class RobotCore:
         pulled back to a reading that may be a few cycles old."""
         self.dq_ref = np.zeros(self.n_joints)
         self._dq_from = np.zeros(self.n_joints)
-        self._step = CYCLES_PER_DSP
+        self._step = self._cycles_per_dsp
 
     def hold(self) -> None:
         """Stop where the arm is measured to be (a mode switch: the targets held no meaning in torque mode)."""
@@ -131,7 +135,7 @@ class RobotCore:
         """The DSP's new joint velocities: the next bus cycles ramp to them."""
         if self.torque_mode:
             return
-        fraction = min(1.0, self._step / CYCLES_PER_DSP)  # where the last ramp got to
+        fraction = min(1.0, self._step / self._cycles_per_dsp)  # where the last ramp got to
         self._dq_from = self._dq_from + (self.dq_ref - self._dq_from) * fraction
         self.dq_ref = dq_ref
         self._step = 0

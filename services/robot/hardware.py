@@ -8,6 +8,7 @@ arm in-process and the same arm behind the bus give the node identical numbers.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional, Protocol
 
@@ -15,12 +16,74 @@ import numpy as np
 
 from services.model.arm import ArmDescription
 
-#: the actuators' bus cycle (500 Hz)
-CYCLE_S = 0.002
-CYCLE_NS = 2_000_000
-#: the DSP (the arm's 100 Hz high-level loop) runs every this many bus cycles (10 ms)
-CYCLES_PER_DSP = 5
-DSP_CYCLE_NS = CYCLE_NS * CYCLES_PER_DSP
+#: the DSP's tick: the arm's 100 Hz high-level loop (kinova.md: the high-level API at 100 Hz)
+DSP_CYCLE_NS = 10_000_000
+
+
+@dataclass(frozen=True)
+class BusTiming:
+    """The actuator bus's cycle, a property of the hardware behind it: a whole fraction of the DSP's 10 ms tick, so
+    that every ``cycles_per_dsp``-th exchange is a DSP tick.
+
+    Which periods: Kinova's RS-485 example budgets 2.5 ms a cycle (its 500 Hz sleep plus the exchange), abr_jaco2
+    runs about 3 ms, drake-jaco-driver caps at 250 Hz, Kinova's staff give 300-500 Hz for direct actuator access
+    (kinova-ros issue 423): 2, 2.5, 3.33 and 5 ms (5, 4, 3, 2 cycles a tick). 4 ms is refused: 10 ms is 2.5 of
+    them, so the DSP's tick would fall between exchanges (every 8 or 12 ms, not the arm's 100 Hz)."""
+
+    cycles_per_dsp: int = 5
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.cycles_per_dsp, int) or not 1 <= self.cycles_per_dsp <= max(BUS_PERIODS):
+            # (1: a backend with no joint-level bus, which runs at its DSP's own cycle)
+            raise ValueError(f"a bus cycle must divide the DSP's 10 ms tick into 1..{max(BUS_PERIODS)} cycles")
+
+    @property
+    def period_ns(self) -> int:
+        """One cycle (3.33 ms: 3 333 333 ns, the tick's rest in the last cycle of each tick: see :meth:`stamp_ns`)."""
+        return DSP_CYCLE_NS // self.cycles_per_dsp
+
+    @property
+    def period_s(self) -> float:
+        return DSP_CYCLE_NS / self.cycles_per_dsp * 1e-9
+
+    @property
+    def period_ms(self) -> float:
+        return round(DSP_CYCLE_NS / self.cycles_per_dsp * 1e-6, 2)
+
+    def stamp_ns(self, cycle: int) -> int:
+        """When cycle number ``cycle`` is due, counted from the first (cycle 0, a tick): every tick exactly on the
+        10 ms grid, whatever rounding a period of 3.33 ms takes."""
+        ticks, within = divmod(cycle, self.cycles_per_dsp)
+        return ticks * DSP_CYCLE_NS + within * self.period_ns
+
+    def cycles_in(self, span_ns: int) -> int:
+        """How many cycles ``span_ns`` holds, to the nearest (a gap between two stamps)."""
+        return int(round(span_ns * self.cycles_per_dsp / DSP_CYCLE_NS))
+
+    @classmethod
+    def from_period_ms(cls, period_ms: float) -> "BusTiming":
+        """The timing of a period in milliseconds as a user writes it (2, 2.5, 3.33 or 3.333, 5)."""
+        if not isinstance(period_ms, (int, float)) or isinstance(period_ms, bool) or not math.isfinite(period_ms):
+            raise ValueError(f"bus period_ms must be a number of milliseconds, not {period_ms!r}")
+        for cycles, nominal in BUS_PERIODS.items():
+            if abs(period_ms - nominal) < 0.01:
+                return cls(cycles)
+        if abs(period_ms - 4.0) < 0.01:
+            raise ValueError("bus period_ms 4 does not divide the DSP's 10 ms tick (2.5 cycles): the tick would fall "
+                             "between exchanges; use 3.33 or 5")
+        periods = ", ".join(f"{v:g}" for v in BUS_PERIODS.values())
+        raise ValueError(f"bus period_ms {period_ms:g} is not one of {periods} "
+                         "(a whole fraction of the DSP's 10 ms tick, within what USB sustains)")
+
+
+#: cycles a DSP tick → the period they give (ms)
+BUS_PERIODS = {5: 2.0, 4: 2.5, 3: 3.33, 2: 5.0}
+#: the emulated arm's actuator cycle, and the bus's unless its hardware says otherwise (500 Hz: Kinova's RS-485
+#: example's loop)
+DEFAULT_TIMING = BusTiming()
+CYCLE_NS = DEFAULT_TIMING.period_ns
+CYCLE_S = DEFAULT_TIMING.period_s
+CYCLES_PER_DSP = DEFAULT_TIMING.cycles_per_dsp
 #: cycles an actuator goes on along its last target's rate when no target comes, before it holds (robot_sim's
 #: firmware emulates one, as servo drives commonly do; the real actuators' behaviour is not public)
 EXTRAPOLATED_CYCLES = 1
@@ -128,6 +191,8 @@ class RobotHardware(Protocol):
     #: arm's gravity (kinova.md; abr/abr_jaco2 sends host-computed gravity torques), so the host sends its model's
     #: gravity with every torque (services.robot.lowlevel)
     actuators_compensate_gravity: bool
+    #: the bus's cycle (the node's loop runs on it; every ``cycles_per_dsp``-th exchange is a DSP tick)
+    timing: BusTiming
 
     def exchange(self, targets: JointTargets) -> JointReading:
         """Send this cycle's targets, return the joints' state (raises :class:`HardwareError`)."""

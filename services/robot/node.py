@@ -79,7 +79,7 @@ from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
 from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import RobotCore
-from services.robot.hardware import (CYCLE_NS, CYCLE_S, CYCLES_PER_DSP, DSP_CYCLE_NS, EXTRAPOLATED_CYCLES,
+from services.robot.hardware import (CYCLE_S, DEFAULT_TIMING, DSP_CYCLE_NS, EXTRAPOLATED_CYCLES,
                                      HardwareError, JointReading, RobotHardware)
 from services.runtime.pacing import CyclePacer, request_realtime
 
@@ -254,6 +254,8 @@ class RobotNode(Service):
         self.gravity_kin = ArmKinematics(self.arm)
         #: the torque-mode setup (Table 5.1's functions): the Kinova API sets it, low-level control applies it
         self.torque_setup = TorqueSetup(self.arm)
+        #: the bus's cycle, the hardware's own (services.robot.hardware.BusTiming): known once it is open
+        self.bus_timing = DEFAULT_TIMING
         #: the loop's period: the bus cycle (a backend without a joint-level bus runs at its DSP's cycle)
         self.cycle_s = CYCLE_S
         self.hardware: Optional[RobotHardware] = None
@@ -341,7 +343,9 @@ class RobotNode(Service):
     def on_start(self) -> None:
         self.hardware, reading = self.open_hardware()
         try:
-            self.core = RobotCore(self.make_dsp(), reading)
+            self.bus_timing = self.hardware.timing
+            self.cycle_s = self.bus_timing.period_s
+            self.core = RobotCore(self.make_dsp(), reading, self.bus_timing)
             self.api = self.make_api()
             keys = self.keys
             self.state_pub = self.publisher(keys.robot_state, "state")
@@ -792,7 +796,7 @@ class RobotNode(Service):
         """Cycles the arm ran between two of our exchanges (from the readings' stamps on its timeline) beyond the
         one each exchange takes: missed, whoever was late."""
         if self._last_stamp is not None and stamp_ns > 0 and not self.hardware.simulated_in_process:
-            gap = int(round((stamp_ns - self._last_stamp) / CYCLE_NS)) - 1
+            gap = self.bus_timing.cycles_in(stamp_ns - self._last_stamp) - 1
             if gap > 0:
                 self.counters.inc("cycles.arm_missed", gap)
                 for _ in range(gap):
@@ -803,7 +807,7 @@ class RobotNode(Service):
         if self.lockstep and reading is not None and reading.stamp_ns > 0:
             return reading.stamp_ns % DSP_CYCLE_NS == 0  # the simulator's 10 ms grid
         if not self.hardware.arm_timeline:
-            return index % CYCLES_PER_DSP == 0
+            return index % self.bus_timing.cycles_per_dsp == 0
         # on the arm's grid, in phase with its camera: the first reading at or past each 10 ms line (a lost
         # reading is no tick, unless a whole DSP cycle of exchanges passed without one: the state goes on)
         if reading is not None and reading.stamp_ns > 0:
@@ -813,7 +817,7 @@ class RobotNode(Service):
                 tick = False  # joined mid-cycle: the first tick is at the next line
             self._last_dsp_period = period
         else:
-            tick = index - self._last_dsp_index >= CYCLES_PER_DSP
+            tick = index - self._last_dsp_index >= self.bus_timing.cycles_per_dsp
         if tick:
             self._last_dsp_index = index
         return tick
@@ -931,7 +935,7 @@ class RobotNode(Service):
             mode=ActuatorMode.TORQUE if self.core.torque_mode else ActuatorMode.POSITION,
             q=reading.q.tolist(), dq=reading.dq.tolist(), tau=reading.tau.tolist(),
             current_a=reading.current_a.tolist(), temperature_c=reading.temperature_c.tolist(),
-            faults=(self._bus_faults + reading.faults())[:32]))
+            faults=(self._bus_faults + reading.faults())[:32], cycle_ns=self.bus_timing.period_ns))
 
     def _lowlevel_step(self) -> None:
         """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""

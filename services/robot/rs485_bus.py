@@ -28,6 +28,7 @@ import numpy as np
 
 from protocol.rs485 import MESSAGE_DTYPE, MESSAGE_SIZE, RS485Error, RS485Message, from_records, known_commands, \
     to_records
+from services.robot.hardware import BusTiming
 from services.runtime.config import ConfigStruct
 from services.runtime.metrics import Counters
 
@@ -55,6 +56,17 @@ class BusConfig(ConfigStruct):
     channel: str = "mfvs-rs485"
     #: extra python-can arguments (bitrate, data_bitrate, ...)
     options: dict = msgspec.field(default_factory=dict)
+    #: the host's bus cycle (ms): 2, 2.5, 3.33 or 5, a whole fraction of the DSP's 10 ms tick
+    #: (services.robot.hardware.BusTiming, which says why these); robot_sim's emulated actuators keep their own
+    #: 2 ms cycle, whatever their host's
+    period_ms: float = 2.0
+
+    def __post_init__(self) -> None:
+        BusTiming.from_period_ms(self.period_ms)
+
+    @property
+    def timing(self) -> BusTiming:
+        return BusTiming.from_period_ms(self.period_ms)
 
 
 class BusError(RuntimeError):

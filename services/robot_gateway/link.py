@@ -17,8 +17,8 @@ from protocol import rs485 as r
 from services.model.arm import ArmDescription
 from services.runtime.metrics import Counters
 from services.robot.rs485_bus import BusError, RS485Bus
-from services.robot.hardware import (CYCLE_NS, ActuatorValues, HardwareError, JointReading, JointTargets,
-                                     physical_targets, reading_from_physical)
+from services.robot.hardware import (DEFAULT_TIMING, ActuatorValues, BusTiming, HardwareError, JointReading,
+                                     JointTargets, physical_targets, reading_from_physical)
 
 
 class LinkError(RuntimeError):
@@ -304,7 +304,7 @@ class LinkHardware:
     actuators_compensate_gravity = False
 
     def __init__(self, link: ActuatorLink, arm: ArmDescription, pipelined: bool = True,
-                 counted_from_ns: Optional[int] = None) -> None:
+                 counted_from_ns: Optional[int] = None, timing: BusTiming = DEFAULT_TIMING) -> None:
         """``counted_from_ns``: the emulated arm in lockstep behind a wire that carries no stamps (Kinova's USB
         comm layer): its timeline is counted here instead, this plus one bus cycle per exchange sent (the arm
         steps once per host batch, from ``protocol.conventions.LOCKSTEP_EPOCH_NS``); in step only."""
@@ -313,6 +313,10 @@ class LinkHardware:
         self.link = link
         self.arm = arm
         self.counted_from_ns = counted_from_ns
+        #: the host's cycle on this bus (the node paces its exchanges on it)
+        self.timing = timing
+        if counted_from_ns is not None and timing != DEFAULT_TIMING:
+            raise ValueError("a counted timeline is the emulated arm's 2 ms cycles, one per exchange")
         #: the readings are stamped on the emulated arm's own timeline: the replies' stamps (the bus says whether
         #: its interface keeps them), or counted here
         self.arm_timeline = link.bus.arm_timeline or counted_from_ns is not None
@@ -337,7 +341,7 @@ class LinkHardware:
                                                     zeros.astype(int), stamp), self.arm)
 
     def _counted_stamp(self, cycle: int) -> int:
-        return self.counted_from_ns + cycle * CYCLE_NS
+        return self.counted_from_ns + self.timing.stamp_ns(cycle)
 
     def exchange(self, targets: JointTargets) -> JointReading:
         position_deg, torque_nm = physical_targets(targets, self.arm)

@@ -32,7 +32,7 @@ from protocol.conventions import LOCKSTEP_EPOCH_NS, ClockMode
 from protocol.messages import SimClock
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
-from services.robot.hardware import HardwareError, JointReading
+from services.robot.hardware import DEFAULT_TIMING, BusTiming, HardwareError, JointReading
 from services.robot.node import RobotNode, RobotNodeConfig
 from services.model.arm import load_arm
 from services.robot_gateway.kinova_sdk import (ArmSession, ArmStartError, KinovaSdk, SdkArm, SdkError,
@@ -74,6 +74,9 @@ class GatewayConfig(RobotNodeConfig):
         super().__post_init__()
         if self.backend == "kinova_sdk" and ClockMode(self.clock) is not ClockMode.REALTIME:
             raise ValueError("the kinova_sdk backend runs in realtime only (a real arm has no simulated clock)")
+        if ClockMode(self.clock) is ClockMode.LOCKSTEP and self.bus.timing != DEFAULT_TIMING:
+            raise ValueError(f"bus.period_ms {self.bus.period_ms:g}: in lockstep each exchange is one of the emulated "
+                             f"actuators' {DEFAULT_TIMING.period_ms:g} ms cycles; a longer period is realtime's")
         if self.high_level_check_deg is not None and not (math.isfinite(self.high_level_check_deg)
                                                           and self.high_level_check_deg > 0):
             raise ValueError("high_level_check_deg must be a positive number of degrees, or null (no check)")
@@ -119,7 +122,8 @@ class RobotGatewayService(RobotNode):
         # the arm behind the bus computes exactly what the simulated arm in robot_sim's process does
         try:
             hardware = LinkHardware(ActuatorLink(self.bus, cfg.bus_addresses(), timeout, self.counters), self.arm,
-                                    pipelined=not self.lockstep, counted_from_ns=self._counted_timeline())
+                                    pipelined=not self.lockstep, counted_from_ns=self._counted_timeline(),
+                                    timing=cfg.bus.timing)
             reading = self._connect(hardware)
             if self.lockstep and reading.stamp_ns >= SIMULATED_TIME_LIMIT_NS:
                 # in lockstep the gateway exchanges as fast as the arm answers: only an arm on a simulated clock
@@ -145,7 +149,7 @@ class RobotGatewayService(RobotNode):
         addresses = self.config.bus_addresses()
         summary = (f"arm {self.arm.name}: {len(addresses)} actuators on the bus "
                    f"({', '.join(f'0x{a:02X}' for a in addresses)}) over {self.config.bus.interface}, a "
-                   f"{self.cycle_s * 1e3:g} ms cycle")
+                   f"{self.bus_timing.period_ms:g} ms cycle")
         call_times = getattr(self.bus, "call_times", {})
         figures = [f"{name} {stats['p50_ms']:.2f}/{stats['max_ms']:.2f}"
                    for name, stats in ((n, d.stats()) for n, d in call_times.items() if n != "activate") if stats["n"]]
@@ -194,6 +198,8 @@ class _NoJoints:
     arm_timeline = False
     #: torque mode through the SDK goes through Kinova's DSP, which compensates the arm's gravity itself
     actuators_compensate_gravity = True
+    #: no joint-level bus: the node's loop runs at the DSP's own cycle
+    timing = BusTiming(1)
 
     def __init__(self, session: ArmSession) -> None:
         self.session = session
@@ -265,7 +271,6 @@ class SdkGatewayService(RobotNode):
         self.sdk = connection.sdk if connection else KinovaSdk.find(config.sdk_library, config.sdk_transport)
         #: the arm behind the SDK (``self.arm`` is its description)
         self.sdk_arm: Optional[SdkArm] = connection.arm if connection else None
-        self.cycle_s = config.dsp.cycle_s
 
     def start(self) -> "SdkGatewayService":
         """Open the arm, then start the service (the router comes second: a gateway that cannot reach its arm

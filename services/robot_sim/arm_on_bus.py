@@ -92,6 +92,10 @@ class ArmOnBusConfig:
     realtime_priority: int = 0
     #: stop after this much of the arm's time (0: run until stopped)
     max_sim_time_s: float = 0.0
+    #: the host's bus cycle: the boundaries lock to its frames only when it is the actuators' own (a host at 5 ms
+    #: sends on every 2.5th boundary: there is no phase to lock to, and the actuators free-run, as the real
+    #: ones' own cycle does)
+    host_period_s: float = CYCLE_S
 
 
 class ArmOnBus:
@@ -235,7 +239,7 @@ class ArmOnBus:
             # first frame of the cycle (a cycle that got none says nothing about the phase); far off (at the start,
             # or after the host's phase moved), jump there, close to it, follow gently
             correction = 0.0
-            if behind == 0 and first_command is not None:
+            if behind == 0 and first_command is not None and self.config.host_period_s == CYCLE_S:
                 error = (first_command - (boundary - CYCLE_S)) - CYCLE_S / 2
                 self.phase_error.add(abs(error))
                 if abs(error) > CYCLE_S / 4 and (not locked or commands > len(self.device.index)):

@@ -9,7 +9,8 @@ Per actuator:
 
 * Position mode (interpolated): a target received during a cycle is taken at the next cycle boundary (if several
   arrived, the newest wins; the others are counted as ``superseded``), and the reference moves from where it is to
-  that target across the cycle, arriving at its end, as the host planned it. A servo critically damped at
+  that target across the host's period (its bus cycle: one 2 ms cycle, or 2.5-5 ms when the host runs slower,
+  :meth:`ActuatorFirmware.set_host_period`), arriving at its end, as the host planned it. A servo critically damped at
   ``SERVO_BANDWIDTH_RPS`` for the joint's current inertia follows the reference, with the reference's rate and its
   change of rate as feed-forward (inertia, friction, gravity). A cycle without a target (``missed``) goes on along
   the reference's rate for that one cycle (where the host's next target would have taken it: a frame that is only
@@ -30,7 +31,7 @@ Per actuator:
   and noise of the data sheet's (docs/robot.md, "The actuators as their data sheets give them").
 
 Where the emulation departs from the real actuators (whose firmware is not public): the 0x17 layout, the
-interpolation across a cycle and the one cycle of extrapolation on a missed target are mfvs's choices (what
+interpolation across the host's period and the one cycle of extrapolation on a missed target are mfvs's choices (what
 servo drives commonly do); the torque timeout and the gravity compensation follow kinova.md.
 """
 from __future__ import annotations
@@ -94,8 +95,9 @@ FLOAT32_MARGIN = 1.0 + 2.0 ** -23
 NO_FAULT = int(r.ActuatorError.NONE)
 #: a steady temperature: an emulation constant for the reported temperature (nothing in the simulation heats up)
 ACTUATOR_TEMPERATURE_C = 35.0
-#: how long a target's reference moves: across its bus cycle, then on along its rate for the extrapolated cycles
-GOES_ON_S = (1 + EXTRAPOLATED_CYCLES) * CYCLE_S
+#: how long a target's reference moves past its segment (which spans the host's period: :meth:`ActuatorFirmware.
+#: set_host_period`): on along its rate for the extrapolated cycles
+GOES_ON_PAST_SEGMENT_S = EXTRAPOLATED_CYCLES * CYCLE_S
 #: bounds of the reference's rate and acceleration (well beyond the arm's 48 deg/s and the DSP's 200 deg/s², so
 #: they only cut glitches)
 MAX_REFERENCE_RATE_DPS = 120.0
@@ -194,6 +196,7 @@ class ActuatorFirmware:
         self._temperature_c = np.full(n, ACTUATOR_TEMPERATURE_C)
         self.lower, self.upper = arm.model_limits()
         self.addresses = np.array(actuator_addresses(self.config, arm))
+        self.set_host_period(CYCLE_S)
         # the state (class docstring)
         for name in self.PER_ACTUATOR:  # times (``_s``) start at never
             setattr(self, name, np.full(n, -math.inf if name.endswith("_s") else 0.0))
@@ -395,7 +398,9 @@ class ActuatorFirmware:
             self.last_command_s.fill(now_s)
         else:
             came = count > 0
-            missed = int(np.count_nonzero(~came & (now_s - self.last_command_s <= HOST_GONE_S)))
+            # a target was due (a host period since the last one) and the host has not gone away
+            silent_s = now_s - self.last_command_s
+            missed = int(np.count_nonzero(~came & (silent_s >= self.host_period_s - 1e-9) & (silent_s <= HOST_GONE_S)))
             if missed:
                 self.counters.inc("frames.missed", missed)
             self.last_command_s[came] = now_s
@@ -447,9 +452,18 @@ class ActuatorFirmware:
         self.last_torque_s[accepted] = self.now_s
         return report
 
+    def set_host_period(self, period_s: float) -> None:
+        """How often the host sends targets (its bus cycle: services.robot.hardware.BusTiming): each target's
+        segment spans that long, so that a host at 5 ms moves the joints as smoothly as one at 2 ms. Our choice:
+        how a real actuator moves between its host's targets is not public (a 2 ms host gives the segment of one
+        cycle this emulation always had)."""
+        self.host_period_s = period_s
+        self._segment = _constant(period_s)  # (an operand at every boundary: _constant)
+        self._goes_on_s = period_s + GOES_ON_PAST_SEGMENT_S
+
     def reference(self, t_s: float, which=slice(None)) -> tuple[np.ndarray, np.ndarray]:
         """Where the references of the actuators ``which`` are at ``t_s`` (deg) and their rates (deg/s): along their
-        segments during the cycle and, without a new target, along the same rate for one more cycle; then they
+        segments (the host's period) and, without a new target, along the same rate for one more cycle; then they
         hold there."""
         position, _, along = self._reference(t_s - self.target_time_s[which], which)
         return position, np.where(along, self.target_rate_dps[which], 0.0)
@@ -458,9 +472,10 @@ class ActuatorFirmware:
         """:meth:`reference`'s position ``ahead`` of each segment's start, whether the segment started, whether the
         reference still moves along it."""
         started = ahead >= 0.0
-        along = started & (ahead < GOES_ON_S - 1e-9)
+        goes_on = self._goes_on_s
+        along = started & (ahead < goes_on - 1e-9)
         position = np.where(started, self.target_deg[which] + self.target_rate_dps[which] * np.where(
-            along, ahead, GOES_ON_S), self.last_target_deg[which])
+            along, ahead, goes_on), self.last_target_deg[which])
         return position, started, along
 
     def _common_time(self) -> Optional[float]:
@@ -471,23 +486,24 @@ class ActuatorFirmware:
 
     def _follow(self, following) -> None:
         """New position targets at this boundary for the actuators ``following`` (a mask or a slice): a segment
-        from where each reference is to its target, across the cycle."""
+        from where each reference is to its target, across the host's period."""
         common = self._common_time() if isinstance(following, slice) else None
         if common is not None:  # (the host's batch each cycle) :meth:`_reference`'s choices made once for all
             ahead = self.now_s - common
             started = ahead >= 0.0
-            start = (self.target_deg + self.target_rate_dps * (ahead if ahead < GOES_ON_S - 1e-9 else GOES_ON_S)
+            goes_on = self._goes_on_s
+            start = (self.target_deg + self.target_rate_dps * (ahead if ahead < goes_on - 1e-9 else goes_on)
                      if started else self.last_target_deg.copy())
-            rate_before = self.target_rate_dps if started and ahead <= GOES_ON_S + 1e-9 else _ZERO
+            rate_before = self.target_rate_dps if started and ahead <= goes_on + 1e-9 else _ZERO
         else:
             ahead = self.now_s - self.target_time_s[following]
             start, started, _ = self._reference(ahead, following)
-            rate_before = np.where(started & (ahead <= GOES_ON_S + 1e-9), self.target_rate_dps[following], 0.0)
+            rate_before = np.where(started & (ahead <= self._goes_on_s + 1e-9), self.target_rate_dps[following], 0.0)
         # (rate_before: the rate the reference moved at up to now; at the end of its one cycle of going on, it still
         # moved)
         target = self.pending_deg[following]
         # a glitch, not a trajectory: the bounds only cut those
-        rate = _clip((target - start) / _CYCLE, *_RATE_BOUNDS)
+        rate = _clip((target - start) / self._segment, *_RATE_BOUNDS)
         accel = _clip((rate - rate_before) / _CYCLE, *_ACCEL_BOUNDS)  # (before the new rate replaces the old)
         self.target_deg[following], self.last_target_deg[following] = start, target
         self.target_rate_dps[following], self.target_accel_dps2[following] = rate, accel
@@ -522,22 +538,23 @@ class ActuatorFirmware:
         mujoco.mj_fullM(self.model, self.data, self._mass)
         torque_mode, any_torque, rate_model, accel_model, taken_together, friction_rate = self._segments()
         start_deg, rate_dps, last_deg = self.target_deg, self.target_rate_dps, self.last_target_deg
+        goes_on = self._goes_on_s
         # follow the reference (:meth:`reference`, but for the last 1e-9 s of its cycle of going on), with the
         # inertia, friction and gravity its motion needs as feed-forward (the segment's change of rate during the
         # cycle it was taken in)
         if taken_together is not None:  # the same arithmetic, its choices made once for every joint
             ahead = t_s - taken_together
             started = ahead >= 0.0
-            reference_deg = start_deg + rate_dps * min(max(ahead, 0.0), GOES_ON_S) if started else last_deg
-            moving = started and ahead < GOES_ON_S - 1e-9
+            reference_deg = start_deg + rate_dps * min(max(ahead, 0.0), goes_on) if started else last_deg
+            moving = started and ahead < goes_on - 1e-9
             rate, friction = (rate_model, friction_rate) if moving else (self._zero_rate, self._zero_friction)
             in_first_cycle = started and ahead < CYCLE_S - 1e-9
         else:
             ahead = t_s - self.target_time_s
             started = ahead >= 0.0
-            reference_deg = np.where(started, start_deg + rate_dps * np.minimum(np.maximum(ahead, 0.0), GOES_ON_S),
+            reference_deg = np.where(started, start_deg + rate_dps * np.minimum(np.maximum(ahead, 0.0), goes_on),
                                      last_deg)
-            rate = self._deg_to_model * np.where(started & (ahead < GOES_ON_S - 1e-9), rate_dps, 0.0)
+            rate = self._deg_to_model * np.where(started & (ahead < self._goes_on_s - 1e-9), rate_dps, 0.0)
             friction = self._friction * rate
             in_first_cycle = started & (ahead < CYCLE_S - 1e-9)
         tau = gravity + friction + self._inertia * (

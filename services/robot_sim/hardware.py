@@ -13,8 +13,8 @@ import numpy as np
 
 from protocol import rs485 as r
 from services.model.arm import ArmDescription
-from services.robot.hardware import (ActuatorValues, HardwareError, JointReading, JointTargets, physical_targets,
-                                     reading_from_physical)
+from services.robot.hardware import (DEFAULT_TIMING, ActuatorValues, HardwareError, JointReading, JointTargets,
+                                     physical_targets, reading_from_physical)
 from services.robot_sim.sim import Simulation
 from services.runtime.arrays import constant
 
@@ -42,6 +42,8 @@ class SimulatedHardware:
     simulated_in_process = True
     #: the exchanges are the arm's cycles one for one: every fifth is on its grid
     arm_timeline = False
+    #: the simulated actuators' own cycle
+    timing = DEFAULT_TIMING
 
     def __init__(self, sim: Simulation, epoch_ns: int = 0,
                  on_boundary: Optional[Callable[[ActuatorValues], None]] = None) -> None:

@@ -34,7 +34,7 @@ from protocol.messages import RobotState, SimClock, encode
 from services.robot.arm_check import ArmCheckConfig
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
-from services.robot.hardware import CYCLE_NS, CYCLE_S, DSP_CYCLE_NS, ActuatorValues
+from services.robot.hardware import CYCLE_NS, CYCLE_S, DEFAULT_TIMING, DSP_CYCLE_NS, ActuatorValues
 from protocol.keys import ROBOT_SERVICES
 from services.robot.node import RobotNode, RobotNodeConfig
 from services.robot_sim import usb_base
@@ -70,6 +70,10 @@ class RobotSimConfig(RobotNodeConfig):
         if self.scene.initial_joints_deg is not None:
             check_joints_deg(arm, self.scene.initial_joints_deg, "scene.initial_joints_deg")
         check_actuators(self.actuators, arm)
+        if self.bus.timing != DEFAULT_TIMING and ClockMode(self.clock) is ClockMode.LOCKSTEP:
+            raise ValueError(f"bus.period_ms {self.bus.period_ms:g}: in lockstep the host exchanges once per "
+                             f"{DEFAULT_TIMING.period_ms:g} ms cycle of the emulated actuators; a longer period is "
+                             "realtime's")
         if self.actuators.mirrored_joints and self.arm_check.waived:
             raise ValueError("actuators.mirrored_joints makes the arm disagree with its description: the check "
                              "cannot be waived (arm_check.waived: false)")
@@ -308,8 +312,11 @@ class ArmOnBusService(Service):
         except BaseException:
             bus.close()
             raise
+        # the host's cycle (bus.period_ms): the actuators keep their own 2 ms one and spread each target over it
+        self.sim.firmware.set_host_period(cfg.bus.timing.period_s)
         self.arm_on_bus = ArmOnBus(self.sim, bus, ArmOnBusConfig(
             lockstep=self.lockstep, epoch_ns=self.outputs.epoch_ns, sync=cfg.bus_sync, timing=cfg.lockstep,
+            host_period_s=cfg.bus.timing.period_s,
             realtime_priority=cfg.realtime_priority, max_sim_time_s=cfg.max_sim_time_s), self.counters,
             on_boundary=self._on_boundary, on_tick=self._on_tick, on_retry=self.outputs.retry,
             on_epoch=self._on_epoch, log=self.log)

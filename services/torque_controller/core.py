@@ -27,7 +27,7 @@ import numpy as np
 
 from protocol.messages import ActuatorMode, LowLevelState
 from services.controller.torque_controllers import Start, TorqueController
-from services.robot.hardware import CYCLE_NS, CYCLE_S
+from services.robot.hardware import CYCLE_NS
 
 #: a step longer than this (a stall) is integrated as this long: an integral does not jump for a host's pause
 MAX_STEP_S = 0.02
@@ -48,13 +48,16 @@ class ClientTiming:
     stamp_intervals_ms: list = field(default_factory=list)
     first_stamp_ns: int = 0
     last_stamp_ns: int = 0
+    #: the robot's bus cycle, one state each (LowLevelState.cycle_ns: the hardware's)
+    cycle_ns: int = CYCLE_NS
     _last_arrival_ns: int = 0
 
-    def received_state(self, stamp_ns: int, arrival_ns: int) -> None:
+    def received_state(self, stamp_ns: int, arrival_ns: int, cycle_ns: int = CYCLE_NS) -> None:
         """A state arrived (in the subscriber's thread, before it may be superseded)."""
         self.received += 1
+        self.cycle_ns = cycle_ns
         if self.last_stamp_ns:
-            gap = int(round((stamp_ns - self.last_stamp_ns) / CYCLE_NS)) - 1
+            gap = int(round((stamp_ns - self.last_stamp_ns) / cycle_ns)) - 1
             if gap > 0:
                 self.unseen += gap
             self.stamp_intervals_ms.append((stamp_ns - self.last_stamp_ns) / 1e6)
@@ -76,7 +79,7 @@ class ClientTiming:
             return 0
         latency, response = np.asarray(self.latencies_ms), np.asarray(self.responses_ms)
         pipeline = float(np.min(latency - response))  # the earliest a state of this robot arrives after its stamp
-        return int(np.count_nonzero(latency - pipeline > CYCLE_S * 1e3))
+        return int(np.count_nonzero(latency - pipeline > self.cycle_ns / 1e6))
 
     @property
     def missed(self) -> int:
@@ -91,7 +94,7 @@ class ClientTiming:
                     "max": round(float(a.max()), 3)}
 
         span_s = (self.last_stamp_ns - self.first_stamp_ns) / 1e9
-        jitter = [abs(v - CYCLE_S * 1e3) for v in self.arrival_intervals_ms]
+        jitter = [abs(v - self.cycle_ns / 1e6) for v in self.arrival_intervals_ms]
         arrival = [lat - res for lat, res in zip(self.latencies_ms, self.responses_ms)]
         return {"received": self.received, "answered": self.answered, "late": self.late,
                 "superseded": self.superseded, "unseen": self.unseen, "missed": self.missed, "refused": self.refused,
@@ -149,7 +152,7 @@ class TorqueRun:
         if t > self.duration_s:
             self.finished = True
             return None
-        dt = CYCLE_S if self._last_ns is None else min(max((stamp - self._last_ns) / 1e9, 0.0), MAX_STEP_S)
+        dt = state.cycle_ns / 1e9 if self._last_ns is None else min(max((stamp - self._last_ns) / 1e9, 0.0), MAX_STEP_S)
         self._last_ns = stamp
         for fault in state.faults:
             self.faults[fault] = self.faults.get(fault, 0) + 1

@@ -160,7 +160,7 @@ class TorqueControllerService(Service):
             return
         with self._cond:
             if run is not None and run.start is not None and not run.finished:
-                run.timing.received_state(state.header.stamp_ns, arrival_ns)
+                run.timing.received_state(state.header.stamp_ns, arrival_ns, state.cycle_ns)
                 if self._pending is not None:
                     run.timing.superseded += 1  # never answered: a newer state came first
             self._pending = (state, arrival_ns)
@@ -213,7 +213,7 @@ class TorqueControllerService(Service):
         first, arrival = self._wait("low-level state", self._take_pending, cfg.robot_timeout_s)
         with self._cond:
             start = run.begin(first, x0)
-            run.timing.received_state(first.header.stamp_ns, arrival)
+            run.timing.received_state(first.header.stamp_ns, arrival, first.cycle_ns)
         self.log.info("%s on the %s: %s for %.1f s%s", self.name, arm.name, cfg.controller, duration,
                       "" if start.xf is None else f", X0 {np.round(start.x0, 4).tolist()} → Xf "
                                                  f"{np.round(start.xf, 4).tolist()} ({start.target})")

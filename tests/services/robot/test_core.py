@@ -9,8 +9,8 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from services.robot.dsp import DSPConfig, KinovaDSP
 from services.robot.core import RobotCore
-from services.robot.hardware import CYCLES_PER_DSP
-from services.robot.hardware import HardwareError
+from services.robot.hardware import CYCLES_PER_DSP, BusTiming, HardwareError, JointReading
+from services.robot.rs485_bus import BusConfig
 from services.robot_gateway.link import LinkHardware
 from services.stack import simulated_link
 from services.model.kinematics import ArmKinematics
@@ -68,3 +68,48 @@ def test_bus_failure_holds_the_arm(gateway):
         hardware.exchange(core.targets())
     core.hold()
     assert np.all(core.dq_ref == 0) and np.allclose(core.targets().q, core.reading.q)
+
+
+@pytest.mark.parametrize("period_ms, cycles", [(2, 5), (2.5, 4), (3.33, 3), (3.333, 3), (5, 2)])
+def test_a_bus_period_divides_the_dsps_10_ms_tick_and_every_tick_stays_on_its_grid(period_ms, cycles):
+    timing = BusTiming.from_period_ms(period_ms)
+    assert timing.cycles_per_dsp == cycles and timing.period_ns * cycles <= 10_000_000
+    stamps = [timing.stamp_ns(k) for k in range(4 * cycles + 1)]
+    assert stamps[::cycles] == [0, 10_000_000, 20_000_000, 30_000_000, 40_000_000]  # 3.33 ms's rounding included
+    assert all(timing.cycles_in(b - a) == 1 for a, b in zip(stamps, stamps[1:]))
+    assert timing.cycles_in(stamps[3] - stamps[0]) == 3
+
+
+@pytest.mark.parametrize("period_ms", [4, 1, 10, 0, -2, float("nan"), float("inf"), "2", True])
+def test_a_bus_period_that_is_no_whole_fraction_of_the_tick_is_refused_saying_why(period_ms):
+    with pytest.raises(ValueError, match="bus period_ms|bus period_ms 4 does not divide"):
+        BusTiming.from_period_ms(period_ms)
+    with pytest.raises(ValueError):
+        BusConfig(period_ms=period_ms)
+
+
+@pytest.mark.parametrize("period_ms", [2, 5])
+def test_the_core_ramps_to_the_dsps_velocities_over_one_tick_and_holds_after_two_ticks_without_one(period_ms):
+    """Whatever the bus period, the joints reach the DSP's velocities within its 10 ms and keep them at most two
+    DSP periods (20 ms of exchanges) without a new DSP cycle."""
+    timing = BusTiming.from_period_ms(period_ms)
+    reading = JointReading(q=ARM.home.copy(), dq=np.zeros(ARM.n_joints), tau=np.zeros(ARM.n_joints))
+    core = RobotCore(KinovaDSP(DSPConfig(), ArmKinematics(ARM)), reading, timing)
+    dq = np.full(ARM.n_joints, 0.1)
+    core.take_plan(dq)
+    positions = [core.targets().q[0] for _ in range(timing.cycles_per_dsp)]
+    steps = np.diff([ARM.home[0], *positions])
+    assert steps[-1] == pytest.approx(0.1 * timing.period_s * (1 - 0.5 / timing.cycles_per_dsp))
+    assert np.all(np.diff(steps) > 0)  # a ramp, not a jump
+    # no DSP cycle for two ticks: held after them
+    for _ in range(timing.cycles_per_dsp):
+        core.targets()
+    assert core.dsp_stale_cycles == 0
+    core.targets()
+    assert core.dsp_stale_cycles == 1 and not core.dq_ref.any()
+
+
+def test_a_counted_timeline_is_the_emulated_arms_2_ms_cycles_only():
+    with simulated_link(lockstep=True) as (_arm, link):
+        with pytest.raises(ValueError, match="2 ms cycles"):
+            LinkHardware(link, ARM, pipelined=False, counted_from_ns=10**9, timing=BusTiming.from_period_ms(5))
