@@ -220,25 +220,27 @@ def under(key: str, api_key: str) -> bool:
     return key.rsplit("/", 1)[0] == api_key.rsplit("/", 1)[0]
 
 
-def put_and_see_each_refused_once(client, services, key: str, batch: list[bytes]) -> None:
-    """Put every payload of ``batch`` on ``key``: each subscriber of the key counts each exactly once as rejected,
-    and no handler of any service fails."""
-    subscribers = [(name, f"rejected.{d.stream}") for name, service in services.items() for d in service.inputs
-                   if d.key == key]
-    before = {s: services[s[0]].counters.get(s[1]) for s in subscribers}
+def put_and_see_each_refused_once(client, services, batches: dict[str, list[bytes]]) -> None:
+    """Put every payload of each key's batch on its key (all keys first, then one wait: the services count them
+    in parallel): each subscriber of the key counts each exactly once as rejected, and no handler of any service
+    fails."""
+    subscribers = [(key, name, f"rejected.{d.stream}") for key in batches for name, service in services.items()
+                   for d in service.inputs if d.key == key]
+    before = {s: services[s[1]].counters.get(s[2]) for s in subscribers}
     handler_errors = {name: service.counters.get("errors.handler") for name, service in services.items()}
-    for payload in batch:
-        # blocking, not dropped: zenoh drops a sample its queues cannot take (its default for data), and a burst of
-        # 1 MB images on a slow host is such a sample; what is tested is the services' count of what reached them
-        client.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+    for key, batch in batches.items():
+        for payload in batch:
+            # blocking, not dropped: zenoh drops a sample its queues cannot take (its default for data), and a
+            # burst of 1 MB images on a slow host is such a sample; what is tested is the services' count of what
+            # reached them
+            client.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def counted():
-        return {s: services[s[0]].counters.get(s[1]) - before[s] for s in subscribers}
+        return {s: services[s[1]].counters.get(s[2]) - before[s] for s in subscribers}
 
-    assert wait_for(lambda: all(v >= len(batch) for v in counted().values()), timeout=10), (key, counted())
-    assert all(v == len(batch) for v in counted().values()), (key, counted())
-    assert {name: service.counters.get("errors.handler") for name, service in services.items()} == \
-        handler_errors, key
+    assert wait_for(lambda: all(v >= len(batches[s[0]]) for s, v in counted().items()), timeout=20), counted()
+    assert all(v == len(batches[s[0]]) for s, v in counted().items()), counted()
+    assert {name: service.counters.get("errors.handler") for name, service in services.items()} == handler_errors
 
 
 @FUZZ
@@ -247,10 +249,9 @@ def test_every_subscriber_counts_each_malformed_payload_once(stack, data):
     client, services, _ = stack
     inputs, _ = declared(services)
     assert len(inputs) >= 10
-    for key, message_type in sorted(inputs.items()):
-        batch = [p for p in data.draw(st.lists(payloads, min_size=3, max_size=8), label=key)
-                 if rejects(p, message_type)]
-        put_and_see_each_refused_once(client, services, key, batch)
+    batches = {key: [p for p in data.draw(st.lists(payloads, min_size=3, max_size=8), label=key)
+                     if rejects(p, message_type)] for key, message_type in sorted(inputs.items())}
+    put_and_see_each_refused_once(client, services, batches)
 
 
 @FUZZ
@@ -258,10 +259,9 @@ def test_every_subscriber_counts_each_malformed_payload_once(stack, data):
 def test_every_subscriber_counts_each_real_message_made_wrong_once(stack, real_messages, data):
     client, services, _ = stack
     inputs, _ = declared(services)
-    for key, message_type in sorted(inputs.items()):
-        batch = [p for p in data.draw(st.lists(made_wrong(real_messages[key]), min_size=3, max_size=8), label=key)
-                 if rejects(p, message_type)]
-        put_and_see_each_refused_once(client, services, key, batch)
+    batches = {key: [p for p in data.draw(st.lists(made_wrong(real_messages[key]), min_size=3, max_size=8), label=key)
+                     if rejects(p, message_type)] for key, message_type in sorted(inputs.items())}
+    put_and_see_each_refused_once(client, services, batches)
 
 
 def test_the_real_messages_made_wrong_are_refused_by_their_types(stack, real_messages):
@@ -288,23 +288,38 @@ def test_every_query_is_answered_whatever_its_payload(stack, data):
     client, services, _ = stack
     _, queries = declared(services)
     assert len(queries) >= len(kinova.API_FUNCTIONS) + 6
+    drawn = []
     for key in queries:
-        function = key.rsplit("/", 1)[-1]
         wrong = payloads
         example = query_argument_example(key)
         if example is not None:  # and its real argument made wrong
             wrong = st.one_of(payloads, made_wrong(m.encode(example)).filter(
                 lambda p, t=type(example): rejects(p, t)))
-        for payload in data.draw(st.lists(wrong, min_size=1, max_size=3), label=key):
-            replies = list(client.get(key, payload=payload, timeout=5.0))
-            assert len(replies) == 1 and replies[0].ok is not None, (key, payload)
-            body = replies[0].ok.payload.to_bytes()
-            if under(key, KEYS.robot_api_all):
-                argument_type = kinova.API_FUNCTIONS.get(function, (None, None))[0]
-                if argument_type is None or rejects(payload, argument_type):  # a bad request: an error code
-                    code = m.decode(body, kinova.ApiReply).code
-                    assert code != int(kinova.ErrorCode.NO_ERROR_KINOVA), (key, payload)
-            elif under(key, KEYS.controller_api(m.GET_TASK)):
-                assert not m.decode(body, m.TaskStatus).ok, (key, payload)
-            elif under(key, KEYS.vision_api("get_goal")):
-                assert not m.decode(body, m.VisionGoalReply).ok, (key, payload)
+        drawn += [(key, payload) for payload in data.draw(st.lists(wrong, min_size=1, max_size=3), label=key)]
+    # a few queries in flight at once (their replies are waited for together, not one round trip after another),
+    # few enough that the robot's worker takes each well within its API timeout on a slow host
+    for first in range(0, len(drawn), QUERIES_IN_FLIGHT):
+        pending = [(key, payload, client.get(key, payload=payload, timeout=5.0))
+                   for key, payload in drawn[first:first + QUERIES_IN_FLIGHT]]
+        for key, payload, handler in pending:
+            check_query_reply(key, payload, list(handler))
+
+
+#: queries the fuzzer keeps in flight at once
+QUERIES_IN_FLIGHT = 8
+
+
+def check_query_reply(key: str, payload: bytes, replies: list) -> None:
+    """One reply, and for a request its type refuses, a refusal: an error code, a task or goal not given."""
+    assert len(replies) == 1 and replies[0].ok is not None, (key, payload)
+    body = replies[0].ok.payload.to_bytes()
+    function = key.rsplit("/", 1)[-1]
+    if under(key, KEYS.robot_api_all):
+        argument_type = kinova.API_FUNCTIONS.get(function, (None, None))[0]
+        if argument_type is None or rejects(payload, argument_type):  # a bad request: an error code
+            code = m.decode(body, kinova.ApiReply).code
+            assert code != int(kinova.ErrorCode.NO_ERROR_KINOVA), (key, payload)
+    elif under(key, KEYS.controller_api(m.GET_TASK)):
+        assert not m.decode(body, m.TaskStatus).ok, (key, payload)
+    elif under(key, KEYS.vision_api("get_goal")):
+        assert not m.decode(body, m.VisionGoalReply).ok, (key, payload)

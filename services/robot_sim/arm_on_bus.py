@@ -83,6 +83,32 @@ def _start_on_the_grid(sim_time_ns: int) -> int:
     return epoch
 
 
+class HostGrid:
+    """Where a host slower than the actuators' cycle sends on its own period: its batches arrive on a grid of
+    ``period_s`` blurred by its wake-ups and the transport, and a segment started at each arrival would carry that
+    blur into the joints' pace (a batch 0.5 ms late on a 3.33 ms host: a segment 15 % slower, the next faster).
+    The grid is followed as the actuators' own boundaries follow a 2 ms host (:class:`BusSyncConfig`): a tenth of
+    each arrival's error, jumping to an arrival more than half a period off (the start, a host that paused)."""
+
+    GAIN = 0.1
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        #: when the last batch was due on the grid (monotonic), None before the first
+        self.due: Optional[float] = None
+
+    def lead(self, boundary: float, arrived: float) -> float:
+        """A batch that arrived at ``arrived`` is taken at ``boundary``: how long before the boundary it was due
+        (0 to one actuator cycle)."""
+        if self.due is None:
+            self.due = arrived
+        else:
+            expected = self.due + self.period_s * max(1, round((arrived - self.due) / self.period_s))
+            error = arrived - expected
+            self.due = arrived if abs(error) > self.period_s / 2 else expected + self.GAIN * error
+        return min(max(boundary - self.due, 0.0), CYCLE_S)
+
+
 @dataclass
 class ArmOnBusConfig:
     lockstep: bool = False
@@ -123,6 +149,8 @@ class ArmOnBus:
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._last_tick: Optional[int] = None
+        #: realtime, a host slower than the actuators' cycle: the grid its batches come on
+        self._host_grid = HostGrid(self.config.host_period_s) if self.config.host_period_s != CYCLE_S else None
 
     def start(self) -> "ArmOnBus":
         self._thread = start_thread(self.run, "robot_sim-bus")
@@ -234,6 +262,10 @@ class ArmOnBus:
                     self.backlog = [np.concatenate(self.backlog)]
             elif behind > 0:
                 self.counters.inc("cycles.late")
+            # a host slower than the actuators' cycle: its batch was due this long before the boundary (its
+            # targets' segments start there: services.robot_sim.firmware)
+            self.sim.firmware.host_lead_s = (self._host_grid.lead(boundary, self.received_at)
+                                             if commands and self._host_grid is not None else 0.0)
             self._cycle()
             # lock the boundaries to the host, whose frames should arrive half a cycle after a boundary: from the
             # first frame of the cycle (a cycle that got none says nothing about the phase); far off (at the start,

@@ -458,6 +458,9 @@ class ActuatorFirmware:
         how a real actuator moves between its host's targets is not public (a 2 ms host gives the segment of one
         cycle this emulation always had)."""
         self.host_period_s = period_s
+        #: a host slower than the actuators' cycle: how long before this boundary its last batch arrived (its
+        #: bus loop sets it; segments start there)
+        self.host_lead_s = 0.0
         self._segment = _constant(period_s)  # (an operand at every boundary: _constant)
         self._goes_on_s = period_s + GOES_ON_PAST_SEGMENT_S
 
@@ -486,17 +489,23 @@ class ActuatorFirmware:
 
     def _follow(self, following) -> None:
         """New position targets at this boundary for the actuators ``following`` (a mask or a slice): a segment
-        from where each reference is to its target, across the host's period."""
+        from where each reference is to its target, across the host's period: from this boundary, or for a host
+        slower than the actuators' cycle from when its batch arrived (:attr:`host_lead_s`), as an actuator whose own
+        loop is far faster than 2 ms would take it (taken on 2 ms boundaries, a 3.33 ms host's targets would come
+        2 or 4 ms apart, and each segment would start early or late: 13 % over the commanded speed, measured)."""
+        start_s = self.now_s
+        if self.host_period_s != CYCLE_S:
+            start_s -= min(max(self.host_lead_s, 0.0), CYCLE_S)
         common = self._common_time() if isinstance(following, slice) else None
         if common is not None:  # (the host's batch each cycle) :meth:`_reference`'s choices made once for all
-            ahead = self.now_s - common
+            ahead = start_s - common
             started = ahead >= 0.0
             goes_on = self._goes_on_s
             start = (self.target_deg + self.target_rate_dps * (ahead if ahead < goes_on - 1e-9 else goes_on)
                      if started else self.last_target_deg.copy())
             rate_before = self.target_rate_dps if started and ahead <= goes_on + 1e-9 else _ZERO
         else:
-            ahead = self.now_s - self.target_time_s[following]
+            ahead = start_s - self.target_time_s[following]
             start, started, _ = self._reference(ahead, following)
             rate_before = np.where(started & (ahead <= self._goes_on_s + 1e-9), self.target_rate_dps[following], 0.0)
         # (rate_before: the rate the reference moved at up to now; at the end of its one cycle of going on, it still
@@ -507,7 +516,7 @@ class ActuatorFirmware:
         accel = _clip((rate - rate_before) / _CYCLE, *_ACCEL_BOUNDS)  # (before the new rate replaces the old)
         self.target_deg[following], self.last_target_deg[following] = start, target
         self.target_rate_dps[following], self.target_accel_dps2[following] = rate, accel
-        self.target_time_s[following] = self.now_s
+        self.target_time_s[following] = start_s
 
     # ------------------------------------------------------------------ physics
     def _segments(self) -> tuple:
