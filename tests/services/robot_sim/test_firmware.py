@@ -157,3 +157,19 @@ def test_a_host_on_a_slower_bus_moves_the_joints_as_smoothly_as_one_on_a_2_ms_bu
     pace = np.diff(references[50:]) / 2e-3  # past the start's ramp
     assert np.mean(pace) == pytest.approx(rate_dps, rel=0.01)
     assert np.all(np.abs(pace - rate_dps) < 0.05 * rate_dps), (pace.min(), pace.max())
+
+
+def test_the_host_grid_follows_a_slower_hosts_period_through_its_jitter_and_jumps_after_a_pause():
+    from services.robot_sim.arm_on_bus import HostGrid
+
+    period = 10e-3 / 3
+    grid, rng = HostGrid(period), np.random.default_rng(7)
+    true_due = 1.0 + period * np.arange(600)
+    arrived = true_due + rng.uniform(0.0, 0.8e-3, len(true_due))  # the host's wake-ups and the transport
+    arrived[400:] += 0.05  # a 50 ms pause: the grid moves
+    for k, t in enumerate(arrived):
+        boundary = 2e-3 * np.ceil(t / 2e-3)
+        lead = grid.lead(boundary, t)
+        assert 0.0 <= lead <= 2e-3
+        if 100 <= k < 400 or k >= 500:  # settled: on the true grid, late by the jitter's mean
+            assert abs(grid.due - (true_due[k] + 0.4e-3 + (0.05 if k >= 400 else 0.0))) < 0.3e-3, k
