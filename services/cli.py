@@ -429,6 +429,18 @@ def _torque_experiment(args: argparse.Namespace) -> int:
             return 2
     if args.arm is not None and arm_or_exit("experiment", args.arm) is None:
         return 2
+    labels = None
+    if args.runs is not None:
+        from services.model.arm import load_arm
+        from services.torque_experiment import THESIS_ARM, runs_for
+
+        known = [spec.label for spec in runs_for(load_arm(args.arm or THESIS_ARM), args.quick)]
+        labels = [label.strip() for label in args.runs.split(",") if label.strip()]
+        unknown = [label for label in labels if label not in known]
+        if unknown or not labels:
+            print(f"mfvs experiment: torque-control{' --quick' if args.quick else ''} has no run "
+                  f"{', '.join(map(repr, unknown)) or 'named'}; its runs: {', '.join(known)}", file=sys.stderr)
+            return 2
     stream = sys.stderr if args.json else sys.stdout
 
     def progress(row: dict) -> None:
@@ -445,7 +457,8 @@ def _torque_experiment(args: argparse.Namespace) -> int:
 
     print(f"torque-control on the {args.arm or 'j2n6s300'} ({args.profile} profile, realtime; about "
           f"{'30 s' if args.quick else '4 min'})", file=stream, flush=True)
-    output = run_torque_control(args.arm, args.out, args.profile, quick=args.quick, progress=progress)
+    output = run_torque_control(args.arm, args.out, args.profile, quick=args.quick, progress=progress,
+                                labels=labels)
     if args.json:
         print(json.dumps(output), flush=True)
         return 0
@@ -753,6 +766,8 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     experiment.add_argument("--quick", action="store_true",
                             help="torque-control: the five controllers on a 3 s reference (3/16 of the motion, the "
                                  "same speeds), without the runs that check the thesis's observations")
+    experiment.add_argument("--runs", default=None, metavar="LABEL,...",
+                            help="torque-control: only these runs (their labels, e.g. jt-pid,joint-velocity)")
     add_jobs_option(experiment)
     add_processes_option(experiment)
     add_arm_option(experiment, default=None, what="the scenario's; torque-control: j2n6s300")
