@@ -58,7 +58,7 @@ import yaml
 from bench.stack import measured_arm, servoing_stack, unknown_arm, with_overrides
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from protocol.keys import Keys
+from protocol.keys import PIPELINE_SERVICES, Keys
 from services.controller.task_client import TaskUnavailable, call_task
 from services.cli import add_arm_option
 from services.launcher import Profile, behind_authority, load_profile, read_stack, restart, with_arm
@@ -73,7 +73,7 @@ from services.runtime.service import alive_services
 from services.runtime.transport import ZenohConfig, free_loopback_port, open_session
 from services.tools import netns
 
-PIPELINE = ("vision", "controller", "safety")
+PIPELINE = PIPELINE_SERVICES
 KIND_WEIGHTS = {"kill": 14, "stop": 10, "router": 4, "drop": 20, "delay": 14, "replay": 10, "forge": 10,
                 "wildcard": 10, "estop": 8, "cable": 12}
 #: the kinds that need computers of their own (``--hosts``)

@@ -1,4 +1,4 @@
 """The mfvs wire contract: key expressions, message types, conventions, Kinova API types, RS-485 codec.
 
-Nothing here opens a zenoh session; everything here is importable by any client (see ARCHITECTURE.md).
+Nothing here opens a zenoh session; everything here is importable by any client (docs/contracts.md).
 """

@@ -1,6 +1,6 @@
 """Named conventions of the wire contract. Every other module refers to these; none redefines them.
 
-A twist declares the frame of its linear part and the meaning of its angular part (ARCHITECTURE.md):
+A twist declares the frame of its linear part and the meaning of its angular part (docs/contracts.md):
 
 * ``Frame.MIXED`` is seed 000's frame: linear velocity in the robot base frame, rotation of the end effector.
 * ``AngularConvention.OMEGA``: the angular velocity vector (in the end-effector frame when the frame is mixed).
@@ -28,7 +28,7 @@ class AngularConvention(str, enum.Enum):
     SEED000 = "seed000"
 
 
-#: The convention the robot's DSP interprets by default (ARCHITECTURE.md: the seed's controller meets the arm the
+#: The convention the robot's DSP interprets by default (docs/contracts.md: the seed's controller meets the arm the
 #: seed assumes).
 DEFAULT_ROBOT_ANGULAR_CONVENTION = AngularConvention.SEED000
 

@@ -12,6 +12,14 @@ ROOT = "mfvs"
 #: the services that are a robot node (the last hop of every applied command's trace; the robot's keys are theirs):
 #: robot_sim's api mode on the simulated arm, robot_gateway in front of the emulated bus or a real arm
 ROBOT_SERVICES = ("robot_sim", "robot_gateway")
+#: the servo pipeline's services, in the order a frame passes through them: vision measures, the controller
+#: decides, safety checks and sends to the robot
+PIPELINE_SERVICES = ("vision", "controller", "safety")
+#: the order a stack starts them: safety first (nothing reaches the robot before it can refuse), then as a frame
+#: flows
+PIPELINE_START_ORDER = ("safety", *(name for name in PIPELINE_SERVICES if name != "safety"))
+#: the services whose configuration names the arm: one setting for a whole stack (`--arm NAME`)
+ARM_SERVICES = ("robot_sim", "robot_gateway", "controller", "safety")
 
 # A robot id is one key chunk: no '/', no wildcards or zenoh's reserved characters.
 _ROBOT_ID = re.compile(r"^[A-Za-z0-9_\-.]{1,64}$")

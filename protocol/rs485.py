@@ -21,8 +21,6 @@ DATA_SIZE = 16
 #: Up to this many messages travel in one 64-byte USB packet; batches hold up to 50.
 MESSAGES_PER_USB_PACKET = 3
 MAX_BATCH = 50
-#: The low-level loop period of the SDK example (500 Hz).
-CYCLE_S = 0.002
 
 _HEADER = struct.Struct("<hBB")
 _FRAME = struct.Struct("<hBB16s")

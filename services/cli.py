@@ -1,4 +1,5 @@
-"""The ``mfvs`` command line (ARCHITECTURE.md lists its stable commands; each lands with the issue that builds it)."""
+"""The ``mfvs`` command line (docs/contracts.md lists the commands that are stable; the rest change with their
+issues)."""
 from __future__ import annotations
 
 import argparse
@@ -125,10 +126,7 @@ def _cmd_model(args: argparse.Namespace) -> int:
                   f"{len(joints)}", file=sys.stderr)
             return 2
         T = arm.dh_forward_kinematics(arm.physical_deg_to_model(joints))
-        theta = frames.matrix_to_euler_xyz(T[:3, :3])
-        # as GetCartesianPosition reports it: metres and XYZ Euler angles (rad)
-        pose = {"X": T[0, 3], "Y": T[1, 3], "Z": T[2, 3], "ThetaX": theta[0], "ThetaY": theta[1], "ThetaZ": theta[2]}
-        pose = {k: round(float(v), 6) for k, v in pose.items()}
+        pose = {k: round(v, 6) for k, v in frames.kinova_pose(T[:3, :3], T[:3, 3]).items()}
         if args.json:
             print(json.dumps({"arm": arm.name, "joints_deg": joints, **pose}))
         else:

@@ -33,13 +33,13 @@ from typing import Optional
 import msgspec
 
 from protocol import messages as m
-from protocol.keys import Keys
+from protocol.keys import ARM_SERVICES, PIPELINE_START_ORDER, Keys
 from services.paths import REPO
 from services.runtime.config import ConfigError, ConfigStruct, config_mapping, load_config
 from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health, service_condition
 from services.runtime.transport import ZenohConfig, file_access_control, file_endpoints, open_session
 
-SERVICES = ("safety", "vision", "controller", "robot_sim")
+SERVICES = (*PIPELINE_START_ORDER, "robot_sim")
 KNOWN_SERVICES = (*SERVICES, "robot_gateway", "camera")
 BUS_HUB_PORT = 7448
 
@@ -317,10 +317,6 @@ def client_config(service: ProfileService) -> Optional[str]:
     except ConfigError:
         return None  # the service itself says what is wrong with its config
     return zenoh.get("config_file") if isinstance(zenoh, dict) else None
-
-
-#: the services that run on an arm description (the robot's declares it; the others check theirs against it)
-ARM_SERVICES = ("robot_sim", "robot_gateway", "controller", "safety")
 
 
 def service_setting(service: ProfileService, key: str):

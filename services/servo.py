@@ -3,7 +3,7 @@
 The scenario (YAML; every field has the default shown in :class:`Scenario`) says where the arm starts, where the
 target is (and how it moves), the goal, the law and its gains, when to stop, and the camera. The runner starts a
 router and the services (robot_sim, vision, controller, safety; lockstep by default), watches the controller's
-iterations, stops the services, and returns the result fields of ARCHITECTURE.md. With an output directory it
+iterations, stops the services, and returns :class:`ServoResult` (docs/contracts.md). With an output directory it
 writes the trajectory log (one JSON line per iteration) and plots.
 """
 from __future__ import annotations

@@ -25,7 +25,7 @@ import yaml
 from zenoh import SampleKind, Session
 
 from protocol.conventions import ClockMode
-from protocol.keys import Keys, last_chunk
+from protocol.keys import PIPELINE_START_ORDER, Keys, last_chunk
 from services.model.arm import ArmDescription, load_arm
 from services.paths import REPO
 from services.robot.rs485_bus import BusConfig, RS485Bus
@@ -371,7 +371,7 @@ class StackConfig:
 ROBOT_BUSES = ("hub", "kinova_usb")
 
 #: the pipeline's services, started (and alive) before the robot, so that they hear its first frame
-PIPELINE = ("safety", "vision", "controller")
+PIPELINE = PIPELINE_START_ORDER
 
 
 def lockstep_robot(robot: RobotSimConfig) -> None:

@@ -1,4 +1,4 @@
-"""The control laws, by the names the scenario file and the controller service use (ARCHITECTURE.md):
+"""The control laws, by the names the scenario file and the controller service use (docs/contracts.md):
 
 =====================  ======================================================================  ============
 name                   law                                                                     output

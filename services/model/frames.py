@@ -52,6 +52,15 @@ def euler_xyz_to_matrix(euler) -> np.ndarray:
     return rot_x(r) @ rot_y(p) @ rot_z(y)
 
 
+def kinova_pose(R, p) -> dict[str, float]:
+    """A pose as Kinova's GetCartesianPosition reports it: X, Y, Z (m) and ThetaX, ThetaY, ThetaZ, the XYZ Euler
+    angles of ``R`` (rad): the one place a rotation becomes Kinova's six numbers (the API's reply, the robot's
+    state, ``mfvs model fk``)."""
+    theta = matrix_to_euler_xyz(R)
+    return {"X": float(p[0]), "Y": float(p[1]), "Z": float(p[2]),
+            "ThetaX": float(theta[0]), "ThetaY": float(theta[1]), "ThetaZ": float(theta[2])}
+
+
 def matrix_to_euler_xyz(R) -> np.ndarray:
     """(r, p, y) with p ∈ [−π/2, π/2] such that R = Rx(r)·Ry(p)·Rz(y).
 

@@ -45,6 +45,7 @@ from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics, normalized_jacobian, singularity_measure
 from services.model.limits import arm_limits
 from services.model.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
+from services.robot.hardware import DSP_CYCLE_NS
 
 
 class DeadBandShape(str, enum.Enum):
@@ -91,8 +92,11 @@ def dead_band(twist: np.ndarray, band: DeadBand) -> float:
 
 
 class DSPConfig(ConfigStruct):
-    cycle_s: float = 0.01
-    #: how the angular part of a Cartesian velocity is read (ARCHITECTURE.md)
+    #: the DSP's tick (s): the arm's 100 Hz (services.robot.hardware.DSP_CYCLE_NS, which the robot node ticks on);
+    #: a config may state it, not change it (integrated on another step than it ticks, the arm would move faster or
+    #: slower than commanded)
+    cycle_s: float = DSP_CYCLE_NS * 1e-9
+    #: how the angular part of a Cartesian velocity is read (seed000, euler_xyz_rates or omega: docs/contracts.md)
     angular_convention: AngularConvention = AngularConvention.SEED000
     #: the top translation (m/s) and orientation (rad/s) speeds, within the client configuration ranges of the arm's
     #: description, and the accelerations; null: the arm's own (its description)
@@ -140,6 +144,9 @@ class DSPConfig(ConfigStruct):
             value = getattr(self, name)
             if value is not None and not (value > 0 and math.isfinite(value)):
                 raise ValueError(f"{name} must be positive")
+        if self.cycle_s != DSP_CYCLE_NS * 1e-9:
+            raise ValueError(f"dsp.cycle_s is the arm's DSP tick, {DSP_CYCLE_NS * 1e-9:g} s (its 100 Hz), not "
+                             f"{self.cycle_s:g}: the robot node ticks on it")
         if not 0 < self.joint_speed_scale <= 1:
             raise ValueError("joint_speed_scale must be within (0, 1]")
         if self.watchdog_cycles < 1:

@@ -100,9 +100,8 @@ class KinovaApi:
         return self._angular(self.arm.model_to_physical_deg(self.robot.q_ref))
 
     def _cartesian(self, T) -> kinova.CartesianPositionReply:
-        euler = frames.matrix_to_euler_xyz(T[:3, :3])
         return kinova.CartesianPositionReply(result=kinova.CartesianPosition(Coordinates=kinova.CartesianInfo(
-            X=T[0, 3], Y=T[1, 3], Z=T[2, 3], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2])))
+            **frames.kinova_pose(T[:3, :3], T[:3, 3]))))
 
     def _GetCartesianPosition(self, _):
         return self._cartesian(self.robot.ee_pose())

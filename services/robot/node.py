@@ -172,8 +172,7 @@ class RobotNodeConfig(ServiceConfig):
 
 
 def _kinova_pose(T: np.ndarray) -> KinovaPose:
-    euler = frames.matrix_to_euler_xyz(T[:3, :3])
-    return KinovaPose(X=T[0, 3], Y=T[1, 3], Z=T[2, 3], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2])
+    return KinovaPose(**frames.kinova_pose(T[:3, :3], T[:3, 3]))
 
 
 class _CoreView:
@@ -910,7 +909,6 @@ class RobotNode(Service):
     def publish_state(self, stamp_ns: int, reading: JointReading) -> None:
         dsp = self.core.dsp
         R, p = self.kin.pose(reading.q)
-        euler = frames.matrix_to_euler_xyz(R)
         status = dsp.status
         faults = list(status.active_limits) + self._bus_faults + reading.faults()
         if self._refusal_cycles > 0:
@@ -920,7 +918,7 @@ class RobotNode(Service):
             header=self.header("state", stamp_ns=stamp_ns), arm=self.arm.name, arm_digest=self.arm.digest,
             q=reading.q.tolist(), dq=reading.dq.tolist(),
             tau=reading.tau.tolist(),
-            pose=KinovaPose(X=p[0], Y=p[1], Z=p[2], ThetaX=euler[0], ThetaY=euler[1], ThetaZ=euler[2]),
+            pose=KinovaPose(**frames.kinova_pose(R, p)),
             control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],
             watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
             applied_command=self._applied, timing=self.timing(), limits=dsp.motion_limits(),

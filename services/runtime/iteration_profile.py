@@ -29,6 +29,8 @@ import time
 from pathlib import Path
 from typing import Callable, Optional
 
+from protocol.keys import PIPELINE_SERVICES
+
 #: the directory profiles are written to; unset: no profile (nothing wrapped)
 PROFILE_DIR_ENV = "MFVS_PROFILE_DIR"
 
@@ -137,7 +139,7 @@ def _resolve(name: str) -> tuple[object, str, Callable]:
 
 
 #: the services of a composed stack (:mod:`services.composed`), all timed in the one process they share
-COMPOSED = ("robot_sim", "vision", "controller", "safety")
+COMPOSED = ("robot_sim", *PIPELINE_SERVICES)
 
 #: what is wrapped now: (owner, attribute, the function as it was), to put back (:func:`uninstall`)
 _wrapped: list[tuple[object, str, Callable]] = []

@@ -29,7 +29,7 @@ import zenoh
 
 from protocol.conventions import ClockMode
 from protocol.messages import EStop, JointVelocity, RobotState, SafetyStatus, Twist
-from protocol.keys import last_chunk
+from protocol.keys import PIPELINE_SERVICES, last_chunk
 from services.runtime.pacing import request_realtime
 from services.model.arm import check_arm_name
 from services.runtime.service import Service, ServiceConfig
@@ -47,7 +47,7 @@ class SafetyConfig(ServiceConfig):
     rate_hz: float = 100.0
     status_rate_hz: float = 10.0
     #: liveliness names whose loss stops the arm at once (the command path)
-    upstream: list[str] = msgspec.field(default_factory=lambda: ["vision", "controller"])
+    upstream: list[str] = msgspec.field(default_factory=lambda: [s for s in PIPELINE_SERVICES if s != "safety"])
     #: liveliness names of which one must be alive (the robot)
     robots: list[str] = msgspec.field(default_factory=lambda: ["robot_sim", "robot_gateway"])
     #: SCHED_FIFO priority of the safety process where the OS grants it (0: normal scheduling): its resends feed the

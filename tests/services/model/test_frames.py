@@ -65,7 +65,7 @@ def test_euler_at_gimbal_lock_still_reproduces_the_rotation():
 
 
 def test_tag_facing_camera_convention():
-    # ARCHITECTURE.md: a tag squarely facing the camera has rpy_deg [180, 0, 0] in the camera frame
+    # docs/contracts.md: a tag squarely facing the camera has rpy_deg [180, 0, 0] in the camera frame
     T = f.pose_from_xyz_rpy_deg([0, 0, 0.5], [180, 0, 0])
     assert np.allclose(T[:3, 2], [0, 0, -1])  # the tag's z (out of its face) points back at the camera
 
