@@ -5,7 +5,7 @@ the whole stack."""
 from tests.helpers import REPO
 
 CROSS_CUTTING = {"test_imports.py", "test_latency.py", "test_fuzz_services.py", "test_shipped_configs.py",
-                 "test_layout.py"}
+                 "test_layout.py", "test_docs.py"}
 
 
 def module_of(test_name: str) -> str:
