@@ -781,12 +781,14 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
 
     from services.calibration.cli import add_parser as add_calibrate
     from services.check import add_parser as add_check
+    from services.doctor import add_parser as add_doctor
 
     from services.console.cli import add_parser as add_console
     from services.observe.cli import add_parsers as add_observe
 
     add_calibrate(sub)
     add_check(sub, _add_connection_options, _operator_session)
+    add_doctor(sub)
     add_observe(sub, _add_connection_options, _operator_session, _stack_connection)
     add_console(sub, _add_connection_options, _stack_connection)
 
