@@ -62,10 +62,13 @@ class RobotCore:
         self.dq_ref = np.zeros(self.n_joints)
         self._dq_from = np.zeros(self.n_joints)
         self._step = self._cycles_per_dsp
+        self._held = True
         #: bus cycles in which the DSP was too late and the joints were held (see MAX_DSP_PERIODS_WITHOUT_DSP)
         self.dsp_stale_cycles = 0
         #: the DSP's trajectories are to be erased at its next cycle (torque control took the joints)
         self._erase_requested = False
+        #: the joints were held since the DSP's last plan: its next cycle starts from rest
+        self._held = False
         #: low-level torque control owns the joints: targets carry ``torques``, robot commands are refused
         self.torque_mode = False
         self.torques = np.zeros(self.n_joints)
@@ -99,6 +102,7 @@ class RobotCore:
         self.dq_ref = np.zeros(self.n_joints)
         self._dq_from = np.zeros(self.n_joints)
         self._step = self._cycles_per_dsp
+        self._held = True
 
     def hold(self) -> None:
         """Stop where the arm is measured to be (a mode switch: the targets held no meaning in torque mode)."""
@@ -118,6 +122,9 @@ class RobotCore:
         """The DSP's part of a cycle (it touches only the DSP): apply ``command``, run the DSP on ``reading``;
         the joint velocities it decided, and why the command was refused, if it was."""
         refusal = None
+        if self._held:
+            self._held = False
+            self.dsp.joints_held()
         if self._erase_requested:
             self._erase_requested = False
             self.dsp.erase_all_trajectories()

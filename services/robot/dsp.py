@@ -367,6 +367,15 @@ class KinovaDSP:
         self.fifo.append(segment)
         return kinova.ErrorCode.NO_ERROR_KINOVA
 
+    def joints_held(self) -> None:
+        """The main board held the joints where they are (its DSP was late, or an exchange failed): they are at
+        rest, so the next cycle starts from rest. Without this the DSP would go on from the velocity it last
+        planned, and the arm, stopped, would jump back to it (a stall in the middle of a deceleration re-started
+        the arm at 26 mm/s on a slow host) instead of ramping within the acceleration limits."""
+        self._dq_prev = np.zeros(self.arm.n_joints)
+        self._twist_prev = np.zeros(6)
+        self._braking = None  # nothing left to brake
+
     def move_home(self) -> None:
         self.erase_all_trajectories()
         self.fifo.append(_AngularPosition(self.arm.home.copy()))

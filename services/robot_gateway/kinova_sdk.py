@@ -705,6 +705,9 @@ class SdkArm:
         self._pending = None
         self._check("EraseAllTrajectories", self.sdk.action("EraseAllTrajectories"))
 
+    def joints_held(self) -> None:
+        """Nothing to do: the arm's own DSP ramps its joints, and the host never holds them behind its back."""
+
     def cycle(self, _reading=None) -> np.ndarray:
         """Forward this cycle's command (velocity commands last one cycle, so nothing pending means no motion).
         The joints are the arm's own DSP's business: no joint velocities come back (zeros)."""

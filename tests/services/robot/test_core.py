@@ -113,3 +113,22 @@ def test_a_counted_timeline_is_the_emulated_arms_2_ms_cycles_only():
     with simulated_link(lockstep=True) as (_arm, link):
         with pytest.raises(ValueError, match="2 ms cycles"):
             LinkHardware(link, ARM, pipelined=False, counted_from_ns=10**9, timing=BusTiming.from_period_ms(5))
+
+
+def test_after_a_hold_the_dsp_starts_again_from_rest_not_from_the_velocity_it_last_planned():
+    """A DSP that was late (the joints held after two DSP periods without a plan) or an exchange that failed: the
+    arm is at rest, and the DSP's next plan ramps from there within its acceleration limit (it went on from its
+    own last velocity, and the arm jumped back to it: 26 mm/s after a stall on a slow host)."""
+    reading = JointReading(q=ARM.home.copy(), dq=np.zeros(ARM.n_joints), tau=np.zeros(ARM.n_joints))
+    dsp = KinovaDSP(DSPConfig(), ArmKinematics(ARM))
+    core = RobotCore(dsp, reading)
+    command = twist_command((0.1, 0.0, 0.0), (0.0, 0.0, 0.0))
+    for _ in range(60):  # 0.6 s: up to speed
+        core.dsp_cycle(command)
+    moving = np.abs(core.dq_ref).max()
+    assert moving > 0.05
+    for _ in range(2 * CYCLES_PER_DSP + 1):  # no DSP for two of its periods: held
+        core.targets()
+    assert core.dsp_stale_cycles == 1 and not core.dq_ref.any()
+    core.dsp_cycle(command)  # the DSP again, the command still on: one acceleration step from rest
+    assert 0.0 < np.abs(core.dq_ref).max() < 0.2 * moving

@@ -295,7 +295,8 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     start = time.monotonic()
     for k in range(200):  # 0.4 s at 500 Hz
         time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
-        publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=next_seq(), stamp_ns=time.time_ns()),
+        last_sent_ns = time.time_ns()
+        publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=next_seq(), stamp_ns=last_sent_ns),
                                                torques=on_top(low.last().q).tolist())))
         if k == 100:
             client.put(KEYS.robot_command, robot_command())  # refused while torque control is active
@@ -310,10 +311,18 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     assert wait_for(lambda: robot.counter("lowlevel.watchdog") > 0, timeout=2)
     assert wait_for(lambda: low.last().mode is m.ActuatorMode.POSITION, timeout=2)  # the 250 ms fallback
     sagged = np.degrees(np.array(low.last().q) - q_stopped)
-    print(f"{robot.name}: the hold moved the arm {sagged.round(2).tolist()}°")
+    # how long the hold lasted, on the arm's timeline (its stamps are wall-clock-like in realtime): from the last
+    # torque command to the first state back in position mode; 250 ms nominal, longer on a host that was late
+    released = next(state for state in low.snapshot() if state.header.stamp_ns > last_sent_ns
+                    and state.mode is m.ActuatorMode.POSITION)
+    hold_s = max(0.25, (released.header.stamp_ns - last_sent_ns) / 1e9)
+    print(f"{robot.name}: the hold moved the arm {sagged.round(2).tolist()}° in {hold_s * 1e3:.0f} ms")
     # none on robot_sim; behind the gateway, the hand's weight that ĝ misses (0.9 N·m at joint 4) for the hold's
-    # 250 ms: 3.6° here, where a hold of zero torque would let it fall about 24° (test_link.py)
-    assert np.abs(sagged).max() < (1.0 if robot.name == "robot_sim" else 5.0)
+    # 250 ms: 3.6° here, where a hold of zero torque would let it fall about 24° (test_link.py); a constant torque
+    # the model misses moves the joint as the square of the time it acts: a hold a late host made longer is held
+    # to the same physics, not to the same angle
+    bound = (1.0 if robot.name == "robot_sim" else 5.0) * (hold_s / 0.25) ** 2
+    assert np.abs(sagged).max() < bound, (sagged, hold_s)
     assert robot.health().rates_hz["pub.lowlevel_state"] > 200  # ~500 Hz nominal; generous on a shared machine
     # and the DSP drives the arm again
     states = Recorder(client, KEYS.robot_state, m.RobotState)

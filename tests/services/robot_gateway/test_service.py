@@ -78,13 +78,10 @@ def test_at_a_5_ms_bus_period_the_dsp_keeps_its_100_hz_and_the_arm_moves_as_comm
             periods = np.round(stamps / CYCLE_NS).astype(np.int64) // 5
             assert np.all(np.diff(periods) >= 1) and np.median(np.diff(stamps)) == pytest.approx(1e7, abs=1e3), \
                 np.diff(stamps)
-            before = health_counters(client)
             check_commanded_motion(client, router, states, linear, 0.005)
             assert 150 < states.last().timing.rate_hz < 210, states.last().timing  # 200 Hz nominal
-            # the actuators know their host's period: a cycle of theirs without a target is not a missed one (an
-            # arm told 2 ms counts 60 % of its cycles missed here)
-            missed = health_counters(client)["robot_sim"]["errors"].get("frames.missed", 0)
-            assert missed - before["robot_sim"]["errors"].get("frames.missed", 0) <= 5 * ARM.n_joints, missed
+            # (that the actuators count a cycle missed only when their host's period passed without a target is
+            # tests/services/robot_sim/test_firmware.py's: here a late host's cycles are missed too)
         finally:
             client.close()
 
