@@ -46,7 +46,8 @@ class Figures:
     """What :func:`measure` found (times in ms: rendering and the arm's cycle the p50 of the repeats, detection
     their mean, whose full-frame searches every 30th frame are part of its cost)."""
 
-    cores: int
+    #: the cores this process may run on, or the cores' worth its cgroup's CPU quota allows where that is less
+    cores: float
     cpu_model: str
     cpu_mhz: Optional[float]
     memory_available_mb: Optional[float]
@@ -73,6 +74,32 @@ def _cpu() -> tuple[str, Optional[float]]:
     except OSError:
         pass
     return model, (round(statistics.mean(mhz)) if mhz else None)
+
+
+def cpu_quota_cores(cgroup_file: str = "/proc/self/cgroup", root: str = "/sys/fs/cgroup") -> Optional[float]:
+    """The cores' worth of CPU time this process's cgroup may use (a container's `--cpus`, a CFS quota: v1's
+    cpu.cfs_quota_us / cpu.cfs_period_us, v2's cpu.max), or None where none is set: a quota slows the stack as
+    fewer cores would, whatever the machine has."""
+    try:
+        lines = Path(cgroup_file).read_text().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        _, controllers, path = line.split(":", 2)
+        try:
+            if "cpu" in controllers.split(","):  # v1
+                base = Path(root) / "cpu" / path.lstrip("/")
+                quota = int((base / "cpu.cfs_quota_us").read_text())
+                period = int((base / "cpu.cfs_period_us").read_text())
+                if quota > 0 and period > 0:
+                    return quota / period
+            elif controllers == "":  # v2
+                quota, period = (Path(root) / path.lstrip("/") / "cpu.max").read_text().split()
+                if quota != "max":
+                    return int(quota) / int(period)
+        except (OSError, ValueError):
+            continue
+    return None
 
 
 def _memory_available_mb() -> Optional[float]:
@@ -158,8 +185,9 @@ def measure(camera=None, repeats: int = 30, sdk: Optional[str] = None, arm: Opti
     finally:
         sim.close()
     model, mhz = _cpu()
+    cores, quota = len(os.sched_getaffinity(0)), cpu_quota_cores()
     p50 = lambda values: round(1e3 * statistics.median(values[2:] if len(values) > 4 else values), 3)  # noqa: E731
-    return Figures(cores=len(os.sched_getaffinity(0)), cpu_model=model, cpu_mhz=mhz,
+    return Figures(cores=min(cores, quota) if quota else cores, cpu_model=model, cpu_mhz=mhz,
                    memory_available_mb=_memory_available_mb(),
                    camera={"width": camera.width, "height": camera.height, "rate_hz": camera.rate_hz},
                    render_ms=p50(renders), detect_ms=round(1e3 * statistics.mean(detects[2:]), 3),
@@ -193,7 +221,7 @@ def assess(f: Figures) -> dict:
         reasons = [f"{name}: {p['ms']:.2f} ms of its {p['period_ms']:.1f} ms period"
                    for name, p in parts.items() if p["share_of_period"] > PERIOD_SHARE]
         if cores > available:
-            reasons.append(f"the stack needs {cores:.2f} of the {f.cores} cores' {available:.2f} it may use")
+            reasons.append(f"the stack needs {cores:.2f} of the {f.cores:g} cores' {available:.2f} it may use")
         if not f.realtime.get("granted"):
             reasons.append("no realtime priority: its 500 Hz loop is late whenever another program runs")
         holds[profile] = {"holds": not reasons, "cores_needed": round(cores, 2), "why_not": reasons}
@@ -235,7 +263,7 @@ def assess(f: Figures) -> dict:
 
 
 def report_text(f: Figures, verdict: dict) -> str:
-    lines = [f"host: {f.cores} cores ({f.cpu_model}{f', {f.cpu_mhz:.0f} MHz' if f.cpu_mhz else ''}), "
+    lines = [f"host: {f.cores:g} cores ({f.cpu_model}{f', {f.cpu_mhz:.0f} MHz' if f.cpu_mhz else ''}), "
              f"{f.memory_available_mb} MB available, realtime priority: {f.realtime.get('why')}"]
     for name, p in verdict["parts"].items():
         lines.append(f"  {name}: {p['ms']:.2f} ms of its {p['period_ms']:.1f} ms period ({100 * p['share_of_period']:.0f} %)")

@@ -67,3 +67,22 @@ def test_mfvs_doctor_measures_this_host_and_prints_one_json_object():
         refused = subprocess.run([sys.executable, "-m", "services.cli", "doctor", *bad], cwd=REPO,
                                  capture_output=True, text=True, timeout=60)
         assert refused.returncode == 2 and "mfvs doctor:" in refused.stderr, refused.stderr
+
+
+def test_a_cgroups_cpu_quota_counts_as_the_cores_it_allows(tmp_path):
+    from services.doctor import cpu_quota_cores
+
+    v1 = tmp_path / "v1"
+    (v1 / "cpu" / "box").mkdir(parents=True)
+    (v1 / "cpu" / "box" / "cpu.cfs_quota_us").write_text("40000\n")
+    (v1 / "cpu" / "box" / "cpu.cfs_period_us").write_text("100000\n")
+    (tmp_path / "cgroup.v1").write_text("4:memory:/x\n1:cpu:/box\n0::/\n")
+    assert cpu_quota_cores(str(tmp_path / "cgroup.v1"), str(v1)) == pytest.approx(0.4)
+    v2 = tmp_path / "v2"
+    (v2 / "box").mkdir(parents=True)
+    (v2 / "box" / "cpu.max").write_text("150000 100000\n")
+    (tmp_path / "cgroup.v2").write_text("0::/box\n")
+    assert cpu_quota_cores(str(tmp_path / "cgroup.v2"), str(v2)) == pytest.approx(1.5)
+    (v2 / "box" / "cpu.max").write_text("max 100000\n")
+    assert cpu_quota_cores(str(tmp_path / "cgroup.v2"), str(v2)) is None
+    assert cpu_quota_cores(str(tmp_path / "absent"), str(v2)) is None
