@@ -60,7 +60,7 @@ def test_mfvs_doctor_measures_this_host_and_prints_one_json_object():
     assert done.returncode == 0, done.stderr
     output = json.loads(done.stdout)
     found = output["figures"]
-    assert found["cores"] >= 1 and found["camera"] == CAMERA and found["realtime"]["why"]
+    assert found["cores"] > 0 and found["camera"] == CAMERA  # (a CPU quota may allow less than one) and found["realtime"]["why"]
     assert found["render_ms"] > 0 and found["detect_ms"] > 0 and found["arm_cycle_ms"] > 0
     assert output["limiting"]["what"] in output["parts"] and set(output["profiles"]) == {"sim", "gateway"}
     for bad in (["--repeats", "0"], ["--arm", "j2x9"]):

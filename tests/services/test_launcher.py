@@ -161,7 +161,10 @@ def test_gateway_profile_runs_the_stack_through_the_bus_hub(tmp_path):
         time.sleep(2.5)
         status = json.loads(mfvs("status", "--json", env=env).stdout)
         session.close()
-        assert errors and errors[-1] < 5e-3, errors[-5:]  # the arm moved the tag to the goal
+        # the arm moved the tag to the goal (if not, what each service said: on a host too slow for the stack, safety
+        # refusing stale frames holds the arm, which is safe, and this says so)
+        assert errors and errors[-1] < 5e-3, (errors[-5:], {s["name"]: (s["condition"], s["degraded"], s["errors"],
+                                                                        s.get("detail")) for s in status["services"]})
         applied_by = {s.applied_command.trace[-1].service for s in states
                       if s.applied_command is not None and s.applied_command.trace}
         assert applied_by == {"robot_gateway"}  # safety's commands reached the arm through the gateway
