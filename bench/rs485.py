@@ -108,8 +108,7 @@ def run_hub(seconds: float = 5.0, arm: str = DEFAULT_ARM, timing: BusTiming = DE
 def run(seconds: float = 5.0, arm: str = DEFAULT_ARM, timing: BusTiming = DEFAULT_TIMING) -> dict:
     with simulated_link(timeout_s=0.1, settle_s=0.5, arm=load_arm(arm)) as (runner, link):
         runner.loop_timer = LoopTimer(0.002)
-        runner.sim.firmware.set_host_period(timing.period_s)
-        runner.config.host_period_s = timing.period_s  # (no phase to lock to unless it is the actuators' own)
+        runner.set_host_period(timing.period_s)
         exchange_ms, query_ms = _measure(link, seconds, timing)
         loop = runner.loop_timer.stats()
     return {"transport": "virtual", "arm": arm, "actuators": len(link.addresses),

@@ -62,7 +62,6 @@ class RobotCore:
         self.dq_ref = np.zeros(self.n_joints)
         self._dq_from = np.zeros(self.n_joints)
         self._step = self._cycles_per_dsp
-        self._held = True
         #: bus cycles in which the DSP was too late and the joints were held (see MAX_DSP_PERIODS_WITHOUT_DSP)
         self.dsp_stale_cycles = 0
         #: the DSP's trajectories are to be erased at its next cycle (torque control took the joints)

@@ -149,8 +149,16 @@ class ArmOnBus:
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
         self._last_tick: Optional[int] = None
+        self.set_host_period(self.config.host_period_s)
+
+    def set_host_period(self, period_s: float) -> None:
+        """The host's bus cycle, in the one place every part of the actuators that depends on it learns it: the
+        firmware's segments, the grid a slower host's batches come on, the phase lock (only to a host at the
+        actuators' own cycle)."""
+        self.config.host_period_s = period_s
+        self.sim.firmware.set_host_period(period_s)
         #: realtime, a host slower than the actuators' cycle: the grid its batches come on
-        self._host_grid = HostGrid(self.config.host_period_s) if self.config.host_period_s != CYCLE_S else None
+        self._host_grid = HostGrid(period_s) if period_s != CYCLE_S else None
 
     def start(self) -> "ArmOnBus":
         self._thread = start_thread(self.run, "robot_sim-bus")

@@ -313,7 +313,6 @@ class ArmOnBusService(Service):
             bus.close()
             raise
         # the host's cycle (bus.period_ms): the actuators keep their own 2 ms one and spread each target over it
-        self.sim.firmware.set_host_period(cfg.bus.timing.period_s)
         self.arm_on_bus = ArmOnBus(self.sim, bus, ArmOnBusConfig(
             lockstep=self.lockstep, epoch_ns=self.outputs.epoch_ns, sync=cfg.bus_sync, timing=cfg.lockstep,
             host_period_s=cfg.bus.timing.period_s,
