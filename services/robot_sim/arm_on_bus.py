@@ -44,13 +44,15 @@ MAX_CATCH_UP_CYCLES = 50
 ACTUATOR_PRIORITY_ABOVE = 5
 
 
-def host_cycles(batch: np.ndarray) -> list[np.ndarray]:
+def host_cycles(batch: np.ndarray, commanded: Optional[dict[int, int]] = None) -> list[np.ndarray]:
     """A batch of messages split into the host's cycles, in order: a second position command (0x14) for the same
     actuator starts the next cycle; any other message stays with the cycle it came in. What a stalled loop
-    finds queued for several cycles, each of which the real actuators would have taken at its own boundary."""
+    finds queued for several cycles, each of which the real actuators would have taken at its own boundary.
+    ``commanded``: the actuators already commanded in the current cycle (their next command starts the next;
+    the first of the list returned may then be empty)."""
     commands = batch["command"] == rs485.Command.POSITION_AND_TORQUE_COMMAND
     cycle_of = np.zeros(len(batch), dtype=int)
-    seen: dict[int, int] = {}
+    seen: dict[int, int] = dict(commanded or {})
     current = 0
     for i, (is_command, destination) in enumerate(zip(commands.tolist(), batch["destination"].tolist())):
         if is_command:
@@ -196,13 +198,18 @@ class ArmOnBus:
             except BusError:
                 pass  # counted by the bus; the host times out and holds the arm
 
-    def _serve(self, timeout_s: float, one_cycle: bool = False) -> int:
+    def _serve(self, timeout_s: float, one_cycle: bool = False, window: Optional[dict[int, int]] = None) -> int:
         """Receive what comes within ``timeout_s`` and answer it; how many commands (0x14) it held (-1: nothing
         came). :attr:`received_at` is when it came (monotonic). ``one_cycle`` (the loop catching up after a
         stall): only the first host cycle of what is queued; the later ones wait in :attr:`backlog` for their own
         boundaries, which is where the real actuators, never stalled, took them (taken together, the newest would
-        win and the arm would make two cycles' motion in one)."""
+        win and the arm would make two cycles' motion in one). ``window`` (a host slower than the actuators'
+        cycle): the actuators commanded since the last boundary, so that a host cycle bunched behind the one taken
+        waits for the next boundary whether it came in the same read or a later one."""
         if self.backlog:
+            if window:  # a host cycle was taken at this boundary: the next waits for its own
+                time.sleep(max(0.0, timeout_s))
+                return -1
             batch = self.backlog.pop(0)
         else:
             try:
@@ -213,9 +220,15 @@ class ArmOnBus:
             if len(batch) == 0:
                 return -1
             if one_cycle:
-                batch, *self.backlog = host_cycles(batch)
+                batch, *self.backlog = host_cycles(batch, window)
                 if self.backlog:
                     self.counters.inc("frames.held_for_catch_up", len(self.backlog))
+        if len(batch) == 0:  # (all of it held for the next boundary)
+            return 0
+        if window is not None:
+            commanded = batch["destination"][batch["command"] == rs485.Command.POSITION_AND_TORQUE_COMMAND]
+            for destination in commanded.tolist():
+                window[destination] = 1
         self.received_at = time.monotonic()
         with self.lock:
             self._send(self.device.receive_batch(batch))
@@ -249,8 +262,13 @@ class ArmOnBus:
         while not self._done():
             first_command, commands = None, 0
             catching_up = time.monotonic() >= boundary
+            # a host slower than the actuators' cycle: one of its cycles per boundary, the next (bunched behind a late
+            # one) waits for the next boundary, where the firmware carries it on (taken together, the newest would
+            # win and the joints would make two of the host's periods' motion in one)
+            window = {} if self._host_grid is not None else None
             while True:  # serve the bus until the boundary (when the loop is late: one host cycle of what is queued)
-                received = self._serve(boundary - time.monotonic(), one_cycle=catching_up)
+                received = self._serve(boundary - time.monotonic(), one_cycle=catching_up or window is not None,
+                                       window=window)
                 if catching_up:
                     break
                 if received < 0:

@@ -462,6 +462,9 @@ class ActuatorFirmware:
         #: bus loop sets it; segments start there)
         self.host_lead_s = 0.0
         self._segment = _constant(period_s)  # (an operand at every boundary: _constant)
+        #: how long the current segment spans: the host's period, and for a slower host what was left of the
+        #: segment before when its target came (:meth:`_follow`)
+        self.segment_s = period_s
         self._goes_on_s = period_s + GOES_ON_PAST_SEGMENT_S
 
     def reference(self, t_s: float, which=slice(None)) -> tuple[np.ndarray, np.ndarray]:
@@ -492,11 +495,20 @@ class ActuatorFirmware:
         from where each reference is to its target, across the host's period: from this boundary, or for a host
         slower than the actuators' cycle from when its batch arrived (:attr:`host_lead_s`), as an actuator whose own
         loop is far faster than 2 ms would take it (taken on 2 ms boundaries, a 3.33 ms host's targets would come
-        2 or 4 ms apart, and each segment would start early or late: 13 % over the commanded speed, measured)."""
+        2 or 4 ms apart, and each segment would start early or late: 13 % over the commanded speed, measured).
+
+        A slower host's target that comes before the segment before it ended (bunched behind a late one by the host
+        or the link: two of its batches 2 ms apart) does not cut that segment short: the new segment carries what
+        was left of it and spans the host's period past it (at most one period carried). Cut short, the joints
+        would make more than one period's motion in one, up to twice the commanded speed (measured behind a host
+        slowed to 0.8 of a core: the end effector 37 % over its limit, and safety's protective stop). Our choice,
+        as the spreading is: the arm never moves faster than its host's targets, whenever they come."""
         start_s = self.now_s
-        if self.host_period_s != CYCLE_S:
+        slower_host = self.host_period_s != CYCLE_S
+        if slower_host:
             start_s -= min(max(self.host_lead_s, 0.0), CYCLE_S)
         common = self._common_time() if isinstance(following, slice) else None
+        segment = self._segment
         if common is not None:  # (the host's batch each cycle) :meth:`_reference`'s choices made once for all
             ahead = start_s - common
             started = ahead >= 0.0
@@ -504,7 +516,14 @@ class ActuatorFirmware:
             start = (self.target_deg + self.target_rate_dps * (ahead if ahead < goes_on - 1e-9 else goes_on)
                      if started else self.last_target_deg.copy())
             rate_before = self.target_rate_dps if started and ahead <= goes_on + 1e-9 else _ZERO
+            if slower_host:
+                carried = min(self.segment_s - ahead, self.host_period_s) if started else 0.0
+                self.segment_s = self.host_period_s + (carried if carried > 1e-6 else 0.0)
+                segment = self.segment_s
+                self._goes_on_s = self.segment_s + GOES_ON_PAST_SEGMENT_S
         else:
+            if slower_host:  # (a part of the arm commanded alone: no carry, every segment back to the period)
+                self.segment_s, self._goes_on_s = self.host_period_s, self.host_period_s + GOES_ON_PAST_SEGMENT_S
             ahead = start_s - self.target_time_s[following]
             start, started, _ = self._reference(ahead, following)
             rate_before = np.where(started & (ahead <= self._goes_on_s + 1e-9), self.target_rate_dps[following], 0.0)
@@ -512,7 +531,7 @@ class ActuatorFirmware:
         # moved)
         target = self.pending_deg[following]
         # a glitch, not a trajectory: the bounds only cut those
-        rate = _clip((target - start) / self._segment, *_RATE_BOUNDS)
+        rate = _clip((target - start) / segment, *_RATE_BOUNDS)
         accel = _clip((rate - rate_before) / _CYCLE, *_ACCEL_BOUNDS)  # (before the new rate replaces the old)
         self.target_deg[following], self.last_target_deg[following] = start, target
         self.target_rate_dps[following], self.target_accel_dps2[following] = rate, accel

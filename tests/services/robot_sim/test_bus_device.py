@@ -352,6 +352,46 @@ def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
         sim.close()
 
 
+def test_a_slower_hosts_cycle_bunched_behind_the_last_waits_for_the_next_boundary():
+    """A host at 3.33 ms whose batch came late arrives just before the next one: in one read or in two within the
+    same 2 ms window, the boundary takes the first host cycle and the second waits for the next boundary (taken
+    together, the newest would win and the joints make two of the host's periods' motion in one)."""
+    from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, host_cycles
+
+    addresses = list(ARM.bus_addresses)
+    assert [len(c) for c in host_cycles(r.position_torque_records(addresses, np.ones(7)),
+                                        {addresses[0]: 1})] == [6, 1]  # (one actuator commanded already)
+    channel = f"test-bus-{next(_channels)}"
+    sim = Simulation(render=False)
+    host, device_bus = RS485Bus(BusConfig(channel=channel)), RS485Bus(BusConfig(channel=channel))
+    try:
+        arm = ArmOnBus(sim, device_bus, ArmOnBusConfig(host_period_s=10e-3 / 3))
+        start = ARM.model_to_physical_deg(sim.q)
+        for in_one_read in (True, False):
+            base = start + (0.0 if in_one_read else 0.1)
+            batches = [r.position_torque_records(addresses, base + 0.01 * k) for k in (1, 2)]
+            window: dict = {}
+            if in_one_read:
+                host.send_batch(np.concatenate(batches))
+                assert arm._serve(0.05, one_cycle=True, window=window) == 7
+            else:
+                host.send_batch(batches[0])
+                assert arm._serve(0.05, one_cycle=True, window=window) == 7
+                host.send_batch(batches[1])
+                assert arm._serve(0.05, one_cycle=True, window=window) == 0  # read, held for the next boundary
+            assert arm._serve(0.001, one_cycle=True, window=window) == -1  # nothing more at this boundary
+            assert np.allclose([a.pending[0] for a in sim.firmware.actuators], base + 0.01, atol=1e-4)
+            arm._cycle()
+            assert arm._serve(0.0, one_cycle=True, window={}) == 7  # the next boundary takes it
+            assert np.allclose([a.pending[0] for a in sim.firmware.actuators], base + 0.02, atol=1e-4)
+            arm._cycle()
+            assert arm.backlog == []
+    finally:
+        host.close()
+        device_bus.close()
+        sim.close()
+
+
 def test_the_torque_safety_configuration_is_acknowledged_and_limits_the_torque(rig):
     """0x208 as abr/abr_jaco2 sends it before torque mode: float[0] the most torque the actuator may give, ACKed
     (uint32[0] the command acknowledged); a torque command beyond it is clamped to it and reported once; a limit

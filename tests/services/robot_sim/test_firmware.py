@@ -6,6 +6,7 @@ import pytest
 from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.hardware import JointTargets
+from services.robot_sim.firmware import GOES_ON_PAST_SEGMENT_S
 from services.robot_sim.hardware import SimulatedHardware
 from services.robot_sim.sim import Simulation
 from services.runtime.metrics import Counters
@@ -157,6 +158,44 @@ def test_a_host_on_a_slower_bus_moves_the_joints_as_smoothly_as_one_on_a_2_ms_bu
     pace = np.diff(references[50:]) / 2e-3  # past the start's ramp
     assert np.mean(pace) == pytest.approx(rate_dps, rel=0.01)
     assert np.all(np.abs(pace - rate_dps) < 0.05 * rate_dps), (pace.min(), pace.max())
+
+
+@pytest.mark.parametrize("period_ms", [10 / 3, 5.0])
+def test_a_slower_hosts_late_batch_bunched_with_the_next_never_moves_the_joints_faster_than_its_targets(period_ms):
+    """A slower host's batch late by most of its period arrives just before the next (the host's wake-up, or the
+    link, held it): the actuators take one of its cycles per 2 ms boundary (ArmOnBus) and the firmware carries the
+    rest of a segment cut short into the next, so the joints never go faster than the host's targets. Cut short,
+    each bunch made more than one period's motion in one: up to twice the rate (behind a host slowed to 0.8 of a
+    core, the end effector measured 37 % over its limit and safety stopped the arm)."""
+    from services.robot_sim.arm_on_bus import HostGrid
+
+    arm = load_arm("j2s7s300")
+    sim = Simulation(render=False, arm=arm)
+    firmware = sim.firmware
+    period_s = period_ms / 1e3
+    firmware.set_host_period(period_s)
+    grid, rng = HostGrid(period_s), np.random.default_rng(3)
+    rate_dps = 20.0
+    start = firmware.reference(0.0)[0].copy()
+    n_batches = 150
+    late = rng.uniform(0.0, 0.5e-3, n_batches)
+    late[rng.choice(np.arange(10, n_batches - 5), 12, replace=False)] = 0.9 * period_s  # bunched with the next
+    arrivals = period_s * np.arange(n_batches) + late
+    taken, references = 0, []
+    while sim.time_ns * 1e-9 < arrivals[-1] + 0.02:
+        now_s = sim.time_ns * 1e-9
+        if taken < n_batches and arrivals[taken] <= now_s + 1e-9:  # one host cycle per boundary, the oldest
+            firmware.command_all(start + rate_dps * (taken + 1) * period_s, np.zeros(arm.n_joints))
+            firmware.host_lead_s = grid.lead(now_s, arrivals[taken])
+            taken += 1
+        else:
+            firmware.host_lead_s = 0.0
+        sim.cycle()
+        references.append(firmware.reference(sim.time_ns * 1e-9)[0][0])
+    pace = np.diff(references[5:]) / 2e-3  # past the start's ramp
+    assert pace.max() < 1.1 * rate_dps, pace.max()  # without the carry: 2.7 times the rate
+    last_target = start[0] + rate_dps * n_batches * period_s  # reached (and gone on past it as after any target)
+    assert last_target - 1e-6 <= references[-1] <= last_target + 1.01 * rate_dps * GOES_ON_PAST_SEGMENT_S
 
 
 def test_the_host_grid_follows_a_slower_hosts_period_through_its_jitter_and_jumps_after_a_pause():
