@@ -58,7 +58,7 @@ import yaml
 from bench.stack import measured_arm, servoing_stack, unknown_arm, with_overrides
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
-from protocol.keys import PIPELINE_SERVICES, Keys
+from protocol.keys import PIPELINE_SERVICES, Keys, last_chunk
 from services.controller.task_client import TaskUnavailable, call_task
 from services.cli import add_arm_option
 from services.launcher import Profile, behind_authority, load_profile, read_stack, restart, with_arm
@@ -400,7 +400,7 @@ class Soak:
     def _link_fault(self, fault: dict, cut: bool) -> str:
         service, key = self.rng.choice(self._outputs())
         plan = self.run_dir / "faults" / f"{service}.yaml"
-        window = self._rest_window(f"{key.rsplit('/', 1)[-1]} dropped") if cut else None
+        window = self._rest_window(f"{last_chunk(key)} dropped") if cut else None
         write_fault_plan(plan, [{"key": key, **fault}], seed=self.rng.randrange(1 << 30))
         time.sleep(self.rng.uniform(0.5, 2.5))
         if window is not None:

@@ -18,7 +18,7 @@ so a start can be run again.
 
 Realtime against lockstep: a lockstep run repeats itself exactly, but its iteration count is one draw from a wide
 spread. The last iterations are spent creeping under the arm's velocity dead-band toward a threshold near the
-detection's noise floor (seed 000's 5e-5), where the step on which the error first dips under it depends on the
+detection's noise floor (Sensors 2022's 5e-5), where the step on which the error first dips under it depends on the
 start to a fraction of a millimetre: table2 from a random start took 140 iterations in lockstep, and 143, 145, 156,
 163 and 179 with the tag 0.2-1 mm nearer or farther. Realtime's timing jitter is such a perturbation too. So each
 lockstep profile also runs ``--nudges`` starts with the tag moved by :data:`NUDGE_M` (each exactly repeatable), and

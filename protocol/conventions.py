@@ -2,11 +2,11 @@
 
 A twist declares the frame of its linear part and the meaning of its angular part (docs/contracts.md):
 
-* ``Frame.MIXED`` is seed 000's frame: linear velocity in the robot base frame, rotation of the end effector.
+* ``Frame.MIXED`` is Sensors 2022's frame: linear velocity in the robot base frame, rotation of the end effector.
 * ``AngularConvention.OMEGA``: the angular velocity vector (in the end-effector frame when the frame is mixed).
 * ``AngularConvention.EULER_XYZ_RATES``: true time derivatives of the XYZ Euler angles GetCartesianPosition
   reports, i.e. B(Γ)⁻¹·ω with ω expressed in the base frame.
-* ``AngularConvention.SEED000``: what seed 000 eq. 11, 24-25 compute: B(Γ)⁻¹ applied to ω expressed in the
+* ``AngularConvention.SEED000``: what Sensors 2022 eq. 11, 24-25 compute: B(Γ)⁻¹ applied to ω expressed in the
   end-effector frame. It equals EULER_XYZ_RATES only where the end-effector and base frames share the rotation
   axis in question (e.g. at the identity orientation).
 """
@@ -48,7 +48,8 @@ class ClockMode(str, enum.Enum):
 
 
 class ErrorRateSource(str, enum.Enum):
-    """Where the PD laws' ė (seed 000 eq. 21: the change of the feature error due to the camera's motion) comes from.
+    """Where the PD laws' ė (Sensors 2022 eq. 21: the change of the feature error due to the camera's motion) comes
+    from.
     ``camera_motion``: L̂·J_c(q)·q̇, the camera's motion measured by the arm's joint velocities at the frame (no
     differentiation, no filter lag, independent of the frames' spacing). ``frame_difference``: successive errors
     differenced over their image stamps and low-pass filtered (needs no joint velocities)."""
@@ -58,7 +59,7 @@ class ErrorRateSource(str, enum.Enum):
 
 
 class DepthSource(str, enum.Enum):
-    """Which depth the interaction matrix uses (seed 000; ViSP's CURRENT/DESIRED/MEAN)."""
+    """Which depth the interaction matrix uses (Sensors 2022; ViSP's CURRENT/DESIRED/MEAN)."""
 
     CURRENT = "current"
     GOAL = "goal"

@@ -415,7 +415,7 @@ class ClientConfigurationsReply(ApiReply):
 #: function name → (argument type or None, reply type)
 #: functions that move the arm or change how it moves (zones, limits, control mode): in an authority deployment
 #: only the service that commands the robot may call them (services/runtime/authority.py)
-#: the torque-mode setup of seed 003's Table 5.1 (services/robot/torque_setup.py says what each does)
+#: the torque-mode setup of the JACO thesis's Table 5.1 (services/robot/torque_setup.py says what each does)
 TORQUE_SETUP_FUNCTIONS: dict[str, type] = {
     "SetTorqueSafetyFactor": FloatArgument,
     "SetTorqueVibrationController": FloatArgument,

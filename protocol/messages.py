@@ -291,7 +291,7 @@ class Features(Message):
 
 
 class VisionGoal(Message):
-    """The goal of the visual task: either explicit features with one depth (like seed 000 Table 2), or the
+    """The goal of the visual task: either explicit features with one depth (like Sensors 2022 Table 2), or the
     desired camera pose in the tag frame, from which vision computes the features. ``teach`` takes the current
     features as the goal."""
 

@@ -417,7 +417,7 @@ def _cmd_experiment(args: argparse.Namespace) -> int:
 
 
 def _torque_experiment(args: argparse.Namespace) -> int:
-    """``mfvs experiment torque-control``: seed 003's chapter 5 in realtime (services.torque_experiment)."""
+    """``mfvs experiment torque-control``: the JACO thesis's chapter 5 in realtime (services.torque_experiment)."""
     from services.torque_experiment import run_torque_control
 
     for flag, given in (("--scenario", args.scenario is not None), ("--random-starts", args.random_starts is not None)):
@@ -529,7 +529,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from services.experiments import run_experiments
 
     out = Path(args.out).resolve()
-    print(f"mfvs demo: seed 000's Part A and Table 3 on the emulated JACO-2 (MuJoCo, the real services, lockstep, "
+    print(f"mfvs demo: Sensors 2022's Part A and Table 3 on the emulated JACO-2 (MuJoCo, the real services, lockstep, "
           f"{args.jobs} run{'s' if args.jobs > 1 else ''} at a time); figures and reports go to {out}", flush=True)
     progress = _experiment_progress("demo", False)
     # Table 3's runs first, the longest first: the pool then ends together
@@ -688,8 +688,8 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     if infrastructure_only:
         return parser
 
-    model = sub.add_parser("model", help="an arm's description (j2s7s300: seed 000's 7-DoF; j2n6s300: seed 003's "
-                                         "6-DoF): its joints, limits, home, URDF and forward kinematics")
+    model = sub.add_parser("model", help="an arm's description (j2s7s300: Sensors 2022's 7-DoF; j2n6s300: the JACO "
+                                         "thesis's 6-DoF): its joints, limits, home, URDF and forward kinematics")
     model.add_argument("what", choices=["urdf", "info", "fk"],
                        help="urdf: print the URDF; info: joints, limits, home pose; fk: the end effector's pose")
     add_arm_option(model)
@@ -743,14 +743,14 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     add_processes_option(servo)
     servo.set_defaults(func=_cmd_servo)
 
-    experiment = sub.add_parser("experiment", help="reproduce one of the seed papers' experiments (seed 000: "
-                                                   "table3, part-a, part-b, part-c, part-d; seed 002: constraints; "
-                                                   "seed 003: torque-control; seed 004: tracking-region) and report "
-                                                   "it beside the paper")
+    experiment = sub.add_parser("experiment", help="reproduce one of the seed papers' experiments (Sensors 2022: "
+                                                   "table3, part-a, part-b, part-c, part-d; Muñoz 2018: constraints; "
+                                                   "JACO thesis: torque-control; Nelson 1995: tracking-region) and "
+                                                   "report it beside the paper")
     experiment.add_argument("name", help="table3, part-a, part-b, part-c, part-d, constraints, torque-control or "
                                          "tracking-region")
     experiment.add_argument("--scenario", default=None,
-                            help="the same comparison from this scenario's start and goal (seed 000: its law and "
+                            help="the same comparison from this scenario's start and goal (Sensors 2022: its law and "
                                  "gains are replaced by the experiment's; constraints: its constraints are the "
                                  "case; tracking-region: its target motion and weights are the case)")
     experiment.add_argument("--out", default=None, help="directory for the runs' logs, the figures and report.md")

@@ -2,19 +2,19 @@
 the real services in lockstep (so every run, and every rerun, is the same to the bit), reported beside the paper.
 
 ================  ========================================================================================
-table3            seed 000 Table 3: the four laws with the paper's gains; iterations to ‖e‖ < 5e-5, beside
+table3            Sensors 2022 Table 3: the four laws with the paper's gains; iterations to ‖e‖ < 5e-5, beside
                   446/189/114/79
-part-a            seed 000 Part A: the end-effector twist sent as if it were mixed (the conventional mistake)
+part-a            Sensors 2022 Part A: the end-effector twist sent as if it were mixed (the conventional mistake)
                   diverges; the mixed law converges
-part-b            seed 000 Part B: an outstretched start near the workspace's boundary: joint law against mixed
-part-c            seed 000 Part C: a start whose straight-line motion would pass through the base's zone
-part-d            seed 000 Part D: the mixed twist realised in joint space through Jm⁺ (eq. 26)
-constraints       seed 002 section 9.1-like: one task in which every constraint type binds (field of view,
+part-b            Sensors 2022 Part B: an outstretched start near the workspace's boundary: joint law against mixed
+part-c            Sensors 2022 Part C: a start whose straight-line motion would pass through the base's zone
+part-d            Sensors 2022 Part D: the mixed twist realised in joint space through Jm⁺ (eq. 26)
+constraints       Muñoz 2018 section 9.1-like: one task in which every constraint type binds (field of view,
                   occlusion, joint range, joint speed, a forbidden sphere), with exact gradients and with 30 %
                   gradient error (eq. 49): max φ against the chattering band T_s·u⁺ (eq. 43), time active
-tracking-region   seed 004: a target moving at 10 cm/s, tracked on two translational axes without the
+tracking-region   Nelson 1995: a target moving at 10 cm/s, tracked on two translational axes without the
                   manipulability term and on four axes with it: distance tracked before failure, its cause
-torque-control    seed 003 chapter 5: five torque controllers over the 500 Hz low-level API, in realtime, each
+torque-control    JACO thesis chapter 5: five torque controllers over the 500 Hz low-level API, in realtime, each
                   a process of its own (:mod:`services.torque_experiment`; not a servo comparison)
 ================  ========================================================================================
 
@@ -52,7 +52,7 @@ from services.servo import Scenario, ServoResult, load_scenario, on_arm, read_lo
 from services.starts import TABLE2_LIKE, Start, quartiles, write_starts
 
 
-#: seed 000 Table 3: the gains of each law and the iterations it took to converge on the real JACO-2
+#: Sensors 2022 Table 3: the gains of each law and the iterations it took to converge on the real JACO-2
 TABLE3_GAINS = {
     "p-joint": Gains(lambda_=1.2),
     "adaptive-p-joint": Gains(lambda0=2.0, lambda_inf=0.2, slope0=30.0, kd=0.0),
@@ -223,8 +223,8 @@ def _part_d_summary(rows: dict, trajectories: dict) -> dict:
     }
 
 
-# ------------------------------------------------------------------------------------------------ seed 002
-#: seed 002 eq. 49's error in the robustness runs
+# ------------------------------------------------------------------------------------------------ Muñoz 2018
+#: Muñoz 2018 eq. 49's error in the robustness runs
 GRADIENT_ERROR = 0.3
 
 
@@ -289,8 +289,8 @@ def _constraints_figures(trajectories: dict, rows: dict, out: Path, base: Scenar
                             goal=base.goal.features)
 
 
-# ------------------------------------------------------------------------------------------------ seed 004
-#: seed 004: two-axis tracking without avoidance lost the target after 0.94 m; four axes with avoidance tracked
+# ------------------------------------------------------------------------------------------------ Nelson 1995
+#: Nelson 1995: two-axis tracking without avoidance lost the target after 0.94 m; four axes with avoidance tracked
 #: the whole 5 m of the lab ("an approximate ten fold increase")
 TRACKING_PAPER = {"baseline_distance_m": 0.94, "full_distance_m": 5.0, "ratio": 10.0}
 #: the window before a run's end in which its failure's cause is looked for (s)
@@ -316,7 +316,7 @@ def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) 
     elif "singularity" in faults or any(r["manipulability"] < SINGULAR_MANIPULABILITY for r in window):
         failure = "singularity"
     elif seen and _beyond_vision(seen[-1]["points"], scenario.camera.fx):
-        failure = "vision_range"  # too small or too oblique to detect: where seed 004's own runs ended too
+        failure = "vision_range"  # too small or too oblique to detect: where Nelson 1995's own runs ended too
     else:
         failure = "tag_left_image" if result.status in ("tag_lost", "diverged") else result.status
     w_primes = [r["notes"]["w_prime"] for r in records if "w_prime" in r.get("notes", {})]

@@ -1,4 +1,4 @@
-"""Plots of servo runs, like seed 000's figures, as PNG files (matplotlib, headless).
+"""Plots of servo runs, like Sensors 2022's figures, as PNG files (matplotlib, headless).
 
 One run (:func:`servo_plots`, from its trajectory log): the features' trajectories in the image (each point's
 start and end in its own colour, the goal, the image's border), the error (its norm and each component), the
@@ -254,7 +254,7 @@ def comparison_plots(runs: dict[str, list], out_dir: Path, *, title: str, thresh
     return paths
 
 
-# ------------------------------------------------------------------------------------------------ seed 002
+# ------------------------------------------------------------------------------------------------ Muñoz 2018
 def _limits_y(ax, values: np.ndarray, band: float) -> None:
     """φ can sit far below 0 while inactive: show the neighbourhood of the band, not the whole range."""
     finite = values[np.isfinite(values)]
@@ -334,7 +334,7 @@ def _constraint_regions(ax, law_options: dict, camera) -> None:
     ax.legend(fontsize=7, loc="best")
 
 
-# ------------------------------------------------------------------------------------------------ seed 004
+# ------------------------------------------------------------------------------------------------ Nelson 1995
 def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target_velocity,
                    failures: dict, arm: ArmDescription) -> list[Path]:
     """Seed 004's figures (label → trajectory records): the modified manipulability w'(q) and Yoshikawa's w over
@@ -445,7 +445,7 @@ def random_starts_plots(runs: list[dict], starts: list[dict], out_dir: Path, *, 
     return paths
 
 
-# ------------------------------------------------------------------------------------------------ seed 003
+# ------------------------------------------------------------------------------------------------ JACO thesis
 _POSE_NAMES = ("x (m)", "y (m)", "z (m)", "α (rad)", "β (rad)", "γ (rad)")
 
 
@@ -469,7 +469,7 @@ def _joint_grid(plt, n: int):
 
 
 def torque_run_plots(arrays: dict, meta: dict, out_dir: Path, *, arm: ArmDescription, label: str) -> list[Path]:
-    """One torque-control run's figures (seed 003 Figs. 5.1-5.5): a task run's position and XYZ Euler angles
+    """One torque-control run's figures (JACO thesis Figs. 5.1-5.5): a task run's position and XYZ Euler angles
     against the reference, a joint run's joints against the sinusoid; and every run's torques against the joints'
     limits (commanded: what the controller asked, gravity included)."""
     plt = _pyplot()

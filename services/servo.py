@@ -43,8 +43,8 @@ from services.vision.service import GoalConfig, TagConfig, VisionConfig
 
 
 class ScenarioRobot(ConfigStruct):
-    #: the arm (services/model/arms/<arm>.yaml: j2s7s300, seed 000's 7-DoF; j2n6s300, seed 003's 6-DoF); the whole
-    #: stack runs it
+    #: the arm (services/model/arms/<arm>.yaml: j2s7s300, Sensors 2022's 7-DoF; j2n6s300, the JACO thesis's 6-DoF);
+    #: the whole stack runs it
     arm: str = DEFAULT_ARM
     #: physical angles (deg), as GetAngularPosition reports them, one per joint of the arm; null: its home
     initial_joints_deg: Optional[list[float]] = None
@@ -76,7 +76,7 @@ class Scenario(ConfigStruct):
     robot: ScenarioRobot = msgspec.field(default_factory=ScenarioRobot)
     #: the tag, and where it is (default: 0.5 m ahead of the camera, squarely facing it), as robot_sim's scene
     target: TargetConfig = msgspec.field(default_factory=TargetConfig)
-    #: vision's goal (default: seed 000 Table 2's square, ±0.1666 at 0.2888 m; camera_in_tag with features: null)
+    #: vision's goal (default: Sensors 2022 Table 2's square, ±0.1666 at 0.2888 m; camera_in_tag with features: null)
     goal: GoalConfig = msgspec.field(default_factory=GoalConfig)
     law: str = "adaptive-pd-mixed"
     gains: Gains = msgspec.field(default_factory=Gains)

@@ -1,4 +1,4 @@
-"""Starts nobody tuned: the tag placed at random in front of the camera, for seed 000's Table 3 over many starts
+"""Starts nobody tuned: the tag placed at random in front of the camera, for Sensors 2022's Table 3 over many starts
 (``mfvs experiment table3 --random-starts N``) and the realtime-against-lockstep comparison (``mfvs bench swap
 --random-starts N``).
 

@@ -1,5 +1,5 @@
-"""``mfvs experiment torque-control``: seed 003's chapter 5 on the emulated arm, over the robot's 500 Hz low-level
-torque API, every controller a process of its own (``python -m services.torque_controller``) talking to the robot
+"""``mfvs experiment torque-control``: the JACO thesis's chapter 5 on the emulated arm, over the robot's 500 Hz
+low-level torque API, every controller a process of its own (``python -m services.torque_controller``) talking to the robot
 as a real client would.
 
 For each run: a zenoh router, a fresh robot (robot_sim in api mode, or the gateway profile: robot_sim's actuators

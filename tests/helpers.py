@@ -16,9 +16,9 @@ ARM_DECLARED = {"arm": ARM.name, "arm_digest": ARM.digest}
 
 
 def computed_torque_options_for_the_emulated_arm(arm=ARM, **options):
-    """The options of seed 003's computed torque (the ``computed-torque`` controller) with gains that hold the
+    """The options of the JACO thesis's computed torque (the ``computed-torque`` controller) with gains that hold the
     emulated arm's joints through their torque-mode friction: the K-58 wrist joints, light behind their friction,
-    nine times stiffer (seed 003 §5.4 likewise needed a far higher gain on joint 6 than on the others)."""
+    nine times stiffer (JACO thesis §5.4 likewise needed a far higher gain on joint 6 than on the others)."""
     from services.controller.torque_controllers import ControllerOptions
 
     wrist = np.array([j.actuator == "K-58" for j in arm.joints])
@@ -72,7 +72,7 @@ class PinArm(ArmKinematics):
         super().__init__(arm)
 
 
-#: seed 000 Table 2's goal: the square ±0.1666 (normalised) at 0.2888 m
+#: Sensors 2022 Table 2's goal: the square ±0.1666 (normalised) at 0.2888 m
 GOAL_SQUARE = np.array([[-0.1666, -0.1666], [0.1666, -0.1666], [0.1666, 0.1666], [-0.1666, 0.1666]])
 
 

@@ -1,4 +1,4 @@
-"""Image-based visual servoing building blocks of seed 000 (section 3), as plain functions.
+"""Image-based visual servoing building blocks of Sensors 2022 (section 3), as plain functions.
 
 Features are point features in normalized image coordinates; e = s − s* is stacked (x0, y0, x1, y1, ...).
 The camera twist Vc = (v, ω) is expressed in the camera (OpenCV optical) frame.
@@ -96,7 +96,7 @@ def features_after_camera_motion(points, depths, camera_b_in_a: np.ndarray) -> t
 
 
 def camera_motion_error_rate(L_hat: np.ndarray, J_camera: np.ndarray, dq) -> np.ndarray:
-    """ė due to the camera's own motion (seed 000 eq. 21's ė; eq. 2 with the camera twist J_c·q̇): L̂·J_c·q̇."""
+    """ė due to the camera's own motion (Sensors 2022 eq. 21's ė; eq. 2 with the camera twist J_c·q̇): L̂·J_c·q̇."""
     return L_hat @ (J_camera @ np.asarray(dq, dtype=float))
 
 

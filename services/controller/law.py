@@ -1,8 +1,8 @@
 """What every control law is: its gains and configuration, its input (``ServoInput``: the features, their goal
 and the arm's configuration at the frame) and output (``LawOutput``), the base class with the pieces the laws share
 (the interaction matrix, the gain, the camera Jacobian), and ``ConstraintAbort``. The laws themselves live in
-:mod:`services.controller.laws` (seed 000), :mod:`~services.controller.smc` (seed 002) and
-:mod:`~services.controller.tracking` (seed 004); they import this module and nothing imports them back but the
+:mod:`services.controller.laws` (Sensors 2022), :mod:`~services.controller.smc` (Muñoz 2018) and
+:mod:`~services.controller.tracking` (Nelson 1995); they import this module and nothing imports them back but the
 registry (:func:`services.controller.laws.make_law`)."""
 from __future__ import annotations
 
@@ -20,11 +20,11 @@ from services.runtime.config import ConfigStruct
 
 
 class ConstraintAbort(RuntimeError):
-    """A law gives up: its active constraints leave no freedom for the task (seed 002)."""
+    """A law gives up: its active constraints leave no freedom for the task (Muñoz 2018)."""
 
 
 class Gains(ConfigStruct):
-    """Gains of seed 000 (Table 3's proposed-law values by default). ``lambda`` is the constant gain of p-joint;
+    """Gains of Sensors 2022 (Table 3's proposed-law values by default). ``lambda`` is the constant gain of p-joint;
     the adaptive laws use λ0, λ∞ and the slope λ'0 at 0 (eq. 20); kd is the derivative gain (eq. 21)."""
 
     lambda_: float = msgspec.field(default=1.2, name="lambda")

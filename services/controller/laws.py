@@ -3,15 +3,15 @@
 =====================  ======================================================================  ============
 name                   law                                                                     output
 =====================  ======================================================================  ============
-p-joint                seed 000 eq. 17-18, constant gain λ, secondary task in the null space   joint vel.
+p-joint                Sensors 2022 eq. 17-18, constant gain λ, secondary task in the null space joint vel.
 adaptive-p-joint       the same with the adaptive gain of eq. 20                               joint vel.
 adaptive-pd-joint      adaptive PD in the joint law                                            joint vel.
 adaptive-pd-mixed      eq. 21 → eq. 22 → eq. 23-25: the mixed twist (the proposed law)          mixed twist
 ee-frame               eq. 21 → eq. 22, the end-effector twist sent as if it were mixed        mixed twist
-                       (the conventional mistake of seed 000 Part A; it diverges)
+                       (the conventional mistake of Sensors 2022 Part A; it diverges)
 mixed-jacobian-joint   eq. 26: q̇ = Jm⁺·V_m + (I − Jm⁺Jm)·ξ with V_m from eq. 21-25           joint vel.
-manipulability         seed 004 eq. 29/40 (services.controller.tracking)                       joint vel.
-smc                    seed 002 eq. 15, 41-42 (services.controller.smc)                         joint vel.
+manipulability         Nelson 1995 eq. 29/40 (services.controller.tracking)                    joint vel.
+smc                    Muñoz 2018 eq. 15, 41-42 (services.controller.smc)                       joint vel.
 =====================  ======================================================================  ============
 
 A law is an object with ``step(ServoInput) -> LawOutput`` and ``reset()``; it keeps only its own memory (error

@@ -51,7 +51,7 @@ class ControllerConfig(ServiceConfig):
     arm: Optional[str] = None
     law: str = "adaptive-pd-mixed"
     control: LawConfig = msgspec.field(default_factory=LawConfig)
-    #: ‖e‖ below this is converged (seed 000: 5e-5)
+    #: ‖e‖ below this is converged (Sensors 2022: 5e-5)
     convergence_error_norm: float = 5e-5
     #: features whose image is older than this (to the controller's clock) are stale: zero output (the visual
     #: path's one budget; 0.15 s gave 1-41 stale frames of 114-124 a run through the gateway, 0.25 s 0-8)
@@ -61,7 +61,7 @@ class ControllerConfig(ServiceConfig):
     #: realtime: carry each frame's features from the arm's configuration when it was taken to its latest measured
     #: one (forward kinematics; a static target) before the law, so that the image pipeline's delay (30-90 ms on a
     #: loaded host) does not act as delay in the visual loop. Lockstep answers each frame at its own tick: nothing
-    #: to carry. A departure from seed 000, whose loop is stated without its latency
+    #: to carry. A departure from Sensors 2022, whose loop is stated without its latency
     latency_compensation: bool = True
     #: condition number of L̂ above which the law's output is not trusted
     max_condition_number: float = 1e5

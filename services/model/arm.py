@@ -31,7 +31,7 @@ import yaml
 ARMS_DIR = Path(__file__).resolve().parent / "arms"
 #: Kinova's actuators as their data sheets give them (the arm files name each joint's)
 ACTUATORS_FILE = Path(__file__).resolve().parent / "actuators.yaml"
-#: the arm a stack runs when nothing chooses one (seed 000's)
+#: the arm a stack runs when nothing chooses one (Sensors 2022's)
 DEFAULT_ARM = "j2s7s300"
 BASE_LINK = "base_link"
 EE_LINK = "end_effector"

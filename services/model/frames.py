@@ -1,4 +1,4 @@
-"""Rotation, twist and mixed-frame math of seed 000 (eq. 9-12, 22-25), as plain numpy functions.
+"""Rotation, twist and mixed-frame math of Sensors 2022 (eq. 9-12, 22-25), as plain numpy functions.
 
 Notation: ``R_be`` is the rotation of the end-effector frame in the base frame (the seed's ᵇₑR), so a vector
 expressed in the end-effector frame maps to the base frame as ``v_b = R_be @ v_e``. Twists are 6-vectors
@@ -156,7 +156,7 @@ def pose_from_xyz_rpy_deg(xyz, rpy_deg) -> np.ndarray:
 
 
 def euler_rates_matrix(euler) -> np.ndarray:
-    """B(Γ) of seed 000 eq. 12: ω_b = B(Γ)·Γ̇ for XYZ Euler angles Γ = (r, p, y)."""
+    """B(Γ) of Sensors 2022 eq. 12: ω_b = B(Γ)·Γ̇ for XYZ Euler angles Γ = (r, p, y)."""
     r, p, _ = (float(v) for v in euler)
     sr, cr, sp, cp = math.sin(r), math.cos(r), math.sin(p), math.cos(p)
     return np.array([[1.0, 0.0, sp], [0.0, cr, -cp * sr], [0.0, sr, cp * cr]])

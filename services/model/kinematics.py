@@ -64,7 +64,7 @@ class ArmKinematics:
 
 
 def manipulability(J: np.ndarray) -> float:
-    """Yoshikawa's manipulability w = √det(J Jᵀ), the product of J's singular values (seed 004 eq. 6; 0 at a
+    """Yoshikawa's manipulability w = √det(J Jᵀ), the product of J's singular values (Nelson 1995 eq. 6; 0 at a
     singularity)."""
     return float(np.prod(np.linalg.svd(J, compute_uv=False)))
 

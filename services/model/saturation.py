@@ -3,7 +3,7 @@ output), safety (what it forwards) and the emulated DSP (what it executes).
 
 Every function scales the whole vector by one factor, so a limited motion keeps the direction its law asked for:
 a twist [v; ω] by the larger of its linear and angular speeds over their limits (scaling the parts apart turns an
-IBVS step off its line in feature space: seed 000's mixed law lost a third of its lead on a start where the linear
+IBVS step off its line in feature space: Sensors 2022's mixed law lost a third of its lead on a start where the linear
 part was cut and the angular was not), joint velocities by the joint furthest over its speed (a Cartesian motion
 stays on its line), and a change of velocity cut short along itself (an acceleration limit, ``max_change =
 a_max·dt``). Pure: no state, no counters; each returns what it measured so the caller can refuse instead, flag or

@@ -1,9 +1,9 @@
-"""The arm's torque-mode setup: the Kinova API functions of seed 003's Table 5.1 and what each does to the joints
+"""The arm's torque-mode setup: the Kinova API functions of the JACO thesis's Table 5.1 and what each does to the joints
 in torque mode. A pure core: the robot node holds one :class:`TorqueSetup`, the Kinova API changes it
 (:func:`configure`), low-level control applies it (:func:`over_safety_speed`, :func:`damping_torque`,
 :func:`arm_compensates_gravity`).
 
-What each function does, as seed 003 (Table 5.1, L2257-2293) describes it and as mfvs emulates it:
+What each function does, as JACO thesis (Table 5.1, L2257-2293) describes it and as mfvs emulates it:
 
 * ``SetTorqueSafetyFactor(f)``: "If the velocity of an actuator gets to a specific threshold the robot stops and
   changes back to trajectory control ... Setting to 1 disables the feature." Neither the thesis nor Kinova gives

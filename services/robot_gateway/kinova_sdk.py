@@ -225,7 +225,7 @@ BINDINGS: dict[str, Binding] = {
     **{name: _NO_ARGUMENT for name in _ACTIONS},
     "SendBasicTrajectory": Binding("int(TrajectoryPoint)", (TrajectoryPoint,)),
     **{name: Binding(f"int({c_type.__name__}&)", (_ref(c_type),)) for name, (c_type, _) in _GETTERS.items()},
-    # the torque-mode setup of seed 003's Table 5.1, passed to the arm as a client gives it
+    # the torque-mode setup of the JACO thesis's Table 5.1, passed to the arm as a client gives it
     "SetTorqueSafetyFactor": Binding("int(float)", (ctypes.c_float,)),
     "SetTorqueVibrationController": Binding("int(float)", (ctypes.c_float,)),
     "SetTorqueActuatorGain": Binding("int(float*)", (_ref(ctypes.c_float),)),

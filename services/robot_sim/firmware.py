@@ -275,7 +275,7 @@ class ActuatorFirmware:
 
     def zero_torque(self, i: int) -> None:
         """SetTorqueZero: actuator ``i``'s torque sensor reads 0 now (its bias, and whatever load it carries, taken
-        as zero: right only where gravity puts no torque on the joint, seed 003's calibration pose)."""
+        as zero: right only where gravity puts no torque on the joint, the JACO thesis's calibration pose)."""
         self._sensor_zero[i] = self.applied_torque_nm()[i] + self._sensor_bias[i]
 
     def values(self, stamp_ns: int) -> ActuatorValues:

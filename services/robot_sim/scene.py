@@ -117,7 +117,7 @@ class TargetConfig(ConfigStruct):
     #: one of the two: in the robot base frame, or in the camera frame at the initial configuration
     pose_in_base: Optional[PoseConfig] = None
     pose_in_camera: Optional[PoseConfig] = None
-    #: constant velocity of the target in the base frame (seed 004's moving target)
+    #: constant velocity of the target in the base frame (Nelson 1995's moving target)
     velocity_mps: Vec3 = (0.0, 0.0, 0.0)
     #: which image the tag carries: official (as printed from AprilRobotics/apriltag-imgs) or opencv (OpenCV's
     #: drawing); vision is told the same (services.model.tag)

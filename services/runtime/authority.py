@@ -93,7 +93,7 @@ def queries(keys: Keys) -> dict[str, list[str]]:
             # (the robot moves itself for it, at their confirmation)
             "operator": [keys.vision_api("set_goal"), keys.controller_api(m.START_TASK),
                          keys.controller_api(m.STOP_TASK), keys.robot_check_arm],
-            # the torque-mode setup (seed 003's Table 5.1) is made by the client that commands the torques
+            # the torque-mode setup (the JACO thesis's Table 5.1) is made by the client that commands the torques
             "torque_controller": sorted(keys.robot_api(f) for f in kinova.TORQUE_SETUP_FUNCTIONS)}
 
 

@@ -1,2 +1,2 @@
-"""A client of the robot's 500 Hz low-level torque API running one of seed 003's controllers (``python -m
+"""A client of the robot's 500 Hz low-level torque API running one of the JACO thesis's controllers (``python -m
 services.torque_controller``): :mod:`.core` the run without zenoh, :mod:`.service` the process."""

@@ -1,6 +1,6 @@
 """``python -m services.torque_controller --controller NAME [--arm NAME] [--duration S] [--log FILE.npz]
-[--connect ENDPOINT] [--config FILE] [--set KEY=VALUE ...]``: one run of one of seed 003's controllers against the
-robot's low-level torque API (jt-pid, null-space, null-space-mass, joint-pd, joint-velocity, computed-torque);
+[--connect ENDPOINT] [--config FILE] [--set KEY=VALUE ...]``: one run of one of the JACO thesis's controllers against
+the robot's low-level torque API (jt-pid, null-space, null-space-mass, joint-pd, joint-velocity, computed-torque);
 ``--set options.tf_s=3`` and the like set the run's options (services.controller.torque_controllers)."""
 import argparse
 import sys

@@ -1,5 +1,5 @@
 """The torque controller as a process: a zenoh client of the robot's low-level API (``robot/lowlevel/state`` in,
-``robot/lowlevel/command`` out) as a real client would be, running one of seed 003's controllers
+``robot/lowlevel/command`` out) as a real client would be, running one of the JACO thesis's controllers
 (:mod:`services.controller.torque_controllers`) for one run (:mod:`services.torque_controller.core`), then exiting.
 
 It takes the robot's arm from its states (the same description, by name and fingerprint; one it was not started
@@ -261,7 +261,7 @@ class TorqueControllerService(Service):
         """The thesis's torque-mode setup, call by call in its order; a refused call ends the run before any torque
         (a controller written for the arm without gravity compensation must not run on one with it)."""
         applied = []
-        self.torque_setup = {"table": "seed 003 Table 5.1", "applied": applied,
+        self.torque_setup = {"table": "JACO thesis Table 5.1", "applied": applied,
                              "not_applied": dict(CALIBRATION_NOT_APPLIED)}
         for function, argument in table_5_1():
             self._call_api(function, argument)

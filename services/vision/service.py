@@ -48,7 +48,7 @@ from services.vision.core import VisionCore
 #: lockstep: how long the first frame without camera info waits for it (the robot's own wait for a frame's answer)
 CAMERA_INFO_WAIT_S = 2.0
 
-#: seed 000 Table 2's desired square (±0.1666 at 0.2888 m), in this project's corner order
+#: Sensors 2022 Table 2's desired square (±0.1666 at 0.2888 m), in this project's corner order
 TABLE2_GOAL = ((-0.1666, -0.1666), (0.1666, -0.1666), (0.1666, 0.1666), (-0.1666, 0.1666))
 TABLE2_DEPTH = 0.2888
 
@@ -70,7 +70,7 @@ class TagConfig(ConfigStruct):
 
 
 class GoalConfig(ConfigStruct):
-    """One of: features (normalized, corner order as detected) with depth_m; or camera_in_tag. Neither: seed 000
+    """One of: features (normalized, corner order as detected) with depth_m; or camera_in_tag. Neither: Sensors 2022
     Table 2's square (±0.1666 at 0.2888 m)."""
 
     features: Optional[list[tuple[float, float]]] = None

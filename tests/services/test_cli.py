@@ -71,7 +71,7 @@ def test_model_info_and_urdf():
     urdf = run("model", "urdf").stdout
     assert urdf.strip() == ARM.urdf().strip()
     six = json.loads(run("model", "info", "--arm", "j2n6s300", "--json").stdout)
-    # the data sheets' numbers (seed 003 appendix F): K-75+ on joints 1-3, K-58 on 4-6
+    # the data sheets' numbers (JACO thesis appendix F): K-75+ on joints 1-3, K-58 on 4-6
     assert [(j["peak_torque_nm"], j["nominal_torque_nm"], j["max_speed_dps"]) for j in six["joints"]] == \
         [(30.5, 12.0, 36.0)] * 3 + [(6.8, 3.6, 48.0)] * 3
     assert [j["no_load_speed_dps"] for j in six["joints"]] == [73.2] * 3 + [121.8] * 3

@@ -1,4 +1,4 @@
-"""`mfvs experiment constraints` (seed 002): every constraint type binds in one task, and the sliding-mode law holds
+"""`mfvs experiment constraints` (Muñoz 2018): every constraint type binds in one task, and the sliding-mode law holds
 each within its chattering band with exact gradients and with 30 % gradient error (eq. 49)."""
 import json
 import subprocess

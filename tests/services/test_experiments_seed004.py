@@ -1,4 +1,4 @@
-"""`mfvs experiment tracking-region` (seed 004): a target moving at 10 cm/s, tracked on two translational axes
+"""`mfvs experiment tracking-region` (Nelson 1995): a target moving at 10 cm/s, tracked on two translational axes
 without the manipulability term and on four axes with it: the baseline meets a singularity, the full law tracks
 several times as far."""
 import json

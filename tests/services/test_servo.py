@@ -72,13 +72,13 @@ def test_ee_frame_law_fails_on_the_same_start():
 @pytest.mark.parametrize("law", ["p-joint", "adaptive-p-joint", "adaptive-pd-joint", "adaptive-pd-mixed",
                                  "mixed-jacobian-joint", "manipulability",
                                  # 1381 iterations: slow; the law's run through mfvs servo is tests/services/
-                                 # controller/test_smc.py's, and seed 002's experiment tests/services/
+                                 # controller/test_smc.py's, and Muñoz 2018's experiment tests/services/
                                  # test_experiments_seed002.py's
                                  pytest.param("smc", marks=pytest.mark.slow)])
 def test_every_law_converges_on_an_easy_start(law):
     scenario = with_law(EASY, law)
     if law == "smc":
-        # seed 002's tracking law decays at √K0 = 2/s near the goal, where the arm's velocity dead-band slows every
+        # Muñoz 2018's tracking law decays at √K0 = 2/s near the goal, where the arm's velocity dead-band slows every
         # law: 1381 iterations (295 on an arm without one, dsp.dead_band off)
         scenario.convergence.max_iterations = 2000
     result = run(scenario)

@@ -1,4 +1,4 @@
-"""``mfvs experiment torque-control`` (services/torque_experiment.py): seed 003's chapter 5 in realtime, each
+"""``mfvs experiment torque-control`` (services/torque_experiment.py): the JACO thesis's chapter 5 in realtime, each
 controller a process of its own against a real robot process (robot_sim, real MuJoCo) on a real router.
 
 The CI runs the quick form (a 3 s reference over 3/16 of the thesis's motion: the same speeds) on one controller

@@ -173,7 +173,7 @@ def test_j2n6s300_joints_masses_and_bus_as_its_sources_give_them():
     assert arm.max_speed_dps.tolist() == [36, 36, 36, 48, 48, 48]
     assert [j.actuator for j in arm.joints] == ["K-75+"] * 3 + ["K-58"] * 3
     assert arm.bus_addresses == (0x10, 0x11, 0x12, 0x13, 0x14, 0x15)
-    # seed 003 Tables 3.5-3.7: link + actuator + ring, 4.47 kg (spec sheet: 4.4 kg without gripper)
+    # JACO thesis Tables 3.5-3.7: link + actuator + ring, 4.47 kg (spec sheet: 4.4 kg without gripper)
     masses = [j.link_mass_kg for j in arm.joints]
     assert masses == pytest.approx([0.767664, 0.995713, 0.796345, 0.41737, 0.41737, 1.07541])
     assert sum(masses) == pytest.approx(4.470, abs=1e-3)

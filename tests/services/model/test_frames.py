@@ -1,4 +1,4 @@
-"""Mixed-frame math (seed 000 eq. 9-12, 22-25) against independent references: finite differences of the arm's
+"""Mixed-frame math (Sensors 2022 eq. 9-12, 22-25) against independent references: finite differences of the arm's
 pose through Pinocchio, Pinocchio's SE(3) exponential and logarithm, and the seed's formulas."""
 import itertools
 import math

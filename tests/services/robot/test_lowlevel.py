@@ -154,7 +154,7 @@ def test_a_safety_factor_of_one_never_stops_and_damping_and_gravity_follow_the_s
 def test_with_the_arm_s_gravity_off_actuators_that_can_stop_adding_it_do_and_the_watchdog_turns_it_back_on():
     """Table 5.1's gravity setup on actuators that can switch their compensation (the simulator's): they stop
     adding gravity and the client's torques arrive as sent, so the client faces the arm's true gravity, not the
-    model's (seed 003's situation: a CAD ĝ against the real arm). A stale command holds the arm on its own
+    model's (the JACO thesis's situation: a CAD ĝ against the real arm). A stale command holds the arm on its own
     compensation again (the emulation's choice: a stalled client does not drop the arm)."""
     joints, setup = FakeJoints(switches_gravity=True), undamped()
     control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.arange(7.0), setup=setup)
@@ -415,7 +415,7 @@ def test_after_table_5_1_the_client_faces_the_arm_s_true_gravity(robot):
     """Table 5.1's setup (the arm's gravity compensation off) and a client that sends exactly the description's
     gravity ĝ(q) as its whole torque (``gravity_compensation: false``). The arm's true gravity (its hand 30 %
     heavier than described) pulls it away from where it was, the way the missing torque pulls, as a real arm with
-    its compensation off leaves a CAD model's error to the client (seed 003's situation): on robot_sim its
+    its compensation off leaves a CAD model's error to the client (the JACO thesis's situation): on robot_sim its
     actuators stop adding their compensation; behind the gateway the actuators on the RS-485 bus add none and the
     robot adds none either (the client's torque includes gravity), so both robots give the client the same arm."""
     from services.model.kinematics import ArmKinematics

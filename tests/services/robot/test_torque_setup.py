@@ -1,4 +1,5 @@
-"""The torque-mode setup of seed 003's Table 5.1 (services/robot/torque_setup.py) and its Kinova API functions."""
+"""The torque-mode setup of the JACO thesis's Table 5.1 (services/robot/torque_setup.py) and its Kinova API
+functions."""
 import math
 
 import msgspec

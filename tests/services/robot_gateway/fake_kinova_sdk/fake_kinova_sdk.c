@@ -175,7 +175,7 @@ int API(GetGlobalTrajectoryInfo)(TrajectoryFIFO *out) {
     return NO_ERROR_KINOVA;
 }
 
-/* the torque-mode setup of seed 003's Table 5.1: each call recorded with its value (FakeTorqueSetup) */
+/* the torque-mode setup of the JACO thesis's Table 5.1: each call recorded with its value (FakeTorqueSetup) */
 static float torque_setup[8];
 static int setup_call(const char *name, int slot, float value) {
     record(name);
