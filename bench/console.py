@@ -27,11 +27,11 @@ from bench.latency import stats
 from bench.stack import profile_on_arm, servoing_stack, unknown_arm
 from protocol import messages as m
 from protocol.keys import Keys
-from services.cli import add_arm_option
-from services.launcher import stack_task
+from services.cli.options import add_arm_option
+from services.stack.launcher import stack_task
 from services.runtime.service import query_health
 from services.runtime.transport import ZenohConfig, open_session
-from services.stack import ConsoleProcess
+from services.stack.local import ConsoleProcess
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"

@@ -26,8 +26,8 @@ from typing import Optional
 import numpy as np
 
 from bench.stack import profile_on_arm, servoing_stack, unknown_arm
-from services.cli import add_arm_option
-from services.launcher import read_stack
+from services.cli.options import add_arm_option
+from services.stack.launcher import read_stack
 from services.model.arm import DEFAULT_ARM
 from services.runtime.pacing import normal_priority, request_realtime
 

@@ -29,11 +29,11 @@ from services.paths import REPO
 from services.runtime.transport import open_session
 from bench.hogs import cpu_hogs
 from bench.stack import measured_arm, unknown_arm
-from services.cli import add_arm_option
+from services.cli.options import add_arm_option
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.model.limits import arm_limits
 from services.robot_sim.service import RobotSimConfig
-from services.stack import RobotProcesses, RouterProcess
+from services.stack.local import RobotProcesses, RouterProcess
 
 LINEAR = np.array([0.04, -0.03, 0.03])
 ROTATIONAL = np.array([0.0, 0.0, 0.2])

@@ -23,8 +23,8 @@ from protocol.keys import Keys
 from services.runtime.service import query_health
 from services.runtime.transport import ZenohConfig, open_session
 from bench.stack import measured_arm, profile_on_arm, servoing_stack, unknown_arm, with_overrides
-from services.cli import add_arm_option
-from services.launcher import load_profile
+from services.cli.options import add_arm_option
+from services.stack.launcher import load_profile
 from services.model.arm import DEFAULT_ARM
 from protocol.keys import ROBOT_SERVICES
 

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from bench.stack import unknown_arm
-from services.cli import add_arm_option
+from services.cli.options import add_arm_option
 from services.model.arm import DEFAULT_ARM, ArmDescription, load_arm
 from services.model.kinematics import ArmKinematics
 from services.controller.law import ServoInput

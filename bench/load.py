@@ -23,7 +23,7 @@ from protocol import messages as m
 from protocol.keys import Keys
 from bench.latency import stats
 from bench.stack import measured_arm, profile_on_arm, servoing_stack, unknown_arm
-from services.cli import add_arm_option
+from services.cli.options import add_arm_option
 from services.paths import REPO
 from services.model.arm import DEFAULT_ARM
 from services.runtime.transport import ZenohConfig, open_session

@@ -6,8 +6,8 @@ process timing its part of each iteration (:mod:`services.runtime.iteration_prof
 time split by where it goes: the robot's loop (physics, the emulated actuators and bus, the robot node, the state
 out), rendering, the waits for the pipeline and what filled them (detection, the law, safety, messages, and the
 hand-offs between processes), with the CPU each process spent, every service a process of its own as deployed
-(``--processes``); then the same run composed, as experiments run it (:mod:`services.composed`: the services in one
-process on one zenoh session), split the same way with every service's functions timed in that one process (the
+(``--processes``); then the same run composed, as experiments run it (:mod:`services.stack.composed`: the services in
+one process on one zenoh session), split the same way with every service's functions timed in that one process (the
 rows then overlap: a service's thread may run while the loop thread waits for the interpreter lock inside one of
 its own rows), and its wall time and CPU per iteration. The machine's load (``uptime``) is printed with
 the figures: on a shared 2-core host they mean nothing without it.
@@ -36,12 +36,13 @@ from pathlib import Path
 from bench.cpu import children, cpu_seconds, peak_rss_mb, process_tree
 from bench.hogs import cpu_hogs
 from bench.stack import unknown_arm
-from services.cli import add_arm_option
+from services.cli.options import add_arm_option
 from services.controller.laws import LAW_NAMES
-from services.experiments import TABLE3_GAINS
+from services.experiments.mixed_frame import TABLE3_GAINS
 from services.paths import REPO, SCENARIOS
 from services.runtime import iteration_profile as ip
-from services.servo import load_scenario, on_arm, run
+from services.servo.run import run
+from services.servo.scenario import load_scenario, on_arm
 
 LOOP = ip.LOOP_THREAD
 
@@ -110,7 +111,7 @@ def profile_run(scenario, hogs: int = 0) -> dict:
 
 
 def composed_run(scenario, hogs: int = 0) -> dict:
-    """Run ``scenario`` composed (:mod:`services.composed`, as experiments run it) twice: as it is, for wall time
+    """Run ``scenario`` composed (:mod:`services.stack.composed`, as experiments run it) twice: as it is, for wall time
     and CPU per iteration from the first iteration the runner saw to the last (the CPU is this process's: the
     services, their renderer and the runner; and its children's that the run started, none in lockstep, where
     robot_sim renders in its loop's thread) and the process's peak memory; then with every service's functions

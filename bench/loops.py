@@ -19,7 +19,7 @@ from protocol import messages as m
 from protocol.conventions import ClockMode
 from protocol.keys import Keys
 from bench.stack import unknown_arm
-from services.cli import add_arm_option
+from services.cli.options import add_arm_option
 from services.model.arm import DEFAULT_ARM
 from services.runtime.metrics import LoopTimer
 from services.runtime.transport import GuardedPublisher, Router, open_session

@@ -37,7 +37,7 @@ from bench.latency import stats
 from bench.stack import detail_fields, measured_arm, unknown_arm
 from protocol import messages as m
 from protocol.keys import Keys
-from services.cli import add_arm_option
+from services.cli.options import add_arm_option
 from services.controller.torque_laws import DynamicsModel
 from services.model.arm import DEFAULT_ARM, ArmDescription, load_arm
 from services.robot.hardware import CYCLE_NS, CYCLE_S
@@ -45,7 +45,7 @@ from services.runtime.pacing import normal_priority, request_realtime
 from services.robot_sim.service import RobotSimConfig
 from services.runtime.service import query_health
 from services.runtime.transport import GuardedPublisher, open_session
-from services.stack import RobotProcesses, RouterProcess
+from services.stack.local import RobotProcesses, RouterProcess
 
 #: which service runs the robot's loop, by profile
 ROBOTS = {"sim": "robot_sim", "gateway": "robot_gateway"}

@@ -24,10 +24,10 @@ from services.runtime.metrics import LoopTimer
 from services.robot.hardware import DEFAULT_TIMING, BusTiming
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from bench.stack import detail_fields, unknown_arm
-from services.cli import add_arm_option
+from services.cli.options import add_arm_option
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.robot_gateway.link import ActuatorLink
-from services.stack import simulated_link
+from services.stack.local import simulated_link
 
 
 def _stats(ms: list[float]) -> dict:
@@ -68,7 +68,7 @@ def run_hub(seconds: float = 5.0, arm: str = DEFAULT_ARM, timing: BusTiming = DE
 
     from services.tools.can_hub import CanHub
     from services.runtime.transport import Router
-    from services.launcher import status
+    from services.stack.launcher import status
     from services.paths import REPO
 
     with Router(port=0) as router, CanHub() as hub:

@@ -60,8 +60,8 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from protocol.keys import PIPELINE_SERVICES, Keys, last_chunk
 from services.controller.task_client import TaskUnavailable, call_task
-from services.cli import add_arm_option
-from services.launcher import Profile, behind_authority, load_profile, read_stack, restart, with_arm
+from services.cli.options import add_arm_option
+from services.stack.launcher import Profile, behind_authority, load_profile, read_stack, restart, with_arm
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.model.kinematics import ArmKinematics
 from services.paths import DEPLOY, REPO

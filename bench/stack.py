@@ -13,13 +13,13 @@ from collections.abc import Iterable, Iterator
 from typing import Optional
 
 from protocol import messages as m
-from services.cli import arm_or_exit
-from services.launcher import Profile, down, load_profile, stack_task, up, with_arm
+from services.cli.options import arm_or_exit
+from services.stack.launcher import Profile, down, load_profile, stack_task, up, with_arm
 from services.runtime.transport import free_loopback_port
 
 
 def unknown_arm(parser: argparse.ArgumentParser, args: argparse.Namespace) -> bool:
-    """Whether ``args.arm`` (services.cli.add_arm_option's ``--arm``) names no arm: then one line on stderr, as
+    """Whether ``args.arm`` (services.cli.options.add_arm_option's ``--arm``) names no arm: then one line on stderr, as
     every command says it, and the benchmark exits 2 having started nothing."""
     return arm_or_exit(parser.prog.removeprefix("mfvs "), args.arm) is None
 
@@ -47,7 +47,7 @@ def detail_fields(detail: Optional[str]) -> dict[str, str]:
 @contextlib.contextmanager
 def servoing_stack(profile: Profile, operator: str, start_task: bool = True) -> Iterator[str]:
     """Bring ``profile`` up in realtime, start its task as ``operator`` (unless not ``start_task``: the caller
-    starts it, with :func:`services.launcher.stack_task`), and yield the router's endpoint."""
+    starts it, with :func:`services.stack.launcher.stack_task`), and yield the router's endpoint."""
     previous = os.environ.get("MFVS_RUN_DIR")
     with tempfile.TemporaryDirectory(prefix="mfvs-bench-") as directory:
         os.environ["MFVS_RUN_DIR"] = directory

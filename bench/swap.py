@@ -13,8 +13,8 @@ Profiles: ``sim-lockstep`` and ``gateway-lockstep`` (deterministic: one run each
 runs them on that arm (as `mfvs servo --arm`): of the shipped scenarios, those that start another arm at joint
 angles of its own are left out (and named); a ``--scenario`` that does is refused.
 ``--random-starts N`` makes N scenarios no one has seen from ``--base`` (table2 by default): the tag placed at random
-in front of the camera as for Table 3 over random starts (:mod:`services.starts`), each written next to the results
-so a start can be run again.
+in front of the camera as for Table 3 over random starts (:mod:`services.experiments.starts`), each written next to the
+results so a start can be run again.
 
 Realtime against lockstep: a lockstep run repeats itself exactly, but its iteration count is one draw from a wide
 spread. The last iterations are spent creeping under the arm's velocity dead-band toward a threshold near the
@@ -44,9 +44,10 @@ from services.paths import SCENARIOS
 from services.runtime.config import ConfigError
 from services.runtime.progress import ProgressLine
 from services.robot_sim.scene import default_target_in_camera
-from services.cli import add_arm_option
-from services.servo import load_scenario, on_arm, run
-from services.starts import write_starts
+from services.cli.options import add_arm_option
+from services.servo.run import run
+from services.servo.scenario import load_scenario, on_arm
+from services.experiments.starts import write_starts
 
 #: how far a nudged lockstep start moves the tag (m): about what the arm covers at its top speed in a millisecond
 #: of realtime's timing jitter

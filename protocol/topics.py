@@ -39,7 +39,7 @@ def topics(keys: Keys) -> list[Topic]:
         Topic(keys.safety_status, m.SafetyStatus, "safety"),
         Topic(keys.estop, m.EStop, "operator", control_path=True),
         Topic(keys.robot_state, m.RobotState, "robot_sim or robot_gateway", control_path=True),
-        Topic(keys.lowlevel_command, m.TorqueCommand, "a low-level client", control_path=True),
+        Topic(keys.lowlevel_command, m.TorqueCommand, "a low-level client (torque_controller)", control_path=True),
         Topic(keys.lowlevel_state, m.LowLevelState, "robot_sim or robot_gateway", control_path=True),
         Topic(keys.clock, m.SimClock, "robot_sim"),
         # one key per service (a wildcard here); each service also answers a query on its own

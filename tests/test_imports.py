@@ -78,8 +78,9 @@ def test_the_cycle_finder_finds_a_cycle():
 
 #: the layers, bottom up: a package imports only from its own layer's declared neighbours and from below. protocol is
 #: the wire contract; runtime what every service runs on; model the arms and their geometry (pure); then the
-#: services, each with the other services it is built on; the orchestration (the top-level modules of services/,
-#: bench) may import anything. ``paths`` (where the repository's folders are) is a leaf anyone may use.
+#: services, each with the other services it is built on; then the orchestration, each of its folders with the
+#: others it is built on; the command line and bench may import anything. ``paths`` (where the repository's folders
+#: are) is a leaf anyone may use.
 BASE = {"protocol": set(), "services.paths": set(), "services.runtime": {"protocol"},
         "services.model": {"protocol", "services.runtime"}}
 #: a service package and the other service packages it may import, with why
@@ -98,25 +99,39 @@ SERVICES = {
     "services.calibration": {"services.camera", "services.robot_sim"},  # the camera's files; the simulated rig
 }
 
+#: the orchestration's folders (what starts, runs and reports the services) and the others each is built on; any of
+#: them may import every service package
+ORCHESTRATION = {
+    "services.stack": set(),                                         # starting a stack: profiles, processes
+    "services.servo": {"services.stack"},                            # one servo task on a stack
+    "services.experiments": {"services.servo", "services.stack"},    # the papers' experiments: many servo tasks
+    "services.commissioning": {"services.stack"},                    # `mfvs check`, `mfvs doctor`
+}
+#: the top: parses the command line and calls any of the above
+TOP = {"services.cli", "bench"}
+
 
 def package_of(module: str) -> str:
-    """The layer package a module belongs to (a top-level module of services/ is orchestration: itself)."""
+    """The layer package a module belongs to (services.<package>, protocol or bench; a module directly in services/
+    is its own)."""
     parts = module.split(".")
     if parts[0] in ("protocol", "bench"):
         return parts[0]
-    if len(parts) == 2 and f"services.{parts[1]}" not in SERVICES and f"services.{parts[1]}" not in BASE:
-        return "orchestration"
     return ".".join(parts[:2])
 
 
 def allowed(importer: str) -> set[str] | None:
-    """The packages ``importer`` may import besides its own (None: anything, the orchestration)."""
+    """The packages ``importer`` may import besides its own (None: anything, the top)."""
     below = {"protocol", "services.paths"}
     if importer in BASE:
         return BASE[importer] | {"services.paths"} | set().union(*(BASE[b] for b in BASE[importer]))
     if importer in SERVICES:
         return below | {"services.runtime", "services.model"} | SERVICES[importer]
-    return None
+    if importer in ORCHESTRATION:
+        return below | set(BASE) | set(SERVICES) | ORCHESTRATION[importer]
+    if importer in TOP:
+        return None
+    return set()  # a module in no layer may import nothing: give it its place above
 
 
 def layer_violations(graph: dict[str, set[str]]) -> list[str]:
@@ -141,18 +156,27 @@ def test_every_package_imports_only_from_its_layer_and_below():
 
 
 def test_every_service_package_has_its_place_in_the_layers():
+    """Every folder of services/ has its place, and nothing else sits directly in services/ but where the
+    repository's folders are (``paths``): the orchestration is in folders by role."""
     packages = {f"services.{d.name}" for d in (REPO / "services").iterdir()
                 if d.is_dir() and any(d.glob("*.py"))}  # (namespace packages too: runtime, observe)
-    assert packages == (set(BASE) | set(SERVICES)) - {"protocol", "services.paths"}
+    assert packages == (set(BASE) | set(SERVICES) | set(ORCHESTRATION) | TOP) - {"protocol", "services.paths", "bench"}
+    loose = {p.name for p in (REPO / "services").glob("*.py")}
+    assert loose == {"__init__.py", "paths.py"}
 
 
 def test_the_layer_check_sees_a_violation():
-    graph = {"services.runtime.service": {"services.robot.node"}, "services.console.service": {"services.stack"},
-             "services.safety.checks": {"services.model.zones"}, "services.stack": {"services.robot.node"}}
-    assert layer_violations(graph) == [
-        "services.console.service imports services.stack (services.console may import protocol, services.controller, "
-        "services.model, services.observe, services.paths, services.runtime, services.safety)",
-        "services.runtime.service imports services.robot.node (services.runtime may import protocol, services.paths)"]
+    graph = {"services.runtime.service": {"services.robot.node"}, "services.console.service": {"services.stack.local"},
+             "services.safety.checks": {"services.model.zones"}, "services.stack.local": {"services.robot.node"},
+             "services.stack.launcher": {"services.servo.run"}, "services.servo.run": {"services.cli.options"},
+             "services.experiments.pool": {"services.servo.run", "services.stack.warm_start"}}
+    violations = layer_violations(graph)
+    assert [v.split(" (")[0] for v in violations] == [
+        "services.console.service imports services.stack.local",
+        "services.runtime.service imports services.robot.node",
+        "services.servo.run imports services.cli.options",  # the orchestration does not import the command line
+        "services.stack.launcher imports services.servo.run"]  # starting a stack knows nothing of servo tasks
+    assert violations[1].endswith("(services.runtime may import protocol, services.paths)")
 
 
 def test_robot_sim_in_api_mode_loads_no_python_can():

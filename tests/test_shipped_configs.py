@@ -52,6 +52,6 @@ def test_the_visual_path_shares_one_image_budget():
 
 @pytest.mark.parametrize("path", sorted((REPO / "examples" / "scenarios").glob("*.yaml")), ids=lambda p: p.name)
 def test_every_example_scenario_loads_with_what_the_services_check_of_it(path):
-    from services.servo import load_scenario
+    from services.servo.scenario import load_scenario
 
     load_scenario(path)

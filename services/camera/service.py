@@ -23,7 +23,7 @@ import numpy as np
 import zenoh
 
 from protocol.conventions import ClockMode
-from protocol.messages import ImageEncoding, encode
+from protocol.messages import CameraInfo, Image, ImageEncoding, encode
 from services.camera import core
 from services.camera.calibration import Intrinsics, read_camera_in_ee, read_intrinsics
 from services.camera.sources import DeviceSource, FrameSource, ImageFolderSource, SourceError, VideoFileSource
@@ -32,6 +32,7 @@ from services.runtime.config import ConfigStruct
 from services.model.frames import PoseConfig
 from services.runtime.service import Service, ServiceConfig
 from services.runtime.threads import start_thread
+from services.runtime.ports import Port, Ports
 
 
 class SourceConfig(ConfigStruct):
@@ -87,6 +88,8 @@ class CameraConfig(ServiceConfig):
 
 class CameraService(Service):
     name = "camera"
+    PORTS = Ports(produces=(Port("camera_image", Image), Port("camera_info", CameraInfo)),
+                  answers=(Port("camera_info"),))
     follows_sim_clock = False
 
     def __init__(self, config: CameraConfig | None = None, **kw) -> None:

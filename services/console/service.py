@@ -23,6 +23,7 @@ from services.controller.task_client import describe_task
 from services.observe.foxglove_view import jpeg, pixels
 from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread
+from services.runtime.ports import Port, Ports
 
 
 def halved(image: m.Image) -> m.Image:
@@ -44,6 +45,9 @@ class ConsoleConfig(ServiceConfig):
 
 class ConsoleService(Service):
     name = "console"
+    PORTS = Ports(consumes=(Port("camera_image", m.Image), Port("camera_info", m.CameraInfo),
+                            Port("features", m.Features), Port("robot_state", m.RobotState), Port("controller_status", m.ControllerStatus),
+                            Port("safety_status", m.SafetyStatus), Port("estop", m.EStop), Port("clock", m.SimClock)))
 
     def __init__(self, config: Optional[ConsoleConfig] = None, **kwargs) -> None:
         super().__init__(config or ConsoleConfig(), **kwargs)

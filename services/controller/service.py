@@ -43,6 +43,7 @@ from services.runtime.state_history import StateHistory
 from services.controller.core import ControllerCore
 from services.controller.law import LawConfig, LawOutput
 from services.controller.laws import LAW_NAMES
+from services.runtime.ports import Port, Ports
 
 
 class ControllerConfig(ServiceConfig):
@@ -77,6 +78,11 @@ class ControllerConfig(ServiceConfig):
 
 class ControllerService(Service):
     name = "controller"
+    PORTS = Ports(consumes=(Port("robot_state", RobotState), Port("camera_info", CameraInfo),
+                            Port("features", Features)),
+                  produces=(Port("desired_twist", Twist), Port("desired_joint_velocity", JointVelocity),
+                            Port("controller_status", ControllerStatus)),
+                  answers=(Port("controller_api"),))
     clock_from_inputs = True  # the robot states (features are answered at their frame's state)
 
     def __init__(self, config: ControllerConfig | None = None, **kw) -> None:

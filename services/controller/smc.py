@@ -1,4 +1,4 @@
-"""Seed 002: robust fulfilment of constraints in visual servoing by sliding mode, at the acceleration level.
+"""Muñoz 2018: robust fulfilment of constraints in visual servoing by sliding mode, at the acceleration level.
 
 Two priority levels (eq. 15): level 1 holds the active constraints on their sliding surfaces, level 2 tracks the
 features in what freedom is left:

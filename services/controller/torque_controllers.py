@@ -1,4 +1,4 @@
-"""Seed 003's chapter-5 controllers, each a law of :mod:`~services.controller.torque_laws` with its reference and
+"""The JACO thesis's chapter-5 controllers, each a law of :mod:`~services.controller.torque_laws` with its reference and
 gains, as a stateful object with no zenoh, no clock and no threads: :meth:`TorqueController.begin` at the start
 (the arm's joints and its own Cartesian report), then :meth:`TorqueController.step` once per low-level state, at
 the state's own time. The process that runs one against the robot is :mod:`services.torque_controller`.

@@ -1,4 +1,4 @@
-"""Seed 003's torque control (chapter 4) and its references (chapter 5) as pure functions: no zenoh, no clock, no
+"""The JACO thesis's torque control (chapter 4) and its references (chapter 5) as pure functions: no zenoh, no clock, no
 threads. Equation numbers are the thesis's; ``docs/torque.md`` says where the code departs from it and why.
 
 References

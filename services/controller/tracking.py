@@ -1,4 +1,4 @@
-"""Seed 004 (Nelson & Khosla 1995): visual tracking that also keeps the arm away from singularities and joint
+"""Nelson 1995 (Nelson & Khosla): visual tracking that also keeps the arm away from singularities and joint
 limits, by minimising, each camera period,
 
     F(k+1) = [x(k+1) − x_D]ᵀ Q [x(k+1) − x_D] + uᵀ R u + S / w'(q(k+1))

@@ -9,9 +9,10 @@ from protocol.keys import Keys
 from protocol.topics import UnknownTopic, matching
 
 
-def add_parsers(sub, add_connection_options, operator_session, stack_connection) -> None:
+def add_parsers(sub, add_connection_options, operator_session, stack_connection, service_graph=None) -> None:
     """``stack_connection(args)`` fills in the router and the robot id from the running stack where the command
-    line did not; ``operator_session(args)`` opens a session to that router."""
+    line did not; ``operator_session(args)`` opens a session to that router; ``service_graph()`` gives the lines of
+    the stack as its services declare it (``mfvs keys --graph``)."""
     def command(name: str, help: str, func):
         parser = sub.add_parser(name, help=help)
         add_connection_options(parser)
@@ -35,6 +36,10 @@ def add_parsers(sub, add_connection_options, operator_session, stack_connection)
     keys = command("keys", "what the stack publishes now: key, type, rate, size; and the services alive", _cmd_keys)
     keys.add_argument("--seconds", type=float, default=2.0, help="how long to listen")
     keys.add_argument("--json", action="store_true", help="one JSON object")
+    keys.add_argument("--graph", action="store_true",
+                      help="the service graph as the services declare it (who publishes each topic, who subscribes; "
+                           "no stack needed)")
+    keys.set_defaults(service_graph=service_graph)
 
     record = command("record", "record a running stack into an MCAP file: the payloads byte for byte, and the "
                                "viewer's channels in Foxglove's schemas", _cmd_record)
@@ -109,6 +114,9 @@ def _cmd_keys(args) -> int:
     from services.observe.introspect import discover, keys_table
     from services.runtime.service import alive_services
 
+    if args.graph:
+        print("\n".join(args.service_graph()))
+        return 0
     session, keys = _session(args)
     try:
         services = alive_services(session, keys)

@@ -58,7 +58,7 @@ class DeadBandShape(str, enum.Enum):
 
 class DeadBand(ConfigStruct):
     """The arm's velocity dead-band: a velocity command that asks the end effector to move slower than
-    ``linear_mps`` and turn slower than ``angular_rps`` gives (practically) no motion. Seed 000 (section 3.1) met
+    ``linear_mps`` and turn slower than ``angular_rps`` gives (practically) no motion. Sensors 2022 (section 3.1) met
     it on the JACO-2 near convergence ("it does not move for minimal Cartesian velocities computed by the control
     law"), which is why its adaptive gain matters (Table 3: 446 → 189 iterations). It applies to Cartesian and joint
     velocity commands alike, by the end-effector motion they ask for, and scales the whole command (its direction

@@ -75,6 +75,7 @@ from services.robot.kinova_api import KinovaApi
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
 from services.robot.torque_setup import TorqueSetup
 from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
+from services.runtime.ports import Port, Ports
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
 from services.robot.admission import AdmissionConfig, CommandAdmission
@@ -241,6 +242,9 @@ class _TorqueJoints:
 
 class RobotNode(Service):
     follows_sim_clock = True
+    PORTS = Ports(consumes=(Port("robot_command", RobotCommand), Port("lowlevel_command", TorqueCommand)),
+                  produces=(Port("robot_state", RobotState), Port("lowlevel_state", LowLevelState)),
+                  answers=(Port("robot_api_all"), Port("robot_check_arm")))
 
     def __init__(self, config: RobotNodeConfig, **kw) -> None:
         super().__init__(config, **kw)

@@ -52,7 +52,7 @@ MAX_ACTUATOR_DAMPING = 20.0
 
 
 def table_5_1() -> list[tuple[str, object]]:
-    """Seed 003's Table 5.1 (L2257-2293), the setup the thesis made before torque control, as Kinova API calls in
+    """The JACO thesis's Table 5.1 (L2257-2293), the setup the thesis made before torque control, as Kinova API calls in
     its order: safety factor 1 (disabled), vibration controller 1, actuator damping 0, gravity type OPTIMAL with
     every optimal-Z parameter 0 (the arm adds no gravity), actuator gain 0. The thesis prints "0" for the arrays;
     every element 0 is the reading (seed003_facts §5). Its calibration (SetTorqueZero in the pose where gravity

@@ -68,7 +68,7 @@ def choose_rasteriser_threads(realtime: bool) -> None:
       cost a quarter more CPU than one (10.5 against 8.5 ms a 640x480 frame) and waited behind vision and the
       services: frames came late and were dropped. The renderer's own thread, at the camera's priority, renders
       as a camera's own hardware would, on time;
-    * lockstep allowed one core (a run pinned beside others: services.run_pool): none either, threads there gain
+    * lockstep allowed one core (a run pinned beside others: services.experiments.pool): none either, threads there gain
       nothing but their hand-offs;
     * lockstep on more cores: two a core. llvmpipe's default, one a core, split a frame unevenly in a composed
       run on this 2-core machine (0.7 and 1.55 ms of CPU a frame; the caller, submitting and waiting, shares a

@@ -30,9 +30,10 @@ import msgspec
 import zenoh
 
 from protocol.conventions import LOCKSTEP_EPOCH_NS, ClockMode
-from protocol.messages import RobotState, SimClock, encode
+from protocol.messages import CameraInfo, Image, RobotState, SimClock, encode
 from services.robot.arm_check import ArmCheckConfig
 from services.robot.rs485_bus import BusConfig, RS485Bus
+from services.runtime.ports import Port, Ports
 from services.runtime.service import Service
 from services.robot.hardware import CYCLE_NS, CYCLE_S, DEFAULT_TIMING, DSP_CYCLE_NS, ActuatorValues
 from protocol.keys import ROBOT_SERVICES
@@ -77,6 +78,14 @@ class RobotSimConfig(RobotNodeConfig):
         if self.actuators.mirrored_joints and self.arm_check.waived:
             raise ValueError("actuators.mirrored_joints makes the arm disagree with its description: the check "
                              "cannot be waived (arm_check.waived: false)")
+
+
+#: what the simulation's outputs use (:class:`_SimulationOutputs`): the clock, the camera (published and its info
+#: answered), and the robot's state, whose trace places the camera's trigger (``trigger_offset_ms: auto``)
+SIMULATION_PORTS = Ports(consumes=(Port("robot_state", RobotState),),
+                         produces=(Port("clock", SimClock), Port("camera_image", Image),
+                                   Port("camera_info", CameraInfo)),
+                         answers=(Port("camera_info"),))
 
 
 class _SimulationOutputs:
@@ -221,6 +230,7 @@ class RobotSimService(RobotNode):
     """The robot node on the simulated arm in this process (``mode: api``)."""
 
     name = "robot_sim"
+    PORTS = RobotNode.PORTS | SIMULATION_PORTS
     follows_sim_clock = False  # it is the clock
 
     def __init__(self, config: RobotSimConfig | None = None, **kw) -> None:
@@ -288,6 +298,7 @@ class ArmOnBusService(Service):
     its camera and clock (``mode: actuator_bus``)."""
 
     name = "robot_sim"
+    PORTS = SIMULATION_PORTS
     follows_sim_clock = False
 
     def __init__(self, config: RobotSimConfig | None = None, **kw) -> None:

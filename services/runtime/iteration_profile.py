@@ -3,7 +3,7 @@
 Off unless the environment names a directory (:data:`PROFILE_DIR_ENV`): then :func:`install`, which every service
 process calls at start, wraps the functions listed in :data:`TIMED` for that process with a timer, and at exit the
 process writes its timers and CPU time to ``<dir>/<process>-<pid>.json``. Off, nothing is wrapped: the code that
-runs is the code as written, at no cost. A composed stack's services (:mod:`services.composed`) share the bench's
+runs is the code as written, at no cost. A composed stack's services (:mod:`services.stack.composed`) share the bench's
 process: :func:`install_composed` times all of theirs there, :func:`profile_now` reads the profile, and
 :func:`uninstall` puts the functions back.
 
@@ -138,7 +138,7 @@ def _resolve(name: str) -> tuple[object, str, Callable]:
     return owner, attribute, getattr(owner, attribute)
 
 
-#: the services of a composed stack (:mod:`services.composed`), all timed in the one process they share
+#: the services of a composed stack (:mod:`services.stack.composed`), all timed in the one process they share
 COMPOSED = ("robot_sim", *PIPELINE_SERVICES)
 
 #: what is wrapped now: (owner, attribute, the function as it was), to put back (:func:`uninstall`)

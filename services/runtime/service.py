@@ -20,7 +20,7 @@ import signal
 import threading
 import time
 from dataclasses import dataclass
-from typing import Callable, TypeVar
+from typing import Callable, Optional, TypeVar
 
 import msgspec
 import zenoh
@@ -32,6 +32,7 @@ from services.runtime.clock import SimulatedClock, WallClock, make_clock
 from services.runtime.config import ConfigStruct
 from services.runtime.logs import RateLimitedLogger
 from services.runtime.metrics import Counters, Rates
+from services.runtime.ports import EVERY_SERVICE, Ports, UndeclaredPort
 from services.runtime.threads import start_thread, wait_until_set
 from services.runtime.faults import FaultInjector
 from services.runtime import iteration_profile
@@ -146,6 +147,9 @@ def query_argument(query: zenoh.Query, function: str, message_type: type[M] | No
 class Service:
     #: service name: key chunk for liveliness/health, and the name in trace hops
     name = "service"
+    #: what the service consumes, produces and answers (services.runtime.ports); the service can use no other key
+    #: (beyond what every service does: EVERY_SERVICE). None: not declared (a test's ad-hoc service)
+    PORTS: Optional[Ports] = None
     #: in lockstep, take simulated time from the simulator's clock messages (the simulator itself does not)
     follows_sim_clock = True
     #: in lockstep, every input the service acts on is stamped by the simulator (``subscribe(sim_stamped=True)``),
@@ -198,7 +202,7 @@ class Service:
     # ------------------------------------------------------------------ lifecycle
     def start(self, session: zenoh.Session | None = None) -> "Service":
         """``session``: a zenoh session to declare on instead of opening one from the config's ``zenoh`` (the
-        services of a composed lockstep stack share one, :mod:`services.composed`); it stays open when the service
+        services of a composed lockstep stack share one, :mod:`services.stack.composed`); it stays open when the service
         stops (whoever opened it closes it)."""
         with self._lifecycle_lock:
             if self.state != "created":
@@ -301,6 +305,7 @@ class Service:
         simulated clock then takes such a message as proof that the simulation reached its stamp: zenoh orders
         nothing between keys, so the clock tick may arrive just after the frame it announced."""
         assert self.session is not None, "subscribe() belongs in on_start()"
+        self._check_port("consumes", key, message_type)
         follows = sim_stamped and isinstance(self.clock, SimulatedClock) and self.follows_sim_clock
 
         literal = not any(c in key for c in "*$")
@@ -333,6 +338,7 @@ class Service:
 
     def publisher(self, key: str, stream: str, **options) -> TypedPublisher:
         assert self.session is not None, "publisher() belongs in on_start()"
+        self._check_port("produces", key)
         options = {**publisher_options(key, lockstep=self.clock.mode is ClockMode.LOCKSTEP), **options}
         typed = TypedPublisher(self.session.declare_publisher(key, **options), self.rates, key, stream, self._faults)
         self._declared.append(typed)
@@ -340,8 +346,17 @@ class Service:
 
     def queryable(self, key: str, handler: Callable[[zenoh.Query], None]) -> None:
         assert self.session is not None, "queryable() belongs in on_start()"
+        self._check_port("answers", key)
         self._declared.append(self.session.declare_queryable(key, handler))
         self.queryables.append(key)
+
+    def _check_port(self, kind: str, key: str, message_type: Optional[type] = None) -> None:
+        if self.PORTS is None:
+            return
+        try:
+            (self.PORTS | EVERY_SERVICE).find(kind, self.keys, key, message_type)
+        except UndeclaredPort as exc:
+            raise UndeclaredPort(f"{self.name} ({type(self).__name__}): {exc}") from None
 
     def refuse(self, stream: str, reason: str) -> None:
         """Count and log (rate-limited) an input that was dropped."""

@@ -28,7 +28,7 @@ import msgspec
 import zenoh
 
 from protocol.conventions import ClockMode
-from protocol.messages import EStop, JointVelocity, RobotState, SafetyStatus, Twist
+from protocol.messages import EStop, JointVelocity, RobotCommand, RobotState, SafetyStatus, Twist
 from protocol.keys import PIPELINE_SERVICES, last_chunk
 from services.runtime.pacing import request_realtime
 from services.model.arm import check_arm_name
@@ -36,6 +36,7 @@ from services.runtime.service import Service, ServiceConfig
 from services.runtime.threads import start_thread
 from services.safety.checks import SafetyLimits
 from services.safety.core import Action, Count, HeldCommand, Refused, SafetyCore, Send
+from services.runtime.ports import Port, Ports
 
 
 class SafetyConfig(ServiceConfig):
@@ -61,6 +62,9 @@ class SafetyConfig(ServiceConfig):
 
 class SafetyService(Service):
     name = "safety"
+    PORTS = Ports(consumes=(Port("robot_state", RobotState), Port("desired_twist", Twist),
+                            Port("desired_joint_velocity", JointVelocity), Port("estop", EStop)),
+                  produces=(Port("robot_command", RobotCommand), Port("safety_status", SafetyStatus)))
     follows_sim_clock = False  # it answers the robot's ticks itself and sets its clock from them
 
     def __init__(self, config: SafetyConfig | None = None, **kw) -> None:

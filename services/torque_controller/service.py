@@ -36,6 +36,7 @@ from services.robot.torque_setup import table_5_1
 from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread
 from services.torque_controller.core import TorqueRun
+from services.runtime.ports import Port, Ports
 
 #: the robot's counters are read this long before the run ends, while commands still flow: after its last command
 #: the robot counts a watchdog cycle every 2 ms until it releases torque control (250 ms), which is the end of the
@@ -94,6 +95,8 @@ class TorqueControllerConfig(ServiceConfig):
 
 class TorqueControllerService(Service):
     name = "torque_controller"
+    PORTS = Ports(consumes=(Port("robot_state", RobotState), Port("lowlevel_state", LowLevelState)),
+                  produces=(Port("lowlevel_command", TorqueCommand),))
     follows_sim_clock = False
 
     def __init__(self, config: TorqueControllerConfig, **kw) -> None:

@@ -44,6 +44,7 @@ from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import start_thread
 from services.vision import features as F
 from services.vision.core import VisionCore
+from services.runtime.ports import Port, Ports
 
 #: lockstep: how long the first frame without camera info waits for it (the robot's own wait for a frame's answer)
 CAMERA_INFO_WAIT_S = 2.0
@@ -118,6 +119,10 @@ class VisionConfig(ServiceConfig):
 
 class VisionService(Service):
     name = "vision"
+    PORTS = Ports(consumes=(Port("camera_image", Image), Port("camera_info", CameraInfo),
+                            Port("vision_goal", VisionGoal)),
+                  produces=(Port("features", Features),),
+                  answers=(Port("vision_api"),))
     clock_from_inputs = True  # the images
 
     def __init__(self, config: VisionConfig | None = None, **kw) -> None:

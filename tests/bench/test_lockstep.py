@@ -13,7 +13,7 @@ import pytest
 from bench.cpu import process_tree
 from bench.lockstep import (BASE_PREFIX, REPO, ROWS, SCENARIOS, _RunChildren, compare, composed_run, profile_run,
                             prune_bases)
-from services.servo import load_scenario
+from services.servo.scenario import load_scenario
 from services.vision.core import VisionCore
 
 

@@ -7,7 +7,7 @@ import yaml
 
 from bench.soak import (ACROSS_HOSTS_KINDS, HOSTS, KIND_WEIGHTS, REST_S, AcrossHosts, Judge, OneHost, StateRecord,
                         Window, applicable_kinds, check_kinds, goal_features, hosts_profile)
-from services.launcher import Profile, profile_arm
+from services.stack.launcher import Profile, profile_arm
 from services.runtime.authority import write_deployment
 from services.runtime.config import load_config
 from services.tools import netns

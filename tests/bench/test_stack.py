@@ -9,8 +9,8 @@ import pytest
 
 from bench.stack import detail_fields, measured_arm, profile_on_arm
 from bench.swap import SCENARIOS, shipped_for
-from services.cli import BENCHMARKS
-from services.launcher import profile_arm
+from services.cli.commands import BENCHMARKS
+from services.stack.launcher import profile_arm
 from services.paths import REPO
 
 #: the benchmarks whose figures do not depend on the arm: vision times detection on rendered frames of the tag

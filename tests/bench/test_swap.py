@@ -1,10 +1,11 @@
-"""bench swap: nudged starts, the approach and realtime against lockstep (its random starts: tests/services/test_starts.py)."""
+"""bench swap: nudged starts, the approach and realtime against lockstep (its random starts:
+tests/services/experiments/test_starts.py)."""
 import msgspec
 import numpy as np
 
 from bench.swap import NUDGE_M, SCENARIOS, first_below, nudge_offsets, nudged, realtime_against_lockstep, summarize
 from services.model.frames import PoseConfig
-from services.servo import load_scenario
+from services.servo.scenario import load_scenario
 
 
 def test_nudged_starts_move_the_tag_a_little_along_each_axis_the_same_way_every_time():

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.launcher import KNOWN_SERVICES
+from services.stack.launcher import KNOWN_SERVICES
 from services.paths import DEPLOY, REPO
 
 UNITS = DEPLOY / "systemd"

@@ -6,7 +6,7 @@ import numpy as np
 
 from services.camera.calibration import read_camera_in_ee, read_intrinsics
 from services.calibration.simulate import CAMERA
-from tests.services.test_cli import run
+from tests.services.cli.test_commands import run
 
 
 def test_intrinsics_simulate_writes_a_calibration_the_camera_service_reads(tmp_path):

@@ -20,7 +20,7 @@ from services.model.arm import load_arm
 from services.runtime.service import query_health
 from services.runtime.transport import Router, free_loopback_port, open_session
 from services.safety.service import SafetyConfig, SafetyService
-from services.stack import ConsoleProcess
+from services.stack.local import ConsoleProcess
 from tests.stack import KEYS, wait_for
 
 TOKEN = "a token for tests"

@@ -19,7 +19,7 @@ from protocol import messages as m
 from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics
 from services.robot.dsp import DSPConfig
-from services.stack import ConsoleProcess
+from services.stack.local import ConsoleProcess
 from services.tools import netns
 from services.tools.netns import REPO
 from tests.deploy.profiles.test_multi_host import HOSTS, _stack_across
@@ -134,7 +134,7 @@ def tls_stack_on_the_arm_pc(tmp_path, monkeypatch):
     import msgspec
     import yaml
 
-    from services.launcher import behind_authority, load_profile
+    from services.stack.launcher import behind_authority, load_profile
     from services.runtime.authority import write_deployment
 
     with netns.Lab(["arm-pc", "tablet"]) as lab:

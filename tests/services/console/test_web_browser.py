@@ -18,7 +18,7 @@ from services.model.kinematics import ArmKinematics
 from services.robot.dsp import DSPConfig
 from services.robot_sim.service import RobotSimConfig
 from services.runtime.transport import open_session
-from services.stack import ConsoleProcess, LocalStack, StackConfig
+from services.stack.local import ConsoleProcess, LocalStack, StackConfig
 from tests.services.safety.test_service_processes import ESTOP_DELIVERY_BUDGET_S, ee_speed, rest_bound, time_to_rest
 from tests.stack import KEYS, Recorder, wait_for
 

@@ -1,4 +1,4 @@
-"""Seed 000 IBVS formulas and laws against independent computations."""
+"""Sensors 2022 IBVS formulas and laws against independent computations."""
 import math
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Seed 002's sliding-mode law: the level-1 equality, abort, gradient error injection, and the chattering band."""
+"""Muñoz 2018's sliding-mode law: the level-1 equality, abort, gradient error injection, and the chattering band."""
 import math
 
 import numpy as np
@@ -10,7 +10,8 @@ from services.controller.law import ConstraintAbort, ServoInput
 from services.controller.laws import make_law
 from services.controller.smc import GRADIENT_ERROR_SIGNS
 from services.robot_sim.scene import CameraConfig
-from services.servo import load_scenario, run
+from services.servo.run import run
+from services.servo.scenario import load_scenario
 from services.model.kinematics import ArmKinematics
 from tests.helpers import REPO
 from services.model.arm import load_arm

@@ -1,4 +1,4 @@
-"""Seed 003's chapter-5 controllers (services/controller/torque_controllers.py) without a robot: their starts,
+"""The JACO thesis's chapter-5 controllers (services/controller/torque_controllers.py) without a robot: their starts,
 references and gains, and what they refuse."""
 import math
 

@@ -1,10 +1,10 @@
-"""Seed 003's computed-torque control over the RS-485 link, in torque mode, against robot_sim's actuators."""
+"""The JACO thesis's computed-torque control over the RS-485 link, in torque mode, against robot_sim's actuators."""
 import numpy as np
 
 from services.controller.torque_controllers import make_controller
 from services.robot.hardware import CYCLE_S
 from services.robot_gateway.link import expected_torques_physical
-from services.stack import simulated_link
+from services.stack.local import simulated_link
 from services.model.arm import load_arm
 from tests.helpers import computed_torque_options_for_the_emulated_arm, emulated_arm_gravity
 
@@ -12,8 +12,8 @@ ARM = load_arm("j2s7s300")
 
 
 def test_computed_torque_tracks_the_cubic_within_one_degree_over_the_bus():
-    """Seed 003's computed torque, in this process, over the emulated RS-485 bus, the arm in lockstep with it: one
-    2 ms cycle of the arm per torque batch, the law's time the arm's, so that the verdict is the law's and the
+    """The JACO thesis's computed torque, in this process, over the emulated RS-485 bus, the arm in lockstep with it:
+    one 2 ms cycle of the arm per torque batch, the law's time the arm's, so that the verdict is the law's and the
     link's and not the host's (realtime over the robot's zenoh API is test_lowlevel.py's). The actuators add no
     gravity of their own over RS-485 (the base's DSP is bypassed): the host's torque is all the joints get. The law
     here knows the emulated arm's gravity exactly (its ĝ plus what the description misses of the heavier hand), so

@@ -1,4 +1,4 @@
-"""Seed 003's torque laws and references (services/controller/torque_laws.py) against hand computations, and the
+"""The JACO thesis's torque laws and references (services/controller/torque_laws.py) against hand computations, and the
 model the controllers use against MuJoCo's arm."""
 import math
 

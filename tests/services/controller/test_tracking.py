@@ -1,4 +1,4 @@
-"""Seed 004's manipulability-aware tracking law against its formulas and independent computations."""
+"""Nelson 1995's manipulability-aware tracking law against its formulas and independent computations."""
 import math
 
 import numpy as np

@@ -123,7 +123,7 @@ def test_j2s7s300_limits_speeds_and_joint_1_as_kinova_md_gives_them():
 
 # ------------------------------------------------------------------------------------------------ the 6-DoF arm
 def seed003_forward_kinematics(q_robot_deg) -> np.ndarray:
-    """Seed 003's model written out here from its tables, independently of the description file: Table 3.1's
+    """The JACO thesis's model written out here from its tables, independently of the description file: Table 3.1's
     lengths, Table 3.2's auxiliary variables (aa = π/6), Table 3.3's DH rows as classic DH (eq. 3.4:
     Rz(θ)·Tz(d)·Tx(a)·Rx(α)), Table 3.4's angle transformation, no base transform."""
     D1, D2, e2, D3, D4, D5, D6 = 0.2755, 0.41, 0.0098, 0.2073, 0.0741, 0.0741, 0.16

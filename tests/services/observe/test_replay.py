@@ -12,7 +12,8 @@ from services.controller.service import ControllerService
 from services.controller.task_client import start_task
 from services.observe.replay import read_recording, recording_summary, replay
 from services.runtime.transport import Router, open_session
-from services.servo import load_scenario, run, stack_config
+from services.servo.run import run
+from services.servo.scenario import load_scenario, stack_config
 from services.vision.service import VisionService
 from tests.helpers import REPO
 from tests.services.observe.mcap_files import read_mcap

@@ -5,7 +5,7 @@ import pytest
 
 from protocol import messages as m
 from protocol.keys import Keys
-from services.check import request_check
+from services.commissioning.check import request_check
 from services.controller.service import ControllerConfig, ControllerService
 from services.robot.arm_check import ArmCheckConfig
 from services.robot_sim.firmware import ActuatorConfig

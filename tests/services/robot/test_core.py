@@ -12,7 +12,7 @@ from services.robot.core import RobotCore
 from services.robot.hardware import CYCLES_PER_DSP, BusTiming, HardwareError, JointReading
 from services.robot.rs485_bus import BusConfig
 from services.robot_gateway.link import LinkHardware
-from services.stack import simulated_link
+from services.stack.local import simulated_link
 from services.model.kinematics import ArmKinematics
 from tests.helpers import ARM
 

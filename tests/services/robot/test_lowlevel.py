@@ -14,7 +14,7 @@ from services.robot.torque_setup import TorqueSetup, table_5_1
 from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
-from services.stack import RobotProcesses
+from services.stack.local import RobotProcesses
 from services.model.arm import load_arm
 from tests.stack import KEYS, Recorder, next_seq, wait_for
 from tests.helpers import ARM, computed_torque_options_for_the_emulated_arm
@@ -333,8 +333,8 @@ def test_low_level_torque_api_with_its_watchdog(robot):
 
 
 def test_computed_torque_over_the_low_level_zenoh_api(robot, router):
-    """Seed 003's computed torque (eq. 4.16-4.18 with feed-forward) as the torque controller service, a zenoh client
-    of the low-level API, tracks the eq. 5.1 cubic within 3°: the wrist joints' torque-mode friction (0.17 N·m)
+    """The JACO thesis's computed torque (eq. 4.16-4.18 with feed-forward) as the torque controller service, a zenoh
+    client of the low-level API, tracks the eq. 5.1 cubic within 3°: the wrist joints' torque-mode friction (0.17 N·m)
     against their stiffness, each torque a zenoh round trip late (over the bus, in-process, the same law keeps within
     1°: test_torque_controllers_bus.py). Before its first torque it makes the thesis's Table 5.1 setup through the
     Kinova API (the arm then adds no gravity, damps nothing, never stops for speed), which the robot's health shows

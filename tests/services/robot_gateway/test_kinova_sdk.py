@@ -352,7 +352,7 @@ def test_the_commissioning_check_runs_through_the_sdk_against_kinovas_own_report
     """Behind the SDK the arm's own Cartesian report is Kinova's DSP's: it goes out in the state, and the check
     moves the joint through the SDK and compares with it. The stand-in reports a pose that neither matches the
     description nor follows the joints: the check fails and says why."""
-    from services.check import request_check
+    from services.commissioning.check import request_check
 
     client, service = gateway
     states = Recorder(client, KEYS.robot_state, m.RobotState)

@@ -18,7 +18,7 @@ import pytest
 from protocol import messages as m
 from services.model.arm import load_arm
 from services.robot_gateway.kinova_usb import packets_for, read_capacity
-from services.stack import RouterProcess
+from services.stack.local import RouterProcess
 from services.runtime.transport import open_session
 from tests.helpers import REPO
 from tests.services.robot_gateway.test_kinova_usb_wire import _comm_layer, fake_libusb  # noqa: F401 (a fixture)
@@ -216,8 +216,10 @@ def test_a_servo_task_through_kinovas_comm_layer_is_the_same_run_as_the_simulate
     through Kinova's real comm layer (every 0x14 batch and its replies through OpenRS485_Write/Read and the stand-in
     libusb), counting the arm's cycles where USB carries no stamps; the run converges and its per-iteration log is
     the sim profile's to the last bit (frames, features, commands, joint angles), as the hub's is
-    (tests/services/test_servo.py)."""
-    from services.servo import load_scenario, read_log, run
+    (tests/services/servo/test_run.py)."""
+    from services.servo.run import run
+    from services.servo.result import read_log
+    from services.servo.scenario import load_scenario
 
     monkeypatch.setenv("MFVS_KINOVA_SDK", str(kinova_or_stand_in.parent))
     easy = REPO / "examples" / "scenarios" / "easy.yaml"

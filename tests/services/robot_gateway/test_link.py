@@ -7,7 +7,7 @@ import pytest
 from protocol import rs485 as r
 from services.robot.hardware import JointTargets
 from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
-from services.stack import simulated_link
+from services.stack.local import simulated_link
 from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics
 from services.controller.torque_laws import DynamicsModel

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from services.stack import RouterProcess
+from services.stack.local import RouterProcess
 from tests.helpers import REPO
 from tests.services.robot_gateway.test_kinova_usb import (DISAGREEING_BASE, _command_ids, kinova_or_stand_in,  # noqa: F401
                                                           stand_in, usb_dir, usb_env)

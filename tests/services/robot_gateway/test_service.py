@@ -17,7 +17,7 @@ from services.runtime.service import StartupError
 from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig, robot_gateway_service
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
-from services.stack import RobotProcesses, RouterProcess
+from services.stack.local import RobotProcesses, RouterProcess
 from bench.hogs import cpu_hogs
 from tests.helpers import REPO
 from tests.stack import KEYS, Recorder, wait_for
@@ -193,7 +193,8 @@ def test_servo_runs_through_the_gateway_profile():
     as many iterations as through robot_sim (131 in lockstep, 129-133 in realtime, 134-136 through the gateway:
     `mfvs bench swap --scenario examples/scenarios/table2_qvga.yaml`). The QVGA variant leaves the robot's 500 Hz
     loops enough of this machine's two cores (see the scenario file)."""
-    from services.servo import load_scenario, run
+    from services.servo.run import run
+    from services.servo.scenario import load_scenario
 
     scenario = load_scenario(REPO / "examples" / "scenarios" / "table2_qvga.yaml")
     result = run(scenario, profile="gateway")

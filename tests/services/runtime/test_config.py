@@ -2,7 +2,7 @@
 import pytest
 
 from services.runtime.config import ConfigError, config_from_text
-from services.servo import Scenario
+from services.servo.scenario import Scenario
 
 
 def test_a_mistyped_key_gets_the_closest_known_one_at_its_place():

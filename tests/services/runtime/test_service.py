@@ -389,7 +389,7 @@ class PacedService(Service):
 def test_a_loop_below_its_rate_or_overrunning_is_degraded_in_status(router, hz, slow):
     """`mfvs status` says degraded, with the reasons, for a loop under 95 % of its nominal rate (once a rate window
     has passed) or with overruns in the last health period; healthy only when neither."""
-    from services.launcher import status_json
+    from services.stack.launcher import status_json
     service = PacedService(ServiceConfig(zenoh=router.client_config(), health_period_s=0.2), hz=hz).start()
     try:
         def condition():

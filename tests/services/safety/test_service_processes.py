@@ -170,7 +170,7 @@ def test_a_service_killed_or_stopped_mid_motion_stops_the_arm_and_the_stack_reco
     no motion without an operator's new start); for the others the running task goes on by itself."""
     import json
 
-    from services.launcher import down, restart, sim_profile, stack_task, status_json, up
+    from services.stack.launcher import down, restart, sim_profile, stack_task, status_json, up
     from services.runtime.service import alive_services
     from services.runtime.transport import ZenohConfig, free_loopback_port
 
@@ -233,7 +233,7 @@ def test_the_stack_comes_up_idle_moves_for_a_task_and_rests_when_it_stops(tmp_pa
     view; the task moves the arm; stopping it brings the arm to rest within the pipeline's way for the next frame
     (the controller answers it with zero) and the DSP's normal stop."""
     from services.runtime.transport import ZenohConfig, free_loopback_port
-    from services.launcher import down, sim_profile, stack_task, up
+    from services.stack.launcher import down, sim_profile, stack_task, up
 
     monkeypatch.setenv("MFVS_RUN_DIR", str(tmp_path))
     port = free_loopback_port()
@@ -274,7 +274,7 @@ def test_the_router_killed_mid_motion_and_restarted_the_arm_rests_and_every_serv
     again show the arm at rest, and the running task moves it again."""
     import json
 
-    from services.launcher import down, restart, sim_profile, stack_task, status_json, up
+    from services.stack.launcher import down, restart, sim_profile, stack_task, status_json, up
     from services.runtime.service import alive_services
     from services.runtime.transport import ZenohConfig, free_loopback_port
 

@@ -10,7 +10,7 @@ import pytest
 from protocol import rs485 as r
 from services.tools.can_hub import HEADER, CanHub, parse_channel
 from services.robot.rs485_bus import BusConfig
-from services.stack import simulated_link
+from services.stack.local import simulated_link
 from tests.stack import wait_for
 from tests.helpers import ARM
 

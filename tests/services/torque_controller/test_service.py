@@ -1,6 +1,6 @@
 """The torque controller as a service (services/torque_controller/service.py): what it refuses. Its runs against a
 real robot are in tests/services/robot/test_lowlevel.py (computed torque, both robot profiles) and
-tests/services/test_torque_experiment.py (the JACO thesis's five controllers, each a process)."""
+tests/services/experiments/test_torque_control.py (the JACO thesis's five controllers, each a process)."""
 import math
 import time
 
