@@ -47,18 +47,14 @@ import zenoh
 from protocol import kinova
 from protocol.conventions import ClockMode
 from protocol.messages import (
-    ActuatorMode,
     ArmCheckReply,
     ArmCheckRequest,
     ArmCheckState,
     CommandMode,
     Header,
-    KinovaPose,
     LoopTiming,
-    LowLevelState,
     ProtocolError,
     RobotCommand,
-    RobotState,
     TorqueCommand,
     encode,
     missing_fields,
@@ -79,6 +75,7 @@ from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
 from services.robot.admission import AdmissionConfig, CommandAdmission
 from services.robot.core import RobotCore
+from services.robot.state_message import RecentRefusal, lowlevel_state, robot_state
 from services.robot.hardware import (CYCLE_S, DEFAULT_TIMING, DSP_CYCLE_NS, EXTRAPOLATED_CYCLES,
                                      HardwareError, JointReading, RobotHardware)
 from services.runtime.pacing import CyclePacer, request_realtime
@@ -169,10 +166,6 @@ class RobotNodeConfig(ServiceConfig):
                              f"at the next bus exchange, {CYCLE_S * 1e3:.0f} ms after its tick")
         if not 0 <= self.realtime_priority <= 99:
             raise ValueError("realtime_priority must be within 0..99 (SCHED_FIFO)")
-
-
-def _kinova_pose(T: np.ndarray) -> KinovaPose:
-    return KinovaPose(**frames.kinova_pose(T[:3, :3], T[:3, 3]))
 
 
 class _CoreView:
@@ -280,8 +273,8 @@ class RobotNode(Service):
         self.api_calls = ApiCallQueue(API_TIMEOUT_S, on_timeout=lambda call: self.counters.inc("api.timeouts"))
         self._api_timeouts_thread: Optional[threading.Thread] = None
         self._applied: Optional[Header] = None
-        self._last_refusal = ""
-        self._refusal_cycles = 0
+        #: a refused command, named in the states' faults for a while
+        self._recent_refusal = RecentRefusal()
         self._exchanges = 0
         #: arm-timeline DSP ticks: the grid period (stamp // DSP cycle) and the exchange of the last tick
         self._last_dsp_period: Optional[int] = None
@@ -865,7 +858,7 @@ class RobotNode(Service):
         """A robot command not applied: counted by kind, logged, and named in the states' faults for a while."""
         self.counters.inc(f"refused.{rejection.kind}")
         self.refuse("command", rejection.reason)
-        self._last_refusal, self._refusal_cycles = rejection.reason, 100
+        self._recent_refusal.note(rejection.reason)
 
     # ------------------------------------------------------------------ lockstep
     def _answered(self, tick_ns: int, frame_stamp: Optional[int]) -> bool:
@@ -907,33 +900,15 @@ class RobotNode(Service):
 
     # ------------------------------------------------------------------ outputs
     def publish_state(self, stamp_ns: int, reading: JointReading) -> None:
-        dsp = self.core.dsp
-        R, p = self.kin.pose(reading.q)
-        status = dsp.status
-        faults = list(status.active_limits) + self._bus_faults + reading.faults()
-        if self._refusal_cycles > 0:
-            faults.append(f"refused: {self._last_refusal}"[:120])
-            self._refusal_cycles -= 1
-        self.state_pub.put(RobotState(
-            header=self.header("state", stamp_ns=stamp_ns), arm=self.arm.name, arm_digest=self.arm.digest,
-            q=reading.q.tolist(), dq=reading.dq.tolist(),
-            tau=reading.tau.tolist(),
-            pose=KinovaPose(**frames.kinova_pose(R, p)),
-            control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],
-            watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
-            applied_command=self._applied, timing=self.timing(), limits=dsp.motion_limits(),
-            arm_pose=_kinova_pose(reading.arm_pose) if reading.arm_pose is not None else None,
-            arm_check=self.arm_check_state,
-        ))
+        self.state_pub.put(robot_state(
+            self.header("state", stamp_ns=stamp_ns), self.arm, reading, self.kin, self.core.dsp,
+            link_faults=self._bus_faults, refused=self._recent_refusal.for_next_state(), applied=self._applied,
+            timing=self.timing(), arm_check=self.arm_check_state))
 
     def _publish_lowlevel(self) -> None:
         reading = self.core.reading
-        self.lowlevel_pub.put(LowLevelState(
-            header=self.header("lowlevel_state", stamp_ns=reading.stamp_ns or None),
-            mode=ActuatorMode.TORQUE if self.core.torque_mode else ActuatorMode.POSITION,
-            q=reading.q.tolist(), dq=reading.dq.tolist(), tau=reading.tau.tolist(),
-            current_a=reading.current_a.tolist(), temperature_c=reading.temperature_c.tolist(),
-            faults=(self._bus_faults + reading.faults())[:32], cycle_ns=self.bus_timing.period_ns))
+        self.lowlevel_pub.put(lowlevel_state(self.header("lowlevel_state", stamp_ns=reading.stamp_ns or None), reading,
+                                             self.core.torque_mode, self._bus_faults, self.bus_timing.period_ns))
 
     def _lowlevel_step(self) -> None:
         """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""
