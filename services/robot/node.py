@@ -70,6 +70,7 @@ from services.model.kinematics import ArmKinematics
 from services.robot.kinova_api import KinovaApi
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
 from services.robot.torque_setup import TorqueSetup
+from services.runtime.async_cycle import AsyncCycle
 from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
@@ -287,15 +288,13 @@ class RobotNode(Service):
         self._answerers: set[str] = set()
         #: serialises the core between the bus loop and the DSP worker (realtime)
         self._core_lock = threading.Lock()
-        #: the tick handed to the DSP worker: its stamp, its reading, until when (monotonic) the DSP may wait for
-        #: a fresh command, and the exchanges done by then (a plan taken after another exchange is late)
-        self._dsp_pending: Optional[tuple[int, JointReading, float, int]] = None
+        #: realtime: the DSP cycle's own thread, handed each tick (a tick it has not taken when the next comes is
+        #: skipped: dsp.overruns)
+        self.dsp_worker: Optional[AsyncCycle] = None
         #: the source stamp of the newest frame a command the DSP took was derived from
         self._last_source_ns = 0
         #: when the bus loop's current exchange was due (monotonic): the next is a cycle later
         self._slot_start = time.monotonic()
-        self._dsp_cond = threading.Condition()
-        self._dsp_thread: Optional[threading.Thread] = None
         self._late = RateMeter()
         self._missed = RateMeter()
         self._cycles = RateMeter()
@@ -377,12 +376,10 @@ class RobotNode(Service):
                                                     message="the robot stopped before the check ended"))
         with self.command_cond:
             self.command_cond.notify_all()
-        with self._dsp_cond:
-            self._dsp_cond.notify_all()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
-        if self._dsp_thread is not None:
-            self._dsp_thread.join(timeout=5.0)
+        if self.dsp_worker is not None:
+            self.dsp_worker.stop()
         self.api_calls.close(f"{self.name} is stopping")
         if self._api_timeouts_thread is not None:
             self._api_timeouts_thread.join(timeout=5.0)
@@ -681,7 +678,7 @@ class RobotNode(Service):
         self.declare_loop("bus_cycle", 1.0 / self.cycle_s, self.OVERRUNS)
         if self.cycle_s < self.config.dsp.cycle_s:
             self.declare_loop("cycle", 1.0 / self.config.dsp.cycle_s)
-        self._dsp_thread = start_thread(self._dsp_worker, f"{self.name}-dsp")
+        self.dsp_worker = AsyncCycle(f"{self.name}-dsp", on_overrun=lambda: self.counters.inc("dsp.overruns"))
         if request_realtime(self.config.realtime_priority, f"{self.name} bus loop"):
             self.counters.inc("realtime_priority.granted")
         self.on_loop_start()
@@ -756,33 +753,24 @@ class RobotNode(Service):
 
     # ------------------------------------------------------------------ the DSP worker (realtime)
     def _hand_to_dsp(self, tick_ns: int, reading: JointReading) -> None:
-        with self._dsp_cond:
-            if self._dsp_pending is not None:
-                self.counters.inc("dsp.overruns")  # the worker has not taken the last tick yet: this one is late
-            wait_until = min(time.monotonic() + self.config.command_window_s,
-                             self._slot_start + self.cycle_s - PLAN_MARGIN_S)
-            self._dsp_pending = (tick_ns, reading, wait_until, self._exchanges)
-            self._dsp_cond.notify()
+        wait_until = min(time.monotonic() + self.config.command_window_s,
+                         self._slot_start + self.cycle_s - PLAN_MARGIN_S)
+        exchanges = self._exchanges
+        self.dsp_worker.submit(lambda: self._dsp_on_worker(tick_ns, reading, wait_until, exchanges))
 
-    def _dsp_worker(self) -> None:
-        while not self.done():
-            with self._dsp_cond:
-                while self._dsp_pending is None and not self.done():
-                    self._dsp_cond.wait(0.5)
-                pending, self._dsp_pending = self._dsp_pending, None
-            if pending is None:
-                continue
-            tick_ns, reading, wait_until, exchanges = pending
-            try:
-                start = time.monotonic()
-                waited_s = self.dsp_tick(tick_ns, reading, wait_until)  # a window of 0 ends as it begins
-                self.dsp_time.add(time.monotonic() - start - waited_s)
-                if self._exchanges > exchanges:
-                    self.counters.inc("dsp.late_plans")  # the next exchange went out on the last cycle's plan
-            except Exception:
-                self.counters.inc("errors.dsp")
-                self.limited_log.error("dsp", "%s: DSP cycle failed", self.name)
-                self.log.debug("DSP cycle failure", exc_info=True)
+    def _dsp_on_worker(self, tick_ns: int, reading: JointReading, wait_until: float, exchanges: int) -> None:
+        """The DSP cycle of a tick on the worker: ``exchanges``, the bus exchanges done when it was handed over (a
+        plan taken after another exchange is late)."""
+        try:
+            start = time.monotonic()
+            waited_s = self.dsp_tick(tick_ns, reading, wait_until)  # a window of 0 ends as it begins
+            self.dsp_time.add(time.monotonic() - start - waited_s)
+            if self._exchanges > exchanges:
+                self.counters.inc("dsp.late_plans")  # the next exchange went out on the last cycle's plan
+        except Exception:
+            self.counters.inc("errors.dsp")
+            self.limited_log.error("dsp", "%s: DSP cycle failed", self.name)
+            self.log.debug("DSP cycle failure", exc_info=True)
 
     def _count_gap(self, stamp_ns: int) -> None:
         """Cycles the arm ran between two of our exchanges (from the readings' stamps on its timeline) beyond the
