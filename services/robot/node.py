@@ -63,7 +63,6 @@ from protocol.keys import last_chunk
 from services.model import frames
 from services.robot import arm_check
 from services.robot.api_calls import ApiCallQueue
-from services.runtime.config import ConfigStruct
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.robot.dsp import DSPConfig, KinovaDSP, for_arm
 from services.model.kinematics import ArmKinematics
@@ -74,7 +73,9 @@ from services.runtime.async_cycle import AsyncCycle
 from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
-from services.robot.admission import AdmissionConfig, CommandAdmission
+from services.robot.admission import AdmissionConfig
+from services.robot.command_inbox import CommandInbox
+from services.robot.lockstep_gate import LockstepConfig, LockstepGate
 from services.robot.core import RobotCore
 from services.robot.state_message import RecentRefusal, lowlevel_state, robot_state
 from services.robot.hardware import (CYCLE_S, DEFAULT_TIMING, DSP_CYCLE_NS, EXTRAPOLATED_CYCLES,
@@ -96,42 +97,6 @@ API_TIMEOUT_S = 5.0
 PLAN_MARGIN_S = 0.0007
 #: the longest command window: a bus cycle less the plan's margin
 MAX_COMMAND_WINDOW_S = CYCLE_S - PLAN_MARGIN_S
-
-
-def fresh(command: RobotCommand, last_source_ns: int) -> bool:
-    """A command the DSP does not wait past: a stop or an emergency stop, or one derived from a newer frame than the
-    last one taken (``last_source_ns``) or from no frame at all (an operator's or an API's)."""
-    if command.mode in (CommandMode.STOP, CommandMode.EMERGENCY_STOP):
-        return True
-    source = command.header.source_stamp_ns
-    return not source or source > last_source_ns
-
-
-class LockstepConfig(ConfigStruct):
-    #: wall time to wait for the answer to a tick before running the DSP cycle without it
-    cycle_timeout_s: float = 0.5
-    #: wall time to wait for the pipeline's answer to a frame
-    frame_timeout_s: float = 2.0
-    #: publish the state (and the frame) again after this long without an answer
-    retry_s: float = 0.25
-    #: an arm behind a bus (robot_sim's actuator_bus mode) runs a cycle without its host's commands after this
-    #: long; longer than the robot node's own waits, so that a host that is waiting is never overtaken
-    bus_timeout_s: float = 5.0
-    #: the robot node's exchanges with an arm behind a bus wait this long for the replies
-    link_timeout_s: float = 5.0
-    #: the robot node waits for the pipeline's answers while one of these services is alive (liveliness)
-    answered_by: list[str] = msgspec.field(default_factory=lambda: ["safety"])
-    #: before its first cycle, wait this long at most for one of ``answered_by`` to be alive and the outputs they
-    #: answer to be subscribed (0: do not wait); a stack that started them before the robot sets it. Not there by
-    #: then: counted (lockstep.timeouts.answerers), the run is not repeatable
-    await_answerers_s: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not (self.retry_s > 0 and self.cycle_timeout_s > 0 and self.frame_timeout_s > 0):
-            raise ValueError("lockstep needs positive retry_s, cycle_timeout_s and frame_timeout_s")
-        if self.bus_timeout_s <= max(self.frame_timeout_s, self.cycle_timeout_s):
-            raise ValueError("lockstep.bus_timeout_s must exceed the node's own waits (frame_timeout_s, "
-                             "cycle_timeout_s): the host may wait that long")
 
 
 class RobotNodeConfig(ServiceConfig):
@@ -266,10 +231,11 @@ class RobotNode(Service):
         #: how long the DSP waited in its command window (realtime), apart from its own time above
         self.command_wait = DurationStats()
         self._thread: Optional[threading.Thread] = None
-        self._command: Optional[tuple[RobotCommand, int]] = None
-        self.command_cond = threading.Condition()
-        self.admission = CommandAdmission(config.admission)
-        self.torque_admission = CommandAdmission(config.admission)
+        #: the commands in, admitted, for the DSP and low-level control; its condition wakes the DSP's waits
+        self.inbox = CommandInbox(config.admission)
+        #: lockstep: each tick waits for the pipeline's answer while a service that answers is alive
+        self.gate = LockstepGate(config.lockstep, self.inbox, self.counters, self.log,
+                                 stopping=lambda: self.stop_requested)
         #: Kinova API calls from the robot/api/* queryable, run and answered by the worker (services.robot.api_calls)
         self.api_calls = ApiCallQueue(API_TIMEOUT_S, on_timeout=lambda call: self.counters.inc("api.timeouts"))
         self._api_timeouts_thread: Optional[threading.Thread] = None
@@ -284,15 +250,11 @@ class RobotNode(Service):
         self._last_stamp: Optional[int] = None
         self.consecutive_errors = 0
         self._bus_faults: list[str] = []
-        #: lockstep: the services that answer the robot's ticks, alive now
-        self._answerers: set[str] = set()
         #: serialises the core between the bus loop and the DSP worker (realtime)
         self._core_lock = threading.Lock()
         #: realtime: the DSP cycle's own thread, handed each tick (a tick it has not taken when the next comes is
         #: skipped: dsp.overruns)
         self.dsp_worker: Optional[AsyncCycle] = None
-        #: the source stamp of the newest frame a command the DSP took was derived from
-        self._last_source_ns = 0
         #: when the bus loop's current exchange was due (monotonic): the next is a cycle later
         self._slot_start = time.monotonic()
         self._late = RateMeter()
@@ -374,8 +336,7 @@ class RobotNode(Service):
             if pending is not None and not pending[1].done():
                 pending[1].set_result(ArmCheckReply(ok=False, state=self.arm_check_state,
                                                     message="the robot stopped before the check ended"))
-        with self.command_cond:
-            self.command_cond.notify_all()
+        self.inbox.wake()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
         if self.dsp_worker is not None:
@@ -425,27 +386,15 @@ class RobotNode(Service):
     def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
         if self._wrong_joint_count("command", command.joint_velocities):
             return
-        with self.command_cond:
-            rejection = self.admission.admit(command.header, recv_ns)
-            if rejection is not None:
-                self._refuse_command(rejection)
-                return
-            self._command = (command, recv_ns)
-            self.command_cond.notify_all()
+        rejection = self.inbox.offer(command, recv_ns)
+        if rejection is not None:
+            self._refuse_command(rejection)
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        name = last_chunk(sample.key_expr)
-        if sample.kind == zenoh.SampleKind.PUT:
-            with self.command_cond:
-                self.admission.new_session(name)  # a new session of a sender numbers its commands afresh
-                self.torque_admission.new_session(name)
-        if name in self.config.lockstep.answered_by:
-            with self.command_cond:
-                if sample.kind == zenoh.SampleKind.PUT:
-                    self._answerers.add(name)
-                else:
-                    self._answerers.discard(name)
-                self.command_cond.notify_all()
+        name, alive = last_chunk(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+        if alive:
+            self.inbox.new_session(name)  # a new session of a sender numbers its commands afresh
+        self.gate.liveliness(name, alive)
 
     def _on_torque(self, command: TorqueCommand, recv_ns: int) -> None:
         if self._wrong_joint_count("lowlevel_command", command.torques):
@@ -454,8 +403,7 @@ class RobotNode(Service):
         if unavailable:
             self.refuse("lowlevel_command", unavailable)
             return
-        with self.command_cond:
-            rejection = self.torque_admission.admit(command.header, recv_ns)
+        rejection = self.inbox.admit_torque(command.header, recv_ns)
         if rejection is not None:  # torques bypass safety: the same freshness and sequence as robot commands
             self.counters.inc(f"refused.lowlevel_{rejection.kind}")
             self.refuse("lowlevel_command", rejection.reason)
@@ -493,8 +441,7 @@ class RobotNode(Service):
             self._answer_api(query, kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
                                                     message=f"not run: {refusal}"))
             return
-        with self.command_cond:
-            self.command_cond.notify_all()  # a DSP waiting for a command runs the call now
+        self.inbox.wake()  # a DSP waiting for a command runs the call now
 
     def _answer_api(self, query: zenoh.Query, reply: kinova.ApiReply) -> None:
         try:
@@ -527,12 +474,12 @@ class RobotNode(Service):
             reason = "low-level torque control owns the arm"
         future: Future = Future()
         if not reason:
-            with self.command_cond:
+            with self.inbox.changed:
                 if self._check_request is not None or self._check_run is not None:
                     reason = "a check is already running"
                 else:
                     self._check_request = (request, future)
-                    self.command_cond.notify_all()
+                    self.inbox.changed.notify_all()
         if reason:
             self.refuse("arm_check", reason)
             query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.arm_check_state, message=reason)))
@@ -557,7 +504,7 @@ class RobotNode(Service):
         """At a DSP tick: start a requested check, or step the one running. Returns the command the DSP takes:
         the check's own while it runs (safety's held, an emergency stop ending the check), else ``taken``."""
         if self._check_request is not None and self._check_run is None:
-            with self.command_cond:
+            with self.inbox.changed:
                 (request, future), self._check_request = self._check_request, None
             plan = arm_check.ArmCheckPlan(joints=tuple(request.joints), step_deg=request.step_deg,
                                           speed_dps=request.speed_dps)
@@ -617,54 +564,17 @@ class RobotNode(Service):
                                             message=f"{call.function} failed: {exc}"[:512])
             self.api_calls.finish(call, reply)
 
-    def take_command(self, wait_until: Optional[float] = None) -> Optional[tuple[RobotCommand, int]]:
-        """The command waiting, if any; with ``wait_until`` (monotonic) first wait until then for a :func:`fresh`
-        one, should the one waiting (or none) not be."""
-        with self.command_cond:
-            while wait_until is not None and not (self._command is not None
-                                                  and fresh(self._command[0], self._last_source_ns)):
-                remaining = wait_until - time.monotonic()
-                if remaining <= 0.0 or self.done():
-                    break
-                self.command_cond.wait(remaining)
-            taken, self._command = self._command, None
-            if taken is not None:
-                self._last_source_ns = max(self._last_source_ns, taken[0].header.source_stamp_ns)
-        return taken
-
     def _run(self) -> None:
         run_loop(self._run_lockstep if self.lockstep else self._run_realtime, "robot loop", self.log, self.counters,
                  self.finished)
 
     def _run_lockstep(self) -> None:
         try:
-            self._await_answerers()
+            self.gate.await_answerers(self.lockstep_outputs_matched)
             while not self.done():
                 self.bus_cycle()
         finally:
             self.on_lockstep_end()
-
-    def _await_answerers(self) -> None:
-        """Before the first cycle, until an answerer is alive and the outputs it answers have their subscribers (at
-        most ``lockstep.await_answerers_s``). Both reach a session that just opened on zenoh's thread, some time
-        after it opens (a liveliness query then finds nobody either, measured): a loop that did not wait ran its
-        first ticks unanswered, or took no frame for nobody matched the camera's images, and a run differed from
-        the next on a busy host."""
-        patience = self.config.lockstep.await_answerers_s
-        if patience <= 0:
-            return
-        deadline = time.monotonic() + patience
-        with self.command_cond:
-            while not (self._answerers and self.lockstep_outputs_matched()) and not self.stop_requested:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    self.counters.inc("lockstep.timeouts.answerers")
-                    self.log.warning("lockstep: %s after %.1f s: the arm runs on", "its outputs unmatched"
-                                     if self._answerers else f"none of {', '.join(self.config.lockstep.answered_by)}"
-                                     " alive", patience)
-                    return
-                # the liveliness callback wakes this; a subscriber matched does not (polled), nor a stop
-                self.command_cond.wait(min(left, 0.1 if not self._answerers else 0.005))
 
     def lockstep_outputs_matched(self) -> bool:
         """Whether what the pipeline answers (robot_sim: its camera's images) has its subscribers."""
@@ -809,11 +719,11 @@ class RobotNode(Service):
         self.publish_state(tick_ns, reading)
         frame_stamp = self.frame_at_tick(tick_ns)
         waited_s = 0.0  # in the command window (realtime); lockstep waits for its answer instead
-        if self.lockstep and self._answerers:
+        if self.lockstep and self.gate.waits:
             taken = self._wait_for_answer(tick_ns, frame_stamp, reading)
         else:
             waiting = time.monotonic()
-            taken = self.take_command(wait_until)
+            taken = self.inbox.take(wait_until, self.done)
             waited_s = time.monotonic() - waiting
             if wait_until is not None:
                 self.command_wait.add(waited_s)
@@ -826,7 +736,7 @@ class RobotNode(Service):
                 self._check_run[0].abort("the bus is failing")
         applied_ns = self.clock.now_ns()
         if taken is not None:
-            stale = self.admission.stale(taken[0].header, applied_ns)
+            stale = self.inbox.admission.stale(taken[0].header, applied_ns)
             if stale is not None:  # fresh on arrival, aged past the bound waiting for its tick
                 self._refuse_command(stale)
                 taken = None
@@ -848,43 +758,14 @@ class RobotNode(Service):
         self.refuse("command", rejection.reason)
         self._recent_refusal.note(rejection.reason)
 
-    # ------------------------------------------------------------------ lockstep
-    def _answered(self, tick_ns: int, frame_stamp: Optional[int]) -> bool:
-        pending = self._command
-        if pending is None:
-            return False
-        header = pending[0].header
-        if header.stamp_ns < tick_ns:
-            return False
-        return not frame_stamp or header.source_stamp_ns >= frame_stamp
-
     def _wait_for_answer(self, tick_ns: int, frame_stamp: Optional[int], reading: JointReading):
-        cfg = self.config.lockstep
-        start = time.monotonic()
-        deadline = start + (cfg.frame_timeout_s if frame_stamp else cfg.cycle_timeout_s)
-        next_retry = start + cfg.retry_s
-        with self.command_cond:
-            while not self._answered(tick_ns, frame_stamp) and not self.stop_requested:
-                self.command_cond.release()
-                try:
-                    self.run_api_calls()
-                finally:
-                    self.command_cond.acquire()
-                now = time.monotonic()
-                if now >= deadline:
-                    self.counters.inc("lockstep.timeouts.frame" if frame_stamp else "lockstep.timeouts.cycle")
-                    break
-                if now >= next_retry:
-                    self.counters.inc("lockstep.retries")
-                    self.command_cond.release()
-                    try:
-                        self.publish_state(tick_ns, reading)
-                        self.on_lockstep_retry(tick_ns)
-                    finally:
-                        self.command_cond.acquire()
-                    next_retry = now + cfg.retry_s
-                self.command_cond.wait(min(deadline, next_retry) - now)
-        return self.take_command()
+        """Lockstep: the pipeline's answer to this tick (services.robot.lockstep_gate), the Kinova API calls run
+        while it is awaited, the state (and the frame) published again when it is late."""
+        def again() -> None:
+            self.publish_state(tick_ns, reading)
+            self.on_lockstep_retry(tick_ns)
+
+        return self.gate.wait_for_answer(tick_ns, frame_stamp, meanwhile=self.run_api_calls, again=again)
 
     # ------------------------------------------------------------------ outputs
     def publish_state(self, stamp_ns: int, reading: JointReading) -> None:
