@@ -49,8 +49,6 @@ from protocol.conventions import ClockMode
 from protocol.messages import (
     ArmCheckReply,
     ArmCheckRequest,
-    ArmCheckState,
-    CommandMode,
     Header,
     LoopTiming,
     ProtocolError,
@@ -75,6 +73,7 @@ from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
 from services.robot.admission import AdmissionConfig
 from services.robot.command_inbox import CommandInbox
+from services.robot.commissioning import Commissioning
 from services.robot.lockstep_gate import LockstepConfig, LockstepGate
 from services.robot.core import RobotCore
 from services.robot.state_message import RecentRefusal, lowlevel_state, robot_state
@@ -261,10 +260,7 @@ class RobotNode(Service):
         self._missed = RateMeter()
         self._cycles = RateMeter()
         #: the commissioning check: its state and why, a request waiting for the loop, the run under way
-        self.arm_check_state, self.arm_check_detail = arm_check.load_verdict(config.arm_check, self.arm)
-        self._check_request: Optional[tuple[ArmCheckRequest, Future]] = None
-        self._check_run: Optional[tuple[arm_check.ArmCheckRun, Future]] = None
-        self._state_before_check = (self.arm_check_state, self.arm_check_detail)
+        self.commissioning = Commissioning(config.arm_check, self.arm, self.counters, self.log, self.header)
 
     # ------------------------------------------------------------------ what a robot service provides
     def open_hardware(self) -> tuple[RobotHardware, JointReading]:
@@ -332,10 +328,7 @@ class RobotNode(Service):
         """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
 
     def on_stop(self) -> None:
-        for pending in (self._check_request, self._check_run):
-            if pending is not None and not pending[1].done():
-                pending[1].set_result(ArmCheckReply(ok=False, state=self.arm_check_state,
-                                                    message="the robot stopped before the check ended"))
+        self.commissioning.stop()
         self.inbox.wake()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
@@ -463,26 +456,14 @@ class RobotNode(Service):
             request = query_argument(query, "arm_check", ArmCheckRequest)
         except ProtocolError as exc:
             self.refuse("arm_check", str(exc))
-            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.arm_check_state,
+            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.commissioning.state,
                                                              message=str(exc)[:512])))
             return
-        reason = ""
-        if not request.confirm:
-            reason = (f"the check moves joints {request.joints} by {request.step_deg}° each, at {request.speed_dps}°/s, "
-                      "and back: confirm that the arm is clear to (mfvs check arm --yes)")
-        elif self.core.torque_mode:
-            reason = "low-level torque control owns the arm"
-        future: Future = Future()
-        if not reason:
-            with self.inbox.changed:
-                if self._check_request is not None or self._check_run is not None:
-                    reason = "a check is already running"
-                else:
-                    self._check_request = (request, future)
-                    self.inbox.changed.notify_all()
+        future, reason = self.commissioning.request(request, self.core.torque_mode)
         if reason:
             self.refuse("arm_check", reason)
-            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.arm_check_state, message=reason)))
+            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.commissioning.state,
+                                                             message=reason)))
             return
         self.log.info("commissioning check requested by %s: joints %s, %.1f° at %.1f°/s", request.operator or "?",
                       request.joints, request.step_deg, request.speed_dps)
@@ -494,57 +475,12 @@ class RobotNode(Service):
         try:
             reply = done.result()
         except Exception as exc:
-            reply = ArmCheckReply(ok=False, state=self.arm_check_state, message=f"the check did not finish: {exc}")
+            reply = ArmCheckReply(ok=False, state=self.commissioning.state,
+                                  message=f"the check did not finish: {exc}")
         try:
             query.reply(query.key_expr, encode(reply))
         finally:
             query.drop()  # the final answer: the caller's get ends here
-
-    def _arm_check_command(self, tick_ns: int, taken, reading: JointReading):
-        """At a DSP tick: start a requested check, or step the one running. Returns the command the DSP takes:
-        the check's own while it runs (safety's held, an emergency stop ending the check), else ``taken``."""
-        if self._check_request is not None and self._check_run is None:
-            with self.inbox.changed:
-                (request, future), self._check_request = self._check_request, None
-            plan = arm_check.ArmCheckPlan(joints=tuple(request.joints), step_deg=request.step_deg,
-                                          speed_dps=request.speed_dps)
-            try:
-                run = arm_check.ArmCheckRun(plan, self.arm, reading.q, tick_ns * 1e-9)
-            except ValueError as exc:
-                future.set_result(ArmCheckReply(ok=False, state=self.arm_check_state, message=str(exc)))
-                return taken
-            self.core.dsp.erase_all_trajectories()
-            self._check_run = (run, future)
-            self._state_before_check = (self.arm_check_state, self.arm_check_detail)
-            self.arm_check_state = ArmCheckState.RUNNING
-        if self._check_run is None:
-            return taken
-        run, future = self._check_run
-        if taken is not None and taken[0].mode is CommandMode.EMERGENCY_STOP:
-            run.abort("an emergency stop ended the check")
-        elif taken is not None:
-            self.counters.inc("arm_check.commands_held")
-        velocity = run.step(tick_ns * 1e-9, reading.q, reading.dq, reading.arm_pose)
-        if velocity is None:
-            self._finish_arm_check(run, future)
-            return taken
-        header = self.header("arm_check", stamp_ns=tick_ns)
-        return RobotCommand(header=header, mode=CommandMode.JOINT_VELOCITY, joint_velocities=velocity.tolist(),
-                            reason="commissioning check"), tick_ns
-
-    def _finish_arm_check(self, run: "arm_check.ArmCheckRun", future: Future) -> None:
-        reply = arm_check.analyse(run.samples, self.arm.dh_forward_kinematics, failure=run.failure)
-        self._check_run = None
-        if not reply.ok:  # the check could not judge: the arm's verdict is what it was before
-            self.arm_check_state, self.arm_check_detail = self._state_before_check
-            reply = msgspec.structs.replace(reply, state=self.arm_check_state)
-        else:
-            self.arm_check_state, self.arm_check_detail = reply.state, reply.message
-            arm_check.save_verdict(self.config.arm_check, self.arm, reply, time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        self.counters.inc(f"arm_check.{reply.state.value}")
-        (self.log.info if reply.passed else self.log.warning)("commissioning check: %s: %s", reply.state.value,
-                                                             reply.message)
-        future.set_result(reply)
 
     # ------------------------------------------------------------------ the loop thread
     def run_api_calls(self) -> None:
@@ -728,12 +664,11 @@ class RobotNode(Service):
             if wait_until is not None:
                 self.command_wait.add(waited_s)
         self.run_api_calls()
-        taken = self._arm_check_command(tick_ns, taken, reading)
+        taken = self.commissioning.command(tick_ns, taken, reading, self.core.dsp)
         if self.consecutive_errors >= self.config.max_bus_errors:
             taken = None  # no motion on a failing bus
             self.core.dsp.erase_all_trajectories()
-            if self._check_run is not None:
-                self._check_run[0].abort("the bus is failing")
+            self.commissioning.abort("the bus is failing")
         applied_ns = self.clock.now_ns()
         if taken is not None:
             stale = self.inbox.admission.stale(taken[0].header, applied_ns)
@@ -772,7 +707,7 @@ class RobotNode(Service):
         self.state_pub.put(robot_state(
             self.header("state", stamp_ns=stamp_ns), self.arm, reading, self.kin, self.core.dsp,
             link_faults=self._bus_faults, refused=self._recent_refusal.for_next_state(), applied=self._applied,
-            timing=self.timing(), arm_check=self.arm_check_state))
+            timing=self.timing(), arm_check=self.commissioning.state))
 
     def _publish_lowlevel(self) -> None:
         reading = self.core.reading
