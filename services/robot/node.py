@@ -41,7 +41,6 @@ from concurrent.futures import Future
 from typing import Optional
 
 import msgspec
-import numpy as np
 import zenoh
 
 from protocol import kinova
@@ -58,13 +57,11 @@ from protocol.messages import (
     missing_fields,
 )
 from protocol.keys import last_chunk
-from services.model import frames
 from services.robot import arm_check
 from services.robot.api_calls import ApiCallQueue
 from services.model.arm import DEFAULT_ARM, load_arm
-from services.robot.dsp import DSPConfig, KinovaDSP, for_arm
+from services.robot.dsp import DSPConfig, for_arm
 from services.model.kinematics import ArmKinematics
-from services.robot.kinova_api import KinovaApi
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
 from services.robot.torque_setup import TorqueSetup
 from services.runtime.async_cycle import AsyncCycle
@@ -75,10 +72,10 @@ from services.robot.admission import AdmissionConfig
 from services.robot.command_inbox import CommandInbox
 from services.robot.commissioning import Commissioning
 from services.robot.lockstep_gate import LockstepConfig, LockstepGate
+from services.robot.arm_driver import ArmDriver, JointDriver, NodeLoop
 from services.robot.core import RobotCore
 from services.robot.state_message import RecentRefusal, lowlevel_state, robot_state
-from services.robot.hardware import (CYCLE_S, DEFAULT_TIMING, DSP_CYCLE_NS, EXTRAPOLATED_CYCLES,
-                                     HardwareError, JointReading, RobotHardware)
+from services.robot.hardware import CYCLE_S, DEFAULT_TIMING, JointReading, RobotHardware
 from services.runtime.pacing import CyclePacer, request_realtime
 
 #: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
@@ -133,70 +130,6 @@ class RobotNodeConfig(ServiceConfig):
             raise ValueError("realtime_priority must be within 0..99 (SCHED_FIFO)")
 
 
-class _CoreView:
-    """What the Kinova API reads of the robot: the latest reading and the reference (model units)."""
-
-    def __init__(self, core: RobotCore, kin: ArmKinematics) -> None:
-        self.core, self.kin = core, kin
-
-    @property
-    def q(self) -> np.ndarray:
-        return self.core.reading.q
-
-    @property
-    def dq(self) -> np.ndarray:
-        return self.core.reading.dq
-
-    @property
-    def tau(self) -> np.ndarray:
-        return self.core.reading.tau
-
-    @property
-    def q_ref(self) -> np.ndarray:
-        return self.core.q_ref.copy()
-
-    def ee_pose(self) -> np.ndarray:
-        """GetCartesianPosition: the arm's own report where it gives one, else the description's kinematics."""
-        reading = self.core.reading
-        if reading.arm_pose is not None:
-            return reading.arm_pose
-        return frames.homogeneous(*self.kin.pose(reading.q))
-
-
-class _TorqueJoints:
-    """Low-level control's view of the joints: mode switches go through the hardware's handshake."""
-
-    def __init__(self, node: "RobotNode") -> None:
-        self.node = node
-
-    @property
-    def torque_mode(self) -> bool:
-        return self.node.core.torque_mode
-
-    @property
-    def actuators_compensate_gravity(self) -> bool:
-        return self.node.hardware.actuators_compensate_gravity
-
-    def enter_torque_mode(self) -> None:
-        node = self.node
-        # what the joints measure now: the arm's gravity load, whichever side compensates it in torque mode
-        node.hardware.enter_torque_mode(node.gravity_kin.gravity(node.core.reading.q))
-        with node._core_lock:
-            node.core.enter_torque_mode()
-
-    def leave_torque_mode(self) -> None:
-        self.node.hardware.leave_torque_mode()
-        with self.node._core_lock:
-            self.node.core.leave_torque_mode()
-
-    def set_torques(self, torques) -> None:
-        with self.node._core_lock:
-            self.node.core.torques = np.asarray(torques, dtype=float).copy()
-
-    def set_gravity_compensation(self, on: bool) -> bool:
-        return self.node.hardware.set_gravity_compensation(on)
-
-
 class RobotNode(Service):
     follows_sim_clock = True
 
@@ -215,9 +148,10 @@ class RobotNode(Service):
         self.bus_timing = DEFAULT_TIMING
         #: the loop's period: the bus cycle (a backend without a joint-level bus runs at its DSP's cycle)
         self.cycle_s = CYCLE_S
-        self.hardware: Optional[RobotHardware] = None
+        #: what drives the arm (open_driver), and its core: known once it is open
+        self.driver: Optional[ArmDriver] = None
         self.core: Optional[RobotCore] = None
-        self.api = None
+        #: low-level torque control, where the driver offers the joints to it
         self.lowlevel: Optional[LowLevelControl] = None
         self.finished = threading.Event()
         self.loop_timer = LoopTimer(self.cycle_s)
@@ -241,14 +175,6 @@ class RobotNode(Service):
         self._applied: Optional[Header] = None
         #: a refused command, named in the states' faults for a while
         self._recent_refusal = RecentRefusal()
-        self._exchanges = 0
-        #: arm-timeline DSP ticks: the grid period (stamp // DSP cycle) and the exchange of the last tick
-        self._last_dsp_period: Optional[int] = None
-        self._last_dsp_index = 0
-        self._dsp_stale_seen = 0
-        self._last_stamp: Optional[int] = None
-        self.consecutive_errors = 0
-        self._bus_faults: list[str] = []
         #: serialises the core between the bus loop and the DSP worker (realtime)
         self._core_lock = threading.Lock()
         #: realtime: the DSP cycle's own thread, handed each tick (a tick it has not taken when the next comes is
@@ -259,12 +185,27 @@ class RobotNode(Service):
         self._late = RateMeter()
         self._missed = RateMeter()
         self._cycles = RateMeter()
+        #: what the driver shares with this loop: where it counts and logs, the clock
+        self.loop = NodeLoop(self.name, self.lockstep, self.clock, self.counters, self.limited_log, self._missed,
+                             self.exchange_time)
         #: the commissioning check: its state and why, a request waiting for the loop, the run under way
         self.commissioning = Commissioning(config.arm_check, self.arm, self.counters, self.log, self.header)
 
     # ------------------------------------------------------------------ what a robot service provides
+    def open_driver(self) -> ArmDriver:
+        """What drives the arm: by default the emulated Kinova DSP on the joints :meth:`open_hardware` opens (an arm
+        behind Kinova's SDK has a driver of its own)."""
+        hardware, reading = self.open_hardware()
+        try:
+            return JointDriver(hardware, reading, self.loop, dsp=self.config.dsp, kin=self.kin,
+                               gravity=self.gravity_kin.gravity, torque_setup=self.torque_setup,
+                               core_lock=self._core_lock)
+        except BaseException:
+            hardware.close()
+            raise
+
     def open_hardware(self) -> tuple[RobotHardware, JointReading]:
-        """The hardware and its first reading (the arm's joints before the first cycle)."""
+        """The joints' hardware and its first reading (the arm's joints before the first cycle)."""
         raise NotImplementedError
 
     def frame_at_tick(self, tick_ns: int) -> Optional[int]:
@@ -283,24 +224,24 @@ class RobotNode(Service):
 
     def lowlevel_unavailable(self) -> str:
         """Why torque commands are refused ('' when the low-level API is offered)."""
-        return "low-level torque control runs in realtime only" if self.lockstep else ""
+        return "low-level torque control runs in realtime only" if self.lockstep else self.driver.lowlevel_unavailable
 
     def done(self) -> bool:
         return self.stop_requested
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
-        self.hardware, reading = self.open_hardware()
+        self.driver = self.open_driver()
         try:
-            self.bus_timing = self.hardware.timing
+            self.bus_timing = self.driver.timing
             self.cycle_s = self.bus_timing.period_s
-            self.core = RobotCore(self.make_dsp(), reading, self.bus_timing)
-            self.api = self.make_api()
+            self.core = self.driver.core
             keys = self.keys
             self.state_pub = self.publisher(keys.robot_state, "state")
             self.lowlevel_pub = self.publisher(keys.lowlevel_state, "lowlevel_state")
-            self.lowlevel = LowLevelControl(self.config.lowlevel, _TorqueJoints(self), self.gravity_kin.gravity,
-                                            self.torque_setup)
+            if self.driver.torque_joints is not None:
+                self.lowlevel = LowLevelControl(self.config.lowlevel, self.driver.torque_joints,
+                                                self.gravity_kin.gravity, self.torque_setup)
             self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
             self.subscribe(keys.lowlevel_command, TorqueCommand, self._on_torque, "lowlevel_command")
             self.queryable(keys.robot_api_all, self._on_api)
@@ -310,19 +251,10 @@ class RobotNode(Service):
                 keys.liveliness_all, self._on_liveliness, history=True))
             self.declare_outputs()
         except BaseException:
-            self.hardware.close()
+            self.driver.close()
             raise
         self._thread = start_thread(self._run, f"{self.name}-loop")
         self._api_timeouts_thread = start_thread(self._answer_api_timeouts, f"{self.name}-api-timeouts")
-
-    def make_dsp(self):
-        """What interprets robot commands: the emulated Kinova DSP (an arm behind Kinova's SDK has its own)."""
-        return KinovaDSP(self.config.dsp, self.kin)
-
-    def make_api(self):
-        """What answers ``robot/api/*`` (``call(function, argument) -> ApiReply``): the emulated Kinova API on the
-        DSP by default."""
-        return KinovaApi(_CoreView(self.core, self.kin), self.core.dsp, self.torque_setup, self.hardware)
 
     def declare_outputs(self) -> None:
         """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
@@ -337,14 +269,14 @@ class RobotNode(Service):
         self.api_calls.close(f"{self.name} is stopping")
         if self._api_timeouts_thread is not None:
             self._api_timeouts_thread.join(timeout=5.0)
-        if self.hardware is not None:
-            self.hardware.close()
+        if self.driver is not None:
+            self.driver.close()
 
     def check_health(self) -> tuple[bool, str]:
         if self._thread is None or not self._thread.is_alive():
             return False, "robot loop stopped"
-        if self.consecutive_errors >= self.config.max_bus_errors:
-            return False, f"hardware failing: {self._bus_faults[:1]}"
+        if self.driver.link.failing(self.config.max_bus_errors):
+            return False, f"hardware failing: {self.driver.link.faults[:1]}"
         timing = self.timing()
         work, exchange, lag, dsp, wait = (self.work.stats(), self.exchange_time.stats(), self.wake_lag.stats(),
                                           self.dsp_time.stats(), self.command_wait.stats())
@@ -492,7 +424,7 @@ class RobotNode(Service):
                                         message="low-level torque control is active")
             else:
                 try:
-                    reply = self.api.call(call.function, call.argument)
+                    reply = self.driver.api.call(call.function, call.argument)
                 except Exception as exc:
                     self.counters.inc("errors.api")
                     self.limited_log.error("api", "%s: %s failed: %s", self.name, call.function, exc)
@@ -524,11 +456,12 @@ class RobotNode(Service):
         self.declare_loop("bus_cycle", 1.0 / self.cycle_s, self.OVERRUNS)
         if self.cycle_s < self.config.dsp.cycle_s:
             self.declare_loop("cycle", 1.0 / self.config.dsp.cycle_s)
-        self.dsp_worker = AsyncCycle(f"{self.name}-dsp", on_overrun=lambda: self.counters.inc("dsp.overruns"))
+        if self.driver.dsp_beside_loop:
+            self.dsp_worker = AsyncCycle(f"{self.name}-dsp", on_overrun=lambda: self.counters.inc("dsp.overruns"))
         if request_realtime(self.config.realtime_priority, f"{self.name} bus loop"):
             self.counters.inc("realtime_priority.granted")
         self.on_loop_start()
-        pacer = CyclePacer(self.cycle_s, MAX_CATCH_UP_CYCLES if self.hardware.simulated_in_process else 0)
+        pacer = CyclePacer(self.cycle_s, MAX_CATCH_UP_CYCLES if self.driver.simulated_in_process else 0)
         self.loop_timer = LoopTimer(self.cycle_s)
         while not self.done():
             slot = pacer.wait()
@@ -550,58 +483,29 @@ class RobotNode(Service):
             self._missed.tick()
 
     def bus_cycle(self) -> None:
-        """One bus cycle: low-level control, the exchange, and every fifth cycle the DSP."""
+        """One cycle of the loop: low-level control, the driver's cycle with the arm, and at a DSP tick the DSP."""
         self.loop_timer.tick()
         self._cycles.tick()
         if not self.lockstep:
             self.rates.tick("bus_cycle")
-            self._lowlevel_step()
-        with self._core_lock:
-            targets = self.core.targets()
-            stale = self.core.dsp_stale_cycles
-        start = time.monotonic()
-        try:
-            reading = self.hardware.exchange(targets)
-        except HardwareError as exc:
-            reading = None
-            self.consecutive_errors += 1
-            self.counters.inc("bus.failed_exchanges")
-            self._missed.tick()
-            self._bus_faults = [f"bus: {exc}"[:120]]
-            self.limited_log.warning("exchange", "%s: exchange failed: %s", self.name, exc)
-            if self.consecutive_errors > EXTRAPOLATED_CYCLES:
-                # the actuators went on along their last targets for as many cycles as the reference did, and
-                # hold now: the reference holds too (one lost exchange is a missed cycle, not a stop)
-                with self._core_lock:
-                    self.core.stop()
-        else:
-            self.exchange_time.add(time.monotonic() - start)
-            self.consecutive_errors = 0
-            self._bus_faults = []
-            self._count_gap(reading.stamp_ns)
-            with self._core_lock:
-                self.core.observe(reading)
-            if self.lockstep and reading.stamp_ns > 0:
-                self.clock.advance_to(reading.stamp_ns)  # in lockstep the node's time is the arm's
-        if stale > self._dsp_stale_seen:
-            self.counters.inc("dsp.stale_holds", stale - self._dsp_stale_seen)
-            self._dsp_stale_seen = stale
-        index = self._exchanges
-        self._exchanges += 1
-        if self.lowlevel_pub.matching:
+            if self.lowlevel is not None:
+                self._lowlevel_step()
+        tick_ns = self.driver.cycle()
+        if self.lowlevel is not None and self.lowlevel_pub.matching:
             self._publish_lowlevel()
-        if self._is_dsp_tick(index, reading):
-            tick = reading.stamp_ns if reading is not None else self.clock.now_ns()
-            if self.lockstep:
-                self.dsp_tick(tick, self.core.reading)
-            else:
-                self._hand_to_dsp(tick, self.core.reading)
+        if tick_ns is None:
+            return
+        reading = self.core.reading
+        if self.dsp_worker is not None:
+            self._hand_to_dsp(tick_ns, reading)
+        else:
+            self.driver.run_dsp(lambda: self.dsp_tick(tick_ns, reading))
 
     # ------------------------------------------------------------------ the DSP worker (realtime)
     def _hand_to_dsp(self, tick_ns: int, reading: JointReading) -> None:
         wait_until = min(time.monotonic() + self.config.command_window_s,
                          self._slot_start + self.cycle_s - PLAN_MARGIN_S)
-        exchanges = self._exchanges
+        exchanges = self.driver.cycles
         self.dsp_worker.submit(lambda: self._dsp_on_worker(tick_ns, reading, wait_until, exchanges))
 
     def _dsp_on_worker(self, tick_ns: int, reading: JointReading, wait_until: float, exchanges: int) -> None:
@@ -609,44 +513,15 @@ class RobotNode(Service):
         plan taken after another exchange is late)."""
         try:
             start = time.monotonic()
-            waited_s = self.dsp_tick(tick_ns, reading, wait_until)  # a window of 0 ends as it begins
+            # a window of 0 ends as it begins
+            waited_s = self.driver.run_dsp(lambda: self.dsp_tick(tick_ns, reading, wait_until))
             self.dsp_time.add(time.monotonic() - start - waited_s)
-            if self._exchanges > exchanges:
+            if self.driver.cycles > exchanges:
                 self.counters.inc("dsp.late_plans")  # the next exchange went out on the last cycle's plan
         except Exception:
             self.counters.inc("errors.dsp")
             self.limited_log.error("dsp", "%s: DSP cycle failed", self.name)
             self.log.debug("DSP cycle failure", exc_info=True)
-
-    def _count_gap(self, stamp_ns: int) -> None:
-        """Cycles the arm ran between two of our exchanges (from the readings' stamps on its timeline) beyond the
-        one each exchange takes: missed, whoever was late."""
-        if self._last_stamp is not None and stamp_ns > 0 and not self.hardware.simulated_in_process:
-            gap = self.bus_timing.cycles_in(stamp_ns - self._last_stamp) - 1
-            if gap > 0:
-                self.counters.inc("cycles.arm_missed", gap)
-                for _ in range(gap):
-                    self._missed.tick()
-        self._last_stamp = stamp_ns
-
-    def _is_dsp_tick(self, index: int, reading: Optional[JointReading]) -> bool:
-        if self.lockstep and reading is not None and reading.stamp_ns > 0:
-            return reading.stamp_ns % DSP_CYCLE_NS == 0  # the simulator's 10 ms grid
-        if not self.hardware.arm_timeline:
-            return index % self.bus_timing.cycles_per_dsp == 0
-        # on the arm's grid, in phase with its camera: the first reading at or past each 10 ms line (a lost
-        # reading is no tick, unless a whole DSP cycle of exchanges passed without one: the state goes on)
-        if reading is not None and reading.stamp_ns > 0:
-            period = reading.stamp_ns // DSP_CYCLE_NS
-            tick = self._last_dsp_period is None or period > self._last_dsp_period
-            if self._last_dsp_period is None and reading.stamp_ns % DSP_CYCLE_NS:
-                tick = False  # joined mid-cycle: the first tick is at the next line
-            self._last_dsp_period = period
-        else:
-            tick = index - self._last_dsp_index >= self.bus_timing.cycles_per_dsp
-        if tick:
-            self._last_dsp_index = index
-        return tick
 
     def dsp_tick(self, tick_ns: int, reading: JointReading, wait_until: Optional[float] = None) -> float:
         """One DSP cycle on the reading of the tick at ``tick_ns`` (realtime: waiting for a fresh command until
@@ -665,7 +540,7 @@ class RobotNode(Service):
                 self.command_wait.add(waited_s)
         self.run_api_calls()
         taken = self.commissioning.command(tick_ns, taken, reading, self.core.dsp)
-        if self.consecutive_errors >= self.config.max_bus_errors:
+        if self.driver.link.failing(self.config.max_bus_errors):
             taken = None  # no motion on a failing bus
             self.core.dsp.erase_all_trajectories()
             self.commissioning.abort("the bus is failing")
@@ -706,13 +581,14 @@ class RobotNode(Service):
     def publish_state(self, stamp_ns: int, reading: JointReading) -> None:
         self.state_pub.put(robot_state(
             self.header("state", stamp_ns=stamp_ns), self.arm, reading, self.kin, self.core.dsp,
-            link_faults=self._bus_faults, refused=self._recent_refusal.for_next_state(), applied=self._applied,
+            link_faults=self.driver.link.faults, refused=self._recent_refusal.for_next_state(), applied=self._applied,
             timing=self.timing(), arm_check=self.commissioning.state))
 
     def _publish_lowlevel(self) -> None:
         reading = self.core.reading
         self.lowlevel_pub.put(lowlevel_state(self.header("lowlevel_state", stamp_ns=reading.stamp_ns or None), reading,
-                                             self.core.torque_mode, self._bus_faults, self.bus_timing.period_ns))
+                                             self.core.torque_mode, self.driver.link.faults,
+                                             self.bus_timing.period_ns))
 
     def _lowlevel_step(self) -> None:
         """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""
