@@ -1,37 +1,67 @@
 """The robot node: what every robot service offers on zenoh, whatever drives the arm (robot_sim's simulated arm,
-robot_gateway's actuators on a bus), and the robot's one loop.
+robot_gateway's actuators on a bus or Kinova's own DSP through its SDK), and the robot's one loop. It is wiring and
+lifecycle: it decodes what comes in, calls the pieces below, counts, and publishes.
 
 On zenoh: robot commands in (``…/robot/command``, from safety), the Kinova API as queryables
-(``…/robot/api/<Function>``, run and answered by the loop's worker, with a timeout: :mod:`services.robot.api_calls`),
-the robot state out at every DSP cycle (100 Hz), the low-level torque API (``…/robot/lowlevel/*``, 500 Hz,
-realtime only), and the commissioning check (``…/robot/check/arm``,
-:mod:`services.robot.arm_check`): while it runs, the node moves the arm itself, joint by joint, and holds safety's
-commands (an emergency stop ends the check and stops the arm); its verdict goes out in every state.
+(``…/robot/api/<Function>``, run and answered between DSP cycles, with a timeout: :mod:`services.robot.api_calls`),
+the robot state out at every DSP tick (100 Hz), the low-level torque API (``…/robot/lowlevel/*``, every bus cycle,
+realtime only), and the commissioning check (``…/robot/check/arm``): while it runs, the node moves the arm itself,
+joint by joint, and holds safety's commands (an emergency stop ends the check and stops the arm); its verdict goes
+out in every state.
 
-The loop: every bus cycle it exchanges targets with the hardware (:class:`~services.robot.hardware.RobotHardware`)
-and steps low-level control; every fifth cycle, the DSP cycle: publish the state, take the latest command, run
-the Kinova API calls and the DSP (:class:`~services.robot.core.RobotCore`). In realtime the DSP cycle runs in a
-worker thread, handed each tick's reading, so that the bus cycle goes out on time whatever the DSP costs (as a
-robot's servo loop never waits for its planner): a tick that comes while the worker is still busy is counted
-(``dsp.overruns``) and skipped, and the core holds the arm if no DSP cycle came for two DSP periods. In lockstep
-the DSP cycle runs in the loop, in order.
+The pieces, each without zenoh:
+
+* what drives the arm (:mod:`services.robot.arm_driver`): every cycle of the loop the driver talks to the arm
+  (exchanges the core's targets with the joints, or reads the arm through Kinova's SDK) and says whether the cycle
+  is a DSP tick; the rules between the commands and the arm are its :class:`~services.robot.core.RobotCore`;
+* the DSP cycle of a tick (:meth:`RobotNode.dsp_tick`): publish the state (:mod:`services.robot.state_message`),
+  take the latest command (:mod:`services.robot.command_inbox`; in lockstep the pipeline's answer,
+  :mod:`services.robot.lockstep_gate`), run the Kinova API calls, let the commissioning check
+  (:mod:`services.robot.commissioning`) hold or replace the command, run the DSP. In realtime it runs beside the
+  loop (:class:`~services.runtime.async_cycle.AsyncCycle`), handed each tick's reading, so that the bus cycle goes
+  out on time whatever the DSP costs (as a robot's servo loop never waits for its planner): a tick the worker has
+  not taken when the next comes is skipped and counted (``dsp.overruns``), and the core holds the arm if no DSP
+  cycle came for two DSP periods. In lockstep, and on a driver whose DSP is the arm's own, it runs in the loop;
+* low-level torque control (:mod:`services.robot.lowlevel`), every bus cycle of a driver that offers the joints.
 
 Clock modes:
 
-* ``realtime``: the bus cycle runs every 2 ms of wall time (:class:`~services.runtime.pacing.CyclePacer`), at
+* ``realtime``: the loop runs every bus cycle of wall time (:class:`~services.runtime.pacing.CyclePacer`), at
   realtime priority where the OS allows; lateness is counted and reported in the state (``timing``) and health;
 * ``lockstep``: the arm's own timeline drives the loop, cycle after cycle with no pacing; at each DSP tick the node
-  publishes the state of that tick and waits (``lockstep.cycle_timeout_s``) for the pipeline's answer, a command
-  stamped at or after the tick, and when a camera frame was taken at the tick (``lockstep.frame_timeout_s``) a
-  command derived from that frame. It waits only while a service that answers is alive (``lockstep.answered_by``,
-  safety, which answers each robot state in lockstep): observers of the robot change nothing. The state (and the
-  frame) are published again every ``lockstep.retry_s`` while it waits, since a message can be lost while routes
-  are still being set up; on a starved host the answer may only be late, so vision and the controller answer a
-  frame they get again with the answer they gave it (one frame, one answer: a second, different one, such as
-  "out-of-order", would stand in for the first, reset the law and make the run differ from its replay).
+  waits for the pipeline's answer while a service that answers is alive (:mod:`services.robot.lockstep_gate`).
 
-Subclasses open the hardware and say which frame, if any, was taken at a tick (robot_sim takes it;
-robot_gateway learns it from the simulator's clock).
+Subclasses open the hardware (or a driver of their own) and say which frame, if any, was taken at a tick (robot_sim
+takes it; robot_gateway learns it from the simulator's clock).
+
+Which thread owns what (a driver whose DSP runs in the loop, and lockstep, have no DSP worker: the loop does its
+part):
+
+===========================  ==========================================  ============================================
+thread                       runs                                        owns; touches under a lock
+===========================  ==========================================  ============================================
+zenoh's callbacks            ``_on_command``, ``_on_torque``,            nothing of the loop's: they decode, refuse
+                             ``_on_liveliness``, ``_on_api``,            and hand over: the inbox and the gate's
+                             ``_on_arm_check`` (and robot_gateway's      answerers (``inbox.changed``), the API
+                             ``on_sim_clock``: the simulator's ticks,    calls (their queue's lock), low-level
+                             under a condition of its own)               control's latest command (its lock), a
+                                                                         check's request (the coordinator's lock)
+``<name>-loop`` (the loop)   pacing, :meth:`RobotNode.bus_cycle`:        the driver (the hardware, its counts, its
+                             low-level control, the driver's cycle,      link health), low-level control, the loop's
+                             the low-level state                         meters; the core's reference, targets and
+                                                                         torque mode (``_core_lock``)
+``<name>-dsp`` (realtime)    :meth:`RobotNode.dsp_tick`: the state,      the DSP (``core.dsp``) and the Kinova API
+                             the command, the Kinova API calls, the      on it, ``kin``, the applied command's
+                             commissioning check, the DSP's plan         header, the recent refusal, the check's
+                                                                         run; the command taken (``inbox.changed``),
+                                                                         the core's plan (``_core_lock``)
+``<name>-api-timeouts``      answers the API calls not taken in time     nothing; the API calls' queue (its lock)
+``<name>-health`` (runtime)  the health                                  nothing; reads counters, meters, link health
+===========================  ==========================================  ============================================
+
+The locks: ``_core_lock`` serialises the core between the loop (targets, readings, holds, torque mode) and the DSP
+worker (its plan); ``inbox.changed`` guards the command waiting, both admissions and the gate's answerers, and
+wakes the DSP wherever it waits for a command. The counters, rates and meters are thread-safe of their own.
 """
 from __future__ import annotations
 
@@ -45,38 +75,29 @@ import zenoh
 
 from protocol import kinova
 from protocol.conventions import ClockMode
-from protocol.messages import (
-    ArmCheckReply,
-    ArmCheckRequest,
-    Header,
-    LoopTiming,
-    ProtocolError,
-    RobotCommand,
-    TorqueCommand,
-    encode,
-    missing_fields,
-)
 from protocol.keys import last_chunk
-from services.robot import arm_check
-from services.robot.api_calls import ApiCallQueue
+from protocol.messages import (ArmCheckReply, ArmCheckRequest, Header, LoopTiming, ProtocolError, RobotCommand,
+                               TorqueCommand, encode, missing_fields)
 from services.model.arm import DEFAULT_ARM, load_arm
-from services.robot.dsp import DSPConfig, for_arm
 from services.model.kinematics import ArmKinematics
+from services.robot import arm_check
+from services.robot.admission import AdmissionConfig
+from services.robot.api_calls import ApiCallQueue
+from services.robot.arm_driver import ArmDriver, JointDriver, NodeLoop
+from services.robot.command_inbox import CommandInbox
+from services.robot.commissioning import Commissioning
+from services.robot.core import RobotCore
+from services.robot.dsp import DSPConfig, for_arm
+from services.robot.hardware import CYCLE_S, DEFAULT_TIMING, JointReading, RobotHardware
+from services.robot.lockstep_gate import LockstepConfig, LockstepGate
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
+from services.robot.state_message import RecentRefusal, lowlevel_state, robot_state
 from services.robot.torque_setup import TorqueSetup
 from services.runtime.async_cycle import AsyncCycle
 from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
+from services.runtime.pacing import CyclePacer, request_realtime
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
-from services.robot.admission import AdmissionConfig
-from services.robot.command_inbox import CommandInbox
-from services.robot.commissioning import Commissioning
-from services.robot.lockstep_gate import LockstepConfig, LockstepGate
-from services.robot.arm_driver import ArmDriver, JointDriver, NodeLoop
-from services.robot.core import RobotCore
-from services.robot.state_message import RecentRefusal, lowlevel_state, robot_state
-from services.robot.hardware import CYCLE_S, DEFAULT_TIMING, JointReading, RobotHardware
-from services.runtime.pacing import CyclePacer, request_realtime
 
 #: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
 #: in the DSP and run, unexpectedly, once torque control ends)
@@ -85,8 +106,6 @@ MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})
 MAX_CATCH_UP_CYCLES = 50
 #: a Kinova API call not taken by the robot's worker within this long is answered as timed out, without being run
 API_TIMEOUT_S = 5.0
-
-
 #: the DSP's plan must be ready this long before the next bus exchange: the command window ends there at the latest
 #: (the plan takes 0.2-0.4 ms; the rest is for a late wake-up of the DSP's thread: with 0.5 ms, one plan in about a
 #: thousand missed its exchange on this host)
@@ -139,21 +158,48 @@ class RobotNode(Service):
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
         #: the arm this node runs (its description), declared in every state
         self.arm = load_arm(config.arm)
+        #: the DSP's thread's kinematics workspace, and the loop's own (ArmKinematics is not thread-safe)
         self.kin = ArmKinematics(self.arm)
-        #: the bus loop's own kinematics workspace (ArmKinematics is not thread-safe; the DSP worker uses ``kin``)
         self.gravity_kin = ArmKinematics(self.arm)
         #: the torque-mode setup (Table 5.1's functions): the Kinova API sets it, low-level control applies it
         self.torque_setup = TorqueSetup(self.arm)
-        #: the bus's cycle, the hardware's own (services.robot.hardware.BusTiming): known once it is open
-        self.bus_timing = DEFAULT_TIMING
-        #: the loop's period: the bus cycle (a backend without a joint-level bus runs at its DSP's cycle)
-        self.cycle_s = CYCLE_S
-        #: what drives the arm (open_driver), and its core: known once it is open
+
+        # what drives the arm, known once it is open (open_driver)
         self.driver: Optional[ArmDriver] = None
         self.core: Optional[RobotCore] = None
+        #: the loop's cycle: the bus's (services.robot.hardware.BusTiming), or the DSP's own where there is no bus
+        self.bus_timing = DEFAULT_TIMING
+        self.cycle_s = CYCLE_S
         #: low-level torque control, where the driver offers the joints to it
         self.lowlevel: Optional[LowLevelControl] = None
+        #: serialises the core between the loop and the DSP worker
+        self._core_lock = threading.Lock()
+
+        # the pieces the loop and the DSP cycle call
+        #: the commands in, admitted, for the DSP and low-level control; its condition wakes the DSP's waits
+        self.inbox = CommandInbox(config.admission)
+        #: lockstep: each tick waits for the pipeline's answer while a service that answers is alive
+        self.gate = LockstepGate(config.lockstep, self.inbox, self.counters, self.log,
+                                 stopping=lambda: self.stop_requested)
+        #: Kinova API calls from the robot/api/* queryable, run and answered between DSP cycles
+        self.api_calls = ApiCallQueue(API_TIMEOUT_S, on_timeout=lambda call: self.counters.inc("api.timeouts"))
+        #: the commissioning check (its verdict goes out in every state)
+        self.commissioning = Commissioning(config.arm_check, self.arm, self.counters, self.log, self.header)
+        #: the header of the command the last DSP cycle applied, and a refused one, both said in the states
+        self._applied: Optional[Header] = None
+        self._recent_refusal = RecentRefusal()
+
+        # the threads
+        self._thread: Optional[threading.Thread] = None
         self.finished = threading.Event()
+        #: realtime: the DSP cycle's own thread, handed each tick (a tick it has not taken when the next comes is
+        #: skipped: dsp.overruns)
+        self.dsp_worker: Optional[AsyncCycle] = None
+        self._api_timeouts_thread: Optional[threading.Thread] = None
+        #: when the loop's current cycle was due (monotonic): the next is a cycle later
+        self._slot_start = time.monotonic()
+
+        # the loop's meters
         self.loop_timer = LoopTimer(self.cycle_s)
         #: the loop's work per cycle (without its sleep), and the exchanges' share of it
         self.work = DurationStats()
@@ -163,33 +209,12 @@ class RobotNode(Service):
         self.dsp_time = DurationStats()
         #: how long the DSP waited in its command window (realtime), apart from its own time above
         self.command_wait = DurationStats()
-        self._thread: Optional[threading.Thread] = None
-        #: the commands in, admitted, for the DSP and low-level control; its condition wakes the DSP's waits
-        self.inbox = CommandInbox(config.admission)
-        #: lockstep: each tick waits for the pipeline's answer while a service that answers is alive
-        self.gate = LockstepGate(config.lockstep, self.inbox, self.counters, self.log,
-                                 stopping=lambda: self.stop_requested)
-        #: Kinova API calls from the robot/api/* queryable, run and answered by the worker (services.robot.api_calls)
-        self.api_calls = ApiCallQueue(API_TIMEOUT_S, on_timeout=lambda call: self.counters.inc("api.timeouts"))
-        self._api_timeouts_thread: Optional[threading.Thread] = None
-        self._applied: Optional[Header] = None
-        #: a refused command, named in the states' faults for a while
-        self._recent_refusal = RecentRefusal()
-        #: serialises the core between the bus loop and the DSP worker (realtime)
-        self._core_lock = threading.Lock()
-        #: realtime: the DSP cycle's own thread, handed each tick (a tick it has not taken when the next comes is
-        #: skipped: dsp.overruns)
-        self.dsp_worker: Optional[AsyncCycle] = None
-        #: when the bus loop's current exchange was due (monotonic): the next is a cycle later
-        self._slot_start = time.monotonic()
         self._late = RateMeter()
         self._missed = RateMeter()
         self._cycles = RateMeter()
-        #: what the driver shares with this loop: where it counts and logs, the clock
+        #: what a driver shares with this loop: the clock, where it counts and logs
         self.loop = NodeLoop(self.name, self.lockstep, self.clock, self.counters, self.limited_log, self._missed,
                              self.exchange_time)
-        #: the commissioning check: its state and why, a request waiting for the loop, the run under way
-        self.commissioning = Commissioning(config.arm_check, self.arm, self.counters, self.log, self.header)
 
     # ------------------------------------------------------------------ what a robot service provides
     def open_driver(self) -> ArmDriver:
@@ -208,6 +233,9 @@ class RobotNode(Service):
         """The joints' hardware and its first reading (the arm's joints before the first cycle)."""
         raise NotImplementedError
 
+    def declare_outputs(self) -> None:
+        """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
+
     def frame_at_tick(self, tick_ns: int) -> Optional[int]:
         """At a DSP tick (after its state went out): the capture stamp of the camera frame taken at this tick, if
         any (robot_sim takes and publishes it here)."""
@@ -216,18 +244,32 @@ class RobotNode(Service):
     def on_lockstep_retry(self, tick_ns: int) -> None:
         """The answer to a tick is late: publish what it answers again (robot_sim: the frame and the tick)."""
 
+    def lockstep_outputs_matched(self) -> bool:
+        """Whether what the pipeline answers (robot_sim: its camera's images) has its subscribers."""
+        return True
+
     def on_loop_start(self) -> None:
         """The realtime loop is about to run its first cycle (robot_sim starts its arm's time now)."""
 
     def on_lockstep_end(self) -> None:
         """The lockstep loop's thread is about to end (robot_sim frees the renderer that thread rendered with)."""
 
-    def lowlevel_unavailable(self) -> str:
-        """Why torque commands are refused ('' when the low-level API is offered)."""
-        return "low-level torque control runs in realtime only" if self.lockstep else self.driver.lowlevel_unavailable
+    def cycles_dropped(self, n: int) -> None:
+        """Cycles the loop did not run (a stall): counted as missed; the in-process arm's time skips them."""
+        self.counters.inc("cycles.missed", n)
+        for _ in range(n):
+            self._missed.tick()
 
     def done(self) -> bool:
         return self.stop_requested
+
+    def torque_setup_summary(self) -> str:
+        """The torque-mode setup (Table 5.1) low-level control applies, for the health's detail."""
+        return self.torque_setup.describe()
+
+    def arm_summary(self) -> str:
+        """The arm this node runs, and what drives its joints (the first part of its health's detail)."""
+        return f"arm {self.arm.name}: {self.arm.n_joints} joints"
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -255,9 +297,6 @@ class RobotNode(Service):
             raise
         self._thread = start_thread(self._run, f"{self.name}-loop")
         self._api_timeouts_thread = start_thread(self._answer_api_timeouts, f"{self.name}-api-timeouts")
-
-    def declare_outputs(self) -> None:
-        """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
 
     def on_stop(self) -> None:
         self.commissioning.stop()
@@ -287,14 +326,6 @@ class RobotNode(Service):
                       f"{dsp['p99_ms']:.2f} command_wait_ms={wait['p50_ms']:.2f}/{wait['p99_ms']:.2f} (p50/p99)"
                       + (f"; {setup}" if (setup := self.torque_setup_summary()) else ""))
 
-    def torque_setup_summary(self) -> str:
-        """The torque-mode setup (Table 5.1) low-level control applies, for the health's detail."""
-        return self.torque_setup.describe()
-
-    def arm_summary(self) -> str:
-        """The arm this node runs, and what drives its joints (the first part of its health's detail)."""
-        return f"arm {self.arm.name}: {self.arm.n_joints} joints"
-
     def timing(self) -> LoopTiming:
         return LoopTiming(rate_hz=self._cycles.rate_hz(), late_per_s=self._late.rate_hz(),
                           missed_per_s=self._missed.rate_hz())
@@ -320,6 +351,10 @@ class RobotNode(Service):
         if alive:
             self.inbox.new_session(name)  # a new session of a sender numbers its commands afresh
         self.gate.liveliness(name, alive)
+
+    def lowlevel_unavailable(self) -> str:
+        """Why torque commands are refused ('' when the low-level API is offered)."""
+        return "low-level torque control runs in realtime only" if self.lockstep else self.driver.lowlevel_unavailable
 
     def _on_torque(self, command: TorqueCommand, recv_ns: int) -> None:
         if self._wrong_joint_count("lowlevel_command", command.torques):
@@ -415,23 +450,6 @@ class RobotNode(Service):
             query.drop()  # the final answer: the caller's get ends here
 
     # ------------------------------------------------------------------ the loop thread
-    def run_api_calls(self) -> None:
-        """Run and answer the Kinova API calls waiting (on the worker, between DSP cycles)."""
-        while (call := self.api_calls.take()) is not None:
-            if call.function in MOTION_FUNCTIONS and self.core.torque_mode:
-                self.refuse("api", f"{call.function}: low-level torque control is active")
-                reply = kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
-                                        message="low-level torque control is active")
-            else:
-                try:
-                    reply = self.driver.api.call(call.function, call.argument)
-                except Exception as exc:
-                    self.counters.inc("errors.api")
-                    self.limited_log.error("api", "%s: %s failed: %s", self.name, call.function, exc)
-                    reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
-                                            message=f"{call.function} failed: {exc}"[:512])
-            self.api_calls.finish(call, reply)
-
     def _run(self) -> None:
         run_loop(self._run_lockstep if self.lockstep else self._run_realtime, "robot loop", self.log, self.counters,
                  self.finished)
@@ -443,10 +461,6 @@ class RobotNode(Service):
                 self.bus_cycle()
         finally:
             self.on_lockstep_end()
-
-    def lockstep_outputs_matched(self) -> bool:
-        """Whether what the pipeline answers (robot_sim: its camera's images) has its subscribers."""
-        return True
 
     #: counters whose growth means the robot's own loop did not keep up (mfvs status shows it degraded); the
     #: cycles the arm ran without a frame for other reasons (transport jitter) are in the missed rate only
@@ -476,12 +490,6 @@ class RobotNode(Service):
             self.bus_cycle()
             self.work.add(time.monotonic() - start)
 
-    def cycles_dropped(self, n: int) -> None:
-        """Cycles the loop did not run (a stall): counted as missed; the in-process arm's time skips them."""
-        self.counters.inc("cycles.missed", n)
-        for _ in range(n):
-            self._missed.tick()
-
     def bus_cycle(self) -> None:
         """One cycle of the loop: low-level control, the driver's cycle with the arm, and at a DSP tick the DSP."""
         self.loop_timer.tick()
@@ -501,7 +509,28 @@ class RobotNode(Service):
         else:
             self.driver.run_dsp(lambda: self.dsp_tick(tick_ns, reading))
 
-    # ------------------------------------------------------------------ the DSP worker (realtime)
+    def _lowlevel_step(self) -> None:
+        """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""
+        outcome, detail = self.lowlevel.step(time.monotonic(), self.core.reading.q, self.core.reading.dq)
+        if outcome is Outcome.SAFETY_STOP:
+            self.counters.inc("lowlevel.safety_stops")
+            self.log.warning("torque safety factor: back to trajectory control (%s)", detail)
+        elif outcome is Outcome.ENGAGED:
+            self.log.info("low-level torque control engaged")
+        elif outcome is Outcome.RELEASED:
+            self.log.info("low-level torque control released %s", detail)
+        elif outcome is Outcome.WATCHDOG:
+            self.counters.inc("lowlevel.watchdog")
+        elif outcome is Outcome.REFUSED:
+            self.refuse("lowlevel_command", detail)
+
+    def _publish_lowlevel(self) -> None:
+        reading = self.core.reading
+        self.lowlevel_pub.put(lowlevel_state(self.header("lowlevel_state", stamp_ns=reading.stamp_ns or None), reading,
+                                             self.core.torque_mode, self.driver.link.faults,
+                                             self.bus_timing.period_ns))
+
+    # ------------------------------------------------------------------ the DSP cycle (the DSP worker, or the loop)
     def _hand_to_dsp(self, tick_ns: int, reading: JointReading) -> None:
         wait_until = min(time.monotonic() + self.config.command_window_s,
                          self._slot_start + self.cycle_s - PLAN_MARGIN_S)
@@ -562,12 +591,6 @@ class RobotNode(Service):
                 self._refuse_command(refusal)
         return waited_s
 
-    def _refuse_command(self, rejection) -> None:
-        """A robot command not applied: counted by kind, logged, and named in the states' faults for a while."""
-        self.counters.inc(f"refused.{rejection.kind}")
-        self.refuse("command", rejection.reason)
-        self._recent_refusal.note(rejection.reason)
-
     def _wait_for_answer(self, tick_ns: int, frame_stamp: Optional[int], reading: JointReading):
         """Lockstep: the pipeline's answer to this tick (services.robot.lockstep_gate), the Kinova API calls run
         while it is awaited, the state (and the frame) published again when it is late."""
@@ -577,30 +600,31 @@ class RobotNode(Service):
 
         return self.gate.wait_for_answer(tick_ns, frame_stamp, meanwhile=self.run_api_calls, again=again)
 
-    # ------------------------------------------------------------------ outputs
+    def run_api_calls(self) -> None:
+        """Run and answer the Kinova API calls waiting (on the worker, between DSP cycles)."""
+        while (call := self.api_calls.take()) is not None:
+            if call.function in MOTION_FUNCTIONS and self.core.torque_mode:
+                self.refuse("api", f"{call.function}: low-level torque control is active")
+                reply = kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                        message="low-level torque control is active")
+            else:
+                try:
+                    reply = self.driver.api.call(call.function, call.argument)
+                except Exception as exc:
+                    self.counters.inc("errors.api")
+                    self.limited_log.error("api", "%s: %s failed: %s", self.name, call.function, exc)
+                    reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
+                                            message=f"{call.function} failed: {exc}"[:512])
+            self.api_calls.finish(call, reply)
+
+    def _refuse_command(self, rejection) -> None:
+        """A robot command not applied: counted by kind, logged, and named in the states' faults for a while."""
+        self.counters.inc(f"refused.{rejection.kind}")
+        self.refuse("command", rejection.reason)
+        self._recent_refusal.note(rejection.reason)
+
     def publish_state(self, stamp_ns: int, reading: JointReading) -> None:
         self.state_pub.put(robot_state(
             self.header("state", stamp_ns=stamp_ns), self.arm, reading, self.kin, self.core.dsp,
             link_faults=self.driver.link.faults, refused=self._recent_refusal.for_next_state(), applied=self._applied,
             timing=self.timing(), arm_check=self.commissioning.state))
-
-    def _publish_lowlevel(self) -> None:
-        reading = self.core.reading
-        self.lowlevel_pub.put(lowlevel_state(self.header("lowlevel_state", stamp_ns=reading.stamp_ns or None), reading,
-                                             self.core.torque_mode, self.driver.link.faults,
-                                             self.bus_timing.period_ns))
-
-    def _lowlevel_step(self) -> None:
-        """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""
-        outcome, detail = self.lowlevel.step(time.monotonic(), self.core.reading.q, self.core.reading.dq)
-        if outcome is Outcome.SAFETY_STOP:
-            self.counters.inc("lowlevel.safety_stops")
-            self.log.warning("torque safety factor: back to trajectory control (%s)", detail)
-        elif outcome is Outcome.ENGAGED:
-            self.log.info("low-level torque control engaged")
-        elif outcome is Outcome.RELEASED:
-            self.log.info("low-level torque control released %s", detail)
-        elif outcome is Outcome.WATCHDOG:
-            self.counters.inc("lowlevel.watchdog")
-        elif outcome is Outcome.REFUSED:
-            self.refuse("lowlevel_command", detail)
