@@ -34,7 +34,7 @@ Clock modes:
 Subclasses open the hardware (or a driver of their own) and say which frame, if any, was taken at a tick (robot_sim
 takes it; robot_gateway learns it from the simulator's clock).
 
-Which thread owns what (a driver whose DSP runs in the loop, and lockstep, have no DSP worker: the loop does its
+Which thread owns what (lockstep, and a driver whose DSP is the arm's own, have no DSP worker: the loop does its
 part):
 
 ===========================  ==========================================  ============================================
@@ -45,23 +45,27 @@ zenoh's callbacks            ``_on_command``, ``_on_torque``,            nothing
                              ``_on_arm_check`` (and robot_gateway's      answerers (``inbox.changed``), the API
                              ``on_sim_clock``: the simulator's ticks,    calls (their queue's lock), low-level
                              under a condition of its own)               control's latest command (its lock), a
-                                                                         check's request (the coordinator's lock)
+                                                                         check's request (the coordinator's lock);
+                                                                         a refused command's note for the states
 ``<name>-loop`` (the loop)   pacing, :meth:`RobotNode.bus_cycle`:        the driver (the hardware, its counts, its
                              low-level control, the driver's cycle,      link health), low-level control, the loop's
                              the low-level state                         meters; the core's reference, targets and
                                                                          torque mode (``_core_lock``)
-``<name>-dsp`` (realtime)    :meth:`RobotNode.dsp_tick`: the state,      the DSP (``core.dsp``) and the Kinova API
-                             the command, the Kinova API calls, the      on it, ``kin``, the applied command's
-                             commissioning check, the DSP's plan         header, the recent refusal, the check's
-                                                                         run; the command taken (``inbox.changed``),
-                                                                         the core's plan (``_core_lock``)
+``<name>-dsp`` (realtime,    :meth:`RobotNode.dsp_tick`: the state,      the DSP (``core.dsp``) and the Kinova API
+a driver whose DSP may run   the command, the Kinova API calls, the      on it, ``kin``, the applied command's
+beside the loop)             commissioning check, the DSP's plan         header, the check's run; the command taken
+                                                                         (``inbox.changed``), the core's plan
+                                                                         (``_core_lock``); reads the link's health
+                                                                         and the driver's count of cycles
 ``<name>-api-timeouts``      answers the API calls not taken in time     nothing; the API calls' queue (its lock)
 ``<name>-health`` (runtime)  the health                                  nothing; reads counters, meters, link health
 ===========================  ==========================================  ============================================
 
 The locks: ``_core_lock`` serialises the core between the loop (targets, readings, holds, torque mode) and the DSP
 worker (its plan); ``inbox.changed`` guards the command waiting, both admissions and the gate's answerers, and
-wakes the DSP wherever it waits for a command. The counters, rates and meters are thread-safe of their own.
+wakes the DSP wherever it waits for a command. The counters, rates and meters are thread-safe of their own; what
+a reader takes without a lock (the link's faults, the check's verdict) is replaced whole, never changed in place,
+and a refusal's note is the one unguarded count (a refusal noted while a state goes out may be named in fewer).
 """
 from __future__ import annotations
 
