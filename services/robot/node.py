@@ -1,37 +1,71 @@
 """The robot node: what every robot service offers on zenoh, whatever drives the arm (robot_sim's simulated arm,
-robot_gateway's actuators on a bus), and the robot's one loop.
+robot_gateway's actuators on a bus or Kinova's own DSP through its SDK), and the robot's one loop. It is wiring and
+lifecycle: it decodes what comes in, calls the pieces below, counts, and publishes.
 
 On zenoh: robot commands in (``…/robot/command``, from safety), the Kinova API as queryables
-(``…/robot/api/<Function>``, run and answered by the loop's worker, with a timeout: :mod:`services.robot.api_calls`),
-the robot state out at every DSP cycle (100 Hz), the low-level torque API (``…/robot/lowlevel/*``, 500 Hz,
-realtime only), and the commissioning check (``…/robot/check/arm``,
-:mod:`services.robot.arm_check`): while it runs, the node moves the arm itself, joint by joint, and holds safety's
-commands (an emergency stop ends the check and stops the arm); its verdict goes out in every state.
+(``…/robot/api/<Function>``, run and answered between DSP cycles, with a timeout: :mod:`services.robot.api_calls`),
+the robot state out at every DSP tick (100 Hz), the low-level torque API (``…/robot/lowlevel/*``, every bus cycle,
+realtime only), and the commissioning check (``…/robot/check/arm``): while it runs, the node moves the arm itself,
+joint by joint, and holds safety's commands (an emergency stop ends the check and stops the arm); its verdict goes
+out in every state.
 
-The loop: every bus cycle it exchanges targets with the hardware (:class:`~services.robot.hardware.RobotHardware`)
-and steps low-level control; every fifth cycle, the DSP cycle: publish the state, take the latest command, run
-the Kinova API calls and the DSP (:class:`~services.robot.core.RobotCore`). In realtime the DSP cycle runs in a
-worker thread, handed each tick's reading, so that the bus cycle goes out on time whatever the DSP costs (as a
-robot's servo loop never waits for its planner): a tick that comes while the worker is still busy is counted
-(``dsp.overruns``) and skipped, and the core holds the arm if no DSP cycle came for two DSP periods. In lockstep
-the DSP cycle runs in the loop, in order.
+The pieces, each without zenoh:
+
+* what drives the arm (:mod:`services.robot.arm_driver`): every cycle of the loop the driver talks to the arm
+  (exchanges the core's targets with the joints, or reads the arm through Kinova's SDK) and says whether the cycle
+  is a DSP tick; the rules between the commands and the arm are its :class:`~services.robot.core.RobotCore`;
+* the DSP cycle of a tick (:meth:`RobotNode.dsp_tick`): publish the state (:mod:`services.robot.state_message`),
+  take the latest command (:mod:`services.robot.command_inbox`; in lockstep the pipeline's answer,
+  :mod:`services.robot.lockstep_gate`), run the Kinova API calls, let the commissioning check
+  (:mod:`services.robot.commissioning`) hold or replace the command, run the DSP. In realtime it runs beside the
+  loop (:class:`~services.runtime.async_cycle.AsyncCycle`), handed each tick's reading, so that the bus cycle goes
+  out on time whatever the DSP costs (as a robot's servo loop never waits for its planner): a tick the worker has
+  not taken when the next comes is skipped and counted (``dsp.overruns``), and the core holds the arm if no DSP
+  cycle came for two DSP periods. In lockstep, and on a driver whose DSP is the arm's own, it runs in the loop;
+* low-level torque control (:mod:`services.robot.lowlevel`), every bus cycle of a driver that offers the joints.
 
 Clock modes:
 
-* ``realtime``: the bus cycle runs every 2 ms of wall time (:class:`~services.runtime.pacing.CyclePacer`), at
+* ``realtime``: the loop runs every bus cycle of wall time (:class:`~services.runtime.pacing.CyclePacer`), at
   realtime priority where the OS allows; lateness is counted and reported in the state (``timing``) and health;
 * ``lockstep``: the arm's own timeline drives the loop, cycle after cycle with no pacing; at each DSP tick the node
-  publishes the state of that tick and waits (``lockstep.cycle_timeout_s``) for the pipeline's answer, a command
-  stamped at or after the tick, and when a camera frame was taken at the tick (``lockstep.frame_timeout_s``) a
-  command derived from that frame. It waits only while a service that answers is alive (``lockstep.answered_by``,
-  safety, which answers each robot state in lockstep): observers of the robot change nothing. The state (and the
-  frame) are published again every ``lockstep.retry_s`` while it waits, since a message can be lost while routes
-  are still being set up; on a starved host the answer may only be late, so vision and the controller answer a
-  frame they get again with the answer they gave it (one frame, one answer: a second, different one, such as
-  "out-of-order", would stand in for the first, reset the law and make the run differ from its replay).
+  waits for the pipeline's answer while a service that answers is alive (:mod:`services.robot.lockstep_gate`).
 
-Subclasses open the hardware and say which frame, if any, was taken at a tick (robot_sim takes it;
-robot_gateway learns it from the simulator's clock).
+Subclasses open the hardware (or a driver of their own) and say which frame, if any, was taken at a tick (robot_sim
+takes it; robot_gateway learns it from the simulator's clock).
+
+Which thread owns what (lockstep, and a driver whose DSP is the arm's own, have no DSP worker: the loop does its
+part):
+
+===========================  ==========================================  ============================================
+thread                       runs                                        owns; touches under a lock
+===========================  ==========================================  ============================================
+zenoh's callbacks            ``_on_command``, ``_on_torque``,            nothing of the loop's: they decode, refuse
+                             ``_on_liveliness``, ``_on_api``,            and hand over: the inbox and the gate's
+                             ``_on_arm_check`` (and robot_gateway's      answerers (``inbox.changed``), the API
+                             ``on_sim_clock``: the simulator's ticks,    calls (their queue's lock), low-level
+                             under a condition of its own)               control's latest command (its lock), a
+                                                                         check's request (the coordinator's lock);
+                                                                         a refused command's note for the states
+``<name>-loop`` (the loop)   pacing, :meth:`RobotNode.bus_cycle`:        the driver (the hardware, its counts, its
+                             low-level control, the driver's cycle,      link health), low-level control, the loop's
+                             the low-level state                         meters; the core's reference, targets and
+                                                                         torque mode (``_core_lock``)
+``<name>-dsp`` (realtime,    :meth:`RobotNode.dsp_tick`: the state,      the DSP (``core.dsp``) and the Kinova API
+a driver whose DSP may run   the command, the Kinova API calls, the      on it, ``kin``, the applied command's
+beside the loop)             commissioning check, the DSP's plan         header, the check's run; the command taken
+                                                                         (``inbox.changed``), the core's plan
+                                                                         (``_core_lock``); reads the link's health
+                                                                         and the driver's count of cycles
+``<name>-api-timeouts``      answers the API calls not taken in time     nothing; the API calls' queue (its lock)
+``<name>-health`` (runtime)  the health                                  nothing; reads counters, meters, link health
+===========================  ==========================================  ============================================
+
+The locks: ``_core_lock`` serialises the core between the loop (targets, readings, holds, torque mode) and the DSP
+worker (its plan); ``inbox.changed`` guards the command waiting, both admissions and the gate's answerers, and
+wakes the DSP wherever it waits for a command. The counters, rates and meters are thread-safe of their own; what
+a reader takes without a lock (the link's faults, the check's verdict) is replaced whole, never changed in place,
+and a refusal's note is the one unguarded count (a refusal noted while a state goes out may be named in fewer).
 """
 from __future__ import annotations
 
@@ -41,48 +75,34 @@ from concurrent.futures import Future
 from typing import Optional
 
 import msgspec
-import numpy as np
 import zenoh
 
 from protocol import kinova
 from protocol.conventions import ClockMode
-from protocol.messages import (
-    ActuatorMode,
-    ArmCheckReply,
-    ArmCheckRequest,
-    ArmCheckState,
-    CommandMode,
-    Header,
-    KinovaPose,
-    LoopTiming,
-    LowLevelState,
-    ProtocolError,
-    RobotCommand,
-    RobotState,
-    TorqueCommand,
-    encode,
-    missing_fields,
-)
 from protocol.keys import last_chunk
-from services.model import frames
-from services.robot import arm_check
-from services.robot.api_calls import ApiCallQueue
-from services.runtime.config import ConfigStruct
+from protocol.messages import (ArmCheckReply, ArmCheckRequest, Header, LoopTiming, LowLevelState, ProtocolError,
+                               RobotCommand, RobotState, TorqueCommand, encode, missing_fields)
 from services.model.arm import DEFAULT_ARM, load_arm
-from services.robot.dsp import DSPConfig, KinovaDSP, for_arm
 from services.model.kinematics import ArmKinematics
-from services.robot.kinova_api import KinovaApi
+from services.robot import arm_check
+from services.robot.admission import AdmissionConfig
+from services.robot.api_calls import ApiCallQueue
+from services.robot.arm_driver import ArmDriver, JointDriver, NodeLoop
+from services.robot.command_inbox import CommandInbox
+from services.robot.commissioning import Commissioning
+from services.robot.core import RobotCore
+from services.robot.dsp import DSPConfig, for_arm
+from services.robot.hardware import CYCLE_S, DEFAULT_TIMING, JointReading, RobotHardware
+from services.robot.lockstep_gate import LockstepConfig, LockstepGate
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
+from services.robot.state_message import RecentRefusal, lowlevel_state, robot_state
 from services.robot.torque_setup import TorqueSetup
+from services.runtime.async_cycle import AsyncCycle
 from services.runtime.metrics import DurationStats, LoopTimer, RateMeter
+from services.runtime.pacing import CyclePacer, request_realtime
 from services.runtime.ports import Port, Ports
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import run_loop, start_thread
-from services.robot.admission import AdmissionConfig, CommandAdmission
-from services.robot.core import RobotCore
-from services.robot.hardware import (CYCLE_S, DEFAULT_TIMING, DSP_CYCLE_NS, EXTRAPOLATED_CYCLES,
-                                     HardwareError, JointReading, RobotHardware)
-from services.runtime.pacing import CyclePacer, request_realtime
 
 #: Kinova API functions that move the arm: refused while low-level torque control owns it (they would be queued
 #: in the DSP and run, unexpectedly, once torque control ends)
@@ -91,50 +111,12 @@ MOTION_FUNCTIONS = frozenset({"SendBasicTrajectory", "MoveHome"})
 MAX_CATCH_UP_CYCLES = 50
 #: a Kinova API call not taken by the robot's worker within this long is answered as timed out, without being run
 API_TIMEOUT_S = 5.0
-
-
 #: the DSP's plan must be ready this long before the next bus exchange: the command window ends there at the latest
 #: (the plan takes 0.2-0.4 ms; the rest is for a late wake-up of the DSP's thread: with 0.5 ms, one plan in about a
 #: thousand missed its exchange on this host)
 PLAN_MARGIN_S = 0.0007
 #: the longest command window: a bus cycle less the plan's margin
 MAX_COMMAND_WINDOW_S = CYCLE_S - PLAN_MARGIN_S
-
-
-def fresh(command: RobotCommand, last_source_ns: int) -> bool:
-    """A command the DSP does not wait past: a stop or an emergency stop, or one derived from a newer frame than the
-    last one taken (``last_source_ns``) or from no frame at all (an operator's or an API's)."""
-    if command.mode in (CommandMode.STOP, CommandMode.EMERGENCY_STOP):
-        return True
-    source = command.header.source_stamp_ns
-    return not source or source > last_source_ns
-
-
-class LockstepConfig(ConfigStruct):
-    #: wall time to wait for the answer to a tick before running the DSP cycle without it
-    cycle_timeout_s: float = 0.5
-    #: wall time to wait for the pipeline's answer to a frame
-    frame_timeout_s: float = 2.0
-    #: publish the state (and the frame) again after this long without an answer
-    retry_s: float = 0.25
-    #: an arm behind a bus (robot_sim's actuator_bus mode) runs a cycle without its host's commands after this
-    #: long; longer than the robot node's own waits, so that a host that is waiting is never overtaken
-    bus_timeout_s: float = 5.0
-    #: the robot node's exchanges with an arm behind a bus wait this long for the replies
-    link_timeout_s: float = 5.0
-    #: the robot node waits for the pipeline's answers while one of these services is alive (liveliness)
-    answered_by: list[str] = msgspec.field(default_factory=lambda: ["safety"])
-    #: before its first cycle, wait this long at most for one of ``answered_by`` to be alive and the outputs they
-    #: answer to be subscribed (0: do not wait); a stack that started them before the robot sets it. Not there by
-    #: then: counted (lockstep.timeouts.answerers), the run is not repeatable
-    await_answerers_s: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not (self.retry_s > 0 and self.cycle_timeout_s > 0 and self.frame_timeout_s > 0):
-            raise ValueError("lockstep needs positive retry_s, cycle_timeout_s and frame_timeout_s")
-        if self.bus_timeout_s <= max(self.frame_timeout_s, self.cycle_timeout_s):
-            raise ValueError("lockstep.bus_timeout_s must exceed the node's own waits (frame_timeout_s, "
-                             "cycle_timeout_s): the host may wait that long")
 
 
 class RobotNodeConfig(ServiceConfig):
@@ -172,74 +154,6 @@ class RobotNodeConfig(ServiceConfig):
             raise ValueError("realtime_priority must be within 0..99 (SCHED_FIFO)")
 
 
-def _kinova_pose(T: np.ndarray) -> KinovaPose:
-    return KinovaPose(**frames.kinova_pose(T[:3, :3], T[:3, 3]))
-
-
-class _CoreView:
-    """What the Kinova API reads of the robot: the latest reading and the reference (model units)."""
-
-    def __init__(self, core: RobotCore, kin: ArmKinematics) -> None:
-        self.core, self.kin = core, kin
-
-    @property
-    def q(self) -> np.ndarray:
-        return self.core.reading.q
-
-    @property
-    def dq(self) -> np.ndarray:
-        return self.core.reading.dq
-
-    @property
-    def tau(self) -> np.ndarray:
-        return self.core.reading.tau
-
-    @property
-    def q_ref(self) -> np.ndarray:
-        return self.core.q_ref.copy()
-
-    def ee_pose(self) -> np.ndarray:
-        """GetCartesianPosition: the arm's own report where it gives one, else the description's kinematics."""
-        reading = self.core.reading
-        if reading.arm_pose is not None:
-            return reading.arm_pose
-        return frames.homogeneous(*self.kin.pose(reading.q))
-
-
-class _TorqueJoints:
-    """Low-level control's view of the joints: mode switches go through the hardware's handshake."""
-
-    def __init__(self, node: "RobotNode") -> None:
-        self.node = node
-
-    @property
-    def torque_mode(self) -> bool:
-        return self.node.core.torque_mode
-
-    @property
-    def actuators_compensate_gravity(self) -> bool:
-        return self.node.hardware.actuators_compensate_gravity
-
-    def enter_torque_mode(self) -> None:
-        node = self.node
-        # what the joints measure now: the arm's gravity load, whichever side compensates it in torque mode
-        node.hardware.enter_torque_mode(node.gravity_kin.gravity(node.core.reading.q))
-        with node._core_lock:
-            node.core.enter_torque_mode()
-
-    def leave_torque_mode(self) -> None:
-        self.node.hardware.leave_torque_mode()
-        with self.node._core_lock:
-            self.node.core.leave_torque_mode()
-
-    def set_torques(self, torques) -> None:
-        with self.node._core_lock:
-            self.node.core.torques = np.asarray(torques, dtype=float).copy()
-
-    def set_gravity_compensation(self, on: bool) -> bool:
-        return self.node.hardware.set_gravity_compensation(on)
-
-
 class RobotNode(Service):
     follows_sim_clock = True
     PORTS = Ports(consumes=(Port("robot_command", RobotCommand), Port("lowlevel_command", TorqueCommand)),
@@ -252,20 +166,48 @@ class RobotNode(Service):
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
         #: the arm this node runs (its description), declared in every state
         self.arm = load_arm(config.arm)
+        #: the DSP's thread's kinematics workspace, and the loop's own (ArmKinematics is not thread-safe)
         self.kin = ArmKinematics(self.arm)
-        #: the bus loop's own kinematics workspace (ArmKinematics is not thread-safe; the DSP worker uses ``kin``)
         self.gravity_kin = ArmKinematics(self.arm)
         #: the torque-mode setup (Table 5.1's functions): the Kinova API sets it, low-level control applies it
         self.torque_setup = TorqueSetup(self.arm)
-        #: the bus's cycle, the hardware's own (services.robot.hardware.BusTiming): known once it is open
-        self.bus_timing = DEFAULT_TIMING
-        #: the loop's period: the bus cycle (a backend without a joint-level bus runs at its DSP's cycle)
-        self.cycle_s = CYCLE_S
-        self.hardware: Optional[RobotHardware] = None
+
+        # what drives the arm, known once it is open (open_driver)
+        self.driver: Optional[ArmDriver] = None
         self.core: Optional[RobotCore] = None
-        self.api = None
+        #: the loop's cycle: the bus's (services.robot.hardware.BusTiming), or the DSP's own where there is no bus
+        self.bus_timing = DEFAULT_TIMING
+        self.cycle_s = CYCLE_S
+        #: low-level torque control, where the driver offers the joints to it
         self.lowlevel: Optional[LowLevelControl] = None
+        #: serialises the core between the loop and the DSP worker
+        self._core_lock = threading.Lock()
+
+        # the pieces the loop and the DSP cycle call
+        #: the commands in, admitted, for the DSP and low-level control; its condition wakes the DSP's waits
+        self.inbox = CommandInbox(config.admission)
+        #: lockstep: each tick waits for the pipeline's answer while a service that answers is alive
+        self.gate = LockstepGate(config.lockstep, self.inbox, self.counters, self.log,
+                                 stopping=lambda: self.stop_requested)
+        #: Kinova API calls from the robot/api/* queryable, run and answered between DSP cycles
+        self.api_calls = ApiCallQueue(API_TIMEOUT_S, on_timeout=lambda call: self.counters.inc("api.timeouts"))
+        #: the commissioning check (its verdict goes out in every state)
+        self.commissioning = Commissioning(config.arm_check, self.arm, self.counters, self.log, self.header)
+        #: the header of the command the last DSP cycle applied, and a refused one, both said in the states
+        self._applied: Optional[Header] = None
+        self._recent_refusal = RecentRefusal()
+
+        # the threads
+        self._thread: Optional[threading.Thread] = None
         self.finished = threading.Event()
+        #: realtime: the DSP cycle's own thread, handed each tick (a tick it has not taken when the next comes is
+        #: skipped: dsp.overruns)
+        self.dsp_worker: Optional[AsyncCycle] = None
+        self._api_timeouts_thread: Optional[threading.Thread] = None
+        #: when the loop's current cycle was due (monotonic): the next is a cycle later
+        self._slot_start = time.monotonic()
+
+        # the loop's meters
         self.loop_timer = LoopTimer(self.cycle_s)
         #: the loop's work per cycle (without its sleep), and the exchanges' share of it
         self.work = DurationStats()
@@ -275,51 +217,32 @@ class RobotNode(Service):
         self.dsp_time = DurationStats()
         #: how long the DSP waited in its command window (realtime), apart from its own time above
         self.command_wait = DurationStats()
-        self._thread: Optional[threading.Thread] = None
-        self._command: Optional[tuple[RobotCommand, int]] = None
-        self.command_cond = threading.Condition()
-        self.admission = CommandAdmission(config.admission)
-        self.torque_admission = CommandAdmission(config.admission)
-        #: Kinova API calls from the robot/api/* queryable, run and answered by the worker (services.robot.api_calls)
-        self.api_calls = ApiCallQueue(API_TIMEOUT_S, on_timeout=lambda call: self.counters.inc("api.timeouts"))
-        self._api_timeouts_thread: Optional[threading.Thread] = None
-        self._applied: Optional[Header] = None
-        self._last_refusal = ""
-        self._refusal_cycles = 0
-        self._exchanges = 0
-        #: arm-timeline DSP ticks: the grid period (stamp // DSP cycle) and the exchange of the last tick
-        self._last_dsp_period: Optional[int] = None
-        self._last_dsp_index = 0
-        self._dsp_stale_seen = 0
-        self._last_stamp: Optional[int] = None
-        self.consecutive_errors = 0
-        self._bus_faults: list[str] = []
-        #: lockstep: the services that answer the robot's ticks, alive now
-        self._answerers: set[str] = set()
-        #: serialises the core between the bus loop and the DSP worker (realtime)
-        self._core_lock = threading.Lock()
-        #: the tick handed to the DSP worker: its stamp, its reading, until when (monotonic) the DSP may wait for
-        #: a fresh command, and the exchanges done by then (a plan taken after another exchange is late)
-        self._dsp_pending: Optional[tuple[int, JointReading, float, int]] = None
-        #: the source stamp of the newest frame a command the DSP took was derived from
-        self._last_source_ns = 0
-        #: when the bus loop's current exchange was due (monotonic): the next is a cycle later
-        self._slot_start = time.monotonic()
-        self._dsp_cond = threading.Condition()
-        self._dsp_thread: Optional[threading.Thread] = None
         self._late = RateMeter()
         self._missed = RateMeter()
         self._cycles = RateMeter()
-        #: the commissioning check: its state and why, a request waiting for the loop, the run under way
-        self.arm_check_state, self.arm_check_detail = arm_check.load_verdict(config.arm_check, self.arm)
-        self._check_request: Optional[tuple[ArmCheckRequest, Future]] = None
-        self._check_run: Optional[tuple[arm_check.ArmCheckRun, Future]] = None
-        self._state_before_check = (self.arm_check_state, self.arm_check_detail)
+        #: what a driver shares with this loop: the clock, where it counts and logs
+        self.loop = NodeLoop(self.name, self.lockstep, self.clock, self.counters, self.limited_log, self._missed,
+                             self.exchange_time)
 
     # ------------------------------------------------------------------ what a robot service provides
+    def open_driver(self) -> ArmDriver:
+        """What drives the arm: by default the emulated Kinova DSP on the joints :meth:`open_hardware` opens (an arm
+        behind Kinova's SDK has a driver of its own)."""
+        hardware, reading = self.open_hardware()
+        try:
+            return JointDriver(hardware, reading, self.loop, dsp=self.config.dsp, kin=self.kin,
+                               gravity=self.gravity_kin.gravity, torque_setup=self.torque_setup,
+                               core_lock=self._core_lock)
+        except BaseException:
+            hardware.close()
+            raise
+
     def open_hardware(self) -> tuple[RobotHardware, JointReading]:
-        """The hardware and its first reading (the arm's joints before the first cycle)."""
+        """The joints' hardware and its first reading (the arm's joints before the first cycle)."""
         raise NotImplementedError
+
+    def declare_outputs(self) -> None:
+        """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
 
     def frame_at_tick(self, tick_ns: int) -> Optional[int]:
         """At a DSP tick (after its state went out): the capture stamp of the camera frame taken at this tick, if
@@ -329,32 +252,46 @@ class RobotNode(Service):
     def on_lockstep_retry(self, tick_ns: int) -> None:
         """The answer to a tick is late: publish what it answers again (robot_sim: the frame and the tick)."""
 
+    def lockstep_outputs_matched(self) -> bool:
+        """Whether what the pipeline answers (robot_sim: its camera's images) has its subscribers."""
+        return True
+
     def on_loop_start(self) -> None:
         """The realtime loop is about to run its first cycle (robot_sim starts its arm's time now)."""
 
     def on_lockstep_end(self) -> None:
         """The lockstep loop's thread is about to end (robot_sim frees the renderer that thread rendered with)."""
 
-    def lowlevel_unavailable(self) -> str:
-        """Why torque commands are refused ('' when the low-level API is offered)."""
-        return "low-level torque control runs in realtime only" if self.lockstep else ""
+    def cycles_dropped(self, n: int) -> None:
+        """Cycles the loop did not run (a stall): counted as missed; the in-process arm's time skips them."""
+        self.counters.inc("cycles.missed", n)
+        for _ in range(n):
+            self._missed.tick()
 
     def done(self) -> bool:
         return self.stop_requested
 
+    def torque_setup_summary(self) -> str:
+        """The torque-mode setup (Table 5.1) low-level control applies, for the health's detail."""
+        return self.torque_setup.describe()
+
+    def arm_summary(self) -> str:
+        """The arm this node runs, and what drives its joints (the first part of its health's detail)."""
+        return f"arm {self.arm.name}: {self.arm.n_joints} joints"
+
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
-        self.hardware, reading = self.open_hardware()
+        self.driver = self.open_driver()
         try:
-            self.bus_timing = self.hardware.timing
+            self.bus_timing = self.driver.timing
             self.cycle_s = self.bus_timing.period_s
-            self.core = RobotCore(self.make_dsp(), reading, self.bus_timing)
-            self.api = self.make_api()
+            self.core = self.driver.core
             keys = self.keys
             self.state_pub = self.publisher(keys.robot_state, "state")
             self.lowlevel_pub = self.publisher(keys.lowlevel_state, "lowlevel_state")
-            self.lowlevel = LowLevelControl(self.config.lowlevel, _TorqueJoints(self), self.gravity_kin.gravity,
-                                            self.torque_setup)
+            if self.driver.torque_joints is not None:
+                self.lowlevel = LowLevelControl(self.config.lowlevel, self.driver.torque_joints,
+                                                self.gravity_kin.gravity, self.torque_setup)
             self.subscribe(keys.robot_command, RobotCommand, self._on_command, "command")
             self.subscribe(keys.lowlevel_command, TorqueCommand, self._on_torque, "lowlevel_command")
             self.queryable(keys.robot_api_all, self._on_api)
@@ -364,47 +301,29 @@ class RobotNode(Service):
                 keys.liveliness_all, self._on_liveliness, history=True))
             self.declare_outputs()
         except BaseException:
-            self.hardware.close()
+            self.driver.close()
             raise
         self._thread = start_thread(self._run, f"{self.name}-loop")
         self._api_timeouts_thread = start_thread(self._answer_api_timeouts, f"{self.name}-api-timeouts")
 
-    def make_dsp(self):
-        """What interprets robot commands: the emulated Kinova DSP (an arm behind Kinova's SDK has its own)."""
-        return KinovaDSP(self.config.dsp, self.kin)
-
-    def make_api(self):
-        """What answers ``robot/api/*`` (``call(function, argument) -> ApiReply``): the emulated Kinova API on the
-        DSP by default."""
-        return KinovaApi(_CoreView(self.core, self.kin), self.core.dsp, self.torque_setup, self.hardware)
-
-    def declare_outputs(self) -> None:
-        """Further publishers and queryables of a robot service (robot_sim: camera and clock)."""
-
     def on_stop(self) -> None:
-        for pending in (self._check_request, self._check_run):
-            if pending is not None and not pending[1].done():
-                pending[1].set_result(ArmCheckReply(ok=False, state=self.arm_check_state,
-                                                    message="the robot stopped before the check ended"))
-        with self.command_cond:
-            self.command_cond.notify_all()
-        with self._dsp_cond:
-            self._dsp_cond.notify_all()
+        self.commissioning.stop()
+        self.inbox.wake()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
-        if self._dsp_thread is not None:
-            self._dsp_thread.join(timeout=5.0)
+        if self.dsp_worker is not None:
+            self.dsp_worker.stop()
         self.api_calls.close(f"{self.name} is stopping")
         if self._api_timeouts_thread is not None:
             self._api_timeouts_thread.join(timeout=5.0)
-        if self.hardware is not None:
-            self.hardware.close()
+        if self.driver is not None:
+            self.driver.close()
 
     def check_health(self) -> tuple[bool, str]:
         if self._thread is None or not self._thread.is_alive():
             return False, "robot loop stopped"
-        if self.consecutive_errors >= self.config.max_bus_errors:
-            return False, f"hardware failing: {self._bus_faults[:1]}"
+        if self.driver.link.failing(self.config.max_bus_errors):
+            return False, f"hardware failing: {self.driver.link.faults[:1]}"
         timing = self.timing()
         work, exchange, lag, dsp, wait = (self.work.stats(), self.exchange_time.stats(), self.wake_lag.stats(),
                                           self.dsp_time.stats(), self.command_wait.stats())
@@ -414,14 +333,6 @@ class RobotNode(Service):
                       f"wake_lag_ms={lag['p50_ms']:.2f}/{lag['p99_ms']:.2f} dsp_ms={dsp['p50_ms']:.2f}/"
                       f"{dsp['p99_ms']:.2f} command_wait_ms={wait['p50_ms']:.2f}/{wait['p99_ms']:.2f} (p50/p99)"
                       + (f"; {setup}" if (setup := self.torque_setup_summary()) else ""))
-
-    def torque_setup_summary(self) -> str:
-        """The torque-mode setup (Table 5.1) low-level control applies, for the health's detail."""
-        return self.torque_setup.describe()
-
-    def arm_summary(self) -> str:
-        """The arm this node runs, and what drives its joints (the first part of its health's detail)."""
-        return f"arm {self.arm.name}: {self.arm.n_joints} joints"
 
     def timing(self) -> LoopTiming:
         return LoopTiming(rate_hz=self._cycles.rate_hz(), late_per_s=self._late.rate_hz(),
@@ -439,27 +350,19 @@ class RobotNode(Service):
     def _on_command(self, command: RobotCommand, recv_ns: int) -> None:
         if self._wrong_joint_count("command", command.joint_velocities):
             return
-        with self.command_cond:
-            rejection = self.admission.admit(command.header, recv_ns)
-            if rejection is not None:
-                self._refuse_command(rejection)
-                return
-            self._command = (command, recv_ns)
-            self.command_cond.notify_all()
+        rejection = self.inbox.offer(command, recv_ns)
+        if rejection is not None:
+            self._refuse_command(rejection)
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
-        name = last_chunk(sample.key_expr)
-        if sample.kind == zenoh.SampleKind.PUT:
-            with self.command_cond:
-                self.admission.new_session(name)  # a new session of a sender numbers its commands afresh
-                self.torque_admission.new_session(name)
-        if name in self.config.lockstep.answered_by:
-            with self.command_cond:
-                if sample.kind == zenoh.SampleKind.PUT:
-                    self._answerers.add(name)
-                else:
-                    self._answerers.discard(name)
-                self.command_cond.notify_all()
+        name, alive = last_chunk(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+        if alive:
+            self.inbox.new_session(name)  # a new session of a sender numbers its commands afresh
+        self.gate.liveliness(name, alive)
+
+    def lowlevel_unavailable(self) -> str:
+        """Why torque commands are refused ('' when the low-level API is offered)."""
+        return "low-level torque control runs in realtime only" if self.lockstep else self.driver.lowlevel_unavailable
 
     def _on_torque(self, command: TorqueCommand, recv_ns: int) -> None:
         if self._wrong_joint_count("lowlevel_command", command.torques):
@@ -468,8 +371,7 @@ class RobotNode(Service):
         if unavailable:
             self.refuse("lowlevel_command", unavailable)
             return
-        with self.command_cond:
-            rejection = self.torque_admission.admit(command.header, recv_ns)
+        rejection = self.inbox.admit_torque(command.header, recv_ns)
         if rejection is not None:  # torques bypass safety: the same freshness and sequence as robot commands
             self.counters.inc(f"refused.lowlevel_{rejection.kind}")
             self.refuse("lowlevel_command", rejection.reason)
@@ -507,8 +409,7 @@ class RobotNode(Service):
             self._answer_api(query, kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
                                                     message=f"not run: {refusal}"))
             return
-        with self.command_cond:
-            self.command_cond.notify_all()  # a DSP waiting for a command runs the call now
+        self.inbox.wake()  # a DSP waiting for a command runs the call now
 
     def _answer_api(self, query: zenoh.Query, reply: kinova.ApiReply) -> None:
         try:
@@ -530,26 +431,14 @@ class RobotNode(Service):
             request = query_argument(query, "arm_check", ArmCheckRequest)
         except ProtocolError as exc:
             self.refuse("arm_check", str(exc))
-            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.arm_check_state,
+            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.commissioning.state,
                                                              message=str(exc)[:512])))
             return
-        reason = ""
-        if not request.confirm:
-            reason = (f"the check moves joints {request.joints} by {request.step_deg}° each, at {request.speed_dps}°/s, "
-                      "and back: confirm that the arm is clear to (mfvs check arm --yes)")
-        elif self.core.torque_mode:
-            reason = "low-level torque control owns the arm"
-        future: Future = Future()
-        if not reason:
-            with self.command_cond:
-                if self._check_request is not None or self._check_run is not None:
-                    reason = "a check is already running"
-                else:
-                    self._check_request = (request, future)
-                    self.command_cond.notify_all()
+        future, reason = self.commissioning.request(request, self.core.torque_mode)
         if reason:
             self.refuse("arm_check", reason)
-            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.arm_check_state, message=reason)))
+            query.reply(query.key_expr, encode(ArmCheckReply(ok=False, state=self.commissioning.state,
+                                                             message=reason)))
             return
         self.log.info("commissioning check requested by %s: joints %s, %.1f° at %.1f°/s", request.operator or "?",
                       request.joints, request.step_deg, request.speed_dps)
@@ -561,128 +450,25 @@ class RobotNode(Service):
         try:
             reply = done.result()
         except Exception as exc:
-            reply = ArmCheckReply(ok=False, state=self.arm_check_state, message=f"the check did not finish: {exc}")
+            reply = ArmCheckReply(ok=False, state=self.commissioning.state,
+                                  message=f"the check did not finish: {exc}")
         try:
             query.reply(query.key_expr, encode(reply))
         finally:
             query.drop()  # the final answer: the caller's get ends here
 
-    def _arm_check_command(self, tick_ns: int, taken, reading: JointReading):
-        """At a DSP tick: start a requested check, or step the one running. Returns the command the DSP takes:
-        the check's own while it runs (safety's held, an emergency stop ending the check), else ``taken``."""
-        if self._check_request is not None and self._check_run is None:
-            with self.command_cond:
-                (request, future), self._check_request = self._check_request, None
-            plan = arm_check.ArmCheckPlan(joints=tuple(request.joints), step_deg=request.step_deg,
-                                          speed_dps=request.speed_dps)
-            try:
-                run = arm_check.ArmCheckRun(plan, self.arm, reading.q, tick_ns * 1e-9)
-            except ValueError as exc:
-                future.set_result(ArmCheckReply(ok=False, state=self.arm_check_state, message=str(exc)))
-                return taken
-            self.core.dsp.erase_all_trajectories()
-            self._check_run = (run, future)
-            self._state_before_check = (self.arm_check_state, self.arm_check_detail)
-            self.arm_check_state = ArmCheckState.RUNNING
-        if self._check_run is None:
-            return taken
-        run, future = self._check_run
-        if taken is not None and taken[0].mode is CommandMode.EMERGENCY_STOP:
-            run.abort("an emergency stop ended the check")
-        elif taken is not None:
-            self.counters.inc("arm_check.commands_held")
-        velocity = run.step(tick_ns * 1e-9, reading.q, reading.dq, reading.arm_pose)
-        if velocity is None:
-            self._finish_arm_check(run, future)
-            return taken
-        header = self.header("arm_check", stamp_ns=tick_ns)
-        return RobotCommand(header=header, mode=CommandMode.JOINT_VELOCITY, joint_velocities=velocity.tolist(),
-                            reason="commissioning check"), tick_ns
-
-    def _finish_arm_check(self, run: "arm_check.ArmCheckRun", future: Future) -> None:
-        reply = arm_check.analyse(run.samples, self.arm.dh_forward_kinematics, failure=run.failure)
-        self._check_run = None
-        if not reply.ok:  # the check could not judge: the arm's verdict is what it was before
-            self.arm_check_state, self.arm_check_detail = self._state_before_check
-            reply = msgspec.structs.replace(reply, state=self.arm_check_state)
-        else:
-            self.arm_check_state, self.arm_check_detail = reply.state, reply.message
-            arm_check.save_verdict(self.config.arm_check, self.arm, reply, time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        self.counters.inc(f"arm_check.{reply.state.value}")
-        (self.log.info if reply.passed else self.log.warning)("commissioning check: %s: %s", reply.state.value,
-                                                             reply.message)
-        future.set_result(reply)
-
     # ------------------------------------------------------------------ the loop thread
-    def run_api_calls(self) -> None:
-        """Run and answer the Kinova API calls waiting (on the worker, between DSP cycles)."""
-        while (call := self.api_calls.take()) is not None:
-            if call.function in MOTION_FUNCTIONS and self.core.torque_mode:
-                self.refuse("api", f"{call.function}: low-level torque control is active")
-                reply = kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
-                                        message="low-level torque control is active")
-            else:
-                try:
-                    reply = self.api.call(call.function, call.argument)
-                except Exception as exc:
-                    self.counters.inc("errors.api")
-                    self.limited_log.error("api", "%s: %s failed: %s", self.name, call.function, exc)
-                    reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
-                                            message=f"{call.function} failed: {exc}"[:512])
-            self.api_calls.finish(call, reply)
-
-    def take_command(self, wait_until: Optional[float] = None) -> Optional[tuple[RobotCommand, int]]:
-        """The command waiting, if any; with ``wait_until`` (monotonic) first wait until then for a :func:`fresh`
-        one, should the one waiting (or none) not be."""
-        with self.command_cond:
-            while wait_until is not None and not (self._command is not None
-                                                  and fresh(self._command[0], self._last_source_ns)):
-                remaining = wait_until - time.monotonic()
-                if remaining <= 0.0 or self.done():
-                    break
-                self.command_cond.wait(remaining)
-            taken, self._command = self._command, None
-            if taken is not None:
-                self._last_source_ns = max(self._last_source_ns, taken[0].header.source_stamp_ns)
-        return taken
-
     def _run(self) -> None:
         run_loop(self._run_lockstep if self.lockstep else self._run_realtime, "robot loop", self.log, self.counters,
                  self.finished)
 
     def _run_lockstep(self) -> None:
         try:
-            self._await_answerers()
+            self.gate.await_answerers(self.lockstep_outputs_matched)
             while not self.done():
                 self.bus_cycle()
         finally:
             self.on_lockstep_end()
-
-    def _await_answerers(self) -> None:
-        """Before the first cycle, until an answerer is alive and the outputs it answers have their subscribers (at
-        most ``lockstep.await_answerers_s``). Both reach a session that just opened on zenoh's thread, some time
-        after it opens (a liveliness query then finds nobody either, measured): a loop that did not wait ran its
-        first ticks unanswered, or took no frame for nobody matched the camera's images, and a run differed from
-        the next on a busy host."""
-        patience = self.config.lockstep.await_answerers_s
-        if patience <= 0:
-            return
-        deadline = time.monotonic() + patience
-        with self.command_cond:
-            while not (self._answerers and self.lockstep_outputs_matched()) and not self.stop_requested:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    self.counters.inc("lockstep.timeouts.answerers")
-                    self.log.warning("lockstep: %s after %.1f s: the arm runs on", "its outputs unmatched"
-                                     if self._answerers else f"none of {', '.join(self.config.lockstep.answered_by)}"
-                                     " alive", patience)
-                    return
-                # the liveliness callback wakes this; a subscriber matched does not (polled), nor a stop
-                self.command_cond.wait(min(left, 0.1 if not self._answerers else 0.005))
-
-    def lockstep_outputs_matched(self) -> bool:
-        """Whether what the pipeline answers (robot_sim: its camera's images) has its subscribers."""
-        return True
 
     #: counters whose growth means the robot's own loop did not keep up (mfvs status shows it degraded); the
     #: cycles the arm ran without a frame for other reasons (transport jitter) are in the missed rate only
@@ -692,11 +478,12 @@ class RobotNode(Service):
         self.declare_loop("bus_cycle", 1.0 / self.cycle_s, self.OVERRUNS)
         if self.cycle_s < self.config.dsp.cycle_s:
             self.declare_loop("cycle", 1.0 / self.config.dsp.cycle_s)
-        self._dsp_thread = start_thread(self._dsp_worker, f"{self.name}-dsp")
+        if self.driver.dsp_beside_loop:
+            self.dsp_worker = AsyncCycle(f"{self.name}-dsp", on_overrun=lambda: self.counters.inc("dsp.overruns"))
         if request_realtime(self.config.realtime_priority, f"{self.name} bus loop"):
             self.counters.inc("realtime_priority.granted")
         self.on_loop_start()
-        pacer = CyclePacer(self.cycle_s, MAX_CATCH_UP_CYCLES if self.hardware.simulated_in_process else 0)
+        pacer = CyclePacer(self.cycle_s, MAX_CATCH_UP_CYCLES if self.driver.simulated_in_process else 0)
         self.loop_timer = LoopTimer(self.cycle_s)
         while not self.done():
             slot = pacer.wait()
@@ -711,233 +498,24 @@ class RobotNode(Service):
             self.bus_cycle()
             self.work.add(time.monotonic() - start)
 
-    def cycles_dropped(self, n: int) -> None:
-        """Cycles the loop did not run (a stall): counted as missed; the in-process arm's time skips them."""
-        self.counters.inc("cycles.missed", n)
-        for _ in range(n):
-            self._missed.tick()
-
     def bus_cycle(self) -> None:
-        """One bus cycle: low-level control, the exchange, and every fifth cycle the DSP."""
+        """One cycle of the loop: low-level control, the driver's cycle with the arm, and at a DSP tick the DSP."""
         self.loop_timer.tick()
         self._cycles.tick()
         if not self.lockstep:
             self.rates.tick("bus_cycle")
-            self._lowlevel_step()
-        with self._core_lock:
-            targets = self.core.targets()
-            stale = self.core.dsp_stale_cycles
-        start = time.monotonic()
-        try:
-            reading = self.hardware.exchange(targets)
-        except HardwareError as exc:
-            reading = None
-            self.consecutive_errors += 1
-            self.counters.inc("bus.failed_exchanges")
-            self._missed.tick()
-            self._bus_faults = [f"bus: {exc}"[:120]]
-            self.limited_log.warning("exchange", "%s: exchange failed: %s", self.name, exc)
-            if self.consecutive_errors > EXTRAPOLATED_CYCLES:
-                # the actuators went on along their last targets for as many cycles as the reference did, and
-                # hold now: the reference holds too (one lost exchange is a missed cycle, not a stop)
-                with self._core_lock:
-                    self.core.stop()
-        else:
-            self.exchange_time.add(time.monotonic() - start)
-            self.consecutive_errors = 0
-            self._bus_faults = []
-            self._count_gap(reading.stamp_ns)
-            with self._core_lock:
-                self.core.observe(reading)
-            if self.lockstep and reading.stamp_ns > 0:
-                self.clock.advance_to(reading.stamp_ns)  # in lockstep the node's time is the arm's
-        if stale > self._dsp_stale_seen:
-            self.counters.inc("dsp.stale_holds", stale - self._dsp_stale_seen)
-            self._dsp_stale_seen = stale
-        index = self._exchanges
-        self._exchanges += 1
-        if self.lowlevel_pub.matching:
+            if self.lowlevel is not None:
+                self._lowlevel_step()
+        tick_ns = self.driver.cycle()
+        if self.lowlevel is not None and self.lowlevel_pub.matching:
             self._publish_lowlevel()
-        if self._is_dsp_tick(index, reading):
-            tick = reading.stamp_ns if reading is not None else self.clock.now_ns()
-            if self.lockstep:
-                self.dsp_tick(tick, self.core.reading)
-            else:
-                self._hand_to_dsp(tick, self.core.reading)
-
-    # ------------------------------------------------------------------ the DSP worker (realtime)
-    def _hand_to_dsp(self, tick_ns: int, reading: JointReading) -> None:
-        with self._dsp_cond:
-            if self._dsp_pending is not None:
-                self.counters.inc("dsp.overruns")  # the worker has not taken the last tick yet: this one is late
-            wait_until = min(time.monotonic() + self.config.command_window_s,
-                             self._slot_start + self.cycle_s - PLAN_MARGIN_S)
-            self._dsp_pending = (tick_ns, reading, wait_until, self._exchanges)
-            self._dsp_cond.notify()
-
-    def _dsp_worker(self) -> None:
-        while not self.done():
-            with self._dsp_cond:
-                while self._dsp_pending is None and not self.done():
-                    self._dsp_cond.wait(0.5)
-                pending, self._dsp_pending = self._dsp_pending, None
-            if pending is None:
-                continue
-            tick_ns, reading, wait_until, exchanges = pending
-            try:
-                start = time.monotonic()
-                waited_s = self.dsp_tick(tick_ns, reading, wait_until)  # a window of 0 ends as it begins
-                self.dsp_time.add(time.monotonic() - start - waited_s)
-                if self._exchanges > exchanges:
-                    self.counters.inc("dsp.late_plans")  # the next exchange went out on the last cycle's plan
-            except Exception:
-                self.counters.inc("errors.dsp")
-                self.limited_log.error("dsp", "%s: DSP cycle failed", self.name)
-                self.log.debug("DSP cycle failure", exc_info=True)
-
-    def _count_gap(self, stamp_ns: int) -> None:
-        """Cycles the arm ran between two of our exchanges (from the readings' stamps on its timeline) beyond the
-        one each exchange takes: missed, whoever was late."""
-        if self._last_stamp is not None and stamp_ns > 0 and not self.hardware.simulated_in_process:
-            gap = self.bus_timing.cycles_in(stamp_ns - self._last_stamp) - 1
-            if gap > 0:
-                self.counters.inc("cycles.arm_missed", gap)
-                for _ in range(gap):
-                    self._missed.tick()
-        self._last_stamp = stamp_ns
-
-    def _is_dsp_tick(self, index: int, reading: Optional[JointReading]) -> bool:
-        if self.lockstep and reading is not None and reading.stamp_ns > 0:
-            return reading.stamp_ns % DSP_CYCLE_NS == 0  # the simulator's 10 ms grid
-        if not self.hardware.arm_timeline:
-            return index % self.bus_timing.cycles_per_dsp == 0
-        # on the arm's grid, in phase with its camera: the first reading at or past each 10 ms line (a lost
-        # reading is no tick, unless a whole DSP cycle of exchanges passed without one: the state goes on)
-        if reading is not None and reading.stamp_ns > 0:
-            period = reading.stamp_ns // DSP_CYCLE_NS
-            tick = self._last_dsp_period is None or period > self._last_dsp_period
-            if self._last_dsp_period is None and reading.stamp_ns % DSP_CYCLE_NS:
-                tick = False  # joined mid-cycle: the first tick is at the next line
-            self._last_dsp_period = period
-        else:
-            tick = index - self._last_dsp_index >= self.bus_timing.cycles_per_dsp
-        if tick:
-            self._last_dsp_index = index
-        return tick
-
-    def dsp_tick(self, tick_ns: int, reading: JointReading, wait_until: Optional[float] = None) -> float:
-        """One DSP cycle on the reading of the tick at ``tick_ns`` (realtime: waiting for a fresh command until
-        ``wait_until``, see ``command_window_s``); how long it waited (s)."""
-        self.rates.tick("cycle")
-        self.publish_state(tick_ns, reading)
-        frame_stamp = self.frame_at_tick(tick_ns)
-        waited_s = 0.0  # in the command window (realtime); lockstep waits for its answer instead
-        if self.lockstep and self._answerers:
-            taken = self._wait_for_answer(tick_ns, frame_stamp, reading)
-        else:
-            waiting = time.monotonic()
-            taken = self.take_command(wait_until)
-            waited_s = time.monotonic() - waiting
-            if wait_until is not None:
-                self.command_wait.add(waited_s)
-        self.run_api_calls()
-        taken = self._arm_check_command(tick_ns, taken, reading)
-        if self.consecutive_errors >= self.config.max_bus_errors:
-            taken = None  # no motion on a failing bus
-            self.core.dsp.erase_all_trajectories()
-            if self._check_run is not None:
-                self._check_run[0].abort("the bus is failing")
-        applied_ns = self.clock.now_ns()
-        if taken is not None:
-            stale = self.admission.stale(taken[0].header, applied_ns)
-            if stale is not None:  # fresh on arrival, aged past the bound waiting for its tick
-                self._refuse_command(stale)
-                taken = None
-        dq_ref, refusal = self.core.dsp_plan(taken[0] if taken is not None else None, reading)
-        with self._core_lock:
-            self.core.take_plan(dq_ref)
-        self._applied = None
-        if taken is not None:
-            command, recv_ns = taken
-            if refusal is None:
-                self._applied = command.header.with_hop(self.name, recv_ns, applied_ns)
-            else:
-                self._refuse_command(refusal)
-        return waited_s
-
-    def _refuse_command(self, rejection) -> None:
-        """A robot command not applied: counted by kind, logged, and named in the states' faults for a while."""
-        self.counters.inc(f"refused.{rejection.kind}")
-        self.refuse("command", rejection.reason)
-        self._last_refusal, self._refusal_cycles = rejection.reason, 100
-
-    # ------------------------------------------------------------------ lockstep
-    def _answered(self, tick_ns: int, frame_stamp: Optional[int]) -> bool:
-        pending = self._command
-        if pending is None:
-            return False
-        header = pending[0].header
-        if header.stamp_ns < tick_ns:
-            return False
-        return not frame_stamp or header.source_stamp_ns >= frame_stamp
-
-    def _wait_for_answer(self, tick_ns: int, frame_stamp: Optional[int], reading: JointReading):
-        cfg = self.config.lockstep
-        start = time.monotonic()
-        deadline = start + (cfg.frame_timeout_s if frame_stamp else cfg.cycle_timeout_s)
-        next_retry = start + cfg.retry_s
-        with self.command_cond:
-            while not self._answered(tick_ns, frame_stamp) and not self.stop_requested:
-                self.command_cond.release()
-                try:
-                    self.run_api_calls()
-                finally:
-                    self.command_cond.acquire()
-                now = time.monotonic()
-                if now >= deadline:
-                    self.counters.inc("lockstep.timeouts.frame" if frame_stamp else "lockstep.timeouts.cycle")
-                    break
-                if now >= next_retry:
-                    self.counters.inc("lockstep.retries")
-                    self.command_cond.release()
-                    try:
-                        self.publish_state(tick_ns, reading)
-                        self.on_lockstep_retry(tick_ns)
-                    finally:
-                        self.command_cond.acquire()
-                    next_retry = now + cfg.retry_s
-                self.command_cond.wait(min(deadline, next_retry) - now)
-        return self.take_command()
-
-    # ------------------------------------------------------------------ outputs
-    def publish_state(self, stamp_ns: int, reading: JointReading) -> None:
-        dsp = self.core.dsp
-        R, p = self.kin.pose(reading.q)
-        status = dsp.status
-        faults = list(status.active_limits) + self._bus_faults + reading.faults()
-        if self._refusal_cycles > 0:
-            faults.append(f"refused: {self._last_refusal}"[:120])
-            self._refusal_cycles -= 1
-        self.state_pub.put(RobotState(
-            header=self.header("state", stamp_ns=stamp_ns), arm=self.arm.name, arm_digest=self.arm.digest,
-            q=reading.q.tolist(), dq=reading.dq.tolist(),
-            tau=reading.tau.tolist(),
-            pose=KinovaPose(**frames.kinova_pose(R, p)),
-            control_mode=status.mode, fifo_count=dsp.fifo_count, faults=faults[:32],
-            watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
-            applied_command=self._applied, timing=self.timing(), limits=dsp.motion_limits(),
-            arm_pose=_kinova_pose(reading.arm_pose) if reading.arm_pose is not None else None,
-            arm_check=self.arm_check_state,
-        ))
-
-    def _publish_lowlevel(self) -> None:
+        if tick_ns is None:
+            return
         reading = self.core.reading
-        self.lowlevel_pub.put(LowLevelState(
-            header=self.header("lowlevel_state", stamp_ns=reading.stamp_ns or None),
-            mode=ActuatorMode.TORQUE if self.core.torque_mode else ActuatorMode.POSITION,
-            q=reading.q.tolist(), dq=reading.dq.tolist(), tau=reading.tau.tolist(),
-            current_a=reading.current_a.tolist(), temperature_c=reading.temperature_c.tolist(),
-            faults=(self._bus_faults + reading.faults())[:32], cycle_ns=self.bus_timing.period_ns))
+        if self.dsp_worker is not None:
+            self._hand_to_dsp(tick_ns, reading)
+        else:
+            self.driver.run_dsp(lambda: self.dsp_tick(tick_ns, reading))
 
     def _lowlevel_step(self) -> None:
         """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""
@@ -953,3 +531,108 @@ class RobotNode(Service):
             self.counters.inc("lowlevel.watchdog")
         elif outcome is Outcome.REFUSED:
             self.refuse("lowlevel_command", detail)
+
+    def _publish_lowlevel(self) -> None:
+        reading = self.core.reading
+        self.lowlevel_pub.put(lowlevel_state(self.header("lowlevel_state", stamp_ns=reading.stamp_ns or None), reading,
+                                             self.core.torque_mode, self.driver.link.faults,
+                                             self.bus_timing.period_ns))
+
+    # ------------------------------------------------------------------ the DSP cycle (the DSP worker, or the loop)
+    def _hand_to_dsp(self, tick_ns: int, reading: JointReading) -> None:
+        wait_until = min(time.monotonic() + self.config.command_window_s,
+                         self._slot_start + self.cycle_s - PLAN_MARGIN_S)
+        exchanges = self.driver.cycles
+        self.dsp_worker.submit(lambda: self._dsp_on_worker(tick_ns, reading, wait_until, exchanges))
+
+    def _dsp_on_worker(self, tick_ns: int, reading: JointReading, wait_until: float, exchanges: int) -> None:
+        """The DSP cycle of a tick on the worker: ``exchanges``, the bus exchanges done when it was handed over (a
+        plan taken after another exchange is late)."""
+        try:
+            start = time.monotonic()
+            # a window of 0 ends as it begins
+            waited_s = self.driver.run_dsp(lambda: self.dsp_tick(tick_ns, reading, wait_until))
+            self.dsp_time.add(time.monotonic() - start - waited_s)
+            if self.driver.cycles > exchanges:
+                self.counters.inc("dsp.late_plans")  # the next exchange went out on the last cycle's plan
+        except Exception:
+            self.counters.inc("errors.dsp")
+            self.limited_log.error("dsp", "%s: DSP cycle failed", self.name)
+            self.log.debug("DSP cycle failure", exc_info=True)
+
+    def dsp_tick(self, tick_ns: int, reading: JointReading, wait_until: Optional[float] = None) -> float:
+        """One DSP cycle on the reading of the tick at ``tick_ns`` (realtime: waiting for a fresh command until
+        ``wait_until``, see ``command_window_s``); how long it waited (s)."""
+        self.rates.tick("cycle")
+        self.publish_state(tick_ns, reading)
+        frame_stamp = self.frame_at_tick(tick_ns)
+        waited_s = 0.0  # in the command window (realtime); lockstep waits for its answer instead
+        if self.lockstep and self.gate.waits:
+            taken = self._wait_for_answer(tick_ns, frame_stamp, reading)
+        else:
+            waiting = time.monotonic()
+            taken = self.inbox.take(wait_until, self.done)
+            waited_s = time.monotonic() - waiting
+            if wait_until is not None:
+                self.command_wait.add(waited_s)
+        self.run_api_calls()
+        taken = self.commissioning.command(tick_ns, taken, reading, self.core.dsp)
+        if self.driver.link.failing(self.config.max_bus_errors):
+            taken = None  # no motion on a failing bus
+            self.core.dsp.erase_all_trajectories()
+            self.commissioning.abort("the bus is failing")
+        applied_ns = self.clock.now_ns()
+        if taken is not None:
+            stale = self.inbox.admission.stale(taken[0].header, applied_ns)
+            if stale is not None:  # fresh on arrival, aged past the bound waiting for its tick
+                self._refuse_command(stale)
+                taken = None
+        dq_ref, refusal = self.core.dsp_plan(taken[0] if taken is not None else None, reading)
+        with self._core_lock:
+            self.core.take_plan(dq_ref)
+        self._applied = None
+        if taken is not None:
+            command, recv_ns = taken
+            if refusal is None:
+                self._applied = command.header.with_hop(self.name, recv_ns, applied_ns)
+            else:
+                self._refuse_command(refusal)
+        return waited_s
+
+    def _wait_for_answer(self, tick_ns: int, frame_stamp: Optional[int], reading: JointReading):
+        """Lockstep: the pipeline's answer to this tick (services.robot.lockstep_gate), the Kinova API calls run
+        while it is awaited, the state (and the frame) published again when it is late."""
+        def again() -> None:
+            self.publish_state(tick_ns, reading)
+            self.on_lockstep_retry(tick_ns)
+
+        return self.gate.wait_for_answer(tick_ns, frame_stamp, meanwhile=self.run_api_calls, again=again)
+
+    def run_api_calls(self) -> None:
+        """Run and answer the Kinova API calls waiting (on the worker, between DSP cycles)."""
+        while (call := self.api_calls.take()) is not None:
+            if call.function in MOTION_FUNCTIONS and self.core.torque_mode:
+                self.refuse("api", f"{call.function}: low-level torque control is active")
+                reply = kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                        message="low-level torque control is active")
+            else:
+                try:
+                    reply = self.driver.api.call(call.function, call.argument)
+                except Exception as exc:
+                    self.counters.inc("errors.api")
+                    self.limited_log.error("api", "%s: %s failed: %s", self.name, call.function, exc)
+                    reply = kinova.ApiReply(code=int(kinova.ErrorCode.UNKNOWN_ERROR),
+                                            message=f"{call.function} failed: {exc}"[:512])
+            self.api_calls.finish(call, reply)
+
+    def _refuse_command(self, rejection) -> None:
+        """A robot command not applied: counted by kind, logged, and named in the states' faults for a while."""
+        self.counters.inc(f"refused.{rejection.kind}")
+        self.refuse("command", rejection.reason)
+        self._recent_refusal.note(rejection.reason)
+
+    def publish_state(self, stamp_ns: int, reading: JointReading) -> None:
+        self.state_pub.put(robot_state(
+            self.header("state", stamp_ns=stamp_ns), self.arm, reading, self.kin, self.core.dsp,
+            link_faults=self.driver.link.faults, refused=self._recent_refusal.for_next_state(), applied=self._applied,
+            timing=self.timing(), arm_check=self.commissioning.state))

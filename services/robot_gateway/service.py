@@ -8,8 +8,9 @@ hardware, so every other service sees the same robot:
   which tick carries a camera frame;
 * ``kinova_sdk`` backend (:class:`SdkGatewayService`): the arm through Kinova's own SDK library (USB, or
   Ethernet) loaded with ctypes (services.robot_gateway.kinova_sdk); the arm's own DSP interprets the commands, so
-  the gateway forwards them every 10 ms; no low-level torque API; realtime only. It opens the arm before it
-  connects to the router: a gateway that cannot reach its arm says so first (one line, exit 2).
+  the gateway forwards them every 10 ms (services.robot_gateway.sdk_driver); no low-level torque API; realtime
+  only. It opens the arm before it connects to the router: a gateway that cannot reach its arm says so first
+  (one line, exit 2).
 
 Bus failures (timeouts, NACKs, missing replies, garbled frames) are counted; the arm is held at its last measured
 angles, and after ``max_bus_errors`` consecutive failures the gateway reports itself unhealthy and refuses motion
@@ -21,25 +22,23 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
 
 import msgspec
 
-from protocol import rs485 as r
 from protocol.conventions import LOCKSTEP_EPOCH_NS, ClockMode
 from protocol.messages import SimClock
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.service import Service
-from services.robot.hardware import DEFAULT_TIMING, BusTiming, HardwareError, JointReading
+from services.robot.hardware import DEFAULT_TIMING, HardwareError, JointReading
 from services.robot.node import RobotNode, RobotNodeConfig
 from services.model.arm import load_arm
-from services.robot_gateway.kinova_sdk import (ArmSession, ArmStartError, KinovaSdk, SdkArm, SdkError,
-                                               SdkEthernetConfig, open_arm)
+from services.robot_gateway.kinova_sdk import ArmStartError, KinovaSdk, SdkArm, SdkError, SdkEthernetConfig, open_arm
 from services.robot_gateway.kinova_usb import (COMMAND_LAYER, HIGH_LEVEL_CHECK_DEG, KinovaUsbBus,
                                                high_level_disagreement, locate_comm_layer, open_kinova_usb)
 from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
+from services.robot_gateway.sdk_driver import SdkConnection, SdkDriver
 
 #: ``bus.interface`` for a real arm's actuator bus through Kinova's USB comm layer (services.robot_gateway.kinova_usb)
 KINOVA_USB = "kinova_usb"
@@ -189,50 +188,6 @@ class RobotGatewayService(RobotNode):
             return self._ticks.get(tick_ns) or None
 
 
-class _NoJoints:
-    """The kinova_sdk backend's joints as the robot node sees them: the arm's own DSP drives them; there is no
-    joint-level exchange and no low-level torque API through the command layer. Closing it ends the arm's
-    session (trajectories erased, StopControlAPI, CloseAPI)."""
-
-    simulated_in_process = False
-    arm_timeline = False
-    #: torque mode through the SDK goes through Kinova's DSP, which compensates the arm's gravity itself
-    actuators_compensate_gravity = True
-    #: no joint-level bus: the node's loop runs at the DSP's own cycle
-    timing = BusTiming(1)
-
-    def __init__(self, session: ArmSession) -> None:
-        self.session = session
-
-    def exchange(self, targets):
-        raise HardwareError("the kinova_sdk backend has no joint-level exchange")
-
-    def enter_torque_mode(self, expected_torques) -> None:
-        raise HardwareError("no low-level torque API through the Kinova SDK")
-
-    def leave_torque_mode(self) -> None:
-        pass
-
-    def set_gravity_compensation(self, on: bool) -> bool:
-        return False  # no torque mode here; the arm's own setup is the SDK's (Table 5.1's calls go to the arm)
-
-    def close(self) -> None:
-        self.session.close()
-
-
-@dataclass
-class SdkConnection:
-    """The arm opened through Kinova's SDK, with its first reading: what the kinova_sdk backend starts from."""
-
-    sdk: KinovaSdk
-    session: ArmSession
-    arm: SdkArm
-    first_reading: JointReading
-
-    def close(self) -> None:
-        self.session.close()
-
-
 def connect_sdk_arm(config: GatewayConfig, sdk: Optional[KinovaSdk] = None,
                     log: Optional[logging.Logger] = None) -> SdkConnection:
     """Kinova's SDK found (unless given) and the arm opened and read once (:class:`ArmStartError` with one line
@@ -255,9 +210,10 @@ def connect_sdk_arm(config: GatewayConfig, sdk: Optional[KinovaSdk] = None,
 
 
 class SdkGatewayService(RobotNode):
-    """The robot node on an arm behind Kinova's SDK: every DSP cycle (10 ms) it reads the arm, publishes its state
-    and forwards the latest robot command to the arm's own DSP. It opens the arm in :meth:`start` before it joins
-    the network, unless it is given one already open (``connection``: the process's entry opens it first)."""
+    """The robot node on an arm behind Kinova's SDK (:class:`~services.robot_gateway.sdk_driver.SdkDriver`): every
+    DSP cycle (10 ms) it reads the arm, publishes its state and forwards the latest robot command to the arm's own
+    DSP. It opens the arm in :meth:`start` before it joins the network, unless it is given one already open
+    (``connection``: the process's entry opens it first)."""
 
     name = "robot_gateway"
 
@@ -269,8 +225,6 @@ class SdkGatewayService(RobotNode):
         self.connection = connection
         #: the library, found and loaded now so that a missing one fails before anything starts
         self.sdk = connection.sdk if connection else KinovaSdk.find(config.sdk_library, config.sdk_transport)
-        #: the arm behind the SDK (``self.arm`` is its description)
-        self.sdk_arm: Optional[SdkArm] = connection.arm if connection else None
 
     def start(self) -> "SdkGatewayService":
         """Open the arm, then start the service (the router comes second: a gateway that cannot reach its arm
@@ -279,51 +233,20 @@ class SdkGatewayService(RobotNode):
             return super().start()  # refuses, saying why
         if self.connection is None:
             self.connection = connect_sdk_arm(self.config, self.sdk, self.log)
-            self.sdk_arm = self.connection.arm
         try:
             return super().start()
         except BaseException:
             self.connection.close()
             raise
 
-    def open_hardware(self):
-        return _NoJoints(self.connection.session), self.connection.first_reading
-
-    def make_dsp(self):
-        return self.sdk_arm
-
-    def make_api(self):
-        return self.sdk
+    def open_driver(self) -> SdkDriver:
+        return SdkDriver(self.connection, self.loop)
 
     def arm_summary(self) -> str:
         return f"arm {self.arm.name}: {self.arm.n_joints} joints behind Kinova's SDK"
 
     def torque_setup_summary(self) -> str:
         return ""  # the arm holds its own: the SDK passes Table 5.1's calls to it and cannot read them back
-
-    def lowlevel_unavailable(self) -> str:
-        return "the kinova_sdk backend has no low-level torque API (the USB layer offers none); use the rs485 backend"
-
-    def bus_cycle(self) -> None:
-        """The DSP cycle: read the arm (4 SDK calls), publish its state, forward the latest command."""
-        self.loop_timer.tick()
-        self._cycles.tick()
-        self.rates.tick("bus_cycle")
-        try:
-            self.core.observe(self.sdk_arm.read())
-            self.consecutive_errors, self._bus_faults = 0, []
-        except Exception as exc:  # an SDK error code, or values the arm should never report (NaN)
-            self.consecutive_errors += 1
-            self.counters.inc("sdk.errors")
-            self.limited_log.error("sdk", "%s", exc)
-            self._bus_faults = [f"sdk: {exc}"[:120]]
-        try:
-            self.dsp_tick(time.time_ns(), self.core.reading)
-        except SdkError as exc:
-            self.consecutive_errors += 1
-            self.counters.inc("sdk.errors")
-            self.limited_log.error("sdk", "%s", exc)
-            self._bus_faults = [f"sdk: {exc}"[:120]]
 
 
 def open_bus(config: GatewayConfig, counters=None, log: Optional[logging.Logger] = None):

@@ -32,7 +32,7 @@ from services.runtime.threads import run_loop, start_thread
 from services.robot.rs485_bus import BusError, RS485Bus
 from services.robot.hardware import CYCLE_NS, CYCLE_S
 from services.robot.hardware import CYCLES_PER_DSP, DSP_CYCLE_NS
-from services.robot.node import LockstepConfig
+from services.robot.lockstep_gate import LockstepConfig
 from services.runtime.pacing import request_realtime
 from services.robot_sim.bus_device import ActuatorBusDevice
 from services.robot_sim.sim import Simulation

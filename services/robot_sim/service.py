@@ -241,14 +241,16 @@ class RobotSimService(RobotNode):
         self.config: RobotSimConfig = config
         self.sim = Simulation(config.scene, config.actuators, render=True, counters=self.counters, arm=self.arm)
         self.outputs: Optional[_SimulationOutputs] = None
+        #: the simulated arm as the node's hardware (its stamps' epoch moves with the wall clock in realtime)
+        self.sim_hardware: Optional[SimulatedHardware] = None
 
     def open_hardware(self):
         epoch = _epoch(self.config)
         if self.lockstep:
             self.clock.advance_to(epoch)
         self.outputs = _SimulationOutputs(self, self.sim, self.config, epoch, render_in_loop=True)
-        hardware = SimulatedHardware(self.sim, epoch, on_boundary=self._at_boundary)
-        return hardware, hardware.read()
+        self.sim_hardware = SimulatedHardware(self.sim, epoch, on_boundary=self._at_boundary)
+        return self.sim_hardware, self.sim_hardware.read()
 
     def _at_boundary(self, values: ActuatorValues) -> None:
         self.outputs.at_boundary(values.stamp_ns)
@@ -269,13 +271,13 @@ class RobotSimService(RobotNode):
         return not self.outputs.renders or self.outputs.image_pub.matching
 
     def on_loop_start(self) -> None:
-        self.hardware.epoch_ns = time.time_ns() - self.sim.time_ns  # the arm's time starts now, as wall time
-        self.outputs.epoch_ns = self.hardware.epoch_ns
+        self.sim_hardware.epoch_ns = time.time_ns() - self.sim.time_ns  # the arm's time starts now, as wall time
+        self.outputs.epoch_ns = self.sim_hardware.epoch_ns
 
     def cycles_dropped(self, n: int) -> None:
         super().cycles_dropped(n)
-        self.hardware.epoch_ns += n * CYCLE_NS  # the arm did not run them: its stamps skip them, as wall time did
-        self.outputs.epoch_ns = self.hardware.epoch_ns
+        self.sim_hardware.epoch_ns += n * CYCLE_NS  # the arm did not run them: its stamps skip them, as wall time did
+        self.outputs.epoch_ns = self.sim_hardware.epoch_ns
 
     def done(self) -> bool:
         limit = self.config.max_sim_time_s

@@ -55,7 +55,7 @@ def test_the_robot_node_checks_its_arm_and_says_so_in_its_state(router, tmp_path
         assert reply.passed and final is m.ArmCheckState.PASSED
     assert record.exists()  # the verdict stays with the arm: a restart starts from it
     again = robot(router, mirrored, record)
-    assert again.arm_check_state is final
+    assert again.commissioning.state is final
 
 
 def test_the_controller_starts_no_task_on_an_unchecked_arm(router):

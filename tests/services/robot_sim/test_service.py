@@ -13,7 +13,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from protocol.keys import Keys
 from services.robot.dsp import DSPConfig, motion_limits
-from services.robot.node import LockstepConfig
+from services.robot.lockstep_gate import LockstepConfig
 from services.runtime.transport import GuardedPublisher, open_session
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from tests.stack import next_seq, wait_for
