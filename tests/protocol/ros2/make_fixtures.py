@@ -22,7 +22,8 @@ It writes ``fixtures/<sample>.rclpy.cdr`` and ``fixtures/<sample>.rosbags.cdr`` 
 encapsulation header included) and ``fixtures/fixtures.json``: each sample's values (the same values the tests build
 their messages from), the files, the type hashes from each source, and the GIDs. Versions used for the committed
 fixtures: ros-jazzy-rclpy 7.1.6, the message packages 5.3.6 (builtin_interfaces 2.0.3), rosbags 0.11.9,
-xxhash 4.1.0.
+xxhash 4.1.0. A second run rewrites some ``*.rclpy.cdr`` files with other bytes in the same places: the serializer
+leaves whatever its buffer held in alignment gaps, which is why the tests compare those files padding aside.
 """
 from __future__ import annotations
 
