@@ -149,6 +149,15 @@ def parse_model_code(text: str) -> ModelCode | None:
 EMULATED_SERIAL = "MFVS-EMULATED"
 
 
+def device_text(raw: bytes) -> str:
+    """A string of a Kinova device's record (its serial number, its model) as a person can read it: up to the first
+    NUL, printable ASCII only (anything else '?'). The comm layer fills the record from the device's descriptors;
+    where it could not (a device that did not answer), the bytes are whatever the memory held, and printed as they
+    are they would break the one-line error a person acts on."""
+    text = bytes(raw).split(b"\0", 1)[0].decode("ascii", errors="replace")
+    return "".join(c if c.isprintable() and c.isascii() else "?" for c in text).strip()
+
+
 def arm_type_refusal(device_model: str, arm_name: str, n_joints: int) -> str | None:
     """Why an arm that reports ``device_model`` must not be driven as the configured arm ``arm_name`` with
     ``n_joints`` joints (None: it may). The joint count decides; where the configured name is a model code too,

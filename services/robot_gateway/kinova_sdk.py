@@ -445,9 +445,6 @@ def float32_problem(message, path: str = "") -> str:
 
 
 # ------------------------------------------------------------------------------------------------ starting
-def _text(raw: bytes) -> str:
-    return raw.split(b"\0", 1)[0].decode("ascii", errors="replace").strip()
-
 
 @dataclass(frozen=True)
 class ArmDevice:
@@ -461,7 +458,7 @@ class ArmDevice:
     @classmethod
     def from_c(cls, device: KinovaDevice) -> "ArmDevice":
         copy = KinovaDevice.from_buffer_copy(device)  # the list's buffer goes away; SetActiveDevice takes it by value
-        return cls(_text(bytes(device.SerialNumber)), _text(bytes(device.Model)),
+        return cls(kinova.device_text(device.SerialNumber), kinova.device_text(device.Model),
                    f"{device.VersionMajor}.{device.VersionMinor}.{device.VersionRelease}", copy)
 
     def describe(self) -> str:

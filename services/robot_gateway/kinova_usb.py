@@ -199,8 +199,8 @@ class KinovaUsbBus:
         #: RS-485 positions are checked against (None: not read)
         self.high_level_deg = high_level_deg
         #: the arm whose bus this is, as the comm layer lists it
-        self.serial = device.SerialNumber.decode(errors="replace") if device is not None else ""
-        self.model = device.Model.decode(errors="replace") if device is not None else ""
+        self.serial = kinova.device_text(device.SerialNumber) if device is not None else ""
+        self.model = kinova.device_text(device.Model) if device is not None else ""
         self.counters = counters or Counters()
         self.last_error = ""
         self._lock = threading.Lock()
@@ -360,14 +360,14 @@ def open_kinova_usb(comm_layer: Path, arm_name: str, n_joints: int, counters: Co
         arms = devices(comm)
         if len(arms) != 1:
             raise ArmStartError(f"{len(arms)} Kinova devices are connected ("
-                                f"{', '.join(d.SerialNumber.decode(errors='replace') for d in arms)}): the comm layer "
+                                f"{', '.join(kinova.device_text(d.SerialNumber) for d in arms)}): the comm layer "
                                 "sends RS-485 to the first one it lists; connect only the arm to drive")
         arm = arms[0]
-        model = arm.Model.decode(errors="replace")
+        model = kinova.device_text(arm.Model)
         refusal = kinova.arm_type_refusal(model, arm_name, n_joints)
         if refusal:
             raise ArmStartError(f"refusing the arm's RS-485 bus: {refusal}")
-        serial = arm.SerialNumber.decode(errors="replace")
+        serial = kinova.device_text(arm.SerialNumber)
         if emulated_only and serial != kinova.EMULATED_SERIAL:
             raise ArmStartError(f"lockstep needs robot_sim's emulated actuators; arm {serial} keeps wall time: run it "
                                 "in realtime")

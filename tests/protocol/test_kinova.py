@@ -129,3 +129,15 @@ def test_an_arm_is_driven_only_as_the_arm_it_reports_itself_to_be():
     assert "MICO 1" in k.arm_type_refusal("m1n6s300", "j2n6s300", 6)
     reason = k.arm_type_refusal("JACO2", "j2s7s300", 7)
     assert "'JACO2'" in reason and "cannot be checked" in reason
+
+
+@pytest.mark.parametrize("raw, text", [
+    (b"PJ00650019161750\0\0\0\0", "PJ00650019161750"),
+    (b"j2s7s300\0garbage after the NUL", "j2s7s300"),
+    (b"\x90\xe1\n\x7f\0", "????"),  # a record the comm layer did not fill: whatever the memory held
+    (b"", ""),
+])
+def test_a_device_records_strings_print_on_one_readable_line(raw, text):
+    """(Two devices once printed their unfilled serial numbers raw: a newline in one split the gateway's one-line
+    error in three.)"""
+    assert k.device_text(raw) == text
