@@ -52,7 +52,7 @@ ROBOTS = {"sim": "robot_sim", "gateway": "robot_gateway"}
 #: the robot's counters reported over the window (their growth)
 COUNTERS = ("cycles.late", "cycles.missed", "cycles.arm_missed", "bus.failed_exchanges", "lowlevel.watchdog",
             "lowlevel.safety_stops", "rejected.lowlevel_command")
-#: and why torque commands were refused (services.robot.node: stale, replayed, after a safety stop, ...)
+#: and why torque commands were refused (services.robot.node_inputs: stale, replayed, after a safety stop, ...)
 REFUSALS = "refused.lowlevel_"
 #: the sending thread's SCHED_FIFO priority: safety's (and bench/command_source.py's), below the robot's loops
 CLIENT_PRIORITY = 30

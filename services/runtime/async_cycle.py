@@ -1,5 +1,5 @@
 """Work done once a tick on a thread of its own, so that the thread that hands it over never waits for it: the robot
-node's DSP cycle beside its bus loop (services.robot.node), as a robot's servo loop never waits for its planner.
+node's DSP cycle beside its bus loop (services.robot.dsp_worker), as a robot's servo loop never waits for its planner.
 
 :meth:`AsyncCycle.submit` hands over one tick's work and returns at once, with a
 :class:`~concurrent.futures.Future` of its result (``future.result(timeout)`` waits for it, with a deadline). The
