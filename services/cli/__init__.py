@@ -58,7 +58,22 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"mfvs {mfvs_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    # each group in the order `mfvs --help` lists the commands
+    _add_infrastructure_commands(sub)
+    if infrastructure_only:
+        return parser
+    _add_model_command(sub)
+    _add_stack_commands(sub)
+    _add_servo_commands(sub)
+    _add_package_commands(sub)
+    _add_operator_commands(sub)
+    _add_bench_command(sub)
+    return parser
 
+
+def _add_infrastructure_commands(sub) -> None:
+    """``mfvs router`` and ``mfvs bus-hub``: the stack's own infrastructure, parsed with nothing else
+    imported (:data:`INFRASTRUCTURE_COMMANDS`)."""
     router = sub.add_parser("router", help="run a zenoh router in the foreground until SIGTERM/SIGINT")
     router.add_argument("--port", type=int, default=None,
                         help="TCP port to listen on (0: a free one; default: the --config file's listen endpoint, "
@@ -77,9 +92,10 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     hub.add_argument("--realtime-priority", type=int, default=40, metavar="N",
                      help="SCHED_FIFO priority where the OS grants it, as the robot's loops (0: normal scheduling)")
     hub.set_defaults(func=cmd_bus_hub)
-    if infrastructure_only:
-        return parser
 
+
+def _add_model_command(sub) -> None:
+    """``mfvs model``: an arm's description."""
     model = sub.add_parser("model", help="an arm's description (j2s7s300: Sensors 2022's 7-DoF; j2n6s300: the JACO "
                                          "thesis's 6-DoF): its joints, limits, home, URDF and forward kinematics")
     model.add_argument("what", choices=["urdf", "info", "fk"],
@@ -90,6 +106,9 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     model.add_argument("--json", action="store_true", help="one JSON object (info, fk)")
     model.set_defaults(func=cmd_model)
 
+
+def _add_stack_commands(sub) -> None:
+    """``mfvs up``, ``down``, ``restart``, ``status``: a stack's processes."""
     up_cmd = sub.add_parser("up", help="start a stack (router and services) as background processes")
     up_cmd.add_argument("--profile", default="sim", help="sim, gateway, or a profile YAML file")
     up_cmd.add_argument("--clock", choices=["realtime", "lockstep"], default=None, help="override the clock mode")
@@ -117,6 +136,10 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     status_cmd.add_argument("--zenoh-config", default=None, help="zenoh client config (credentials, certificates)")
     status_cmd.set_defaults(func=cmd_status)
 
+
+def _add_servo_commands(sub) -> None:
+    """``mfvs servo``, ``experiment``, ``demo``: one servo task, the papers' experiments made of them, and a new
+    user's first look."""
     servo = sub.add_parser("servo", help="run one servo task described by a scenario file")
     servo.add_argument("--scenario", required=True, help="scenario YAML (see examples/scenarios)")
     servo.add_argument("--profile", default="sim",
@@ -171,6 +194,10 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     add_processes_option(demo)
     demo.set_defaults(func=cmd_demo)
 
+
+def _add_package_commands(sub) -> None:
+    """The commands their packages add themselves: ``calibrate``, ``check``, ``doctor``, the observers'
+    (services.observe.cli) and the console's, each given the command line's own connection helpers."""
     from services.calibration.cli import add_parser as add_calibrate
     from services.commissioning.check import add_parser as add_check
     from services.commissioning.doctor import add_parser as add_doctor
@@ -184,6 +211,10 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     add_observe(sub, add_connection_options, operator_session, stack_connection, service_graph)
     add_console(sub, add_connection_options, stack_connection)
 
+
+def _add_operator_commands(sub) -> None:
+    """``mfvs estop``, ``task``, ``authority``: what an operator tells a running stack, and who may command the
+    robot."""
     estop = sub.add_parser("estop", help="engage the latched emergency stop (or --reset it)")
     estop.add_argument("--reset", action="store_true", help="release the e-stop (only an explicit reset does)")
     estop.add_argument("--operator", default="mfvs-cli", help="who is asking (logged by safety)")
@@ -209,6 +240,9 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     authority.add_argument("--services", help="comma-separated service identities (default: all of mfvs)")
     authority.set_defaults(func=cmd_authority)
 
+
+def _add_bench_command(sub) -> None:
+    """``mfvs bench``: a benchmark of bench/ with its own options."""
     bench = sub.add_parser("bench", help="run a benchmark and print its figures")
     bench.add_argument("name", choices=sorted(BENCHMARKS),
                        help="loops: robot_sim loop rate, jitter, lockstep speed; vision: detection time per frame; "
@@ -224,7 +258,6 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     bench.add_argument("--json", action="store_true", help="print one JSON object")
     bench.add_argument("options", nargs=argparse.REMAINDER, help="options of the benchmark itself (see --help)")
     bench.set_defaults(func=cmd_bench)
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
