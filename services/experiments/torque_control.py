@@ -258,102 +258,136 @@ def _window_max(arrays: dict, values: np.ndarray, start: float, end: float) -> O
     return round(float(values[inside].max()), 3) if inside.any() else None
 
 
+def _observation(key: str, thesis: str, measured: str, verdict: str) -> dict:
+    return {"id": key, "thesis": thesis, "measured": measured, "verdict": verdict}
+
+
+def _ran(rows: dict, label: str) -> bool:
+    """Whether the run ``label`` was made and did not fail (its figures can be judged)."""
+    return label in rows and rows[label]["status"] != "failed"
+
+
+def _position_rms(rows: dict, label: str) -> float:
+    return rows[label]["position_mm"]["rms"]
+
+
 def observations(rows: dict, arrays: dict, arm: ArmDescription, quick: bool) -> list[dict]:
     """The thesis's observations, each beside what was measured: agrees, does not, or cannot tell."""
+    return (_null_space_observations(rows) + [_last_joint_observation(rows, arm.n_joints)]
+            + _coupling_observations(rows, arrays, arm, quick) + _joint_velocity_observations(rows, arrays, arm, quick)
+            + _joint_pd_observations(rows))
+
+
+def _null_space_observations(rows: dict) -> list[dict]:
+    """(b) against (a), and (c) against (b): what the null space, and its weighting, do to the position task."""
     found = []
-
-    def add(key: str, thesis: str, measured: str, verdict: str) -> None:
-        found.append({"id": key, "thesis": thesis, "measured": measured, "verdict": verdict})
-
-    def ok(label: str) -> bool:
-        return label in rows and rows[label]["status"] != "failed"
-
-    def rms(label: str, what: str = "position_mm") -> float:
-        return rows[label][what]["rms"]
-
-    if ok("jt-pid") and ok("null-space"):
-        a, b = rms("jt-pid"), rms("null-space")
-        add("null_space_improves_position", "the null space improves the primary (position) task over the "
+    if _ran(rows, "jt-pid") and _ran(rows, "null-space"):
+        a, b = _position_rms(rows, "jt-pid"), _position_rms(rows, "null-space")
+        found.append(_observation(
+            "null_space_improves_position", "the null space improves the primary (position) task over the "
             "transpose (L2455-2457)", f"position RMS {a:.2f} mm (a) against {b:.2f} mm (b)",
-            "agrees" if b < a else "does not")
-    if ok("null-space") and ok("null-space-mass"):
-        b, c = rms("null-space"), rms("null-space-mass")
+            "agrees" if b < a else "does not"))
+    if _ran(rows, "null-space") and _ran(rows, "null-space-mass"):
+        b, c = _position_rms(rows, "null-space"), _position_rms(rows, "null-space-mass")
         change = (c - b) / b if b else float("inf")
         line = f"position RMS {b:.2f} mm (W = I) against {c:.2f} mm (W = M̂), {100 * change:+.0f} %"
-        if ok("null-space-mass-rotors"):
-            line += f"; with the rotors in M̂ {rms('null-space-mass-rotors'):.2f} mm"
-        add("mass_weight_barely_changes", "W = M(q) performs \"practically the same\" as W = I (L2482-2488)", line,
-            "agrees" if abs(change) <= 0.25 or abs(c - b) < 0.5 else "does not")
-    n = arm.n_joints
-    if ok("joint-pd") and ok("joint-pd-last-low"):
-        table, low = rows["joint-pd"]["joint_error_deg"]["rms"], rows["joint-pd-last-low"]["joint_error_deg"]["rms"]
-        others = max(table[:-1])
-        line = (f"joint {n} RMS error {table[-1]:.2f}° with Table 5.3's gain ({laws.per_joint_gains(laws.TABLE_5_3_KP, n)[-1]:g}), "
-                f"{low[-1]:.2f}° at joint 1's ({laws.TABLE_5_3_KP[0]:g}); the other joints' worst {others:.2f}°")
-        if ok("joint-pd-last-low-rotors"):
-            line += (f"; with the rotors' inertia in M̂ joint 1's gain gives joint {n} "
-                     f"{rows['joint-pd-last-low-rotors']['joint_error_deg']['rms'][-1]:.2f}°")
-        add("last_joint_needs_high_gain", f"joint 6 needs a considerably higher proportional gain (L2572-2577)", line,
-            "agrees" if low[-1] > 1.5 * table[-1] and low[-1] > others else "does not")
-    else:
-        add("last_joint_needs_high_gain", "joint 6 needs a considerably higher proportional gain (L2572-2577)",
-            "not run (quick)", "cannot tell")
-    if ok("jt-pid") and ok("null-space") and not quick:
-        a_t, a_e = arrays["jt-pid"]["t"], task_errors(arm, arrays["jt-pid"])[0]
-        b_e = task_errors(arm, arrays["null-space"])[0]
-        moving = a_t <= laws.THESIS_TF_S
-        coupling = a_e[moving] - np.interp(a_t[moving], arrays["null-space"]["t"], b_e)
-        coupling_t = float(a_t[moving][np.argmax(coupling)])
-        b_max = float(b_e[arrays["null-space"]["t"] <= laws.THESIS_TF_S].max())
-        add("orientation_couples_into_position", "in (a) the orientation's adjustment displaces the position: "
-            "force coupling between the two controllers (L2401-2409)",
-            f"(a)'s position error reaches {a_e[moving].max():.2f} mm, (b)'s, with the orientation filtered into "
-            f"the null space, {b_max:.2f} mm", "agrees" if a_e[moving].max() > 3 * b_max else "does not")
-        add("coupling_near_10s", "that displacement comes at around 10 s (L2405-2409)",
-            f"(a)'s excess over (b) is largest at {coupling_t:.1f} s",
-            "agrees" if 8.5 <= coupling_t <= 11.5 else "does not")
-        gamma = _orientation_component_error(arrays["jt-pid"], 2)
-        early, later = _ripple(arrays["jt-pid"]["t"], gamma, 2.5, 7.5), _ripple(arrays["jt-pid"]["t"], gamma, 7.5, 16.0)
-        add("oscillation_2_5_to_7_5s", "(a) oscillates in orientation (Fig. 5.1f) over [2.5, 7.5] s (L2411-2413)",
-            f"ripple of the γ (Z) error about its 0.5 s mean: {early:.3f}° in [2.5, 7.5] s, {later:.3f}° in "
-            "[7.5, 16] s", "agrees" if early > 2 * later and early > 0.1 else "does not")
-    else:
-        for key, thesis in (("orientation_couples_into_position", "in (a) the orientation displaces the position"),
-                            ("coupling_near_10s", "that displacement comes at around 10 s"),
-                            ("oscillation_2_5_to_7_5s", "(a) oscillates in orientation over [2.5, 7.5] s")):
-            add(key, thesis, "not run (quick)" if quick else "a run failed", "cannot tell")
-    if ok("joint-velocity"):
-        row = rows["joint-velocity"]
-        end = row["at_end_of_motion"]
-        add("velocity_position_reached_at_tf", "(e) the desired position is practically achieved around 16 s "
-            "(L2659-2663)", f"position error {end['position_mm']:.2f} mm at {end['t_s']:.1f} s",
-            "agrees" if end["position_mm"] < 5.0 else "does not")
-        if ok("null-space"):
-            t_e = arrays["joint-velocity"]["t"]
-            first = (t_e <= 0.5 * (QUICK_TF_S if quick else laws.THESIS_TF_S))
-            e_o = task_errors(arm, arrays["joint-velocity"])[1]
-            b_o = task_errors(arm, arrays["null-space"])[1]
-            t_b = arrays["null-space"]["t"]
-            e_rms = float(np.sqrt(np.mean(e_o[first] ** 2)))
-            b_rms = float(np.sqrt(np.mean(b_o[t_b <= t_e[first][-1]] ** 2)))
-            add("velocity_orientation_poor_early", "(e) orientation tracking \"lefts much to be desired in the first "
-                "stages\" (L2680-2682)", f"orientation RMS over the first half of the motion {e_rms:.2f}° (e) "
-                f"against {b_rms:.2f}° (b)", "agrees" if e_rms > 2 * b_rms else "does not")
-        if not quick:
-            position = task_errors(arm, arrays["joint-velocity"])[0]
-            late = _window_max(arrays["joint-velocity"], position, 15.0, 20.0)
-            before = _window_max(arrays["joint-velocity"], position, 11.0, 15.0)
-            add("velocity_disturbance_15_to_20s", "(e) small disturbances of the position around [15, 20] s as the "
-                "orientation is readjusted (L2667-2677)", f"max position error {late} mm in [15, 20] s, {before} mm "
-                "in [11, 15] s", "agrees" if late is not None and before is not None and
-                late > max(1.5 * before, DISTURBANCE_MM) else "does not")
-    if ok("joint-pd"):
-        rms_all = rows["joint-pd"]["joint_error_deg"]["rms"]
-        add("joint_pd_good_tracking", "(d) the joints follow with \"relatively good tracking\", stable, little "
-            "coupling (L2543-2558)", f"joint RMS errors {', '.join(f'{v:.1f}' for v in rms_all)}° on a ±20° "
-            "sinusoid (no feed-forward in eq. 4.18: the PD lags); stable, no abort",
-            "cannot tell")
+        if _ran(rows, "null-space-mass-rotors"):
+            line += f"; with the rotors in M̂ {_position_rms(rows, 'null-space-mass-rotors'):.2f} mm"
+        found.append(_observation(
+            "mass_weight_barely_changes", "W = M(q) performs \"practically the same\" as W = I (L2482-2488)", line,
+            "agrees" if abs(change) <= 0.25 or abs(c - b) < 0.5 else "does not"))
     return found
+
+
+def _last_joint_observation(rows: dict, n: int) -> dict:
+    """(d)'s last joint at Table 5.3's gain against at joint 1's, on an arm of ``n`` joints."""
+    thesis = "joint 6 needs a considerably higher proportional gain (L2572-2577)"
+    if not (_ran(rows, "joint-pd") and _ran(rows, "joint-pd-last-low")):
+        return _observation("last_joint_needs_high_gain", thesis, "not run (quick)", "cannot tell")
+    table, low = rows["joint-pd"]["joint_error_deg"]["rms"], rows["joint-pd-last-low"]["joint_error_deg"]["rms"]
+    others = max(table[:-1])
+    line = (f"joint {n} RMS error {table[-1]:.2f}° with Table 5.3's gain "
+            f"({laws.per_joint_gains(laws.TABLE_5_3_KP, n)[-1]:g}), {low[-1]:.2f}° at joint 1's "
+            f"({laws.TABLE_5_3_KP[0]:g}); the other joints' worst {others:.2f}°")
+    if _ran(rows, "joint-pd-last-low-rotors"):
+        line += (f"; with the rotors' inertia in M̂ joint 1's gain gives joint {n} "
+                 f"{rows['joint-pd-last-low-rotors']['joint_error_deg']['rms'][-1]:.2f}°")
+    return _observation("last_joint_needs_high_gain", thesis, line,
+                        "agrees" if low[-1] > 1.5 * table[-1] and low[-1] > others else "does not")
+
+
+def _coupling_observations(rows: dict, arrays: dict, arm: ArmDescription, quick: bool) -> list[dict]:
+    """(a)'s orientation displacing its position, when, and its oscillation, against (b) (the whole runs only)."""
+    if not (_ran(rows, "jt-pid") and _ran(rows, "null-space") and not quick):
+        return [_observation(key, thesis, "not run (quick)" if quick else "a run failed", "cannot tell")
+                for key, thesis in (
+                    ("orientation_couples_into_position", "in (a) the orientation displaces the position"),
+                    ("coupling_near_10s", "that displacement comes at around 10 s"),
+                    ("oscillation_2_5_to_7_5s", "(a) oscillates in orientation over [2.5, 7.5] s"))]
+    a_t, a_e = arrays["jt-pid"]["t"], task_errors(arm, arrays["jt-pid"])[0]
+    b_e = task_errors(arm, arrays["null-space"])[0]
+    moving = a_t <= laws.THESIS_TF_S
+    coupling = a_e[moving] - np.interp(a_t[moving], arrays["null-space"]["t"], b_e)
+    coupling_t = float(a_t[moving][np.argmax(coupling)])
+    b_max = float(b_e[arrays["null-space"]["t"] <= laws.THESIS_TF_S].max())
+    gamma = _orientation_component_error(arrays["jt-pid"], 2)
+    early, later = _ripple(arrays["jt-pid"]["t"], gamma, 2.5, 7.5), _ripple(arrays["jt-pid"]["t"], gamma, 7.5, 16.0)
+    return [
+        _observation("orientation_couples_into_position", "in (a) the orientation's adjustment displaces the "
+                     "position: force coupling between the two controllers (L2401-2409)",
+                     f"(a)'s position error reaches {a_e[moving].max():.2f} mm, (b)'s, with the orientation filtered "
+                     f"into the null space, {b_max:.2f} mm", "agrees" if a_e[moving].max() > 3 * b_max else "does not"),
+        _observation("coupling_near_10s", "that displacement comes at around 10 s (L2405-2409)",
+                     f"(a)'s excess over (b) is largest at {coupling_t:.1f} s",
+                     "agrees" if 8.5 <= coupling_t <= 11.5 else "does not"),
+        _observation("oscillation_2_5_to_7_5s", "(a) oscillates in orientation (Fig. 5.1f) over [2.5, 7.5] s "
+                     "(L2411-2413)", f"ripple of the γ (Z) error about its 0.5 s mean: {early:.3f}° in [2.5, 7.5] s, "
+                     f"{later:.3f}° in [7.5, 16] s", "agrees" if early > 2 * later and early > 0.1 else "does not"),
+    ]
+
+
+def _joint_velocity_observations(rows: dict, arrays: dict, arm: ArmDescription, quick: bool) -> list[dict]:
+    """(e): the position reached at tf, the orientation early on against (b)'s, the disturbance after tf."""
+    if not _ran(rows, "joint-velocity"):
+        return []
+    end = rows["joint-velocity"]["at_end_of_motion"]
+    found = [_observation("velocity_position_reached_at_tf", "(e) the desired position is practically achieved "
+                          "around 16 s (L2659-2663)",
+                          f"position error {end['position_mm']:.2f} mm at {end['t_s']:.1f} s",
+                          "agrees" if end["position_mm"] < 5.0 else "does not")]
+    if _ran(rows, "null-space"):
+        t_e = arrays["joint-velocity"]["t"]
+        first = (t_e <= 0.5 * (QUICK_TF_S if quick else laws.THESIS_TF_S))
+        e_o = task_errors(arm, arrays["joint-velocity"])[1]
+        b_o = task_errors(arm, arrays["null-space"])[1]
+        t_b = arrays["null-space"]["t"]
+        e_rms = float(np.sqrt(np.mean(e_o[first] ** 2)))
+        b_rms = float(np.sqrt(np.mean(b_o[t_b <= t_e[first][-1]] ** 2)))
+        found.append(_observation(
+            "velocity_orientation_poor_early", "(e) orientation tracking \"lefts much to be desired in the first "
+            "stages\" (L2680-2682)", f"orientation RMS over the first half of the motion {e_rms:.2f}° (e) "
+            f"against {b_rms:.2f}° (b)", "agrees" if e_rms > 2 * b_rms else "does not"))
+    if not quick:
+        position = task_errors(arm, arrays["joint-velocity"])[0]
+        late = _window_max(arrays["joint-velocity"], position, 15.0, 20.0)
+        before = _window_max(arrays["joint-velocity"], position, 11.0, 15.0)
+        found.append(_observation(
+            "velocity_disturbance_15_to_20s", "(e) small disturbances of the position around [15, 20] s as the "
+            "orientation is readjusted (L2667-2677)", f"max position error {late} mm in [15, 20] s, {before} mm "
+            "in [11, 15] s", "agrees" if late is not None and before is not None and
+            late > max(1.5 * before, DISTURBANCE_MM) else "does not"))
+    return found
+
+
+def _joint_pd_observations(rows: dict) -> list[dict]:
+    """(d)'s tracking as the thesis describes it, in words: shown, not judged."""
+    if not _ran(rows, "joint-pd"):
+        return []
+    rms_all = rows["joint-pd"]["joint_error_deg"]["rms"]
+    return [_observation("joint_pd_good_tracking", "(d) the joints follow with \"relatively good tracking\", "
+                         "stable, little coupling (L2543-2558)",
+                         f"joint RMS errors {', '.join(f'{v:.1f}' for v in rms_all)}° on a ±20° sinusoid (no "
+                         "feed-forward in eq. 4.18: the PD lags); stable, no abort", "cannot tell")]
 
 
 def _orientation_component_error(arrays: dict, k: int) -> np.ndarray:
@@ -523,109 +557,152 @@ def _f(value, digits: int = 2) -> str:
 
 def report_markdown(output: dict, out_dir: Path) -> str:
     summary = output["summary"]
-    target = summary["target"]
-    nearest = target["nearest"]
-    lines = [f"# {output['title']}", "",
-             f"`mfvs experiment torque-control --arm {output['arm']}` ({output['profile']} profile, realtime at "
-             "500 Hz: each controller a process talking to the robot's low-level API; a rerun differs by the host's "
-             "timing)." + (" Quick runs: a 3 s reference over 3/16 of the motion." if output["quick"] else ""), "",
-             f"**The JACO thesis reports:** {output['paper']}. It gives no numbers: its figures are described in words.", "",
-             "## The reference", "",
-             f"X0 = {target['x0']} (the arm's home), Xf = {target['xf']} ({target['kind']}). "
-             + ("Xf is reachable." if target["reachable"] else
-                f"**Xf is not reachable**: the nearest pose the arm reaches within its joint limits is "
-                f"{nearest['position_mm']} mm and {nearest['orientation_deg']}° away ({nearest['weighting']}), at "
-                f"joints {nearest['joints_deg']}° where σ_min(J) = {nearest['sigma_min_J']} and σ_min(J_v) = "
-                f"{nearest['sigma_min_Jv']}: every task controller's final error has that floor."), ""]
-    model = summary["model"]
-    lines += ["## The model against the arm", "",
-              "The controllers' M̂(q) is the links' alone (the description's masses, centres, inertias: the thesis's "
-              "eq. 3.35 from its CAD model); the emulated arm also has the motors' rotor inertia reflected through "
-              "the gears, a hand heavier than described, viscous and Coulomb friction and its actuators' peak "
-              "torques, which the thesis's model did not have either.", "",
-              "| joint | " + " | ".join(str(i + 1) for i in range(len(model["mass_diagonal_model"]))) + " |",
-              "|---|" + "---|" * len(model["mass_diagonal_model"]),
-              "| M̂ii, model (kg m²) | " + " | ".join(f"{v:.4f}" for v in model["mass_diagonal_model"]) + " |",
-              "| Mii, arm | " + " | ".join(f"{v:.4f}" for v in model["mass_diagonal_arm"]) + " |",
-              "| model / arm | " + " | ".join(f"{v:.2f}" for v in model["model_over_arm"]) + " |",
-              "| Coulomb friction in torque mode (N·m) | " + " | ".join(f"{v:g}" for v in model["coulomb_friction_nm"])
-              + " |",
-              "| gravity at home, model (N·m) | " + " | ".join(f"{v:.2f}" for v in model["gravity_model_nm"]) + " |",
-              "| gravity at home, arm (N·m) | " + " | ".join(f"{v:.2f}" for v in model["gravity_arm_nm"]) + " |",
-              "| torque limit (N·m) | " + " | ".join(f"{v:g}" for v in model["torque_limits_nm"]) + " |", "",
-              f"{model['gravity']}.", ""]
-    setup = next((row["torque_setup"] for row in output["runs"] if row.get("torque_setup")), None)
-    if setup:
-        lines += ["## The torque-mode setup", "",
-                  f"Each controller made {setup['table']} through the arm's Kinova API before its first torque: "
-                  + ", ".join(f"{a['function']}({a['argument']})" for a in setup["applied"]) + ". Not made: "
-                  + "; ".join(f"{f}: {why}" for f, why in setup["not_applied"].items()) + ".", ""]
-    if output["arm"] != THESIS_ARM:
-        n = len(model["torque_limits_nm"])
-        kp = laws.per_joint_gains(laws.TABLE_5_3_KP, n)
-        lines += [f"## What differs on the {output['arm']}", "",
-                  f"- {n} joints: J_v is 3×{n} and J 6×{n}. (a)'s Jᵀ law leaves J's {n - 6}-dimensional null space "
-                  "to itself (only the joints' friction damps a self-motion); (b) and (c) filter the orientation's "
-                  f"torque into a {n - 3}-dimensional null space of the position task; (e) resolves the velocities "
-                  "with pseudo-inverses (the least joint motion: no self-motion is commanded).",
-                  f"- Table 5.3-5.4's per-joint gains mapped onto {n} joints (Kp {', '.join(f'{v:g}' for v in kp)}): "
-                  "see torque_laws.per_joint_gains.",
-                  f"- Xf is X0 moved as eq. 5.2 moves the thesis's arm ({target['kind']}); "
-                  + ("it is reachable." if target["reachable"] else
-                     f"it is not reachable: the nearest pose is {nearest['position_mm']} mm and "
-                     f"{nearest['orientation_deg']}° away."), ""]
-    lines += ["## The runs", ""]
-    for row in output["runs"]:
-        head = f"### {'(' + row['letter'] + ') ' if row['letter'] else ''}{row['label']}: {row['what']}"
-        lines += [head, ""]
-        if row["status"] == "failed":
-            lines += [f"Failed: {row['failure']}", ""]
-            continue
-        p, o = row["position_mm"], row["orientation_deg"]
-        lines += ["| position RMS / max / final (mm) | orientation RMS / max / final (deg) | saturation (s, commanded "
-                  "/ actuators) | missed cycles (late+superseded+unseen) | robot watchdog | safety stops | status |",
-                  "|---|---|---|---|---|---|---|",
-                  f"| {_f(p['rms'])} / {_f(p['max'])} / {_f(p['final'])} | {_f(o['rms'])} / {_f(o['max'])} / "
-                  f"{_f(o['final'])} | {_f(row['saturation_s'])} / {_f(row['saturation_robot_s'])} | "
-                  f"{row['missed_cycles']} ({row['timing']['late']}+{row['timing']['superseded']}+"
-                  f"{row['timing']['unseen']}) of {row['timing']['answered']} | {_f(row['robot_watchdog'])} | "
-                  f"{_f(row['safety_stops'])} | {row['status']}{': ' + row['failure'] if row['failure'] else ''} |", ""]
-        if not row["host_kept_time"]:
-            lines += [f"**This host did not keep the loop's time**: {row['missed_cycles']} of "
-                      f"{row['timing']['received']} cycles missed (more than {MAX_MISSED_FRACTION:.0%}): these figures "
-                      "are the host's lateness as much as the controller's (run it with fewer processes beside it)",
-                      ""]
-        if row.get("faults"):
-            lines += ["The robot reported: " + "; ".join(f"{fault} ({count} states)"
-                                                         for fault, count in row["faults"].items()), ""]
-        if "joint_error_deg" in row:
-            je = row["joint_error_deg"]
-            lines += ["joint error RMS (deg): " + ", ".join(f"{v:.2f}" for v in je["rms"]) + "; max: " +
-                      ", ".join(f"{v:.2f}" for v in je["max"]), ""]
-        mine = [obs for obs in summary["observations"] if _observation_run(obs["id"]) == row["label"]]
-        if mine:
-            lines += ["| the thesis | measured | |", "|---|---|---|"]
-            lines += [f"| {obs['thesis']} | {obs['measured']} | **{obs['verdict']}** |" for obs in mine]
-            lines.append("")
-    lines += ["## The thesis beside the measurements", "", "| observation | measured | |", "|---|---|---|"]
-    lines += [f"| {obs['thesis']} | {obs['measured']} | **{obs['verdict']}** |" for obs in summary["observations"]]
-    timing = summary["timing"]
-    if timing:
-        lines += ["", "## The low-level loop", "",
-                  f"Cycle rate per run {timing['cycle_rate_hz']} Hz; the controller's answer, from the state's stamp to "
-                  f"its command sent: p99 {timing['latency_p99_ms']} ms; arrival jitter p99 "
-                  f"{timing['arrival_jitter_p99_ms']} ms; missed low-level cycles {timing['missed_cycles']} of "
-                  f"{timing['answered']} answered; the robot applied no fresh command (its 5 ms watchdog) on "
-                  f"{timing['robot_watchdog']} cycles."]
+    lines = (_reference_section(output) + _model_section(summary["model"]) + _torque_setup_section(output["runs"])
+             + _other_arm_section(output) + _runs_section(output["runs"], summary["observations"])
+             + _observations_section(summary["observations"]) + _loop_section(summary["timing"]))
     lines += ["", "## Choices where the thesis is silent", ""] + [f"- {c}" for c in summary["choices"]]
-    lines += ["", "## Figures", ""]
+    return "\n".join(lines + _figures_section(output, out_dir))
+
+
+def _reference_section(output: dict) -> list[str]:
+    """The title, how the runs were made, what the thesis reports, and the reference (is Xf reachable?)."""
+    target = output["summary"]["target"]
+    nearest = target["nearest"]
+    return [f"# {output['title']}", "",
+            f"`mfvs experiment torque-control --arm {output['arm']}` ({output['profile']} profile, realtime at "
+            "500 Hz: each controller a process talking to the robot's low-level API; a rerun differs by the host's "
+            "timing)." + (" Quick runs: a 3 s reference over 3/16 of the motion." if output["quick"] else ""), "",
+            f"**The JACO thesis reports:** {output['paper']}. It gives no numbers: its figures are described in "
+            "words.", "",
+            "## The reference", "",
+            f"X0 = {target['x0']} (the arm's home), Xf = {target['xf']} ({target['kind']}). "
+            + ("Xf is reachable." if target["reachable"] else
+               f"**Xf is not reachable**: the nearest pose the arm reaches within its joint limits is "
+               f"{nearest['position_mm']} mm and {nearest['orientation_deg']}° away ({nearest['weighting']}), at "
+               f"joints {nearest['joints_deg']}° where σ_min(J) = {nearest['sigma_min_J']} and σ_min(J_v) = "
+               f"{nearest['sigma_min_Jv']}: every task controller's final error has that floor."), ""]
+
+
+def _model_section(model: dict) -> list[str]:
+    """The controllers' model against the emulated arm, joint by joint (:func:`model_error`)."""
+    return ["## The model against the arm", "",
+            "The controllers' M̂(q) is the links' alone (the description's masses, centres, inertias: the thesis's "
+            "eq. 3.35 from its CAD model); the emulated arm also has the motors' rotor inertia reflected through "
+            "the gears, a hand heavier than described, viscous and Coulomb friction and its actuators' peak "
+            "torques, which the thesis's model did not have either.", "",
+            "| joint | " + " | ".join(str(i + 1) for i in range(len(model["mass_diagonal_model"]))) + " |",
+            "|---|" + "---|" * len(model["mass_diagonal_model"]),
+            "| M̂ii, model (kg m²) | " + " | ".join(f"{v:.4f}" for v in model["mass_diagonal_model"]) + " |",
+            "| Mii, arm | " + " | ".join(f"{v:.4f}" for v in model["mass_diagonal_arm"]) + " |",
+            "| model / arm | " + " | ".join(f"{v:.2f}" for v in model["model_over_arm"]) + " |",
+            "| Coulomb friction in torque mode (N·m) | " + " | ".join(f"{v:g}" for v in model["coulomb_friction_nm"])
+            + " |",
+            "| gravity at home, model (N·m) | " + " | ".join(f"{v:.2f}" for v in model["gravity_model_nm"]) + " |",
+            "| gravity at home, arm (N·m) | " + " | ".join(f"{v:.2f}" for v in model["gravity_arm_nm"]) + " |",
+            "| torque limit (N·m) | " + " | ".join(f"{v:g}" for v in model["torque_limits_nm"]) + " |", "",
+            f"{model['gravity']}.", ""]
+
+
+def _torque_setup_section(runs: list[dict]) -> list[str]:
+    """Table 5.1's setup as the first run that logged it made it (none: no section)."""
+    setup = next((row["torque_setup"] for row in runs if row.get("torque_setup")), None)
+    if not setup:
+        return []
+    return ["## The torque-mode setup", "",
+            f"Each controller made {setup['table']} through the arm's Kinova API before its first torque: "
+            + ", ".join(f"{a['function']}({a['argument']})" for a in setup["applied"]) + ". Not made: "
+            + "; ".join(f"{f}: {why}" for f, why in setup["not_applied"].items()) + ".", ""]
+
+
+def _other_arm_section(output: dict) -> list[str]:
+    """What differs on an arm other than the thesis's (none on the thesis's)."""
+    if output["arm"] == THESIS_ARM:
+        return []
+    target = output["summary"]["target"]
+    nearest = target["nearest"]
+    n = len(output["summary"]["model"]["torque_limits_nm"])
+    kp = laws.per_joint_gains(laws.TABLE_5_3_KP, n)
+    return [f"## What differs on the {output['arm']}", "",
+            f"- {n} joints: J_v is 3×{n} and J 6×{n}. (a)'s Jᵀ law leaves J's {n - 6}-dimensional null space "
+            "to itself (only the joints' friction damps a self-motion); (b) and (c) filter the orientation's "
+            f"torque into a {n - 3}-dimensional null space of the position task; (e) resolves the velocities "
+            "with pseudo-inverses (the least joint motion: no self-motion is commanded).",
+            f"- Table 5.3-5.4's per-joint gains mapped onto {n} joints (Kp {', '.join(f'{v:g}' for v in kp)}): "
+            "see torque_laws.per_joint_gains.",
+            f"- Xf is X0 moved as eq. 5.2 moves the thesis's arm ({target['kind']}); "
+            + ("it is reachable." if target["reachable"] else
+               f"it is not reachable: the nearest pose is {nearest['position_mm']} mm and "
+               f"{nearest['orientation_deg']}° away."), ""]
+
+
+def _runs_section(runs: list[dict], observations: list[dict]) -> list[str]:
+    lines = ["## The runs", ""]
+    for row in runs:
+        lines += _run_section(row, [obs for obs in observations if _observation_run(obs["id"]) == row["label"]])
+    return lines
+
+
+def _run_section(row: dict, mine: list[dict]) -> list[str]:
+    """One run: its figures, whether the host kept its time, the robot's faults, and the observations it judges."""
+    head = f"### {'(' + row['letter'] + ') ' if row['letter'] else ''}{row['label']}: {row['what']}"
+    lines = [head, ""]
+    if row["status"] == "failed":
+        return lines + [f"Failed: {row['failure']}", ""]
+    p, o = row["position_mm"], row["orientation_deg"]
+    lines += ["| position RMS / max / final (mm) | orientation RMS / max / final (deg) | saturation (s, commanded "
+              "/ actuators) | missed cycles (late+superseded+unseen) | robot watchdog | safety stops | status |",
+              "|---|---|---|---|---|---|---|",
+              f"| {_f(p['rms'])} / {_f(p['max'])} / {_f(p['final'])} | {_f(o['rms'])} / {_f(o['max'])} / "
+              f"{_f(o['final'])} | {_f(row['saturation_s'])} / {_f(row['saturation_robot_s'])} | "
+              f"{row['missed_cycles']} ({row['timing']['late']}+{row['timing']['superseded']}+"
+              f"{row['timing']['unseen']}) of {row['timing']['answered']} | {_f(row['robot_watchdog'])} | "
+              f"{_f(row['safety_stops'])} | {row['status']}{': ' + row['failure'] if row['failure'] else ''} |", ""]
+    if not row["host_kept_time"]:
+        lines += [f"**This host did not keep the loop's time**: {row['missed_cycles']} of "
+                  f"{row['timing']['received']} cycles missed (more than {MAX_MISSED_FRACTION:.0%}): these figures "
+                  "are the host's lateness as much as the controller's (run it with fewer processes beside it)",
+                  ""]
+    if row.get("faults"):
+        lines += ["The robot reported: " + "; ".join(f"{fault} ({count} states)"
+                                                     for fault, count in row["faults"].items()), ""]
+    if "joint_error_deg" in row:
+        je = row["joint_error_deg"]
+        lines += ["joint error RMS (deg): " + ", ".join(f"{v:.2f}" for v in je["rms"]) + "; max: " +
+                  ", ".join(f"{v:.2f}" for v in je["max"]), ""]
+    if mine:
+        lines += ["| the thesis | measured | |", "|---|---|---|"]
+        lines += [f"| {obs['thesis']} | {obs['measured']} | **{obs['verdict']}** |" for obs in mine]
+        lines.append("")
+    return lines
+
+
+def _observations_section(observations: list[dict]) -> list[str]:
+    return (["## The thesis beside the measurements", "", "| observation | measured | |", "|---|---|---|"]
+            + [f"| {obs['thesis']} | {obs['measured']} | **{obs['verdict']}** |" for obs in observations])
+
+
+def _loop_section(timing: dict) -> list[str]:
+    """The low-level loop over all runs (:func:`_timing_summary`; none when every run failed)."""
+    if not timing:
+        return []
+    return ["", "## The low-level loop", "",
+            f"Cycle rate per run {timing['cycle_rate_hz']} Hz; the controller's answer, from the state's stamp to "
+            f"its command sent: p99 {timing['latency_p99_ms']} ms; arrival jitter p99 "
+            f"{timing['arrival_jitter_p99_ms']} ms; missed low-level cycles {timing['missed_cycles']} of "
+            f"{timing['answered']} answered; the robot applied no fresh command (its 5 ms watchdog) on "
+            f"{timing['robot_watchdog']} cycles."]
+
+
+def _figures_section(output: dict, out_dir: Path) -> list[str]:
+    """The comparison's figures, then each run's, as links relative to the report."""
+    lines = ["", "## Figures", ""]
     for plot in output["plots"]:
         lines.append(f"![{Path(plot).stem}]({Path(plot).relative_to(out_dir).as_posix()})")
     for row in output["runs"]:
         for plot in row.get("plots", []):
             lines.append(f"![{row['label']} {Path(plot).stem}]({Path(plot).relative_to(out_dir).as_posix()})")
     lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def _observation_run(key: str) -> str:
