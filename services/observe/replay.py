@@ -148,26 +148,55 @@ def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep
     (for the robot check; looked up when None). ``progress(report)`` after each camera frame."""
     if rate <= 0:
         raise ValueError("--rate must be positive")
-    messages = list(read_recording(path, patterns, keys))
     report = ReplayReport()
-    commands = [r for r in messages if not replayable(r)]
-    report.not_replayed = len(commands)
+    messages = _payloads_to_publish(path, patterns, keys, report)
+    _refuse_beside_a_robot(session, keys, messages, alive)
+    plan = _LockstepPlan.make(session, path, keys, messages, answer_patterns) if lockstep else None
+    publishing = _Publishing(session, keys, report, plan, retry_s)
+    try:
+        publishing.run(plan.messages if plan is not None else messages, rate, progress)
+    finally:
+        publishing.close()
+    return report
+
+
+def _payloads_to_publish(path, patterns, keys: Keys, report: ReplayReport) -> list[Recorded]:
+    """The recording's payloads a replay publishes (those it never does counted in ``report``). Raises ValueError
+    when none is left."""
+    messages = list(read_recording(path, patterns, keys))
+    report.not_replayed = len([r for r in messages if not replayable(r)])
     messages = [r for r in messages if replayable(r)]
     if not messages:
         raise ValueError(f"{path}: nothing to replay on the chosen keys")
+    return messages
+
+
+def _refuse_beside_a_robot(session, keys: Keys, messages: list[Recorded], alive) -> None:
+    """Robot states are not replayed beside a live robot (``alive``: the services alive; looked up when None)."""
     if alive is None:
         alive = alive_services(session, keys)
     robots = sorted(set(alive) & set(ROBOT_SERVICES))
     if robots and any(r.suffix == _suffix(keys.robot_state) for r in messages):
         raise ValueError(f"{', '.join(robots)} is running on this stack: replaying robot states beside a robot "
                          f"would give the stack two arms (stop it, or leave robot/state out with --keys)")
-    image_suffix = _suffix(keys.camera_image)
-    answers = None
-    # lockstep: where the recording holds the answers too, each is a point to wait at (the fresh consumer's answer
-    # to the same frame), so that what follows an answer in the recording (the next clock ticks) follows it in the
-    # replay; an answer key the recording lacks is waited for before the next frame
-    sync: dict[str, str] = {}
-    if lockstep:
+
+
+@dataclass
+class _LockstepPlan:
+    """Lockstep: where the recording holds the answers too, each is a point to wait at (the fresh consumer's answer
+    to the same frame), so that what follows an answer in the recording (the next clock ticks) follows it in the
+    replay; an answer key the recording lacks is waited for before the next frame."""
+
+    answers: _Answers
+    #: the recorded answers' suffixes waited at, and each one's key
+    sync: dict[str, str]
+    #: the answer keys the recording lacks
+    unsynced: list[str]
+    #: what to publish, with the recorded answers to wait at in their places
+    messages: list[Recorded]
+
+    @classmethod
+    def make(cls, session, path, keys: Keys, messages: list[Recorded], answer_patterns) -> "_LockstepPlan":
         answer_keys = [resolve(p, keys) for p in answer_patterns]
         for key in answer_keys:
             topic_of(key)  # a typo says so before anything is published
@@ -179,63 +208,86 @@ def replay(session, path, keys: Keys, patterns=None, rate: float = 1.0, lockstep
         sync = {suffix: key for suffix, key in answer_suffixes.items()
                 if any(r.suffix == suffix for r in recorded_answers)}
         messages = lockstep_order(messages, [r for r in recorded_answers if r.suffix in sync])
-    unsynced = [key for suffix, key in (answer_suffixes.items() if lockstep else ()) if suffix not in sync]
-    publishers = {}
-    unanswered: set[int] = set()
-    last_frame: Optional[int] = None
-    last_payload = b""  # the last frame sent: what a retry sends again
+        unsynced = [key for suffix, key in answer_suffixes.items() if suffix not in sync]
+        return cls(answers, sync, unsynced, messages)
 
-    def answered(stamp: int, wanted=None) -> bool:
-        deadline = time.monotonic() + ANSWER_TIMEOUT_S
-        while not answers.wait(stamp, min(retry_s, max(0.0, deadline - time.monotonic())), wanted):
-            if time.monotonic() >= deadline:
-                return False
-            if stamp == last_frame:
-                publishers[image_suffix].put(last_payload)
-                report.retries += 1
-        return True
 
-    try:
+class _Publishing:
+    """One replay's publishing: a publisher per key, paced by the recording's timing or, in lockstep (``plan``),
+    by the consumers' answers; the last frame sent (what a retry sends again) and the frames left unanswered."""
+
+    def __init__(self, session, keys: Keys, report: ReplayReport, plan: Optional[_LockstepPlan],
+                 retry_s: float) -> None:
+        self.session = session
+        self.keys = keys
+        self.report = report
+        self.plan = plan
+        self.retry_s = retry_s
+        self.image_suffix = _suffix(keys.camera_image)
+        self.publishers = {}
+        self.unanswered: set[int] = set()
+        self.last_frame: Optional[int] = None
+        self.last_payload = b""  # the last frame sent: what a retry sends again
+
+    def run(self, messages: list[Recorded], rate: float, progress) -> None:
+        report, plan = self.report, self.plan
+        sync = plan.sync if plan is not None else {}
         start = time.monotonic()
         first = messages[0].log_time
         for recorded in messages:
             if recorded.suffix in sync:
                 key = sync[recorded.suffix]
-                stamp = m.decode(recorded.payload, answers.types[key]).header.source_stamp_ns
-                if stamp not in unanswered and not answered(stamp, [key]):
-                    unanswered.add(stamp)
+                stamp = m.decode(recorded.payload, plan.answers.types[key]).header.source_stamp_ns
+                if stamp not in self.unanswered and not self.answered(stamp, [key]):
+                    self.unanswered.add(stamp)
                 continue
-            is_frame = recorded.suffix == image_suffix
-            if lockstep:
-                if is_frame and last_frame is not None and unsynced:
-                    if not answered(last_frame, unsynced):
-                        unanswered.add(last_frame)
+            is_frame = recorded.suffix == self.image_suffix
+            if plan is not None:
+                if is_frame and self.last_frame is not None and plan.unsynced:
+                    if not self.answered(self.last_frame, plan.unsynced):
+                        self.unanswered.add(self.last_frame)
             else:
                 delay = start + (recorded.log_time - first) / 1e9 / rate - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            publisher = publishers.get(recorded.suffix)
-            if publisher is None:
-                publisher = publishers[recorded.suffix] = session.declare_publisher(f"{keys.prefix}/{recorded.suffix}")
-            publisher.put(recorded.payload)
-            report.published[recorded.suffix] = report.published.get(recorded.suffix, 0) + 1
-            if is_frame:
-                report.frames += 1
-                last_frame = m.decode(recorded.payload, m.Image).header.stamp_ns
-                last_payload = recorded.payload
-                if progress is not None:
-                    progress(report)
-        if lockstep and last_frame is not None and not answered(last_frame):
-            unanswered.add(last_frame)
-        report.unanswered = len(unanswered)
-        report.unanswered_stamps = sorted(unanswered)[:20]
+            self._publish(recorded, is_frame, progress)
+        if plan is not None and self.last_frame is not None and not self.answered(self.last_frame):
+            self.unanswered.add(self.last_frame)
+        report.unanswered = len(self.unanswered)
+        report.unanswered_stamps = sorted(self.unanswered)[:20]
         report.seconds = time.monotonic() - start
-    finally:
-        if answers is not None:
-            answers.close()
-        for publisher in publishers.values():
+
+    def answered(self, stamp: int, wanted=None) -> bool:
+        """Whether ``wanted`` (default every answering key) answered the frame stamped ``stamp`` within
+        :data:`ANSWER_TIMEOUT_S`; the last frame sent again every ``retry_s`` while it waits."""
+        deadline = time.monotonic() + ANSWER_TIMEOUT_S
+        while not self.plan.answers.wait(stamp, min(self.retry_s, max(0.0, deadline - time.monotonic())), wanted):
+            if time.monotonic() >= deadline:
+                return False
+            if stamp == self.last_frame:
+                self.publishers[self.image_suffix].put(self.last_payload)
+                self.report.retries += 1
+        return True
+
+    def _publish(self, recorded: Recorded, is_frame: bool, progress) -> None:
+        publisher = self.publishers.get(recorded.suffix)
+        if publisher is None:
+            publisher = self.publishers[recorded.suffix] = self.session.declare_publisher(
+                f"{self.keys.prefix}/{recorded.suffix}")
+        publisher.put(recorded.payload)
+        self.report.published[recorded.suffix] = self.report.published.get(recorded.suffix, 0) + 1
+        if is_frame:
+            self.report.frames += 1
+            self.last_frame = m.decode(recorded.payload, m.Image).header.stamp_ns
+            self.last_payload = recorded.payload
+            if progress is not None:
+                progress(self.report)
+
+    def close(self) -> None:
+        if self.plan is not None:
+            self.plan.answers.close()
+        for publisher in self.publishers.values():
             publisher.undeclare()
-    return report
 
 
 def recording_summary(path) -> dict:
