@@ -192,7 +192,19 @@ def renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
 
 
 def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
+    """The scene on ``arm``'s description, compiled: its rendering options, the arm's truth and motors, the light and
+    the floor, the target, the eye-in-hand camera (added in this order: MuJoCo numbers what it holds as it comes)."""
     spec = arm.mujoco_spec()
+    _set_options(spec, cfg)
+    _add_arm(spec, arm)
+    _add_light_and_floor(spec, cfg)
+    _add_target(spec, cfg, arm)
+    _add_camera(spec, cfg)
+    return spec.compile()
+
+
+def _set_options(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
+    """The physics step and integrator, and the offscreen rendering's buffers and light."""
     spec.option.timestep = cfg.timestep_s
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     cam = cfg.camera
@@ -207,6 +219,9 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
     spec.visual.headlight.diffuse = [0.4, 0.4, 0.4]
 
+
+def _add_arm(spec: mujoco.MjSpec, arm: ArmDescription) -> None:
+    """The emulated arm's own truth, a torque motor on each joint, and the arm's colour."""
     # the emulated arm's own truth, where it departs from the description (the controllers' model): heavier links
     # where the description says, Coulomb friction at every joint (arm.true_link_mass_scale, true_friction_nm)
     for i, (link, scale) in enumerate(zip(arm.link_names, arm.true_link_mass_scale)):
@@ -223,9 +238,12 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
         motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
         motor.ctrlrange = [-joint_spec.max_torque_nm, joint_spec.max_torque_nm]
 
-    for geom in spec.geoms:
+    for geom in spec.geoms:  # (the arm's alone: nothing else is in the scene yet)
         geom.rgba = [0.15, 0.15, 0.17, 1.0]
 
+
+def _add_light_and_floor(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
+    """One directional light, and the floor unless ``cfg.floor`` is off."""
     world = spec.worldbody
     # No shadows: shadow maps cost ~40 ms a frame on a CPU renderer (Mesa llvmpipe) and the tag needs none.
     world.add_light(name="sun", pos=[0.0, -0.5, 2.5], dir=[0.0, 0.2, -1.0], diffuse=[0.6, 0.6, 0.6],
@@ -238,7 +256,10 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
         world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.05], material="floor",
                        contype=0, conaffinity=0)
 
-    # AprilTag target: a thin box whose +z face carries the tag upright (texture top = tag +y); or a board.
+
+def _add_target(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription) -> None:
+    """The AprilTag target: a thin box whose +z face carries the tag upright (texture top = tag +y); or a board. A
+    mocap body, at its initial pose (:func:`target_in_base`). Raises ValueError for a target below the floor."""
     if cfg.target.board is not None:
         image = board_image(cfg.target.board)
         half_x, half_y = (side / 2.0 for side in cfg.target.board.size_m)
@@ -254,14 +275,17 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
     T_bt = target_in_base(cfg, arm)
     if cfg.floor and T_bt[2, 3] < 0.0:
         raise ValueError(f"the target's centre is {-T_bt[2, 3]:.3f} m below the floor; move it or disable the floor")
-    target = world.add_body(name=TAG_BODY, mocap=True, pos=T_bt[:3, 3].tolist(),
-                            quat=frames.matrix_to_quat_wxyz(T_bt[:3, :3]).tolist())
+    target = spec.worldbody.add_body(name=TAG_BODY, mocap=True, pos=T_bt[:3, 3].tolist(),
+                                     quat=frames.matrix_to_quat_wxyz(T_bt[:3, :3]).tolist())
     thickness = 0.002
     target.add_geom(name="tag", type=mujoco.mjtGeom.mjGEOM_BOX, size=[half_x, half_y, thickness / 2],
                     pos=[0.0, 0.0, -thickness / 2], material="tag", contype=0, conaffinity=0)
 
-    # Eye-in-hand camera with exact intrinsics: MuJoCo's principal_pixel is the offset of the image centre from
-    # the principal point, in pixels (verified by rendering).
+
+def _add_camera(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
+    """The eye-in-hand camera with exact intrinsics: MuJoCo's principal_pixel is the offset of the image centre from
+    the principal point, in pixels (verified by rendering)."""
+    cam = cfg.camera
     T_ec = camera_in_ee(cfg)
     ee = spec.body(EE_LINK)
     camera = ee.add_camera(name=CAMERA_NAME, pos=T_ec[:3, 3].tolist(),
@@ -271,7 +295,6 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
     camera.sensor_size = [cam.width * 1e-5, cam.height * 1e-5]  # any pixel pitch: intrinsics are in pixels
     camera.focal_pixel = [cam.fx, cam.fy]
     camera.principal_pixel = [(cam.width - 1) / 2.0 - cx, (cam.height - 1) / 2.0 - cy]
-    return spec.compile()
 
 
 def camera_info(camera: CameraConfig, header: Header) -> CameraInfo:
