@@ -108,9 +108,12 @@ def test_estop_stops_within_v0_over_a_stop_and_stays_latched(harness):
     assert braking_ns - trigger_ns <= 100_000_000
     after = t * 1e9 >= braking_ns
     a_stop = h["robot"].config.dsp.emergency_linear_decel_mps2  # the robot's braking, not safety's to set
-    rest = next(ti for ti, s in zip(t[after], speeds[after], strict=True) if s < 1e-3)
+    # at rest from the state after which it stays still (latched): the actuators' servo, settling after the brake,
+    # may touch 1 mm/s again a few ms after it first went under (1.0009 mm/s once), which is not motion
+    moving = np.flatnonzero(after & (speeds >= 1e-3))
+    assert len(moving) and moving[-1] + 1 < len(t), "the arm did not come to rest"
+    rest = t[moving[-1] + 1]
     assert rest - braking_ns * 1e-9 <= v0 / a_stop + 0.030
-    assert np.all(speeds[t >= rest] < 1e-3)  # and it stays at rest: latched
     assert h["status"].last().state is m.SafetyState.ESTOP
     assert h["safety"].counters.get("refused.estop") > 10
     # only an explicit reset releases it; then the next command moves the arm again
