@@ -12,7 +12,11 @@ import sys
 import pytest
 
 from services.experiments.torque_control import NAME, kept_time
+from services.model.arm import arm_names
 from tests.helpers import REPO
+
+#: the arms described (services/model/arms): an unknown arm's refusal lists them, whichever there are
+KNOWN = ", ".join(arm_names())
 
 #: each controller's bound on the quick run (position and orientation: the worst over the run; joint-pd: the
 #: worst and RMS error of the big joints 1-3 and of the wrist 4-6 on ±20° of eq. 5.3, which its PD without
@@ -123,7 +127,7 @@ def check_tracking(output: dict, out, label: str) -> None:
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--arm", "j2x9"], "unknown arm 'j2x9'; known: j2n6s300, j2s7s300"),
+    (["--arm", "j2x9"], f"unknown arm 'j2x9'; known: {KNOWN}"),
     (["--scenario", "examples/scenarios/table2.yaml"], "torque-control takes no --scenario"),
     (["--profile", "hardware"], "unknown profile 'hardware'"),
     (["--quick", "--runs", "jt-pid,nope"], "torque-control --quick has no run 'nope'; its runs: jt-pid, "),

@@ -12,7 +12,8 @@ from services.model.arm import (DEFAULT_ARM, EE_LINK, ArmError, arm_names, check
                                 mujoco_module, read_description)
 from tests.helpers import PinArm
 
-ARMS = ["j2s7s300", "j2n6s300"]
+#: every arm described (one file each in services/model/arms): a new file is checked as the shipped ones are
+ARMS = arm_names()
 
 
 @pytest.fixture(scope="module", params=ARMS)
@@ -35,8 +36,9 @@ def mujoco_arm(arm):
 
 
 def test_the_arms_described_and_the_default():
-    assert set(ARMS) <= set(arm_names()) and DEFAULT_ARM == "j2s7s300"
-    with pytest.raises(ArmError, match="unknown arm 'j2n9s300'; known: j2n6s300, j2s7s300"):
+    assert {"j2s7s300", "j2n6s300", "j2s6s300"} <= set(ARMS) and DEFAULT_ARM == "j2s7s300"
+    # the known arms are the files there are, whatever they are
+    with pytest.raises(ArmError, match=f"unknown arm 'j2n9s300'; known: {', '.join(sorted(ARMS))}$"):
         check_arm_name("j2n9s300")
     assert load_arm("j2n6s300").n_joints == 6 and load_arm("j2s7s300").n_joints == 7
 
@@ -178,6 +180,61 @@ def test_j2n6s300_joints_masses_and_bus_as_its_sources_give_them():
     assert masses == pytest.approx([0.767664, 0.995713, 0.796345, 0.41737, 0.41737, 1.07541])
     assert sum(masses) == pytest.approx(4.470, abs=1e-3)
     assert 0.90 <= arm.reach <= 0.92  # spec sheet: 90 cm
+
+
+# ------------------------------------------------------------------------------------------------ the 6-DoF spherical
+def kinova_ros_j2s6s300_forward_kinematics(q_robot_deg) -> np.ndarray:
+    """kinova-ros's j2s6s300.xacro written out here, independently of the description file: each joint's origin
+    (xyz, rpy) and a rotation about its z by the raw angle GetAngularPosition reports (kinova_arm.cpp publishes
+    them unchanged), then the end_effector's fixed offset."""
+    p = math.pi
+    joints = [((0, 0, 0.15675), (0, p, 0)), ((0, 0.0016, -0.11875), (-p / 2, 0, p)), ((0, -0.410, 0), (0, p, 0)),
+              ((0, 0.2073, -0.0114), (-p / 2, 0, p)), ((0, 0, -0.10375), (p / 2, 0, p)),
+              ((0, 0.10375, 0), (-p / 2, 0, p))]
+
+    def origin(xyz, rpy):
+        T = np.eye(4)
+        T[:3, :3] = frames.rot_z(rpy[2]) @ frames.rot_y(rpy[1]) @ frames.rot_x(rpy[0])
+        T[:3, 3] = xyz
+        return T
+
+    T = np.eye(4)
+    for (xyz, rpy), q in zip(joints, np.radians(q_robot_deg)):
+        Rq = np.eye(4)
+        Rq[:3, :3] = frames.rot_z(q)
+        T = T @ origin(xyz, rpy) @ Rq
+    return T @ origin((0, 0, -0.16), (p, 0, p / 2))
+
+
+def test_j2s6s300_forward_kinematics_is_kinova_ros_s_urdf(rng):
+    """The file's table (kinova_arm_kinematics.cpp's, the DSP's lengths) against Kinova's URDF of the same arm: the
+    same end-effector frame, its position within 0.2 mm (the URDF's wrist segments are 0.10375 m, the DSP's
+    0.1038)."""
+    arm = load_arm("j2s6s300")
+    kin = PinArm(arm)
+    for _ in range(200):
+        q_deg = rng.uniform(-360, 360, 6)
+        q_deg[1], q_deg[2], q_deg[4] = rng.uniform(47, 313), rng.uniform(19, 341), rng.uniform(30, 330)
+        T_urdf = kinova_ros_j2s6s300_forward_kinematics(q_deg)
+        R, p = kin.pose(arm.physical_deg_to_model(q_deg))
+        assert np.abs(p - T_urdf[:3, 3]).max() < 2e-4 and np.abs(R - T_urdf[:3, :3]).max() < 1e-9
+
+
+def test_j2s6s300_joints_bus_and_home_as_its_sources_give_them():
+    arm = load_arm("j2s6s300")
+    assert [j.continuous for j in arm.joints] == [True, False, False, True, False, True]
+    assert [(j.lower_deg, j.upper_deg) for j in arm.joints if not j.continuous] == [(47.0, 313.0), (19.0, 341.0),
+                                                                                     (30.0, 330.0)]
+    assert arm.max_speed_dps.tolist() == [36, 36, 36, 48, 48, 48]
+    assert [j.actuator for j in arm.joints] == ["K-75+"] * 3 + ["K-58"] * 3
+    assert arm.bus_addresses == (0x10, 0x11, 0x12, 0x13, 0x14, 0x15) and arm.robot_type == 7
+    # straight up at 180° everywhere (the MoveIt config's "Vertical"): the shoulder plus the reach
+    R, p = PinArm(arm).pose(arm.physical_deg_to_model([180.0] * 6))
+    assert p == pytest.approx([0.0, 0.0098, 0.2755 + arm.reach], abs=1e-9)
+    # the home is mfvs's choice: the end effector where the j2s7s300's home puts it, the same frame
+    seven = load_arm("j2s7s300")
+    T, T7 = arm.dh_forward_kinematics(arm.home), seven.dh_forward_kinematics(seven.home)
+    assert np.abs(T - T7).max() < 1e-9
 
 
 # ------------------------------------------------------------------------------------------------ bad files

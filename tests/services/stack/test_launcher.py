@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from services.model.arm import arm_names
 from services.runtime.transport import free_loopback_port
 from tests.stack import wait_for
 
@@ -369,4 +370,4 @@ def test_a_profile_runs_one_arm_and_up_arm_sets_it_for_every_service_that_runs_o
     assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out
     assert "the profile mixes arms (robot_sim j2n6s300, controller j2s7s300)" in out.stderr
     unknown = mfvs("up", "--arm", "j2n9s300", env=env, timeout=30)
-    assert unknown.returncode == 2 and "unknown arm 'j2n9s300'; known: j2n6s300, j2s7s300" in unknown.stderr
+    assert unknown.returncode == 2 and f"unknown arm 'j2n9s300'; known: {', '.join(arm_names())}" in unknown.stderr
