@@ -78,7 +78,7 @@ class BusSyncConfig(ConfigStruct):
 def _start_on_the_grid(sim_time_ns: int) -> int:
     """The epoch of a timeline starting about now at ``sim_time_ns``, waited for so that the arm's 10 ms grid
     (its DSP ticks, its camera's trigger) falls on multiples of 10 ms of the stamps, where the robot node finds it
-    (services.robot.node: arm_timeline)."""
+    (the bus's arm_timeline: services.robot_sim.hardware, robot_gateway.link)."""
     now = time.time_ns()
     epoch = now - sim_time_ns + (-(now - sim_time_ns)) % DSP_CYCLE_NS
     time.sleep(max(0.0, (epoch + sim_time_ns - time.time_ns()) * 1e-9))

@@ -26,19 +26,20 @@ class Port:
     #: what it carries (None for a query's key)
     message_type: Optional[type] = None
 
+    def _made_below(self, keys: Keys) -> Optional[str]:
+        """For a method of Keys: the key every key it makes sits directly below; None for a property."""
+        if isinstance(getattr(type(keys), self.key), property):
+            return None
+        return getattr(keys, self.key)("_").rsplit("/", 1)[0]
+
     def keys_of(self, keys: Keys) -> str:
         """The key, or for a method the key expression of every key it makes (``*`` for its argument)."""
-        spelled = getattr(type(keys), self.key)
-        if isinstance(spelled, property):
-            return getattr(keys, self.key)
-        made = getattr(keys, self.key)("_")
-        return made.rsplit("/", 1)[0] + "/*"
+        below = self._made_below(keys)
+        return getattr(keys, self.key) if below is None else below + "/*"
 
     def matches(self, keys: Keys, key: str) -> bool:
-        spelled = self.keys_of(keys)
-        if spelled.endswith("/*") and not isinstance(getattr(type(keys), self.key), property):
-            return key.rsplit("/", 1)[0] == spelled[:-2]
-        return key == spelled
+        below = self._made_below(keys)
+        return key == getattr(keys, self.key) if below is None else key.rsplit("/", 1)[0] == below
 
 
 @dataclass(frozen=True)
