@@ -252,6 +252,20 @@ class SafetyCore:
         out.append(self._send(Decision(refusal=self.last_refusal or "idle: no command"), None, stamp_ns))
         return out
 
+    def leaving(self, send: Send, now_ns: int) -> list[Action]:
+        """``send`` checked again at ``now_ns``, the moment it leaves: a command that moves the arm goes out only if
+        its input is still fresh then. Between the check and the publication the service can be held back (a host
+        that cannot keep up: measured 130 ms at half a core), and a motion command stamped when it leaves would
+        reach the robot fresh on an image older than the budget; it becomes the stop that refuses it instead."""
+        if send.held is None or send.command.mode not in (CommandMode.CARTESIAN_VELOCITY, CommandMode.JOINT_VELOCITY):
+            return [send]
+        problem = self.input_problem(send.held.source, now_ns)
+        if problem is None:
+            return [send]
+        if self.held is send.held:
+            self.held = None
+        return [self._refuse(problem), self._send(Decision(refusal=problem), send.held, send.stamp_ns)]
+
     def stop(self, reason: str) -> list[Action]:
         """A stop now (the service stopping: leave the arm stopping rather than holding a last command)."""
         self._forget_answers()

@@ -151,7 +151,12 @@ class SafetyService(Service):
     def _carry_out(self, actions: list[Action]) -> None:
         for action in actions:
             if isinstance(action, Send):
-                self._publish(action)
+                now = self.clock.now_ns() if action.stamp_ns is None else action.stamp_ns
+                for leaving in self.core.leaving(action, now):
+                    if isinstance(leaving, Send):
+                        self._publish(leaving, now)
+                    else:
+                        self._carry_out([leaving])
             elif isinstance(action, Refused):
                 self.counters.inc(f"refused.{action.kind}")
                 self.limited_log.warning(f"refuse:{action.kind}", "safety: stop: %s", action.reason)
@@ -160,10 +165,9 @@ class SafetyService(Service):
             else:
                 self.log.log(action.level, action.text)
 
-    def _publish(self, send: Send) -> None:
-        """The core's command with its header: this service's sequence number, and with ``held``, that input's
-        source stamp and trace."""
-        now = self.clock.now_ns() if send.stamp_ns is None else send.stamp_ns
+    def _publish(self, send: Send, now: int) -> None:
+        """The core's command with its header, stamped ``now`` (when the core checked it last): this service's
+        sequence number, and with ``held``, that input's source stamp and trace."""
         if send.held is not None:
             header = self.header("command", stamp_ns=now, source=send.held.source, recv_ns=send.held.recv_ns)
         else:

@@ -57,6 +57,24 @@ def test_idle_is_a_stop_and_an_approved_command_is_held_and_resent_while_fresh()
     assert [c.mode for c in sends(stale)] == [m.CommandMode.STOP] and safety.held is None
 
 
+def test_a_motion_command_held_back_before_it_leaves_goes_out_as_a_stop_once_its_image_aged_past_the_budget():
+    """A service held back between the check and the publication (an overloaded host) must not send motion on an
+    image that aged past the budget meanwhile: checked again as it leaves, it is the stop that refuses it."""
+    safety = core()
+    checked = 10 * S + 200_000_000  # the image captured at 10 s, 200 ms old when checked: within 250 ms
+    safety.state(state(checked - 5_000_000), checked - 5_000_000)
+    approved = safety.desired(twist(checked - 5_000_000, capture_ns=10 * S), checked)
+    send = next(a for a in approved if isinstance(a, Send))
+    assert send.command.mode is m.CommandMode.CARTESIAN_VELOCITY and safety.held is send.held
+    assert safety.leaving(send, checked + 10_000_000) == [send]  # 210 ms: still within the budget
+    late = safety.leaving(send, checked + 60_000_000)  # held back 60 ms: the image is 260 ms old
+    assert refusals(late) == ["freshness: image is 260 ms old (budget 250 ms)"]
+    assert [c.mode for c in sends(late)] == [m.CommandMode.STOP] and safety.held is None
+    assert sends(late)[0].reason == refusals(late)[0]
+    stop = next(a for a in late if isinstance(a, Send))
+    assert safety.leaving(stop, checked + 500_000_000) == [stop]  # a stop leaves whenever it can
+
+
 def test_freshness_is_two_sided_and_liveliness_is_required():
     safety = core()
     safety.state(state(10 * S), 10 * S)
