@@ -2,10 +2,12 @@
 
 It measures what the realtime stack spends a core's time on (issue 49): a camera frame rendered at the camera's
 resolution (robot_sim's EGL renderer), the tag found in it (vision's detector), one 2 ms cycle of the emulated
-arm (physics and firmware, robot_sim's bus loop), and looks at the host: cores and their clock, memory, whether
+arm (physics and firmware, robot_sim's bus loop), the console's JPEG of a frame (what it does for each frame a
+page draws: the console is an option of each profile, so its need is told apart), and looks at the host: cores and their clock, memory, whether
 realtime priority is granted, and for a real arm Kinova's SDK, libusb, the udev rule and the arm on USB. Then
 :func:`assess`, a pure function of those figures, says which of them limits the host, which profiles it will hold
-and what to change.
+and what to change. A browser's decoding and drawing of the page is not measured here (it needs a stack and a
+browser running): ``mfvs bench console`` measures the frames a page shows, idle and with a task.
 
 Our choices, not measurements (each is where the assessment draws its line): a loop holds its rate when one of
 its periods' work takes at most half the period (the other half is for the rest of the stack on the same core and
@@ -56,6 +58,8 @@ class Figures:
     detect_ms: float
     arm_cycle_ms: float
     realtime: dict
+    #: the console's JPEG of one whole frame (its default quality), the work it does for each frame a page draws
+    encode_ms: float = 0.0
     real_arm: Optional[dict] = None
     repeats: int = 0
     notes: list = field(default_factory=list)
@@ -161,12 +165,17 @@ def measure(camera=None, repeats: int = 30, sdk: Optional[str] = None, arm: Opti
     from services.runtime.config import load_config
     import cv2
 
+    from protocol import messages as m
+    from services.camera.core import image_message
+    from services.console.service import ConsoleConfig
+    from services.observe.foxglove_view import jpeg
     from services.vision.features import TagDetector, TagTracker
 
     shipped = load_config(REPO / "services" / "robot_sim" / "robot_sim.yaml", RobotSimConfig)
     camera = camera or shipped.scene.camera
     sim = Simulation(SceneConfig(camera=camera), render=True, arm=load_arm(arm) if arm else None)
-    renders, cycles, detects = [], [], []
+    renders, cycles, detects, encodes = [], [], [], []
+    quality = ConsoleConfig().jpeg_quality
     # as vision finds it: in a window around its last corners, the whole frame every 30th (its RoiConfig)
     tracker = TagTracker(TagDetector())
     try:
@@ -178,6 +187,12 @@ def measure(camera=None, repeats: int = 30, sdk: Optional[str] = None, arm: Opti
             start = time.perf_counter()
             tracker.find(gray, sim.scene.target.id)
             detects.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            # the frame as the camera publishes it (grey or colour), as the console receives and encodes it
+            shown = {m.ImageEncoding.MONO8: gray, m.ImageEncoding.BGR8: cv2.cvtColor(np.ascontiguousarray(image),
+                     cv2.COLOR_RGB2BGR)}.get(camera.encoding, np.ascontiguousarray(image))
+            jpeg(image_message(shown, camera.encoding, m.Header()), quality)
+            encodes.append(time.perf_counter() - start)
             for _ in range(5):  # a DSP tick's worth of the arm's cycles
                 start = time.perf_counter()
                 sim.cycle()
@@ -191,7 +206,7 @@ def measure(camera=None, repeats: int = 30, sdk: Optional[str] = None, arm: Opti
                    memory_available_mb=_memory_available_mb(),
                    camera={"width": camera.width, "height": camera.height, "rate_hz": camera.rate_hz},
                    render_ms=p50(renders), detect_ms=round(1e3 * statistics.mean(detects[2:]), 3),
-                   arm_cycle_ms=p50(cycles[10:]),
+                   arm_cycle_ms=p50(cycles[10:]), encode_ms=p50(encodes),
                    realtime=realtime_granted(), real_arm=real_arm_readiness(sdk) if sdk is not None or
                    os.environ.get("MFVS_KINOVA_SDK") else None, repeats=repeats)
 
@@ -215,11 +230,16 @@ def assess(f: Figures) -> dict:
     gateway_cores = sim_cores + parts["the arm's 2 ms cycle"]["cores"]
     limiting_name = max(parts, key=lambda name: parts[name]["share_of_period"])
     limiting = {"what": limiting_name, **parts[limiting_name]}
+    # the console is an option of each profile: a JPEG for every frame a page draws, at most the camera's rate
+    console = {"ms": f.encode_ms, "period_ms": period_ms, "share_of_period": round(f.encode_ms / period_ms, 3)}
+    console["cores"] = console["share_of_period"]
     available = CORE_SHARE * f.cores
     advice, holds = [], {}
-    for profile, cores in (("sim", sim_cores), ("gateway", gateway_cores)):
+    for profile, cores, used in (("sim", sim_cores, parts), ("gateway", gateway_cores, parts),
+                                 ("sim with the console", sim_cores + console["cores"],
+                                  {**parts, "the console's encoding": console})):
         reasons = [f"{name}: {p['ms']:.2f} ms of its {p['period_ms']:.1f} ms period"
-                   for name, p in parts.items() if p["share_of_period"] > PERIOD_SHARE]
+                   for name, p in used.items() if p["share_of_period"] > PERIOD_SHARE]
         if cores > available:
             reasons.append(f"the stack needs {cores:.2f} of the {f.cores:g} cores' {available:.2f} it may use")
         if not f.realtime.get("granted"):
@@ -231,6 +251,10 @@ def assess(f: Figures) -> dict:
                       "the camera's resolution or rate (robot_sim scene.camera.width/height/rate_hz, e.g. "
                       "examples/scenarios/table2_qvga.yaml's 320×240), and run experiments in lockstep (their "
                       "default), whose result does not depend on the host's speed")
+    if console["share_of_period"] > PERIOD_SHARE or not holds["sim with the console"]["holds"] and \
+            holds["sim"]["holds"]:
+        advice.append(f"the console's JPEG of a frame takes {f.encode_ms:.1f} ms: it halves frames while its pages "
+                      "are behind, and a lower jpeg_quality or camera rate helps; or watch from another computer")
     if parts["detection"]["share_of_period"] > PERIOD_SHARE:
         advice.append(f"finding the tag takes {f.detect_ms:.1f} ms a frame: a lower resolution or rate helps here too")
     if parts["the arm's 2 ms cycle"]["share_of_period"] > PERIOD_SHARE:
@@ -259,7 +283,7 @@ def assess(f: Figures) -> dict:
                         (arm["devices"], "no Kinova arm on USB (vendor 22cd): powered and plugged in?")):
             if not ok:
                 advice.append(fix)
-    return {"limiting": limiting, "parts": parts, "profiles": holds, "advice": advice}
+    return {"limiting": limiting, "parts": parts, "console": console, "profiles": holds, "advice": advice}
 
 
 def report_text(f: Figures, verdict: dict) -> str:
@@ -267,6 +291,9 @@ def report_text(f: Figures, verdict: dict) -> str:
              f"{f.memory_available_mb} MB available, realtime priority: {f.realtime.get('why')}"]
     for name, p in verdict["parts"].items():
         lines.append(f"  {name}: {p['ms']:.2f} ms of its {p['period_ms']:.1f} ms period ({100 * p['share_of_period']:.0f} %)")
+    c = verdict["console"]
+    lines.append(f"  the console's encoding (with a page open): {c['ms']:.2f} ms of its {c['period_ms']:.1f} ms period "
+                 f"({100 * c['share_of_period']:.0f} %)")
     lim = verdict["limiting"]
     lines.append(f"what limits this host: {lim['what']} ({lim['ms']:.2f} ms, {100 * lim['share_of_period']:.0f} % of "
                  f"its period)")

@@ -15,7 +15,7 @@ CAMERA = {"width": 640, "height": 480, "rate_hz": 30.0}
 def figures(**changes) -> Figures:
     """The issue's slower host: a 640×480 frame rendered in 6.9 ms, two cores, realtime granted."""
     base = dict(cores=2, cpu_model="test", cpu_mhz=2000.0, memory_available_mb=8000.0, camera=dict(CAMERA),
-                render_ms=6.9, detect_ms=2.5, arm_cycle_ms=0.3, realtime={"granted": True, "why": "granted"})
+                render_ms=6.9, detect_ms=2.5, arm_cycle_ms=0.3, encode_ms=3.0, realtime={"granted": True, "why": "granted"})
     return Figures(**{**base, **changes})
 
 
@@ -34,6 +34,16 @@ def test_a_frame_that_takes_most_of_its_period_is_what_to_change_and_the_realtim
     assert any("browser on another computer" in advice for advice in verdict["advice"])
     # at a quarter of the pixels' rate the same host holds
     assert assess(figures(render_ms=20.0, camera={**CAMERA, "rate_hz": 10.0}))["profiles"]["sim"]["holds"]
+
+
+def test_a_console_slow_to_encode_is_told_apart_from_the_stack_it_watches():
+    verdict = assess(figures(encode_ms=20.0))
+    assert verdict["console"]["share_of_period"] == pytest.approx(20.0 / (1000 / 30), abs=1e-3)
+    assert verdict["profiles"]["sim"]["holds"] and verdict["limiting"]["what"] == "rendering"
+    assert not verdict["profiles"]["sim with the console"]["holds"]
+    assert "the console's encoding: 20.00 ms" in verdict["profiles"]["sim with the console"]["why_not"][0]
+    assert any("console's JPEG of a frame takes 20.0 ms" in advice for advice in verdict["advice"])
+    assert assess(figures())["profiles"]["sim with the console"]["holds"]
 
 
 @pytest.mark.parametrize("changes, advice", [
@@ -62,8 +72,9 @@ def test_mfvs_doctor_measures_this_host_and_prints_one_json_object():
     output = json.loads(done.stdout)
     found = output["figures"]
     assert found["cores"] > 0 and found["camera"] == CAMERA  # (a CPU quota may allow less than one) and found["realtime"]["why"]
-    assert found["render_ms"] > 0 and found["detect_ms"] > 0 and found["arm_cycle_ms"] > 0
-    assert output["limiting"]["what"] in output["parts"] and set(output["profiles"]) == {"sim", "gateway"}
+    assert found["render_ms"] > 0 and found["detect_ms"] > 0 and found["arm_cycle_ms"] > 0 and found["encode_ms"] > 0
+    assert output["limiting"]["what"] in output["parts"]
+    assert set(output["profiles"]) == {"sim", "gateway", "sim with the console"}
     for bad in (["--repeats", "0"], ["--arm", "j2x9"]):
         refused = subprocess.run([sys.executable, "-m", "services.cli", "doctor", *bad], cwd=REPO,
                                  capture_output=True, text=True, timeout=60)
