@@ -588,7 +588,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 #: every service's module: each declares its ports on its service classes (services.runtime.ports)
 SERVICE_MODULES = ("services.vision.service", "services.controller.service", "services.safety.service",
                    "services.camera.service", "services.console.service", "services.torque_controller.service",
-                   "services.robot_sim.service", "services.robot_gateway.service")
+                   "services.robot_sim.service", "services.robot_gateway.service", "services.ros2_bridge.service")
 
 
 def service_classes() -> list:
