@@ -232,7 +232,7 @@ class Ros2BridgeService(Service):
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         with self._lock:
-            self._watch.on_token(str(sample.key_expr), sample.kind is zenoh.SampleKind.PUT)
+            self._watch.on_token(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
 
     def _on_image(self, image: m.Image, _recv_ns: int) -> None:
         with self._lock:
