@@ -129,6 +129,13 @@ def tf_message(payload: bytes) -> list[dict]:
     return out
 
 
+def pose_stamped(frame_id: str, xyz, xyzw) -> bytes:
+    """geometry_msgs/PoseStamped: header (stamp, frame_id), then position and orientation, 8-aligned doubles."""
+    text = frame_id.encode() + b"\x00"
+    head = b"\x00\x01\x00\x00" + struct.pack("<iII", 0, 0, len(text)) + text
+    return head + bytes(-(len(head) - 4) % 8) + struct.pack("<7d", *xyz, *xyzw)
+
+
 def trigger(session, key: str, sequence: int, gid: bytes, timeout: float = 15.0) -> tuple[bool, str, bytes]:
     """A std_srvs/Trigger call as rmw_zenoh's client makes it: a get on the service's key with the attachment."""
     for reply in session.get(key, payload=TRIGGER_REQUEST, attachment=attachment(sequence, gid), timeout=timeout):
@@ -245,6 +252,14 @@ def test_a_ros_2_graph_sees_the_arm_and_starts_and_stops_the_task_through_the_br
     assert success and "estop" in message, message
     assert safety.last().state is m.SafetyState.ESTOP
     assert wait_for(lambda: max(abs(v) for v in joints.last()["velocity"]) < 0.01, timeout=15)
+
+    # a goal pose: one vision takes (the camera 0.3 m before the tag, facing it), one it refuses (the camera facing
+    # away), each as vision's answer says
+    goal_key = data_key(tokens["/mfvs/goal_pose"])
+    session.put(goal_key, pose_stamped("tag", (0.0, 0.0, 0.3), (1.0, 0.0, 0.0, 0.0)), attachment=attachment(2, client))
+    session.put(goal_key, pose_stamped("tag", (0.0, 0.0, 0.3), (0.0, 0.0, 0.0, 1.0)), attachment=attachment(3, client))
+    assert wait_for(lambda: {"actions.goal", "rejected.ros.goal.vision"} <= set(health().errors), timeout=15,
+                    period=0.5), health()
     assert bridge.poll() is None
     for token in listener:
         token.undeclare()
