@@ -82,11 +82,16 @@ class _Publisher:
     def __init__(self, publisher, declared: core.Declared) -> None:
         self._publisher = GuardedPublisher(publisher)
         self.declared = declared
-        self._sequence = itertools.count(1)  # next() on a count is atomic in CPython: callbacks share it safely
+        self._sequence = itertools.count(1)
+        # numbered and sent under one lock: /tf is sent from two callbacks (states, features), and a subscriber
+        # reads a number lower than the last as a sample from the past
+        self._lock = threading.Lock()
 
     def put(self, message: cdr.Message) -> bool:
-        attachment = Attachment(next(self._sequence), time.time_ns(), self.declared.gid)
-        return self._publisher.put(cdr.serialize(message), attachment=encode_attachment(attachment))
+        payload = cdr.serialize(message)
+        with self._lock:
+            attachment = Attachment(next(self._sequence), time.time_ns(), self.declared.gid)
+            return self._publisher.put(payload, attachment=encode_attachment(attachment))
 
     def undeclare(self) -> None:
         self._publisher.undeclare()
