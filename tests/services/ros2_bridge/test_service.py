@@ -203,13 +203,16 @@ def test_a_ros_2_graph_sees_the_arm_and_starts_and_stops_the_task_through_the_br
     assert tokens["/camera/image_raw"]["hash"] == IMAGE_HASH
     assert tokens["/tf_static"]["qos"].split(":")[1] == "1"  # transient local, written out
 
-    # a ROS subscription of the image, as a listener node would declare it: the bridge sends images only then
+    # no image while no ROS subscription of it is visible (rmw_zenoh's way for uint8[] types) ...
+    images = Topic(session, data_key(tokens["/camera/image_raw"]), image)
+    assert wait_for(lambda: health().errors.get("images.unwatched", 0) > 0, timeout=90, period=0.5), health()
+    assert images.last() is None
+    # ... and images once a listener node declares one, as rmw_zenoh would
     zid = str(session.zid())
     listener = [session.liveliness().declare_token(f"@ros2_lv/0/{zid}/0/0/NN/%/%/listener"),
                 session.liveliness().declare_token(
                     f"@ros2_lv/0/{zid}/0/1/MS/%/%/listener/%camera%image_raw/sensor_msgs::msg::dds_::Image_/"
                     f"{IMAGE_HASH}/2::,5:,:,:,,")]
-    images = Topic(session, data_key(tokens["/camera/image_raw"]), image)
     joints = Topic(session, data_key(tokens["/joint_states"]), joint_state)
     transforms = Topic(session, data_key(tokens["/tf"]), tf_message)
     # (the first frame of a cold renderer can take long on a loaded host: the bound is generous, the wait is not)
@@ -277,3 +280,12 @@ def test_a_ros_2_graph_sees_the_arm_and_starts_and_stops_the_task_through_the_br
     assert bridge.poll() is None
     for token in listener:
         token.undeclare()
+
+    # the node leaves the graph when the bridge stops: its tokens are gone
+    bridge.terminate()
+    assert bridge.wait(timeout=15) == 0
+
+    def bridge_tokens() -> list[str]:
+        return [str(r.ok.key_expr) for r in session.liveliness().get(f"@ros2_lv/0/{node['zid']}/**", timeout=2.0)
+                if r.ok is not None]
+    assert wait_for(lambda: not bridge_tokens(), timeout=10, period=0.5), bridge_tokens()
