@@ -349,10 +349,10 @@ def goal_pose(payload: bytes, limits: GoalLimits = GoalLimits()) -> m.Pose:
     values = (p.x, p.y, p.z, o.w, o.x, o.y, o.z)
     if not all(math.isfinite(v) for v in values):
         raise InputError("not_finite", f"a goal pose with NaN or infinity: {values}")
-    norm = math.sqrt(o.w ** 2 + o.x ** 2 + o.y ** 2 + o.z ** 2)
+    norm = math.hypot(o.w, o.x, o.y, o.z)  # finite however large the values (squares would overflow)
     if abs(norm - 1.0) > limits.quaternion_tolerance:
         raise InputError("quaternion", f"the orientation is no unit quaternion (norm {norm:.6g})")
-    distance = math.sqrt(p.x ** 2 + p.y ** 2 + p.z ** 2)
+    distance = math.hypot(p.x, p.y, p.z)
     if not limits.min_distance_m <= distance <= limits.max_distance_m:
         raise InputError("distance", f"the camera {distance:.3g} m from the tag: a goal is "
                                      f"{limits.min_distance_m:g} to {limits.max_distance_m:g} m from it")

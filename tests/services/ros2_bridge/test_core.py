@@ -5,6 +5,8 @@ import math
 import numpy as np
 import pinocchio as pin
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from protocol import messages as m
 from protocol.ros2 import cdr
@@ -239,3 +241,21 @@ def test_a_service_request_needs_rmw_zenoh_s_attachment_and_its_reply_returns_it
         core.trigger_request(b"\x00\x01\x00\x00" + bytes(12))
     assert cdr.deserialize(core.trigger_response(True, "task running"), cdr.TriggerResponse) == \
         cdr.TriggerResponse(success=True, message="task running")
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(st.binary(max_size=200),
+                 # a real PoseStamped with bytes changed: lengths, frame ids, doubles made NaN or huge
+                 st.builds(lambda at, new: (lambda p: p[:at % len(p)] + new + p[at % len(p) + len(new):])(
+                     pose_payload()), st.integers(0, 200), st.binary(min_size=1, max_size=8))))
+def test_any_bytes_as_a_goal_or_a_request_are_taken_or_refused_with_a_reason_never_an_error(payload):
+    """Whatever a ROS 2 peer sends, the bridge gets a goal it checked or an InputError (nothing else escapes)."""
+    for parse in (core.goal_pose, core.trigger_request, core.request_attachment):
+        try:
+            result = parse(payload)
+        except core.InputError as refused:
+            assert refused.kind and str(refused)
+            continue
+        if parse is core.goal_pose:
+            assert all(math.isfinite(v) for v in (*result.xyz, *result.quat_wxyz))
+            assert 0.05 <= math.dist(result.xyz, (0, 0, 0)) <= 2.0
