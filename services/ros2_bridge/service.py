@@ -93,6 +93,11 @@ class _Publisher:
             attachment = Attachment(next(self._sequence), time.time_ns(), self.declared.gid)
             return self._publisher.put(payload, attachment=encode_attachment(attachment))
 
+    @property
+    def heard(self) -> bool:
+        """Whether any zenoh subscriber matches the key now: a sample nobody would receive is not even made."""
+        return self._publisher.matching
+
     def undeclare(self) -> None:
         self._publisher.undeclare()
 
@@ -259,6 +264,12 @@ class Ros2BridgeService(Service):
             self._publish(core.TF_STATIC, core.camera_mount(info))
 
     def _on_state(self, state: m.RobotState, _recv_ns: int) -> None:
+        # 100 Hz of kinematics and CDR for nobody is most of the bridge's CPU while no ROS tool looks (the
+        # description is sent regardless: it is latched for whoever comes)
+        joints, tf = self._publishers[core.JOINT_STATES].heard, self._publishers[core.TF].heard
+        if self._arm is not None and not (joints or tf):
+            self.counters.inc("states.unheard")
+            return
         with self._lock:
             arm, why = declared_arm(state.arm, state.arm_digest, len(state.q), None, self._arm)
             if arm is None:
@@ -267,14 +278,16 @@ class Ros2BridgeService(Service):
             first = arm is not self._arm
             if first:
                 self._arm, self._kinematics = arm, ArmKinematics(arm)
-            links = self._kinematics.link_poses(state.q)
+            links = self._kinematics.link_poses(state.q) if tf else None
         if first:
             self._publish(core.ROBOT_DESCRIPTION, core.robot_description(arm))
-        self._publish(core.JOINT_STATES, core.joint_state(state, arm))
-        self._publish(core.TF, core.arm_tf(links, arm, state.header.stamp_ns))
+        if joints:
+            self._publish(core.JOINT_STATES, core.joint_state(state, arm))
+        if tf:
+            self._publish(core.TF, core.arm_tf(links, arm, state.header.stamp_ns))
 
     def _on_features(self, features: m.Features, _recv_ns: int) -> None:
-        tag = core.tag_tf(features)
+        tag = core.tag_tf(features) if self._publishers[core.TF].heard else None
         if tag is not None:
             self._publish(core.TF, tag)
 
