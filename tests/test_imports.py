@@ -97,6 +97,8 @@ SERVICES = {
     "services.torque_controller": {"services.controller", "services.robot"},  # the torque laws; the bus cycle
     "services.console": {"services.controller", "services.safety", "services.observe"},  # task, e-stop, frames
     "services.calibration": {"services.camera", "services.robot_sim"},  # the camera's files; the simulated rig
+    # the task and the e-stop as `mfvs task` and `mfvs estop` reach them; the frames `mfvs view` names
+    "services.ros2_bridge": {"services.controller", "services.safety", "services.observe"},
 }
 
 #: the orchestration's folders (what starts, runs and reports the services) and the others each is built on; any of

@@ -9,13 +9,14 @@ from services.camera.service import CameraConfig
 from services.controller.service import ControllerConfig
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig
+from services.ros2_bridge.service import Ros2BridgeConfig
 from services.safety.service import SafetyConfig
 from services.vision.service import VisionConfig
 from tests.helpers import REPO
 
 SHIPPED = {
     "robot_sim": RobotSimConfig, "vision": VisionConfig, "controller": ControllerConfig, "safety": SafetyConfig,
-    "robot_gateway": GatewayConfig, "camera": CameraConfig,
+    "robot_gateway": GatewayConfig, "camera": CameraConfig, "ros2_bridge": Ros2BridgeConfig,
 }
 
 

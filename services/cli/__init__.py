@@ -119,6 +119,9 @@ def _add_stack_commands(sub) -> None:
                              "sustain 2 ms (profiles with robot_gateway; `mfvs bench rs485 --period` measures it)")
     up_cmd.add_argument("--wait", type=float, default=60.0, help="seconds to wait for every service")
     add_arm_option(up_cmd, default=None, what="the profile's (j2s7s300 unless it sets one)")
+    up_cmd.add_argument("--ros2", action="store_true",
+                        help="also run the ROS 2 bridge (`mfvs ros2` as a service of the stack: domain "
+                             "$ROS_DOMAIN_ID, else 0; a profile may list ros2_bridge with its own settings)")
     up_cmd.add_argument("--host", default=None,
                         help="in a profile across computers (deploy/profiles/multi-host.yaml), which one this is: "
                              "start only its part")
@@ -197,19 +200,21 @@ def _add_servo_commands(sub) -> None:
 
 def _add_package_commands(sub) -> None:
     """The commands their packages add themselves: ``calibrate``, ``check``, ``doctor``, the observers'
-    (services.observe.cli) and the console's, each given the command line's own connection helpers."""
+    (services.observe.cli), the console's and ``ros2``, each given the command line's own connection helpers."""
     from services.calibration.cli import add_parser as add_calibrate
     from services.commissioning.check import add_parser as add_check
     from services.commissioning.doctor import add_parser as add_doctor
 
     from services.console.cli import add_parser as add_console
     from services.observe.cli import add_parsers as add_observe
+    from services.ros2_bridge.cli import add_parser as add_ros2
 
     add_calibrate(sub)
     add_check(sub, add_connection_options, operator_session)
     add_doctor(sub)
     add_observe(sub, add_connection_options, operator_session, stack_connection, service_graph)
     add_console(sub, add_connection_options, stack_connection)
+    add_ros2(sub, add_connection_options, stack_connection)
 
 
 def _add_operator_commands(sub) -> None:

@@ -500,7 +500,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_up(args: argparse.Namespace) -> int:
     from services.runtime.config import ConfigError
-    from services.stack.launcher import load_profile, up, with_arm, with_bus_period
+    from services.stack.launcher import load_profile, up, with_arm, with_bus_period, with_ros2
 
     try:
         profile = load_profile(args.profile, args.port, args.bus_port)
@@ -514,6 +514,14 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.bus_period is not None:
         try:
             profile = with_bus_period(profile, args.bus_period)
+        except ValueError as exc:
+            print(f"mfvs up: {exc}", file=sys.stderr)
+            return 2
+    if args.ros2:
+        from services.ros2_bridge.cli import default_domain
+
+        try:
+            profile = with_ros2(profile, default_domain())
         except ValueError as exc:
             print(f"mfvs up: {exc}", file=sys.stderr)
             return 2
@@ -588,7 +596,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 #: every service's module: each declares its ports on its service classes (services.runtime.ports)
 SERVICE_MODULES = ("services.vision.service", "services.controller.service", "services.safety.service",
                    "services.camera.service", "services.console.service", "services.torque_controller.service",
-                   "services.robot_sim.service", "services.robot_gateway.service")
+                   "services.robot_sim.service", "services.robot_gateway.service", "services.ros2_bridge.service")
 
 
 def service_classes() -> list:

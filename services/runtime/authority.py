@@ -73,8 +73,9 @@ def writes(keys: Keys, services=DEFAULT_SERVICES) -> dict[str, list[str]]:
 
 
 #: the tools an identity runs under its own credentials, announced in their own names (liveliness token, health):
-#: the operator's console (`mfvs console`) acts as the operator and says how it is doing as ``console``
-TOOLS = {"operator": ("console",)}
+#: the operator's console (`mfvs console`) and the ROS 2 bridge (`mfvs ros2`) act as the operator and say how they
+#: are doing in their own names
+TOOLS = {"operator": ("console", "ros2_bridge")}
 
 
 def announces(identity: str) -> list[str]:

@@ -114,11 +114,12 @@ class GuardedPublisher:
     def declare(cls, session: zenoh.Session, key: str, **options) -> "GuardedPublisher":
         return cls(session.declare_publisher(key, **options))
 
-    def put(self, payload: bytes) -> bool:
+    def put(self, payload: bytes, **options) -> bool:
+        """``options``: zenoh's put options (an attachment)."""
         with self._lock:
             if self._closed:
                 return False
-            self._publisher.put(payload)
+            self._publisher.put(payload, **options)
             return True
 
     @property

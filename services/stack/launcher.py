@@ -40,7 +40,8 @@ from services.runtime.service import EXIT_FILE_ENV, alive_services, query_health
 from services.runtime.transport import ZenohConfig, file_access_control, file_endpoints, open_session
 
 SERVICES = (*PIPELINE_START_ORDER, "robot_sim")
-KNOWN_SERVICES = (*SERVICES, "robot_gateway", "camera")
+#: optional beside the pipeline: a real camera, the ROS 2 bridge (`mfvs up --ros2`)
+KNOWN_SERVICES = (*SERVICES, "robot_gateway", "camera", "ros2_bridge")
 BUS_HUB_PORT = 7448
 
 
@@ -349,6 +350,16 @@ def with_bus_period(profile: Profile, period_ms: float) -> Profile:
     return msgspec.structs.replace(profile, services=services)
 
 
+def with_ros2(profile: Profile, domain_id: int) -> Profile:
+    """The profile with the ROS 2 bridge on ROS domain ``domain_id`` (`mfvs up --ros2`), on the first host of a
+    profile across hosts (the router's: it needs no device), unless the profile runs one already."""
+    if any(s.name == "ros2_bridge" for s in profile.services):
+        return profile
+    bridge = msgspec.structs.replace(_shipped("ros2_bridge", [f"domain_id={domain_id}"]),
+                                     host=profile.router.host)
+    return msgspec.structs.replace(profile, services=[*profile.services, bridge])
+
+
 def profile_arm(profile: Profile) -> str:
     """The one arm a profile runs (its robot's; the default arm where none is set); ValueError naming the services
     when they do not agree (a controller or safety started for another arm than the robot's would do nothing)."""
@@ -530,9 +541,13 @@ def _exit_code(path: Optional[str]) -> Optional[int]:
 def behind_authority(profile: Profile, deployment) -> Profile:
     """``profile`` with its router on ``deployment``'s config (`mfvs authority init`: access control, TLS where it
     has certificates) and each service on its own identity's client config there."""
+    from services.runtime.authority import TOOLS
+
     profile.router.config = str(deployment.router_config)
     for service in profile.services:
-        service.zenoh_config = str(deployment.client_configs[service.name])
+        # a tool (the ROS 2 bridge) runs as the identity it acts for
+        identity = next((who for who, tools in TOOLS.items() if service.name in tools), service.name)
+        service.zenoh_config = str(deployment.client_configs[identity])
     return profile
 
 

@@ -93,6 +93,6 @@ def test_the_graph_is_the_declarations_and_mfvs_keys_graph_prints_it():
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
     # the path from a frame to the arm, as the services declare it
-    assert "vision --vision/features (Features)--> console, controller" in lines
+    assert "vision --vision/features (Features)--> console, controller, ros2_bridge" in lines
     assert "safety --robot/command (RobotCommand)--> robot_gateway, robot_sim" in lines
     assert "controller --controller/twist (Twist)--> safety" in lines

@@ -1,0 +1,360 @@
+"""The ROS 2 bridge's pure side: what mfvs's messages are as ROS 2 messages, the node's graph as rmw_zenoh writes it
+(keys, liveliness tokens, GIDs), and what a ROS 2 input may ask of the stack. No zenoh, no threads, no locks: the
+service (services/ros2_bridge/service.py) feeds it and puts what it returns on the wire.
+
+The frames are the ones ``mfvs view`` shows in Foxglove (services/observe/foxglove_view.py): the arm's links from
+its description's kinematics, the camera (OpenCV's optical frame, which is ROS's ``*_optical_frame`` convention:
+z forward, x right, y down) mounted on the end effector, and the tag where vision sees it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from protocol import messages as m
+from protocol.ros2 import cdr, keys as ros_keys, types as ros_types
+from protocol.ros2.attachment import Attachment, AttachmentError, decode as decode_attachment
+from protocol.ros2.gid import entity_gid
+from protocol.ros2.keys import Distro, Durability, EntityKind, Qos, Reliability
+from services.model import frames
+from services.model.arm import BASE_LINK, EE_LINK, ArmDescription
+from services.observe.foxglove_view import CAMERA_FRAME, TAG_FRAME
+
+#: what ROS 2 calls mfvs's image encodings (sensor_msgs/image_encodings.hpp spells the same three the same way)
+ROS_ENCODINGS = {m.ImageEncoding.RGB8: "rgb8", m.ImageEncoding.BGR8: "bgr8", m.ImageEncoding.MONO8: "mono8"}
+
+
+# ------------------------------------------------------------------------------------------------ the node's graph
+@dataclass(frozen=True)
+class Endpoint:
+    """One publisher, subscription or service server of the bridge's node."""
+    kind: EntityKind
+    #: as the node asks for it: relative names go under the namespace (ROS's own resolution)
+    name: str
+    ros_type: ros_types.RosType
+    qos: Qos
+
+
+# QoS as the usual ROS 2 publishers of these topics ask (rclcpp's SensorDataQoS for the camera, tf2's broadcasters,
+# robot_state_publisher), so that a ROS tool that checks compatibility finds what it expects
+_SENSOR = Qos(reliability=Reliability.BEST_EFFORT, depth=5)
+_RELIABLE_10 = Qos(depth=10)
+_LATCHED = Qos(durability=Durability.TRANSIENT_LOCAL, depth=1)
+
+#: what the bridge publishes (names as a ROS camera driver, tf2 and robot_state_publisher use them)
+IMAGE = Endpoint(EntityKind.PUBLISHER, "camera/image_raw", ros_types.IMAGE, _SENSOR)
+CAMERA_INFO = Endpoint(EntityKind.PUBLISHER, "camera/camera_info", ros_types.CAMERA_INFO, _SENSOR)
+JOINT_STATES = Endpoint(EntityKind.PUBLISHER, "joint_states", ros_types.JOINT_STATE, _RELIABLE_10)
+TF = Endpoint(EntityKind.PUBLISHER, "/tf", ros_types.TF_MESSAGE, Qos(depth=100))
+TF_STATIC = Endpoint(EntityKind.PUBLISHER, "/tf_static", ros_types.TF_MESSAGE, _LATCHED)
+ROBOT_DESCRIPTION = Endpoint(EntityKind.PUBLISHER, "robot_description", ros_types.STRING, _LATCHED)
+DIAGNOSTICS = Endpoint(EntityKind.PUBLISHER, "/diagnostics", ros_types.DIAGNOSTIC_ARRAY, _RELIABLE_10)
+#: what it accepts: the task and the e-stop as services, the goal as a topic
+START_TASK = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/start_task", ros_types.TRIGGER, _RELIABLE_10)
+STOP_TASK = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/stop_task", ros_types.TRIGGER, _RELIABLE_10)
+ESTOP = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/estop", ros_types.TRIGGER, _RELIABLE_10)
+GOAL_POSE = Endpoint(EntityKind.SUBSCRIPTION, "mfvs/goal_pose", ros_types.POSE_STAMPED, _RELIABLE_10)
+
+ENDPOINTS = (IMAGE, CAMERA_INFO, JOINT_STATES, TF, TF_STATIC, ROBOT_DESCRIPTION, DIAGNOSTICS, START_TASK, STOP_TASK,
+             ESTOP, GOAL_POSE)
+
+
+@dataclass(frozen=True)
+class Declared:
+    """An endpoint as the node declares it on zenoh: its data key, its liveliness token and the GID rmw_zenoh
+    derives from that token."""
+    endpoint: Endpoint
+    fully_qualified_name: str
+    key: str
+    token: str
+    gid: bytes
+
+
+@dataclass(frozen=True)
+class NodeGraph:
+    """The node's token and every endpoint's key, token and GID, from the settings and the session's zenoh id. The
+    node's id is 0 and its endpoints count from 1 in ENDPOINTS' order (rmw_zenoh counts both per context; a
+    bridge is one context with one node)."""
+    domain_id: int
+    namespace: str
+    node_name: str
+    distro: Distro
+    zenoh_id: str
+    node_token: str
+    endpoints: dict[Endpoint, Declared]
+
+    @classmethod
+    def build(cls, domain_id: int, namespace: str, node_name: str, distro: Distro, zenoh_id: str) -> "NodeGraph":
+        node_id = 0
+        declared = {}
+        for entity_id, endpoint in enumerate(ENDPOINTS, start=1):
+            name = ros_keys.fully_qualified_name(namespace, endpoint.name, node_name)
+            token = ros_keys.endpoint_token(endpoint.kind, domain_id, zenoh_id, node_id, entity_id, namespace,
+                                            node_name, name, endpoint.ros_type.name, endpoint.ros_type.rihs01,
+                                            endpoint.qos, distro)
+            key = ros_keys.data_key(domain_id, name, endpoint.ros_type.name, endpoint.ros_type.rihs01, distro)
+            declared[endpoint] = Declared(endpoint, name, key, token, entity_gid(token))
+        return cls(domain_id, namespace, node_name, distro, zenoh_id,
+                   ros_keys.node_token(domain_id, zenoh_id, node_id, namespace, node_name), declared)
+
+    def watch_key(self) -> str:
+        """Every token of the domain: what a graph watcher subscribes to (here, for the image's subscribers)."""
+        return ros_keys.liveliness_subscription_key(self.domain_id)
+
+
+class SubscriberWatch:
+    """Which topics have a subscription somewhere in the ROS graph, from the liveliness tokens seen come and go:
+    rmw_zenoh (2026) publishes a ``uint8[]`` type only while one is visible, and so does the bridge for the
+    image (an image nobody reads is 900 kB of CDR for nothing)."""
+
+    def __init__(self, domain_id: int) -> None:
+        self.domain_id = domain_id
+        self._subscribers: dict[str, tuple[str, str]] = {}  # token -> (topic, DDS type)
+
+    def on_token(self, token: str, alive: bool) -> None:
+        if not alive:
+            self._subscribers.pop(token, None)
+            return
+        try:
+            parsed = ros_keys.parse_token(token)
+        except ros_keys.InvalidName:
+            return  # a token of something else in the admin space: not a subscription we could serve
+        if parsed.kind is EntityKind.SUBSCRIPTION and parsed.domain_id == self.domain_id:
+            self._subscribers[token] = (parsed.name, parsed.dds_type)
+
+    def has_subscriber(self, name: str, ros_type: str) -> bool:
+        wanted = (name, ros_keys.dds_type_name(ros_type))
+        return wanted in self._subscribers.values()
+
+
+# ------------------------------------------------------------------------------------------------ outputs
+class Untranslatable(ValueError):
+    """An mfvs message that has no faithful ROS 2 form (counted by the service, never published half-right)."""
+
+
+def stamp(ns: int) -> cdr.Time:
+    return cdr.Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def header(ns: int, frame_id: str) -> cdr.Header:
+    return cdr.Header(stamp=stamp(ns), frame_id=frame_id)
+
+
+def image(message: m.Image) -> cdr.Image:
+    channels = m.CHANNELS[message.encoding]
+    return cdr.Image(header=header(message.header.stamp_ns, CAMERA_FRAME), height=message.height,
+                     width=message.width, encoding=ROS_ENCODINGS[message.encoding], is_bigendian=0,
+                     step=message.width * channels, data=message.data)
+
+
+def camera_info(info: m.CameraInfo) -> cdr.CameraInfo:
+    """The intrinsics as ROS states them: K, the identity R (a monocular camera), P = [K | 0], and OpenCV's
+    distortion under the ROS model of that many coefficients (plumb_bob: 5, rational_polynomial: 8)."""
+    distortion = list(info.distortion)
+    if len(distortion) <= 5:
+        model, d = "plumb_bob", distortion + [0.0] * (5 - len(distortion))
+    elif len(distortion) == 8:
+        model, d = "rational_polynomial", distortion
+    else:
+        raise Untranslatable(f"{len(distortion)} distortion coefficients: ROS models take 5 (plumb_bob) or 8 "
+                             "(rational_polynomial)")
+    k = [info.fx, 0.0, info.cx, 0.0, info.fy, info.cy, 0.0, 0.0, 1.0]
+    p = [info.fx, 0.0, info.cx, 0.0, 0.0, info.fy, info.cy, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return cdr.CameraInfo(header=header(info.header.stamp_ns, CAMERA_FRAME), height=info.height, width=info.width,
+                          distortion_model=model, d=np.asarray(d, dtype=float), k=np.asarray(k),
+                          r=np.eye(3).ravel(), p=np.asarray(p))
+
+
+def joint_state(state: m.RobotState, arm: ArmDescription) -> cdr.JointState:
+    """The joints by the names of the arm's URDF (robot_description), model angles (rad), rates, torques."""
+    return cdr.JointState(header=header(state.header.stamp_ns, ""), name=arm.joint_names,
+                          position=np.asarray(state.q, dtype=float), velocity=np.asarray(state.dq, dtype=float),
+                          effort=np.asarray(state.tau, dtype=float))
+
+
+def _transform(parent: str, child: str, ns: int, R, p) -> cdr.TransformStamped:
+    w, x, y, z = frames.matrix_to_quat_wxyz(np.asarray(R, dtype=float))
+    return cdr.TransformStamped(
+        header=header(ns, parent), child_frame_id=child,
+        transform=cdr.Transform(translation=cdr.Vector3(*(float(v) for v in p)),
+                                rotation=cdr.Quaternion(float(x), float(y), float(z), float(w))))
+
+
+def _pose_transform(parent: str, child: str, ns: int, pose: m.Pose) -> cdr.TransformStamped:
+    return _transform(parent, child, ns, frames.quat_wxyz_to_matrix(pose.quat_wxyz), pose.xyz)
+
+
+def chain(arm: ArmDescription) -> list[str]:
+    """The links of the arm's URDF from the base to the end effector, each the parent of the next."""
+    return [BASE_LINK, "link_0", *arm.link_names, EE_LINK]
+
+
+def arm_tf(link_poses: dict, arm: ArmDescription, stamp_ns: int) -> cdr.TFMessage:
+    """Every joint of the URDF's chain as parent → child (``link_poses``: ArmKinematics.link_poses, each link in the
+    base frame), so the tree is the URDF's and RViz's RobotModel finds every link under base_link."""
+    links = chain(arm)
+    out = []
+    for parent, child in zip(links, links[1:]):
+        R_parent, p_parent = link_poses[parent]
+        R_child, p_child = link_poses[child]
+        out.append(_transform(parent, child, stamp_ns, R_parent.T @ R_child, R_parent.T @ (p_child - p_parent)))
+    return cdr.TFMessage(transforms=tuple(out))
+
+
+def camera_mount(info: m.CameraInfo) -> cdr.TFMessage:
+    """The camera on the end effector: what /tf_static carries (a hand-eye calibration changes it; then it is sent
+    again)."""
+    return cdr.TFMessage(transforms=(_pose_transform(EE_LINK, CAMERA_FRAME, info.header.stamp_ns,
+                                                     info.camera_in_ee),))
+
+
+def tag_tf(features: m.Features) -> Optional[cdr.TFMessage]:
+    """The tag in the camera frame, when vision sees it."""
+    if features.tag_pose_in_camera is None:
+        return None
+    return cdr.TFMessage(transforms=(_pose_transform(CAMERA_FRAME, TAG_FRAME, features.header.stamp_ns,
+                                                     features.tag_pose_in_camera),))
+
+
+def robot_description(arm: ArmDescription) -> cdr.String:
+    """The URDF the arm's description generates, the one Pinocchio and MuJoCo load (ArmDescription.urdf)."""
+    return cdr.String(data=arm.urdf())
+
+
+# ------------------------------------------------------------------------------------------------ diagnostics
+#: a service not heard for this long is STALE
+STALE_AFTER_NS = 5_000_000_000
+HARDWARE_ID = "mfvs"
+
+
+@dataclass
+class Diagnostics:
+    """What /diagnostics says: each service's health (its ServiceHealth, heard on health/<name>), the servo task
+    (the controller's last status) and safety's state, each with when it was heard (``now_ns`` given by the caller,
+    on the clock it hears them by)."""
+    robot_id: str
+    health: dict[str, tuple[m.ServiceHealth, int]] = field(default_factory=dict)
+    controller: Optional[tuple[m.ControllerStatus, int]] = None
+    safety: Optional[tuple[m.SafetyStatus, int]] = None
+
+    def on_health(self, health: m.ServiceHealth, now_ns: int) -> None:
+        self.health[health.service] = (health, now_ns)
+
+    def on_controller(self, status: m.ControllerStatus, now_ns: int) -> None:
+        self.controller = (status, now_ns)
+
+    def on_safety(self, status: m.SafetyStatus, now_ns: int) -> None:
+        self.safety = (status, now_ns)
+
+    def _status(self, name: str, level: int, message: str, values: dict, heard_ns: int,
+                now_ns: int) -> cdr.DiagnosticStatus:
+        if now_ns - heard_ns > STALE_AFTER_NS:
+            level, message = cdr.DiagnosticStatus.STALE, f"not heard for {(now_ns - heard_ns) / 1e9:.0f} s: {message}"
+        return cdr.DiagnosticStatus(
+            level=level, name=f"mfvs/{self.robot_id}/{name}", message=message[:256], hardware_id=HARDWARE_ID,
+            values=tuple(cdr.KeyValue(key=str(k), value=str(v)) for k, v in values.items()))
+
+    def array(self, now_ns: int, stamp_ns: int) -> cdr.DiagnosticArray:
+        statuses = []
+        for name, (health, heard) in sorted(self.health.items()):
+            level = (cdr.DiagnosticStatus.ERROR if not health.healthy else
+                     cdr.DiagnosticStatus.WARN if health.degraded else cdr.DiagnosticStatus.OK)
+            message = "; ".join([health.state, *health.degraded] + ([health.detail] if health.detail else []))
+            values = {"pid": health.pid, "uptime_s": f"{health.uptime_s:.0f}",
+                      **{f"rate.{k}": f"{v:.1f}" for k, v in sorted(health.rates_hz.items())},
+                      **{f"errors.{k}": v for k, v in sorted(health.errors.items())}}
+            statuses.append(self._status(name, level, message, values, heard, now_ns))
+        if self.controller is not None:
+            status, heard = self.controller
+            bad = status.status in (m.ControllerState.ILL_CONDITIONED, m.ControllerState.CONSTRAINT_ABORT,
+                                    m.ControllerState.ARM_NOT_CHECKED, m.ControllerState.WRONG_ARM)
+            message = status.status.value + (f" ({status.detail})" if status.detail else "")
+            statuses.append(self._status(
+                "task", cdr.DiagnosticStatus.WARN if bad else cdr.DiagnosticStatus.OK, message,
+                {"law": status.law, "state": status.status.value, "iteration": status.iteration,
+                 "error_norm": f"{status.error_norm:.6g}", "saturated": status.saturated}, heard, now_ns))
+        if self.safety is not None:
+            status, heard = self.safety
+            level = {m.SafetyState.OK: cdr.DiagnosticStatus.OK, m.SafetyState.LIMITING: cdr.DiagnosticStatus.WARN,
+                     m.SafetyState.REFUSING: cdr.DiagnosticStatus.WARN,
+                     m.SafetyState.ESTOP: cdr.DiagnosticStatus.ERROR}[status.state]
+            values = {"state": status.state.value, "active_limits": ", ".join(status.active_limits),
+                      "last_refusal": status.last_refusal}
+            statuses.append(self._status("safety", level, status.state.value, values, heard, now_ns))
+        return cdr.DiagnosticArray(header=header(stamp_ns, ""), status=tuple(statuses))
+
+
+# ------------------------------------------------------------------------------------------------ inputs
+class InputError(ValueError):
+    """A ROS 2 input the bridge refuses: ``kind`` names its counter (``rejected.<kind>``), the text says why."""
+
+    def __init__(self, kind: str, message: str) -> None:
+        super().__init__(message)
+        self.kind = kind
+
+
+def request_attachment(raw: Optional[bytes]) -> Attachment:
+    """The attachment of a service request: rmw_zenoh's client always sends one (its sequence number and GID go
+    back in the reply), and a request without one is no ROS 2 client's."""
+    if raw is None:
+        raise InputError("attachment", "a request without rmw_zenoh's attachment (sequence number, timestamp, GID)")
+    try:
+        return decode_attachment(raw)
+    except (AttachmentError, IndexError) as exc:
+        raise InputError("attachment", f"not an rmw_zenoh attachment: {exc}") from None
+
+
+def reply_attachment(request: Attachment, now_ns: int) -> Attachment:
+    """What a service's reply carries: the request's sequence number and client GID, the reply's own time
+    (design.md "Service Servers")."""
+    return Attachment(request.sequence_number, now_ns, request.source_gid)
+
+
+def trigger_request(payload: bytes) -> cdr.TriggerRequest:
+    try:
+        return cdr.deserialize(payload, cdr.TriggerRequest)
+    except cdr.CdrError as exc:
+        raise InputError("cdr", str(exc)) from None
+
+
+def trigger_response(success: bool, message: str) -> bytes:
+    return cdr.serialize(cdr.TriggerResponse(success=success, message=message))
+
+
+@dataclass(frozen=True)
+class GoalLimits:
+    """What a goal pose may be before it is passed to vision (which checks it again against its own model): the
+    camera this near the tag at least (m), this far at most."""
+    min_distance_m: float = 0.05
+    max_distance_m: float = 2.0
+    #: how far from 1 the quaternion's norm may be (it is then normalized; ROS tools send rounded quaternions)
+    quaternion_tolerance: float = 1e-3
+
+
+def goal_pose(payload: bytes, limits: GoalLimits = GoalLimits()) -> m.Pose:
+    """The goal a geometry_msgs/PoseStamped asks for: the camera's pose in the tag's frame (frame_id ``tag``), as
+    vision takes it (``VisionGoal.camera_in_tag``). Malformed CDR, another frame, NaN or infinity, a quaternion that is
+    not one, a camera inside the tag or metres away: InputError, nothing sent."""
+    try:
+        pose = cdr.deserialize(payload, cdr.PoseStamped)
+    except cdr.CdrError as exc:
+        raise InputError("cdr", str(exc)) from None
+    if pose.header.frame_id != TAG_FRAME:
+        raise InputError("frame", f"a goal is the camera in the tag's frame: frame_id {TAG_FRAME!r}, got "
+                                  f"{pose.header.frame_id[:64]!r}")
+    p, o = pose.pose.position, pose.pose.orientation
+    values = (p.x, p.y, p.z, o.w, o.x, o.y, o.z)
+    if not all(math.isfinite(v) for v in values):
+        raise InputError("not_finite", f"a goal pose with NaN or infinity: {values}")
+    norm = math.hypot(o.w, o.x, o.y, o.z)  # finite however large the values (squares would overflow)
+    if abs(norm - 1.0) > limits.quaternion_tolerance:
+        raise InputError("quaternion", f"the orientation is no unit quaternion (norm {norm:.6g})")
+    distance = math.hypot(p.x, p.y, p.z)
+    if not limits.min_distance_m <= distance <= limits.max_distance_m:
+        raise InputError("distance", f"the camera {distance:.3g} m from the tag: a goal is "
+                                     f"{limits.min_distance_m:g} to {limits.max_distance_m:g} m from it")
+    quat = tuple(v / norm for v in (o.w, o.x, o.y, o.z))
+    return m.Pose(xyz=(p.x, p.y, p.z), quat_wxyz=quat)
