@@ -4,7 +4,7 @@ them, such as deploy/systemd; ``test_main`` tests ``__main__.py``); at the top o
 the whole stack."""
 from tests.helpers import REPO
 
-CROSS_CUTTING = {"test_imports.py", "test_latency.py", "test_fuzz_services.py", "test_shipped_configs.py",
+CROSS_CUTTING = {"test_imports.py", "test_latency.py", "test_fuzz_services.py", "test_shipped_configs.py", "test_overload.py",
                  "test_layout.py", "test_docs.py"}
 
 

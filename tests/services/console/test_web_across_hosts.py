@@ -65,6 +65,7 @@ class Recording:
         self.path = path
         self.args = lab.command(host, [sys.executable, "-c", RECORDER, endpoint, str(path), zenoh_config])
         self.process = None
+        self._offset, self._heard = 0, {}
 
     def __enter__(self) -> "Recording":
         self.process = subprocess.Popen(self.args, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -76,18 +77,28 @@ class Recording:
         self.process.wait(timeout=30)
 
     def messages(self, key: str) -> list:
-        if not self.path.exists():
-            return []
-        lines = self.path.read_text().splitlines()
-        return [m.decode(base64.b64decode(line["payload"]), RECORDED[key])
-                for line in map(json.loads, lines[:-1]) if line["key"] == key]  # the last line may be half written
+        self._read()
+        return [message for message, _ in self._heard.get(key, [])]
 
     def received_ns(self, key: str) -> list[int]:
         """When the recorder received each message of ``key`` (ns, the machine's clock)."""
+        self._read()
+        return [received for _, received in self._heard.get(key, [])]
+
+    def _read(self) -> None:
+        """The lines written since the last read, decoded once (the test polls while 100 Hz states and commands
+        accumulate: read whole each time, the file would hold the test back longer the longer it runs); a last
+        line half written is left for the next read."""
         if not self.path.exists():
-            return []
-        return [line["recv_ns"] for line in map(json.loads, self.path.read_text().splitlines()[:-1])
-                if line["key"] == key]
+            return
+        with open(self.path, "rb") as recorded:
+            recorded.seek(self._offset)
+            chunk = recorded.read()
+        complete = chunk[: chunk.rfind(b"\n") + 1]
+        self._offset += len(complete)
+        for line in map(json.loads, complete.splitlines()):
+            self._heard.setdefault(line["key"], []).append(
+                (m.decode(base64.b64decode(line["payload"]), RECORDED[line["key"]]), line["recv_ns"]))
 
     def safety_state(self):
         heard = self.messages("safety_status")
