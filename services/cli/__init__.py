@@ -71,6 +71,13 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
     return parser
 
 
+def _domain_id(text: str) -> int:
+    """A ROS domain id on the command line: a non-negative integer."""
+    if not text.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"{text!r} is not a ROS domain id (a non-negative integer)")
+    return int(text)
+
+
 def _add_infrastructure_commands(sub) -> None:
     """``mfvs router`` and ``mfvs bus-hub``: the stack's own infrastructure, parsed with nothing else
     imported (:data:`INFRASTRUCTURE_COMMANDS`)."""
@@ -243,6 +250,9 @@ def _add_operator_commands(sub) -> None:
     authority.add_argument("--host", default="127.0.0.1", help="router address")
     authority.add_argument("--port", type=int, default=7447, help="router port")
     authority.add_argument("--services", help="comma-separated service identities (default: all of mfvs)")
+    authority.add_argument("--ros2-domain", type=_domain_id, action="append", metavar="N",
+                           help="also an identity for the lab's ROS 2 nodes (rmw_zenoh), which with the ROS 2 "
+                                "bridge may use this ROS domain's keys and nothing of mfvs's (repeatable)")
     authority.set_defaults(func=cmd_authority)
 
 

@@ -226,7 +226,8 @@ def cmd_authority(args: argparse.Namespace) -> int:
     from services.runtime.authority import DEFAULT_SERVICES, write_deployment
 
     services = args.services.split(",") if args.services else list(DEFAULT_SERVICES)
-    deployment = write_deployment(args.out, tls=args.tls, host=args.host, port=args.port, services=services)
+    deployment = write_deployment(args.out, tls=args.tls, host=args.host, port=args.port, services=services,
+                                  ros2_domains=args.ros2_domain or ())
     print(json.dumps({"router_config": str(deployment.router_config), "endpoint": deployment.endpoint,
                       "clients": {k: str(v) for k, v in deployment.client_configs.items()}, "tls": deployment.tls},
                      indent=2))

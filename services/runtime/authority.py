@@ -113,14 +113,37 @@ def queryables(keys: Keys, services=DEFAULT_SERVICES) -> dict[str, list[str]]:
             "controller": [keys.controller_api(f) for f in m.TASK_FUNCTIONS]}
 
 
-def access_control(services, match: str) -> dict:
+#: the identity of a lab's ROS 2 nodes (`mfvs authority init --ros2-domain N`): their rmw_zenoh sessions take its
+#: client config (ZENOH_SESSION_CONFIG_URI). It and the operator's ROS 2 bridge may use the ROS 2 domains' keys;
+#: nothing of mfvs's beyond what every identity may (subscribe, read)
+ROS2_IDENTITY = "ros2"
+#: who speaks ROS 2 behind authority: the ROS 2 nodes, and the operator, whose tool the bridge is
+ROS2_SPEAKERS = (ROS2_IDENTITY, "operator")
+
+
+def ros2_key_exprs(domains) -> list[str]:
+    """The key expressions of ROS 2 domains on rmw_zenoh's wire (docs/ros2.md): each domain's data and service
+    keys (``<domain>/...``: no mfvs key starts with a number), zenoh-ext's advanced publishers' cache, heartbeats
+    and detection tokens beneath them (``.../@adv/...``: a chunk starting with ``@`` is verbatim, which no
+    wildcard includes), and the graph's liveliness tokens (``@ros2_lv/<domain>/...``)."""
+    exprs = []
+    for domain in domains:
+        if isinstance(domain, bool) or not isinstance(domain, int) or domain < 0:
+            raise ValueError(f"ROS 2 domain {domain!r}: a non-negative integer (ROS_DOMAIN_ID)")
+        exprs += [f"{domain}/**", f"{domain}/**/@adv/**", f"@ros2_lv/{domain}/**"]
+    return exprs
+
+
+def access_control(services, match: str, ros2_domains=()) -> dict:
     """The router's access_control block; ``match`` is "usernames" or "cert_common_names".
 
     An allow list per identity, under default deny, on ingress (what a client sends to the router): zenoh's access
     control applies a rule to a message whose key expression is *included in* the rule's, so a publication on a
     wildcard (``robot/*``, ``robot/**``, ``robot/comm$*``) is included in no identity's literal keys and is
     denied, where a deny list of literal keys let it through. Egress (what the router forwards to a client) is
-    open: the robot must receive safety's commands."""
+    open: the robot must receive safety's commands. With ``ros2_domains``, the ROS 2 speakers
+    (:data:`ROS2_SPEAKERS`) may also put, answer, ask and declare liveliness on those domains' keys
+    (:func:`ros2_key_exprs`)."""
     services = list(services)
     keys = Keys.all_robots()
     write, query, answer = writes(keys, services), queries(keys), queryables(keys, services)
@@ -146,8 +169,14 @@ def access_control(services, match: str) -> dict:
                 "key_exprs": answer.get(service, []) + [keys.health(n) for n in names]}]
         if service in query:
             own.append({"id": f"{service}_queries", "messages": ["query"], "key_exprs": query[service]})
+        if ros2_domains and service in ROS2_SPEAKERS:
+            # every kind of message: the everyone rules' ``**`` does not include zenoh-ext's ``@adv`` chunks, where
+            # a late subscriber asks a latched topic's cache and watches for its publishers
+            # and both ways: the egress rule's ``**`` does not include them either (the graph's tokens start with one)
+            own.append({"id": f"{service}_ros2", "messages": _ALL_MESSAGES, "key_exprs": ros2_key_exprs(ros2_domains),
+                        "flows": ["ingress", "egress"]})
         for rule in own:
-            rules.append({**rule, "permission": "allow", "flows": ["ingress"]})
+            rules.append({"permission": "allow", "flows": ["ingress"], **rule})
         policies.append({"id": f"{service}_own", "rules": [rule["id"] for rule in own], "subjects": [service]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
@@ -161,12 +190,15 @@ def _write(path: Path, data: dict, secret: bool = False) -> Path:
 
 
 def write_deployment(out_dir, *, tls: bool = False, host: str = "127.0.0.1", port: int = 7447,
-                     services=DEFAULT_SERVICES) -> Deployment:
-    """Write the router's and every service's zenoh config (and credentials or certificates) into out_dir."""
+                     services=DEFAULT_SERVICES, ros2_domains=()) -> Deployment:
+    """Write the router's and every service's zenoh config (and credentials or certificates) into out_dir; with
+    ``ros2_domains``, also the ROS 2 nodes' (:data:`ROS2_IDENTITY`)."""
     out = Path(out_dir).resolve()
+    ros2_domains = tuple(ros2_domains)
+    ros2_key_exprs(ros2_domains)  # refused before anything is written
     clients_dir = out / "clients"
     clients_dir.mkdir(parents=True, exist_ok=True)
-    services = list(services)
+    services = list(services) + ([ROS2_IDENTITY] if ros2_domains and ROS2_IDENTITY not in services else [])
     scheme = "tls" if tls else "tcp"
     endpoint = f"{scheme}/{host}:{port}"
     router: dict = {
@@ -181,7 +213,7 @@ def write_deployment(out_dir, *, tls: bool = False, host: str = "127.0.0.1", por
         router["transport"] = {"link": {"tls": {
             "root_ca_certificate": str(certs / "ca.pem"), "listen_private_key": str(certs / "router.key"),
             "listen_certificate": str(certs / "router.pem"), "enable_mtls": True}}}
-        router["access_control"] = access_control(services, "cert_common_names")
+        router["access_control"] = access_control(services, "cert_common_names", ros2_domains)
         for service in services:
             clients[service] = _write(clients_dir / f"{service}.json5", {
                 "mode": "client", "connect": {"endpoints": [endpoint]},
@@ -198,7 +230,7 @@ def write_deployment(out_dir, *, tls: bool = False, host: str = "127.0.0.1", por
         os.chmod(credentials, 0o600)
         router["transport"] = {"auth": {"usrpwd": {"user": "router", "password": secrets.token_urlsafe(18),
                                                    "dictionary_file": str(credentials)}}}
-        router["access_control"] = access_control(services, "usernames")
+        router["access_control"] = access_control(services, "usernames", ros2_domains)
         for service, password in passwords.items():
             clients[service] = _write(clients_dir / f"{service}.json5", {
                 "mode": "client", "connect": {"endpoints": [endpoint]},

@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 import zenoh
+import zenoh.ext
 
 from protocol import kinova
 from protocol import messages as m
@@ -418,3 +419,76 @@ def test_the_console_acts_as_the_operator_and_says_how_it_is_doing_in_its_own_na
     finally:
         observer.close()
         console.stop()
+
+
+def test_with_a_ros2_domain_the_ros2_nodes_and_the_bridge_speak_ros_2_and_nothing_of_mfvs(tmp_path):
+    """`mfvs authority init --ros2-domain 0`: an identity for the lab's ROS 2 nodes. The ROS 2 bridge, the
+    operator's tool, declares its node, serves its latched topics and answers its services on domain 0; a ROS 2
+    node with the ros2 identity sees the node, joins late and gets the description from the cache, and calls a
+    service; it may not publish on any mfvs key, on another domain or on a wildcard, and the other identities
+    (vision here) may not speak ROS 2."""
+    from services.robot_sim.service import RobotSimConfig, RobotSimService
+    from services.ros2_bridge.service import Ros2BridgeConfig, Ros2BridgeService
+    from services.runtime.authority import ROS2_IDENTITY
+
+    port = free_loopback_port()
+    deployment = write_deployment(tmp_path / "authority", port=port, ros2_domains=(0,))
+    assert ROS2_IDENTITY in deployment.client_configs
+    with Router(port=port, config_file=deployment.router_config):
+        as_ = lambda name: ZenohConfig(connect=[deployment.endpoint],  # noqa: E731
+                                       config_file=str(deployment.client_configs[name]))
+        robot = RobotSimService(RobotSimConfig(clock=ClockMode.REALTIME, zenoh=as_("robot_sim"))).start()
+        bridge = Ros2BridgeService(Ros2BridgeConfig(domain_id=0, zenoh=as_("operator"))).start()
+        ros = open_session(as_(ROS2_IDENTITY))
+        watcher = session_as(deployment, "robot_sim")
+        try:
+            def tokens() -> list[str]:
+                return [str(r.ok.key_expr) for r in ros.liveliness().get("@ros2_lv/0/**", timeout=2.0) if r.ok]
+            assert wait_for(lambda: any("/NN/" in t for t in tokens()) and any("robot_description" in t
+                                                                                for t in tokens()), timeout=30)
+            token = next(t for t in tokens() if "/MP/" in t and "robot_description" in t).split("/")
+            description_key = f"0/{token[9].replace('%', '/').lstrip('/')}/{token[10]}/{token[11]}"
+            got = []
+            late = zenoh.ext.declare_advanced_subscriber(
+                ros, description_key, lambda sample: got.append(sample.payload.to_bytes()),
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
+            assert wait_for(lambda: got, timeout=15), "the ros2 identity got no latched description"
+            assert b"<robot" in got[0]
+            late.undeclare()
+            # a ROS 2 node's own endpoint, and a service call (refused for its missing attachment: it reached the
+            # bridge, which says why)
+            listener = ros.liveliness().declare_token(f"@ros2_lv/0/{ros.zid()}/0/0/NN/%/%/listener")
+            start = next(t for t in tokens() if "/SS/" in t and "start_task" in t).split("/")
+            start_key = f"0/{start[9].replace('%', '/').lstrip('/')}/{start[10]}/{start[11]}"
+            replies = list(ros.get(start_key, payload=b"\x00\x01\x00\x00\x00", timeout=5.0))
+            assert replies and replies[0].err is not None and b"attachment" in replies[0].err.payload.to_bytes()
+            operator = session_as(deployment, "operator")  # the bridge's identity sees the ROS 2 node
+            assert wait_for(lambda: f"@ros2_lv/0/{ros.zid()}/0/0/NN/%/%/listener" in
+                            [str(r.ok.key_expr) for r in operator.liveliness().get("@ros2_lv/0/**", timeout=2.0)
+                             if r.ok], timeout=10)
+            operator.close()
+            # what the ros2 identity may not do: mfvs's keys, another domain, a wildcard; nor may vision speak ROS 2
+            heard = []
+            everything = watcher.declare_subscriber("**", lambda s: heard.append(str(s.key_expr)))
+            time.sleep(0.3)
+            refused = [KEYS.robot_command, KEYS.estop, KEYS.vision_goal, KEYS.features, "1/joint_states/x/y", "**",
+                       "*/**"]
+            for key in refused:
+                ros.put(key, b"x")
+            vision = session_as(deployment, "vision")
+            refused.append("0/impostor/sensor_msgs::msg::dds_::JointState_/x")
+            vision.put(refused[-1], b"x")
+            impostor = vision.liveliness().declare_token(f"@ros2_lv/0/{vision.zid()}/0/0/NN/%/%/impostor")
+            ros.put("0/chatter/std_msgs::msg::dds_::String_/x", b"x")  # the control: this one passes
+            assert wait_for(lambda: "0/chatter/std_msgs::msg::dds_::String_/x" in heard, timeout=5)
+            time.sleep(0.5)
+            assert not set(heard) & set(refused), sorted(set(heard) & set(refused))
+            assert not any("impostor" in t for t in tokens()), tokens()
+            for declared in (listener, impostor, everything):
+                declared.undeclare()
+            vision.close()
+        finally:
+            watcher.close()
+            ros.close()
+            bridge.stop()
+            robot.stop()
