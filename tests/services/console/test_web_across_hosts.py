@@ -36,22 +36,26 @@ TOKEN = "a token for the tablet"
 #: run on a stack's computer: every message of these keys, as it came (base64 of its bytes), one JSON line each
 RECORDER = """
 import base64, json, os, sys, threading, time
-# as the services it listens beside: it times when a message crossed the router, not its own wait for a CPU
+import zenoh
+# as the services it listens beside
 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
 from protocol.keys import Keys
 from services.runtime.transport import ZenohConfig, open_session
 
 session = open_session(ZenohConfig(connect=[sys.argv[1]], config_file=sys.argv[3] or None))
 out, lock = open(sys.argv[2], "w", buffering=1), threading.Lock()
-def record(name):
-    def on_sample(sample):
-        line = json.dumps({"key": name, "payload": base64.b64encode(sample.payload.to_bytes()).decode(),
-                           "recv_ns": time.time_ns()})
+def record(name, subscriber):
+    for sample in subscriber:
+        line = json.dumps({"key": name, "payload": base64.b64encode(sample.payload.to_bytes()).decode()})
         with lock:
             out.write(line + "\\n")
-    return on_sample
+# zenoh's receiving thread only queues each sample (no interpreter lock): a recorder held back (at the lowest realtime
+# priority its share of a slowed host can run out, once for 0.6 s) loses nothing. With a Python callback that thread
+# waited for the interpreter, and the router dropped the samples it could not forward: states missing in the middle
+# of a stop, which the verdict reads
 for name in ("robot_state", "estop", "safety_status", "robot_command"):
-    session.declare_subscriber(getattr(Keys(), name), record(name))
+    subscriber = session.declare_subscriber(getattr(Keys(), name), zenoh.handlers.FifoChannel(1 << 16))
+    threading.Thread(target=record, args=(name, subscriber), daemon=True).start()
 time.sleep(600)
 """
 RECORDED = {"robot_state": m.RobotState, "estop": m.EStop, "safety_status": m.SafetyStatus,
@@ -78,12 +82,7 @@ class Recording:
 
     def messages(self, key: str) -> list:
         self._read()
-        return [message for message, _ in self._heard.get(key, [])]
-
-    def received_ns(self, key: str) -> list[int]:
-        """When the recorder received each message of ``key`` (ns, the machine's clock)."""
-        self._read()
-        return [received for _, received in self._heard.get(key, [])]
+        return list(self._heard.get(key, []))
 
     def _read(self) -> None:
         """The lines written since the last read, decoded once (the test polls while 100 Hz states and commands
@@ -98,7 +97,7 @@ class Recording:
         self._offset += len(complete)
         for line in map(json.loads, complete.splitlines()):
             self._heard.setdefault(line["key"], []).append(
-                (m.decode(base64.b64decode(line["payload"]), RECORDED[line["key"]]), line["recv_ns"]))
+                m.decode(base64.b64decode(line["payload"]), RECORDED[line["key"]]))
 
     def safety_state(self):
         heard = self.messages("safety_status")
@@ -131,7 +130,10 @@ def test_on_the_multi_host_profile_the_console_on_the_operators_computer_shows_t
             click(driver, "start")
             assert wait_for(lambda: ee_speed(kin, heard.messages("robot_state")[-1]) > 0.05, timeout=30), \
                 "the arm did not move"
-            click(driver, "estop")
+            # the page's own click event, dispatched at once: WebDriver's native click waited for the busy page up to
+            # a second on a slowed host (test_web_browser.py times that), by when the arm had often come to rest
+            # and the stop measured no braking
+            driver.execute_script("document.getElementById('estop').click()")
             assert wait_for(lambda: heard.messages("estop"), timeout=5)
             sent_ns = heard.messages("estop")[0].header.stamp_ns
             pressed_ms = page_stats(driver)["sent"][-1]["at"]
@@ -142,8 +144,7 @@ def test_on_the_multi_host_profile_the_console_on_the_operators_computer_shows_t
             states, commands = heard.messages("robot_state"), heard.messages("robot_command")
         v0 = ee_speed(kin, [s for s in states if s.header.stamp_ns <= sent_ns][-1])
         bound = rest_bound(v0, dsp.emergency_linear_decel_mps2, ESTOP_DELIVERY_BUDGET_S)
-        crossed_ms = (heard.received_ns("estop")[0] - sent_ns) * 1e-6
-        hops = f"crossed the router {crossed_ms:.1f} ms, " + estop_hops(states, commands, kin, sent_ns)
+        hops = estop_hops(states, commands, kin, sent_ns)
         elapsed = time_to_rest(states, kin, sent_ns)
         print(f"e-stop across hosts at {v0:.3f} m/s: sent {sent_ns / 1e6 - pressed_ms:.0f} ms after the page's "
               f"handler, at rest {elapsed * 1e3:.0f} ms after (bound {bound * 1e3:.0f} ms); {hops}")
