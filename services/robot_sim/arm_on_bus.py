@@ -50,6 +50,21 @@ def host_cycles(batch: np.ndarray, commanded: Optional[dict[int, int]] = None) -
     finds queued for several cycles, each of which the real actuators would have taken at its own boundary.
     ``commanded``: the actuators already commanded in the current cycle (their next command starts the next;
     the first of the list returned may then be empty)."""
+    cycle_of = host_cycle_of(batch, commanded)
+    return [batch[cycle_of == k] for k in range(int(cycle_of.max(initial=0)) + 1)]
+
+
+@dataclass
+class QueuedCycle:
+    """A host cycle's messages waiting for a boundary, and when the last of them was sent (ns, the bus's stamps:
+    the sender's, or the hub's on receipt; 0: unknown)."""
+
+    messages: np.ndarray
+    sent_ns: int = 0
+
+
+def host_cycle_of(batch: np.ndarray, commanded: Optional[dict[int, int]] = None) -> np.ndarray:
+    """Each message's host cycle (0, 1, ...) in ``batch``, as :func:`host_cycles` splits it."""
     commands = batch["command"] == rs485.Command.POSITION_AND_TORQUE_COMMAND
     cycle_of = np.zeros(len(batch), dtype=int)
     seen: dict[int, int] = dict(commanded or {})
@@ -59,7 +74,7 @@ def host_cycles(batch: np.ndarray, commanded: Optional[dict[int, int]] = None) -
             current = seen.get(destination, 0)
             seen[destination] = current + 1
         cycle_of[i] = current
-    return [batch[cycle_of == k] for k in range(int(cycle_of.max(initial=0)) + 1)]
+    return cycle_of
 
 
 class BusSyncConfig(ConfigStruct):
@@ -144,7 +159,7 @@ class ArmOnBus:
         self.phase_error = DurationStats()
         self.received_at = 0.0
         #: realtime: host cycles found queued after a stall, each waiting for its own boundary (:meth:`_serve`)
-        self.backlog: list[np.ndarray] = []
+        self.backlog: list[QueuedCycle] = []
         #: held while a boundary runs: tests and benchmarks read the simulation between cycles under it
         self.lock = threading.Lock()
         self.finished = threading.Event()
@@ -205,22 +220,37 @@ class ArmOnBus:
         boundaries, which is where the real actuators, never stalled, took them (taken together, the newest would
         win and the arm would make two cycles' motion in one). ``window`` (a host slower than the actuators'
         cycle): the actuators commanded since the last boundary, so that a host cycle bunched behind the one taken
-        waits for the next boundary whether it came in the same read or a later one."""
+        waits for the next boundary whether it came in the same read or a later one.
+
+        A host cycle is taken at a boundary no earlier than it was sent (its stamps): a loop catching up runs
+        boundaries that are past on the host's clock, and the real actuators took what was sent after them at a
+        later one. Taken at the first boundary it finds instead, a queue of a host slower than the 2 ms cycle went
+        out at one cycle per 2 ms: the joints ran up to 2.15 times the host's rate (a 5 ms host, 5 cycles queued)."""
+        # this boundary on the bus stamps' clock, and a cycle more: a stamp taken on receipt comes after the boundary
+        # a loop on time serves now, and the real actuators take what arrives within a cycle at the next boundary
+        due_ns = time.time_ns() + int(timeout_s * 1e9) + CYCLE_NS
         if self.backlog:
-            if window:  # a host cycle was taken at this boundary: the next waits for its own
+            if window or self.backlog[0].sent_ns > due_ns:  # a host cycle was taken here, or this one is not due
                 time.sleep(max(0.0, timeout_s))
                 return -1
-            batch = self.backlog.pop(0)
+            batch = self.backlog.pop(0).messages
         else:
             try:
-                batch, _ = self.bus.recv_batch(max(0.0, timeout_s))
+                batch, stamps = self.bus.recv_batch(max(0.0, timeout_s))
             except BusError:  # counted by the bus; the actuators keep their last command (torque mode times out)
                 time.sleep(min(max(0.0, timeout_s), 0.01))
                 return -1
             if len(batch) == 0:
                 return -1
             if one_cycle:
-                batch, *self.backlog = host_cycles(batch, window)
+                cycle_of = host_cycle_of(batch, window)
+                first, *self.backlog = [QueuedCycle(batch[cycle_of == k], int(stamps[cycle_of == k].max(initial=0)))
+                                        for k in range(int(cycle_of.max(initial=0)) + 1)]
+                if first.sent_ns > due_ns and len(first.messages):
+                    self.backlog.insert(0, first)  # sent after this boundary: a later one takes it
+                    self.counters.inc("frames.held_for_catch_up", len(self.backlog))
+                    return -1
+                batch = first.messages
                 if self.backlog:
                     self.counters.inc("frames.held_for_catch_up", len(self.backlog))
         if len(batch) == 0:  # (all of it held for the next boundary)
@@ -285,7 +315,8 @@ class ArmOnBus:
                 self._set_epoch(self.epoch_ns + behind * CYCLE_NS)
                 boundary += behind * CYCLE_S
                 if self.backlog:  # the dropped cycles' commands: the next boundary takes the newest
-                    self.backlog = [np.concatenate(self.backlog)]
+                    self.backlog = [QueuedCycle(np.concatenate([c.messages for c in self.backlog]),
+                                                max(c.sent_ns for c in self.backlog))]
             elif behind > 0:
                 self.counters.inc("cycles.late")
             # a host slower than the actuators' cycle: its batch was due this long before the boundary (its

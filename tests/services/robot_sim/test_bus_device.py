@@ -5,6 +5,8 @@ import itertools
 import math
 import struct
 
+import time
+
 import numpy as np
 import pytest
 
@@ -346,6 +348,36 @@ def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
         assert np.allclose(taken[0], start + 0.01, atol=1e-4) and np.allclose(taken[1], start + 0.02, atol=1e-4)
         assert arm.backlog == [] and arm.counters.get("frames.held_for_catch_up") == 1
         assert not sim.firmware.counters.get("frames.superseded")
+    finally:
+        host.close()
+        device_bus.close()
+        sim.close()
+
+
+def test_a_loop_catching_up_takes_each_host_cycle_no_earlier_than_it_was_sent():
+    """A stalled emulated arm finds a 5 ms host's three cycles queued, sent 5 ms apart: catching up, it runs
+    boundaries past on the host's clock, and takes each cycle at the first of them after it was sent (within a
+    cycle), not one per boundary: taken one per 2 ms, the joints ran 2.15 times the host's rate."""
+    from services.robot_sim.arm_on_bus import ArmOnBus
+
+    channel = f"test-bus-{next(_channels)}"
+    sim = Simulation(render=False)
+    host, device_bus = RS485Bus(BusConfig(channel=channel)), RS485Bus(BusConfig(channel=channel))
+    try:
+        arm = ArmOnBus(sim, device_bus)
+        addresses = list(ARM.bus_addresses)
+        start = ARM.model_to_physical_deg(sim.q)
+        sent_ns = time.time_ns() - 50_000_000  # the host sent them 50, 45 and 40 ms ago; the arm was stalled
+        for k in range(3):
+            host.send_batch(r.position_torque_records(addresses, start + 0.01 * (k + 1)), sent_ns + k * 5_000_000)
+        taken = []
+        for boundary_ms in (0.5, 2.5, 4.5, 6.5, 8.5, 10.5):  # after the first cycle was sent, on the host's clock
+            timeout_s = (sent_ns + boundary_ms * 1e6 - time.time_ns()) * 1e-9  # in the past: catching up
+            got = arm._serve(timeout_s, one_cycle=True)
+            taken.append(round(sim.firmware.actuators[0].pending[0] - start[0], 4) if got > 0 else None)
+            arm._cycle()
+        assert taken == [0.01, None, 0.02, None, 0.03, None], taken
+        assert arm.backlog == []
     finally:
         host.close()
         device_bus.close()
