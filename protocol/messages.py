@@ -348,6 +348,10 @@ class CommandMode(str, enum.Enum):
     JOINT_VELOCITY = "joint_velocity"
 
 
+#: the modes in which a robot command moves the arm (the others stop it)
+MOTION_MODES = frozenset({CommandMode.CARTESIAN_VELOCITY, CommandMode.JOINT_VELOCITY})
+
+
 class RobotCommand(Message):
     """What the robot applies for one control cycle. Only the safety service publishes it."""
 

@@ -27,7 +27,6 @@ from tests.stack import Recorder, wait_for
 OVERLOADED_CPUS = 0.5
 #: how long the task runs on the overloaded host
 TASK_S = 8.0
-MOTION = (m.CommandMode.CARTESIAN_VELOCITY, m.CommandMode.JOINT_VELOCITY)
 
 
 @pytest.fixture
@@ -81,7 +80,7 @@ def test_an_overloaded_host_says_so_and_holds_the_arm_rather_than_moving_it_on_s
 
     # safe: every command that moves the arm derives from an image within safety's budget when safety sent it
     budget = SafetyConfig().limits
-    moving = [c for c in sent if c.mode in MOTION]
+    moving = [c for c in sent if c.mode in m.MOTION_MODES]
     ages = [(c.header.stamp_ns - c.header.source_stamp_ns) * 1e-9 for c in moving]
     assert all(0 < c.header.source_stamp_ns for c in moving)
     assert max(ages, default=0.0) <= budget.image_budget_s, max(ages)

@@ -26,6 +26,7 @@ from protocol.messages import (
     EStop,
     Header,
     JointVelocity,
+    MOTION_MODES,
     RobotCommand,
     RobotState,
     SafetyState,
@@ -257,7 +258,7 @@ class SafetyCore:
         its input is still fresh then. Between the check and the publication the service can be held back (a host
         that cannot keep up: measured 130 ms at half a core), and a motion command stamped when it leaves would
         reach the robot fresh on an image older than the budget; it becomes the stop that refuses it instead."""
-        if send.held is None or send.command.mode not in (CommandMode.CARTESIAN_VELOCITY, CommandMode.JOINT_VELOCITY):
+        if send.held is None or send.command.mode not in MOTION_MODES:
             return [send]
         problem = self.input_problem(send.held.source, now_ns)
         if problem is None:
