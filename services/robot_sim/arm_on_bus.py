@@ -50,8 +50,7 @@ def host_cycles(batch: np.ndarray, commanded: Optional[dict[int, int]] = None) -
     finds queued for several cycles, each of which the real actuators would have taken at its own boundary.
     ``commanded``: the actuators already commanded in the current cycle (their next command starts the next;
     the first of the list returned may then be empty)."""
-    cycle_of = host_cycle_of(batch, commanded)
-    return [batch[cycle_of == k] for k in range(int(cycle_of.max(initial=0)) + 1)]
+    return [cycle.messages for cycle in queued_cycles(batch, np.zeros(len(batch), dtype=np.int64), commanded)]
 
 
 @dataclass
@@ -63,8 +62,9 @@ class QueuedCycle:
     sent_ns: int = 0
 
 
-def host_cycle_of(batch: np.ndarray, commanded: Optional[dict[int, int]] = None) -> np.ndarray:
-    """Each message's host cycle (0, 1, ...) in ``batch``, as :func:`host_cycles` splits it."""
+def queued_cycles(batch: np.ndarray, stamps: np.ndarray,
+                  commanded: Optional[dict[int, int]] = None) -> list[QueuedCycle]:
+    """:func:`host_cycles` with when each was sent: the latest of its messages' ``stamps`` (ns)."""
     commands = batch["command"] == rs485.Command.POSITION_AND_TORQUE_COMMAND
     cycle_of = np.zeros(len(batch), dtype=int)
     seen: dict[int, int] = dict(commanded or {})
@@ -74,7 +74,8 @@ def host_cycle_of(batch: np.ndarray, commanded: Optional[dict[int, int]] = None)
             current = seen.get(destination, 0)
             seen[destination] = current + 1
         cycle_of[i] = current
-    return cycle_of
+    return [QueuedCycle(batch[cycle_of == k], int(stamps[cycle_of == k].max(initial=0)))
+            for k in range(int(cycle_of.max(initial=0)) + 1)]
 
 
 class BusSyncConfig(ConfigStruct):
@@ -243,16 +244,15 @@ class ArmOnBus:
             if len(batch) == 0:
                 return -1
             if one_cycle:
-                cycle_of = host_cycle_of(batch, window)
-                first, *self.backlog = [QueuedCycle(batch[cycle_of == k], int(stamps[cycle_of == k].max(initial=0)))
-                                        for k in range(int(cycle_of.max(initial=0)) + 1)]
-                if first.sent_ns > due_ns and len(first.messages):
+                first, *self.backlog = queued_cycles(batch, stamps, window)
+                late = first.sent_ns > due_ns and len(first.messages)
+                if late:
                     self.backlog.insert(0, first)  # sent after this boundary: a later one takes it
-                    self.counters.inc("frames.held_for_catch_up", len(self.backlog))
-                    return -1
-                batch = first.messages
                 if self.backlog:
                     self.counters.inc("frames.held_for_catch_up", len(self.backlog))
+                if late:
+                    return -1
+                batch = first.messages
         if len(batch) == 0:  # (all of it held for the next boundary)
             return 0
         if window is not None:
