@@ -1,10 +1,10 @@
 """robot_sim's actuators on an RS-485 bus carried by python-can (virtual interface), cycle by cycle on the arm's
 timeline: replies byte for byte, interpolated position mode, the torque-mode handshake, the 250 ms torque
 fallback, faults, missed and superseded frames, and garbled frames."""
+import contextlib
 import itertools
 import math
 import struct
-
 import time
 
 import numpy as np
@@ -325,17 +325,28 @@ def test_host_cycles_split_what_a_stalled_loop_finds_queued():
     assert [len(c) for c in host_cycles(first)] == [7] and [len(c) for c in host_cycles(r.records(0))] == [0]
 
 
-def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
-    """A stalled emulated arm finds two cycles' targets queued: each of the two boundaries it then runs takes its
-    own (the real actuators, never stalled, took them one cycle apart); taken together the newest would win and
-    the arm would make two cycles' motion in one."""
+@contextlib.contextmanager
+def arm_on_a_bus(config=None):
+    """The emulated arm on a bus, its realtime loop not started (the test serves its boundaries), the host's end of
+    that bus, and the simulation: ``(arm, host, sim)``."""
     from services.robot_sim.arm_on_bus import ArmOnBus
 
     channel = f"test-bus-{next(_channels)}"
     sim = Simulation(render=False)
     host, device_bus = RS485Bus(BusConfig(channel=channel)), RS485Bus(BusConfig(channel=channel))
     try:
-        arm = ArmOnBus(sim, device_bus)
+        yield ArmOnBus(sim, device_bus, config), host, sim
+    finally:
+        host.close()
+        device_bus.close()
+        sim.close()
+
+
+def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
+    """A stalled emulated arm finds two cycles' targets queued: each of the two boundaries it then runs takes its
+    own (the real actuators, never stalled, took them one cycle apart); taken together the newest would win and
+    the arm would make two cycles' motion in one."""
+    with arm_on_a_bus() as (arm, host, sim):
         addresses = list(ARM.bus_addresses)
         start = ARM.model_to_physical_deg(sim.q)
         for k in (1, 2):
@@ -348,23 +359,13 @@ def test_a_loop_catching_up_gives_each_boundary_its_own_host_cycle():
         assert np.allclose(taken[0], start + 0.01, atol=1e-4) and np.allclose(taken[1], start + 0.02, atol=1e-4)
         assert arm.backlog == [] and arm.counters.get("frames.held_for_catch_up") == 1
         assert not sim.firmware.counters.get("frames.superseded")
-    finally:
-        host.close()
-        device_bus.close()
-        sim.close()
 
 
 def test_a_loop_catching_up_takes_each_host_cycle_no_earlier_than_it_was_sent():
     """A stalled emulated arm finds a 5 ms host's three cycles queued, sent 5 ms apart: catching up, it runs
     boundaries past on the host's clock, and takes each cycle at the first of them after it was sent (within a
     cycle), not one per boundary: taken one per 2 ms, the joints ran 2.15 times the host's rate."""
-    from services.robot_sim.arm_on_bus import ArmOnBus
-
-    channel = f"test-bus-{next(_channels)}"
-    sim = Simulation(render=False)
-    host, device_bus = RS485Bus(BusConfig(channel=channel)), RS485Bus(BusConfig(channel=channel))
-    try:
-        arm = ArmOnBus(sim, device_bus)
+    with arm_on_a_bus() as (arm, host, sim):
         addresses = list(ARM.bus_addresses)
         start = ARM.model_to_physical_deg(sim.q)
         sent_ns = time.time_ns() - 50_000_000  # the host sent them 50, 45 and 40 ms ago; the arm was stalled
@@ -378,26 +379,18 @@ def test_a_loop_catching_up_takes_each_host_cycle_no_earlier_than_it_was_sent():
             arm._cycle()
         assert taken == [0.01, None, 0.02, None, 0.03, None], taken
         assert arm.backlog == []
-    finally:
-        host.close()
-        device_bus.close()
-        sim.close()
 
 
 def test_a_slower_hosts_cycle_bunched_behind_the_last_waits_for_the_next_boundary():
     """A host at 3.33 ms whose batch came late arrives just before the next one: in one read or in two within the
     same 2 ms window, the boundary takes the first host cycle and the second waits for the next boundary (taken
     together, the newest would win and the joints make two of the host's periods' motion in one)."""
-    from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, host_cycles
+    from services.robot_sim.arm_on_bus import ArmOnBusConfig, host_cycles
 
     addresses = list(ARM.bus_addresses)
     assert [len(c) for c in host_cycles(r.position_torque_records(addresses, np.ones(7)),
                                         {addresses[0]: 1})] == [6, 1]  # (one actuator commanded already)
-    channel = f"test-bus-{next(_channels)}"
-    sim = Simulation(render=False)
-    host, device_bus = RS485Bus(BusConfig(channel=channel)), RS485Bus(BusConfig(channel=channel))
-    try:
-        arm = ArmOnBus(sim, device_bus, ArmOnBusConfig(host_period_s=10e-3 / 3))
+    with arm_on_a_bus(ArmOnBusConfig(host_period_s=10e-3 / 3)) as (arm, host, sim):
         start = ARM.model_to_physical_deg(sim.q)
         for in_one_read in (True, False):
             base = start + (0.0 if in_one_read else 0.1)
@@ -418,10 +411,6 @@ def test_a_slower_hosts_cycle_bunched_behind_the_last_waits_for_the_next_boundar
             assert np.allclose([a.pending[0] for a in sim.firmware.actuators], base + 0.02, atol=1e-4)
             arm._cycle()
             assert arm.backlog == []
-    finally:
-        host.close()
-        device_bus.close()
-        sim.close()
 
 
 def test_the_torque_safety_configuration_is_acknowledged_and_limits_the_torque(rig):
