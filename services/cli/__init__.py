@@ -72,10 +72,13 @@ def build_parser(infrastructure_only: bool = False) -> argparse.ArgumentParser:
 
 
 def _domain_id(text: str) -> int:
-    """A ROS domain id on the command line: a non-negative integer."""
-    if not text.strip().isdigit():
-        raise argparse.ArgumentTypeError(f"{text!r} is not a ROS domain id (a non-negative integer)")
-    return int(text)
+    """A ROS domain id on the command line (services.ros2_bridge.cli.domain_id), as argparse reports a bad one."""
+    from services.ros2_bridge.cli import domain_id
+
+    try:
+        return domain_id(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _add_infrastructure_commands(sub) -> None:

@@ -18,14 +18,17 @@ from protocol.ros2.keys import Distro
 DOMAIN_ENV = "ROS_DOMAIN_ID"
 
 
+def domain_id(text: str, what: str = "") -> int:
+    """A ROS domain id written out (``what``: where it was, for the error); ValueError for anything that is none."""
+    if not text.strip().isdigit():
+        raise ValueError(f"{what or ''}{'=' if what else ''}{text!r} is not a domain id (a non-negative integer)")
+    return int(text)
+
+
 def default_domain() -> int:
     """$ROS_DOMAIN_ID as ROS reads it (unset or empty: 0); ValueError for anything that is no domain id."""
     text = os.environ.get(DOMAIN_ENV, "").strip()
-    if not text:
-        return 0
-    if not text.isdigit():
-        raise ValueError(f"{DOMAIN_ENV}={text!r} is not a domain id (a non-negative integer)")
-    return int(text)
+    return domain_id(text, DOMAIN_ENV) if text else 0
 
 
 def add_parser(sub, add_connection_options, stack_connection) -> None:
