@@ -21,7 +21,8 @@ DOMAIN_ENV = "ROS_DOMAIN_ID"
 def domain_id(text: str, what: str = "") -> int:
     """A ROS domain id written out (``what``: where it was, for the error); ValueError for anything that is none."""
     if not text.strip().isdigit():
-        raise ValueError(f"{what or ''}{'=' if what else ''}{text!r} is not a domain id (a non-negative integer)")
+        where = f"{what}=" if what else ""
+        raise ValueError(f"{where}{text!r} is not a domain id (a non-negative integer)")
     return int(text)
 
 
