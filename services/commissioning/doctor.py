@@ -187,10 +187,9 @@ def measure(camera=None, repeats: int = 30, sdk: Optional[str] = None, arm: Opti
             start = time.perf_counter()
             tracker.find(gray, sim.scene.target.id)
             detects.append(time.perf_counter() - start)
+            # the frame as robot_sim's camera publishes it (grey or rgb8), as the console receives and encodes it
+            shown = gray if camera.encoding is m.ImageEncoding.MONO8 else np.ascontiguousarray(image)
             start = time.perf_counter()
-            # the frame as the camera publishes it (grey or colour), as the console receives and encodes it
-            shown = {m.ImageEncoding.MONO8: gray, m.ImageEncoding.BGR8: cv2.cvtColor(np.ascontiguousarray(image),
-                     cv2.COLOR_RGB2BGR)}.get(camera.encoding, np.ascontiguousarray(image))
             jpeg(image_message(shown, camera.encoding, m.Header()), quality)
             encodes.append(time.perf_counter() - start)
             for _ in range(5):  # a DSP tick's worth of the arm's cycles
