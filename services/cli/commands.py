@@ -170,8 +170,13 @@ def cmd_estop(args: argparse.Namespace) -> int:
     import time
 
     from protocol.keys import Keys
+    from services.runtime.pacing import request_realtime
     from services.safety.estop_client import EStopClient
+    from services.safety.estop_sender import ESTOP_REALTIME_PRIORITY
 
+    # before the session, whose threads inherit it: nothing at normal priority between the e-stop's stamp and the
+    # router (services/safety/estop_sender.py says why); refused, it goes out at normal priority
+    request_realtime(ESTOP_REALTIME_PRIORITY, "mfvs estop")
     try:
         session = operator_session(args)
     except Exception as exc:  # the command a person reaches for in an emergency: say what failed, plainly

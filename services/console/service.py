@@ -18,7 +18,7 @@ from protocol import messages as m
 from protocol.conventions import ClockMode
 from services.console.core import Action, Command, ConsoleModel, FrameSize, frame_packet
 from services.controller.task_client import TaskUnavailable, call_task
-from services.safety.estop_client import EStopClient
+from services.safety.estop_sender import EStopSender
 from services.controller.task_client import describe_task
 from services.observe.foxglove_view import jpeg, pixels
 from services.runtime.service import Service, ServiceConfig, query_health
@@ -66,7 +66,7 @@ class ConsoleService(Service):
         #: whether capture stamps are wall time (realtime) or the simulator's (lockstep): the page reads a frame's
         #: delay off its stamp only for the first
         self.wall_stamps = True
-        self._estop: Optional[EStopClient] = None
+        self._estop: Optional[EStopSender] = None
         self._threads: list[threading.Thread] = []
         #: from a frame's sending to the page's word that it drew it, the last one (s); the last frame's encoding
         self.page_draw_s = 0.0
@@ -87,7 +87,7 @@ class ConsoleService(Service):
         self.subscribe(k.safety_status, m.SafetyStatus, self._locked(self.model.on_safety), "safety_status")
         self.subscribe(k.estop, m.EStop, self._locked(self.model.on_estop), "estop")
         self.subscribe(k.clock, m.SimClock, self._on_clock, "sim_clock")
-        self._estop = EStopClient(self.session, k)
+        self._estop = EStopSender.for_service(self)
         self._threads = [start_thread(self._encode_frames, "console-jpeg"),
                          start_thread(self._poll, "console-poll")]
 
@@ -105,7 +105,8 @@ class ConsoleService(Service):
             arm = self.model.arm
         robot = ("no robot state yet" if arm is None else f"arm {arm.name}" if arm.description is not None
                  else f"arm {arm.name} not described here")
-        return True, (f"pages={self.pages_open} frames {rates.get('frames.sent', 0.0):.1f}/s "
+        estop_ok, estop = self._estop.health() if self._estop is not None else (False, "no e-stop sender")
+        return estop_ok, (f"{estop}; pages={self.pages_open} frames {rates.get('frames.sent', 0.0):.1f}/s "
                       f"(encoded {rates.get('frames.encoded', 0.0):.1f}/s, drawn {rates.get('frames.drawn', 0.0):.1f}/s"
                       f" {1e3 * self.page_draw_s:.0f} ms after sending) {robot}")
 

@@ -7,7 +7,8 @@ local: a late subscriber gets the last one).
 Its inputs from ROS 2 go where `mfvs task`, `mfvs estop` and a goal from the operator go, as the identity of its
 zenoh config (the operator's, behind authority): the controller's task queries, safety's e-stop key (engage only:
 releasing it stays a person's explicit `mfvs estop --reset`), vision's set_goal query. It declares no publisher on a
-key the robot acts on (its PORTS produce nothing; the e-stop publisher is EStopClient's, as the console's)."""
+key the robot acts on (its PORTS produce nothing). Its e-stop goes out from a realtime process of its own, as the
+console's (services/safety/estop_sender.py)."""
 from __future__ import annotations
 
 import itertools
@@ -32,7 +33,7 @@ from services.runtime.ports import Port, Ports
 from services.runtime.service import Service, ServiceConfig
 from services.runtime.threads import start_thread
 from services.runtime.transport import GuardedPublisher
-from services.safety.estop_client import EStopClient
+from services.safety.estop_sender import EStopSender
 
 #: how often a transient-local publisher says its last sequence number, when it changed (rmw_zenoh's
 #: SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD is of this order): a subscriber that missed the sample asks the cache
@@ -150,7 +151,7 @@ class Ros2BridgeService(Service):
         self._diagnostics = core.Diagnostics(self.config.robot_id)
         self._watch = core.SubscriberWatch(self.config.domain_id)
         self._goal_limits = core.GoalLimits(self.config.goal_min_distance_m, self.config.goal_max_distance_m)
-        self._estop: Optional[EStopClient] = None
+        self._estop: Optional[EStopSender] = None
         self._workers: list[_Worker] = []
         self._threads: list[threading.Thread] = []
 
@@ -160,7 +161,7 @@ class Ros2BridgeService(Service):
         cfg = self.config
         self.graph = graph = core.NodeGraph.build(cfg.domain_id, cfg.namespace, cfg.node_name, cfg.distro,
                                                   str(self.session.zid()))
-        self._estop = EStopClient(self.session, self.keys)
+        self._estop = EStopSender.for_service(self)
         # the task and goal wait on the controller and vision; the e-stop never waits behind them
         self._task_worker = _Worker("ros2-task", self._stop_event)
         self._estop_worker = _Worker("ros2-estop", self._stop_event)
@@ -227,7 +228,9 @@ class Ros2BridgeService(Service):
             watched = self._image_wanted()
         graph = self.graph
         where = f"{graph.namespace.rstrip('/')}/{graph.node_name} domain {graph.domain_id}" if graph else ""
-        return True, f"ROS 2 node {where} ({self.config.distro.value}); {arm}; images {'on' if watched else 'off'}"
+        estop_ok, estop = self._estop.health() if self._estop is not None else (False, "no e-stop sender")
+        return estop_ok, (f"ROS 2 node {where} ({self.config.distro.value}); {arm}; images "
+                          f"{'on' if watched else 'off'}; {estop}")
 
     # ------------------------------------------------------------------ outputs
     def _publish(self, endpoint: Endpoint, message: cdr.Message) -> None:
