@@ -468,7 +468,8 @@ def test_a_joint_faster_than_the_torque_safety_factor_allows_returns_the_arm_to_
                                                torques=torques)))
     assert wait_for(lambda: robot.counter("lowlevel.safety_stops") == 1, timeout=3), robot.health().errors
     assert robot.counter("refused.lowlevel_after_safety_stop") > 10  # the client kept sending: all refused
-    assert low.last().mode is m.ActuatorMode.POSITION
+    # the states after the stop say so (the counter is read at once; the state saying it is on its way)
+    assert wait_for(lambda: low.last().mode is m.ActuatorMode.POSITION, timeout=3)
     speeds = [abs(np.degrees(state.dq[6])) for state in low.snapshot() if state.mode is m.ActuatorMode.TORQUE]
     assert speeds and max(speeds) < 3 * ARM.max_speed_dps[6]  # stopped soon after the threshold, not at will
     time.sleep(0.3)  # the arm holds: the last joint comes to rest under the DSP

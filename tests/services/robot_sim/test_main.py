@@ -6,6 +6,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 
 from protocol import messages as m
 from protocol.keys import Keys
@@ -35,13 +36,16 @@ def test_runs_as_a_process_and_stops_on_sigterm(router):
         while (len(states) < 200 or len(images) < 10) and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(0.05)
         assert len(states) >= 200 and len(images) >= 10, proc.stderr.read() if proc.poll() is not None else ""
-        # realtime: wall-clock stamps, about 100 states and 30 images per second (generous bounds)
+        # realtime: wall-clock stamps, states every 10 ms and images every 33 ms. The loops' periods, read off the
+        # median step (what a window's count would give depends on what the host gave the process in it: a cycle
+        # the host delayed is counted late, not made up)
         stamps = np.array([s.header.stamp_ns for s in states[-150:]])
-        rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9)
-        assert 70 <= rate <= 130
+        assert np.all(np.diff(stamps) > 0)
+        assert np.median(np.diff(stamps)) * 1e-9 == pytest.approx(0.010, rel=0.1)
         assert abs(stamps[-1] * 1e-9 - time.time()) < 5.0
         image_stamps = np.array([i.header.source_stamp_ns for i in images[-8:]])
-        assert 15 <= 7 / ((image_stamps[-1] - image_stamps[0]) * 1e-9) <= 45
+        assert np.all(np.diff(image_stamps) > 0)
+        assert np.median(np.diff(image_stamps)) * 1e-9 == pytest.approx(1 / 30, rel=0.1)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=20) == 0
     finally:

@@ -86,16 +86,25 @@ def position(state) -> np.ndarray:
     return np.array([state.pose.X, state.pose.Y, state.pose.Z])
 
 
+#: the end effector's speed below which the arm is at rest (m/s)
+REST_SPEED_MPS = 1e-3
+
+
 def time_to_rest(states, kin, since_ns: int) -> float:
-    """When the arm came to rest after ``since_ns`` (s), on its own clock, from a Recorder or a list of states;
-    it must stay at rest after."""
+    """When the arm came to rest for good after ``since_ns`` (s), on its own clock, from a Recorder or a list of
+    states: the first state from which on every state is below REST_SPEED_MPS. (The first state below it was taken
+    once: a servo settling around the threshold, 0.99 then 1.05 mm/s, failed as "moving again"; a command already on
+    its way when a stop was sent moved an arm that had stopped by itself, 3.4 mm/s 24 ms after the e-stop, within
+    its delivery budget. Either way, when the arm rests for good is what a bound is about.)"""
     seen = states if isinstance(states, list) else states.snapshot()
     after = [s for s in seen if s.header.stamp_ns >= since_ns]
-    rest = next(s.header.stamp_ns for s in after if ee_speed(kin, s) < 1e-3)
-    moved = [(round((s.header.stamp_ns - rest) * 1e-6, 1), round(ee_speed(kin, s) * 1e3, 2), s.q)
-             for s in after if s.header.stamp_ns >= rest and ee_speed(kin, s) >= 1e-3]
     trace = [(round((s.header.stamp_ns - since_ns) * 1e-6), round(ee_speed(kin, s) * 1e3, 1)) for s in after[:60]]
-    assert not moved, f"moving again after it rested (ms after, mm/s, q): {moved[:5]}; (ms, mm/s): {trace}"
+    assert after and ee_speed(kin, after[-1]) < REST_SPEED_MPS, f"not at rest at the end; (ms, mm/s): {trace}"
+    rest = after[-1].header.stamp_ns
+    for s in reversed(after):
+        if ee_speed(kin, s) >= REST_SPEED_MPS:
+            break
+        rest = s.header.stamp_ns
     return (rest - since_ns) * 1e-9
 
 
@@ -244,7 +253,7 @@ def _rest_after_the_pipeline_died(states, commands, kin, dsp, v0: float, fault_n
     from an image within the image budget (services/safety/core.py). A dead controller's last command goes stale
     within the command budget. A dead vision's last frames can still be in the controller's queue: on a host that
     holds the controller back, their commands reach safety later, freshly stamped, and move the arm again after it
-    had rested (seen at 0.65 of a core) until their image ages past the image budget. So the bound is measured
+    had rested (seen at 0.8 of a core, the machine slow by itself) until their image ages past the image budget. So the bound is measured
     from the last motion command safety sent (the arm brakes from then on), and what the design promises is
     checked on that command: it left within the budget of an input made before the kill."""
     limits, cycle_s = SafetyConfig().limits, 1.0 / SafetyConfig().rate_hz  # it resends or stops every cycle
@@ -257,8 +266,7 @@ def _rest_after_the_pipeline_died(states, commands, kin, dsp, v0: float, fault_n
     assert (last.stamp_ns - fault_ns) * 1e-9 <= budget_s + cycle_s, \
         f"safety moved the arm {(last.stamp_ns - fault_ns) * 1e-6:.0f} ms after {victim} died"
     reaction_s = (last.stamp_ns - fault_ns) * 1e-9 + cycle_s  # the stop goes out at safety's next cycle
-    return (time_to_rest(states, kin, last.stamp_ns) + (last.stamp_ns - fault_ns) * 1e-9,
-            rest_bound(v0, dsp.linear_accel_mps2, reaction_s))
+    return time_to_rest(states, kin, fault_ns), rest_bound(v0, dsp.linear_accel_mps2, reaction_s)
 
 
 def test_the_stack_comes_up_idle_moves_for_a_task_and_rests_when_it_stops(tmp_path, monkeypatch):
