@@ -57,6 +57,14 @@ LOCKSTEP_RASTERISER_THREADS_PER_CORE = 2
 _CHOSEN_BY_MFVS = "MFVS_LP_NUM_THREADS_CHOSEN"
 
 
+#: the renderer's SCHED_FIFO priority in realtime: above every normal-priority process (vision among them: frames
+#: on time, as a camera's own hardware delivers them), below the path of a stop (the router, safety and the e-stop
+#: sender at 30). It was the arm's loop's less one (39): at 0.65 of a core a frame took 7 ms, all of it ahead of
+#: an e-stop on its way (safety's stop 25-30 ms after the e-stop was sent, against a 20 ms delivery budget). A
+#: simulated camera is no reason to hold up a stop; the frame's capture is stamped in the arm's loop, not here.
+RENDERER_REALTIME_PRIORITY = 20
+
+
 def choose_rasteriser_threads(realtime: bool) -> None:
     """How many threads llvmpipe (Mesa's CPU rasteriser) splits a frame across, the one rule for every renderer
     of robot_sim; it sets ``LP_NUM_THREADS`` unless the user did (a GPU driver ignores it). Call before the

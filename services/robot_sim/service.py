@@ -40,7 +40,7 @@ from protocol.keys import ROBOT_SERVICES
 from services.robot.node import RobotNode, RobotNodeConfig
 from services.robot_sim import usb_base
 from services.robot_sim.arm_on_bus import ArmOnBus, ArmOnBusConfig, BusSyncConfig
-from services.robot_sim.camera import LoopCamera, SimCamera
+from services.robot_sim.camera import RENDERER_REALTIME_PRIORITY, LoopCamera, SimCamera
 from services.model.arm import load_arm
 from services.robot_sim.firmware import ActuatorConfig, check_actuators
 from services.robot_sim.hardware import SimulatedHardware
@@ -132,8 +132,8 @@ class _SimulationOutputs:
             self.camera = LoopCamera(self.sim, self.image_pub.put, service.header, self._render_failed)
         else:
             self.camera = SimCamera(self.sim, self.image_pub.put, service.header, self._render_failed,
-                                    realtime_priority=max(0, self.config.realtime_priority - 1)
-                                    if not self.lockstep else 0)
+                                    realtime_priority=RENDERER_REALTIME_PRIORITY
+                                    if self.config.realtime_priority > 0 and not self.lockstep else 0)
         self.camera.start()
         self._camera_info_now_and_then()  # before the first frame: vision cannot use a frame without it
 
