@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
+import signal
 import subprocess
 import sys
 import threading
@@ -219,6 +220,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     parser.add_argument("--zenoh", required=True, help="the session's config, as JSON")
     parser.add_argument("--realtime-priority", type=int, default=ESTOP_REALTIME_PRIORITY)
     args = parser.parse_args(argv)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a terminal's Ctrl-C is the parent's; it ends us by closing stdin
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="estop_sender: %(message)s")
     from services.runtime.pacing import request_realtime
 

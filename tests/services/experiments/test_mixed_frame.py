@@ -72,11 +72,12 @@ def part_a_alone(tmp_path_factory) -> tuple[dict, Path]:
     return part_a_by_command(1, out), out
 
 
-def test_runs_side_by_side_and_beside_cpu_hogs_log_exactly_what_one_run_at_a_time_logs(part_a_alone, tmp_path):
-    """`--jobs 2` (each run on a stack of its own, two at a time) with two CPU hogs beside them against `--jobs 1` on
-    a quiet host: every trajectory log the same byte for byte, the runs in the experiment's order (issue 35)."""
+def _side_by_side_logs_exactly_what_one_run_at_a_time_logs(part_a_alone, tmp_path, hogs: int) -> None:
+    """`--jobs 2` (each run on a stack of its own, two at a time) with ``hogs`` CPU hogs beside them against
+    `--jobs 1` on a quiet host: every trajectory log the same byte for byte, the runs in the experiment's order
+    (issue 35)."""
     alone, alone_dir = part_a_alone
-    with cpu_hogs(2):
+    with cpu_hogs(hogs):
         side_by_side = part_a_by_command(2, tmp_path / "side_by_side")
     check_shape(side_by_side, "part-a")
     labels = [spec.label for spec in EXPERIMENTS["part-a"].runs]
@@ -87,6 +88,18 @@ def test_runs_side_by_side_and_beside_cpu_hogs_log_exactly_what_one_run_at_a_tim
     def numbers(output: dict) -> list:
         return [{k: v for k, v in row.items() if k != "plots"} for row in output["runs"]]
     assert numbers(side_by_side) == numbers(alone) and side_by_side["summary"] == alone["summary"]
+
+
+def test_runs_side_by_side_log_exactly_what_one_run_at_a_time_logs(part_a_alone, tmp_path):
+    _side_by_side_logs_exactly_what_one_run_at_a_time_logs(part_a_alone, tmp_path, hogs=0)
+
+
+@pytest.mark.slow
+def test_runs_side_by_side_and_beside_cpu_hogs_log_exactly_what_one_run_at_a_time_logs(part_a_alone, tmp_path):
+    """The same beside two CPU hogs: slow (a run shares its core with a hog: 37 s at 0.65 of a core); the lockstep
+    runs' independence of the host's load is also checked run to run by
+    tests/services/servo/test_run.py::test_lockstep_is_bit_identical_run_to_run_composed_as_processes_and_through_the_gateway."""
+    _side_by_side_logs_exactly_what_one_run_at_a_time_logs(part_a_alone, tmp_path, hogs=2)
 
 
 def test_part_a_the_end_effector_twist_fails_where_the_mixed_one_converges(part_a_alone):
