@@ -356,7 +356,7 @@ def test_lockstep_waits_for_its_answerers_before_its_first_tick(router, client, 
     robot = RobotSimService(config)
     robot.start()
     try:
-        time.sleep(0.6)  # longer than a tick's wait for its answer: nothing ran
+        time.sleep(LockstepConfig().cycle_timeout_s + 0.1)  # longer than a tick's wait for its answer: nothing ran
         assert robot.sim.time_ns == 0 and robot.counters.get("lockstep.timeouts.cycle") == 0
         declared.append(declare_safety() if late == "safety" else declare_vision())
         # nobody answers: the first tick waits its cycle_timeout_s, then the arm goes on; its frame was taken

@@ -273,7 +273,8 @@ def _rest_after_the_pipeline_died(states, commands, kin, dsp, v0: float, fault_n
     assert last.source_stamp_ns <= fault_ns, "a command from an image captured after vision died"
     assert (last.stamp_ns - fault_ns) * 1e-9 <= budget_s + cycle_s, \
         f"safety moved the arm {(last.stamp_ns - fault_ns) * 1e-6:.0f} ms after {victim} died"
-    reaction_s = (last.stamp_ns - fault_ns) * 1e-9 + cycle_s  # the stop goes out at safety's next cycle
+    # the stop goes out at safety's next cycle and reaches the robot within the delivery budget
+    reaction_s = (last.stamp_ns - fault_ns) * 1e-9 + cycle_s + ESTOP_DELIVERY_BUDGET_S
     return time_to_rest(states, kin, fault_ns), rest_bound(v0, dsp.linear_accel_mps2, reaction_s)
 
 
