@@ -42,9 +42,6 @@ log = logging.getLogger(__name__)
 #: SCHED_FIFO priority of the sender: that of safety and the router, which carry the e-stop on (safety.yaml,
 #: ``mfvs router``), below the robot's loop (40), above every normal-priority process
 ESTOP_REALTIME_PRIORITY = 30
-#: how long the child may take to start and declare itself before the parent stops waiting for it (s); meanwhile
-#: the parent sends e-stops itself
-START_TIMEOUT_S = 20.0
 #: what the parent waits beyond a request's own timeout for the child's answer before it takes the child for hung
 ANSWER_MARGIN_S = 1.0
 #: the child's word that it is ready, its first line
@@ -76,7 +73,7 @@ class EStopSender:
     by name (``estop.sent_by_child``, ``estop.fallback``, ``estop.child_exits``)."""
 
     def __init__(self, session, keys: Keys, zenoh: ZenohConfig, realtime_priority: int = ESTOP_REALTIME_PRIORITY,
-                 count: Callable[[str], None] = lambda name: None, start_timeout_s: float = START_TIMEOUT_S) -> None:
+                 count: Callable[[str], None] = lambda name: None) -> None:
         self._fallback = EStopClient(session, keys)
         self._count = count
         self._ids = itertools.count(1)
@@ -90,7 +87,6 @@ class EStopSender:
                    "--zenoh", msgspec.json.encode(zenoh).decode(), "--realtime-priority", str(realtime_priority)]
         self._child = subprocess.Popen(command, cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                        stderr=None, bufsize=0)
-        self._start_timeout_s = start_timeout_s
         self._reader = start_thread(self._read_answers, "estop-answers")
 
     @classmethod
@@ -127,7 +123,7 @@ class EStopSender:
                 continue
             try:
                 answer = msgspec.json.decode(line, type=Answer)
-            except msgspec.ValidationError:
+            except msgspec.DecodeError:  # malformed JSON or the wrong fields
                 log.warning("e-stop sender: not an answer: %r", line[:200])
                 continue
             with self._answered:
@@ -154,8 +150,13 @@ class EStopSender:
         with self._answered:
             while request.id not in self._answers:
                 left = deadline - time.monotonic()
-                if left <= 0 or not self._ready.is_set():
-                    raise SenderGone("no answer")
+                if not self._ready.is_set():
+                    raise SenderGone("exited")
+                if left <= 0:
+                    # alive but silent past the request's own timeout: hung. Ended, so that the next e-stop goes
+                    # out from this process at once instead of waiting as long again
+                    self._child.kill()
+                    raise SenderGone("no answer: ended it")
                 self._answered.wait(left)
             return self._answers.pop(request.id)
 
@@ -208,7 +209,7 @@ def _serve(client: EStopClient, requests, answers) -> None:
     for line in requests:
         try:
             request = msgspec.json.decode(line, type=Request)
-        except msgspec.ValidationError as exc:
+        except msgspec.DecodeError as exc:  # malformed JSON or the wrong fields
             log.warning("e-stop sender: not a request (%s): %r", exc, line[:200])
             continue
         start_thread(lambda request=request: carry_out(request), f"estop-{request.id}")

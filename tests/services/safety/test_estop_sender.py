@@ -114,3 +114,31 @@ def test_before_the_sender_is_up_the_e_stop_goes_out_from_the_service(router, se
         engaged = sender.send(reset=False, operator="alice", timeout_s=10)
         assert engaged is not None and engaged.state is m.SafetyState.ESTOP, time.monotonic() - started
         assert counters.get("estop.fallback") == 1
+
+
+def test_a_hung_sender_is_ended_and_the_e_stop_goes_out_from_the_service(router, session_and_safety):
+    """Alive but silent (SIGSTOP) past a request's timeout: the e-stop goes out from the service, the child is
+    ended, and the next e-stop does not wait for it again."""
+    session, safety = session_and_safety
+    counters = Counters()
+    with EStopSender(session, KEYS, router.client_config(), count=counters.inc) as sender:
+        assert sender.wait_ready(30)
+        os.kill(sender._child.pid, signal.SIGSTOP)
+        engaged = sender.send(reset=False, operator="alice", reason="hung sender", timeout_s=0.5)
+        assert engaged is not None and engaged.state is m.SafetyState.ESTOP
+        assert counters.get("estop.fallback") == 1
+        assert wait_for(lambda: not sender.health()[0], timeout=10)
+        started = time.monotonic()
+        assert sender.send(reset=True, operator="alice", timeout_s=10) is not None
+        assert counters.get("estop.fallback") == 2 and time.monotonic() - started < 5
+
+
+def test_a_malformed_request_is_refused_by_the_sender_which_goes_on(router, session_and_safety):
+    session, safety = session_and_safety
+    counters = Counters()
+    with EStopSender(session, KEYS, router.client_config(), count=counters.inc) as sender:
+        assert sender.wait_ready(30)
+        sender._child.stdin.write(b"not json\n{\"id\": 1, \"reset\": \"maybe\"}\n")
+        engaged = sender.send(reset=False, operator="alice", timeout_s=10)
+        assert engaged is not None and engaged.state is m.SafetyState.ESTOP
+        assert counters.get("estop.sent_by_child") == 1 and sender.health() == (True, "e-stop sender ready")
