@@ -51,16 +51,20 @@ def test_a_stack_is_up_as_soon_as_its_services_declare_their_liveliness(router, 
     sleeper = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
     sessions = [_token(router, "arm1", "safety")]
     try:
+        declared_at = []
+
         def declare_later() -> None:
             time.sleep(0.3)
+            declared_at.append(time.monotonic())  # before the token: the wait may see it before this thread runs on
             sessions.append(_token(router, "arm1", "vision"))
 
-        threading.Thread(target=declare_later).start()
         start = time.monotonic()
+        threading.Thread(target=declare_later).start()
         wait_alive(router.client_config(), "arm1", ["safety", "vision"], [sleeper], 10.0, tmp_path)
-        took = time.monotonic() - start
-        # not before the second token (the first was declared before the wait began: the subscriber's history)
-        assert 0.3 <= took < 5.0
+        alive_at = time.monotonic()
+        # not before the second token was declared (the first was declared before the wait began: the subscriber's
+        # history), and not long after
+        assert declared_at and start + 0.3 <= declared_at[0] <= alive_at < start + 5.0
         # a token of another robot's is not this robot's service
         with pytest.raises(RuntimeError, match=r"controller not alive \(exited: \[\]"):
             other = _token(router, "arm2", "controller")
