@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from typing import Optional
+from typing import Callable, Optional
 
 from protocol import messages as m
 from protocol.keys import Keys
@@ -44,9 +44,11 @@ class EStopClient:
             self._statuses.append((self._count, status))
             self._heard.notify_all()
 
-    def send(self, reset: bool, operator: str, reason: str = "", timeout_s: float = 5.0) -> Optional[m.SafetyStatus]:
+    def send(self, reset: bool, operator: str, reason: str = "", timeout_s: float = 5.0,
+             on_sent: Optional[Callable[[], None]] = None) -> Optional[m.SafetyStatus]:
         """Engage (``reset`` False) or release the e-stop, sent again every RESEND_PERIOD_S until a status of
-        safety's heard after the first send confirms it: that status, or None when none did within ``timeout_s``."""
+        safety's heard after the first send confirms it: that status, or None when none did within ``timeout_s``.
+        ``on_sent`` is called once the first is on the wire."""
         message = m.encode(m.EStop(header=m.Header(stamp_ns=time.time_ns()), reset=reset, operator=operator,
                                    reason=reason))
         with self._heard:
@@ -58,6 +60,9 @@ class EStopClient:
         deadline = time.monotonic() + timeout_s
         while True:
             self._publisher.put(message)
+            if on_sent is not None:
+                on_sent()
+                on_sent = None
             with self._heard:
                 self._heard.wait_for(confirmed, timeout=max(0.0, min(RESEND_PERIOD_S, deadline - time.monotonic())))
                 found = confirmed()

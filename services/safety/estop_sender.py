@@ -14,7 +14,10 @@ from the child's stdout; the child (``python -m services.safety.estop_sender``) 
 :class:`~services.safety.estop_client.EStopClient` in a thread of its own (an engage never waits behind a release
 waiting for its confirmation), stamping the e-stop as it sends it. The child ends when its stdin closes (the parent
 stopped or died). Until the child is up, or when it is gone or does not answer, the parent sends the e-stop itself
-(at normal priority: late rather than never) and counts it."""
+(at normal priority: late rather than never) and counts it. The child says when an engage is on the wire, before
+safety confirms it: one it has not put within ``ON_THE_WIRE_BUDGET_S`` the parent sends too (safety takes the
+first of two engages; the second changes nothing), so a hung child costs an e-stop that much, not its whole
+timeout. A child silent past a request's timeout is ended."""
 from __future__ import annotations
 
 import argparse
@@ -44,6 +47,10 @@ log = logging.getLogger(__name__)
 ESTOP_REALTIME_PRIORITY = 30
 #: what the parent waits beyond a request's own timeout for the child's answer before it takes the child for hung
 ANSWER_MARGIN_S = 1.0
+#: how long an engage may take to be on the wire from the child before the parent sends it too: far above the
+#: child's few milliseconds at realtime priority (2-10 ms measured, 15 ms at 0.65 of a core), far below the 250 ms
+#: in which an operator's e-stop must be confirmed (issue 49)
+ON_THE_WIRE_BUDGET_S = 0.05
 #: the child's word that it is ready, its first line
 READY = "ready"
 
@@ -60,17 +67,23 @@ class Answer(msgspec.Struct, forbid_unknown_fields=True):
     id: int
     #: safety's status that confirmed it (encoded as on the wire), or None when none did in time
     status: Optional[bytes]
+    #: an early word: the request is on the wire, its confirmation still to come (``status`` None)
+    on_the_wire: bool = False
 
 
 class SenderGone(Exception):
     """The child is not running or did not answer."""
 
 
+class SenderLate(SenderGone):
+    """The child has not put an engage on the wire within ON_THE_WIRE_BUDGET_S."""
+
+
 class EStopSender:
     """``send`` as :class:`EStopClient`'s, carried out by the realtime child. ``session``/``keys``: the parent's
     own, for the fallback; ``zenoh``: the config the child opens its session with (the same identity);
     ``realtime_priority``: the child's (0: normal scheduling, as in lockstep). ``count``: a counter to increment
-    by name (``estop.sent_by_child``, ``estop.fallback``, ``estop.child_exits``)."""
+    by name (``estop.sent_by_child``, ``estop.fallback``, ``estop.child_late``, ``estop.child_exits``)."""
 
     def __init__(self, session, keys: Keys, zenoh: ZenohConfig, realtime_priority: int = ESTOP_REALTIME_PRIORITY,
                  count: Callable[[str], None] = lambda name: None) -> None:
@@ -78,8 +91,11 @@ class EStopSender:
         self._count = count
         self._ids = itertools.count(1)
         self._write_lock = threading.Lock()
-        #: answers by request id, and who waits for them
+        #: answers by request id, the requests the child said are on the wire, and who waits for them
         self._answers: dict[int, Answer] = {}
+        self._on_the_wire: set[int] = set()
+        #: requests the parent carried out itself (the child was late): their answers are dropped
+        self._abandoned: set[int] = set()
         self._answered = threading.Condition()
         self._ready = threading.Event()
         self._closed = False
@@ -127,7 +143,13 @@ class EStopSender:
                 log.warning("e-stop sender: not an answer: %r", line[:200])
                 continue
             with self._answered:
-                self._answers[answer.id] = answer
+                if answer.on_the_wire:
+                    if answer.id not in self._abandoned:
+                        self._on_the_wire.add(answer.id)
+                elif answer.id in self._abandoned:
+                    self._abandoned.discard(answer.id)
+                else:
+                    self._answers[answer.id] = answer
                 self._answered.notify_all()
         self._ready.clear()
         if not self._closed:
@@ -146,19 +168,45 @@ class EStopSender:
                 self._child.stdin.write(msgspec.json.encode(request) + b"\n")
         except (BrokenPipeError, OSError, ValueError) as exc:
             raise SenderGone(f"cannot write to it ({exc})") from None
-        deadline = time.monotonic() + request.timeout_s + ANSWER_MARGIN_S
+        asked = time.monotonic()
+        deadline = asked + request.timeout_s + ANSWER_MARGIN_S
+        on_the_wire_by = None if request.reset else asked + ON_THE_WIRE_BUDGET_S  # (a release is not urgent)
         with self._answered:
             while request.id not in self._answers:
-                left = deadline - time.monotonic()
+                now = time.monotonic()
                 if not self._ready.is_set():
                     raise SenderGone("exited")
-                if left <= 0:
+                if now >= deadline:
                     # alive but silent past the request's own timeout: hung. Ended, so that the next e-stop goes
-                    # out from this process at once instead of waiting as long again
+                    # out from this process at once
                     self._child.kill()
                     raise SenderGone("no answer: ended it")
-                self._answered.wait(left)
+                if on_the_wire_by is not None and request.id not in self._on_the_wire:
+                    if now >= on_the_wire_by:
+                        self._abandon(request.id, deadline)
+                        raise SenderLate(f"engage not on the wire after {ON_THE_WIRE_BUDGET_S * 1e3:.0f} ms")
+                    self._answered.wait(on_the_wire_by - now)
+                    continue
+                self._answered.wait(deadline - now)
+            self._on_the_wire.discard(request.id)
             return self._answers.pop(request.id)
+
+    def _abandon(self, request_id: int, deadline: float) -> None:
+        """The parent carries the request out itself; the child's answers to it are dropped, and a child that has
+        not answered it at all by ``deadline`` is hung and ended (called with the answers' lock held)."""
+        self._abandoned.add(request_id)
+        self._on_the_wire.discard(request_id)
+
+        def end_if_silent() -> None:
+            with self._answered:
+                silent = request_id in self._abandoned and not self._closed
+            if silent and self._child.poll() is None:
+                log.error("the e-stop sender did not answer request %d: ended", request_id)
+                self._child.kill()
+
+        timer = threading.Timer(max(0.0, deadline - time.monotonic()), end_if_silent)
+        timer.daemon = True
+        timer.start()
 
     def send(self, reset: bool, operator: str, reason: str = "", timeout_s: float = 5.0) -> Optional[m.SafetyStatus]:
         """Engage (``reset`` False) or release the e-stop; safety's status that confirmed it, or None."""
@@ -167,6 +215,8 @@ class EStopSender:
             answer = self._ask(request)
         except SenderGone as exc:
             self._count("estop.fallback")
+            if isinstance(exc, SenderLate):
+                self._count("estop.child_late")
             log.warning("e-stop sender %s: sending the e-stop from this process", exc)
             return self._fallback.send(reset, operator, reason, timeout_s)
         self._count("estop.sent_by_child")
@@ -199,12 +249,15 @@ def _serve(client: EStopClient, requests, answers) -> None:
     """Each request line from ``requests`` carried out in a thread of its own; each answer a line to ``answers``."""
     write = threading.Lock()
 
-    def carry_out(request: Request) -> None:
-        status = client.send(request.reset, request.operator, request.reason, request.timeout_s)
-        answer = Answer(id=request.id, status=None if status is None else m.encode(status))
+    def answer(reply: Answer) -> None:
         with write:
-            answers.write(msgspec.json.encode(answer) + b"\n")
+            answers.write(msgspec.json.encode(reply) + b"\n")
             answers.flush()
+
+    def carry_out(request: Request) -> None:
+        status = client.send(request.reset, request.operator, request.reason, request.timeout_s,
+                             on_sent=lambda: answer(Answer(id=request.id, status=None, on_the_wire=True)))
+        answer(Answer(id=request.id, status=None if status is None else m.encode(status)))
 
     for line in requests:
         try:
