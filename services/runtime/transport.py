@@ -7,6 +7,7 @@ named by ``config_file``; the fields here are applied on top of it.
 from __future__ import annotations
 
 import json
+import random
 import socket
 import threading
 from pathlib import Path
@@ -153,8 +154,35 @@ def publisher_options(key: str, lockstep: bool = False) -> dict:
     return {**options, "express": True, "priority": zenoh.Priority.INTERACTIVE_HIGH} if control_path else options
 
 
+#: where free_loopback_port looks first: below the kernel's ephemeral range, with room for many listeners
+LISTEN_PORTS_FROM = 10000
+#: (the OS's randomness: a test that seeds ``random`` must not make two processes pick the same ports)
+_PORT_CHOICE = random.SystemRandom()
+
+
+def _ephemeral_ports() -> tuple[int, int]:
+    """The kernel's range for the local ports of outgoing connections (Linux's default where it cannot be read)."""
+    try:
+        low, high = (int(v) for v in open("/proc/sys/net/ipv4/ip_local_port_range").read().split())
+        return low, high
+    except (OSError, ValueError):
+        return 32768, 60999
+
+
 def free_loopback_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that is free on the loopback interface right now."""
+    """A TCP port that is free on the loopback interface right now, outside the ephemeral range where it can be:
+    a port the kernel handed out (bind to 0) is one it may hand again, as the local port of any process's next
+    outgoing connection, before our listener binds it (a bus hub then found its port taken by a client's
+    connection, "Address already in use")."""
+    low, _ = _ephemeral_ports()
+    if low - LISTEN_PORTS_FROM >= 1000:
+        for port in _PORT_CHOICE.sample(range(LISTEN_PORTS_FROM, low), 50):
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                try:
+                    s.bind((host, port))
+                except OSError:
+                    continue
+                return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind((host, 0))
         return s.getsockname()[1]

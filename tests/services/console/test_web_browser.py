@@ -194,7 +194,8 @@ def test_the_console_shows_the_arm_starts_the_task_stops_the_arm_and_releases_on
         click(driver, "release")
         click(driver, "release-confirm")
         assert wait_for(lambda: not estop_engaged(safety), timeout=10)
-        assert estops.last().reset and estops.last().operator == "tester"
+        # (the release and safety's status reach this process by two subscriptions, in either order)
+        assert wait_for(lambda: estops.last().reset, timeout=5) and estops.last().operator == "tester"
         assert wait_for(lambda: "running" in text(driver, "task-state"), timeout=10)
         screenshots(driver, artefacts, "running")  # released, the task goes on
         driver.set_window_size(*DESKTOP)
