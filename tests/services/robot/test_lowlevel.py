@@ -278,9 +278,12 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     250 ms it is back under the high-level DSP. The client holds the arm still on top of the robot's gravity
     compensation: on robot_sim that is the actuators' own, the arm's true gravity, and it adds nothing; behind the
     gateway the actuators add none (RS-485) and the robot sends its description's ĝ(q), so the client adds what
-    the description misses of the arm. The hold after it stops is then the robot's alone: exact on robot_sim;
-    behind the gateway ĝ at the measured angles, which lets the heavier hand sag a little in its 250 ms (zero
-    torque there, the hold before, would let the arm fall: test_link.py)."""
+    the description misses of the arm, and a stiff joint-space PD toward where it started, as a holding client
+    would: this test's loop runs at normal priority, and each of its commands that came more than the watchdog's
+    5 ms late left the gateway's arm to ĝ alone for that while (1.1° of sag gathered over 0.4 s in one run of four
+    on an idle host, which a pure feed-forward client never takes back). The hold after it stops is then the
+    robot's alone: exact on robot_sim; behind the gateway ĝ at the measured angles, which lets the heavier hand sag
+    a little in its 250 ms (zero torque there, the hold before, would let the arm fall: test_link.py)."""
     from services.model.kinematics import ArmKinematics
     from tests.helpers import emulated_arm_gravity
 
@@ -292,6 +295,16 @@ def test_low_level_torque_api_with_its_watchdog(robot):
     assert wait_for(lambda: len(low) > 50)
     assert low.last().mode is m.ActuatorMode.POSITION
     q0 = np.array(low.last().q)
+    # critically damped at 30 rad/s for each joint's own inertia there (well inside what 2-5 ms of delay allows)
+    import pinocchio as pin
+
+    inertia = np.diag(pin.crba(model.model, model.data, q0)).copy()
+    hold_kp, hold_kd = inertia * 30.0**2, 2.0 * inertia * 30.0
+
+    def holding(state: m.LowLevelState) -> list[float]:
+        q, dq = np.array(state.q), np.array(state.dq)
+        return (on_top(q) + hold_kp * (q0 - q) - hold_kd * dq).tolist()
+
     publisher = client.declare_publisher(KEYS.lowlevel_command)
     api_replies = []
     api_call = threading.Thread(target=lambda: api_replies.extend(client.get(KEYS.robot_api("MoveHome"),
@@ -301,7 +314,7 @@ def test_low_level_torque_api_with_its_watchdog(robot):
         time.sleep(max(0.0, start + k * 0.002 - time.monotonic()))
         last_sent_ns = time.time_ns()
         publisher.put(m.encode(m.TorqueCommand(header=m.Header(seq=next_seq(), stamp_ns=last_sent_ns),
-                                               torques=on_top(low.last().q).tolist())))
+                                               torques=holding(low.last()))))
         if k == 100:
             client.put(KEYS.robot_command, robot_command())  # refused while torque control is active
             api_call.start()  # and so is a motion through the Kinova API
@@ -450,6 +463,16 @@ def test_after_table_5_1_the_client_faces_the_arm_s_true_gravity(robot):
     assert wait_for(lambda: "gravity none" in robot.health().detail)
     model = ArmKinematics(ARM)
     q0 = np.array(low.last().q)
+    # critically damped at 30 rad/s for each joint's own inertia there (well inside what 2-5 ms of delay allows)
+    import pinocchio as pin
+
+    inertia = np.diag(pin.crba(model.model, model.data, q0)).copy()
+    hold_kp, hold_kd = inertia * 30.0**2, 2.0 * inertia * 30.0
+
+    def holding(state: m.LowLevelState) -> list[float]:
+        q, dq = np.array(state.q), np.array(state.dq)
+        return (on_top(q) + hold_kp * (q0 - q) - hold_kd * dq).tolist()
+
     publisher = client.declare_publisher(KEYS.lowlevel_command)
     start = time.monotonic()
     for k in range(150):  # 0.3 s at 500 Hz, each torque ĝ at the newest state's q
