@@ -163,7 +163,7 @@ _PORT_CHOICE = random.SystemRandom()
 def _ephemeral_ports() -> tuple[int, int]:
     """The kernel's range for the local ports of outgoing connections (Linux's default where it cannot be read)."""
     try:
-        low, high = (int(v) for v in open("/proc/sys/net/ipv4/ip_local_port_range").read().split())
+        low, high = (int(v) for v in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
         return low, high
     except (OSError, ValueError):
         return 32768, 60999

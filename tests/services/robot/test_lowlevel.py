@@ -360,13 +360,12 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot, tmp_path):
     through the Kinova API (the arm then adds no gravity, damps nothing, never stops for speed), which the robot's
     health shows and the run's log records. Low-level states of another arm's joint count are refused and counted,
     and the run goes on."""
-    import json
     import subprocess
     import sys
 
-    import msgspec
-
+    from services.stack.local import write_config
     from services.torque_controller.core import load_log
+    from services.torque_controller.service import TorqueControllerConfig
     from tests.helpers import REPO
 
     client = robot.client
@@ -376,11 +375,9 @@ def test_computed_torque_over_the_low_level_zenoh_api(robot, tmp_path):
     options = computed_torque_options_for_the_emulated_arm(
         tf_s=2.0, joint_displacement_deg=[10.0, -8.0, 12.0, 10.0, -15.0, 10.0, 20.0])
     log = tmp_path / "computed-torque.npz"
-    config = tmp_path / "torque_controller.json"
-    config.write_text(json.dumps({"controller": "computed-torque", "options": msgspec.to_builtins(options),
-                                  "duration_s": 2.3, "log": str(log),
-                                  "zenoh": msgspec.to_builtins(robot.router_config)}))
-    controller = subprocess.Popen([sys.executable, "-m", "services.torque_controller", "--config", str(config)],
+    config = write_config(tmp_path, "torque_controller", TorqueControllerConfig(
+        controller="computed-torque", options=options, duration_s=2.3, log=str(log), zenoh=robot.router_config))
+    controller = subprocess.Popen([sys.executable, "-m", "services.torque_controller", "--config", config],
                                   cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         # its run began: the joints are in torque mode
