@@ -45,6 +45,7 @@ from services.runtime.config import ConfigError
 from services.runtime.progress import ProgressLine
 from services.robot_sim.scene import default_target_in_camera
 from services.cli.options import add_arm_option
+from services.servo.result import error_rms
 from services.servo.run import run
 from services.servo.scenario import load_scenario, on_arm
 from services.experiments.starts import write_starts
@@ -156,19 +157,19 @@ def measure_scenario(scenario_path: Path, runs: int, profiles: list[str], quiet:
             scenario.clock = clock
             if any(offset):
                 scenario = nudged(scenario, offset)
-            line = ProgressLine(f"{scenario_path.stem} {name}", scenario.convergence.error_norm,
+            line = ProgressLine(f"{scenario_path.stem} {name}", scenario.convergence.rms,
                                 scenario.convergence.max_iterations, enabled=not quiet)
             errors = []
 
             def progress(record, line=line, errors=errors):
-                errors.append(record.error_norm)
-                line.update(record.iteration, record.error_norm)
+                errors.append(error_rms(record))
+                line.update(record.iteration, errors[-1])
 
             result = run(scenario, progress=progress, profile=profile)
             line.done()
             rows.append({"converged": result.converged, "status": result.status, "iterations": result.iterations,
                          "nudge_mm": [round(v * 1e3, 3) for v in offset],
-                         "approach": first_below(errors, APPROACH_FACTOR * scenario.convergence.error_norm),
+                         "approach": first_below(errors, APPROACH_FACTOR * scenario.convergence.rms),
                          "final_error_norm": result.final_error_norm,
                          "peak_speed_mps": round(result.max_linear_speed_mps, 4),
                          # the limit the robot declared in its states, to compare the measured peak with

@@ -23,7 +23,9 @@ from protocol.conventions import AngularConvention, Frame
 #: 2: RobotState.timing, SimClock.frame_stamp_ns, ServiceHealth.degraded.
 #: 3: the arm is a choice: RobotState.arm and arm_digest; joint vectors as long as the arm's joints (1-7).
 #: 4: LowLevelState.cycle_ns (the bus period is the hardware's: 2, 2.5, 3.33 or 5 ms).
-SCHEMA_VERSION = 4
+#: 5: Features of N points (ids, weights, pixels; one view per front end: tag, keypoints), the target's lost status
+#: (target_lost).
+SCHEMA_VERSION = 5
 
 #: The most joints an arm has (the Kinova API's AngularInfo: Actuator1..7). A joint vector on the wire has the
 #: robot's arm's length (RobotState.arm: 6 for the j2n6s300, 7 for the j2s7s300); each reader checks it against the
@@ -240,12 +242,13 @@ class CameraInfo(Message):
 
 
 class FeatureStatus(str, enum.Enum):
-    #: the tag was found; points, depths and error are valid
+    #: the target was found; points, depths and error are valid
     OK = "ok"
-    #: the tag was found but touches the image border (corners may be clipped); features are given, use with care
+    #: the target was found but touches the image border (points may be clipped); features are given, use with care
     PARTIAL = "partial"
-    #: the configured tag is not in this image
-    TAG_LOST = "tag_lost"
+    #: the configured target is not in this image, or what is there fails the front end's checks (too few inliers,
+    #: a reprojection error over its bound, a degenerate view, another object): ``detail`` says which
+    TARGET_LOST = "target_lost"
     #: the image was older than the freshness budget when it was processed: no features
     STALE = "stale"
     #: the image could not be used (wrong size, all black, no valid camera info): no features
@@ -256,27 +259,92 @@ class FeatureStatus(str, enum.Enum):
 USABLE_FEATURE_STATUSES = frozenset({FeatureStatus.OK, FeatureStatus.PARTIAL})
 
 
+class FrontEnd(str, enum.Enum):
+    """Which of vision's front ends measured the features (services/vision/front_end.py)."""
+
+    #: an AprilTag's four corners
+    TAG = "tag"
+    #: the taught view's keypoints matched in the image (a markerless target)
+    KEYPOINTS = "keypoints"
+
+
+#: the most points a features message carries (a keypoint target's inliers; a tag has 4)
+MAX_FEATURE_POINTS = 512
+
 Point2 = tuple[float, float]
-Points = Annotated[list[Point2], msgspec.Meta(max_length=64)]
+Points = Annotated[list[Point2], msgspec.Meta(max_length=MAX_FEATURE_POINTS)]
+PointDepths = Annotated[list[Positive], msgspec.Meta(max_length=MAX_FEATURE_POINTS)]
+#: a point's id: stable from frame to frame for the same physical point (a tag's corner 0-3; a taught keypoint's
+#: index in its goal), so that a controller pairs it with its goal and fades it in and out
+PointIds = Annotated[list[Annotated[int, msgspec.Meta(ge=0, le=2**31 - 1)]], msgspec.Meta(max_length=MAX_FEATURE_POINTS)]
+Weight = Annotated[float, msgspec.Meta(ge=0.0, le=1.0)]
+
+
+class TagView(Message):
+    """What the tag front end saw: the tag's id and its pose in the camera frame (IPPE_SQUARE on its corners)."""
+
+    id: Annotated[int, msgspec.Meta(ge=0)]
+    pose_in_camera: Pose
+
+
+#: a taught goal's name (the file's stem) and its fingerprint (the file's SHA-256, 16 hex): as RobotState names its arm
+GoalName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")]
+GoalDigest = Annotated[str, msgspec.Meta(pattern=r"^[0-9a-f]{16}$")]
+
+
+class KeypointView(Message):
+    """What the keypoint front end saw in one image, against its taught goal."""
+
+    goal: GoalName
+    goal_digest: GoalDigest
+    #: the detector (sift, orb)
+    detector: Annotated[str, msgspec.Meta(max_length=16)]
+    #: how the points were found this frame: detect (matched against the taught descriptors) or track (followed
+    #: from the last frame by optical flow)
+    search: Annotated[str, msgspec.Meta(pattern="^(detect|track)$")]
+    #: candidates (matches that passed the ratio test, or points tracked) and inliers (what survived the robust
+    #: model and the reprojection check)
+    candidates: NonNegInt = 0
+    inliers: NonNegInt = 0
+    #: the inliers' median and largest reprojection error under the object's estimated pose (px)
+    median_error_px: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    max_error_px: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    #: the robust model: homography (a planar target) or epipolar (a non-planar one)
+    model: Annotated[str, msgspec.Meta(pattern="^(homography|epipolar)$")] = "homography"
+    #: the object's pose in the camera frame (its taught camera frame moved), when estimated
+    object_pose_in_camera: Optional[Pose] = None
+    #: the taught region's outline in this image (px), where the pose is known
+    region_px: Points = []
 
 
 class Features(Message):
-    """Point features in normalized image coordinates (x = X/Z, y = Y/Z), OpenCV optical camera frame."""
+    """N point features in normalized image coordinates (x = X/Z, y = Y/Z), OpenCV optical camera frame, each with a
+    stable id, a depth, a weight (1: fully in; a point fading in or out has less) and its pixel; the goal of each
+    point in the same order; one view of the front end that measured them."""
 
     header: Header
     status: FeatureStatus
-    tag_id: int = -1
+    front_end: FrontEnd = FrontEnd.TAG
     points: Points = []
-    depths: Annotated[list[Positive], msgspec.Meta(max_length=64)] = []
+    depths: PointDepths = []
+    #: one per point; empty: 0, 1, ... n−1 in order (a client that sends a fixed set of points)
+    ids: PointIds = []
+    #: one per point; empty: every weight 1
+    weights: Annotated[list[Weight], msgspec.Meta(max_length=MAX_FEATURE_POINTS)] = []
+    #: each point in pixels, for display and logs
+    pixels: Points = []
     goal_points: Points = []
-    goal_depths: Annotated[list[Positive], msgspec.Meta(max_length=64)] = []
+    goal_depths: PointDepths = []
     #: e = s - s*, stacked (x0, y0, x1, y1, ...)
-    error: Annotated[list[float], msgspec.Meta(max_length=128)] = []
+    error: Annotated[list[float], msgspec.Meta(max_length=2 * MAX_FEATURE_POINTS)] = []
+    #: ‖e‖ (grows with the number of points: Sensors 2022's figure for its four)
     error_norm: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
-    tag_pose_in_camera: Optional[Pose] = None
-    #: detected corners in pixels (detection order), for display and logs
-    corners_px: Points = []
-    #: why the status is what it is (e.g. which check refused the image)
+    #: the points' error as a weighted root mean square per point, √(Σ wᵢ‖eᵢ‖² / Σ wᵢ): what convergence is
+    #: judged on, whatever the number of points (‖e‖/2 for a tag's four)
+    error_rms: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    tag: Optional[TagView] = None
+    keypoints: Optional[KeypointView] = None
+    #: why the status is what it is (e.g. which check refused the image, or lost the target)
     detail: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
     def __post_init__(self) -> None:
@@ -285,9 +353,25 @@ class Features(Message):
             n = len(self.points)
             if n == 0:
                 raise ValueError(f"status {self.status.value} needs points")
-            for name, length in (("depths", n), ("goal_points", n), ("error", 2 * n)):
+            for name, length in (("depths", n), ("goal_points", n), ("goal_depths", n), ("error", 2 * n)):
                 if len(getattr(self, name)) != length:
                     raise ValueError(f"{name} has {len(getattr(self, name))} entries, {length} expected for {n} points")
+            for name in ("ids", "weights", "pixels"):
+                if getattr(self, name) and len(getattr(self, name)) != n:
+                    raise ValueError(f"{name} has {len(getattr(self, name))} entries, {n} expected for {n} points "
+                                     "(or none)")
+            if len(set(self.ids)) != len(self.ids):
+                raise ValueError("ids must be unique: each names one point")
+            if self.weights and not any(w > 0.0 for w in self.weights):
+                raise ValueError("at least one point needs a weight above 0")
+
+    def point_ids(self) -> list[int]:
+        """Each point's id (0..n−1 when the message gives none)."""
+        return list(self.ids) if self.ids else list(range(len(self.points)))
+
+    def point_weights(self) -> list[float]:
+        """Each point's weight (1 each when the message gives none)."""
+        return list(self.weights) if self.weights else [1.0] * len(self.points)
 
 
 class VisionGoal(Message):
@@ -373,7 +457,7 @@ class RobotCommand(Message):
 class ControllerState(str, enum.Enum):
     CONVERGING = "converging"
     CONVERGED = "converged"
-    TAG_LOST = "tag_lost"
+    TARGET_LOST = "target_lost"
     STALE_INPUT = "stale_input"
     ILL_CONDITIONED = "ill_conditioned"
     CONSTRAINT_ABORT = "constraint_abort"
@@ -429,6 +513,8 @@ class ControllerStatus(Message):
     status: ControllerState
     iteration: NonNegInt
     error_norm: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    #: the features' per-point RMS error (Features.error_rms): what convergence is judged on
+    error_rms: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
     gain: float = 0.0
     #: the output was scaled down to the configured limits
     saturated: bool = False

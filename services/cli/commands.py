@@ -285,6 +285,7 @@ def _experiment_progress(name: str, quiet: bool):
     would show: the runs then send their iterations nowhere (with ``--jobs`` each went from its worker to this
     process, an iteration at a time)."""
     from services.runtime.progress import ProgressLine, shows
+    from services.servo.result import error_rms
 
     bars: dict = {}
     ended: set = set()
@@ -294,9 +295,9 @@ def _experiment_progress(name: str, quiet: bool):
         if label in ended:  # a record still on its way from a run that has ended
             return
         if label not in bars:
-            bars[label] = ProgressLine(f"{name} {label}", scenario.convergence.error_norm,
+            bars[label] = ProgressLine(f"{name} {label}", scenario.convergence.rms,
                                        scenario.convergence.max_iterations, enabled=not quiet)
-        bars[label].update(record.iteration, record.error_norm)
+        bars[label].update(record.iteration, error_rms(record))
         shown[:] = [bars[label]]
 
     def progress(label: str, result) -> None:

@@ -37,6 +37,11 @@ from services.runtime.service import service_condition
 # ------------------------------------------------------------------------------------------------ requests
 
 
+#: the most points whose recent positions the page draws as trails (a tag's four corners; a keypoint target's
+#: hundreds would hide the image)
+MAX_TRAILS = 8
+
+
 class Action(str, enum.Enum):
     """Everything the page may ask of the stack. None of it commands the robot: the task is the controller's
     (through safety), the e-stop is safety's."""
@@ -380,26 +385,34 @@ class ConsoleModel:
         """The frame's overlay (what the page draws over the image with this capture stamp)."""
         self.features = features
         t = features.header.stamp_ns * 1e-9
-        if features.corners_px:
+        if features.pixels and len(features.pixels) <= MAX_TRAILS:
             if self._paths and t < self._paths[-1][0]:
                 self._paths.clear()
-            self._paths.append((t, [list(p) for p in features.corners_px]))
+            self._paths.append((t, [list(p) for p in features.pixels]))
         while self._paths and self._paths[0][0] < t - self.path_s:
             self._paths.popleft()
         if features.status in m.USABLE_FEATURE_STATUSES:
             self.error.add(t, features.error_norm)
+        keypoints = features.keypoints
         return {"type": "overlay", "capture_ns": features.header.source_stamp_ns, "status": features.status.value,
-                "error_norm": features.error_norm, "corners": [list(p) for p in features.corners_px],
+                "front_end": features.front_end.value, "detail": features.detail,
+                "error_norm": features.error_norm, "error_rms": features.error_rms,
+                "points": [list(p) for p in features.pixels],
+                # a tag's corners are its outline; a keypoint target's outline is its taught region, where seen
+                "outline": ([list(p) for p in features.pixels] if features.front_end is m.FrontEnd.TAG
+                            else [list(p) for p in keypoints.region_px] if keypoints is not None else []),
+                "inliers": keypoints.inliers if keypoints is not None else None,
                 "goal": self.goal_pixels(features)}
 
     def goal_pixels(self, features: m.Features) -> list:
-        """The goal corners where the camera's lens puts them (none until its intrinsics are known)."""
+        """The goal points where the camera's lens puts them (none until its intrinsics are known)."""
         if not features.goal_points or self.info is None:
             return []
         return np.round(normalized_to_pixels(features.goal_points, self.info), 2).tolist()
 
     def paths(self) -> list[list[list[float]]]:
-        """Each corner's recent positions (px), oldest first; a corner count that changed starts them afresh."""
+        """Each point's recent positions (px), oldest first, for a target of a few points (a tag's corners); a point
+        count that changed starts them afresh."""
         if not self._paths:
             return []
         count = len(self._paths[-1][1])

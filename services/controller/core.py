@@ -1,7 +1,7 @@
 """The controller's rules, with no zenoh, no locks and no clock: for one features message, the robot state and the
 camera mount, at a given time, what the law outputs, or why the output is zero.
 
-Never the last command: with no task running, on tag loss, stale input, an ill-conditioned interaction matrix, a
+Never the last command: with no task running, on the target lost, stale input, an ill-conditioned interaction matrix, a
 law that gives up (a constraint abort, an Euler singularity, a non-finite output) the output is zero and the step
 says why. The law's output is saturated to the limits the robot declares in its state (``saturated``).
 """
@@ -29,6 +29,7 @@ from services.controller.law import ConstraintAbort, LawOutput, ServoInput
 from services.controller.laws import JOINT_LAWS, make_law
 from services.controller.task import Task
 from services.model import frames, saturation
+from services.model.point_features import per_point_rms
 from services.model.arm import ArmDescription, declared_arm, load_arm
 from services.model.kinematics import ArmKinematics
 from services.model.limits import declared as declared_limits
@@ -44,6 +45,8 @@ class Step:
     detail: str = ""
     output: Optional[LawOutput] = None
     saturated: bool = False
+    #: the features' per-point RMS error (0 when they were not usable)
+    error_rms: float = 0.0
 
 
 #: the commissioning check's states in which the controller moves the arm
@@ -128,7 +131,7 @@ class ControllerCore:
         if not self.task.running:
             return zero(ControllerState.IDLE, "no task running (mfvs task start)")
         if features.status not in USABLE_FEATURE_STATUSES:
-            kind = ControllerState.STALE_INPUT if features.status is FeatureStatus.STALE else ControllerState.TAG_LOST
+            kind = ControllerState.STALE_INPUT if features.status is FeatureStatus.STALE else ControllerState.TARGET_LOST
             return zero(kind, f"features {features.status.value}: {features.detail}", reset=True)
         age = (now_ns - header.source_stamp_ns) * 1e-9
         if age > cfg.max_input_age_s:
@@ -144,18 +147,22 @@ class ControllerCore:
                         f"controller is configured for '{cfg.control.robot_convention.value}'")
 
         self.iteration += 1
-        if features.error_norm < cfg.convergence_error_norm:
-            return zero(ControllerState.CONVERGED)
+        rms = per_point_rms(features.error, features.point_weights())
+        if rms < cfg.convergence_error_rms:
+            return Step(ControllerState.CONVERGED, self.iteration, error_rms=rms)
         points, depths = np.array(features.points), np.array(features.depths)
         if cfg.latency_compensation and capture_state is not None and capture_state is not state:
             points, depths = self.features_now(points, depths, capture_state.q, state.q, camera_in_ee)
         inp = ServoInput(t_s=header.source_stamp_ns * 1e-9, points=points,
                          depths=depths, goal_points=np.array(features.goal_points),
                          goal_depths=np.array(features.goal_depths), q=np.array(state.q), camera_in_ee=camera_in_ee,
-                         dq=np.array(state.dq))
-        # the L̂ the law will invert, with the configured depth source
+                         dq=np.array(state.dq), ids=np.array(features.point_ids()),
+                         weights=np.array(features.point_weights()))
+        # the D·L̂ the law will invert, with the configured depth source
         L = ibvs.approximate_interaction_matrix(inp.points, inp.depths, inp.goal_points, inp.goal_depths,
                                                 cfg.control.depth)
+        if inp.row_weights is not None:
+            L = inp.row_weights[:, None] * L
         if np.linalg.cond(L) > cfg.max_condition_number:
             return zero(ControllerState.ILL_CONDITIONED, f"cond(L) = {np.linalg.cond(L):.3g}", reset=True)
         try:
@@ -169,7 +176,7 @@ class ControllerCore:
             return zero(ControllerState.ILL_CONDITIONED, "the law produced a non-finite output", reset=True)
         saturated = saturate(output, declared_limits(state, self.arm), self.joint_output, state,
                              cfg.control.robot_convention)
-        return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated)
+        return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated, error_rms=rms)
 
     def features_now(self, points: np.ndarray, depths: np.ndarray, q_capture, q_now, camera_in_ee: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:

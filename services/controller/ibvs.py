@@ -57,8 +57,8 @@ def adaptive_gain(e_inf: float, lambda0: float, lambda_inf: float, slope0: float
 
 class ErrorRate:
     """ė estimated from successive errors, smoothed by a first-order low-pass filter with time constant ``tau_s``
-    (0: the raw finite difference). Gaps longer than ``max_gap_s`` (or a reset, e.g. after the tag was lost)
-    restart it: the first sample after a restart gives ė = 0."""
+    (0: the raw finite difference). Gaps longer than ``max_gap_s``, a reset (e.g. after the target was lost), or
+    errors of other points than the last (their ids) restart it: the first sample after a restart gives ė = 0."""
 
     def __init__(self, tau_s: float = 0.05, max_gap_s: float = 0.2) -> None:
         self.tau_s = tau_s
@@ -68,12 +68,17 @@ class ErrorRate:
     def reset(self) -> None:
         self._last_e = None
         self._last_t = None
+        self._last_ids = None
         self.value = None
 
-    def update(self, e, t_s: float) -> np.ndarray:
+    def update(self, e, t_s: float, ids=None) -> np.ndarray:
         e = np.asarray(e, dtype=float)
-        if self._last_e is None or self._last_e.shape != e.shape or not (0 < t_s - self._last_t <= self.max_gap_s):
-            self._last_e, self._last_t = e.copy(), t_s
+        ids = None if ids is None else np.asarray(ids)
+        same_points = (self._last_ids is None and ids is None) or (
+            self._last_ids is not None and ids is not None and np.array_equal(self._last_ids, ids))
+        if (self._last_e is None or self._last_e.shape != e.shape or not same_points
+                or not (0 < t_s - self._last_t <= self.max_gap_s)):
+            self._last_e, self._last_t, self._last_ids = e.copy(), t_s, ids
             self.value = np.zeros_like(e)
             return self.value
         dt = t_s - self._last_t

@@ -60,6 +60,13 @@ class LawConfig(ConfigStruct):
 
 @dataclass
 class ServoInput:
+    """One frame's points against their goal (row i of each array is the same point: its id ``ids[i]``, its weight
+    ``weights[i]``), with the arm's configuration at the frame. The laws see the task weighted: the error and the
+    interaction matrix with each point's rows scaled by its weight, D·e and D·L̂ (Comport, Marchand and Chaumette,
+    "Statistically robust 2-D visual servoing", IEEE T-RO 22(2), 2006, eq. 12: ė = −λ(D̂L̂)⁺De), so that a point
+    fading in or out (weight between 0 and 1) changes the command gradually; with every weight 1 (a tag) it is
+    Sensors 2022's law exactly."""
+
     t_s: float
     points: np.ndarray
     depths: np.ndarray
@@ -72,10 +79,24 @@ class ServoInput:
     #: model joint velocities (rad/s) at the frame, as the arm measured them; None: not known (the PD laws then
     #: difference successive frames for ė whatever ``error_rate`` says)
     dq: Optional[np.ndarray] = None
+    #: each point's id (the goal's): a law's memory of the error follows the same points (None: 0..n-1)
+    ids: Optional[np.ndarray] = None
+    #: each point's weight in [0, 1] (None: all 1)
+    weights: Optional[np.ndarray] = None
+
+    @property
+    def row_weights(self) -> Optional[np.ndarray]:
+        """The weight of each row of e and L (each point's, twice), or None when every weight is 1."""
+        if self.weights is None or np.all(np.asarray(self.weights) == 1.0):
+            return None
+        return np.repeat(np.asarray(self.weights, dtype=float), 2)
 
     @property
     def error(self) -> np.ndarray:
-        return (np.asarray(self.points) - np.asarray(self.goal_points)).reshape(-1)
+        """D·e: the error e = s − s* stacked, each point's rows scaled by its weight."""
+        e = (np.asarray(self.points) - np.asarray(self.goal_points)).reshape(-1)
+        rows = self.row_weights
+        return e if rows is None else rows * e
 
 
 @dataclass
@@ -111,8 +132,11 @@ class Law:
 
     # ---- shared pieces
     def _L(self, inp: ServoInput) -> np.ndarray:
-        return ibvs.approximate_interaction_matrix(inp.points, inp.depths, inp.goal_points, inp.goal_depths,
-                                                   self.config.depth)
+        """D·L̂: the interaction matrix with the configured depth source, each point's rows scaled by its weight."""
+        L = ibvs.approximate_interaction_matrix(inp.points, inp.depths, inp.goal_points, inp.goal_depths,
+                                                self.config.depth)
+        rows = inp.row_weights
+        return L if rows is None else rows[:, None] * L
 
     def _error_rates(self, inp: ServoInput, L: np.ndarray, J_c: Optional[np.ndarray] = None
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -120,7 +144,7 @@ class Law:
         error due to the camera's own motion, L̂·J_c(q)·q̇, when the configuration asks for it and the input
         carries the arm's joint velocities; the second is what a moving target's estimate needs (eq. 19's ∂ê/∂t
         is the measured rate less the camera's part), so it is kept up to date either way."""
-        measured = self.rate.update(inp.error, inp.t_s)
+        measured = self.rate.update(inp.error, inp.t_s, inp.ids)
         if self.config.error_rate is not ErrorRateSource.CAMERA_MOTION or inp.dq is None:
             return measured, measured
         if J_c is None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from services.model.arm import ArmDescription
-from services.servo.figures import as_dicts, features_plot, pyplot, save, times
+from services.servo.figures import as_dicts, features_plot, pyplot, save, times, with_points
 
 
 # ------------------------------------------------------------------------------------------------ Muñoz 2018
@@ -137,7 +137,7 @@ def tracking_plots(runs: dict[str, list], out_dir: Path, *, target_start, target
         ee = np.array([kin.pose(np.asarray(r["q"]))[1] for r in records])
         colour = f"C{index}"
         ax.plot(ee[:, 0], ee[:, 1], "-", color=colour, lw=1.3, label=f"{label}: end effector")
-        tracked = [r for r in records if len(r["points"]) == 4]
+        tracked = with_points(records)
         if tracked:
             t_end = tracked[-1]["stamp_ns"] * 1e-9
             at = start + velocity * t_end

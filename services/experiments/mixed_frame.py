@@ -44,7 +44,7 @@ def _part_a_summary(rows: dict, trajectories: dict) -> dict:
     ee_failed = not ee["converged"]
     return {
         "ee_frame_failed": ee_failed, "ee_frame_status": ee["status"], "ee_frame_error_growth": ee["error_growth"],
-        "ee_frame_tag_left_image": ee["status"] in ("tag_lost", "diverged"),
+        "ee_frame_tag_left_image": ee["status"] in ("target_lost", "diverged"),
         "ee_frame_iterations_before_failure": ee["iterations"],
         "mixed_converged": mixed["converged"], "mixed_iterations": mixed["iterations"],
         "as_in_paper": ee_failed and mixed["converged"],

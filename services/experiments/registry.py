@@ -113,7 +113,7 @@ def finish_experiment(plan: PlannedExperiment, results: list[ServoResult], profi
         out = Path(out_dir)
         base = plan.base
         plots = comparison_plots(trajectories, out, title=experiment.title,
-                                 threshold=base.convergence.error_norm, zone_distance=experiment.zone_distance,
+                                 threshold=base.convergence.rms, zone_distance=experiment.zone_distance,
                                  goal=base.goal.features, camera=base.camera)
         if experiment.figures is not None:
             plots += experiment.figures(trajectories, rows, out, base)

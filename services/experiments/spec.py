@@ -10,6 +10,7 @@ import msgspec
 import numpy as np
 
 from services.controller.law import Gains
+from services.servo.figures import point_tracks, with_points
 from services.servo.result import ServoResult
 from services.servo.scenario import Scenario
 
@@ -55,14 +56,12 @@ def improvement_pct(better: Optional[int], baseline: Optional[int]) -> Optional[
 
 
 def straightness(records: list[dict]) -> Optional[float]:
-    """How far from straight the features' image trajectories are: the largest, over the four points, of the path
-    length over the distance from start to end (1.0: a straight line)."""
-    points = np.array([r["points"] for r in records if len(r["points"]) == 4])
-    if len(points) < 2:
-        return None
+    """How far from straight the features' image trajectories are: the largest, over the points (by id) measured
+    at two frames at least, of the path length over the distance from start to end (1.0: a straight line)."""
     ratios = []
-    for i in range(4):
-        path = points[:, i, :]
+    for path in point_tracks(with_points(records)).values():
+        if len(path) < 2:
+            continue
         length = float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
         chord = float(np.linalg.norm(path[-1] - path[0]))
         if chord > 1e-9:
@@ -96,7 +95,7 @@ def failure(result: ServoResult) -> Optional[str]:
         return "joint_limit"
     if "singularity" in met or result.min_manipulability < SINGULAR_MANIPULABILITY:
         return "singularity"
-    return result.status  # tag_lost, diverged, max_iterations, ...
+    return result.status  # target_lost, diverged, max_iterations, ...
 
 
 def run_row(spec: RunSpec, result: ServoResult, records: list[dict], scenario_arm: str) -> dict:

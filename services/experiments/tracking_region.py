@@ -12,6 +12,7 @@ from services.experiments.figures import tracking_plots
 from services.experiments.spec import Experiment, RunSpec, SINGULAR_MANIPULABILITY
 from services.model.arm import load_arm
 from services.robot_sim.scene import target_in_base
+from services.servo.figures import with_points
 from services.servo.result import ServoResult
 from services.servo.scenario import Scenario, stack_config
 
@@ -30,7 +31,7 @@ def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) 
     """How far the target travelled while it was tracked, why tracking ended, and how close the arm came to a
     singularity and to its joint limits."""
     speed = float(np.linalg.norm(scenario.target.velocity_mps))
-    seen = [r for r in records if len(r["points"]) == 4 and r["status"] in ("converging", "converged")]
+    seen = [r for r in with_points(records) if r["status"] in ("converging", "converged")]
     start_ns = records[0]["stamp_ns"] if records else 0
     tracked_s = (seen[-1]["stamp_ns"] - start_ns) * 1e-9 if seen else 0.0
     end_ns = records[-1]["stamp_ns"] if records else 0
@@ -47,7 +48,7 @@ def _tracking_run(scenario: Scenario, result: ServoResult, records: list[dict]) 
     elif seen and beyond_vision(seen[-1]["points"], scenario.camera.fx):
         failure = "vision_range"  # too small or too oblique to detect: where Nelson 1995's own runs ended too
     else:
-        failure = "tag_left_image" if result.status in ("tag_lost", "diverged") else result.status
+        failure = "tag_left_image" if result.status in ("target_lost", "diverged") else result.status
     w_primes = [r["notes"]["w_prime"] for r in records if "w_prime" in r.get("notes", {})]
     last_sides = _tag_sides_px(seen[-1]["points"], scenario.camera.fx) if seen else None
     return {"distance_m": round(speed * tracked_s, 3), "tracked_s": round(tracked_s, 2),

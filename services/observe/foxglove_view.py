@@ -115,13 +115,23 @@ def corner_annotations(features: m.Features, info: Optional[m.CameraInfo]) -> fm
     known), the corners' numbers, and the status with the error norm."""
     stamp = timestamp(features.header.stamp_ns)
     points, texts = [], []
-    if features.corners_px:
-        points.append(_polygon(features.corners_px, GREEN, stamp, 2.0))
-        for i, (x, y) in enumerate(features.corners_px):
+    if features.pixels and features.front_end is m.FrontEnd.TAG:
+        points.append(_polygon(features.pixels, GREEN, stamp, 2.0))
+        for i, (x, y) in enumerate(features.pixels):
             texts.append(fm.TextAnnotation(timestamp=stamp, position=fm.Point2(x=x + 6.0, y=y - 6.0), text=str(i),
                                            font_size=14.0, text_color=GREEN, background_color=TRANSLUCENT))
+    elif features.pixels:  # a keypoint target's inliers, and its taught region where seen
+        points.append(fm.PointsAnnotation(timestamp=stamp, type=fm.PointsAnnotationType.Points, outline_color=GREEN,
+                                          thickness=3.0, points=[fm.Point2(x=float(x), y=float(y))
+                                                                 for x, y in features.pixels]))
+        if features.keypoints is not None and features.keypoints.region_px:
+            points.append(_polygon(features.keypoints.region_px, GREEN, stamp, 2.0))
     if features.goal_points and info is not None:
-        points.append(_polygon(normalized_to_pixels(features.goal_points, info), MAGENTA, stamp, 1.5))
+        goal = normalized_to_pixels(features.goal_points, info)
+        points.append(_polygon(goal, MAGENTA, stamp, 1.5) if features.front_end is m.FrontEnd.TAG else
+                      fm.PointsAnnotation(timestamp=stamp, type=fm.PointsAnnotationType.Points,
+                                          outline_color=MAGENTA, thickness=3.0,
+                                          points=[fm.Point2(x=float(x), y=float(y)) for x, y in goal]))
     texts.append(fm.TextAnnotation(timestamp=stamp, position=fm.Point2(x=8.0, y=20.0), font_size=16.0,
                                    text=f"{features.status.value}  |e| {features.error_norm:.3g}", text_color=WHITE,
                                    background_color=TRANSLUCENT))
@@ -206,9 +216,9 @@ def camera_transform(info: m.CameraInfo) -> fm.FrameTransform:
 
 
 def tag_transform(features: m.Features) -> Optional[fm.FrameTransform]:
-    pose = features.tag_pose_in_camera
-    if pose is None:
+    if features.tag is None:
         return None
+    pose = features.tag.pose_in_camera
     return fm.FrameTransform(timestamp=timestamp(features.header.stamp_ns), parent_frame_id=CAMERA_FRAME,
                              child_frame_id=TAG_FRAME, translation=_vector(pose.xyz), rotation=_pose_quaternion(pose))
 

@@ -213,10 +213,10 @@ def camera_mount(info: m.CameraInfo) -> cdr.TFMessage:
 
 def tag_tf(features: m.Features) -> Optional[cdr.TFMessage]:
     """The tag in the camera frame, when vision sees it."""
-    if features.tag_pose_in_camera is None:
+    if features.tag is None:
         return None
     return cdr.TFMessage(transforms=(_pose_transform(CAMERA_FRAME, TAG_FRAME, features.header.stamp_ns,
-                                                     features.tag_pose_in_camera),))
+                                                     features.tag.pose_in_camera),))
 
 
 def robot_description(arm: ArmDescription) -> cdr.String:

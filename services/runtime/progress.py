@@ -14,7 +14,7 @@ DECAY_WINDOW = 20
 
 
 def iterations_left(errors: Sequence[float], threshold: float, iteration: int, max_iterations: int) -> Optional[int]:
-    """Iterations until ``errors`` (the error norm per iteration, newest last) falls below ``threshold``, from its
+    """Iterations until ``errors`` (the error per iteration, newest last) falls below ``threshold``, from its
     recent exponential decay rate (what the laws' error does); the iterations up to ``max_iterations`` when it does
     not decay; None before there is a rate to go by."""
     recent = [e for e in errors[-DECAY_WINDOW:] if e > 0 and math.isfinite(e)]
@@ -36,8 +36,8 @@ def shows(enabled: bool = True, stream=None) -> bool:
 
 
 class ProgressLine:
-    """``update(iteration, error_norm)`` rewrites one line; ``done()`` ends it. Silent unless ``stream`` is a
-    terminal and ``enabled``."""
+    """``update(iteration, error_rms)`` rewrites one line (the per-point RMS error, against the convergence
+    threshold); ``done()`` ends it. Silent unless ``stream`` is a terminal and ``enabled``."""
 
     def __init__(self, task: str, threshold: float, max_iterations: int, enabled: bool = True, stream=None) -> None:
         self.stream = stream if stream is not None else sys.stderr
@@ -47,8 +47,8 @@ class ProgressLine:
         self.start = time.monotonic()
         self._shown = False
 
-    def update(self, iteration: int, error_norm: float) -> None:
-        self.errors.append(error_norm)
+    def update(self, iteration: int, error_rms: float) -> None:
+        self.errors.append(error_rms)
         if not self.enabled:
             return
         elapsed = time.monotonic() - self.start
@@ -56,7 +56,7 @@ class ProgressLine:
         eta = ""
         if left is not None and iteration > 0:
             eta = f"  ETA {left * elapsed / iteration:4.0f} s"
-        line = f"{self.task}: iteration {iteration:5d}  ‖e‖ {error_norm:.2e}{eta}"
+        line = f"{self.task}: iteration {iteration:5d}  e_rms {error_rms:.2e}{eta}"
         self.stream.write("\r" + line.ljust(78)[:120])
         self.stream.flush()
         self._shown = True

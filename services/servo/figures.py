@@ -15,6 +15,7 @@ from typing import Iterable, Optional
 import numpy as np
 
 from services.model.arm import ArmDescription
+from services.servo.result import error_rms
 
 POINT_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple")
 
@@ -74,18 +75,46 @@ def image_border(camera) -> Optional[np.ndarray]:
     return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]])
 
 
+def record_ids(record: dict) -> list:
+    """The ids of an iteration's points, in their order: a keypoint target's as logged, a tag's corners 0-3."""
+    keypoints = record.get("keypoints")
+    return list(keypoints["ids"]) if keypoints else list(range(len(record["points"])))
+
+
+def with_points(records: list[dict]) -> list[dict]:
+    """The iterations at which the target was measured (any number of points)."""
+    return [r for r in records if len(r["points"]) > 0]
+
+
+def point_tracks(records: list[dict]) -> dict[int, np.ndarray]:
+    """Each point's image trajectory by id (k×2, the iterations at which it was measured), ids in first-seen order."""
+    tracks: dict[int, list] = {}
+    for r in records:
+        for i, p in zip(record_ids(r), r["points"]):
+            tracks.setdefault(int(i), []).append(p)
+    return {i: np.asarray(track, dtype=float) for i, track in tracks.items()}
+
+
+#: more points than this are drawn as thin grey tracks, without a legend entry each (a keypoint target's)
+MAX_NAMED_POINTS = 8
+
+
 def features_plot(ax, records: list[dict], goal: Optional[np.ndarray], camera=None, title: str = "") -> None:
-    with_points = [r for r in records if len(r["points"]) == 4]
     border = image_border(camera)
     if border is not None:
         ax.plot(border[:, 0], border[:, 1], "-", color="0.4", lw=1.0, label="image border")
-    if with_points:
-        pts = np.array([r["points"] for r in with_points])
-        for i in range(4):
-            colour = POINT_COLOURS[i]
-            ax.plot(pts[:, i, 0], pts[:, i, 1], "-", lw=1.2, color=colour, label=f"point {i}")
-            ax.plot(pts[0, i, 0], pts[0, i, 1], "o", color=colour, ms=6, zorder=4)
-            ax.plot(pts[-1, i, 0], pts[-1, i, 1], "s", mfc="none", mec=colour, ms=10, mew=1.6, zorder=5)
+    tracks = point_tracks(with_points(records))
+    few = len(tracks) <= MAX_NAMED_POINTS
+    for k, (i, track) in enumerate(tracks.items()):
+        colour = POINT_COLOURS[k % len(POINT_COLOURS)] if few else "0.45"
+        ax.plot(track[:, 0], track[:, 1], "-", lw=1.2 if few else 0.5, color=colour,
+                label=f"point {i}" if few else None)
+        ax.plot(track[0, 0], track[0, 1], "o", color=colour, ms=6 if few else 2, zorder=4)
+        ax.plot(track[-1, 0], track[-1, 1], "s", mfc="none", mec=colour, ms=10 if few else 3, mew=1.6 if few else 0.6,
+                zorder=5)
+    if tracks:
+        if not few:
+            ax.plot([], [], "-", color="0.45", lw=0.8, label=f"{len(tracks)} points")
         ax.plot([], [], "o", color="0.3", ms=6, label="start")
         ax.plot([], [], "s", mfc="none", mec="0.3", ms=9, mew=1.6, label="end")
     if goal is not None:
@@ -100,14 +129,14 @@ def features_plot(ax, records: list[dict], goal: Optional[np.ndarray], camera=No
 
 
 def servo_plots(records, out_dir: Path, *, law: str, arm: ArmDescription, goal=None, camera=None,
-                threshold: float = 5e-5, robot_limits: Optional[dict] = None) -> list[Path]:
-    """The figures of one run on ``arm``, written to ``out_dir``; none when the tag was never seen (nothing to
-    plot)."""
+                threshold: float = 2.5e-5, robot_limits: Optional[dict] = None) -> list[Path]:
+    """The figures of one run on ``arm``, written to ``out_dir``; none when the target was never seen (nothing to
+    plot). ``threshold``: the convergence threshold on the per-point RMS error."""
     plt = pyplot()
     records = as_dicts(records)
     out_dir = Path(out_dir)
     paths: list[Path] = []
-    seen = [r for r in records if len(r["points"]) == 4]
+    seen = with_points(records)
     if not seen:
         return paths
     goal = None if goal is None else np.asarray(goal, dtype=float)
@@ -117,22 +146,31 @@ def servo_plots(records, out_dir: Path, *, law: str, arm: ArmDescription, goal=N
     save(fig, out_dir / "features.png", paths)
 
     t, it = times(seen), np.array([r["iteration"] for r in seen])
-    errors = np.array([r["error"] for r in seen if len(r["error"]) == 8])
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(6.0, 6.0), sharex=True)
-    top.semilogy(t, [max(r["error_norm"], 1e-9) for r in seen], "-", lw=1.4, label="‖e‖")
+    top.semilogy(t, [max(error_rms(r), 1e-9) for r in seen], "-", lw=1.4, label="per-point RMS")
     top.axhline(threshold, color="tab:red", ls="--", lw=1, label=f"threshold {threshold:g}")
-    top.set_ylabel("‖e‖")
+    top.set_ylabel("error, RMS per point")
     top.grid(alpha=0.3, which="both")
     top.legend(fontsize=8)
     iteration_axis(top, t, it)
-    if len(errors) == len(seen):
-        for k in range(8):
-            bottom.plot(t, errors[:, k], lw=1.0, color=POINT_COLOURS[k // 2], ls="-" if k % 2 == 0 else "--",
-                        label=f"e{'xy'[k % 2]}{k // 2}")
+    if max(len(r["points"]) for r in seen) <= MAX_NAMED_POINTS // 2:  # each component of a tag's error
+        n = len(seen[0]["points"])
+        errors = np.array([r["error"] for r in seen if len(r["error"]) == 2 * n])
+        if len(errors) == len(seen):
+            for k in range(2 * n):
+                bottom.plot(t, errors[:, k], lw=1.0, color=POINT_COLOURS[k // 2], ls="-" if k % 2 == 0 else "--",
+                            label=f"e{'xy'[k % 2]}{k // 2}")
+        bottom.legend(fontsize=7, ncol=4)
+    else:  # many points: the largest point's error and the number of points
+        largest = [float(np.max(np.linalg.norm(np.reshape(r["error"], (-1, 2)), axis=1))) for r in seen]
+        bottom.plot(t, largest, lw=1.0, color="tab:purple", label="largest point's ‖eᵢ‖")
+        count = bottom.twinx()
+        count.plot(t, [len(r["points"]) for r in seen], lw=0.8, color="0.5", label="points")
+        count.set_ylabel("points")
+        bottom.legend(fontsize=7, loc="upper right")
     bottom.set_xlabel("time (s)")
     bottom.set_ylabel("error (normalized)")
     bottom.grid(alpha=0.3)
-    bottom.legend(fontsize=7, ncol=4)
     top.set_title(f"{law}: feature error", fontsize=10)
     save(fig, out_dir / "error.png", paths)
 
@@ -207,27 +245,28 @@ def servo_plots(records, out_dir: Path, *, law: str, arm: ArmDescription, goal=N
     return paths
 
 
-def comparison_plots(runs: dict[str, list], out_dir: Path, *, title: str, threshold: float = 5e-5,
+def comparison_plots(runs: dict[str, list], out_dir: Path, *, title: str, threshold: float = 2.5e-5,
                      zone_distance: bool = False, goal=None, camera=None) -> list[Path]:
-    """Figures comparing runs (label → trajectory records): the error norms by iteration and by time, each
-    run's features side by side, and with ``zone_distance`` the end effector's distance to the protection zone."""
+    """Figures comparing runs (label → trajectory records): the per-point RMS errors by iteration and by time
+    (``threshold``: the convergence threshold on it), each run's features side by side, and with ``zone_distance``
+    the end effector's distance to the protection zone."""
     plt = pyplot()
     out_dir = Path(out_dir)
     paths: list[Path] = []
-    runs = {label: [r for r in as_dicts(records) if len(r["points"]) == 4] for label, records in runs.items()}
+    runs = {label: with_points(as_dicts(records)) for label, records in runs.items()}
     runs = {label: records for label, records in runs.items() if records}
     if not runs:
         return paths
     fig, (by_iteration, by_time) = plt.subplots(1, 2, figsize=(11.0, 4.2), sharey=True)
     for label, records in runs.items():
-        norms = [max(r["error_norm"], 1e-9) for r in records]
+        norms = [max(error_rms(r), 1e-9) for r in records]
         by_iteration.semilogy([r["iteration"] for r in records], norms, lw=1.4, label=label)
         by_time.semilogy(times(records), norms, lw=1.4, label=label)
     for ax, xlabel in ((by_iteration, "iteration"), (by_time, "time (s)")):
         ax.axhline(threshold, color="tab:red", ls="--", lw=1)
         ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3, which="both")
-    by_iteration.set_ylabel("‖e‖")
+    by_iteration.set_ylabel("error, RMS per point")
     by_iteration.legend(fontsize=8)
     by_iteration.set_title(f"{title}: feature error", fontsize=10)
     save(fig, out_dir / "errors.png", paths)

@@ -16,7 +16,9 @@ def write_log(records: list[Iteration], path) -> Path:
     path = Path(path)
     with path.open("w") as f:
         for record in records:
-            f.write(json.dumps(json_safe(record.__dict__), allow_nan=False) + "\n")
+            fields_ = record.__dict__ if record.keypoints is not None else {
+                k: v for k, v in record.__dict__.items() if k != "keypoints"}
+            f.write(json.dumps(json_safe(fields_), allow_nan=False) + "\n")
     return path
 
 
@@ -32,6 +34,18 @@ def read_log(path) -> list[dict]:
                 record[name] = math.nan
         records.append(record)
     return records
+
+
+def error_rms(record) -> float:
+    """An iteration's per-point RMS error (what convergence is judged on), from its record (an :class:`Iteration` or
+    its logged dict): a keypoint target's, as its view gave it (``keypoints.error_rms``: its points are weighted);
+    else ‖e‖/√n over its n points, every weight 1 (a tag's: ‖e‖/2)."""
+    get = record.get if isinstance(record, dict) else lambda name, default=None: getattr(record, name, default)
+    keypoints = get("keypoints")
+    if keypoints:
+        return float(keypoints["error_rms"])
+    n = len(get("points") or ()) or 4
+    return float(get("error_norm")) / math.sqrt(n)
 
 
 @dataclass
@@ -64,6 +78,9 @@ class Iteration:
     zone_distance_m: Optional[float] = None
     #: safety's answer to the law's command for this frame, when it refused it: why (empty: approved, or no command)
     safety_refusal: str = ""
+    #: a keypoint target's figures at this frame (ids, weights, inliers, median error in px, per-point RMS error);
+    #: None for a tag, whose log lines then carry no such key
+    keypoints: Optional[dict] = None
 
 
 @dataclass

@@ -100,7 +100,7 @@ def _follow(scenario: Scenario, stack, watcher: Watcher, kin: ArmKinematics, sta
     """The controller's iterations as they come, each recorded (and given to ``progress``) until the task ends
     (:class:`~services.servo.termination.TerminationRule`), the robot stops, or the scenario's time is up; the
     records and how it ended."""
-    rule = TerminationRule(scenario.tag_lost_iterations, scenario.convergence.max_iterations)
+    rule = TerminationRule(scenario.target_lost_iterations, scenario.convergence.max_iterations)
     # lockstep: safety answers each frame before the robot's next tick, so the answer always comes
     answer_timeout_s = 2.0 if scenario.clock is ClockMode.LOCKSTEP else 0.3
     records: list[Iteration] = []
@@ -176,7 +176,7 @@ def _write(result: ServoResult, records: list[Iteration], scenario: Scenario, ar
     result.trajectory_log = str(write_log(records, out / "trajectory.jsonl"))
     result.plots = [] if not plots else [str(p) for p in servo_plots(
         records, out, law=scenario.law, arm=arm, goal=scenario.goal.features, camera=scenario.camera,
-        threshold=scenario.convergence.error_norm, robot_limits=result.robot_limits)]
+        threshold=scenario.convergence.rms, robot_limits=result.robot_limits)]
     (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
 
 
@@ -195,13 +195,13 @@ def _why(result: ServoResult, converging: list[Iteration]) -> str:
     if result.status == "converged":
         return "" + said
     if not converging:
-        return ("the tag was never seen: it is outside the camera's initial view, or too small or far to detect "
+        return ("the target was never seen: it is outside the camera's initial view, or too small or far to detect "
                 "(check target.pose_in_camera and the camera)" + said)
     grew = f"‖e‖ from {result.initial_error_norm:.3g} up to {result.max_error_norm:.3g}"
     if result.status == "diverged":
-        return f"the error grew ({grew}) and the tag left the image" + said
-    if result.status == "tag_lost":
-        return f"the tag left the image after {result.iterations} iterations ({grew})" + said
+        return f"the error grew ({grew}) and the target was lost" + said
+    if result.status == "target_lost":
+        return f"the target was lost after {result.iterations} iterations ({grew})" + said
     if result.status == "refused":
         return f"safety refused the commands: {result.last_refusal}" + said
     if result.status == "max_iterations":

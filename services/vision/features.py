@@ -13,6 +13,7 @@ import numpy as np
 
 from protocol.messages import FeatureStatus
 from services.model import frames
+from services.model.point_features import feature_error
 from services.model import tag as tags
 from services.runtime.config import ConfigStruct
 
@@ -286,12 +287,6 @@ def goal_from_camera_in_tag(T_tag_camera: np.ndarray, size_m: float) -> tuple[np
     return project(corners_in_camera(np.linalg.inv(T_tag_camera), size_m))
 
 
-def feature_error(points: np.ndarray, goal: np.ndarray) -> tuple[np.ndarray, float]:
-    """e = s − s* stacked (x0, y0, x1, y1, ...) and its Euclidean norm."""
-    e = (np.asarray(points, dtype=float) - np.asarray(goal, dtype=float)).reshape(-1)
-    return e, float(np.linalg.norm(e))
-
-
 def touches_border(corners_px: np.ndarray, width: int, height: int, margin_px: float) -> bool:
     c = np.asarray(corners_px)
     return bool(np.any(c[:, 0] < margin_px) or np.any(c[:, 1] < margin_px)
@@ -324,12 +319,12 @@ def measure(gray: np.ndarray, detector: TagDetector, tag_id: int, size_m: float,
         return Measurement(FeatureStatus.INVALID_IMAGE, "all-black image", rejected=True)
     detection = detector.find(gray, tag_id)
     if detection is None:
-        return Measurement(FeatureStatus.TAG_LOST, f"tag {tag_id} not in view")
+        return Measurement(FeatureStatus.TARGET_LOST, f"tag {tag_id} not in view")
     points = normalize(detection.corners_px, K, distortion)
     R, t = tag_pose(detection.corners_px, K, distortion, size_m)
     depths = corners_in_camera(frames.homogeneous(R, t), size_m)[:, 2]
     if np.any(depths <= 0):
-        return Measurement(FeatureStatus.TAG_LOST, "implausible tag pose: a corner behind the camera", rejected=True)
+        return Measurement(FeatureStatus.TARGET_LOST, "implausible tag pose: a corner behind the camera", rejected=True)
     error, norm = feature_error(points, goal_points)
     height, width = gray.shape[:2]
     partial = touches_border(detection.corners_px, width, height, border_margin_px)

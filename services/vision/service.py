@@ -28,14 +28,14 @@ from protocol.messages import (
     CameraInfo,
     Features,
     Image,
-    Pose,
+    KeypointView,
     ProtocolError,
+    TagView,
     VisionGoal,
     VisionGoalReply,
     decode,
     encode,
 )
-from services.model import frames
 from services.model import tag as tags
 from services.runtime.clock import SimulatedClock
 from services.runtime.config import ConfigStruct
@@ -277,15 +277,15 @@ class VisionService(Service):
         for name in outcome.counts:
             self.counters.inc(name)
         header = self.header("features", source=image.header, recv_ns=recv_ns)
-        answer = dict(header=header, status=outcome.status, tag_id=self.config.tag.id, detail=outcome.detail,
-                      goal_points=[tuple(p) for p in goal.points], goal_depths=goal.depths.tolist())
-        measurement = outcome.measurement
-        if measurement is None or measurement.points is None:
-            return Features(**answer)
-        R, t = measurement.pose
+        answer = dict(header=header, status=outcome.status, front_end=self.core.front_end.kind, detail=outcome.detail)
+        seen = outcome.seen
+        if seen is None or seen.points is None:
+            return Features(**answer, goal_points=[tuple(p) for p in goal.points], goal_depths=goal.depths.tolist())
+        view = seen.view
         return Features(
-            **answer, points=[tuple(p) for p in measurement.points], depths=measurement.depths.tolist(),
-            error=measurement.error.tolist(), error_norm=measurement.error_norm,
-            tag_pose_in_camera=Pose(xyz=tuple(t), quat_wxyz=tuple(frames.matrix_to_quat_wxyz(R))),
-            corners_px=[tuple(c) for c in measurement.corners_px],
+            **answer, points=[tuple(p) for p in seen.points], depths=seen.depths.tolist(), ids=seen.ids.tolist(),
+            weights=seen.weights.tolist(), pixels=[tuple(c) for c in seen.pixels],
+            goal_points=[tuple(p) for p in outcome.goal_points], goal_depths=outcome.goal_depths.tolist(),
+            error=outcome.error.tolist(), error_norm=outcome.error_norm, error_rms=outcome.error_rms,
+            tag=view if isinstance(view, TagView) else None, keypoints=view if isinstance(view, KeypointView) else None,
         )

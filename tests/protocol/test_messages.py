@@ -21,12 +21,13 @@ SAMPLES = [
     m.Image(header=header(), width=4, height=2, encoding=m.ImageEncoding.RGB8, data=bytes(range(24))),
     m.CameraInfo(header=header(), width=640, height=480, fx=615.0, fy=615.0, cx=320.0, cy=240.0,
                  camera_in_ee=m.Pose(xyz=(0.0, 0.05, 0.1), quat_wxyz=(0.0, 0.0, 0.0, 1.0))),
-    m.Features(header=header(), status=m.FeatureStatus.OK, tag_id=0,
-               points=[(0.1, 0.1), (-0.1, 0.1), (-0.1, -0.1), (0.1, -0.1)], depths=[0.5] * 4,
-               goal_points=[(0.2, 0.2), (-0.2, 0.2), (-0.2, -0.2), (0.2, -0.2)], goal_depths=[0.3] * 4,
-               error=[-0.1, -0.1, 0.1, -0.1, 0.1, 0.1, -0.1, 0.1], error_norm=0.2828,
-               tag_pose_in_camera=m.Pose(xyz=(0.0, 0.0, 0.5), quat_wxyz=(0.0, 1.0, 0.0, 0.0))),
-    m.Features(header=header(), status=m.FeatureStatus.TAG_LOST),
+    m.Features(header=header(), status=m.FeatureStatus.OK,
+               points=[(0.1, 0.1), (-0.1, 0.1), (-0.1, -0.1), (0.1, -0.1)], depths=[0.5] * 4, ids=[0, 1, 2, 3],
+               weights=[1.0] * 4, goal_points=[(0.2, 0.2), (-0.2, 0.2), (-0.2, -0.2), (0.2, -0.2)],
+               goal_depths=[0.3] * 4, error=[-0.1, -0.1, 0.1, -0.1, 0.1, 0.1, -0.1, 0.1], error_norm=0.2828,
+               error_rms=0.1414,
+               tag=m.TagView(id=0, pose_in_camera=m.Pose(xyz=(0.0, 0.0, 0.5), quat_wxyz=(0.0, 1.0, 0.0, 0.0)))),
+    m.Features(header=header(), status=m.FeatureStatus.TARGET_LOST),
     m.Twist(header=header(), frame=Frame.MIXED, angular=AngularConvention.SEED000, linear=(0.01, -0.02, 0.03),
             rotational=(0.1, 0.2, -0.3)),
     m.JointVelocity(header=header(), velocities=j7()),
@@ -48,6 +49,15 @@ SAMPLES = [
     m.EStop(header=header(), operator="caregiver", reason="test"),
     m.ServiceHealth(header=header(), service="vision", pid=42, healthy=True, state="running", uptime_s=3.5,
                     rates_hz={"image": 30.0}, errors={"rejected.image": 1}),
+    m.Features(header=header(), status=m.FeatureStatus.OK, front_end=m.FrontEnd.KEYPOINTS,
+               points=[(0.1, 0.1), (-0.1, 0.1), (0.0, -0.1)], depths=[0.5, 0.52, 0.49], ids=[3, 17, 250],
+               weights=[1.0, 0.4, 1.0], pixels=[(381.5, 301.5), (258.5, 301.5), (320.0, 178.5)],
+               goal_points=[(0.1, 0.1), (-0.1, 0.1), (0.0, -0.1)], goal_depths=[0.5, 0.52, 0.49],
+               error=[0.0] * 6,
+               keypoints=m.KeypointView(goal="cup", goal_digest="0123456789abcdef", detector="sift", search="detect",
+                                        candidates=40, inliers=3, median_error_px=0.2, max_error_px=0.4,
+                                        model="epipolar", region_px=[(200.0, 150.0), (440.0, 150.0),
+                                                                     (440.0, 330.0), (200.0, 330.0)])),
 ]
 
 
@@ -231,3 +241,19 @@ def test_a_nan_at_any_float_of_a_message_is_refused_and_named(message):
             m.decode(msgpack.packb(plain), type(message))
         field = err.value.field  # (msgspec names a map's value by its map: ``rates_hz[...]``)
         assert field == path or field.endswith("[...]") and path.startswith(field[:-5] + "."), err.value
+
+
+def test_features_points_carry_one_unique_id_and_weight_each_or_none():
+    base = dict(header=header(), status=m.FeatureStatus.OK, points=[(0.1, 0.1), (0.2, 0.1)], depths=[0.5, 0.5],
+                goal_points=[(0.1, 0.1), (0.2, 0.1)], goal_depths=[0.5, 0.5], error=[0.0] * 4)
+    plain = m.Features(**base)
+    assert plain.point_ids() == [0, 1] and plain.point_weights() == [1.0, 1.0]
+    with pytest.raises(ValueError, match="unique"):
+        m.Features(**base, ids=[4, 4])
+    with pytest.raises(ValueError, match="ids has 3 entries"):
+        m.Features(**base, ids=[1, 2, 3])
+    with pytest.raises(ValueError, match="weight above 0"):
+        m.Features(**base, weights=[0.0, 0.0])
+    with pytest.raises(m.ProtocolError, match="weights"):
+        m.decode(_mutated(m.Features(**base, weights=[1.0, 0.5]), lambda d: d["weights"].__setitem__(0, 1.5)),
+                 m.Features)

@@ -157,18 +157,30 @@ function draw() {
   });
   const overlay = overlayFor(header.capture_ns);
   if (overlay) {
-    polygon(ctx, overlay.goal, GOAL, 2, true);
-    polygon(ctx, overlay.corners, GREEN, 2.5, false);
+    const few = overlay.points.length <= 8;  // a tag's corners: numbered; a keypoint target's inliers: dots
+    if (few) {
+      polygon(ctx, overlay.goal, GOAL, 2, true);
+    } else {
+      ctx.strokeStyle = GOAL; ctx.lineWidth = 1;
+      overlay.goal.forEach(([x, y]) => {
+        ctx.beginPath(); ctx.moveTo(x - 3, y - 3); ctx.lineTo(x + 3, y + 3);
+        ctx.moveTo(x - 3, y + 3); ctx.lineTo(x + 3, y - 3); ctx.stroke();
+      });
+    }
+    polygon(ctx, overlay.outline, GREEN, 2.5, false);
     ctx.font = "16px 'DejaVu Sans', sans-serif";
-    overlay.corners.forEach(([x, y], i) => {
-      ctx.fillStyle = CORNER_COLOURS[i % CORNER_COLOURS.length];
-      ctx.beginPath(); ctx.arc(x, y, 4, 0, 2 * Math.PI); ctx.fill();
-      ctx.fillText(String(i), x + 6, y - 6);
+    overlay.points.forEach(([x, y], i) => {
+      ctx.fillStyle = few ? CORNER_COLOURS[i % CORNER_COLOURS.length] : GREEN;
+      ctx.beginPath(); ctx.arc(x, y, few ? 4 : 2, 0, 2 * Math.PI); ctx.fill();
+      if (few) ctx.fillText(String(i), x + 6, y - 6);
     });
+    const inliers = overlay.inliers === null ? "" : `  ${overlay.inliers} inliers`;
+    const lost = overlay.status === "target_lost" && overlay.detail ? `: ${overlay.detail}` : "";
+    const text = `${overlay.status}${lost}  ‖e‖ ${overlay.error_norm.toExponential(2)}${inliers}`;
     ctx.fillStyle = "rgba(0,0,0,0.6)";
-    ctx.fillRect(4, 4, 250, 26);
+    ctx.fillRect(4, 4, Math.max(250, ctx.measureText(text).width + 14), 26);
     ctx.fillStyle = "#fff";
-    ctx.fillText(`${overlay.status}  ‖e‖ ${overlay.error_norm.toExponential(2)}`, 10, 23);
+    ctx.fillText(text, 10, 23);
   }
   const fps = frameRate(wallNowMs());
   const delays = stats.delaysMs.slice(-30);

@@ -56,7 +56,7 @@ def test_vision_measures_the_tag_in_what_the_camera_service_plays(router, footag
     seen = [f for f in features.snapshot() if f.status is m.FeatureStatus.OK]
     assert {f.header.source_stamp_ns for f in seen} <= set(stamps)
     for f in seen:  # each measured pose is one of the footage's (which frame is which is not known here)
-        t = np.array(f.tag_pose_in_camera.xyz)
+        t = np.array(f.tag.pose_in_camera.xyz)
         assert min(np.linalg.norm(t - truth[:3, 3]) / np.linalg.norm(truth[:3, 3])
                    for truth in footage.truths) < 0.01
 

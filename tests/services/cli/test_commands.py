@@ -155,8 +155,8 @@ def test_experiments_send_their_iterations_to_the_command_only_where_a_progress_
 
     from services.cli import commands as cli
 
-    scenario = SimpleNamespace(convergence=SimpleNamespace(error_norm=5e-5, max_iterations=100))
-    record = SimpleNamespace(iteration=3, error_norm=1e-2)
+    scenario = SimpleNamespace(convergence=SimpleNamespace(rms=2.5e-5, max_iterations=100))
+    record = SimpleNamespace(iteration=3, error_norm=1e-2, points=[(0.0, 0.0)] * 4, keypoints=None)
     # not a terminal (a pipe, a log file, CI), or --json: the runs send nothing an iteration
     assert cli._experiment_progress("table3", quiet=False).on_iteration is None
     terminal = _Terminal()

@@ -126,10 +126,11 @@ def features(t_s, shift_px=0.0, status=m.FeatureStatus.OK):
     corners = [(300.0 + shift_px, 220.0), (340.0 + shift_px, 220.0), (340.0 + shift_px, 260.0), (300.0 + shift_px, 260.0)]
     usable = status in m.USABLE_FEATURE_STATUSES
     return m.Features(header=header(t_s), status=status, points=GOAL if usable else [],
-                      depths=[0.3] * 4 if usable else [], goal_points=GOAL if usable else [],
+                      depths=[0.3] * 4 if usable else [], ids=[0, 1, 2, 3] if usable else [],
+                      weights=[1.0] * 4 if usable else [], goal_points=GOAL if usable else [],
                       goal_depths=[0.3] * 4 if usable else [], error=[0.01 * t_s] * 8 if usable else [],
                       error_norm=0.01 * t_s * math.sqrt(8) if usable else 0.0,
-                      corners_px=corners if usable else [])
+                      pixels=corners if usable else [])
 
 
 SEVEN, SIX = load_arm("j2s7s300"), load_arm("j2n6s300")
@@ -151,15 +152,15 @@ def test_the_overlay_puts_the_goal_where_the_lens_does_and_keeps_each_corners_re
     model.on_camera_info(INFO)
     overlay = model.on_features(features(1.1, shift_px=2.0), now=0.0)
     np.testing.assert_allclose(overlay["goal"], [[260, 180], [380, 180], [380, 300], [260, 300]])
-    assert overlay["corners"][0] == [302.0, 220.0] and overlay["status"] == "ok"
+    assert overlay["points"][0] == [302.0, 220.0] and overlay["status"] == "ok"
     for i in range(2, 30):
         model.on_features(features(1.0 + 0.1 * i, shift_px=2.0 * i), now=0.0)
     paths = model.paths()
     assert len(paths) == 4 and len(paths[0]) == 11  # the last second, at 10 frames a second
     assert paths[0][-1] == [358.0, 220.0] and paths[0][0] == [338.0, 220.0]
-    model.on_features(features(4.0, status=m.FeatureStatus.TAG_LOST), now=0.0)  # no corners: the path ages
+    model.on_features(features(4.0, status=m.FeatureStatus.TARGET_LOST), now=0.0)  # no corners: the path ages
     assert len(model.paths()[0]) == 10
-    model.on_features(features(5.0, status=m.FeatureStatus.TAG_LOST), now=0.0)
+    model.on_features(features(5.0, status=m.FeatureStatus.TARGET_LOST), now=0.0)
     assert model.paths() == []
     error = model.snapshot(0.0)["error"]
     assert error["t"][-1] == 0.0 and error["t"][0] < 0 and error["v"][-1] == pytest.approx(0.039 * math.sqrt(8))  # the last usable frame

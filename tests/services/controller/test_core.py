@@ -63,8 +63,8 @@ def test_usable_features_give_a_converging_output():
     assert status.iteration == 1 and status.gain > 0 and status.camera_twist is not None
 
 
-@pytest.mark.parametrize("kind, expected", [(m.FeatureStatus.TAG_LOST, m.ControllerState.TAG_LOST),
-                                            (m.FeatureStatus.INVALID_IMAGE, m.ControllerState.TAG_LOST),
+@pytest.mark.parametrize("kind, expected", [(m.FeatureStatus.TARGET_LOST, m.ControllerState.TARGET_LOST),
+                                            (m.FeatureStatus.INVALID_IMAGE, m.ControllerState.TARGET_LOST),
                                             (m.FeatureStatus.STALE, m.ControllerState.STALE_INPUT)])
 def test_lost_or_stale_features_give_zero_output_with_the_reason(kind, expected):
     status, output = controller().compute(features(status=kind))

@@ -262,3 +262,55 @@ def test_target_motion_term_reduces_the_tracking_lag():
         steps = loop.run(150)
         errors[compensate] = np.mean([s.error_norm for s in steps[100:]])
     assert errors[True] < 0.5 * errors[False]
+
+
+def many_points_input(q, rng, n=12):
+    """Features of n points of a plane ~0.5 m ahead at configuration q, their goal the same points at 0.3 m."""
+    P = np.column_stack([rng.uniform(-0.1, 0.1, n), rng.uniform(-0.1, 0.1, n), rng.uniform(0.45, 0.55, n)])
+    goal = P * np.array([1.0, 1.0, 0.6]) + np.array([0.01, -0.01, 0.0])
+    return ServoInput(t_s=1.0, points=project(P), depths=P[:, 2], goal_points=project(goal),
+                      goal_depths=goal[:, 2], q=q, camera_in_ee=CAMERA_IN_EE, ids=np.arange(100, 100 + n))
+
+
+@pytest.mark.parametrize("name", ["adaptive-pd-mixed", "adaptive-pd-joint", "p-joint"])
+def test_weights_of_one_are_the_unweighted_law_to_the_bit(name, rng):
+    q = ARM.home.copy()
+    inp = many_points_input(q, rng)
+    plain = make_law(name, LawConfig(), ArmKinematics(ARM)).step(inp)
+    weighted = make_law(name, LawConfig(), ArmKinematics(ARM)).step(
+        ServoInput(**{**inp.__dict__, "weights": np.ones(len(inp.points))}))
+    for a, b in ((plain.twist, weighted.twist), (plain.joint_velocities, weighted.joint_velocities)):
+        assert (a is None and b is None) or np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["adaptive-pd-mixed", "adaptive-pd-joint"])
+def test_a_point_fading_out_changes_the_command_gradually_to_the_law_without_it(name, rng):
+    """Weighted IBVS (D·L̂, D·e): a point's weight going from 1 to 0 moves the command continuously from the law with
+    it to the law without it, so that a point leaving the set makes no jump."""
+    q = ARM.home.copy()
+    inp = many_points_input(q, rng)
+    n = len(inp.points)
+
+    def command(weight_of_last: float, keep_last: bool = True) -> np.ndarray:
+        rows = slice(None) if keep_last else slice(0, n - 1)
+        weights = np.ones(n)
+        weights[-1] = weight_of_last
+        given = ServoInput(t_s=1.0, points=inp.points[rows], depths=inp.depths[rows], goal_points=inp.goal_points[rows],
+                           goal_depths=inp.goal_depths[rows], q=q, camera_in_ee=CAMERA_IN_EE, ids=inp.ids[rows],
+                           weights=weights[rows])
+        out = make_law(name, LawConfig(), ArmKinematics(ARM)).step(given)
+        return out.twist if out.twist is not None else out.joint_velocities
+
+    without = command(1.0, keep_last=False)
+    fade = [command(w) for w in np.linspace(1.0, 0.0, 11)]
+    assert np.allclose(fade[-1], without, atol=1e-12)
+    steps = [np.linalg.norm(b - a) for a, b in zip(fade, fade[1:])]
+    assert max(steps) < 0.25 * np.linalg.norm(fade[0] - without) + 1e-12  # no step takes a large share at once
+
+
+def test_the_error_rate_restarts_when_the_points_change():
+    rate = ibvs.ErrorRate(tau_s=0.0)
+    rate.update(np.zeros(4), 0.0, ids=[1, 2])
+    assert np.allclose(rate.update(np.ones(4), 0.1, ids=[1, 2]), 10.0)
+    # the same number of values, but other points: a difference between them would mean nothing
+    assert np.allclose(rate.update(np.full(4, 5.0), 0.2, ids=[1, 3]), 0.0)

@@ -108,7 +108,7 @@ def test_part_a_the_end_effector_twist_fails_where_the_mixed_one_converges(part_
     summary = output["summary"]
     assert summary["as_in_paper"] and summary["ee_frame_tag_left_image"] and summary["ee_frame_error_growth"] > 1.0
     ee = output["runs"][0]
-    assert ee["failure"] in ("tag_lost", "diverged") and "tag" in ee["detail"]
+    assert ee["failure"] in ("target_lost", "diverged") and "target was lost" in ee["detail"]
 
 
 def test_part_d_the_joint_space_realisation_converges_and_is_reported_beside_the_mixed_twist():
@@ -186,7 +186,7 @@ def test_a_start_where_the_tag_is_never_seen_reports_no_error_and_says_why(tmp_p
     """final_error_norm is null, not 0.0; the detail names the cause; no empty figures are written."""
     scenario = tmp_path / "unseen.yaml"
     scenario.write_text("target: {pose_in_camera: {xyz: [2.0, 0.0, 0.5], rpy_deg: [180, 0, 0]}}\n"
-                        "convergence: {max_iterations: 30}\ntag_lost_iterations: 5\n")
+                        "convergence: {max_iterations: 30}\ntarget_lost_iterations: 5\n")
     output = run_experiment("part-d", scenario, tmp_path / "out")
     for row in output["runs"]:
         assert row["final_error_norm"] is None and not row["converged"]

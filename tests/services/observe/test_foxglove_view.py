@@ -27,10 +27,11 @@ HEADER = m.Header(stamp_ns=2_500_000_000, source_stamp_ns=2_500_000_000)
 def features(status=m.FeatureStatus.OK):
     points = [(x + 0.01, y) for x, y in GOAL]
     error = [c for (x, y), (gx, gy) in zip(points, GOAL) for c in (x - gx, y - gy)]
-    return m.Features(header=HEADER, status=status, points=points, depths=[0.3] * 4, goal_points=GOAL,
+    return m.Features(header=HEADER, status=status, points=points, depths=[0.3] * 4, ids=[0, 1, 2, 3],
+                      weights=[1.0] * 4, goal_points=GOAL,
                       goal_depths=[0.3] * 4, error=error, error_norm=float(np.linalg.norm(error)),
-                      corners_px=[(250.0, 170.0), (390.0, 170.0), (390.0, 310.0), (250.0, 310.0)],
-                      tag_pose_in_camera=m.Pose(xyz=(0.0, 0.0, 0.3)))
+                      pixels=[(250.0, 170.0), (390.0, 170.0), (390.0, 310.0), (250.0, 310.0)],
+                      tag=m.TagView(id=0, pose_in_camera=m.Pose(xyz=(0.0, 0.0, 0.3))))
 
 
 def robot_state(q=ARM.home, faults=()):
@@ -65,7 +66,7 @@ def test_the_camera_with_the_detected_corners_and_the_goal_where_the_lens_puts_i
     schema, _, annotations = out["/view/camera/annotations"][0]
     assert schema == "foxglove.ImageAnnotations"
     detected, goal = annotations.points
-    assert [(p.x, p.y) for p in detected.points] == features().corners_px
+    assert [(p.x, p.y) for p in detected.points] == features().pixels
     # (x, y) normalized → (fx x + cx, fy y + cy) for this distortion-free camera
     assert [(round(p.x, 6), round(p.y, 6)) for p in goal.points] == [(260.0, 179.0), (380.0, 179.0),
                                                                      (380.0, 301.0), (260.0, 301.0)]
@@ -126,9 +127,9 @@ def test_series_are_plottable_json_and_statuses_are_logged_when_they_change(tmp_
 
 
 def test_a_missing_figure_is_null_in_a_series(tmp_path):
-    lost = m.Features(header=HEADER, status=m.FeatureStatus.TAG_LOST)
+    lost = m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST)
     command = m.RobotCommand(header=HEADER, mode=m.CommandMode.STOP, reason="held")
     out = shown(tmp_path, [(KEYS.features, lost), (KEYS.robot_command, command)])
-    assert out["/view/features"][0][2]["status"] == "tag_lost"
+    assert out["/view/features"][0][2]["status"] == "target_lost"
     assert out["/view/command"][0][2]["mode"] == "stop"
     assert json_safe({"a": float("nan"), "b": [1.0, float("inf")]}) == {"a": None, "b": [1.0, None]}

@@ -30,7 +30,7 @@ def frames(session, stop: threading.Event) -> None:
         header = m.Header(seq=k, stamp_ns=1_000_000_000 + k * 50_000_000)
         image_pub.put(m.encode(m.Image(header=header, width=64, height=48, encoding=m.ImageEncoding.MONO8,
                                        data=np.full(64 * 48, 100, np.uint8).tobytes())))
-        features_pub.put(m.encode(m.Features(header=header, status=m.FeatureStatus.TAG_LOST)))
+        features_pub.put(m.encode(m.Features(header=header, status=m.FeatureStatus.TARGET_LOST)))
         k += 1
 
 
@@ -73,7 +73,7 @@ def test_a_websocket_client_gets_the_camera_and_the_error_with_their_schemas(rou
     assert channels["/view/camera/image"]["encoding"] == "protobuf"
     assert channels["/view/features"]["schemaName"] == "mfvs.FeatureError"
     assert len(received["/view/camera/image"]) >= 3
-    assert json.loads(received["/view/features"][0])["status"] == "tag_lost"
+    assert json.loads(received["/view/features"][0])["status"] == "target_lost"
 
 
 def test_the_layout_shows_only_channels_the_viewer_has():

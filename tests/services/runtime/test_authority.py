@@ -223,7 +223,7 @@ def test_other_traffic_flows_for_every_service(deployment):
     got = Recorder(controller, KEYS.features, m.Features)
     token = vision.liveliness().declare_token(KEYS.liveliness("vision"))
     time.sleep(0.3)
-    vision.put(KEYS.features, m.encode(m.Features(header=m.Header(), status=m.FeatureStatus.TAG_LOST)))
+    vision.put(KEYS.features, m.encode(m.Features(header=m.Header(), status=m.FeatureStatus.TARGET_LOST)))
     assert wait_for(lambda: len(got) == 1, timeout=5)
     alive = [str(r.ok.key_expr) for r in controller.liveliness().get(KEYS.liveliness_all)]
     assert alive == [KEYS.liveliness("vision")]

@@ -68,7 +68,7 @@ def test_through_a_webcam_like_camera_the_law_converges_to_its_noise_floor_and_r
 def test_ee_frame_law_fails_on_the_same_start():
     result = run(with_law(TABLE2, "ee-frame"))
     assert not result.converged
-    assert result.status in ("diverged", "tag_lost")
+    assert result.status in ("diverged", "target_lost")
 
 
 @pytest.mark.parametrize("law", ["p-joint", "adaptive-p-joint", "adaptive-pd-joint", "adaptive-pd-mixed",
@@ -166,7 +166,7 @@ def test_the_log_is_strict_json_and_reads_back_its_missing_measurements_as_nan(t
     read, and a zone distance that was None stays None."""
     blank = dict(points=[], error=[], command=[], command_kind="", q=[], gain=1.0, saturated=False, camera_twist=None,
                  ee_speed_mps=0.0)
-    records = [Iteration(iteration=1, t_s=0.1, stamp_ns=100, status="tag_lost", error_norm=math.nan,
+    records = [Iteration(iteration=1, t_s=0.1, stamp_ns=100, status="target_lost", error_norm=math.nan,
                          manipulability=math.nan, **blank),
                Iteration(iteration=2, t_s=0.2, stamp_ns=200, status="converging", error_norm=0.5,
                          manipulability=0.03, zone_distance_m=0.2, notes={"w": 0.1}, **blank)]

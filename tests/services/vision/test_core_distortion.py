@@ -31,7 +31,7 @@ def measured(tmp_path_factory):
         for name, camera_info in (("calibrated", info), ("ideal", ideal_lens)):
             outcome = VisionCore(VisionConfig()).process(image, camera_info, stamp)
             assert outcome.status is m.FeatureStatus.OK, (name, i, outcome.detail)
-            _, t = outcome.measurement.pose
+            t = np.array(outcome.seen.view.pose_in_camera.xyz)
             errors[name].append(np.linalg.norm(t - truth[:3, 3]) / distance)
     return {name: np.array(values) for name, values in errors.items()}
 

@@ -64,13 +64,13 @@ def test_corners_depth_and_pose_from_rendered_frames(pose):
     service = vision_for(cfg)
     features = service.process(image_message(image), time.time_ns())
     assert features.status is m.FeatureStatus.OK, features.detail
-    corners = np.array(features.corners_px)
+    corners = np.array(features.pixels)
     assert np.linalg.norm(corners - expected_px, axis=1).max() < 0.5
     true_depths = F.corners_in_camera(T_ct, cfg.target.size_m)[:, 2]
     assert np.allclose(features.depths, true_depths, rtol=0.01)
     true_points = F.project(F.corners_in_camera(T_ct, cfg.target.size_m))[0]
     assert np.abs(np.array(features.points) - true_points).max() < 1.0 / 615.0  # half a pixel, normalized
-    assert np.allclose(features.tag_pose_in_camera.xyz, T_ct[:3, 3], rtol=0.01, atol=2e-3)
+    assert np.allclose(features.tag.pose_in_camera.xyz, T_ct[:3, 3], rtol=0.01, atol=2e-3)
     assert features.header.source_stamp_ns > 0 and features.header.trace[-1].service == "vision"
 
 
@@ -79,7 +79,7 @@ def test_corners_on_a_1280x720_camera_with_an_offset_principal_point():
     image, expected_px, _, cfg = render(POSES[1], camera)
     features = vision_for(cfg).process(image_message(image), time.time_ns())
     assert features.status is m.FeatureStatus.OK
-    assert np.linalg.norm(np.array(features.corners_px) - expected_px, axis=1).max() < 0.5
+    assert np.linalg.norm(np.array(features.pixels) - expected_px, axis=1).max() < 0.5
 
 
 @pytest.mark.parametrize("camera_in_tag", [
@@ -113,21 +113,21 @@ def test_error_is_features_minus_goal():
     assert features.goal_depths == [TABLE2_DEPTH] * 4
 
 
-def test_tag_lost_is_reported_immediately_and_teach_needs_a_tag():
+def test_target_lost_is_reported_immediately_and_teach_needs_a_target():
     image, _, _, cfg = render(POSES[0])
     service = vision_for(cfg)
     assert service.process(image_message(image), time.time_ns()).status is m.FeatureStatus.OK
     lost, _, _, _ = render(PoseConfig(xyz=(0.6, -0.2, 0.4), rpy_deg=(180.0, 0.0, 0.0)), floor=True)  # out of view
     features = service.process(image_message(lost), time.time_ns())
-    assert features.status is m.FeatureStatus.TAG_LOST and features.points == [] and features.error == []
+    assert features.status is m.FeatureStatus.TARGET_LOST and features.points == [] and features.error == []
     reply = service.set_goal(m.VisionGoal(header=m.Header(), teach=True))
-    assert not reply.ok and "tag in view" in reply.message
+    assert not reply.ok and "target in view" in reply.message
 
 
 def test_other_tag_ids_are_ignored():
     image, _, _, cfg = render(POSES[0], tag_id=7)
     features = vision_for(cfg).process(image_message(image), time.time_ns())
-    assert features.status is m.FeatureStatus.TAG_LOST
+    assert features.status is m.FeatureStatus.TARGET_LOST
 
 
 def test_partial_when_the_tag_comes_within_the_border_margin():
@@ -238,8 +238,8 @@ def test_measure_is_vision_without_the_service():
     black = F.measure(np.zeros_like(gray), detector, 0, cfg.target.size_m, K, None, goal, min_peak_brightness=20)
     assert black.status == "invalid_image" and black.rejected and black.points is None
     empty = F.measure(np.full_like(gray, 200), detector, 0, cfg.target.size_m, K, None, goal)
-    assert empty.status == "tag_lost" and not empty.rejected and "not in view" in empty.detail
-    assert F.measure(gray, detector, 7, cfg.target.size_m, K, None, goal).status == "tag_lost"  # another id
+    assert empty.status == "target_lost" and not empty.rejected and "not in view" in empty.detail
+    assert F.measure(gray, detector, 7, cfg.target.size_m, K, None, goal).status == "target_lost"  # another id
 
 
 def _frames_along_a_motion(n: int, rate_rad: float = 0.02):
@@ -332,9 +332,9 @@ def test_the_vision_core_needs_no_service_and_takes_time_from_its_caller(backend
     captured = 5_000_000_000  # any clock: the core reads none of its own
     fresh = core.process(image_message(image, captured), info, now_ns=captured + 100_000_000)
     assert fresh.status is m.FeatureStatus.OK and fresh.counts == ["detect.full"] and not fresh.refusal
-    assert np.allclose(core.last_points, fresh.measurement.points)
+    assert np.allclose(core.last_points, fresh.seen.points)
     late = core.process(image_message(image, captured + 1), info, now_ns=captured + 1 + 260_000_000)
-    assert late.status is m.FeatureStatus.STALE and late.counts == ["frames.stale"] and late.measurement is None
+    assert late.status is m.FeatureStatus.STALE and late.counts == ["frames.stale"] and late.seen is None
     again = core.process(image_message(image, captured), info, now_ns=captured)
     assert again.status is m.FeatureStatus.STALE and "not newer" in again.refusal
     assert core.goal_from(m.VisionGoal(header=m.Header(), teach=True)).description == "teach"
