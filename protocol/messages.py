@@ -24,7 +24,7 @@ from protocol.conventions import AngularConvention, Frame
 #: 3: the arm is a choice: RobotState.arm and arm_digest; joint vectors as long as the arm's joints (1-7).
 #: 4: LowLevelState.cycle_ns (the bus period is the hardware's: 2, 2.5, 3.33 or 5 ms).
 #: 5: Features of N points (ids, weights, pixels; one view per front end: tag, keypoints), the target's lost status
-#: (target_lost).
+#: (target_lost), desired commands naming their source, SafetyStatus.in_control.
 SCHEMA_VERSION = 5
 
 #: The most joints an arm has (the Kinova API's AngularInfo: Actuator1..7). A joint vector on the wire has the
@@ -404,23 +404,33 @@ class VisionGoalReply(Message):
 # --------------------------------------------------------------------------------------------------- control
 
 
+#: who a desired command comes from: a command source safety declares, and after a slash what it is doing
+#: (``controller/servo``, ``controller/probe``); services/safety/sources.py
+SourceName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_\-]{0,31}(/[a-z0-9_\-]{1,32})?$")]
+#: the visual servo: what the controller's commands are unless they say otherwise
+SERVO_SOURCE = "controller/servo"
+
+
 class Twist(Message):
     """A velocity screw with its declared convention. In the mixed frame the linear part is in the base frame and
-    ``angular`` says how ``rotational`` is to be read (see :mod:`protocol.conventions`)."""
+    ``angular`` says how ``rotational`` is to be read (see :mod:`protocol.conventions`). As a desired command, its
+    ``source`` (in a robot command, the source safety approved it from)."""
 
     header: Header
     frame: Frame
     angular: AngularConvention
     linear: Vec3
     rotational: Vec3
+    source: SourceName = SERVO_SOURCE
 
 
 class JointVelocity(Message):
     """Desired joint velocities in rad/s, one per joint of the robot's arm, model order and sign
-    (services.model.arm)."""
+    (services.model.arm), and their source."""
 
     header: Header
     velocities: JointVector
+    source: SourceName = SERVO_SOURCE
 
 
 class CommandMode(str, enum.Enum):
@@ -720,6 +730,9 @@ class SafetyStatus(Message):
     active_limits: Annotated[list[str], msgspec.Meta(max_length=32)] = []
     last_refusal: Annotated[str, msgspec.Meta(max_length=256)] = ""
     counters: dict[str, NonNegInt] = {}
+    #: the command source whose command safety holds now (``controller/servo``, ...): who is in control; "" when
+    #: safety holds nothing (the arm is stopping or at rest)
+    in_control: Annotated[str, msgspec.Meta(max_length=64)] = ""
 
 
 class EStop(Message):

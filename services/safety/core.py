@@ -37,15 +37,19 @@ from services.model.kinematics import ArmKinematics
 from services.model.limits import declared as declared_limits
 from services.runtime.state_history import StateHistory
 from services.safety.checks import CommandChecker, Decision, MotionMonitor, SafetyLimits
+from services.safety.sources import Claim, CommandSource, SourceRegistry, default_sources
 
 
 class HeldCommand:
-    """A desired command as the controller sent it, and when it arrived."""
+    """A desired command as its source sent it, the key it came on, and when it arrived."""
 
     def __init__(self, twist: Optional[Twist], joint: Optional[JointVelocity], recv_ns: int) -> None:
         self.twist = twist
         self.joint = joint
         self.recv_ns = recv_ns
+        #: the key it came on (a Keys attribute), and the source it names
+        self.key = "desired_twist" if twist is not None else "desired_joint_velocity"
+        self.source_name = twist.source if twist is not None else joint.source
 
     @property
     def source(self) -> Header:
@@ -95,9 +99,12 @@ Action = Union[Send, Refused, Count, Note]
 
 class SafetyCore:
     def __init__(self, limits: SafetyLimits, upstream: list[str], robots: list[str], rate_hz: float,
-                 lockstep: bool, arm: Optional[str] = None) -> None:
+                 lockstep: bool, arm: Optional[str] = None, sources: Optional[list[CommandSource]] = None) -> None:
         """``arm``: the arm safety was started for (None: the robot's, as its states declare it); the checks are
-        made for the robot's arm once a state declares it, and nothing moves an arm they were not made for."""
+        made for the robot's arm once a state declares it, and nothing moves an arm they were not made for.
+        ``sources``: the command sources it takes commands from (default: the controller's)."""
+        self.registry = SourceRegistry(default_sources() if sources is None else sources)
+        self.claim = Claim()
         self.limits = limits
         self.upstream, self.robots = list(upstream), list(robots)
         self.dt = 1.0 / rate_hz
@@ -108,7 +115,7 @@ class SafetyCore:
         self.monitor: Optional[MotionMonitor] = None
         #: why the robot's arm is not one safety runs for ("" when it is, or none was heard)
         self.wrong_arm = ""
-        self.held: Optional[HeldCommand] = None
+        self._held: Optional[HeldCommand] = None
         self.robot_state: Optional[RobotState] = None
         self.states: StateHistory[RobotState] = StateHistory()
         #: lockstep: desired commands whose frame's robot state has not arrived yet
@@ -124,6 +131,22 @@ class SafetyCore:
         self.last_refusal = ""
         self.active_limits: list[str] = []
         self.safety_state = SafetyState.REFUSING
+
+    @property
+    def held(self) -> Optional[HeldCommand]:
+        """The approved command safety resends while it is fresh (None: it stops the arm)."""
+        return self._held
+
+    @held.setter
+    def held(self, command: Optional[HeldCommand]) -> None:
+        self._held = command
+        if command is None:  # whoever was in control let go: the next approved command's source takes it
+            self.claim.let_go()
+
+    @property
+    def in_control(self) -> str:
+        """The source whose command safety holds ("" when none)."""
+        return self.claim.holder if self._held is not None else ""
 
     # ------------------------------------------------------------------ inputs
     def liveliness(self, name: str, present: bool) -> list[Action]:
@@ -232,10 +255,21 @@ class SafetyCore:
         if self.estop_latched:
             refused = self._refuse(f"estop: latched ({self.estop_reason})")
             return [refused, self._send(Decision(refusal=self.last_refusal), candidate)]  # the frame's answer
+        declared, why = self.registry.admit(candidate.source_name, candidate.key)
+        if declared is not None:
+            why = self.claim.refusal(declared, candidate.source_name, holding=self.held is not None) or ""
+        if why:  # not a command for the arm now: refused, and the source in control (if any) keeps it
+            refused = self._refuse(why)
+            return [refused] if self.held is not None else [refused, self._send(Decision(refusal=why), candidate)]
         decision, reason = self._evaluate(candidate, now_ns, state)
         if reason is None:
+            before = self.in_control
             self.held = candidate
-            return [self._send(decision, candidate)]
+            out: list[Action] = []
+            if self.claim.take(declared, candidate.source_name):
+                out += [Count("claims.switched"),
+                        Note(logging.INFO, f"{candidate.source_name} takes control from {before}")]
+            return out + [self._send(decision, candidate)]
         self.held = None
         # the stop carries the refused command's source: it is the pipeline's answer to that frame
         return [self._refuse(reason), self._send(Decision(refusal=reason), candidate)]
@@ -367,7 +401,8 @@ class SafetyCore:
                 self.checker.reset_motion()
         elif decision.twist is not None:
             twist = Twist(header=header, frame=Frame.MIXED, angular=self.limits.robot_convention,
-                          linear=tuple(decision.twist[:3]), rotational=tuple(decision.twist[3:]))
+                          linear=tuple(decision.twist[:3]), rotational=tuple(decision.twist[3:]),
+                          source=held.source_name)
             command = RobotCommand(header=header, mode=CommandMode.CARTESIAN_VELOCITY, twist=twist)
             state = SafetyState.LIMITING if decision.limits else SafetyState.OK
         else:

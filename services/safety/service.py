@@ -36,6 +36,7 @@ from services.runtime.service import Service, ServiceConfig
 from services.runtime.threads import start_thread
 from services.safety.checks import SafetyLimits
 from services.safety.core import Action, Count, HeldCommand, Refused, SafetyCore, Send
+from services.safety.sources import CommandSource, SourceRegistry, default_sources
 from services.runtime.ports import Port, Ports
 
 
@@ -51,6 +52,9 @@ class SafetyConfig(ServiceConfig):
     upstream: list[str] = msgspec.field(default_factory=lambda: [s for s in PIPELINE_SERVICES if s != "safety"])
     #: liveliness names of which one must be alive (the robot)
     robots: list[str] = msgspec.field(default_factory=lambda: ["robot_sim", "robot_gateway"])
+    #: who may command the arm, on which keys, driving what, with which priority and freshness rule
+    #: (services/safety/sources.py); one of them is in control at a time
+    sources: list[CommandSource] = msgspec.field(default_factory=default_sources)
     #: SCHED_FIFO priority of the safety process where the OS grants it (0: normal scheduling): its resends feed the
     #: robot's 20 ms watchdog, which must not trip because safety waited behind the rest of the host
     realtime_priority: int = 30
@@ -58,6 +62,7 @@ class SafetyConfig(ServiceConfig):
     def __post_init__(self) -> None:
         if self.arm is not None:
             check_arm_name(self.arm)
+        SourceRegistry(self.sources)  # two sources of one name, or an unknown key: refused here
 
 
 class SafetyService(Service):
@@ -73,7 +78,7 @@ class SafetyService(Service):
         self.config: SafetyConfig = config
         self.lockstep = ClockMode(config.clock) is ClockMode.LOCKSTEP
         self.core = SafetyCore(config.limits, config.upstream, config.robots, config.rate_hz, self.lockstep,
-                               arm=config.arm)
+                               arm=config.arm, sources=config.sources)
         #: one input at a time through the core (zenoh's threads, and the resend loop)
         self.lock = threading.Lock()
         self._thread: Optional[threading.Thread] = None
@@ -212,4 +217,4 @@ class SafetyService(Service):
             core = self.core
             return SafetyStatus(header=self.header("status"), state=core.safety_state,
                                 active_limits=list(core.active_limits)[:32], last_refusal=core.last_refusal[:256],
-                                counters=self.counters.snapshot())
+                                counters=self.counters.snapshot(), in_control=core.in_control)

@@ -1,4 +1,5 @@
 """Safety's rules without zenoh, locks or a clock (services.safety.core): what each input makes safety send."""
+import pytest
 import numpy as np
 
 from protocol import messages as m
@@ -240,3 +241,81 @@ def test_joint_velocities_for_another_arm_are_refused():
     actions = safety.desired(six, 10 * S)
     assert [c.mode for c in sends(actions)] == [m.CommandMode.STOP]
     assert any(isinstance(a, Refused) and a.reason.startswith("joint_count: 6 joint velocities") for a in actions)
+
+
+# ------------------------------------------------------------------ command sources
+def sourced(stamp_ns, source, linear=(0.05, 0.0, 0.0)) -> HeldCommand:
+    header = m.Header(stamp_ns=stamp_ns, source_stamp_ns=stamp_ns)
+    return HeldCommand(m.Twist(header=header, frame=Frame.MIXED, angular=AngularConvention.SEED000, linear=linear,
+                               rotational=(0.0, 0.0, 0.0), source=source), None, stamp_ns)
+
+
+def two_sources() -> SafetyCore:
+    """The controller (priority 10) and a second image-derived source above it (priority 20)."""
+    from services.safety.sources import CommandSource, default_sources
+
+    safety = SafetyCore(SafetyLimits(), upstream=["vision", "controller"], robots=["robot_sim"], rate_hz=100.0,
+                        lockstep=False, sources=default_sources() + [CommandSource(
+                            name="helper", keys=["desired_twist"], drives=["twist"], priority=20)])
+    for name in ("vision", "controller", "robot_sim"):
+        safety.liveliness(name, True)
+    safety.state(state(10 * S), 10 * S)
+    return safety
+
+
+def test_the_source_in_control_is_the_one_whose_command_is_held():
+    safety = core()
+    safety.state(state(10 * S), 10 * S)
+    assert safety.in_control == ""
+    approved = safety.desired(twist(10 * S), 10 * S)
+    assert safety.in_control == "controller/servo" and sends(approved)[0].twist.source == "controller/servo"
+    safety.desired(sourced(10 * S + 20_000_000, "controller/probe"), 10 * S + 20_000_000)
+    assert safety.in_control == "controller/probe"  # the same source doing something else: no switch
+    assert safety.claim.switches == 0
+    safety.cycle(10 * S + 200_000_000)  # stale: nothing held, nobody in control
+    assert safety.held is None and safety.in_control == ""
+
+
+def test_a_command_from_an_undeclared_source_is_refused_before_any_check_and_moves_nothing():
+    safety = core()
+    safety.state(state(10 * S), 10 * S)
+    out = safety.desired(sourced(10 * S, "intruder"), 10 * S)
+    assert refusals(out) == ["source: 'intruder' is not a declared command source (controller)"]
+    assert [c.mode for c in sends(out)] == [m.CommandMode.STOP] and safety.in_control == ""
+    joint = HeldCommand(None, m.JointVelocity(header=m.Header(stamp_ns=10 * S, source_stamp_ns=10 * S),
+                                              velocities=[0.0] * 7, source="helper"), 10 * S)
+    assert refusals(two_sources().desired(joint, 10 * S)) == ["source: helper may not command on "
+                                                             "desired_joint_velocity"]
+
+
+def test_a_higher_priority_source_takes_control_and_a_lower_one_is_refused_without_stopping_it():
+    safety = two_sources()
+    t = 10 * S
+    safety.desired(sourced(t, "controller/servo"), t)
+    assert safety.in_control == "controller/servo"
+    taken = safety.desired(sourced(t + 10_000_000, "helper/hold", linear=(0.0, 0.02, 0.0)), t + 10_000_000)
+    assert safety.in_control == "helper/hold" and safety.claim.switches == 1
+    assert any(isinstance(a, Count) and a.name == "claims.switched" for a in taken)
+    assert sends(taken)[-1].twist.linear[1] > 0
+    refused = safety.desired(sourced(t + 20_000_000, "controller/servo"), t + 20_000_000)
+    assert refusals(refused) == ["claim: helper/hold is in control (priority 20 ≥ 10)"]
+    assert sends(refused) == [] and safety.in_control == "helper/hold"  # the holder's motion goes on
+    assert sends(safety.cycle(t + 30_000_000))[0].twist.linear[1] > 0
+    # the holder lets go (its command goes stale): the controller takes control again, no switch counted as a
+    # take-over (nobody held it)
+    safety.cycle(t + 200_000_000)
+    assert safety.in_control == ""
+    safety.state(state(t + 200_000_000), t + 200_000_000)
+    safety.desired(sourced(t + 210_000_000, "controller/servo"), t + 210_000_000)
+    assert safety.in_control == "controller/servo" and safety.claim.switches == 1
+
+
+def test_sources_are_declared_once_on_keys_that_exist():
+    from services.safety.sources import CommandSource, SourceRegistry
+
+    with pytest.raises(ValueError, match="declared twice"):
+        SourceRegistry([CommandSource(name="a", keys=["desired_twist"], drives=["twist"])] * 2)
+    with pytest.raises(ValueError, match="unknown keys"):
+        SourceRegistry([CommandSource(name="a", keys=["robot_command"], drives=["twist"])])
+    with pytest.raises(ValueError, match="must be 1-32"):
+        CommandSource(name="Jog Pad", keys=["desired_twist"], drives=["twist"])

@@ -1,0 +1,134 @@
+"""Who may command the arm through safety, and which of them does now: the command sources (ros2_control's exclusive
+claim on a command interface, as a pure rule).
+
+Every desired command names its source (``Twist.source``, ``JointVelocity.source``): a declared source's name, and
+after a slash what it is doing (``controller/servo``, ``controller/probe``). Safety's configuration declares each
+source once (:class:`CommandSource`): the keys its commands arrive on, what they may drive, its priority (the person
+first) and how their freshness is judged. A command from a source that is not declared for the key it came on, or
+that drives what its source may not, is refused before any other check (:meth:`SourceRegistry.admit`).
+
+One source is in control at a time (:class:`Claim`): the one whose command safety holds. Another source takes over
+only with a higher priority, or once the holder has let go (its command refused, stale or stopped: safety holds
+nothing of it any more); each change is counted and said in ``SafetyStatus.in_control``. A lower or equal priority
+source's command while another holds is refused, naming the holder: it is not a stop of the holder's motion.
+"""
+from __future__ import annotations
+
+import enum
+import re
+from typing import Optional
+
+from services.runtime.config import ConfigStruct
+
+
+class Drives(str, enum.Enum):
+    """What a source's commands may drive."""
+
+    #: the end effector, by a mixed-frame twist (``desired_twist``)
+    TWIST = "twist"
+    #: the joints, by joint velocities (``desired_joint_velocity``)
+    JOINT_VELOCITY = "joint_velocity"
+
+
+class Freshness(str, enum.Enum):
+    """How a source's commands are judged fresh. ``image``: derived from a camera image, whose capture stamp the
+    command carries (``source_stamp_ns``): the command and its image within their budgets, the services on the
+    image's path alive (``SafetyCore.input_problem``)."""
+
+    IMAGE = "image"
+
+
+#: a source's name, as commands give it before the slash
+SOURCE_NAME = re.compile(r"^[a-z][a-z0-9_\-]{0,31}$")
+
+
+class CommandSource(ConfigStruct):
+    """One source of robot motion that safety takes commands from."""
+
+    name: str
+    #: the keys its commands arrive on (protocol.keys.Keys attributes: desired_twist, desired_joint_velocity)
+    keys: list[str]
+    drives: list[Drives]
+    #: a higher priority takes control from a lower one (the person's joystick above the servo)
+    priority: int = 0
+    freshness: Freshness = Freshness.IMAGE
+    #: the identity the deployment's access control lets publish on its keys (docs/security.md); said here so that
+    #: `mfvs status` shows who a source is; the router enforces it
+    identity: Optional[str] = None
+
+    def __post_init__(self) -> None:
+        if not SOURCE_NAME.match(self.name):
+            raise ValueError(f"command source name {self.name!r} must be 1-32 of a-z, 0-9, _ and -, starting with "
+                             "a letter")
+        if not self.keys or not self.drives:
+            raise ValueError(f"command source {self.name!r} needs the keys its commands come on and what they drive")
+
+
+#: what each command key carries
+KEY_DRIVES = {"desired_twist": Drives.TWIST, "desired_joint_velocity": Drives.JOINT_VELOCITY}
+
+
+def default_sources() -> list[CommandSource]:
+    """The controller: the visual servo and its task's phases, from images."""
+    return [CommandSource(name="controller", keys=["desired_twist", "desired_joint_velocity"],
+                          drives=[Drives.TWIST, Drives.JOINT_VELOCITY], priority=10, freshness=Freshness.IMAGE,
+                          identity="controller")]
+
+
+def declared_name(source: str) -> str:
+    """The declared source a command's ``source`` names (``controller/probe`` → ``controller``)."""
+    return source.split("/", 1)[0]
+
+
+class SourceRegistry:
+    def __init__(self, sources: list[CommandSource]) -> None:
+        names = [s.name for s in sources]
+        if len(set(names)) != len(names):
+            raise ValueError(f"command sources declared twice: {sorted({n for n in names if names.count(n) > 1})}")
+        for source in sources:
+            unknown = [key for key in source.keys if key not in KEY_DRIVES]
+            if unknown:
+                raise ValueError(f"command source {source.name!r}: unknown keys {unknown}; known: {sorted(KEY_DRIVES)}")
+        self.sources = {s.name: s for s in sources}
+
+    def admit(self, source: str, key: str) -> tuple[Optional[CommandSource], str]:
+        """(the declared source, "") for a command naming ``source`` on ``key``, or (None, why not)."""
+        declared = self.sources.get(declared_name(source))
+        if declared is None:
+            return None, f"source: {source!r} is not a declared command source ({', '.join(self.sources)})"
+        if key not in declared.keys:
+            return None, f"source: {declared.name} may not command on {key}"
+        if KEY_DRIVES[key] not in declared.drives:
+            return None, f"source: {declared.name} may not drive {KEY_DRIVES[key].value}"
+        return declared, ""
+
+
+class Claim:
+    """Which source is in control. Pure: the core tells it what it holds."""
+
+    def __init__(self) -> None:
+        #: the source in control (its full name, e.g. controller/servo), or "" when safety holds nothing
+        self.holder = ""
+        self._priority = 0
+        #: how many times control changed hands (not counting a source letting go)
+        self.switches = 0
+
+    def refusal(self, candidate: CommandSource, source: str, holding: bool) -> Optional[str]:
+        """Why ``source`` (of ``candidate``) may not take control now, or None. ``holding``: safety holds the
+        holder's command (a holder that let go holds nothing)."""
+        if not holding or not self.holder or declared_name(self.holder) == candidate.name:
+            return None
+        if candidate.priority > self._priority:
+            return None
+        return f"claim: {self.holder} is in control (priority {self._priority} ≥ {candidate.priority})"
+
+    def take(self, candidate: CommandSource, source: str) -> bool:
+        """``source`` is in control now; whether control changed hands."""
+        changed = bool(self.holder) and declared_name(self.holder) != candidate.name
+        self.switches += changed
+        self.holder, self._priority = source, candidate.priority
+        return changed
+
+    def let_go(self) -> None:
+        self.holder, self._priority = "", 0
+
