@@ -491,12 +491,41 @@ START_TASK, STOP_TASK, GET_TASK = "start_task", "stop_task", "get_task"
 TASK_FUNCTIONS = (START_TASK, STOP_TASK, GET_TASK)
 
 
+class TaskPlan(str, enum.Enum):
+    """What a task does (services/controller/phases.py): its phases, in order."""
+
+    #: the visual servo to vision's goal, until stopped
+    SERVO = "servo"
+    #: move the end effector by ``move_m`` (in ``move_frame``) from where it is, holding its orientation; then the
+    #: task ends (teach's depth probe: a few centimetres sideways and back)
+    MOVE = "move"
+
+
+class MoveFrame(str, enum.Enum):
+    #: the camera's optical frame (x right, y down, z ahead), as it is when the move starts
+    CAMERA = "camera"
+    #: the end effector's frame (its z: the tool's approach axis), as it is when the move starts
+    TOOL = "tool"
+    #: the robot's base frame
+    BASE = "base"
+
+
+#: the largest move a task may ask, each axis (m): a probe or an approach, not a trajectory
+MAX_MOVE_M = 0.15
+
+
 class TaskRequest(Message):
     """The argument of the controller's ``start_task`` and ``stop_task``: who asks, and why (logged, and kept in
-    the task's status)."""
+    the task's status); for a start, what the task does."""
 
     operator: Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
     reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    plan: TaskPlan = TaskPlan.SERVO
+    #: plan move: the displacement (m) in ``move_frame``
+    move_m: tuple[Annotated[float, msgspec.Meta(ge=-MAX_MOVE_M, le=MAX_MOVE_M)],
+                  Annotated[float, msgspec.Meta(ge=-MAX_MOVE_M, le=MAX_MOVE_M)],
+                  Annotated[float, msgspec.Meta(ge=-MAX_MOVE_M, le=MAX_MOVE_M)]] = (0.0, 0.0, 0.0)
+    move_frame: MoveFrame = MoveFrame.CAMERA
 
 
 class TaskStatus(Message):
@@ -512,6 +541,11 @@ class TaskStatus(Message):
     #: the last start's or stop's operator and reason
     by: Annotated[str, msgspec.Meta(max_length=64)] = ""
     reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    #: the running (or last) task's plan, the phase it is in ("" when idle), and how the last task ended ("" while
+    #: it runs or before any: done, stopped, or failed with why)
+    plan: TaskPlan = TaskPlan.SERVO
+    phase: Annotated[str, msgspec.Meta(max_length=32)] = ""
+    outcome: Annotated[str, msgspec.Meta(max_length=256)] = ""
 
 
 class ControllerStatus(Message):
@@ -528,6 +562,8 @@ class ControllerStatus(Message):
     gain: float = 0.0
     #: the output was scaled down to the configured limits
     saturated: bool = False
+    #: the task's phase this iteration ran (servo, move; "" when idle)
+    phase: Annotated[str, msgspec.Meta(max_length=32)] = ""
     #: the camera twist the law asked for (camera frame), when it has one
     camera_twist: Optional[tuple[float, float, float, float, float, float]] = None
     #: law-specific figures of this iteration (e.g. smc's largest constraint value φ and its band)

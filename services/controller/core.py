@@ -27,6 +27,7 @@ from protocol.messages import (
 from services.controller import ibvs
 from services.controller.law import ConstraintAbort, LawOutput, ServoInput
 from services.controller.laws import JOINT_LAWS, make_law
+from services.controller.phases import MovePhase, ServoPhase, phases_for, twist_from_move
 from services.controller.task import Task
 from services.model import frames, saturation
 from services.model.point_features import per_point_rms
@@ -47,6 +48,8 @@ class Step:
     saturated: bool = False
     #: the features' per-point RMS error (0 when they were not usable)
     error_rms: float = 0.0
+    #: the task's phase this step ran ("" when none)
+    phase: str = ""
 
 
 #: the commissioning check's states in which the controller moves the arm
@@ -95,7 +98,12 @@ class ControllerCore:
             if wrong:
                 return self.task.status(False, wrong)
         was_running = self.task.running
-        reply = self.task.start(request, now_ns)
+        if not was_running:
+            try:
+                phases = phases_for(request, self.config.move)
+            except ValueError as exc:
+                return self.task.status(False, str(exc))
+        reply = self.task.start(request, now_ns, phases if not was_running else None)
         if not was_running:  # a new task: the law's memory and the iteration count start afresh
             self._reset_law()
             self.iteration = 0
@@ -130,6 +138,9 @@ class ControllerCore:
                 return zero(ControllerState.WRONG_ARM, wrong, reset=True)
         if not self.task.running:
             return zero(ControllerState.IDLE, "no task running (mfvs task start)")
+        phase = self.task.phase
+        if isinstance(phase, MovePhase):
+            return self._move(phase, features, state, camera_in_ee, now_ns)
         if features.status not in USABLE_FEATURE_STATUSES:
             kind = ControllerState.STALE_INPUT if features.status is FeatureStatus.STALE else ControllerState.TARGET_LOST
             return zero(kind, f"features {features.status.value}: {features.detail}", reset=True)
@@ -149,7 +160,7 @@ class ControllerCore:
         self.iteration += 1
         rms = per_point_rms(features.error, features.point_weights())
         if rms < cfg.convergence_error_rms:
-            return Step(ControllerState.CONVERGED, self.iteration, error_rms=rms)
+            return Step(ControllerState.CONVERGED, self.iteration, error_rms=rms, phase=ServoPhase.name)
         points, depths = np.array(features.points), np.array(features.depths)
         if cfg.latency_compensation and capture_state is not None and capture_state is not state:
             points, depths = self.features_now(points, depths, capture_state.q, state.q, camera_in_ee)
@@ -176,7 +187,54 @@ class ControllerCore:
             return zero(ControllerState.ILL_CONDITIONED, "the law produced a non-finite output", reset=True)
         saturated = saturate(output, declared_limits(state, self.arm), self.joint_output, state,
                              cfg.control.robot_convention)
-        return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated, error_rms=rms)
+        return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated, error_rms=rms,
+                    phase=ServoPhase.name)
+
+    def _move(self, phase: MovePhase, features: Features, state: Optional[RobotState],
+              camera_in_ee: Optional[np.ndarray], now_ns: int) -> Step:
+        """A frame of a move phase: driven by the arm's state (the features only pace it and date its command:
+        a move stops as a servo does when the image path stops)."""
+        cfg = self.config
+
+        def zero(kind: ControllerState, detail: str = "") -> Step:
+            return Step(kind, self.iteration, detail, phase=phase.name)
+
+        age = (now_ns - features.header.source_stamp_ns) * 1e-9
+        if features.status is FeatureStatus.STALE or age > cfg.max_input_age_s:
+            return zero(ControllerState.STALE_INPUT, f"image is {age * 1e3:.0f} ms old")
+        if state is None or (now_ns - state.header.stamp_ns) * 1e-9 > cfg.state_budget_s:
+            return zero(ControllerState.STALE_INPUT, "no fresh robot state")
+        if state.arm_check not in ARM_CHECK_OK:
+            return zero(ControllerState.ARM_NOT_CHECKED, arm_not_checked(state))
+        if camera_in_ee is None:
+            return zero(ControllerState.STALE_INPUT, "no camera info (camera-in-end-effector transform)")
+        if state.angular_convention is not cfg.control.robot_convention and not self.joint_output:
+            return zero(ControllerState.STALE_INPUT, f"the robot reads '{state.angular_convention.value}', the "
+                        f"controller is configured for '{cfg.control.robot_convention.value}'")
+        self.iteration += 1
+        kin = self.law.kin
+        q = np.asarray(state.q, dtype=float)
+        R_be, p, J_base = kin.pose_and_jacobian(q)
+        t_s = now_ns * 1e-9
+        if phase.target_p is None:
+            phase.begin(R_be, p, camera_in_ee, t_s)
+        move = phase.step(R_be, p, float(np.linalg.norm((J_base @ np.asarray(state.dq))[:3])), t_s)
+        if move.failure:
+            self.task.fail(move.failure)
+            return zero(ControllerState.IDLE, f"task failed: {move.failure}")
+        if move.done:
+            detail = "task done" if self.task.advance() else "phase done"
+            return zero(ControllerState.IDLE if not self.task.running else ControllerState.CONVERGING,
+                        f"{detail}: moved {np.linalg.norm(phase.displacement) * 1e3:.1f} mm in the {phase.frame.value} frame")
+        twist_ee, twist_base = twist_from_move(move, kin, q)
+        if self.joint_output:
+            output = LawOutput(joint_velocities=np.linalg.pinv(J_base) @ twist_base)
+        else:
+            output = LawOutput(twist=frames.mixed_from_ee_twist(twist_ee, R_be, cfg.control.robot_convention))
+        saturated = saturate(output, declared_limits(state, self.arm), self.joint_output, state,
+                             cfg.control.robot_convention)
+        return Step(ControllerState.CONVERGING, self.iteration, f"{move.remaining_m * 1e3:.1f} mm to go",
+                    output=output, saturated=saturated, phase=phase.name)
 
     def features_now(self, points: np.ndarray, depths: np.ndarray, q_capture, q_now, camera_in_ee: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:

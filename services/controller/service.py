@@ -43,6 +43,7 @@ from services.runtime.state_history import StateHistory
 from services.controller.core import ControllerCore
 from services.controller.law import LawConfig, LawOutput
 from services.controller.laws import LAW_NAMES
+from services.controller.phases import MoveConfig, ServoPhase
 from services.runtime.ports import Port, Ports
 
 
@@ -70,6 +71,8 @@ class ControllerConfig(ServiceConfig):
     max_condition_number: float = 1e5
     #: law-specific options (e.g. the smc or manipulability parameters)
     options: dict = msgspec.field(default_factory=dict)
+    #: how a task's move phase moves (teach's depth probe; services/controller/phases.py)
+    move: MoveConfig = msgspec.field(default_factory=MoveConfig)
 
     def __post_init__(self) -> None:
         if self.law not in LAW_NAMES:
@@ -226,9 +229,14 @@ class ControllerService(Service):
                            notes={k: float(v) for k, v in output.notes.items() if np.isfinite(v)})
         status = ControllerStatus(header=self.header("status", source=features.header), law=self.config.law,
                                   status=step.kind, iteration=step.iteration, error_norm=features.error_norm,
-                                  error_rms=step.error_rms,
+                                  error_rms=step.error_rms, phase=step.phase,
                                   detail=step.detail[:256], **figures)
         return status, output
+
+    @staticmethod
+    def _source(status: ControllerStatus) -> str:
+        """The command source its output names to safety: the controller, doing its phase (servo when idle)."""
+        return f"controller/{status.phase or ServoPhase.name}"
 
     def _publish(self, features: Features, recv_ns: int, status: ControllerStatus,
                  output: Optional[LawOutput]) -> None:
@@ -237,11 +245,11 @@ class ControllerService(Service):
         if self.core.joint_output:
             if output is not None or self.core.arm is not None:  # a zero needs the arm's joints (none: no output)
                 dq = output.joint_velocities if output is not None else np.zeros(self.core.arm.n_joints)
-                message = JointVelocity(header=header, velocities=dq.tolist())
+                message = JointVelocity(header=header, velocities=dq.tolist(), source=self._source(status))
         else:
             twist = output.twist if output is not None else np.zeros(6)
             message = Twist(header=header, frame=Frame.MIXED, angular=self.config.control.robot_convention,
-                            linear=tuple(twist[:3]), rotational=tuple(twist[3:]))
+                            linear=tuple(twist[:3]), rotational=tuple(twist[3:]), source=self._source(status))
         if message is not None:
             self.output_pub.put(message)
         self.status_pub.put(status)

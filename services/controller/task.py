@@ -1,16 +1,18 @@
 """The controller's task: whether the stack may move the arm at all. Pure rules, no zenoh, no locks.
 
 An assistive arm stays still until someone asks it to move: the controller comes up idle, answering every
-features message with a zero output (status ``idle``), and servos only while a task runs. A task starts and stops
+features message with a zero output (status ``idle``), and moves only while a task runs: through its phases
+(services/controller/phases.py: the visual servo until stopped; a move, which ends by itself when it arrives). A task starts and stops
 by request (``mfvs task start|stop``, or the ``controller/api/*`` queryables); stopping answers the next frames with
 zero output, so the robot's DSP brings the arm to rest at its normal deceleration. Starting while running, or
 stopping while idle, changes nothing and says so.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Optional
 
-from protocol.messages import TaskRequest, TaskState, TaskStatus
+from protocol.messages import TaskPlan, TaskRequest, TaskState, TaskStatus
 
 
 @dataclass
@@ -21,26 +23,52 @@ class Task:
     started_ns: int = 0
     by: str = ""
     reason: str = ""
+    #: the running (or last) task's plan, its phases (services.controller.phases) and the one it is in
+    plan: TaskPlan = TaskPlan.SERVO
+    phases: list = field(default_factory=list)
+    index: int = 0
+    #: how the last task ended: done, stopped, failed: why ("" while one runs)
+    outcome: str = ""
 
     @property
     def running(self) -> bool:
         return self.state is TaskState.RUNNING
 
-    def start(self, request: TaskRequest, now_ns: int) -> TaskStatus:
-        """Start a task; the caller resets its law and iteration count when this says ``started``."""
+    @property
+    def phase(self) -> Optional[object]:
+        """The phase the running task is in (None when idle)."""
+        return self.phases[self.index] if self.running and self.index < len(self.phases) else None
+
+    def start(self, request: TaskRequest, now_ns: int, phases: Optional[list] = None) -> TaskStatus:
+        """Start a task of ``phases``; the caller resets its law and iteration count when this says ``started``."""
         if self.running:
             return self.status(True, f"already running (task {self.count}, started by {self.by})")
         self.state, self.count, self.started_ns = TaskState.RUNNING, self.count + 1, now_ns
         self.by, self.reason = request.operator, request.reason
+        self.plan, self.phases, self.index, self.outcome = request.plan, list(phases or []), 0, ""
         return self.status(True, f"task {self.count} started")
 
     def stop(self, request: TaskRequest) -> TaskStatus:
         if not self.running:
             return self.status(True, "no task running")
         self.state, self.started_ns = TaskState.IDLE, 0
-        self.by, self.reason = request.operator, request.reason
+        self.by, self.reason, self.outcome = request.operator, request.reason, "stopped"
         return self.status(True, f"task {self.count} stopped")
 
+    def advance(self) -> bool:
+        """The phase is done: on to the next; whether the task is now done (its last phase was)."""
+        self.index += 1
+        if self.index < len(self.phases):
+            return False
+        self.state, self.started_ns, self.outcome = TaskState.IDLE, 0, "done"
+        return True
+
+    def fail(self, why: str) -> None:
+        """The phase cannot go on: the task ends, saying why."""
+        self.state, self.started_ns, self.outcome = TaskState.IDLE, 0, f"failed: {why}"[:256]
+
     def status(self, ok: bool = True, message: str = "") -> TaskStatus:
+        phase = self.phase
         return TaskStatus(ok=ok, state=self.state, message=message[:256], task=self.count,
-                          started_ns=self.started_ns, by=self.by, reason=self.reason[:256])
+                          started_ns=self.started_ns, by=self.by, reason=self.reason[:256], plan=self.plan,
+                          phase=phase.name if phase is not None else "", outcome=self.outcome)

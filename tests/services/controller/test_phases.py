@@ -1,0 +1,109 @@
+"""The task's phase machine: a move phase, driven by the arm's state, in a kinematic loop (ideal joint tracking)."""
+import numpy as np
+import pytest
+
+from protocol import messages as m
+from protocol.conventions import AngularConvention
+from services.controller.core import ControllerCore
+from services.controller.phases import MoveConfig, MovePhase
+from services.controller.service import ControllerConfig
+from services.model import frames
+from services.model.arm import load_arm
+from services.model.kinematics import ArmKinematics
+from services.robot_sim.scene import CameraConfig
+from tests.helpers import ARM_DECLARED
+
+ARM = load_arm("j2s7s300")
+KIN = ArmKinematics(ARM)
+CAMERA_IN_EE = CameraConfig().camera_in_ee.matrix()
+PERIOD_NS = 33_333_333
+
+
+def state(q, dq, stamp_ns):
+    R, p = KIN.pose(q)
+    return m.RobotState(**ARM_DECLARED, header=m.Header(stamp_ns=stamp_ns), q=list(q), dq=list(dq), tau=[0.0] * 7,
+                        pose=m.KinovaPose(**frames.kinova_pose(R, p)), control_mode=m.ControlMode.CARTESIAN_VELOCITY,
+                        arm_check=m.ArmCheckState.WAIVED)
+
+
+def lost_features(stamp_ns):
+    """A frame without the target: a move goes on (it is driven by the arm's state), paced by the frames."""
+    return m.Features(header=m.Header(stamp_ns=stamp_ns, source_stamp_ns=stamp_ns), status=m.FeatureStatus.TARGET_LOST)
+
+
+def run_move(core: ControllerCore, q0, frames_max=400, track=1.0):
+    """The core's output applied as ideal joint velocities (``track``: the fraction of the command the arm makes)
+    until the task ends; (q at the end, the statuses' details, the frames it took)."""
+    q, dq, t = np.array(q0, dtype=float), np.zeros(7), 10_000_000_000
+    for frame in range(frames_max):
+        step = core.step(lost_features(t), state(q, dq, t), CAMERA_IN_EE, t)
+        if not core.task.running:
+            return q, step, frame
+        if step.output is None:
+            dq = np.zeros(7)
+        elif step.output.joint_velocities is not None:
+            dq = track * step.output.joint_velocities
+        else:  # the mixed twist (seed000) realised through the mixed Jacobian, as the DSP does
+            R, _, J = KIN.pose_and_jacobian(q)
+            dq = track * np.linalg.pinv(frames.mixed_jacobian(J, R)) @ step.output.twist
+        q = q + dq * PERIOD_NS * 1e-9
+        t += PERIOD_NS
+    return q, step, frames_max
+
+
+@pytest.mark.parametrize("law", ["adaptive-pd-mixed", "p-joint"])
+@pytest.mark.parametrize("frame, displacement", [(m.MoveFrame.CAMERA, (0.03, 0.0, 0.0)),
+                                                 (m.MoveFrame.TOOL, (0.0, 0.0, -0.05)),
+                                                 (m.MoveFrame.BASE, (0.0, 0.0, 0.1))])
+def test_a_move_arrives_where_it_was_asked_holding_its_orientation_and_ends_the_task(law, frame, displacement):
+    core = ControllerCore(ControllerConfig(arm="j2s7s300", law=law))
+    q0 = ARM.home.copy()
+    reply = core.start_task(m.TaskRequest(operator="test", plan=m.TaskPlan.MOVE, move_m=displacement,
+                                          move_frame=frame), 0)
+    assert reply.ok and reply.plan is m.TaskPlan.MOVE and reply.phase == "move"
+    q, step, taken = run_move(core, q0)
+    assert not core.task.running and core.task.outcome == "done", step.detail
+    assert step.kind is m.ControllerState.IDLE and "task done" in step.detail
+    R0, p0 = KIN.pose(q0)
+    R1, p1 = KIN.pose(q)
+    expected = {m.MoveFrame.BASE: np.eye(3), m.MoveFrame.TOOL: R0, m.MoveFrame.CAMERA: R0 @ CAMERA_IN_EE[:3, :3]}[frame]
+    assert np.linalg.norm(p1 - (p0 + expected @ np.array(displacement))) < 1e-3
+    assert np.degrees(np.arccos(np.clip((np.trace(R0.T @ R1) - 1) / 2, -1, 1))) < 0.2  # its orientation held
+    distance = np.linalg.norm(displacement)
+    assert taken * PERIOD_NS * 1e-9 < 2.5 * distance / MoveConfig().speed_mps + 2.0  # at its speed, not a creep
+
+
+def test_a_move_that_cannot_arrive_fails_the_task_and_says_why():
+    core = ControllerCore(ControllerConfig(arm="j2s7s300"))
+    core.start_task(m.TaskRequest(operator="test", plan=m.TaskPlan.MOVE, move_m=(0.03, 0.0, 0.0)), 0)
+    _, step, _ = run_move(core, ARM.home.copy(), frames_max=1000, track=0.0)  # the arm never moves
+    assert core.task.outcome.startswith("failed: the move did not arrive within") and "30.0 mm away" in step.detail
+    assert core.task.status().outcome == core.task.outcome and core.task.status().state is m.TaskState.IDLE
+
+
+def test_a_move_needs_a_displacement_within_bounds():
+    core = ControllerCore(ControllerConfig(arm="j2s7s300"))
+    reply = core.start_task(m.TaskRequest(operator="test", plan=m.TaskPlan.MOVE), 0)
+    assert not reply.ok and "needs a displacement" in reply.message and not core.task.running
+    with pytest.raises(m.ProtocolError, match="move_m"):
+        m.convert({"operator": "t", "plan": "move", "move_m": [0.5, 0.0, 0.0]}, m.TaskRequest)
+
+
+def test_the_outputs_of_a_move_name_their_phase_to_safety():
+    from services.controller.service import ControllerService
+
+    service = ControllerService(ControllerConfig(arm="j2s7s300"))
+    service.start_task(m.TaskRequest(operator="test", plan=m.TaskPlan.MOVE, move_m=(0.0, 0.02, 0.0)))
+    assert service._source(m.ControllerStatus(header=m.Header(), law="x", status=m.ControllerState.CONVERGING,
+                                              iteration=1, phase="move")) == "controller/move"
+    assert service._source(m.ControllerStatus(header=m.Header(), law="x", status=m.ControllerState.IDLE,
+                                              iteration=0)) == "controller/servo"
+
+
+def test_a_stale_image_stops_a_move_like_a_servo():
+    core = ControllerCore(ControllerConfig(arm="j2s7s300"))
+    core.start_task(m.TaskRequest(operator="test", plan=m.TaskPlan.MOVE, move_m=(0.03, 0.0, 0.0)), 0)
+    t = 10_000_000_000
+    old = m.Features(header=m.Header(stamp_ns=t, source_stamp_ns=t - 400_000_000), status=m.FeatureStatus.TARGET_LOST)
+    step = core.step(old, state(ARM.home, np.zeros(7), t), CAMERA_IN_EE, t)
+    assert step.kind is m.ControllerState.STALE_INPUT and step.output is None and core.task.running
