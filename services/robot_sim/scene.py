@@ -1,10 +1,14 @@
-"""The simulated world: the JACO-2 from the shared description, torque actuators, floor, lights, an AprilTag
-target at its true size, and an eye-in-hand camera with exact pinhole intrinsics.
+"""The simulated world: the JACO-2 from the shared description, torque actuators, floor, lights, the target (an
+AprilTag at its true size, a calibration board, or a markerless object: a textured box face or a cup), the scene's
+other objects (clutter, an occluder, a second object that takes the target's place), and an eye-in-hand camera
+with exact pinhole intrinsics. A scene that asks for nothing new (a tag, no objects, the default light) compiles to
+the very model it did before there were objects (tests/services/robot_sim/test_scene.py).
 
 :func:`build_model` returns an immutable MjModel; the mutable state lives in MjData owned by the simulation.
 """
 from __future__ import annotations
 
+import enum
 import math
 from typing import Literal, Optional, Union
 
@@ -18,6 +22,7 @@ from services.model.arm import EE_LINK, ArmDescription
 from services.model.board import BoardConfig, board_image
 from services.robot.hardware import CYCLE_NS, DSP_CYCLE_NS
 from services.robot_sim.imaging import ImagingConfig
+from services.robot_sim.textures import texture_image
 from services.model import tag as tags
 from services.runtime.config import ConfigStruct
 from services.model.frames import PoseConfig
@@ -110,7 +115,35 @@ def default_target_in_camera() -> PoseConfig:
     return PoseConfig(xyz=(0.0, 0.0, 0.5), rpy_deg=(180.0, 0.0, 0.0))
 
 
+class TargetKind(str, enum.Enum):
+    #: an AprilTag (or, with ``board``, a ChArUco board): what vision's tag front end finds
+    TAG = "tag"
+    #: a textured box face, ``plane_m`` across (a planar markerless object: a cereal box, a book)
+    PLANE = "plane"
+    #: a textured cup with a handle (a non-planar markerless object)
+    CUP = "cup"
+
+
+class CupShape(ConfigStruct):
+    """A mug (our choice of size: 8 cm across, 9.5 cm tall, the common one), its print all round its wall; the handle
+    on its +x side (right, as the camera sees it at the goal)."""
+
+    radius_m: float = 0.04
+    height_m: float = 0.095
+    handle: bool = True
+
+    def __post_init__(self) -> None:
+        if not (0.01 <= self.radius_m <= 0.2 and 0.02 <= self.height_m <= 0.4):
+            raise ValueError("cup radius_m must be within 0.01..0.2 m and height_m within 0.02..0.4 m")
+
+
+#: a markerless object's default print: the procedural texture of this seed (services/robot_sim/textures.py)
+DEFAULT_TEXTURE_SEED = 7
+
+
 class TargetConfig(ConfigStruct):
+    #: what the target is: a tag (or board), a textured plane, or a cup
+    kind: TargetKind = TargetKind.TAG
     family: str = "tag36h11"
     id: int = 0
     size_m: float = 0.0962
@@ -125,14 +158,79 @@ class TargetConfig(ConfigStruct):
     #: a ChArUco calibration board instead of the tag (`mfvs calibrate --simulate`); family, id, size_m and layout
     #: are then unused
     board: Optional[BoardConfig] = None
+    #: a plane or cup: its print (an image file; null: the procedural print of ``texture_seed``)
+    texture: Optional[str] = None
+    texture_seed: int = DEFAULT_TEXTURE_SEED
+    #: a plane: its face's width and height (m; our choice: a small box's face, 16 × 12 cm, fits the camera's view
+    #: at Table 2's goal depth)
+    plane_m: tuple[float, float] = (0.16, 0.12)
+    cup: CupShape = msgspec.field(default_factory=CupShape)
+    #: the target leaves the scene at this time (s of simulated time; null: never): an object that takes its place
+    #: (``objects``) is then what the camera sees
+    leaves_at_s: Optional[float] = None
 
     def __post_init__(self) -> None:
+        if not all(0.02 <= side <= 1.0 for side in self.plane_m):
+            raise ValueError("target plane_m must be within 0.02..1 m a side")
         if self.family not in tags.FAMILIES:
             raise ValueError(f"unknown tag family {self.family!r}")
         if not 0.005 <= self.size_m <= 1.0:
             raise ValueError("target size_m must be within 0.005..1 m")
         if self.pose_in_base is not None and self.pose_in_camera is not None:
             raise ValueError("give the target pose_in_base or pose_in_camera, not both")
+
+
+class ObjectKind(str, enum.Enum):
+    PLANE = "plane"
+    CUP = "cup"
+    #: a plain grey box (an occluder: a hand, a sheet of paper)
+    BOX = "box"
+
+
+class SceneObject(ConfigStruct):
+    """One of the scene's other objects: clutter beside the target, an occluder that crosses the view, an object
+    that takes the target's place. A mocap body: it moves as told (``velocity_mps`` from its pose, within its
+    ``present_s``) and nothing pushes it."""
+
+    name: str
+    kind: ObjectKind = ObjectKind.PLANE
+    #: one of the two: in the robot base frame, or in the camera frame at the initial configuration
+    pose_in_base: Optional[PoseConfig] = None
+    pose_in_camera: Optional[PoseConfig] = None
+    #: a plane's face (width, height) and a box's size (x, y, z), m
+    size_m: tuple[float, float, float] = (0.16, 0.12, 0.004)
+    cup: CupShape = msgspec.field(default_factory=CupShape)
+    texture: Optional[str] = None
+    texture_seed: int = 1
+    #: constant velocity in the base frame (m/s), from the pose above at time 0
+    velocity_mps: Vec3 = (0.0, 0.0, 0.0)
+    #: in the scene from ... to (s of simulated time; null: from the start, to the end)
+    arrives_at_s: Optional[float] = None
+    leaves_at_s: Optional[float] = None
+
+    def __post_init__(self) -> None:
+        if not (1 <= len(self.name) <= 32 and self.name.replace("_", "").isalnum()):
+            raise ValueError(f"scene object name {self.name!r}: 1-32 letters, digits and _")
+        if (self.pose_in_base is None) == (self.pose_in_camera is None):
+            raise ValueError(f"scene object {self.name}: give pose_in_base or pose_in_camera, exactly one")
+        if not all(0.001 <= side <= 2.0 for side in self.size_m):
+            raise ValueError(f"scene object {self.name}: size_m within 0.001..2 m")
+
+
+class LightConfig(ConfigStruct):
+    """The scene's directional light (the camera's headlight beside it is fixed): its strength and direction, to
+    light the servo otherwise than the teach (Sensors 2022 was lit by a lab's ceiling)."""
+
+    #: a scale of the light's diffuse 0.6 (0.5 .. 1.5: ±50 %)
+    intensity: float = 1.0
+    #: its direction in the base frame (it shines along it)
+    direction: Vec3 = (0.0, 0.2, -1.0)
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.intensity <= 3.0:
+            raise ValueError("light intensity must be within 0..3")
+        if not math.hypot(*self.direction) > 1e-6:
+            raise ValueError("light direction must not be zero")
 
 
 class SceneConfig(ConfigStruct):
@@ -142,6 +240,9 @@ class SceneConfig(ConfigStruct):
     initial_joints_deg: Optional[list[float]] = None
     camera: CameraConfig = msgspec.field(default_factory=CameraConfig)
     target: TargetConfig = msgspec.field(default_factory=TargetConfig)
+    #: the scene's other objects (none by default)
+    objects: list[SceneObject] = msgspec.field(default_factory=list)
+    light: LightConfig = msgspec.field(default_factory=LightConfig)
     timestep_s: float = 0.001
     floor: bool = True
 
@@ -178,11 +279,43 @@ def camera_in_ee(cfg: SceneConfig) -> np.ndarray:
 
 def target_in_base(cfg: SceneConfig, arm: ArmDescription) -> np.ndarray:
     """The target's initial pose in the base frame (resolving pose_in_camera at ``arm``'s initial configuration)."""
-    if cfg.target.pose_in_base is not None:
-        return cfg.target.pose_in_base.matrix()
-    pose_in_camera = (cfg.target.pose_in_camera or default_target_in_camera()).matrix()
+    return _in_base(cfg, arm, cfg.target.pose_in_base, cfg.target.pose_in_camera or default_target_in_camera())
+
+
+def object_in_base(cfg: SceneConfig, arm: ArmDescription, obj: SceneObject) -> np.ndarray:
+    """A scene object's initial pose in the base frame."""
+    return _in_base(cfg, arm, obj.pose_in_base, obj.pose_in_camera)
+
+
+def _in_base(cfg: SceneConfig, arm: ArmDescription, in_base: Optional[PoseConfig],
+             in_camera: Optional[PoseConfig]) -> np.ndarray:
+    if in_base is not None:
+        return in_base.matrix()
     T_be = arm.dh_forward_kinematics(arm.physical_deg_to_model(cfg.start_deg(arm)))
-    return T_be @ camera_in_ee(cfg) @ pose_in_camera
+    return T_be @ camera_in_ee(cfg) @ in_camera.matrix()
+
+
+def cup_outline(cup: CupShape, around: int = 12) -> np.ndarray:
+    """Points on a cup's silhouette in its frame (axis y, the handle's side +x, z toward the camera at the goal):
+    its rim and base rings, and the handle's far edge."""
+    a = np.linspace(0.0, 2.0 * np.pi, around, endpoint=False)
+    ring = np.column_stack([cup.radius_m * np.cos(a), np.zeros(around), cup.radius_m * np.sin(a)])
+    points = [ring + [0.0, cup.height_m / 2, 0.0], ring - [0.0, cup.height_m / 2, 0.0]]
+    if cup.handle:
+        points.append(np.array([[cup.radius_m + _handle_reach(cup), 0.0, 0.0]]))
+    return np.vstack(points)
+
+
+def target_outline(target: TargetConfig) -> np.ndarray:
+    """Points that bound what the camera sees of the target, in its frame (n×3): a tag's printed corners, a plane's
+    four corners, a cup's silhouette. What every start must keep in the image (services/experiments/starts.py)."""
+    if target.kind == TargetKind.CUP:
+        return cup_outline(target.cup)
+    if target.kind == TargetKind.PLANE:
+        half_x, half_y = (side / 2.0 for side in target.plane_m)
+        return np.array([[-half_x, half_y, 0.0], [half_x, half_y, 0.0], [half_x, -half_y, 0.0],
+                         [-half_x, -half_y, 0.0]])
+    return tags.corners_in_tag(target.size_m)
 
 
 def renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
@@ -199,6 +332,8 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
     _add_arm(spec, arm)
     _add_light_and_floor(spec, cfg)
     _add_target(spec, cfg, arm)
+    for obj in cfg.objects:
+        _add_object(spec, cfg, arm, obj)
     _add_camera(spec, cfg)
     return spec.compile()
 
@@ -246,8 +381,10 @@ def _add_light_and_floor(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     """One directional light, and the floor unless ``cfg.floor`` is off."""
     world = spec.worldbody
     # No shadows: shadow maps cost ~40 ms a frame on a CPU renderer (Mesa llvmpipe) and the tag needs none.
-    world.add_light(name="sun", pos=[0.0, -0.5, 2.5], dir=[0.0, 0.2, -1.0], diffuse=[0.6, 0.6, 0.6],
-                    type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL, castshadow=False)
+    light = cfg.light
+    world.add_light(name="sun", pos=[0.0, -0.5, 2.5], dir=[float(v) for v in light.direction],
+                    diffuse=[0.6 * light.intensity] * 3, type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL,
+                    castshadow=False)
     if cfg.floor:
         # Plain: a textured floor fills most of the image, and sampling its mipmapped texture took 5 of the 13 ms
         # a 640x480 frame cost on llvmpipe in a running stack (15 % of a core at 30 Hz). The detector needs no
@@ -258,8 +395,21 @@ def _add_light_and_floor(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
 
 
 def _add_target(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription) -> None:
-    """The AprilTag target: a thin box whose +z face carries the tag upright (texture top = tag +y); or a board. A
-    mocap body, at its initial pose (:func:`target_in_base`). Raises ValueError for a target below the floor."""
+    """The target, a mocap body at its initial pose (:func:`target_in_base`): the AprilTag, a thin box whose +z face
+    carries the tag upright (texture top = tag +y); or a board; or a markerless object (a textured box face, a cup).
+    Raises ValueError for a target below the floor."""
+    if cfg.target.kind != TargetKind.TAG:
+        T_bt = target_in_base(cfg, arm)
+        if cfg.floor and T_bt[2, 3] < 0.0:
+            raise ValueError(f"the target's centre is {-T_bt[2, 3]:.3f} m below the floor; move it or disable the floor")
+        body = spec.worldbody.add_body(name=TAG_BODY, mocap=True, pos=T_bt[:3, 3].tolist(),
+                                       quat=frames.matrix_to_quat_wxyz(T_bt[:3, :3]).tolist())
+        t = cfg.target
+        if t.kind == TargetKind.PLANE:
+            _textured_plane(spec, body, "target", (*t.plane_m, 0.01), t.texture, t.texture_seed)
+        else:
+            _textured_cup(spec, body, "target", t.cup, t.texture, t.texture_seed)
+        return
     if cfg.target.board is not None:
         image = board_image(cfg.target.board)
         half_x, half_y = (side / 2.0 for side in cfg.target.board.size_m)
@@ -280,6 +430,83 @@ def _add_target(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription) -> N
     thickness = 0.002
     target.add_geom(name="tag", type=mujoco.mjtGeom.mjGEOM_BOX, size=[half_x, half_y, thickness / 2],
                     pos=[0.0, 0.0, -thickness / 2], material="tag", contype=0, conaffinity=0)
+
+
+def _material(spec: mujoco.MjSpec, name: str, texture_path: Optional[str], seed: int, aspect: float = 1.0) -> str:
+    """A matte material printed with the texture asked for (services/robot_sim/textures.py); its name."""
+    rgb = texture_image(texture_path, seed, aspect)
+    texture = spec.add_texture(name=name, type=mujoco.mjtTexture.mjTEXTURE_2D, width=rgb.shape[1],
+                               height=rgb.shape[0], nchannel=3)
+    texture.data = np.ascontiguousarray(rgb).tobytes()
+    spec.add_material(name=name, textures=["", name], texrepeat=[1, 1], texuniform=False, specular=0.0,
+                      shininess=0.0, reflectance=0.0)
+    return name
+
+
+def _textured_plane(spec: mujoco.MjSpec, body, name: str, size_m, texture_path: Optional[str], seed: int) -> None:
+    """A box whose +z face (width × height, the body's x and y) carries the print upright; ``size_m[2]`` deep."""
+    material = _material(spec, name, texture_path, seed, aspect=size_m[0] / size_m[1])
+    body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=[size_m[0] / 2, size_m[1] / 2, size_m[2] / 2],
+                  pos=[0.0, 0.0, -size_m[2] / 2], material=material, contype=0, conaffinity=0)
+
+
+#: a cup's wall in segments around (a 48-gon: within 0.1 mm of the circle at a 4 cm radius)
+CUP_SEGMENTS = 48
+
+
+def _handle_reach(cup: CupShape) -> float:
+    """How far the handle stands out of the wall (m): a mug's, about two thirds of its radius."""
+    return 0.6 * cup.radius_m
+
+
+def _textured_cup(spec: mujoco.MjSpec, body, name: str, cup: CupShape, texture_path: Optional[str],
+                  seed: int) -> None:
+    """A cup in the body's frame: its axis along y, its print wrapped round its wall (the print's middle facing
+    +z), a base, and a handle (capsules in an arc) on its +x side. The wall is a mesh with texture coordinates:
+    MuJoCo's primitive cylinder takes no wrapped print."""
+    r, h = cup.radius_m, cup.height_m
+    material = _material(spec, name, texture_path, seed, aspect=2.0 * math.pi * r / h)
+    vertices, uv, faces = [], [], []
+    for i in range(CUP_SEGMENTS + 1):
+        u = i / CUP_SEGMENTS
+        angle = 2.0 * math.pi * (u - 0.25)  # u = 0.5 (the print's middle) at +z
+        x, z = r * math.cos(angle), -r * math.sin(angle)
+        for j, y in enumerate((-h / 2, h / 2)):
+            vertices += [x, y, z]
+            uv += [u, 1.0 - j]
+    for i in range(CUP_SEGMENTS):
+        a, b, c, d = 2 * i, 2 * i + 1, 2 * i + 2, 2 * i + 3
+        faces += [a, b, c, b, d, c]  # outward: counter-clockwise seen from outside
+    mesh = spec.add_mesh(name=f"{name}_wall")
+    mesh.uservert, mesh.usertexcoord, mesh.userface, mesh.userfacetexcoord = vertices, uv, faces, faces
+    body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"{name}_wall", material=material,
+                  contype=0, conaffinity=0)
+    grey = [0.85, 0.85, 0.82, 1.0]
+    body.add_geom(name=f"{name}_base", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[r * 0.995, 0.002, 0.0],
+                  pos=[0.0, -h / 2 + 0.002, 0.0], quat=frames.matrix_to_quat_wxyz(frames.rot_x(math.pi / 2)).tolist(),
+                  rgba=grey, contype=0, conaffinity=0)
+    if cup.handle:
+        reach, thick = _handle_reach(cup), 0.2 * r
+        arc = [(-0.3 * h, 0.0), (-0.3 * h, reach), (0.3 * h, reach), (0.3 * h, 0.0)]
+        for k, ((y0, x0), (y1, x1)) in enumerate(zip(arc, arc[1:])):
+            body.add_geom(name=f"{name}_handle{k}", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[thick / 2, 0.0, 0.0],
+                          fromto=[r + x0 - thick / 2, y0, 0.0, r + x1 - thick / 2, y1, 0.0], rgba=grey,
+                          contype=0, conaffinity=0)
+
+
+def _add_object(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription, obj: SceneObject) -> None:
+    """One of the scene's other objects, a mocap body at its initial pose."""
+    T = object_in_base(cfg, arm, obj)
+    body = spec.worldbody.add_body(name=f"object_{obj.name}", mocap=True, pos=T[:3, 3].tolist(),
+                                   quat=frames.matrix_to_quat_wxyz(T[:3, :3]).tolist())
+    name = f"object_{obj.name}"
+    if obj.kind == ObjectKind.PLANE:
+        _textured_plane(spec, body, name, obj.size_m, obj.texture, obj.texture_seed)
+    elif obj.kind == ObjectKind.CUP:
+        _textured_cup(spec, body, name, obj.cup, obj.texture, obj.texture_seed)
+    else:
+        body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in obj.size_m],
+                      rgba=[0.55, 0.5, 0.45, 1.0], contype=0, conaffinity=0)
 
 
 def _add_camera(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:

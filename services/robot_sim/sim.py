@@ -25,6 +25,24 @@ from services.robot_sim.imaging import expose
 from services.robot_sim.firmware import ActuatorConfig, ActuatorFirmware
 
 
+#: where an object that is not in the scene is kept: far below the floor, out of every view
+OUT_OF_SCENE = np.array([0.0, 0.0, -100.0])
+
+
+class _Mover:
+    """A scene object's schedule: its position at time t (s), or out of the scene outside [arrives, leaves)."""
+
+    def __init__(self, mocap: int, start: np.ndarray, velocity: np.ndarray, arrives: Optional[float],
+                 leaves: Optional[float]) -> None:
+        self.mocap, self.start, self.velocity = mocap, np.array(start, dtype=float), velocity
+        self.arrives, self.leaves = arrives, leaves
+
+    def position(self, t: float) -> np.ndarray:
+        if (self.arrives is not None and t < self.arrives) or (self.leaves is not None and t >= self.leaves):
+            return OUT_OF_SCENE
+        return self.start + self.velocity * t
+
+
 class Simulation:
     def __init__(self, scene: scene_mod.SceneConfig | None = None, actuators: ActuatorConfig | None = None,
                  render: bool = True, counters: Counters | None = None, arm: ArmDescription | None = None) -> None:
@@ -51,6 +69,11 @@ class Simulation:
         self._mocap = self.model.body(scene_mod.TAG_BODY).mocapid[0]
         self._target_start = self.data.mocap_pos[self._mocap].copy()
         self._target_velocity = np.asarray(self.scene.target.velocity_mps, dtype=float)
+        #: the scene's other objects (and the target, when it leaves): where each is at a time, and when it is there
+        self._scheduled = [_Mover(self.model.body(f"object_{obj.name}").mocapid[0],
+                                  scene_mod.object_in_base(self.scene, self.arm, obj)[:3, 3],
+                                  np.asarray(obj.velocity_mps, dtype=float), obj.arrives_at_s, obj.leaves_at_s)
+                           for obj in self.scene.objects]
         self._ee_body = self.model.body(EE_LINK).id
         self._camera_id = self.model.camera(scene_mod.CAMERA_NAME).id
         self._renderer = None
@@ -68,8 +91,9 @@ class Simulation:
         q = self.firmware.model_from_physical_deg(self.scene.start_deg(self.arm) if joints_deg is None else joints_deg)
         self.data.qpos[: self.n] = q
         self.data.mocap_pos[self._mocap] = self._target_start
-        mujoco.mj_forward(self.model, self.data)
         self.time_ns = 0
+        self._place_scheduled()
+        mujoco.mj_forward(self.model, self.data)
         self.firmware.now_s = 0.0
         self.firmware.hold_all()
         self.next_frame_ns = 0
@@ -151,6 +175,18 @@ class Simulation:
             self.time_ns += self.physics_dt_ns
             if moving:
                 self.data.mocap_pos[self._mocap] = self._target_start + self._target_velocity * (self.time_ns * 1e-9)
+            if self._scheduled or self.scene.target.leaves_at_s is not None:
+                self._place_scheduled()
+
+    def _place_scheduled(self) -> None:
+        """The scene's other objects where they are now, and out of the scene (far below the floor) when they are
+        not in it; the target too, once it has left."""
+        t = self.time_ns * 1e-9
+        for mover in self._scheduled:
+            self.data.mocap_pos[mover.mocap] = mover.position(t)
+        leaves = self.scene.target.leaves_at_s
+        if leaves is not None and t >= leaves:
+            self.data.mocap_pos[self._mocap] = OUT_OF_SCENE
 
     def frame_due(self) -> bool:
         return self.time_ns >= self.next_frame_ns
