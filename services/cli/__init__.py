@@ -197,7 +197,9 @@ def _add_servo_commands(sub) -> None:
     add_jobs_option(experiment)
     add_processes_option(experiment)
     add_arm_option(experiment, default=None, what="the scenario's; torque-control: j2n6s300")
-    experiment.set_defaults(func=cmd_experiment)
+    # which options were given (each experiment's runner takes its own: services.experiments.registry.RUNNERS)
+    experiment.set_defaults(func=cmd_experiment, option_defaults={
+        action.dest: action.default for action in experiment._actions if action.dest != "help"})
 
     demo = sub.add_parser("demo", help="for a new user: run part-a and table3 with a line per run, write the "
                                        "figures and reports, say where to look")

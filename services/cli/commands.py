@@ -338,8 +338,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
         from services.stack.warm_start import start_server
 
         start_server()
-    from services.experiments.registry import EXPERIMENTS, experiment_names, run_experiment
-    from services.runtime.config import ConfigError
+    from services.experiments.registry import RUNNERS, experiment_names, options_taken
 
     if args.name not in experiment_names():
         close = difflib.get_close_matches(args.name, experiment_names(), n=1)
@@ -350,11 +349,28 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     if args.profile not in ("sim", "gateway"):
         print(f"mfvs experiment: unknown profile {args.profile!r}: sim or gateway", file=sys.stderr)
         return 2
-    if args.name not in EXPERIMENTS:
-        return _torque_experiment(args)
-    if args.quick:
-        print(f"mfvs experiment: --quick is torque-control's, not {args.name}'s", file=sys.stderr)
-        return 2
+    runner = RUNNERS[args.name]
+    for option in EXPERIMENT_OPTIONS:
+        if option not in runner.options and getattr(args, option) != args.option_defaults[option]:
+            flag = "--" + option.replace("_", "-")
+            takers = options_taken(option)
+            print(f"mfvs experiment: {args.name} takes no {flag} ({flag} is for {', '.join(takers) or 'none'})",
+                  file=sys.stderr)
+            return 2
+    return runner.function()(args)
+
+
+#: the options of ``mfvs experiment`` that some experiments take and others not (each runner declares its own:
+#: services.experiments.registry.RUNNERS)
+EXPERIMENT_OPTIONS = ("scenario", "random_starts", "seed", "quick", "runs", "jobs", "processes")
+
+
+def servo_experiment(args: argparse.Namespace) -> int:
+    """``mfvs experiment NAME`` for a servo comparison: its runs from its start (or ``--scenario``'s), or from
+    random starts."""
+    from services.experiments.registry import run_experiment
+    from services.runtime.config import ConfigError
+
     if not jobs_or_exit("experiment", args.jobs):
         return 2
     if args.random_starts is not None:
@@ -374,16 +390,11 @@ def cmd_experiment(args: argparse.Namespace) -> int:
     return 0
 
 
-def _torque_experiment(args: argparse.Namespace) -> int:
+def torque_experiment(args: argparse.Namespace) -> int:
     """``mfvs experiment torque-control``: the JACO thesis's chapter 5 in realtime
-    (services.experiments.torque_control)."""
+    (services.experiments.torque_control), every run from the arm's home."""
     from services.experiments.torque_control import run_torque_control
 
-    for flag, given in (("--scenario", args.scenario is not None), ("--random-starts", args.random_starts is not None)):
-        if given:
-            print(f"mfvs experiment: torque-control takes no {flag} (it starts every run from the arm's home)",
-                  file=sys.stderr)
-            return 2
     if args.arm is not None and arm_or_exit("experiment", args.arm) is None:
         return 2
     labels = None
@@ -433,13 +444,9 @@ def _torque_experiment(args: argparse.Namespace) -> int:
 def _random_starts_experiment(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from services.experiments.random_starts import RANDOM_START_EXPERIMENTS, run_random_starts
+    from services.experiments.random_starts import run_random_starts
     from services.runtime.config import ConfigError
 
-    if args.name not in RANDOM_START_EXPERIMENTS:
-        print(f"mfvs experiment: --random-starts runs {', '.join(RANDOM_START_EXPERIMENTS)}, not {args.name}",
-              file=sys.stderr)
-        return 2
     if args.random_starts < 1:
         print("mfvs experiment: --random-starts needs at least 1 start", file=sys.stderr)
         return 2

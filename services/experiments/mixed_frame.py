@@ -84,7 +84,8 @@ def _joint_and_mixed(gains: Gains = TABLE3_GAINS["adaptive-pd-joint"]) -> list[R
 EXPERIMENTS = (
     Experiment("table3", "Table 3: effect of the adaptive gain on convergence",
                "446, 189, 114 and 79 iterations; the mixed law 31 % fewer than the joint PD law",
-               "table2.yaml", [RunSpec(law, law, gains) for law, gains in TABLE3_GAINS.items()], table3_summary),
+               "table2.yaml", [RunSpec(law, law, gains) for law, gains in TABLE3_GAINS.items()], table3_summary,
+               random_starts=("adaptive-pd-mixed", "adaptive-pd-joint")),
     Experiment("part-a", "Part A: the need for the mixed frame",
                "the end-effector-frame twist diverges and the features leave the image; the mixed law converges "
                "(47 iterations)", "table2.yaml",

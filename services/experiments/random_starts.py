@@ -22,10 +22,6 @@ from services.servo.scenario import Scenario
 
 
 # ------------------------------------------------------------------------------------------------ random starts
-#: the experiments that run over random starts, and the law each compares (the proposed one, its baseline)
-RANDOM_START_EXPERIMENTS = {"table3": ("adaptive-pd-mixed", "adaptive-pd-joint")}
-
-
 #: the mixed law is "clearly faster" on a start when it takes at least this many per cent fewer iterations than
 #: adaptive-pd-joint (issue 34's bar); below it, the report says what shaped the two runs
 CLEARLY_FASTER_PCT = 15.0
@@ -45,7 +41,7 @@ def shaped_by(row: dict) -> dict:
 
 
 def start_summary(start: Start, rows: dict) -> dict:
-    proposed, baseline = RANDOM_START_EXPERIMENTS["table3"]
+    proposed, baseline = EXPERIMENTS["table3"].random_starts
     table = table3_summary(rows, {})
     improvement = table["improvement_pct"]
     entry = {"start": start.to_json(), "iterations": table["iterations"],
@@ -58,7 +54,7 @@ def start_summary(start: Start, rows: dict) -> dict:
 
 
 def random_starts_summary(starts: list[dict], runs: list[dict]) -> dict:
-    proposed, baseline = RANDOM_START_EXPERIMENTS["table3"]
+    proposed, baseline = EXPERIMENTS["table3"].random_starts
     laws = list(TABLE3_PAPER)
     improvements = [s["improvement_pct"] for s in starts if s["improvement_pct"] is not None]
     n = len(starts)
@@ -98,8 +94,9 @@ def run_random_starts(name: str, count: int, seed: int, base_path: Optional[str 
     the summary gives each law's iterations (median, quartiles) and failures, and per start the proposed law's
     improvement over its baseline and whether the four laws came in the paper's order. Every start's runs go
     through one pool, ``jobs`` at a time (:mod:`services.experiments.pool`), the results in the starts' order."""
-    if name not in RANDOM_START_EXPERIMENTS:
-        raise KeyError(f"--random-starts runs {', '.join(RANDOM_START_EXPERIMENTS)}, not {name!r}")
+    if name not in EXPERIMENTS or EXPERIMENTS[name].random_starts is None:
+        raise KeyError(f"--random-starts runs {', '.join(n for n, e in EXPERIMENTS.items() if e.random_starts)}, "
+                       f"not {name!r}")
     experiment = EXPERIMENTS[name]
     base = Path(base_path) if base_path is not None else default_scenario(experiment, arm)
     if starts_dir is None:

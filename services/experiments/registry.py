@@ -1,8 +1,10 @@
-"""The one registry of the papers' experiments: every servo comparison (each paper's module declares its own) and
-the experiments with a runner of their own (torque-control); planning an experiment on a scenario and an arm, its
-runs (side by side with :mod:`.pool`), and its output (:func:`run_experiment`, :func:`run_experiments`)."""
+"""The one registry of the experiments: each declares its runner and the options it takes (:data:`RUNNERS`); every
+servo comparison (each paper's module declares its own) runs through the same runner; planning an experiment on a
+scenario and an arm, its runs (side by side with :mod:`.pool`), and its output (:func:`run_experiment`,
+:func:`run_experiments`)."""
 from __future__ import annotations
 
+import importlib
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,12 +29,46 @@ EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (
     *mixed_frame.EXPERIMENTS, *constraints.EXPERIMENTS, *tracking_region.EXPERIMENTS)}
 
 
-#: experiments that are not servo comparisons from a scenario: each has its own runner (name → its module)
-OTHER_EXPERIMENTS = {"torque-control": "services.experiments.torque_control"}
+@dataclass(frozen=True)
+class ExperimentRunner:
+    """How ``mfvs experiment NAME`` runs an experiment: a function of the command line's arguments that returns the
+    exit code (``run``: ``module:function``, imported when it runs), and the options it takes besides everyone's
+    (``--json``, ``--out``, ``--arm``, ``--profile``), by their argparse names."""
+
+    name: str
+    run: str
+    options: tuple[str, ...]
+
+    def function(self) -> Callable:
+        module, function = self.run.split(":")
+        return getattr(importlib.import_module(module), function)
+
+
+#: every servo comparison's options; ``random_starts`` and ``seed`` where it declares random starts
+SERVO_OPTIONS = ("scenario", "jobs", "processes")
+RANDOM_START_OPTIONS = ("random_starts", "seed")
+
+
+def _runners() -> dict[str, ExperimentRunner]:
+    runners = {name: ExperimentRunner(name, "services.cli.commands:servo_experiment",
+                                      SERVO_OPTIONS + (RANDOM_START_OPTIONS if experiment.random_starts else ()))
+               for name, experiment in EXPERIMENTS.items()}
+    runners["torque-control"] = ExperimentRunner("torque-control", "services.cli.commands:torque_experiment",
+                                                 ("quick", "runs"))
+    return runners
+
+
+#: every experiment by name, in the order the command line lists them: its runner and its options
+RUNNERS: dict[str, ExperimentRunner] = _runners()
 
 
 def experiment_names() -> list[str]:
-    return [*EXPERIMENTS, *OTHER_EXPERIMENTS]
+    return list(RUNNERS)
+
+
+def options_taken(option: str) -> list[str]:
+    """The experiments that take ``option`` (an argparse name)."""
+    return [name for name, runner in RUNNERS.items() if option in runner.options]
 
 
 def _copy(scenario: Scenario) -> Scenario:

@@ -46,6 +46,8 @@ class Experiment:
     run_figures: Optional[Callable[[Scenario, ServoResult, list], dict]] = None
     #: the experiment's own figures (trajectories, rows, out dir, base scenario) → paths
     figures: Optional[Callable[[dict, dict, Path, Scenario], list]] = None
+    #: it also runs over random starts (``--random-starts N``): the law it proposes and the one it improves on
+    random_starts: Optional[tuple[str, str]] = None
 
 
 def improvement_pct(better: Optional[int], baseline: Optional[int]) -> Optional[float]:

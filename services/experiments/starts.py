@@ -1,11 +1,12 @@
-"""Starts nobody tuned: the tag placed at random in front of the camera, for Sensors 2022's Table 3 over many starts
-(``mfvs experiment table3 --random-starts N``) and the realtime-against-lockstep comparison (``mfvs bench swap
---random-starts N``).
+"""Starts nobody tuned: the target placed at random in front of the camera, for Sensors 2022's Table 3 over many
+starts (``mfvs experiment table3 --random-starts N``), the markerless experiment (the same draws, the tag replaced by
+the object) and the realtime-against-lockstep comparison (``mfvs bench swap --random-starts N``).
 
 A start is a scenario (:class:`services.servo.Scenario`) whose ``target.pose_in_camera`` is drawn from the ranges of
-Table 2's kind of task (:data:`TABLE2_LIKE`), kept only when every corner of the tag is in the image at the start;
-the arm, the goal, the law and the camera are the base scenario's. Each start is written out as a scenario file, so
-any one of them can be run again with ``--scenario``.
+Table 2's kind of task (:data:`TABLE2_LIKE`), kept only when every point of the target's outline (a tag's corners, a
+plane's, a cup's silhouette: services/robot_sim/scene.py ``target_outline``) is in the image at the start; the arm,
+the goal, the law and the camera are the base scenario's. Each start is written out as a scenario file, so any one
+of them can be run again with ``--scenario``.
 """
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from services.model import tag as tags
 from services.model.frames import PoseConfig
+from services.robot_sim.scene import target_outline
 
 
 @dataclass(frozen=True)
@@ -44,27 +45,28 @@ TABLE2_LIKE = StartRanges(ahead_m=(0.48, 0.65), off_centre_m=0.07, roll_deg=15.0
 MAX_DRAWS = 1000
 
 
-def corners_in_image(pose: PoseConfig, size_m: float, camera) -> np.ndarray:
-    """The tag's four corners in pixels, seen by ``camera`` (a :class:`~services.robot_sim.scene.CameraConfig`)
-    with the tag at ``pose`` in the camera frame."""
+def corners_in_image(pose: PoseConfig, outline: np.ndarray, camera) -> np.ndarray:
+    """The target's outline points (n×3 in its frame) in pixels, seen by ``camera`` (a
+    :class:`~services.robot_sim.scene.CameraConfig`) with the target at ``pose`` in the camera frame."""
     T = pose.matrix()
-    corners = tags.corners_in_tag(size_m) @ T[:3, :3].T + T[:3, 3]
+    corners = outline @ T[:3, :3].T + T[:3, 3]
     cx, cy = camera.principal_point
     return np.column_stack([camera.fx * corners[:, 0] / corners[:, 2] + cx,
                             camera.fy * corners[:, 1] / corners[:, 2] + cy])
 
 
-def all_corners_visible(pose: PoseConfig, size_m: float, camera, margin_px: float) -> bool:
+def all_corners_visible(pose: PoseConfig, outline: np.ndarray, camera, margin_px: float) -> bool:
     T = pose.matrix()
-    if np.any(tags.corners_in_tag(size_m) @ T[:3, :3].T[:, 2] + T[2, 3] <= 0.0):
+    if np.any(outline @ T[:3, :3].T[:, 2] + T[2, 3] <= 0.0):
         return False  # behind the camera
-    pixels = corners_in_image(pose, size_m, camera)
+    pixels = corners_in_image(pose, outline, camera)
     return bool(np.all(pixels[:, 0] >= margin_px) and np.all(pixels[:, 0] <= camera.width - 1 - margin_px)
                 and np.all(pixels[:, 1] >= margin_px) and np.all(pixels[:, 1] <= camera.height - 1 - margin_px))
 
 
-def random_start(rng: random.Random, ranges: StartRanges, size_m: float, camera) -> PoseConfig:
-    """A tag pose in the camera frame from ``ranges`` with every corner in the image (drawn again until it is)."""
+def random_start(rng: random.Random, ranges: StartRanges, outline: np.ndarray, camera) -> PoseConfig:
+    """A target pose in the camera frame from ``ranges`` with every point of its ``outline`` (n×3, its frame) in the
+    image (drawn again until it is)."""
     for _ in range(MAX_DRAWS):
         off = ranges.off_centre_m
         pose = PoseConfig(
@@ -73,9 +75,10 @@ def random_start(rng: random.Random, ranges: StartRanges, size_m: float, camera)
             rpy_deg=(round(180.0 + rng.uniform(-ranges.roll_deg, ranges.roll_deg), 2),
                      round(rng.uniform(-ranges.pitch_deg, ranges.pitch_deg), 2),
                      round(rng.uniform(-ranges.yaw_deg, ranges.yaw_deg), 2)))
-        if all_corners_visible(pose, size_m, camera, ranges.margin_px):
+        if all_corners_visible(pose, outline, camera, ranges.margin_px):
             return pose
-    raise ValueError(f"no tag pose within {ranges} keeps every corner in a {camera.width}×{camera.height} image")
+    raise ValueError(f"no target pose within {ranges} keeps its whole outline in a {camera.width}×{camera.height} "
+                     "image")
 
 
 @dataclass(frozen=True)
@@ -110,7 +113,7 @@ def write_starts(base: Path, count: int, seed: int, out_dir: Path, ranges: Start
     out_dir.mkdir(parents=True, exist_ok=True)
     starts = []
     for index in range(count):
-        pose = random_start(rng, ranges, scenario.target.size_m, scenario.camera)
+        pose = random_start(rng, ranges, target_outline(scenario.target), scenario.camera)
         target = document.setdefault("target", {})
         target.pop("pose_in_base", None)
         target["pose_in_camera"] = {"xyz": list(pose.xyz), "rpy_deg": list(pose.rpy_deg)}

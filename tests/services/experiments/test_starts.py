@@ -7,13 +7,15 @@ import pytest
 
 from services.experiments.random_starts import random_starts_summary, shaped_by, start_summary
 from services.paths import SCENARIOS
-from services.robot_sim.scene import CameraConfig
+from services.model import tag as tags
+from services.robot_sim.scene import CameraConfig, TargetConfig, TargetKind, target_outline
 from services.model.frames import PoseConfig
 from services.servo.scenario import load_scenario
 from services.experiments.starts import (TABLE2_LIKE, Start, all_corners_visible, corners_in_image, quartiles,
                                          random_start, write_starts)
 
 TABLE2 = SCENARIOS / "table2.yaml"
+TAG = tags.corners_in_tag(0.0962)
 
 
 def test_starts_are_loadable_reproducible_and_within_the_ranges(tmp_path):
@@ -34,7 +36,7 @@ def test_starts_are_loadable_reproducible_and_within_the_ranges(tmp_path):
         roll, pitch, yaw = pose.rpy_deg
         assert r.ahead_m[0] <= z <= r.ahead_m[1] and abs(x) <= r.off_centre_m and abs(y) <= r.off_centre_m
         assert abs(roll - 180.0) <= r.roll_deg and abs(pitch) <= r.pitch_deg and abs(yaw) <= r.yaw_deg
-        pixels = corners_in_image(pose, scenario.target.size_m, scenario.camera)
+        pixels = corners_in_image(pose, target_outline(scenario.target), scenario.camera)
         assert np.all(pixels >= r.margin_px) and np.all(pixels[:, 0] <= 639 - r.margin_px)
         assert np.all(pixels[:, 1] <= 479 - r.margin_px)
         assert f"--seed 7: start {start.index}" in start.scenario.read_text()
@@ -42,15 +44,29 @@ def test_starts_are_loadable_reproducible_and_within_the_ranges(tmp_path):
 
 def test_a_pose_with_a_corner_outside_the_image_is_drawn_again():
     camera = CameraConfig()
-    assert all_corners_visible(PoseConfig(xyz=(0.0, 0.0, 0.5), rpy_deg=(180.0, 0.0, 0.0)), 0.0962, camera, 10.0)
+    assert all_corners_visible(PoseConfig(xyz=(0.0, 0.0, 0.5), rpy_deg=(180.0, 0.0, 0.0)), TAG, camera, 10.0)
     # 0.26 m off the axis at 0.5 m: the tag's centre at pixel 639.5 + 319.5, half of it beyond the right edge
-    assert not all_corners_visible(PoseConfig(xyz=(0.26, 0.0, 0.5), rpy_deg=(180.0, 0.0, 0.0)), 0.0962, camera,
+    assert not all_corners_visible(PoseConfig(xyz=(0.26, 0.0, 0.5), rpy_deg=(180.0, 0.0, 0.0)), TAG, camera,
                                    10.0)
-    assert not all_corners_visible(PoseConfig(xyz=(0.0, 0.0, -0.5), rpy_deg=(180.0, 0.0, 0.0)), 0.0962, camera,
+    assert not all_corners_visible(PoseConfig(xyz=(0.0, 0.0, -0.5), rpy_deg=(180.0, 0.0, 0.0)), TAG, camera,
                                    10.0)  # behind the camera
     tiny = CameraConfig(width=64, height=48, fx=615.0, fy=615.0)
-    with pytest.raises(ValueError, match="keeps every corner"):
-        random_start(random.Random(0), TABLE2_LIKE, 0.0962, tiny)
+    with pytest.raises(ValueError, match="keeps its whole outline"):
+        random_start(random.Random(0), TABLE2_LIKE, TAG, tiny)
+
+
+@pytest.mark.parametrize("kind", [TargetKind.PLANE, TargetKind.CUP])
+def test_starts_over_any_target_keep_its_whole_outline_in_view(kind):
+    """The same draws for a markerless object: every point of its outline (a plane's corners, a cup's silhouette)
+    in the image; the cup's outline holds its rim, its base and its handle."""
+    target = TargetConfig(kind=kind)
+    outline = target_outline(target)
+    assert len(outline) == (4 if kind == TargetKind.PLANE else 25)
+    rng, camera = random.Random(3), CameraConfig()
+    for _ in range(20):
+        pose = random_start(rng, TABLE2_LIKE, outline, camera)
+        pixels = corners_in_image(pose, outline, camera)
+        assert np.all(pixels >= TABLE2_LIKE.margin_px) and np.all(pixels[:, 0] <= 639 - TABLE2_LIKE.margin_px)
 
 
 def test_quartiles():
