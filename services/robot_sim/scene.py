@@ -469,14 +469,14 @@ def _textured_cup(spec: mujoco.MjSpec, body, name: str, cup: CupShape, texture_p
     vertices, uv, faces = [], [], []
     for i in range(CUP_SEGMENTS + 1):
         u = i / CUP_SEGMENTS
-        angle = 2.0 * math.pi * (u - 0.25)  # u = 0.5 (the print's middle) at +z
-        x, z = r * math.cos(angle), -r * math.sin(angle)
+        angle = 2.0 * math.pi * (u - 0.5)  # from +z toward +x: the print's middle faces +z, and reads left to right
+        x, z = r * math.sin(angle), r * math.cos(angle)
         for j, y in enumerate((-h / 2, h / 2)):
             vertices += [x, y, z]
             uv += [u, 1.0 - j]
     for i in range(CUP_SEGMENTS):
         a, b, c, d = 2 * i, 2 * i + 1, 2 * i + 2, 2 * i + 3
-        faces += [a, b, c, b, d, c]  # outward: counter-clockwise seen from outside
+        faces += [a, c, b, b, c, d]  # counter-clockwise seen from outside: the wall's outer side is drawn
     mesh = spec.add_mesh(name=f"{name}_wall")
     mesh.uservert, mesh.usertexcoord, mesh.userface, mesh.userfacetexcoord = vertices, uv, faces, faces
     body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"{name}_wall", material=material,

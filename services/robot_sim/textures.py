@@ -34,17 +34,19 @@ def procedural_texture(seed: int, width: int = 512, height: int = 512) -> np.nda
     tint = rng.uniform(0.6, 1.0, 3)
     image = np.clip(shading[:, :, None] * tint, 0, 255).astype(np.uint8)
     side = min(width, height)
-    for _ in range(int(rng.integers(30, 50))):
+    #: as many marks per area whatever the print's shape (a cup's wall is 2.6 times as wide as it is tall)
+    area = width * height / 512.0 ** 2
+    for _ in range(int(rng.integers(30, 50) * area)):
         colour = tuple(int(v) for v in rng.integers(0, 256, 3))
         centre = (int(rng.integers(0, width)), int(rng.integers(0, height)))
         axes = (int(rng.integers(side // 100 + 3, side // 12)), int(rng.integers(side // 100 + 3, side // 12)))
         cv2.ellipse(image, centre, axes, float(rng.uniform(0, 180)), 0, 360, colour, -1, cv2.LINE_AA)
-    for _ in range(int(rng.integers(8, 16))):
+    for _ in range(int(rng.integers(8, 16) * area)):
         colour = tuple(int(v) for v in rng.integers(0, 256, 3))
         a = (int(rng.integers(0, width)), int(rng.integers(0, height)))
         b = (int(rng.integers(0, width)), int(rng.integers(0, height)))
         cv2.line(image, a, b, colour, int(rng.integers(2, 6)), cv2.LINE_AA)
-    for _ in range(int(rng.integers(6, 12))):
+    for _ in range(int(rng.integers(6, 12) * area)):
         text = "".join(rng.choice(_GLYPHS, int(rng.integers(2, 5))))
         scale = float(rng.uniform(0.6, 2.0)) * side / 512
         at = (int(rng.integers(0, max(1, width - 60))), int(rng.integers(30, height)))
