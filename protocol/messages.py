@@ -374,22 +374,29 @@ class Features(Message):
         return list(self.weights) if self.weights else [1.0] * len(self.points)
 
 
+#: the largest taught-goal file a message carries (services/vision/taught.py)
+MAX_GOAL_FILE_BYTES = 16 * 1024 * 1024
+
+
 class VisionGoal(Message):
-    """The goal of the visual task: either explicit features with one depth (like Sensors 2022 Table 2), or the
-    desired camera pose in the tag frame, from which vision computes the features. ``teach`` takes the current
-    features as the goal."""
+    """The goal of the visual task: explicit features with one depth (like Sensors 2022 Table 2), the desired
+    camera pose in the tag frame (vision computes the features), ``teach``: the current features, or
+    ``taught_file``: a taught goal's file (``mfvs teach``; the keypoint front end then finds it), as the person
+    keeps it."""
 
     header: Header
     features: Optional[Points] = None
     depth_m: Optional[Positive] = None
     camera_in_tag: Optional[Pose] = None
     teach: bool = False
+    taught_file: Optional[Annotated[bytes, msgspec.Meta(max_length=MAX_GOAL_FILE_BYTES)]] = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        given = sum([self.features is not None, self.camera_in_tag is not None, self.teach])
+        given = sum([self.features is not None, self.camera_in_tag is not None, self.teach,
+                     self.taught_file is not None])
         if given != 1:
-            raise ValueError("give exactly one of features (with depth_m), camera_in_tag, or teach")
+            raise ValueError("give exactly one of features (with depth_m), camera_in_tag, teach, or taught_file")
         if self.features is not None and (self.depth_m is None or len(self.features) == 0):
             raise ValueError("explicit goal features need depth_m and at least one point")
 
@@ -398,7 +405,52 @@ class VisionGoalReply(Message):
     ok: bool
     message: Annotated[str, msgspec.Meta(max_length=256)] = ""
     goal_points: Points = []
-    goal_depths: Annotated[list[Positive], msgspec.Meta(max_length=64)] = []
+    goal_depths: PointDepths = []
+    #: the front end the goal is measured by, and a taught goal's name and digest
+    front_end: FrontEnd = FrontEnd.TAG
+    goal: Optional[GoalName] = None
+    goal_digest: Optional[GoalDigest] = None
+
+
+class TeachPhase(str, enum.Enum):
+    """The steps of teaching a view (services/vision/teach.py): the first view; the second, after the arm moved a
+    known few centimetres (its depths by triangulation); the goal made and kept; or given up."""
+
+    BEGIN = "begin"
+    SECOND_VIEW = "second_view"
+    FINISH = "finish"
+    CANCEL = "cancel"
+
+
+class TeachRequest(Message):
+    """vision's ``teach`` function: one step of teaching the current view as a goal."""
+
+    header: Header
+    phase: TeachPhase
+    operator: Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+    #: begin: the object's region in the image (px, a polygon of 3 or more; empty: the frame less a border)
+    region_px: Annotated[list[Point2], msgspec.Meta(max_length=64)] = []
+    #: begin: sift or orb ("": vision's configured one)
+    detector: Annotated[str, msgspec.Meta(pattern="^(|sift|orb)$")] = ""
+    #: finish: the goal's name
+    name: GoalName = "taught"
+
+
+class TeachReply(Message):
+    ok: bool
+    phase: TeachPhase
+    message: Annotated[str, msgspec.Meta(max_length=512)] = ""
+    #: begin: keypoints found in the region; second view: the ones triangulated
+    keypoints: NonNegInt = 0
+    #: second view: whether the object is planar (its plane fits the points), the triangulation's median error
+    planar: Optional[bool] = None
+    triangulation_error_px: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+    #: the camera's measured motion between the two views (m, first camera's frame)
+    probe_m: Optional[Vec3] = None
+    #: finish: the goal (now vision's) and its file, for the person to keep
+    goal: Optional[GoalName] = None
+    goal_digest: Optional[GoalDigest] = None
+    goal_file: Annotated[bytes, msgspec.Meta(max_length=MAX_GOAL_FILE_BYTES)] = b""
 
 
 # --------------------------------------------------------------------------------------------------- control

@@ -84,3 +84,31 @@ def singularity_measure(J: np.ndarray, length_m: float) -> float:
     :func:`normalized_jacobian` (0 at a singularity; the j2s7s300 at its home pose: 0.13). With every joint at
     1 rad/s the end effector can move at least this fast in any direction, in rad/s or arm lengths per second."""
     return float(np.linalg.svd(normalized_jacobian(J, length_m), compute_uv=False)[-1])
+
+
+def inverse_kinematics(kin: ArmKinematics, q0, target_R: np.ndarray, target_p: np.ndarray, tool: np.ndarray = None,
+                       tolerance_m: float = 1e-6, tolerance_rad: float = 1e-6, damping: float = 1e-6,
+                       max_iterations: int = 500) -> tuple[np.ndarray, bool]:
+    """Joint angles that put the frame ``tool`` (its pose in the end effector's frame, 4×4; default the end effector)
+    at (``target_R``, ``target_p``) in the base frame, from ``q0``: damped Gauss-Newton on the pose's error in the
+    tool's own frame (Pinocchio's closed-loop inverse kinematics, its log₆ error and the frame's local Jacobian,
+    Jlog₆ applied), the joints kept within their limits; (q, whether it arrived within the tolerances). A redundant
+    arm ends near ``q0``: each step is the least-norm one."""
+    tool = np.eye(4) if tool is None else np.asarray(tool, dtype=float)
+    goal = pin.SE3(np.asarray(target_R, dtype=float), np.asarray(target_p, dtype=float))
+    ee_in_tool = pin.SE3(tool[:3, :3], tool[:3, 3]).inverse()
+    lower, upper = kin.arm.model_limits()
+    q = np.array(q0, dtype=float)
+    for _ in range(max_iterations):
+        pin.computeJointJacobians(kin.model, kin.data, q)
+        pin.updateFramePlacements(kin.model, kin.data)
+        ee = kin.data.oMf[kin.ee_frame_id]
+        tool_now = ee * pin.SE3(tool[:3, :3], tool[:3, 3])
+        error = pin.log6(tool_now.inverse() * goal).vector
+        if np.linalg.norm(error[:3]) <= tolerance_m and np.linalg.norm(error[3:]) <= tolerance_rad:
+            return q, True
+        J_ee = pin.getFrameJacobian(kin.model, kin.data, kin.ee_frame_id, pin.LOCAL)
+        J = pin.Jlog6(tool_now.inverse() * goal) @ ee_in_tool.action @ J_ee
+        step = J.T @ np.linalg.solve(J @ J.T + damping * np.eye(6), error)
+        q = np.clip(q + step, np.where(np.isfinite(lower), lower, -np.inf), np.where(np.isfinite(upper), upper, np.inf))
+    return q, False

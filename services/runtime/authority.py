@@ -92,7 +92,7 @@ def queries(keys: Keys) -> dict[str, list[str]]:
     return {"safety": sorted(keys.robot_api(f) for f in kinova.MUTATING_API_FUNCTIONS),
             # the person starts and stops the servo task (the stack comes up idle), and runs the commissioning check
             # (the robot moves itself for it, at their confirmation)
-            "operator": [keys.vision_api("set_goal"), keys.controller_api(m.START_TASK),
+            "operator": [keys.vision_api("set_goal"), keys.vision_api("teach"), keys.controller_api(m.START_TASK),
                          keys.controller_api(m.STOP_TASK), keys.robot_check_arm],
             # the torque-mode setup (the JACO thesis's Table 5.1) is made by the client that commands the torques
             "torque_controller": sorted(keys.robot_api(f) for f in kinova.TORQUE_SETUP_FUNCTIONS)}
@@ -109,7 +109,7 @@ def queryables(keys: Keys, services=DEFAULT_SERVICES) -> dict[str, list[str]]:
     robot = [keys.robot_api_all, keys.robot_check_arm]
     return {"robot_sim": robot + ([] if camera else [keys.camera_info]), "robot_gateway": robot,
             "camera": [keys.camera_info] if camera else [],
-            "vision": [keys.vision_api("set_goal"), keys.vision_api("get_goal")],
+            "vision": [keys.vision_api("set_goal"), keys.vision_api("get_goal"), keys.vision_api("teach")],
             "controller": [keys.controller_api(f) for f in m.TASK_FUNCTIONS]}
 
 

@@ -27,10 +27,15 @@ from protocol.conventions import IMAGE_AGE_BUDGET_S
 from protocol.messages import (
     CameraInfo,
     Features,
+    MAX_FEATURE_POINTS,
     Image,
     KeypointView,
     ProtocolError,
+    RobotState,
     TagView,
+    TeachPhase,
+    TeachReply,
+    TeachRequest,
     VisionGoal,
     VisionGoalReply,
     decode,
@@ -43,15 +48,15 @@ from services.model.frames import PoseConfig
 from services.runtime.service import Service, ServiceConfig, query_argument
 from services.runtime.threads import start_thread
 from services.vision import features as F
-from services.vision.core import VisionCore
+from services.vision.core import TABLE2_DEPTH, TABLE2_GOAL, VisionCore, goal_from_config
+from services.vision.keypoints import KeypointConfig
+from services.vision.taught import read_goal
+from services.vision.teach import TeachConfig
 from services.runtime.ports import Port, Ports
 
 #: lockstep: how long the first frame without camera info waits for it (the robot's own wait for a frame's answer)
 CAMERA_INFO_WAIT_S = 2.0
 
-#: Sensors 2022 Table 2's desired square (±0.1666 at 0.2888 m), in this project's corner order
-TABLE2_GOAL = ((-0.1666, -0.1666), (0.1666, -0.1666), (0.1666, 0.1666), (-0.1666, 0.1666))
-TABLE2_DEPTH = 0.2888
 
 
 class TagConfig(ConfigStruct):
@@ -71,17 +76,25 @@ class TagConfig(ConfigStruct):
 
 
 class GoalConfig(ConfigStruct):
-    """One of: features (normalized, corner order as detected) with depth_m; or camera_in_tag. Neither: Sensors 2022
-    Table 2's square (±0.1666 at 0.2888 m)."""
+    """One of: features (normalized, corner order as detected) with depth_m; camera_in_tag; or a taught goal's file
+    (``taught``: `mfvs teach`'s, found by the keypoint front end). None: Sensors 2022 Table 2's square (±0.1666 at
+    0.2888 m)."""
 
     features: Optional[list[tuple[float, float]]] = None
     #: the goal's depth, with features (default: Table 2's 0.2888 m); a camera_in_tag goal has its own depths
     depth_m: Optional[float] = None
     camera_in_tag: Optional[PoseConfig] = None
+    #: a taught goal's file (services/vision/taught.py), read when vision starts
+    taught: Optional[str] = None
 
     def __post_init__(self) -> None:
-        if self.features is not None and self.camera_in_tag is not None:
-            raise ValueError("give the goal as features or camera_in_tag, exactly one (features: null to use camera_in_tag)")
+        if sum(v is not None for v in (self.features, self.camera_in_tag, self.taught)) > 1:
+            raise ValueError("give the goal as features, camera_in_tag or taught, one of them (features: null to use "
+                             "another)")
+        if self.taught is not None:
+            if self.depth_m is not None:
+                raise ValueError("a taught goal has its own depths: give no depth_m with it")
+            return
         if self.camera_in_tag is not None:
             if self.depth_m is not None:
                 raise ValueError("a camera_in_tag goal has its own depths: give no depth_m with it")
@@ -115,12 +128,16 @@ class VisionConfig(ServiceConfig):
     border_margin_px: float = 2.0
     #: an image whose brightest pixel is below this is refused as all black (lens covered, camera fault)
     min_peak_brightness: int = 16
+    #: the keypoint front end (a taught goal's: services/vision/keypoints.py)
+    keypoints: KeypointConfig = msgspec.field(default_factory=KeypointConfig)
+    #: teach by showing (services/vision/teach.py)
+    teach: TeachConfig = msgspec.field(default_factory=TeachConfig)
 
 
 class VisionService(Service):
     name = "vision"
     PORTS = Ports(consumes=(Port("camera_image", Image), Port("camera_info", CameraInfo),
-                            Port("vision_goal", VisionGoal)),
+                            Port("vision_goal", VisionGoal), Port("robot_state", RobotState)),
                   produces=(Port("features", Features),),
                   answers=(Port("vision_api"),))
     clock_from_inputs = True  # the images
@@ -130,6 +147,9 @@ class VisionService(Service):
         super().__init__(config, **kw)
         self.config: VisionConfig = config
         self.core = VisionCore(config)
+        if config.goal.taught is not None:  # the person's goal file: read now, a bad one refused before anything runs
+            taught, _ = read_goal(config.goal.taught)
+            self.core.goal = self.core.set_taught(taught, None)
         #: the core's: held while it processes an image or changes the goal (queries wait one frame at most)
         self._core_lock = threading.Lock()
         self._lock = threading.Lock()
@@ -150,8 +170,10 @@ class VisionService(Service):
         self.subscribe(keys.camera_info, CameraInfo, self._on_camera_info, "camera_info")
         self.subscribe(keys.camera_image, Image, self._on_image, "image", sim_stamped=True)
         self.subscribe(keys.vision_goal, VisionGoal, lambda goal, _: self.set_goal(goal), "goal")
+        self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state")
         self.queryable(keys.vision_api("set_goal"), self._on_set_goal_query)
         self.queryable(keys.vision_api("get_goal"), self._on_get_goal_query)
+        self.queryable(keys.vision_api("teach"), self._on_teach_query)
         self._worker = start_thread(self._work, "vision-worker")
         self._request_camera_info()
 
@@ -187,9 +209,24 @@ class VisionService(Service):
         self._on_camera_info(info, 0)
 
     def _on_camera_info(self, info: CameraInfo, _recv_ns: int) -> None:
+        with self._core_lock:
+            taught = self.core.taught
+            problem = taught.mismatch(info, self.core.arm.name if self.core.arm else None) if taught else ""
+            if problem:  # a goal file taught through another camera: refused, and nothing is servoed to
+                self.core.use_tag()
+                self.core.goal = goal_from_config(self.config.goal if self.config.goal.taught is None
+                                                  else GoalConfig(), self.config.tag.size_m)
+        if problem:
+            self.refuse("goal", problem)
         with self._wake:
             self._info = info
             self._wake.notify_all()
+
+    def _on_state(self, state: RobotState, _recv_ns: int) -> None:
+        with self._core_lock:
+            why = self.core.robot_state(state)
+        if why:
+            self.refuse("robot_state", why)
 
     def _on_image(self, image: Image, recv_ns: int) -> None:
         with self._wake:
@@ -204,11 +241,38 @@ class VisionService(Service):
             with self._core_lock:
                 new = self.core.goal_from(goal)
                 self.core.goal = new
+                reply = self._goal_reply(new)
         except ValueError as exc:
             self.refuse("goal", str(exc))
-            return VisionGoalReply(ok=False, message=str(exc))
+            return VisionGoalReply(ok=False, message=str(exc)[:256])
         self.log.info("goal set from %s", new.description)
-        return VisionGoalReply(ok=True, goal_points=[tuple(p) for p in new.points], goal_depths=new.depths.tolist())
+        return reply
+
+    def _goal_reply(self, goal, message: str = "") -> VisionGoalReply:
+        """The goal as a reply (call with the core's lock held): its points and depths, front end, and name."""
+        points = [tuple(p) for p in goal.points][:MAX_FEATURE_POINTS]
+        taught = self.core.taught
+        return VisionGoalReply(ok=True, message=message[:256], goal_points=points,
+                               goal_depths=goal.depths.tolist()[:MAX_FEATURE_POINTS],
+                               front_end=self.core.front_end.kind, goal=taught.name if taught else None,
+                               goal_digest=taught.digest if taught else None)
+
+    def teach(self, request: TeachRequest) -> TeachReply:
+        with self._core_lock:
+            reply = self.core.teach_step(request, self.clock.now_ns())
+        if reply.ok:
+            self.log.info("teach %s (%s): %s", request.phase.value, request.operator, reply.message)
+        else:
+            self.refuse("teach", reply.message)
+        return reply
+
+    def _on_teach_query(self, query: zenoh.Query) -> None:
+        try:
+            reply = self.teach(query_argument(query, "teach", TeachRequest))
+        except ProtocolError as exc:
+            self.refuse("teach", str(exc))
+            reply = TeachReply(ok=False, phase=TeachPhase.CANCEL, message=str(exc)[:512])
+        query.reply(query.key_expr, encode(reply))
 
     def _on_set_goal_query(self, query: zenoh.Query) -> None:
         try:
@@ -226,10 +290,8 @@ class VisionService(Service):
             query.reply(query.key_expr, encode(VisionGoalReply(ok=False, message=str(exc)[:256])))
             return
         with self._core_lock:
-            goal = self.core.goal
-        query.reply(query.key_expr, encode(VisionGoalReply(
-            ok=True, message=goal.description, goal_points=[tuple(p) for p in goal.points],
-            goal_depths=goal.depths.tolist())))
+            reply = self._goal_reply(self.core.goal, self.core.goal.description)
+        query.reply(query.key_expr, encode(reply))
 
     # ------------------------------------------------------------------ processing
     def _work(self) -> None:
@@ -277,7 +339,7 @@ class VisionService(Service):
         for name in outcome.counts:
             self.counters.inc(name)
         header = self.header("features", source=image.header, recv_ns=recv_ns)
-        answer = dict(header=header, status=outcome.status, front_end=self.core.front_end.kind, detail=outcome.detail)
+        answer = dict(header=header, status=outcome.status, front_end=outcome.front_end, detail=outcome.detail)
         seen = outcome.seen
         if seen is None or seen.points is None:
             return Features(**answer, goal_points=[tuple(p) for p in goal.points], goal_depths=goal.depths.tolist())
