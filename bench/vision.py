@@ -127,9 +127,54 @@ def corner_accuracy(seeds: int = 4, imaging: ImagingConfig | None = None) -> lis
     return rows
 
 
+def keypoint_timing(frames: int) -> dict:
+    """The keypoint front end's wall time a 640×480 frame (one thread: OpenCV's own set to one), by detector and
+    object, at a frame it detects on (the taught descriptors matched anew) and at one it tracks on (LK from the
+    frame before), the camera moving 2 mm a frame toward the taught view from 0.35 m; its share of the camera's
+    33 ms at 30 Hz with one detection every ``detect_every`` frames."""
+    from services.model import frames as fr
+    from services.robot_sim.scene import TargetKind
+    from services.vision.keypoints import KeypointConfig, KeypointFrontEnd, taught_goal_points
+    from bench.markerless_rig import Rig, goal_target
+
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    out = {}
+    try:
+        for kind in (TargetKind.PLANE, TargetKind.CUP):
+            rig = Rig(goal_target(kind))
+            try:
+                grays = []
+                q = rig.moved(rig.home, (0.01, -0.01, -0.06), fr.rot_z(0.1))
+                for _ in range(frames):
+                    q = rig.moved(q, (0.0, 0.0, 0.002))
+                    grays.append(rig.gray(q))
+                for detector in ("sift", "orb"):
+                    goal = rig.teach(region=rig.target_region(12.0), detector=detector)
+                    config = KeypointConfig()
+                    timed = {"detect": [], "track": []}
+                    front = KeypointFrontEnd(goal, config)
+                    for gray in grays:
+                        t = time.perf_counter()
+                        seen = front.measure(gray, rig.camera, taught_goal_points(goal))
+                        if seen.view is not None:
+                            timed[seen.view.search].append((time.perf_counter() - t) * 1e3)
+                    detect, track = _percentiles(timed["detect"]), _percentiles(timed["track"] or [0.0])
+                    mean = (detect["p50"] + (config.detect_every - 1) * track["p50"]) / config.detect_every
+                    out[f"{kind.value}/{detector}"] = {"detect_ms": detect, "track_ms": track,
+                                                       "mean_ms_per_frame": round(mean, 2),
+                                                       "detect_every": config.detect_every,
+                                                       "keypoints_taught": len(goal.points_camera)}
+            finally:
+                rig.close()
+    finally:
+        cv2.setNumThreads(threads)
+    return out
+
+
 def run(frames: int = 100, seeds: int = 4) -> dict:
     return {"timing": {name: measure(camera, frames) for name, camera in CAMERAS.items()},
-            "corners": corner_accuracy(seeds)}
+            "corners": corner_accuracy(seeds), "keypoints_640x480": keypoint_timing(max(10, frames // 4))}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -150,6 +195,11 @@ def main(argv: list[str] | None = None) -> int:
                   f"{ad['p50']:.2f} and {aw['p50']:.2f} ms p50); the service's features (grayscale, window "
                   f"detection, refinement, pose, error) {p['p50']:.2f} ms p50, {p['p99']:.2f} ms p99 "
                   f"({d['n']} frames)")
+        print("\nthe keypoint front end at 640x480 (one thread), a detection frame and a tracking frame, p50 / p99 ms:")
+        for name, r in result["keypoints_640x480"].items():
+            print(f"  {name:12s} detect {r['detect_ms']['p50']:6.1f} / {r['detect_ms']['p99']:6.1f}   track "
+                  f"{r['track_ms']['p50']:5.1f} / {r['track_ms']['p99']:5.1f}   mean a frame (1 detection in "
+                  f"{r['detect_every']}) {r['mean_ms_per_frame']:5.1f} ms ({r['keypoints_taught']} keypoints taught)")
         webcam = ImagingConfig()
         print(f"\ncorner error (px, worst corner) against the mid-exposure truth, through a webcam-like camera "
               f"(noise σ {webcam.noise_sigma}, JPEG {webcam.jpeg_quality}), median / worst of {args.seeds} draws; "

@@ -315,6 +315,8 @@ class KeypointView(Message):
     object_pose_in_camera: Optional[Pose] = None
     #: the taught region's outline in this image (px), where the pose is known
     region_px: Points = []
+    #: how long the front end took on this image (ms of wall time, for the figures: not part of what it measured)
+    took_ms: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
 
 
 class Features(Message):

@@ -24,6 +24,7 @@ from services.cli.commands import (
     cmd_servo,
     cmd_status,
     cmd_task,
+    cmd_teach,
     cmd_up,
     mfvs_version,
     operator_session,
@@ -194,6 +195,13 @@ def _add_servo_commands(sub) -> None:
                                  "same speeds), without the runs that check the thesis's observations")
     experiment.add_argument("--runs", default=None, metavar="LABEL,...",
                             help="torque-control: only these runs (their labels, e.g. jt-pid,joint-velocity)")
+    experiment.add_argument("--object", default="plane", choices=("plane", "cup"),
+                            help="markerless: the object taught and servoed to (a textured box face, or a cup)")
+    experiment.add_argument("--texture", default=None, metavar="FILE",
+                            help="markerless: an image printed on the object (default: the procedural print)")
+    experiment.add_argument("--perturb", action="append", default=None, metavar="lighting|occlusion|swap",
+                            help="markerless: the servo lit otherwise than the teach, an occluder crossing the "
+                                 "object, or the object swapped for another (may be given more than once)")
     add_jobs_option(experiment)
     add_processes_option(experiment)
     add_arm_option(experiment, default=None, what="the scenario's; torque-control: j2n6s300")
@@ -245,8 +253,28 @@ def _add_operator_commands(sub) -> None:
     task.add_argument("--operator", default="mfvs-cli", help="who is asking (logged, and kept in the task status)")
     task.add_argument("--reason", default="", help="why (logged)")
     task.add_argument("--json", action="store_true", help="print the task status as one JSON object")
+    task.add_argument("--goal", default=None, metavar="FILE",
+                      help="start: servo to this taught goal (mfvs teach's file; refused when its camera, "
+                           "resolution or arm differ from the stack's)")
     add_connection_options(task)
     task.set_defaults(func=cmd_task)
+
+    teach = sub.add_parser("teach", help="teach the current view as a goal (no marker): the arm moves the camera a "
+                                         "few centimetres sideways and back to measure the object's depth, once "
+                                         "you confirm; the goal is kept in a file")
+    teach.add_argument("--name", default="taught", help="the goal's name (default taught)")
+    teach.add_argument("--out", default=None, metavar="FILE",
+                       help="where to keep the goal (default ./NAME.mfvsgoal)")
+    teach.add_argument("--region", default=None, metavar="X0,Y0,X1,Y1",
+                       help="the object's region in the image (px; default: the frame less a border)")
+    teach.add_argument("--detector", default="", choices=("", "sift", "orb"),
+                       help="sift (accurate; vision's default) or orb (fast)")
+    teach.add_argument("--probe-cm", type=float, default=3.0,
+                       help="how far the camera moves sideways to measure depth (cm, default 3)")
+    teach.add_argument("--yes", action="store_true", help="do not ask before the arm moves (the way is clear)")
+    teach.add_argument("--operator", default="mfvs-cli", help="who is teaching (logged)")
+    add_connection_options(teach)
+    teach.set_defaults(func=cmd_teach)
 
     authority = sub.add_parser("authority", help="write zenoh configs where only safety may command the robot")
     authority.add_argument("action", choices=["init"])

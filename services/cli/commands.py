@@ -213,6 +213,14 @@ def cmd_task(args: argparse.Namespace) -> int:
         return 2
     function = {"start": m.START_TASK, "stop": m.STOP_TASK, "status": m.GET_TASK}[args.action]
     request = None if function == m.GET_TASK else m.TaskRequest(operator=args.operator, reason=args.reason)
+    if args.goal is not None:
+        if args.action != "start":
+            print("task: --goal is for task start", file=sys.stderr)
+            session.close()
+            return 2
+        if not _give_goal(session, Keys(args.robot_id), args.goal, args.timeout):
+            session.close()
+            return 2
     try:
         status = call_task(session, Keys(args.robot_id), function, request, args.timeout)
     except TaskUnavailable as exc:
@@ -225,6 +233,75 @@ def cmd_task(args: argparse.Namespace) -> int:
     else:
         print(describe_task(status))
     return 0 if status.ok else 1
+
+
+def _give_goal(session, keys, path: str, timeout_s: float) -> bool:
+    """A taught goal's file to vision before the task starts; whether vision took it (it says why not, in a line)."""
+    from services.vision.taught import read_goal
+    from services.vision.teach_client import TeachFailed, set_taught_goal
+
+    try:
+        goal, payload = read_goal(path)
+        reply = set_taught_goal(session, keys, payload, timeout_s)
+    except (ValueError, TeachFailed) as exc:
+        print(f"task start: {exc}", file=sys.stderr)
+        return False
+    if not reply.ok:
+        print(f"task start: vision refused the goal: {reply.message}", file=sys.stderr)
+        return False
+    print(f"goal {reply.goal} ({reply.goal_digest}): {len(goal.points_camera)} keypoints, the keypoint front end")
+    return True
+
+
+def cmd_teach(args: argparse.Namespace) -> int:
+    """Teach the current view (services/vision/teach_client.py) and keep the goal in a file."""
+    from pathlib import Path
+
+    from protocol.keys import Keys
+    from services.vision.teach_client import TeachFailed, teach
+
+    region = ()
+    if args.region is not None:
+        try:
+            x0, y0, x1, y1 = (float(v) for v in args.region.split(","))
+        except ValueError:
+            print("teach: --region takes X0,Y0,X1,Y1 (px)", file=sys.stderr)
+            return 2
+        region = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    if not 0.5 <= args.probe_cm <= 10.0:
+        print("teach: --probe-cm must be within 0.5..10", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path(f"{args.name}.mfvsgoal")
+
+    def confirm(question: str) -> bool:
+        if args.yes:
+            return True
+        if not sys.stdin.isatty():
+            print(f"teach: {question} (answer on a terminal, or give --yes)", file=sys.stderr)
+            return False
+        return input(f"{question} [y/N] ").strip().lower() in ("y", "yes")
+
+    try:
+        session = operator_session(args)
+    except Exception as exc:
+        print(f"teach: cannot reach the router at {args.connect} ({exc}); is the stack up?", file=sys.stderr)
+        return 2
+    try:
+        result = teach(session, Keys(args.robot_id), args.name, args.operator, region_px=region,
+                       probe_m=(args.probe_cm / 100.0, 0.0, 0.0), detector=args.detector, confirm=confirm,
+                       say=lambda line: print(f"  {line}", flush=True))
+    except TeachFailed as exc:
+        print(f"teach: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        session.close()
+    from services.vision.taught import decode_goal, write_goal
+
+    write_goal(decode_goal(result.file).file, out)
+    print(f"taught {result.goal} ({result.digest}): {result.keypoints} keypoints, "
+          f"{'planar' if result.planar else 'not planar'}, kept in {out}; vision servos to it at `mfvs task start` "
+          f"(again later: mfvs task start --goal {out})")
+    return 0
 
 
 def cmd_authority(args: argparse.Namespace) -> int:
@@ -362,7 +439,8 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 
 #: the options of ``mfvs experiment`` that some experiments take and others not (each runner declares its own:
 #: services.experiments.registry.RUNNERS)
-EXPERIMENT_OPTIONS = ("scenario", "random_starts", "seed", "quick", "runs", "jobs", "processes")
+EXPERIMENT_OPTIONS = ("scenario", "random_starts", "seed", "quick", "runs", "jobs", "processes", "object", "texture",
+                      "perturb")
 
 
 def servo_experiment(args: argparse.Namespace) -> int:
@@ -387,6 +465,47 @@ def servo_experiment(args: argparse.Namespace) -> int:
         print(json.dumps(output), flush=True)
     else:
         _print_experiment(output)
+    return 0
+
+
+def markerless_experiment(args: argparse.Namespace) -> int:
+    """``mfvs experiment markerless``: teach by showing at the goal, then servo from random starts
+    (services.experiments.markerless)."""
+    from pathlib import Path
+
+    from services.experiments.markerless import run_markerless
+    from services.runtime.config import ConfigError
+
+    if not jobs_or_exit("experiment", args.jobs):
+        return 2
+    if args.arm is not None and arm_or_exit("experiment", args.arm) is None:
+        return 2
+    perturb = tuple(p for group in (args.perturb or []) for p in group.split(",") if p)
+    count = args.random_starts if args.random_starts is not None else 20
+    stream = sys.stderr if args.json else sys.stdout
+
+    def progress(label: str, row: dict) -> None:
+        mm, deg = row.get("final_position_error_mm"), row.get("final_rotation_error_deg")
+        extra = f"  {mm} mm {deg}°" if mm is not None else f"  {row.get('failure') or ''}"
+        swap = f"  held {row['held']}, {row['travel_after_swap_mm']} mm after the swap" if "held" in row else ""
+        print(f"  {label:8s} {row['status']:14s} {row['iterations']:5d} iterations (tag "
+              f"{row.get('tag', {}).get('iterations', '–')}){extra}{swap}", file=stream, flush=True)
+
+    try:
+        output = run_markerless(args.object, args.texture, count, args.seed, args.arm, perturb, args.out, args.jobs,
+                                progress, Path(args.scenario) if args.scenario else None)
+    except (ConfigError, ValueError) as exc:
+        print(f"mfvs experiment: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(output), flush=True)
+        return 0
+    s = output["summary"]
+    print(f"{output['title']}: succeeded on {s['succeeded']}/{s['starts']} (Wilson 95 % {s['wilson_95']}); final "
+          f"error median {s['final_position_error_mm']['median']} mm, {s['final_rotation_error_deg']['median']}°; "
+          f"iterations over the tag's, median {s['iterations_over_tag']['median']}")
+    if output["report"]:
+        print(f"report: {output['report']}")
     return 0
 
 

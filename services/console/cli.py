@@ -34,6 +34,8 @@ def add_parser(sub, add_connection_options, stack_connection) -> None:
                                                          "certs/console.pem and .key next to the operator's config)")
     console.add_argument("--http", action="store_true", help="plain HTTP even where the deployment has a "
                                                              "certificate for the console")
+    console.add_argument("--goals-dir", default="~/.local/share/mfvs/goals",
+                         help="where the goals taught from the page are kept (default ~/.local/share/mfvs/goals)")
     add_connection_options(console)
     console.set_defaults(func=lambda args: run(args, stack_connection))
 
@@ -93,7 +95,7 @@ def run(args: argparse.Namespace, stack_connection) -> int:
     except (OSError, ValueError) as exc:
         return _fail(f"cannot use the certificate {certificate[0]}: {exc}")
     setup_logging("info")
-    config = ConsoleConfig(robot_id=args.robot_id, action_timeout_s=args.timeout,
+    config = ConsoleConfig(robot_id=args.robot_id, action_timeout_s=args.timeout, goals_dir=args.goals_dir,
                            zenoh=ZenohConfig(connect=[args.connect], config_file=args.zenoh_config))
     try:
         service = ConsoleService(config).start()

@@ -50,6 +50,9 @@ class Action(str, enum.Enum):
     TASK_STOP = "task_stop"
     ESTOP_ENGAGE = "estop_engage"
     ESTOP_RELEASE = "estop_release"
+    #: teach the current view as the goal (services/vision/teach_client.py): the arm moves the camera a few
+    #: centimetres and back, once the person confirmed on the page
+    TEACH = "teach"
 
 
 #: the longest message the page sends (a request is a few hundred bytes)
@@ -71,8 +74,12 @@ class ActionMessage(msgspec.Struct, tag="action", tag_field="type", forbid_unkno
     #: who asks and why, as `mfvs task --operator --reason` takes them
     operator: Annotated[str, msgspec.Meta(max_length=64)] = ""
     reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
-    #: the person confirmed it on the page (a release needs it)
+    #: the person confirmed it on the page (a release and a teach need it)
     confirm: bool = False
+    #: a teach: the object's region the person drew on the image (px, the image's own; none: the frame less a
+    #: border), and the goal's name
+    region_px: Annotated[list[tuple[float, float]], msgspec.Meta(max_length=64)] = []
+    name: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.\-]{0,64}$")] = ""
     token: Token = ""
 
 
@@ -208,11 +215,13 @@ class Situation:
 
 @dataclass(frozen=True)
 class Command:
-    """A request cleared to go to the stack, who it is from filled in."""
+    """A request cleared to go to the stack, who it is from filled in (a teach: its region and name)."""
 
     action: Action
     operator: str
     reason: str
+    region_px: tuple = ()
+    name: str = ""
 
 
 #: who a stop is from when the page does not say: a stop never waits for a name
@@ -237,6 +246,19 @@ def decide(request: ActionMessage, access: Access, situation: Situation) -> Comm
     elif action is Action.ESTOP_ENGAGE:
         if situation.estop_engaged:
             raise Refused("already_engaged", "the e-stop is already engaged (safety says so): nothing sent")
+    elif action is Action.TEACH:
+        if not request.confirm:
+            raise Refused("unconfirmed", "a teach moves the arm: it needs a confirmation on the page")
+        if not operator:
+            raise Refused("operator", "say who teaches (the operator's name)")
+        if situation.estop_engaged is None:
+            raise Refused("safety_silent", "safety is not reporting: nothing moves without it")
+        if situation.estop_engaged:
+            raise Refused("estop_engaged", "the e-stop is engaged: release it before teaching")
+        if request.region_px and len(request.region_px) < 3:
+            raise Refused("region", "a region needs three corners or more (drag a box on the image)")
+        return Command(action, operator, reason, tuple(tuple(p) for p in request.region_px),
+                       request.name or "taught")
     elif action is Action.ESTOP_RELEASE:
         if not request.confirm:
             raise Refused("unconfirmed", "releasing the e-stop needs a confirmation on the page")
@@ -353,6 +375,8 @@ class ConsoleModel:
         self.safety: Optional[m.SafetyStatus] = None
         self.safety_at = -math.inf
         self.task: Optional[m.TaskStatus] = None
+        #: the last goal taught from the page (its name, digest and file)
+        self.taught: Optional[dict] = None
         self.task_known = False
         self.error = _Series(series_s)
         self.speed = _Series(series_s)
@@ -494,6 +518,11 @@ class ConsoleModel:
             verb = "running" if task.state is m.TaskState.RUNNING else "idle"
             self.note("task", "info", f"task {task.task} {verb}{who}", now)
 
+    def on_taught(self, goal: str, digest: str, path: str, now: float) -> None:
+        """A goal taught from the page: what the page shows of it, and where it is kept."""
+        self.taught = {"goal": goal, "digest": digest, "path": path}
+        self.note("teach", "info", f"goal {goal} ({digest}) taught; kept in {path}", now)
+
     def on_health(self, found: dict[str, m.ServiceHealth], now: float) -> None:
         """Every service's health as it answered; one that answered before and not now is gone."""
         for name, health in found.items():
@@ -549,7 +578,11 @@ class ConsoleModel:
         return json_safe({
             "type": "status", "estop": {"engaged": situation.estop_engaged}, "safety": safety, "task": task,
             "controller": controller, "features": None if self.features is None else {
-                "status": self.features.status.value, "error_norm": self.features.error_norm},
+                "status": self.features.status.value, "error_norm": self.features.error_norm,
+                "front_end": self.features.front_end.value, "detail": self.features.detail,
+                "goal": self.features.keypoints.goal if self.features.keypoints else None,
+                "inliers": self.features.keypoints.inliers if self.features.keypoints else None},
+            "taught": self.taught,
             "error": self.error.relative(),
             "speed": {**self.speed.relative(), "now": self.speed_now,
                       "limit": limits.linear_speed_mps if limits is not None else None,

@@ -8,6 +8,7 @@ operator's key) and its own health; the task is asked of the controller."""
 from __future__ import annotations
 
 import threading
+from pathlib import Path
 import time
 from typing import Callable, Optional
 
@@ -39,6 +40,8 @@ class ConsoleConfig(ServiceConfig):
     jpeg_quality: int = 80
     #: how long an action waits for the controller's answer or safety's confirmation (s)
     action_timeout_s: float = 5.0
+    #: where the goals taught from the page are kept (a person gives one again: mfvs task start --goal FILE)
+    goals_dir: str = "~/.local/share/mfvs/goals"
     #: how often each service's health and the task are asked (s)
     poll_period_s: float = 1.0
 
@@ -214,12 +217,36 @@ class ConsoleService(Service):
         with self.lock:
             self.model.note("console", "warning", f"refused: {message}", time.time())
 
+    def _teach(self, command: Command) -> tuple[bool, str]:
+        """The whole teach (its two moves included), its goal kept in the goals folder."""
+        from services.vision.teach_client import TeachFailed, teach
+
+        def said(line: str) -> None:
+            with self.lock:
+                self.model.note("teach", "info", line, time.time())
+
+        try:
+            result = teach(self.session, self.keys, command.name, command.operator, region_px=command.region_px,
+                           confirm=lambda _: True, say=said)  # (confirmed on the page: decide() checked it)
+        except TeachFailed as exc:
+            return False, str(exc)
+        folder = Path(self.config.goals_dir).expanduser()
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"{result.goal}.mfvsgoal"
+        path.write_bytes(result.file)
+        with self.lock:
+            self.model.on_taught(result.goal, result.digest, str(path), time.time())
+        return True, (f"taught {result.goal} ({result.digest}): {result.keypoints} keypoints, "
+                      f"{'planar' if result.planar else 'not planar'}; kept in {path}")
+
     def perform(self, command: Command) -> tuple[bool, str]:
         """Carry out a request the rules let through (blocking: up to the action timeout); (done, what happened)."""
         self.counters.inc(f"actions.{command.action.value}")
         with self.lock:
             self.model.note("console", "info", f"{command.operator} asks: {command.action.value.replace('_', ' ')}"
                             + (f" ({command.reason})" if command.reason else ""), time.time())
+        if command.action is Action.TEACH:
+            return self._teach(command)
         if command.action in (Action.TASK_START, Action.TASK_STOP):
             function = m.START_TASK if command.action is Action.TASK_START else m.STOP_TASK
             try:

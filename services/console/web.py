@@ -197,7 +197,7 @@ class ConsoleWeb:
         pump = asyncio.create_task(page.pump(self.service))
         page.tell({"type": "hello", "robot_id": self.service.config.robot_id,
                    "token_required": self.access.token_required, "authenticated": page.authenticated,
-                   "actions": ["task_start", "task_stop", "estop_engage", "estop_release"]})
+                   "actions": ["task_start", "task_stop", "estop_engage", "estop_release", "teach"]})
         try:
             async for message in ws:
                 if message.type == WSMsgType.TEXT:

@@ -45,6 +45,10 @@ class RunTask:
     plots: bool = False
     #: every service a process of its own, as deployed, rather than composed (:func:`services.servo.run`)
     processes: bool = False
+    #: a run of another kind than one servo task: ``module:function`` taking (task, each) and returning what the
+    #: experiment makes of it (the markerless experiment's teach, servo and tag runs of one start), with its ``args``
+    runner: Optional[str] = None
+    args: Optional[dict] = None
 
 
 def default_jobs() -> int:
@@ -76,6 +80,11 @@ def run_tasks(tasks: list[RunTask], jobs: int, on_iteration: Optional[OnIteratio
 
 
 def _run(task: RunTask, each: Optional[Callable[[object], None]]) -> ServoResult:
+    if task.runner is not None:
+        import importlib
+
+        module, function = task.runner.split(":")
+        return getattr(importlib.import_module(module), function)(task, each)
     from services.servo.run import run
 
     return run(task.scenario, task.out_dir, each, profile=task.profile, plots=task.plots, processes=task.processes)

@@ -55,6 +55,9 @@ def _runners() -> dict[str, ExperimentRunner]:
                for name, experiment in EXPERIMENTS.items()}
     runners["torque-control"] = ExperimentRunner("torque-control", "services.cli.commands:torque_experiment",
                                                  ("quick", "runs"))
+    runners["markerless"] = ExperimentRunner("markerless", "services.cli.commands:markerless_experiment",
+                                             ("scenario", "random_starts", "seed", "jobs", "object", "texture",
+                                              "perturb"))
     return runners
 
 

@@ -131,6 +131,9 @@ class ServoResult:
     #: how its stack ran: ``composed`` (the services in the runner's process, :mod:`services.stack.composed`) or
     #: ``processes`` (each service a process of its own, as deployed)
     stack: str = ""
+    #: a keypoint target's front end: its wall time a frame (ms: median, 95th percentile, largest, frames), and the
+    #: share of frames it detected (the others tracked); None for a tag
+    front_end: Optional[dict] = None
 
     def to_json(self) -> dict:
         return {
@@ -146,4 +149,5 @@ class ServoResult:
             "robot_limits_hit": self.robot_limits_hit, "min_zone_distance_m": self.min_zone_distance_m,
             "last_refusal": self.last_refusal, "safety": self.safety, "robot_limits": self.robot_limits,
             "lockstep_timeouts": self.lockstep_timeouts, "stack": self.stack,
+            **({"front_end": self.front_end} if self.front_end is not None else {}),
         }

@@ -86,10 +86,12 @@ def run(scenario: Scenario, out_dir: Optional[Path] = None, progress=None, profi
                     _fill_inputs(iteration_record, watcher)
             lost, lockstep_timeouts = frames_lost(watching["session"], keys)
             safety = watcher.safety_summary()
+            front_end = front_end_figures(list(watcher.features.values()))
     finally:
         observers.close()
     result = _result(scenario, arm, records, states, status, lost, lockstep_timeouts, safety,
                      wall_s=time.monotonic() - started, composed=stack_type is ComposedStack)
+    result.front_end = front_end
     if out_dir is not None:
         _write(result, records, scenario, arm, Path(out_dir), plots)
     return result
@@ -180,6 +182,17 @@ def _write(result: ServoResult, records: list[Iteration], scenario: Scenario, ar
     (out / "result.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
 
 
+def front_end_figures(features: list) -> Optional[dict]:
+    """A keypoint target's front end over the run (its wall time a frame, how often it detected), or None."""
+    views = [f.keypoints for f in features if f.keypoints is not None]
+    if not views:
+        return None
+    took = np.array([v.took_ms for v in views])
+    return {"ms_per_frame": {"p50": round(float(np.median(took)), 2), "p95": round(float(np.percentile(took, 95)), 2),
+                             "max": round(float(took.max()), 2), "n": len(took)},
+            "detected_share": round(sum(v.search == "detect" for v in views) / len(views), 3)}
+
+
 def _limits_hit(records: list[Iteration]) -> dict:
     hits: dict[str, int] = {}
     for record in records:
@@ -260,5 +273,11 @@ def _fill_inputs(record: Iteration, watcher: Watcher) -> None:
     if features is not None:
         record.points = [list(p) for p in features.points]
         record.error = list(features.error)
+        view = features.keypoints
+        if view is not None:  # a keypoint target's figures (a tag's log lines stay as they were)
+            record.keypoints = {"ids": list(features.ids), "weights": [round(w, 4) for w in features.weights],
+                                "error_rms": features.error_rms, "inliers": view.inliers,
+                                "candidates": view.candidates, "median_error_px": round(view.median_error_px, 4),
+                                "search": view.search}
     record.command = watcher.commands.get(record.stamp_ns, [])
     record.command_kind = "joint_velocity" if watcher.joint_output else "mixed_twist"

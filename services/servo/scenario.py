@@ -13,7 +13,8 @@ from services.controller.laws import LAW_NAMES
 from services.controller.service import ControllerConfig
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.robot.dsp import DSPConfig, for_arm
-from services.robot_sim.scene import CameraConfig, SceneConfig, TargetConfig, check_joints_deg
+from services.robot_sim.scene import (CameraConfig, LightConfig, SceneConfig, SceneObject, TargetConfig,
+                                      check_joints_deg)
 from services.robot_sim.service import RobotSimConfig
 from services.runtime.config import ConfigError, ConfigStruct, load_config
 from services.safety.service import SafetyConfig
@@ -89,6 +90,9 @@ class Scenario(ConfigStruct):
     timeout_s: float = 600.0
     #: consecutive iterations without the target after which the run ends as target_lost
     target_lost_iterations: int = 15
+    #: the scene's other objects (clutter, an occluder, a swap) and its light, as robot_sim's scene has them
+    objects: list[SceneObject] = msgspec.field(default_factory=list)
+    light: LightConfig = msgspec.field(default_factory=LightConfig)
 
     def __post_init__(self) -> None:
         if self.law not in LAW_NAMES:
@@ -124,7 +128,8 @@ def stack_config(scenario: Scenario) -> StackConfig:
     s = scenario
     convention = s.robot.dsp.angular_convention
     robot = RobotSimConfig(arm=s.robot.arm, scene=SceneConfig(initial_joints_deg=s.robot.initial_joints_deg,
-                                                              camera=s.camera, target=s.target), dsp=s.robot.dsp)
+                                                              camera=s.camera, target=s.target,
+                                                              objects=list(s.objects), light=s.light), dsp=s.robot.dsp)
     vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m,
                                         layout=s.target.layout), goal=s.goal)
     control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.velocity_mps),

@@ -175,11 +175,11 @@ class VisionCore:
             self.last_gray, self.last_gray_ns, self.last_info = gray, capture, info
         return outcome
 
-    def goal_from(self, goal: VisionGoal) -> Goal:
+    def goal_from(self, goal: VisionGoal, info: Optional[CameraInfo] = None) -> Goal:
         """The goal a VisionGoal asks for, its front end made ready (raises ValueError with the reason when it cannot
-        be had)."""
+        be had); ``info``: the camera's, which a taught goal must fit (None: the last image's)."""
         if goal.taught_file is not None:
-            return self.set_taught(decode_goal(goal.taught_file), self.last_info)
+            return self.set_taught(decode_goal(goal.taught_file), info or self.last_info)
         if goal.teach:
             if self.last_points is None:
                 raise ValueError("teach needs the target in view: no current features")

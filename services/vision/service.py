@@ -238,8 +238,10 @@ class VisionService(Service):
     # ------------------------------------------------------------------ goal
     def set_goal(self, goal: VisionGoal) -> VisionGoalReply:
         try:
+            with self._lock:
+                info = self._info
             with self._core_lock:
-                new = self.core.goal_from(goal)
+                new = self.core.goal_from(goal, info)
                 self.core.goal = new
                 reply = self._goal_reply(new)
         except ValueError as exc:

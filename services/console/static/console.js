@@ -13,7 +13,7 @@ const stats = { frames: 0, delaysMs: [], consoleMs: [], firstAt: null, lastAt: n
                 connects: 0, lastCapture: null, sent: [] };
 const page = {
   ws: null, token: sessionStorage.getItem("mfvs-token") || "", tokenRequired: false, authenticated: false,
-  backoffMs: 500, nextId: 0, bitmap: null, frameHeader: null, decoding: false, pendingFrame: null,
+  backoffMs: 500, nextId: 0, region: null, bitmap: null, frameHeader: null, decoding: false, pendingFrame: null,
   overlays: [], status: null,
 };
 window.mfvsConsole = { stats, page };
@@ -155,6 +155,7 @@ function draw() {
     path.forEach(([x, y], j) => (j ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
     ctx.stroke();
   });
+  if (page.region) polygon(ctx, boxCorners(page.region), "#ffd400", 2, true);
   const overlay = overlayFor(header.capture_ns);
   if (overlay) {
     const few = overlay.points.length <= 8;  // a tag's corners: numbered; a keypoint target's inliers: dots
@@ -202,6 +203,15 @@ function frameRate(now) {
 function renderStatus(status) {
   page.status = status;
   renderEStop();
+  const features = status.features;
+  if (status.taught || (features && features.goal)) {
+    const goal = features && features.goal ? `servoing to ${features.goal}` : "";
+    const kept = status.taught ? ` · last taught ${status.taught.goal} (${status.taught.digest}), kept in ${status.taught.path}` : "";
+    const seen = features && features.front_end === "keypoints"
+      ? ` · ${features.status}${features.inliers !== null ? `, ${features.inliers} inliers` : ""}${features.status === "target_lost" && features.detail ? `: ${features.detail}` : ""}`
+      : "";
+    $("teach-state").textContent = `${goal}${seen}${kept}`.replace(/^ · /, "");
+  }
   const task = status.task, controller = status.controller;
   if (task) {
     const by = task.by ? `, by ${task.by}${task.reason ? ": " + task.reason : ""}` : "";
@@ -360,6 +370,10 @@ function say(text, kind) {
 function act(action, extra = {}) {
   const message = { type: "action", action, id: ++page.nextId, operator: $("operator").value.trim(),
                     reason: $("reason").value.trim(), confirm: Boolean(extra.confirm), token: page.token };
+  if (action === "teach") {
+    message.region_px = page.region ? boxCorners(page.region) : [];
+    message.name = $("goal-name").value.trim();
+  }
   const at = wallNowMs();  // before the send: the console may have acted on it before send returns
   if (!send(message)) {
     say(action === "estop_engage"
@@ -377,8 +391,39 @@ function askToken() {
   if (!dialog.open) dialog.showModal();
 }
 
+// ------------------------------------------------------------------------------------------- the teach's region
+// a box dragged on the camera's image, in the image's own pixels (the canvas may be drawn smaller)
+function imagePoint(event) {
+  const canvas = $("camera"), rect = canvas.getBoundingClientRect();
+  return [(event.clientX - rect.left) * canvas.width / rect.width, (event.clientY - rect.top) * canvas.height / rect.height];
+}
+function boxCorners([x0, y0, x1, y1]) {
+  const [a, b, c, d] = [Math.min(x0, x1), Math.min(y0, y1), Math.max(x0, x1), Math.max(y0, y1)];
+  return [[a, b], [c, b], [c, d], [a, d]];
+}
+function watchRegion() {
+  const canvas = $("camera");
+  let start = null;
+  canvas.addEventListener("pointerdown", (event) => { start = imagePoint(event); canvas.setPointerCapture(event.pointerId); });
+  canvas.addEventListener("pointermove", (event) => {
+    if (start) page.region = [...start, ...imagePoint(event)];
+  });
+  canvas.addEventListener("pointerup", (event) => {
+    if (!start) return;
+    const end = imagePoint(event);
+    page.region = Math.abs(end[0] - start[0]) > 8 && Math.abs(end[1] - start[1]) > 8 ? [...start, ...end] : null;
+    start = null;
+    $("teach-state").textContent = page.region ? "the box will be taught" : "no box: the whole view will be taught";
+  });
+}
+
 window.addEventListener("DOMContentLoaded", () => {
   $("operator").value = localStorage.getItem("mfvs-operator") || "";
+  watchRegion();
+  $("teach").addEventListener("click", () => $("confirm-teach").showModal());
+  $("teach-cancel").addEventListener("click", () => { $("confirm-teach").close(); say("Teach cancelled: nothing moved.", "info"); });
+  $("teach-confirm").addEventListener("click", () => { $("confirm-teach").close(); act("teach", { confirm: true }); });
+  $("region-clear").addEventListener("click", () => { page.region = null; $("teach-state").textContent = "no box: the whole view will be taught"; });
   $("estop").addEventListener("click", () => act("estop_engage"));
   $("start").addEventListener("click", () => act("task_start"));
   $("stop").addEventListener("click", () => act("task_stop"));

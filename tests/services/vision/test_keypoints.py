@@ -11,7 +11,7 @@ from services.robot_sim.scene import SceneObject, TargetKind
 from services.vision.keypoints import KeypointConfig, KeypointFrontEnd, homography_problem, taught_goal_points, tukey_weights
 from services.vision.taught import decode_goal, encode_goal, read_goal, write_goal
 from services.vision.teach import TeachConfig, TeachError, TeachSession
-from tests.markerless_rig import GOAL_IN_CAMERA, Rig, goal_target
+from bench.markerless_rig import GOAL_IN_CAMERA, Rig, goal_target
 
 
 @pytest.fixture(scope="module", params=[TargetKind.PLANE, TargetKind.CUP])

@@ -1,5 +1,6 @@
-"""A rig for the markerless front end without services: MuJoCo renders the eye-in-hand camera with the arm placed
-where a test wants the camera (inverse kinematics), and a taught goal is made from two views as vision makes it."""
+"""A rig for the markerless front end without services (its tests and `mfvs bench vision`): MuJoCo renders the
+eye-in-hand camera with the arm placed where a test wants the camera (inverse kinematics), and a taught goal is
+made from two views as vision makes it."""
 from __future__ import annotations
 
 import os
