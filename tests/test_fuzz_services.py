@@ -321,5 +321,9 @@ def check_query_reply(key: str, payload: bytes, replies: list) -> None:
             assert code != int(kinova.ErrorCode.NO_ERROR_KINOVA), (key, payload)
     elif under(key, KEYS.controller_api(m.GET_TASK)):
         assert not m.decode(body, m.TaskStatus).ok, (key, payload)
+    elif key == KEYS.vision_api("teach"):
+        # a teach's step answered: refused for a bad request (a well-formed one may be refused too: no first view)
+        reply = m.decode(body, m.TeachReply)
+        assert not reply.ok or not rejects(payload, m.TeachRequest), (key, payload)
     elif under(key, KEYS.vision_api("get_goal")):
         assert not m.decode(body, m.VisionGoalReply).ok, (key, payload)

@@ -88,14 +88,15 @@ SERVICES = {
     "services.robot": set(),
     "services.robot_sim": {"services.robot"},        # the robot node on the simulated arm
     "services.robot_gateway": {"services.robot"},    # the robot node on a real arm's bus
-    "services.vision": set(),
+    "services.vision": {"services.controller"},     # the teach's client moves the camera by the controller's task
     "services.controller": set(),
     "services.safety": set(),
     "services.camera": set(),
     "services.observe": set(),
     "services.tools": set(),
     "services.torque_controller": {"services.controller", "services.robot"},  # the torque laws; the bus cycle
-    "services.console": {"services.controller", "services.safety", "services.observe"},  # task, e-stop, frames
+    # the task, the e-stop, the frames, the teach
+    "services.console": {"services.controller", "services.safety", "services.observe", "services.vision"},
     "services.calibration": {"services.camera", "services.robot_sim"},  # the camera's files; the simulated rig
     # the task and the e-stop as `mfvs task` and `mfvs estop` reach them; the frames `mfvs view` names
     "services.ros2_bridge": {"services.controller", "services.safety", "services.observe"},

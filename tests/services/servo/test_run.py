@@ -121,7 +121,7 @@ goal: {features: null, depth_m: null, camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg:
     with pytest.raises(ConfigError) as err:  # the goal's rules are vision's
         config_from_text("goal: {features: [[-0.1, -0.1], [0.1, -0.1], [0.1, 0.1], [-0.1, 0.1]], "
                          "camera_in_tag: {xyz: [0, 0, 0.3], rpy_deg: [180, 0, 0]}}", Scenario)
-    assert "give the goal as features or camera_in_tag, exactly one" in str(err.value)
+    assert "give the goal as features, camera_in_tag or taught, one of them" in str(err.value)
     assert config_from_text("{}", Scenario).goal.features == [(-0.1666, -0.1666), (0.1666, -0.1666),
                                                                (0.1666, 0.1666), (-0.1666, 0.1666)]
 
