@@ -144,18 +144,9 @@ class ControllerCore:
         if features.status not in USABLE_FEATURE_STATUSES:
             kind = ControllerState.STALE_INPUT if features.status is FeatureStatus.STALE else ControllerState.TARGET_LOST
             return zero(kind, f"features {features.status.value}: {features.detail}", reset=True)
-        age = (now_ns - header.source_stamp_ns) * 1e-9
-        if age > cfg.max_input_age_s:
-            return zero(ControllerState.STALE_INPUT, f"image is {age * 1e3:.0f} ms old", reset=True)
-        if state is None or (now_ns - state.header.stamp_ns) * 1e-9 > cfg.state_budget_s:
-            return zero(ControllerState.STALE_INPUT, "no fresh robot state")
-        if state.arm_check not in ARM_CHECK_OK:
-            return zero(ControllerState.ARM_NOT_CHECKED, arm_not_checked(state), reset=True)
-        if camera_in_ee is None:
-            return zero(ControllerState.STALE_INPUT, "no camera info (camera-in-end-effector transform)")
-        if state.angular_convention is not cfg.control.robot_convention and not self.joint_output:
-            return zero(ControllerState.STALE_INPUT, f"the robot reads '{state.angular_convention.value}', the "
-                        f"controller is configured for '{cfg.control.robot_convention.value}'")
+        problem = self._inputs_problem(header, state, camera_in_ee, now_ns)
+        if problem is not None:
+            return zero(*problem)
 
         self.iteration += 1
         rms = per_point_rms(features.error, features.point_weights())
@@ -190,27 +181,39 @@ class ControllerCore:
         return Step(ControllerState.CONVERGING, self.iteration, output=output, saturated=saturated, error_rms=rms,
                     phase=ServoPhase.name)
 
+    def _inputs_problem(self, header, state: Optional[RobotState], camera_in_ee: Optional[np.ndarray],
+                        now_ns: int) -> Optional[tuple[ControllerState, str, bool]]:
+        """Why a phase may not act on this frame (its image too old, no fresh state, an arm not checked, no camera
+        mount, a convention the robot does not read): (state, why, whether the law's memory goes), or None."""
+        cfg = self.config
+        age = (now_ns - header.source_stamp_ns) * 1e-9
+        if age > cfg.max_input_age_s:
+            return ControllerState.STALE_INPUT, f"image is {age * 1e3:.0f} ms old", True
+        if state is None or (now_ns - state.header.stamp_ns) * 1e-9 > cfg.state_budget_s:
+            return ControllerState.STALE_INPUT, "no fresh robot state", False
+        if state.arm_check not in ARM_CHECK_OK:
+            return ControllerState.ARM_NOT_CHECKED, arm_not_checked(state), True
+        if camera_in_ee is None:
+            return ControllerState.STALE_INPUT, "no camera info (camera-in-end-effector transform)", False
+        if state.angular_convention is not cfg.control.robot_convention and not self.joint_output:
+            return ControllerState.STALE_INPUT, (f"the robot reads '{state.angular_convention.value}', the "
+                                                 f"controller is configured for '{cfg.control.robot_convention.value}'"), False
+        return None
+
     def _move(self, phase: MovePhase, features: Features, state: Optional[RobotState],
               camera_in_ee: Optional[np.ndarray], now_ns: int) -> Step:
         """A frame of a move phase: driven by the arm's state (the features only pace it and date its command:
         a move stops as a servo does when the image path stops)."""
         cfg = self.config
 
-        def zero(kind: ControllerState, detail: str = "") -> Step:
+        def zero(kind: ControllerState, detail: str = "", _reset: bool = False) -> Step:
             return Step(kind, self.iteration, detail, phase=phase.name)
 
-        age = (now_ns - features.header.source_stamp_ns) * 1e-9
-        if features.status is FeatureStatus.STALE or age > cfg.max_input_age_s:
-            return zero(ControllerState.STALE_INPUT, f"image is {age * 1e3:.0f} ms old")
-        if state is None or (now_ns - state.header.stamp_ns) * 1e-9 > cfg.state_budget_s:
-            return zero(ControllerState.STALE_INPUT, "no fresh robot state")
-        if state.arm_check not in ARM_CHECK_OK:
-            return zero(ControllerState.ARM_NOT_CHECKED, arm_not_checked(state))
-        if camera_in_ee is None:
-            return zero(ControllerState.STALE_INPUT, "no camera info (camera-in-end-effector transform)")
-        if state.angular_convention is not cfg.control.robot_convention and not self.joint_output:
-            return zero(ControllerState.STALE_INPUT, f"the robot reads '{state.angular_convention.value}', the "
-                        f"controller is configured for '{cfg.control.robot_convention.value}'")
+        if features.status is FeatureStatus.STALE:
+            return zero(ControllerState.STALE_INPUT, f"features stale: {features.detail}")
+        problem = self._inputs_problem(features.header, state, camera_in_ee, now_ns)
+        if problem is not None:
+            return zero(*problem)
         self.iteration += 1
         kin = self.law.kin
         q = np.asarray(state.q, dtype=float)

@@ -2,11 +2,11 @@
 and the benchmarks do."""
 from __future__ import annotations
 
-import time
 from typing import Optional
 
 from protocol import messages as m
 from protocol.keys import Keys
+from services.runtime.service import NoAnswer, ask
 
 
 class TaskUnavailable(RuntimeError):
@@ -22,15 +22,10 @@ def call_task(session, keys: Keys, function: str, request: Optional[m.TaskReques
     if (request is None) != (function == m.GET_TASK):
         raise ValueError(f"{function} takes {'no request' if function == m.GET_TASK else 'a TaskRequest'}")
     payload = m.encode(request) if request is not None else None
-    deadline = time.monotonic() + timeout_s
-    while True:  # a controller that just started may not be known to the router yet: ask again (both idempotent)
-        for reply in session.get(keys.controller_api(function), payload=payload,
-                                 timeout=max(0.1, deadline - time.monotonic())):
-            if reply.ok is not None:
-                return m.decode(reply.ok.payload.to_bytes(), m.TaskStatus)
-        if time.monotonic() >= deadline:
-            raise TaskUnavailable(f"no controller answered {keys.controller_api(function)} within {timeout_s:g} s")
-        time.sleep(0.05)
+    try:
+        return ask(session, keys.controller_api(function), payload, m.TaskStatus, timeout_s)
+    except NoAnswer:
+        raise TaskUnavailable(f"no controller answered {keys.controller_api(function)} within {timeout_s:g} s") from None
 
 
 def start_task(session, keys: Keys, operator: str, reason: str = "", timeout_s: float = 5.0) -> m.TaskStatus:

@@ -116,6 +116,24 @@ def query_health(session: zenoh.Session, keys: Keys, timeout_s: float = 2.0) -> 
     return found
 
 
+class NoAnswer(RuntimeError):
+    """Nobody answered a query in time (the service is not running, or this identity may not ask it)."""
+
+
+def ask(session: zenoh.Session, key: str, payload: bytes | None, reply_type: type[M], timeout_s: float) -> M:
+    """The first answer to a query on ``key``, decoded as ``reply_type``; asked again until ``timeout_s`` (a service
+    that just started may not be known to the router yet: every function asked so is idempotent). NoAnswer when
+    none came."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        for reply in session.get(key, payload=payload, timeout=max(0.1, deadline - time.monotonic())):
+            if reply.ok is not None:
+                return decode(reply.ok.payload.to_bytes(), reply_type)
+        if time.monotonic() >= deadline:
+            raise NoAnswer(f"no answer on {key} within {timeout_s:g} s")
+        time.sleep(0.05)
+
+
 def service_condition(health: ServiceHealth | None) -> str:
     """How a service is doing, by its health: ``healthy``, ``degraded`` (running, not keeping up: the reasons are in
     ``health.degraded``), ``unhealthy`` (it says it is not), or ``unknown`` (alive, no health heard)."""

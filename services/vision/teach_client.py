@@ -14,6 +14,7 @@ import numpy as np
 from protocol import messages as m
 from protocol.keys import Keys
 from services.controller.task_client import call_task
+from services.runtime.service import NoAnswer, ask
 
 
 class TeachFailed(RuntimeError):
@@ -34,15 +35,10 @@ class TeachResult:
 
 
 def call_teach(session, keys: Keys, request: m.TeachRequest, timeout_s: float = 10.0) -> m.TeachReply:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        for reply in session.get(keys.vision_api("teach"), payload=m.encode(request),
-                                 timeout=max(0.1, deadline - time.monotonic())):
-            if reply.ok is not None:
-                return m.decode(reply.ok.payload.to_bytes(), m.TeachReply)
-        if time.monotonic() >= deadline:
-            raise TeachFailed(f"vision did not answer {keys.vision_api('teach')} within {timeout_s:g} s")
-        time.sleep(0.05)
+    try:
+        return ask(session, keys.vision_api("teach"), m.encode(request), m.TeachReply, timeout_s)
+    except NoAnswer:
+        raise TeachFailed(f"vision did not answer {keys.vision_api('teach')} within {timeout_s:g} s") from None
 
 
 def _request(phase: m.TeachPhase, operator: str, **kw) -> m.TeachRequest:
@@ -122,12 +118,7 @@ def set_taught_goal(session, keys: Keys, payload: bytes, timeout_s: float = 10.0
     """Give vision a taught goal's file (``mfvs task start --goal FILE``): its reply (refused in one line when the
     camera, resolution or arm differ)."""
     goal = m.VisionGoal(header=m.Header(), taught_file=payload)
-    deadline = time.monotonic() + timeout_s
-    while True:
-        for reply in session.get(keys.vision_api("set_goal"), payload=m.encode(goal),
-                                 timeout=max(0.1, deadline - time.monotonic())):
-            if reply.ok is not None:
-                return m.decode(reply.ok.payload.to_bytes(), m.VisionGoalReply)
-        if time.monotonic() >= deadline:
-            raise TeachFailed(f"vision did not answer {keys.vision_api('set_goal')} within {timeout_s:g} s")
-        time.sleep(0.05)
+    try:
+        return ask(session, keys.vision_api("set_goal"), m.encode(goal), m.VisionGoalReply, timeout_s)
+    except NoAnswer:
+        raise TeachFailed(f"vision did not answer {keys.vision_api('set_goal')} within {timeout_s:g} s") from None
