@@ -65,11 +65,24 @@ def analyse(states: list[m.RobotState]) -> dict:
     return {"e2e_ms": stats(e2e), "hops": {name: stats(values) for name, values in hops.items()}}
 
 
+#: ``--target``: the tag (vision's tag front end), or a markerless object (its keypoint front end), taught where it is
+TARGETS = ("tag", "plane", "cup")
+
+
 def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None = None,
-        arm: str = DEFAULT_ARM) -> dict:
-    stack = with_overrides(profile_on_arm(profile, arm), overrides or [])
-    with servoing_stack(stack, "bench latency") as endpoint:
+        arm: str = DEFAULT_ARM, target: str = "tag") -> dict:
+    overrides = list(overrides or [])
+    if target != "tag":  # the object where the tag would be; the view taught there, then the task started on it
+        overrides.append(f"robot_sim:scene.target.kind={target}")
+    stack = with_overrides(profile_on_arm(profile, arm), overrides)
+    with servoing_stack(stack, "bench latency", start_task=target == "tag") as endpoint:
         session = open_session(ZenohConfig(connect=[endpoint]))
+        if target != "tag":
+            from services.stack.launcher import stack_task
+            from services.vision.teach_client import teach
+
+            teach(session, Keys(), "bench", "bench latency")
+            stack_task(m.START_TASK, operator="bench latency")
         states: list[m.RobotState] = []
         session.declare_subscriber(Keys().robot_state,
                                    lambda s: states.append(m.decode(s.payload.to_bytes(), m.RobotState)))
@@ -86,11 +99,13 @@ def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None
     trigger = re.search(r"camera_trigger_ms=\S+ \([^)]*\)", robot_sim.detail) if robot_sim is not None else None
     result["camera_trigger"] = trigger.group(0) if trigger else None
     result["profile"] = profile
+    result["target"] = target
     result["arm"] = measured_arm(arm, {state.arm for state in states})
     return result
 
 
-def run_profiles(seconds: float, profiles: list[str], overrides: list[str], arm: str = DEFAULT_ARM) -> dict:
+def run_profiles(seconds: float, profiles: list[str], overrides: list[str], arm: str = DEFAULT_ARM,
+                 target: str = "tag") -> dict:
     """The first profile's figures at the top (the format of one), each profile's under ``profiles``. An override
     goes to the profiles that have its service."""
     names = {profile: {s.name for s in load_profile(profile, 0, 0).services} for profile in profiles}
@@ -101,13 +116,13 @@ def run_profiles(seconds: float, profiles: list[str], overrides: list[str], arm:
     results = {}
     for profile in profiles:
         results[profile] = run(seconds, profile, [o for o in overrides if o.partition(":")[0] in names[profile]],
-                               arm)
+                               arm, target)
     return {**results[profiles[0]], "profiles": results}
 
 
 def print_result(result: dict) -> None:
     e = result["e2e_ms"]
-    print(f"{result['profile']} ({result['arm']}): end to end (capture → applied): p50 {e['p50']} ms, p99 {e['p99']} ms, "
+    print(f"{result['profile']} ({result['arm']}, {result.get('target', 'tag')}): end to end (capture → applied): p50 {e['p50']} ms, p99 {e['p99']} ms, "
           f"max {e['max']} ms ({e['n']} frames)")
     for name, h in result["hops"].items():
         print(f"  {name:24s} p50 {h['p50']:8.3f} ms  p99 {h['p99']:8.3f} ms  max {h['max']:8.3f} ms")
@@ -125,6 +140,9 @@ def main(argv: list[str] | None = None) -> int:
                              "gateway: robot_gateway over the RS-485 bus hub")
     parser.add_argument("--set", action="append", default=[], metavar="SERVICE:KEY=VALUE",
                         help="a config override for one service, e.g. robot_sim:scene.camera.trigger_offset_ms=4")
+    parser.add_argument("--target", default="tag", choices=TARGETS,
+                        help="tag (default), or a markerless object (plane, cup) taught where it stands and servoed "
+                             "to with the keypoint front end")
     add_arm_option(parser)
     args = parser.parse_args(argv)
     if unknown_arm(parser, args):
@@ -134,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown or not profiles:
         parser.error(f"--profiles takes sim and/or gateway, not {', '.join(unknown) or 'nothing'}")
     try:
-        result = run_profiles(args.seconds, profiles, args.set, args.arm)
+        result = run_profiles(args.seconds, profiles, args.set, args.arm, args.target)
     except ValueError as exc:
         parser.error(str(exc))
     if args.json:

@@ -199,9 +199,10 @@ def _add_servo_commands(sub) -> None:
                             help="markerless: the object taught and servoed to (a textured box face, or a cup)")
     experiment.add_argument("--texture", default=None, metavar="FILE",
                             help="markerless: an image printed on the object (default: the procedural print)")
-    experiment.add_argument("--perturb", action="append", default=None, metavar="lighting|occlusion|swap",
+    experiment.add_argument("--perturb", action="append", default=None, metavar="lighting|occlusion|swap|clutter|webcam",
                             help="markerless: the servo lit otherwise than the teach, an occluder crossing the "
-                                 "object, or the object swapped for another (may be given more than once)")
+                                 "object, the object swapped for another, objects of a like print beside it, or a "
+                                 "webcam's noise, blur and JPEG (may be given more than once)")
     add_jobs_option(experiment)
     add_processes_option(experiment)
     add_arm_option(experiment, default=None, what="the scenario's; torque-control: j2n6s300")

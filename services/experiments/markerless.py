@@ -41,13 +41,14 @@ from services.model.arm import load_arm
 from services.model.frames import PoseConfig
 from services.model.kinematics import ArmKinematics, inverse_kinematics
 from services.paths import SCENARIOS
+from services.robot_sim.imaging import ImagingConfig
 from services.robot_sim.scene import (LightConfig, SceneObject, TargetKind, camera_in_ee, target_in_base,
                                       target_outline)
 from services.servo.result import error_rms, read_log
 from services.servo.scenario import Scenario, load_scenario, on_arm, stack_config
 from services.vision.service import GoalConfig
 
-PERTURBATIONS = ("lighting", "occlusion", "swap")
+PERTURBATIONS = ("lighting", "occlusion", "swap", "clutter", "webcam")
 OBJECTS = ("plane", "cup")
 BASE_SCENARIO = SCENARIOS / "markerless.yaml"
 
@@ -64,6 +65,10 @@ LIGHT_TURN_DEG = 30.0
 OCCLUDER_SHARE = 0.3
 OCCLUDER_OFFSET_M = 0.05
 OCCLUSION_START_S, OCCLUSION_CROSSING_S = 0.8, 1.6
+#: clutter: two objects of the same kind and a print of the same style (other seeds) beside the object, at the teach
+#: and the servo: this far from it on each side (m, the object's frame), turned this much (deg)
+CLUTTER_OFFSET_M, CLUTTER_TURN_DEG = 0.2, 20.0
+CLUTTER_SEEDS = (101, 102)
 #: swap: the object replaced by another (another print) this long into the servo (s)
 SWAP_AT_S = 1.0
 #: the other object's print
@@ -144,8 +149,32 @@ def _placed(base: Scenario, start: dict) -> Scenario:
     return scenario
 
 
-def teach_scenario(base: Scenario, start: dict) -> Scenario:
-    scenario = _placed(base, start)
+def _clutter(scenario: Scenario) -> list[SceneObject]:
+    """Objects like the target (its kind, a print of the same style from other seeds) to each side of it."""
+    target = scenario.target
+    T_bt = target.pose_in_base.matrix()
+    out = []
+    for side, seed in zip((-1.0, 1.0), CLUTTER_SEEDS):
+        T = T_bt @ frames.homogeneous(frames.rot_y(math.radians(side * CLUTTER_TURN_DEG)),
+                                      [side * CLUTTER_OFFSET_M, 0.0, -0.03])
+        out.append(SceneObject(name=f"clutter{seed}", kind=target.kind.value, size_m=(*target.plane_m, 0.01),
+                               cup=target.cup, texture_seed=seed, pose_in_base=PoseConfig(
+                                   xyz=tuple(float(v) for v in T[:3, 3]),
+                                   rpy_deg=tuple(float(v) for v in np.degrees(frames.matrix_to_euler_xyz(T[:3, :3]))))))
+    return out
+
+
+def _perturbed_scene(scenario: Scenario, perturb: tuple[str, ...]) -> Scenario:
+    """What a teach and its servo share: clutter beside the object, the webcam's imaging."""
+    if "clutter" in perturb:
+        scenario.objects = [*scenario.objects, *_clutter(scenario)]
+    if "webcam" in perturb:
+        scenario.camera = msgspec.structs.replace(scenario.camera, imaging=ImagingConfig())
+    return scenario
+
+
+def teach_scenario(base: Scenario, start: dict, perturb: tuple[str, ...] = ()) -> Scenario:
+    scenario = _perturbed_scene(_placed(base, start), perturb)
     arm = load_arm(base.robot.arm)
     scenario.robot = msgspec.structs.replace(scenario.robot, initial_joints_deg=[
         float(v) for v in arm.model_to_physical_deg(np.asarray(start["goal_joints"]))])
@@ -165,7 +194,7 @@ def teach_region(base: Scenario) -> list[tuple[float, float]]:
 
 
 def servo_scenario(base: Scenario, start: dict, goal_file: Path, perturb: tuple[str, ...]) -> Scenario:
-    scenario = _placed(base, start)
+    scenario = _perturbed_scene(_placed(base, start), perturb)
     scenario.goal = GoalConfig(features=None, taught=str(goal_file))
     target = scenario.target
     objects: list[SceneObject] = []
@@ -195,7 +224,7 @@ def servo_scenario(base: Scenario, start: dict, goal_file: Path, perturb: tuple[
         objects.append(SceneObject(name="swapped", kind=target.kind.value, size_m=(*target.plane_m, 0.01),
                                    cup=target.cup, texture_seed=SWAP_TEXTURE_SEED, pose_in_base=target.pose_in_base,
                                    arrives_at_s=SWAP_AT_S))
-    scenario.objects = objects
+    scenario.objects = [*scenario.objects, *objects]
     if scenario_light is not None:
         scenario.light = scenario_light
     return scenario
@@ -284,7 +313,7 @@ def run_start(task: RunTask, each=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     row = {"label": task.label, "start": start, "object": base.target.kind.value, "arm": base.robot.arm,
            "perturb": list(perturb)}
-    taught_scenario = teach_scenario(base, start)
+    taught_scenario = teach_scenario(base, start, perturb)
     taught = teach_at(taught_scenario, teach_region(base), f"start{start['index']}")
     if not taught["ok"]:
         return {**row, "converged": False, "iterations": 0, "status": "teach_failed", "failure": taught["failure"],

@@ -56,13 +56,24 @@ class ImagingConfig(ConfigStruct):
             raise ValueError("jpeg_quality must be within 1..100 (or null)")
 
 
+#: the target's printed geom: a tag's (or board's), or a markerless object's (services/robot_sim/scene.py)
+TARGET_GEOMS = ("tag", "target")
+
+
 def target_corners_px(model: mujoco.MjModel, data: mujoco.MjData, camera_id: int, camera_matrix: np.ndarray,
-                      geom: str = "tag") -> np.ndarray:
+                      geom: str | None = None) -> np.ndarray:
     """Where the target's printed face's four corners are in the image (px, 4×2), for the state in ``data``
-    (after mj_kinematics)."""
-    g = model.geom(geom)
-    half_x, half_y = model.geom_size[g.id][:2]
-    local = np.array([[-half_x, -half_y, 0.0], [half_x, -half_y, 0.0], [half_x, half_y, 0.0], [-half_x, half_y, 0.0]])
+    (after mj_kinematics): a tag's (or a plane's) face; a cup's, the box around its wall across its axis (the blur
+    of its image's motion is then that of a plane through its axis: a cup 8 cm across, seen from 0.3 m)."""
+    g = model.geom(geom) if geom is not None else next(
+        model.geom(name) for name in TARGET_GEOMS if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, name) >= 0)
+    if model.geom_type[g.id] == mujoco.mjtGeom.mjGEOM_BOX:
+        half_x, half_y = model.geom_size[g.id][:2]
+        centre = np.zeros(3)
+    else:  # its bounding box in its frame: MuJoCo's own (geom_aabb: centre, half sizes)
+        centre, (half_x, half_y, _) = model.geom_aabb[g.id][:3], model.geom_aabb[g.id][3:]
+    local = centre + np.array([[-half_x, -half_y, 0.0], [half_x, -half_y, 0.0], [half_x, half_y, 0.0],
+                               [-half_x, half_y, 0.0]])
     world = data.geom_xpos[g.id] + local @ data.geom_xmat[g.id].reshape(3, 3).T
     R_wc = data.cam_xmat[camera_id].reshape(3, 3)  # MuJoCo's camera looks along its −z, y up
     in_camera = (world - data.cam_xpos[camera_id]) @ R_wc

@@ -117,3 +117,28 @@ def test_the_light_changes_the_image_and_a_bad_one_is_refused():
         LightConfig(intensity=-1.0)
     with pytest.raises(ValueError, match="exactly one"):
         SceneObject(name="x")
+
+
+@pytest.mark.parametrize("kind", [TargetKind.PLANE, TargetKind.CUP])
+def test_a_markerless_target_is_blurred_by_its_motion_through_the_webcam(kind):
+    """The webcam's motion blur follows the target's face (a plane's, a cup's box across its axis), as a tag's."""
+    from services.robot_sim.camera import FrameRenderer
+    from services.robot_sim.imaging import ImagingConfig, target_corners_px
+
+    scene = SceneConfig(target=TargetConfig(kind=kind, pose_in_camera=AHEAD))
+    sim = Simulation(scene, arm=ARM, render=False)
+    renderer = FrameRenderer(sim.model, sim.camera_id, 640, 480, imaging=ImagingConfig(),
+                             camera_matrix=scene.camera.matrix())
+    try:
+        end = (sim.data.qpos.copy(), sim.data.mocap_pos.copy(), sim.data.mocap_quat.copy())
+        moved = sim.data.mocap_pos.copy()
+        moved[0] += np.array([0.01, 0.0, 0.0])
+        start = (end[0], moved, end[2])
+        corners = target_corners_px(sim.model, sim.data, sim.camera_id, scene.camera.matrix())
+        assert corners.shape == (4, 2) and np.ptp(corners[:, 0]) > 100  # the face, not a point
+        sharp = renderer.render(*end, stamp_ns=1).astype(float)
+        blurred = renderer.render(*end, start=start, stamp_ns=1).astype(float)
+        assert np.abs(blurred - sharp).mean() > 1.0
+    finally:
+        renderer.close()
+        sim.close()
