@@ -38,7 +38,7 @@ from bench.stack import detail_fields, measured_arm, unknown_arm
 from protocol import messages as m
 from protocol.keys import Keys
 from services.cli.options import add_arm_option
-from services.controller.torque_laws import DynamicsModel
+from services.model.dynamics import DynamicsModel
 from services.model.arm import DEFAULT_ARM, ArmDescription, load_arm
 from services.robot.hardware import CYCLE_NS, CYCLE_S
 from services.runtime.pacing import normal_priority, request_realtime

@@ -10,7 +10,7 @@ from services.robot_gateway.link import ActuatorLink, LinkError, LinkHardware
 from services.stack.local import simulated_link
 from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics
-from services.controller.torque_laws import DynamicsModel
+from services.model.dynamics import DynamicsModel
 from tests.helpers import emulated_arm_gravity
 
 ARM = load_arm("j2s7s300")
