@@ -122,7 +122,8 @@ def run_profiles(seconds: float, profiles: list[str], overrides: list[str], arm:
 
 def print_result(result: dict) -> None:
     e = result["e2e_ms"]
-    print(f"{result['profile']} ({result['arm']}, {result.get('target', 'tag')}): end to end (capture → applied): p50 {e['p50']} ms, p99 {e['p99']} ms, "
+    print(f"{result['profile']} ({result['arm']}, {result.get('target', 'tag')}): end to end (capture → applied): "
+          f"p50 {e['p50']} ms, p99 {e['p99']} ms, "
           f"max {e['max']} ms ({e['n']} frames)")
     for name, h in result["hops"].items():
         print(f"  {name:24s} p50 {h['p50']:8.3f} ms  p99 {h['p99']:8.3f} ms  max {h['max']:8.3f} ms")

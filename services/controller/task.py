@@ -2,8 +2,8 @@
 
 An assistive arm stays still until someone asks it to move: the controller comes up idle, answering every
 features message with a zero output (status ``idle``), and moves only while a task runs: through its phases
-(services/controller/phases.py: the visual servo until stopped; a move, which ends by itself when it arrives). A task starts and stops
-by request (``mfvs task start|stop``, or the ``controller/api/*`` queryables); stopping answers the next frames with
+(services/controller/phases.py: the visual servo until stopped; a move, which ends by itself when it arrives). A
+task starts and stops by request (``mfvs task start|stop``, or the ``controller/api/*`` queryables); stopping answers the next frames with
 zero output, so the robot's DSP brings the arm to rest at its normal deceleration. Starting while running, or
 stopping while idle, changes nothing and says so.
 """

@@ -19,8 +19,8 @@ Laws (τ in model sign, N·m)
                                 feed-forward and Ĉ the thesis leaves out)
     :func:`joint_velocity_reference`, :func:`velocity_torque`   eq. 4.20-4.23
 
-The model the controllers use (:class:`DynamicsModel`, services/model/dynamics.py) is Pinocchio on the arm's description, as the thesis's was
-its CAD model: by default the links alone (``rotor_inertia=False``, ``friction=False``), which is what eq. 3.35
+The model the controllers use (:class:`DynamicsModel`, services/model/dynamics.py) is Pinocchio on the arm's
+description, as the thesis's was its CAD model: by default the links alone (``rotor_inertia=False``, ``friction=False``), which is what eq. 3.35
 holds; the emulated arm adds the motors' rotor inertia reflected through the gears and viscous friction.
 """
 from __future__ import annotations

@@ -117,7 +117,8 @@ def test_lockstep_sends_a_frame_whose_answer_was_lost_again(recorded):
             def on_frame(sample):
                 stamp = m.decode(sample.payload.to_bytes(), m.Image).header.stamp_ns
                 if stamp in seen:
-                    publisher.put(m.encode(m.Features(header=m.Header(stamp_ns=stamp, source_stamp_ns=stamp), status=m.FeatureStatus.TARGET_LOST)))
+                    publisher.put(m.encode(m.Features(header=m.Header(stamp_ns=stamp, source_stamp_ns=stamp),
+                                                      status=m.FeatureStatus.TARGET_LOST)))
                 seen.add(stamp)
 
             answerer.declare_subscriber(KEYS.camera_image, on_frame)

@@ -149,7 +149,8 @@ def test_the_camera_mount_is_static_and_the_tag_is_under_the_camera_when_seen():
     (mount,) = roundtrip(core.camera_mount(INFO)).transforms
     assert (mount.header.frame_id, mount.child_frame_id) == (EE_LINK, "camera")
     assert np.allclose(homogeneous(mount)[:3, :3], frames.quat_wxyz_to_matrix(INFO.camera_in_ee.quat_wxyz))
-    seen = m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST, tag=m.TagView(id=0, pose_in_camera=m.Pose(xyz=(0.0, 0.1, 0.3))))
+    seen = m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST,
+                      tag=m.TagView(id=0, pose_in_camera=m.Pose(xyz=(0.0, 0.1, 0.3))))
     (tag,) = roundtrip(core.tag_tf(seen)).transforms
     assert (tag.header.frame_id, tag.child_frame_id) == ("camera", "tag") and tag.transform.translation.z == 0.3
     assert core.tag_tf(m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST)) is None
