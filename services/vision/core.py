@@ -11,6 +11,7 @@ from typing import Optional
 
 import numpy as np
 
+from protocol.conventions import ClockMode
 from protocol.messages import (CameraInfo, FeatureStatus, FrontEnd, Image, ImageEncoding, RobotState, TeachPhase,
                                TeachReply, TeachRequest, VisionGoal)
 from services.model import frames
@@ -119,14 +120,22 @@ class VisionCore:
             problem = taught.mismatch(info, self.arm.name if self.arm is not None else None)
             if problem:
                 raise ValueError(problem)
+        self._close_front_end()
         self.front_end = KeypointFrontEnd(taught, self.config.keypoints, self.config.min_peak_brightness,
-                                          self.config.border_margin_px)
+                                          self.config.border_margin_px,
+                                          background=ClockMode(self.config.clock) is ClockMode.REALTIME)
         self.taught = taught
         return taught_goal_points(taught)
 
     def use_tag(self) -> None:
         if self.front_end.kind is not FrontEnd.TAG:
+            self._close_front_end()
             self.front_end, self.taught = self._tag_front_end(), None
+
+    def _close_front_end(self) -> None:
+        close = getattr(self.front_end, "close", None)
+        if close is not None:
+            close()
 
     # ------------------------------------------------------------------ the arm (for a teach)
     def robot_state(self, state: RobotState) -> str:

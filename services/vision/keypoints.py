@@ -32,6 +32,7 @@ Every point is named by its taught keypoint's index (its id, stable from frame t
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -270,7 +271,11 @@ class KeypointFrontEnd:
     kind = FrontEnd.KEYPOINTS
 
     def __init__(self, taught: TaughtGoal, config: KeypointConfig, min_peak_brightness: int = 0,
-                 border_margin_px: float = 2.0) -> None:
+                 border_margin_px: float = 2.0, background: bool = False) -> None:
+        """``background``: detect on a thread of its own while the frames are tracked (realtime: a SIFT detection
+        takes longer than a camera period, and each frame's points must not wait for it; the detection's points are
+        then carried to the frame at hand by LK and checked there). Lockstep detects in the frame's own turn, so
+        that a run is a function of its frames."""
         self.taught = taught
         self.config = config
         self.detector_kind = taught.file.detector
@@ -287,6 +292,16 @@ class KeypointFrontEnd:
         self._pose: Optional[tuple[np.ndarray, np.ndarray]] = None
         self._tracked = _Tracked()
         self._since_detect = 0
+        self._background: Optional[ThreadPoolExecutor] = None
+        #: the detection running in the background: its future and the frame it runs on
+        self._pending: Optional[tuple[Future, np.ndarray]] = None
+        if background:
+            self._background = ThreadPoolExecutor(1, thread_name_prefix="keypoints-detect")
+            self._background_detector = make_detector(self.detector_kind, config.max_image_features)
+
+    def close(self) -> None:
+        if self._background is not None:
+            self._background.shutdown(wait=False, cancel_futures=True)
 
     # ------------------------------------------------------------------ one image
     def measure(self, gray: np.ndarray, camera: Camera, goal: Goal) -> Seen:
@@ -301,6 +316,10 @@ class KeypointFrontEnd:
         if int(gray.max()) < self.min_peak_brightness:
             self._forget()
             return Seen(FeatureStatus.INVALID_IMAGE, "all-black image", rejected=True)
+        if self._background is not None and self._tracked.pixels and self._last_gray is not None:
+            seen = self._measure_alongside(gray, camera, goal)
+            if seen is not None:
+                return seen
         search = "track"
         ids = pixels = None
         candidates = 0
@@ -322,6 +341,47 @@ class KeypointFrontEnd:
             return self._lost(result, gray, search, candidates)
         ids, pixels, pose, errors = result
         return self._hand_over(ids, pixels, pose, errors, gray, camera, goal, search, candidates)
+
+    def _measure_alongside(self, gray: np.ndarray, camera: Camera, goal: Goal) -> Optional[Seen]:
+        """A frame while the detections run in the background: the finished detection's points carried to this
+        frame (LK from the frame it ran on) and checked, else this frame tracked; a detection started when one is
+        due. None when too few points are left to track (the caller detects in this frame's turn)."""
+        cfg = self.config
+        if self._pending is not None and self._pending[0].done():
+            future, then = self._pending
+            self._pending = None
+            ids, pixels, reason = future.result()
+            if not reason and len(ids) >= cfg.min_inliers:
+                ids, pixels = self._follow(then, gray, ids, pixels)
+                result = self._verify(ids, pixels, camera, "detect")
+                if not isinstance(result, str):
+                    return self._hand_over(*result, gray, camera, goal, "detect", len(ids))
+        ids, pixels = self._track(gray)
+        self._since_detect += 1
+        if self._pending is None and self._since_detect + 1 >= cfg.detect_every:
+            window = self._window(camera)
+            self._pending = (self._background.submit(self._detect, gray.copy(), camera, window,
+                                                     self._background_detector), gray.copy())
+            self._since_detect = 0
+        if len(ids) < cfg.min_tracked:
+            return None
+        result = self._verify(ids, pixels, camera, "track")
+        if isinstance(result, str):
+            return self._lost(result, gray, "track", len(ids))
+        return self._hand_over(*result, gray, camera, goal, "track", len(ids))
+
+    def _follow(self, then: np.ndarray, now: np.ndarray, ids: np.ndarray, pixels: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Points found in frame ``then`` carried to frame ``now`` (pyramidal LK, forward and back)."""
+        cfg = self.config
+        before = pixels.astype(np.float32).reshape(-1, 1, 2)
+        params = dict(winSize=(cfg.lk_window_px, cfg.lk_window_px), maxLevel=cfg.lk_levels,
+                      criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+        after, status, _ = cv2.calcOpticalFlowPyrLK(then, now, before, None, **params)
+        back, back_status, _ = cv2.calcOpticalFlowPyrLK(now, then, after, None, **params)
+        keep = ((status.ravel() == 1) & (back_status.ravel() == 1)
+                & (np.linalg.norm((back - before).reshape(-1, 2), axis=1) < cfg.lk_back_px))
+        return ids[keep], after.reshape(-1, 2).astype(float)[keep]
 
     def _forget(self) -> None:
         self._last_gray, self._pose, self._tracked = None, None, _Tracked()
@@ -346,11 +406,14 @@ class KeypointFrontEnd:
             return None
         return int(x0), int(y0), int(x1), int(y1)
 
-    def _detect(self, gray: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, str]:
-        window = self._window(camera)
+    def _detect(self, gray: np.ndarray, camera: Camera, window=False, detector=None
+                ) -> tuple[np.ndarray, np.ndarray, str]:
+        """The taught keypoints matched in ``gray`` (in ``window``, by default around the object's last outline):
+        (taught ids, pixels, "") or why too few."""
+        window = self._window(camera) if window is False else window
         x0, y0 = (0, 0) if window is None else window[:2]
         image = gray if window is None else gray[y0:window[3], x0:window[2]]
-        keypoints, descriptors = self.detector.detectAndCompute(image, None)
+        keypoints, descriptors = (detector or self.detector).detectAndCompute(image, None)
         if descriptors is None or len(keypoints) < self.config.min_inliers:
             found = 0 if descriptors is None else len(keypoints)
             return np.zeros(0, int), np.zeros((0, 2)), f"too few keypoints: {found} in the image"

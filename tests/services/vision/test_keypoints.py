@@ -194,3 +194,26 @@ def test_a_teach_with_no_texture_a_region_outside_the_image_or_a_moving_arm_is_r
             session.second_view(gray, state, rig.kin)
     finally:
         rig.close()
+
+
+def test_detections_in_the_background_are_carried_to_the_frame_at_hand(taught):
+    """Realtime: a frame is never held up by a detection (it runs on a thread of its own); its points, found in an
+    older frame, are carried to the frame at hand and checked there, and land where the truth puts them."""
+    import time as clock
+
+    rig, goal = taught
+    front = KeypointFrontEnd(goal, KeypointConfig(detect_every=3), background=True)
+    try:
+        q, searches = rig.home.copy(), []
+        for k in range(12):
+            q = rig.moved(q, (0.003, 0.002, 0.008))
+            seen = front.measure(rig.gray(q), rig.camera, taught_goal_points(goal))
+            assert seen.status in m.USABLE_FEATURE_STATUSES, seen.detail
+            searches.append(seen.view.search)
+            true_px, _ = rig.true_projection(goal, seen.ids, q)
+            # (a detection's points carried over the frames it took: within three quarters of a pixel, mid-approach)
+            assert np.median(np.linalg.norm(seen.pixels - true_px, axis=1)) < 0.75
+            clock.sleep(0.15)  # the next frame comes once a detection had the time to end
+        assert searches[0] == "detect" and searches.count("detect") >= 3 and "track" in searches
+    finally:
+        front.close()
