@@ -381,6 +381,10 @@ def summarize(rows: list[dict]) -> dict:
         "front_end_ms_per_frame_p50": quartiles(ms),
         "within_1mm_0.5deg": sum(1 for r in converged if r["final_position_error_mm"] <= 1.0
                                  and r["final_rotation_error_deg"] <= 0.5),
+        # what safety did with the commands (its status, sampled at 10 Hz): runs it refused a command in, or stopped
+        "safety_refused_runs": sum(1 for r in rows if (r.get("safety") or {}).get("last_refusal")),
+        "protective_stops": sum(1 for r in rows if (r.get("safety") or {}).get("protective_stop")),
+        "max_linear_speed_mps": max((r.get("max_linear_speed_mps") or 0.0 for r in rows), default=None),
     }
     if any("swap" in r["perturb"] for r in rows):
         summary["held_on_swap"] = sum(bool(r.get("held")) for r in rows)
