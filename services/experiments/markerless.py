@@ -282,6 +282,13 @@ def teach_at(scenario: Scenario, region, name: str) -> dict:
             "probe_mm": [round(v * 1e3, 2) for v in result.probe_m]}
 
 
+def command_steps(records: list[dict]) -> Optional[float]:
+    """The largest change of the commanded linear velocity from one frame to the next while the law acted (m/s): a
+    point set that changes size (occlusion, fading) must not make the command jump."""
+    acting = [np.asarray(r["command"][:3]) for r in records if r["status"] == "converging" and r["command"]]
+    return round(float(max(np.linalg.norm(b - a) for a, b in zip(acting, acting[1:]))), 5) if len(acting) > 1 else None
+
+
 def _kept_points_error(records: list[dict]) -> Optional[float]:
     last = [r for r in records if r.get("keypoints")]
     return last[-1]["keypoints"]["median_error_px"] if last else None
@@ -337,6 +344,7 @@ def run_start(task: RunTask, each=None) -> dict:
                 "median_inlier_error_px": _kept_points_error(records),
                 "final_error_rms": error_rms(records[-1]) if records else None,
                 "inliers": [r["keypoints"]["inliers"] if r.get("keypoints") else 0 for r in records],
+                "max_command_step_mps": command_steps(records),
                 "front_end": result.front_end, "max_linear_speed_mps": round(result.max_linear_speed_mps, 4),
                 "safety": result.safety, "lockstep_timeouts": result.lockstep_timeouts,
                 "wall_time_s": result.wall_time_s})
@@ -385,6 +393,8 @@ def summarize(rows: list[dict]) -> dict:
         "safety_refused_runs": sum(1 for r in rows if (r.get("safety") or {}).get("last_refusal")),
         "protective_stops": sum(1 for r in rows if (r.get("safety") or {}).get("protective_stop")),
         "max_linear_speed_mps": max((r.get("max_linear_speed_mps") or 0.0 for r in rows), default=None),
+        "max_command_step_mps": quartiles([r["max_command_step_mps"] for r in rows
+                                           if r.get("max_command_step_mps") is not None]),
     }
     if any("swap" in r["perturb"] for r in rows):
         summary["held_on_swap"] = sum(bool(r.get("held")) for r in rows)
