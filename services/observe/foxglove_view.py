@@ -32,6 +32,8 @@ VIEW = "/view"
 BASE_FRAME = BASE_LINK
 CAMERA_FRAME = "camera"
 TAG_FRAME = "tag"
+#: a markerless target's frame: the camera's frame at the teach, where the keypoint front end has its pose
+TAUGHT_FRAME = "taught_view"
 #: the raw channels: MessagePack, described by the message type's JSON schema, the type's name in the metadata
 RAW_ENCODING = "msgpack"
 RAW_TYPE = "mfvs.type"
@@ -215,12 +217,23 @@ def camera_transform(info: m.CameraInfo) -> fm.FrameTransform:
                              rotation=_pose_quaternion(pose))
 
 
+def target_pose(features: m.Features) -> Optional[tuple[str, m.Pose]]:
+    """The target's frame and its pose in the camera's, when vision has one: a tag's, or a keypoint target's (its
+    taught view's frame, where the object's points were taught)."""
+    if features.tag is not None:
+        return TAG_FRAME, features.tag.pose_in_camera
+    if features.keypoints is not None and features.keypoints.object_pose_in_camera is not None:
+        return TAUGHT_FRAME, features.keypoints.object_pose_in_camera
+    return None
+
+
 def tag_transform(features: m.Features) -> Optional[fm.FrameTransform]:
-    if features.tag is None:
+    found = target_pose(features)
+    if found is None:
         return None
-    pose = features.tag.pose_in_camera
+    frame, pose = found
     return fm.FrameTransform(timestamp=timestamp(features.header.stamp_ns), parent_frame_id=CAMERA_FRAME,
-                             child_frame_id=TAG_FRAME, translation=_vector(pose.xyz), rotation=_pose_quaternion(pose))
+                             child_frame_id=frame, translation=_vector(pose.xyz), rotation=_pose_quaternion(pose))
 
 
 # ------------------------------------------------------------------------------------------------ logs

@@ -21,7 +21,7 @@ from protocol.ros2.gid import entity_gid
 from protocol.ros2.keys import Distro, Durability, EntityKind, Qos, Reliability
 from services.model import frames
 from services.model.arm import BASE_LINK, EE_LINK, ArmDescription
-from services.observe.foxglove_view import CAMERA_FRAME, TAG_FRAME
+from services.observe.foxglove_view import CAMERA_FRAME, TAG_FRAME, target_pose
 
 #: what ROS 2 calls mfvs's image encodings (sensor_msgs/image_encodings.hpp spells the same three the same way)
 ROS_ENCODINGS = {m.ImageEncoding.RGB8: "rgb8", m.ImageEncoding.BGR8: "bgr8", m.ImageEncoding.MONO8: "mono8"}
@@ -212,11 +212,13 @@ def camera_mount(info: m.CameraInfo) -> cdr.TFMessage:
 
 
 def tag_tf(features: m.Features) -> Optional[cdr.TFMessage]:
-    """The tag in the camera frame, when vision sees it."""
-    if features.tag is None:
+    """The target in the camera frame, when vision has its pose: the tag, or a taught view's object (its frame
+    ``taught_view``)."""
+    found = target_pose(features)
+    if found is None:
         return None
-    return cdr.TFMessage(transforms=(_pose_transform(CAMERA_FRAME, TAG_FRAME, features.header.stamp_ns,
-                                                     features.tag.pose_in_camera),))
+    frame, pose = found
+    return cdr.TFMessage(transforms=(_pose_transform(CAMERA_FRAME, frame, features.header.stamp_ns, pose),))
 
 
 def robot_description(arm: ArmDescription) -> cdr.String:

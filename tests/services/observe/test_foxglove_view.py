@@ -133,3 +133,13 @@ def test_a_missing_figure_is_null_in_a_series(tmp_path):
     assert out["/view/features"][0][2]["status"] == "target_lost"
     assert out["/view/command"][0][2]["mode"] == "stop"
     assert json_safe({"a": float("nan"), "b": [1.0, float("inf")]}) == {"a": None, "b": [1.0, None]}
+
+
+def test_a_markerless_targets_pose_is_its_taught_views_frame():
+    kp = m.KeypointView(goal="cup", goal_digest="0123456789abcdef", detector="sift", search="detect",
+                        object_pose_in_camera=m.Pose(xyz=(0.01, 0.0, 0.3)))
+    features = m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST, front_end=m.FrontEnd.KEYPOINTS,
+                          keypoints=kp)
+    transform = fv.tag_transform(features)
+    assert transform.child_frame_id == "taught_view" and abs(transform.translation.z - 0.3) < 1e-12
+    assert fv.tag_transform(m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST)) is None
