@@ -140,6 +140,6 @@ def test_a_markerless_targets_pose_is_its_taught_views_frame():
                         object_pose_in_camera=m.Pose(xyz=(0.01, 0.0, 0.3)))
     features = m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST, front_end=m.FrontEnd.KEYPOINTS,
                           keypoints=kp)
-    transform = fv.tag_transform(features)
-    assert transform.child_frame_id == "taught_view" and abs(transform.translation.z - 0.3) < 1e-12
-    assert fv.tag_transform(m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST)) is None
+    frame, pose = fv.target_pose(features)
+    assert frame == "taught_view" and pose.xyz == (0.01, 0.0, 0.3) and fv.tag_transform(features) is not None
+    assert fv.target_pose(m.Features(header=HEADER, status=m.FeatureStatus.TARGET_LOST)) is None
