@@ -46,7 +46,9 @@ from services.robot_sim.scene import (LightConfig, SceneObject, TargetKind, came
                                       target_outline)
 from services.servo.result import error_rms, read_log
 from services.servo.scenario import Scenario, load_scenario, on_arm, stack_config
+from services.safety.checks import SafetyLimits
 from services.vision.service import GoalConfig
+from services.vision.teach import TeachConfig
 
 PERTURBATIONS = ("lighting", "occlusion", "swap", "clutter", "webcam")
 OBJECTS = ("plane", "cup")
@@ -107,8 +109,16 @@ def goal_joints(base: Scenario, pose_in_camera: PoseConfig) -> tuple[Optional[np
     q, ok = inverse_kinematics(kin, q0, goal_camera[:3, :3], goal_camera[:3, 3], tool=camera_in_ee(scene))
     if not ok:
         return None, "the goal pose is out of the arm's reach"
-    if not arm.within_limits(q):
-        return None, "the goal pose is beyond the arm's joint limits"
+    # a teach there makes the probe: its far end, too, must be where safety lets the arm go (its joints inside
+    # safety's margin of their limits; a goal 2° from joint 6's limit was reached, and the probe never moved)
+    probe = np.asarray(TeachConfig().probe_m)
+    far = goal_camera.copy()
+    far[:3, 3] += goal_camera[:3, :3] @ probe
+    q_far, ok = inverse_kinematics(kin, q, far[:3, :3], far[:3, 3], tool=camera_in_ee(scene))
+    margin = SafetyLimits().joint_limit_margin_deg
+    for name, joints in (("the goal pose", q), ("the teach's probe", q_far)):
+        if not ok or not arm.within_limits(joints) or np.min(arm.limit_margins_deg(joints), initial=np.inf) < margin:
+            return None, f"{name} is within {margin:g}° of a joint limit (safety's margin)"
     return q, ""
 
 
