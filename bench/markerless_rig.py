@@ -66,12 +66,12 @@ class Rig:
                             dq=list(np.zeros(len(q)) if dq is None else dq), tau=[0.0] * len(q),
                             pose=m.KinovaPose(**frames.kinova_pose(R, p)), control_mode=m.ControlMode.IDLE)
 
-    def teach(self, region=None, detector: str = "sift", probe=(0.03, 0.0, 0.0), config: TeachConfig | None = None
-              ) -> TaughtGoal:
+    def teach(self, region=None, detector: str = "sift", probe=(0.03, 0.0, 0.0), config: TeachConfig | None = None,
+              equalization: str | None = None) -> TaughtGoal:
         """The goal taught at home, as vision teaches it (a first view, the probe's second view, triangulation)."""
         session = TeachSession(config or TeachConfig())
         session.begin(self.gray(self.home), self.info, self.state(self.home), self.kin,
-                      None if region is None else np.asarray(region, dtype=float), detector, "test")
+                      None if region is None else np.asarray(region, dtype=float), detector, "test", equalization)
         q2 = self.moved(self.home, probe)
         session.second_view(self.gray(q2), self.state(q2), self.kin)
         return decode_goal(encode_goal(session.finish("test", 0)))

@@ -223,7 +223,8 @@ class VisionCore:
             if phase is TeachPhase.BEGIN:
                 region = np.asarray(request.region_px, dtype=float).reshape(-1, 2)
                 found = self.teach.begin(gray, info, self.state_at(stamp), self.kinematics, region,
-                                         request.detector or self.config.keypoints.detector, request.operator)
+                                         request.detector or self.config.keypoints.detector, request.operator,
+                                         self.config.keypoints.equalization)
                 return TeachReply(ok=True, phase=phase, keypoints=found,
                                   message=f"{found} keypoints in the region; now move the camera by the probe")
             if phase is TeachPhase.SECOND_VIEW:

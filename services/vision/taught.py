@@ -27,6 +27,8 @@ from protocol.messages import CameraInfo, GoalName
 #: what a taught-goal file says it is, and the version of its layout this build reads
 FILE_FORMAT = "mfvs-taught-goal"
 FILE_VERSION = 1
+#: the contrast equalizations a goal's images may have had before the detector (services/vision/keypoints.py)
+EQUALIZATIONS = ("none", "clahe")
 #: the largest file read (a taught goal is tens to hundreds of kB: a few hundred descriptors and a small image)
 MAX_FILE_BYTES = 16 * 1024 * 1024
 #: the most keypoints a goal keeps (the strongest, spread over the region)
@@ -60,6 +62,9 @@ class TaughtGoalFile(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     operator: Annotated[str, msgspec.Meta(max_length=64)] = ""
     #: sift or orb: the detector its descriptors are of
     detector: Annotated[str, msgspec.Meta(pattern="^(sift|orb)$")]
+    #: the contrast equalization its images got before the detector (services/vision/keypoints.py: none, or CLAHE);
+    #: a file without it was taught on the images as they came
+    equalization: Annotated[str, msgspec.Meta(pattern=f"^({'|'.join(EQUALIZATIONS)})$")] = "none"
     camera: TaughtCamera
     arm: Annotated[str, msgspec.Meta(pattern=r"^[a-z0-9_]{1,32}$")]
     arm_digest: Annotated[str, msgspec.Meta(pattern=r"^[0-9a-f]{16}$")]

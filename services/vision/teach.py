@@ -27,7 +27,7 @@ from services.model import frames
 from services.model.kinematics import ArmKinematics
 from services.runtime.config import ConfigStruct
 from services.vision import features as F
-from services.vision.keypoints import epipolar_inliers, make_detector, matcher_for, ratio_matches
+from services.vision.keypoints import KeypointConfig, epipolar_inliers, equalized, make_detector, matcher_for, ratio_matches
 from services.vision.taught import FILE_FORMAT, FILE_VERSION, MAX_GOAL_KEYPOINTS, TaughtCamera, TaughtGoalFile
 
 
@@ -85,12 +85,12 @@ def region_problem(region: np.ndarray, width: int, height: int) -> str:
     return ""
 
 
-def keypoints_in_region(gray: np.ndarray, region: np.ndarray, detector, max_keypoints: int
+def keypoints_in_region(gray: np.ndarray, region: np.ndarray, detector, max_keypoints: int, equalization: str = "none"
                         ) -> tuple[np.ndarray, np.ndarray]:
     """(pixels n×2, descriptors) of the detector's strongest keypoints inside ``region``, spread over it."""
     mask = np.zeros(gray.shape[:2], np.uint8)
     cv2.fillPoly(mask, [np.round(region).astype(np.int32)], 255)
-    keypoints, descriptors = detector.detectAndCompute(gray, mask)
+    keypoints, descriptors = detector.detectAndCompute(equalized(gray, equalization), mask)
     if descriptors is None or not keypoints:
         return np.zeros((0, 2)), np.zeros((0, 1), np.float32)
     order = sorted(range(len(keypoints)), key=lambda i: -keypoints[i].response)
@@ -171,6 +171,7 @@ class FirstView:
     gray: np.ndarray
     region: np.ndarray
     detector: str
+    equalization: str
     pixels: np.ndarray
     descriptors: np.ndarray
     camera: np.ndarray  # the camera's pose in the base frame
@@ -204,9 +205,11 @@ class TeachSession:
         self.triangulated: Optional[Triangulated] = None
 
     def begin(self, gray: np.ndarray, info: CameraInfo, state: Optional[RobotState], kin: Optional[ArmKinematics],
-              region: Optional[np.ndarray], detector: str, operator: str) -> int:
-        """The first view; the number of keypoints in the region."""
+              region: Optional[np.ndarray], detector: str, operator: str, equalization: Optional[str] = None) -> int:
+        """The first view; the number of keypoints in the region (``equalization``: the keypoint front end's by
+        default)."""
         cfg = self.config
+        equalization = equalization or KeypointConfig().equalization
         height, width = gray.shape[:2]
         region = default_region(width, height, cfg.border_fraction) if region is None or not len(region) else \
             np.asarray(region, dtype=float)
@@ -217,12 +220,14 @@ class TeachSession:
             raise TeachError("no robot state: the teach needs the arm's pose")
         if not at_rest(state, cfg.rest_speed_rps):
             raise TeachError(f"the arm is moving ({np.max(np.abs(state.dq)):.3f} rad/s): teach it at rest")
-        pixels, descriptors = keypoints_in_region(gray, region, make_detector(detector), cfg.max_keypoints)
+        pixels, descriptors = keypoints_in_region(gray, region, make_detector(detector), cfg.max_keypoints,
+                                                  equalization)
         if len(pixels) < cfg.min_keypoints:
             raise TeachError(f"the region has too little texture: {len(pixels)} keypoints (at least "
                              f"{cfg.min_keypoints}); show the object closer, or another side of it")
         camera_in_ee = frames.homogeneous(frames.quat_wxyz_to_matrix(info.camera_in_ee.quat_wxyz), info.camera_in_ee.xyz)
-        self.first = FirstView(gray, region, detector, pixels, descriptors, camera_in_base(kin, state.q, camera_in_ee),
+        self.first = FirstView(gray, region, detector, equalization, pixels, descriptors,
+                               camera_in_base(kin, state.q, camera_in_ee),
                                state, info, operator)
         self.triangulated = None
         return len(pixels)
@@ -245,7 +250,7 @@ class TeachSession:
         if baseline < 0.005:
             raise TeachError(f"the camera moved {baseline * 1e3:.1f} mm between the views (at least 5 mm)")
         detector = make_detector(first.detector)
-        keypoints, descriptors = detector.detectAndCompute(gray, None)
+        keypoints, descriptors = detector.detectAndCompute(equalized(gray, first.equalization), None)
         if descriptors is None or len(keypoints) < cfg.min_triangulated:
             raise TeachError("the second view shows too little of the object")
         matches = ratio_matches(first.descriptors, descriptors, matcher_for(first.detector), 0.75)
@@ -294,7 +299,7 @@ class TeachSession:
         descriptors = np.ascontiguousarray(t.descriptors.astype(dtype))
         return TaughtGoalFile(
             format=FILE_FORMAT, version=FILE_VERSION, name=name, taught_ns=taught_ns, operator=first.operator,
-            detector=first.detector,
+            detector=first.detector, equalization=first.equalization,
             camera=TaughtCamera(width=info.width, height=info.height, fx=info.fx, fy=info.fy, cx=info.cx, cy=info.cy,
                                 distortion=list(info.distortion)),
             arm=state.arm, arm_digest=state.arm_digest, joints=[float(v) for v in state.q],
