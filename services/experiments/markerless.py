@@ -229,6 +229,9 @@ def servo_scenario(base: Scenario, start: dict, goal_file: Path, perturb: tuple[
                                     rpy_deg=tuple(np.degrees(frames.matrix_to_euler_xyz(begin[:3, :3])))),
             velocity_mps=tuple(float(v) for v in T_bt[:3, :3] @ np.array([speed, 0.0, 0.0])),
             arrives_at_s=OCCLUSION_START_S, leaves_at_s=OCCLUSION_START_S + OCCLUSION_CROSSING_S))
+        # the arm holds while the plate hides too much of the object: the run goes on for as long as it crosses,
+        # and ends as target_lost only as long after it cleared as any run
+        scenario.target_lost_iterations += math.ceil(OCCLUSION_CROSSING_S * scenario.camera.rate_hz)
     if "swap" in perturb:
         scenario.target = target = msgspec.structs.replace(target, leaves_at_s=SWAP_AT_S)
         objects.append(SceneObject(name="swapped", kind=target.kind.value, size_m=(*target.plane_m, 0.01),
@@ -293,10 +296,14 @@ def teach_at(scenario: Scenario, region, name: str) -> dict:
 
 
 def command_steps(records: list[dict]) -> Optional[float]:
-    """The largest change of the commanded linear velocity from one frame to the next while the law acted (m/s): a
-    point set that changes size (occlusion, fading) must not make the command jump."""
-    acting = [np.asarray(r["command"][:3]) for r in records if r["status"] == "converging" and r["command"]]
-    return round(float(max(np.linalg.norm(b - a) for a, b in zip(acting, acting[1:]))), 5) if len(acting) > 1 else None
+    """The largest change of the commanded linear velocity from one frame to the next while the law acted on both
+    (m/s): a point set that changes size (occlusion, fading) must not make the command jump. A frame without the
+    target in between is a restart from rest, as at the start (safety's acceleration limit shapes both)."""
+    def acting(r: dict) -> bool:
+        return r["status"] == "converging" and bool(r["command"])
+    steps = [float(np.linalg.norm(np.subtract(b["command"][:3], a["command"][:3])))
+             for a, b in zip(records, records[1:]) if acting(a) and acting(b)]
+    return round(max(steps), 5) if steps else None
 
 
 def _kept_points_error(records: list[dict]) -> Optional[float]:
