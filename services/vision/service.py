@@ -134,6 +134,14 @@ class VisionConfig(ServiceConfig):
     teach: TeachConfig = msgspec.field(default_factory=TeachConfig)
 
 
+
+def goal_in_message(goal) -> dict:
+    """The goal's points and depths as a message carries them: its first MAX_FEATURE_POINTS (a taught goal's are
+    strongest first), for a taught view may hold more keypoints than a message may (a photograph's print gave 600, and
+    every frame without the object in it was refused by each subscriber)."""
+    return dict(goal_points=[tuple(p) for p in goal.points[:MAX_FEATURE_POINTS]],
+                goal_depths=goal.depths[:MAX_FEATURE_POINTS].tolist())
+
 class VisionService(Service):
     name = "vision"
     PORTS = Ports(consumes=(Port("camera_image", Image), Port("camera_info", CameraInfo),
@@ -252,10 +260,8 @@ class VisionService(Service):
 
     def _goal_reply(self, goal, message: str = "") -> VisionGoalReply:
         """The goal as a reply (call with the core's lock held): its points and depths, front end, and name."""
-        points = [tuple(p) for p in goal.points][:MAX_FEATURE_POINTS]
         taught = self.core.taught
-        return VisionGoalReply(ok=True, message=message[:256], goal_points=points,
-                               goal_depths=goal.depths.tolist()[:MAX_FEATURE_POINTS],
+        return VisionGoalReply(ok=True, message=message[:256], **goal_in_message(goal),
                                front_end=self.core.front_end.kind, goal=taught.name if taught else None,
                                goal_digest=taught.digest if taught else None)
 
@@ -344,7 +350,7 @@ class VisionService(Service):
         answer = dict(header=header, status=outcome.status, front_end=outcome.front_end, detail=outcome.detail)
         seen = outcome.seen
         if seen is None or seen.points is None:
-            return Features(**answer, goal_points=[tuple(p) for p in goal.points], goal_depths=goal.depths.tolist())
+            return Features(**answer, **goal_in_message(goal))
         view = seen.view
         return Features(
             **answer, points=[tuple(p) for p in seen.points], depths=seen.depths.tolist(), ids=seen.ids.tolist(),

@@ -1,5 +1,7 @@
 """The keypoint front end and teach by showing on rendered frames (MuJoCo, OpenCV), no services: depths measured by
 the arm's own motion, points found again from other views where the truth puts them, and the fail-safes."""
+import time
+
 import cv2
 import msgpack
 import msgspec
@@ -11,7 +13,8 @@ from services.model import frames
 from services.model.frames import PoseConfig
 from services.robot_sim.scene import LightConfig, SceneObject, TargetKind
 from services.vision.keypoints import KeypointConfig, KeypointFrontEnd, homography_problem, taught_goal_points, tukey_weights
-from services.vision.taught import decode_goal, encode_goal, read_goal, write_goal
+from services.vision.service import VisionConfig, VisionService
+from services.vision.taught import TaughtGoal, decode_goal, encode_goal, read_goal, write_goal
 from services.vision.teach import TeachConfig, TeachError, TeachSession
 from bench.markerless_rig import GOAL_IN_CAMERA, Rig, goal_target
 
@@ -252,3 +255,23 @@ def test_detections_in_the_background_are_carried_to_the_frame_at_hand(taught):
         assert searches[0] == "detect" and searches.count("detect") >= 3 and "track" in searches
     finally:
         front.close()
+
+
+def test_a_taught_view_with_more_keypoints_than_a_message_carries_is_still_said_lost_to_every_subscriber(taught):
+    """A photograph's print gives a teach more keypoints than a Features message may carry: a frame without the
+    object still reaches the controller and the console as a lost target, with the goal's strongest points."""
+    rig, goal = taught
+    n = m.MAX_FEATURE_POINTS + 88
+    tiled = TaughtGoal(file=goal.file, digest=goal.digest, descriptors=np.resize(goal.descriptors, (n, goal.descriptors.shape[1])),
+                       keypoints_px=np.resize(goal.keypoints_px, (n, 2)), points_camera=np.resize(goal.points_camera, (n, 3)))
+    service = VisionService(VisionConfig())
+    service._on_camera_info(rig.info, 0)
+    service.core.goal = service.core.set_taught(tiled, rig.info)
+    stamp = time.time_ns()
+    floor = np.full((480, 640, 3), 110, np.uint8)
+    lost = service.process(m.Image(header=m.Header(stamp_ns=stamp, source_stamp_ns=stamp), width=640, height=480,
+                                   encoding=m.ImageEncoding.RGB8, data=floor.tobytes()), stamp)
+    said = m.decode(m.encode(lost), m.Features)
+    assert said.status is m.FeatureStatus.TARGET_LOST and said.points == []
+    assert len(said.goal_points) == m.MAX_FEATURE_POINTS
+    assert np.allclose(said.goal_points, taught_goal_points(tiled).points[:m.MAX_FEATURE_POINTS])
