@@ -134,13 +134,13 @@ class VisionConfig(ServiceConfig):
     teach: TeachConfig = msgspec.field(default_factory=TeachConfig)
 
 
-
 def goal_in_message(goal) -> dict:
     """The goal's points and depths as a message carries them: its first MAX_FEATURE_POINTS (a taught goal's are
     strongest first), for a taught view may hold more keypoints than a message may (a photograph's print gave 600, and
     every frame without the object in it was refused by each subscriber)."""
     return dict(goal_points=[tuple(p) for p in goal.points[:MAX_FEATURE_POINTS]],
                 goal_depths=goal.depths[:MAX_FEATURE_POINTS].tolist())
+
 
 class VisionService(Service):
     name = "vision"

@@ -11,6 +11,7 @@ import pytest
 from protocol import messages as m
 from services.model import frames
 from services.model.frames import PoseConfig
+from services.camera.core import image_message
 from services.robot_sim.scene import LightConfig, SceneObject, TargetKind
 from services.vision.keypoints import KeypointConfig, KeypointFrontEnd, homography_problem, taught_goal_points, tukey_weights
 from services.vision.service import VisionConfig, VisionService
@@ -269,8 +270,8 @@ def test_a_taught_view_with_more_keypoints_than_a_message_carries_is_still_said_
     service.core.goal = service.core.set_taught(tiled, rig.info)
     stamp = time.time_ns()
     floor = np.full((480, 640, 3), 110, np.uint8)
-    lost = service.process(m.Image(header=m.Header(stamp_ns=stamp, source_stamp_ns=stamp), width=640, height=480,
-                                   encoding=m.ImageEncoding.RGB8, data=floor.tobytes()), stamp)
+    lost = service.process(image_message(floor, m.ImageEncoding.RGB8, m.Header(stamp_ns=stamp, source_stamp_ns=stamp)),
+                           stamp)
     said = m.decode(m.encode(lost), m.Features)
     assert said.status is m.FeatureStatus.TARGET_LOST and said.points == []
     assert len(said.goal_points) == m.MAX_FEATURE_POINTS
