@@ -25,12 +25,16 @@ from protocol.conventions import AngularConvention, Frame
 #: 4: LowLevelState.cycle_ns (the bus period is the hardware's: 2, 2.5, 3.33 or 5 ms).
 #: 5: Features of N points (ids, weights, pixels; one view per front end: tag, keypoints), the target's lost status
 #: (target_lost), desired commands naming their source, SafetyStatus.in_control.
-SCHEMA_VERSION = 5
+#: 6: the hand's fingers, a second actuator group: RobotCommand.fingers, RobotState.fingers.
+SCHEMA_VERSION = 6
 
 #: The most joints an arm has (the Kinova API's AngularInfo: Actuator1..7). A joint vector on the wire has the
 #: robot's arm's length (RobotState.arm: 6 for the j2n6s300, 7 for the j2s7s300); each reader checks it against the
 #: arm it runs.
 MAX_JOINTS = 7
+#: The most fingers a hand has (the Kinova API's FingersPosition: Finger1..3). A finger vector on the wire has the
+#: robot's hand's length (the arm description's ``hand``), checked by each reader as joint vectors are.
+MAX_FINGERS = 3
 
 MAX_IMAGE_SIDE = 8192
 
@@ -139,6 +143,7 @@ NonNegInt = Annotated[int, msgspec.Meta(ge=0)]
 Stamp = Annotated[int, msgspec.Meta(ge=0, le=2**63 - 1)]
 Vec3 = tuple[float, float, float]
 JointVector = Annotated[list[float], msgspec.Meta(min_length=1, max_length=MAX_JOINTS)]
+FingerVector = Annotated[list[float], msgspec.Meta(min_length=1, max_length=MAX_FINGERS)]
 #: an arm description's name (services/model/arms/<name>.yaml) and its fingerprint (the file's SHA-256, 16 hex)
 ArmName = Annotated[str, msgspec.Meta(pattern=r"^[a-z0-9_]{1,32}$")]
 ArmDigest = Annotated[str, msgspec.Meta(pattern=r"^[0-9a-f]{16}$")]
@@ -146,10 +151,10 @@ ServiceName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_\-.]{1,64}$")]
 
 
 def _same_length(message: Message, *names: str) -> None:
-    """Joint vectors of one message have one length (the arm's joints)."""
+    """Joint (or finger) vectors of one message have one length (the arm's joints, the hand's fingers)."""
     lengths = {name: len(getattr(message, name)) for name in names}
     if len(set(lengths.values())) > 1:
-        raise ValueError("joint vectors of different lengths: " + ", ".join(f"{k} {v}" for k, v in lengths.items()))
+        raise ValueError("vectors of different lengths: " + ", ".join(f"{k} {v}" for k, v in lengths.items()))
 
 
 class Hop(Message):
@@ -500,6 +505,24 @@ class CommandMode(str, enum.Enum):
 MOTION_MODES = frozenset({CommandMode.CARTESIAN_VELOCITY, CommandMode.JOINT_VELOCITY})
 
 
+class FingerMode(str, enum.Enum):
+    """How a finger command's values are read (Kinova's HAND_MODE: POSITION_MODE, VELOCITY_MODE)."""
+
+    #: each finger to an angle: its proximal joint's, rad, 0 open, growing as it closes
+    POSITION = "position"
+    #: each finger at a rate (rad/s, positive closes) for this control cycle only, as a velocity command is
+    VELOCITY = "velocity"
+
+
+class FingerCommand(Message):
+    """The hand's part of a robot command: one value per finger of the robot's hand (the arm description's
+    ``hand``). A robot command without one leaves every finger at the target it has: a stop, an e-stop, a stale or
+    refused command never moves the fingers, so nothing but a finger command opens the hand."""
+
+    mode: FingerMode
+    values: FingerVector
+
+
 class RobotCommand(Message):
     """What the robot applies for one control cycle. Only the safety service publishes it."""
 
@@ -509,6 +532,8 @@ class RobotCommand(Message):
     joint_velocities: Optional[JointVector] = None
     #: why the command is what it is (e.g. the refusal that turned it into a stop)
     reason: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    #: the fingers' command, with the arm's (None: the fingers keep their targets)
+    fingers: Optional[FingerCommand] = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -516,6 +541,8 @@ class RobotCommand(Message):
             raise ValueError("mode cartesian_velocity needs twist")
         if self.mode is CommandMode.JOINT_VELOCITY and self.joint_velocities is None:
             raise ValueError("mode joint_velocity needs joint_velocities")
+        if self.mode is CommandMode.EMERGENCY_STOP and self.fingers is not None:
+            raise ValueError("an emergency stop carries no finger command: the fingers hold their targets")
 
 
 class ControllerState(str, enum.Enum):
@@ -684,6 +711,20 @@ class ArmCheckState(str, enum.Enum):
     WAIVED = "waived"
 
 
+class FingerState(Message):
+    """The hand's fingers as the robot measures them, one value per finger: proximal angle (rad, 0 open), its rate
+    (rad/s), the finger actuator's current (A) and the target it holds (rad)."""
+
+    position: FingerVector
+    velocity: FingerVector
+    current_a: FingerVector
+    target: FingerVector
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _same_length(self, "position", "velocity", "current_a", "target")
+
+
 class RobotState(Message):
     header: Header
     #: the arm the robot runs (its description's name and fingerprint): every reader takes the joint count and the
@@ -712,6 +753,8 @@ class RobotState(Message):
     arm_pose: Optional[KinovaPose] = None
     #: the commissioning check's verdict on this arm; the controller starts tasks only when passed or waived
     arm_check: ArmCheckState = ArmCheckState.NEVER
+    #: the hand's fingers (None: the arm has no hand, or its hardware does not report one)
+    fingers: Optional[FingerState] = None
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -29,6 +29,8 @@ import numpy as np
 import yaml
 
 ARMS_DIR = Path(__file__).resolve().parent / "arms"
+#: the hands an arm file may name (``hand: <name>``), one file each
+HANDS_DIR = Path(__file__).resolve().parent / "hands"
 #: Kinova's actuators as their data sheets give them (the arm files name each joint's)
 ACTUATORS_FILE = Path(__file__).resolve().parent / "actuators.yaml"
 #: the arm a stack runs when nothing chooses one (Sensors 2022's)
@@ -37,6 +39,8 @@ BASE_LINK = "base_link"
 EE_LINK = "end_effector"
 #: the most joints the Kinova API carries (AngularInfo: Actuator1..7)
 MAX_JOINTS = 7
+#: the most fingers it carries (FingersPosition: Finger1..3)
+MAX_FINGERS = 3
 
 _LINK_RADIUS = 0.04
 _MIN_SEGMENT = 0.08
@@ -163,6 +167,20 @@ class _Base(msgspec.Struct, forbid_unknown_fields=True):
     radius: Number
 
 
+class _Finger(msgspec.Struct, forbid_unknown_fields=True):
+    name: str
+    bus_address: int
+
+
+class _Hand(msgspec.Struct, forbid_unknown_fields=True):
+    name: str
+    title: str
+    fingers: list[_Finger]
+    closed_units: float
+    closed_deg: float
+    closing_time_s: float
+
+
 class _File(msgspec.Struct, forbid_unknown_fields=True):
     name: str
     title: str
@@ -179,6 +197,8 @@ class _File(msgspec.Struct, forbid_unknown_fields=True):
     armature: list[float]
     damping: list[float]
     emulation: _Emulation
+    #: the hand it carries: a file of services/model/hands (None: none)
+    hand: Optional[str] = None
 
 
 # ------------------------------------------------------------------------------------------------ the description
@@ -210,6 +230,46 @@ class JointSpec:
     @property
     def nominal_torque_nm(self) -> float:
         return self.spec.nominal_torque_nm
+
+
+@dataclass(frozen=True)
+class HandDescription:
+    """The arm's hand: a second actuator group beside the joints, never joints of the arm's chain (Pinocchio's
+    model and every joint vector stay the arm's). Each finger is one actuated proximal hinge; its angle is the
+    wire's (rad, 0 open, growing as it closes), Kinova's API and bus carry it in Kinova's finger units."""
+
+    name: str
+    title: str
+    finger_names: tuple[str, ...]
+    #: each finger actuator's RS-485 address
+    bus_addresses: tuple[int, ...]
+    #: Kinova's finger units at the closed end of the travel, and the hinge's angle there (rad)
+    closed_units: float
+    closed_angle: float
+    #: full travel, open to closed, at the fingers' top speed (s)
+    closing_time_s: float
+    #: the file it was read from
+    path: Path
+
+    @property
+    def n_fingers(self) -> int:
+        return len(self.finger_names)
+
+    @property
+    def max_speed(self) -> float:
+        """A finger's top rate (rad/s): the full travel in the closing time."""
+        return self.closed_angle / self.closing_time_s
+
+    def units_to_angle(self, units) -> np.ndarray:
+        """Kinova's finger units (FingersPosition, as GetAngularPosition and the bus report them) → rad."""
+        return np.asarray(units, dtype=float) * (self.closed_angle / self.closed_units)
+
+    def angle_to_units(self, angle) -> np.ndarray:
+        return np.asarray(angle, dtype=float) * (self.closed_units / self.closed_angle)
+
+    def clip(self, angle) -> np.ndarray:
+        """Angles within the travel, open (0) to closed."""
+        return np.clip(np.asarray(angle, dtype=float), 0.0, self.closed_angle)
 
 
 @dataclass(frozen=True, eq=False)
@@ -254,6 +314,8 @@ class ArmDescription:
     joint_accel_dps2: float
     #: the file it was read from
     path: Path
+    #: its hand (None: the arm carries none, or its file does not describe one)
+    hand: Optional[HandDescription] = None
 
     @property
     def max_linear_speed_mps(self) -> float:
@@ -317,10 +379,12 @@ class ArmDescription:
 
     @cached_property
     def digest(self) -> str:
-        """A fingerprint of the description's text: two hosts with the same name and digest run the same arm."""
+        """A fingerprint of the description's text (and its hand's): two hosts with the same name and digest run the
+        same arm."""
         import hashlib
 
-        return hashlib.sha256(self.path.read_bytes()).hexdigest()[:16]
+        text = self.path.read_bytes() + (self.hand.path.read_bytes() if self.hand is not None else b"")
+        return hashlib.sha256(text).hexdigest()[:16]
 
     # -------------------------------------------------------------------- angles
     def physical_deg_to_model(self, q_deg) -> np.ndarray:
@@ -545,16 +609,22 @@ def load_actuators() -> dict[str, Actuator]:
         raise ArmError(f"{ACTUATORS_FILE}: {exc}") from None
 
 
-def read_description(path: Path) -> ArmDescription:
-    """An arm description file, validated: every joint its DH row, link and limits, the lengths it names, a home
-    within the limits."""
-    path = Path(path)
+def _read_named(path: Path, kind: type):
+    """A description file as ``kind`` (its schema), whose ``name`` is its file's."""
     try:
-        data = msgspec.convert(yaml.safe_load(path.read_text()), _File)
+        data = msgspec.convert(yaml.safe_load(path.read_text()), kind)
     except (msgspec.ValidationError, yaml.YAMLError, OSError) as exc:
         raise ArmError(f"{path}: {exc}") from None
     if data.name != path.stem:
         raise ArmError(f"{path}: its name is {data.name!r}, its file {path.stem!r}")
+    return data
+
+
+def read_description(path: Path) -> ArmDescription:
+    """An arm description file, validated: every joint its DH row, link and limits, the lengths it names, a home
+    within the limits."""
+    path = Path(path)
+    data = _read_named(path, _File)
     n = len(data.joints)
     counts = {"kinematics.dh": len(data.kinematics.dh), "links": len(data.links), "home_deg": len(data.home_deg),
               "bus_addresses": len(data.bus_addresses), "armature": len(data.armature), "damping": len(data.damping),
@@ -609,12 +679,34 @@ def read_description(path: Path) -> ArmDescription:
         linear_speed_range_mps=tuple(data.cartesian.linear_speed_range_mps),
         angular_speed_range_rps=tuple(data.cartesian.angular_speed_range_rps),
         linear_accel_mps2=data.cartesian.linear_accel_mps2, angular_accel_rps2=data.cartesian.angular_accel_rps2,
-        joint_accel_dps2=data.cartesian.joint_accel_dps2, path=path)
+        joint_accel_dps2=data.cartesian.joint_accel_dps2, path=path, hand=_hand(path, data.hand))
     if not arm.within_limits(arm.home):
         raise ArmError(f"{path}: home_deg is outside the joint limits")
-    if len(set(arm.bus_addresses)) != n or not all(0 < a < 0xFF for a in arm.bus_addresses):
-        raise ArmError(f"{path}: bus_addresses must be {n} distinct addresses 0x01-0xFE")
+    addresses = arm.bus_addresses + (arm.hand.bus_addresses if arm.hand else ())
+    if len(set(addresses)) != len(addresses) or not all(0 < a < 0xFF for a in addresses):
+        raise ArmError(f"{path}: bus_addresses and the fingers' bus_address must be distinct addresses 0x01-0xFE")
     return arm
+
+
+def _hand(path: Path, name: Optional[str]) -> Optional[HandDescription]:
+    """The hand an arm file names, validated."""
+    if name is None:
+        return None
+    hands = sorted(p.stem for p in HANDS_DIR.glob("*.yaml"))
+    if name not in hands:
+        raise ArmError(f"{path}: unknown hand {name!r}; known: {', '.join(hands) or 'none'}")
+    path = HANDS_DIR / f"{name}.yaml"
+    hand = _read_named(path, _Hand)
+    if not 1 <= len(hand.fingers) <= MAX_FINGERS:
+        raise ArmError(f"{path}: a hand has 1 to {MAX_FINGERS} fingers, not {len(hand.fingers)}")
+    if len({f.name for f in hand.fingers}) != len(hand.fingers):
+        raise ArmError(f"{path}: the fingers' names must differ")
+    if not (hand.closed_units > 0 and 0 < hand.closed_deg < 180 and hand.closing_time_s > 0):
+        raise ArmError(f"{path}: hand: closed_units and closing_time_s must be positive, closed_deg within 0..180")
+    return HandDescription(name=hand.name, title=hand.title, finger_names=tuple(f.name for f in hand.fingers),
+                           bus_addresses=tuple(f.bus_address for f in hand.fingers),
+                           closed_units=float(hand.closed_units), closed_angle=math.radians(hand.closed_deg),
+                           closing_time_s=float(hand.closing_time_s), path=path)
 
 
 # ------------------------------------------------------------------------------------------------ helpers

@@ -13,6 +13,10 @@ a host that is late loses that motion (and counts it) instead of sending a bigge
 faster than commanded. Across a DSP cycle the velocity ramps linearly from the last cycle's to the new one (as the
 DSP's 100 Hz planner is interpolated into the joints' faster loop), so the targets accelerate exactly as the DSP
 decided, with no kink for the actuators to overshoot.
+
+The hand's fingers, where the hardware has them, are a second group on the same cycle
+(:class:`~services.robot.fingers.FingerGroup`): a robot command's finger part sets their targets, and nothing else
+moves them.
 """
 from __future__ import annotations
 
@@ -22,8 +26,9 @@ from typing import Optional
 
 import numpy as np
 
-from protocol.messages import RobotCommand
+from protocol.messages import FingerCommand, RobotCommand
 from services.robot.dsp import CommandRefused, KinovaDSP
+from services.robot.fingers import FingerGroup, FingerRefused
 from services.robot.hardware import DEFAULT_TIMING, BusTiming, JointReading, JointTargets
 from services.runtime.arrays import clip, constant
 
@@ -38,10 +43,19 @@ MAX_DSP_PERIODS_WITHOUT_DSP = 2
 
 @dataclass(frozen=True)
 class Refusal:
-    #: what refused it: ``convention`` (the DSP cannot read the command's frame or angular convention) or
-    #: ``torque_control`` (low-level control owns the joints)
+    #: what refused it: ``convention`` (the DSP cannot read the command's frame or angular convention),
+    #: ``torque_control`` (low-level control owns the joints) or ``fingers`` (its finger part does not fit the hand)
     kind: str
     reason: str
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a DSP cycle decided: the joints' velocities, and the finger command it took (None: the fingers keep
+    their targets)."""
+
+    dq_ref: np.ndarray
+    fingers: Optional[FingerCommand] = None
 
 
 class RobotCore:
@@ -71,14 +85,19 @@ class RobotCore:
         #: low-level torque control owns the joints: targets carry ``torques``, robot commands are refused
         self.torque_mode = False
         self.torques = np.zeros(self.n_joints)
+        #: the hand's fingers (None: the hardware reports none)
+        hand = dsp.arm.hand
+        self.fingers = (FingerGroup(hand, reading.fingers, timing)
+                        if hand is not None and reading.fingers is not None else None)
 
     # ------------------------------------------------------------------ the bus cycle
     def targets(self) -> JointTargets:
         """This cycle's targets: one cycle further along the DSP's joint velocities (position mode), or the
         low-level torques with the measured angles as the actuators' safety reference (torque mode)."""
         q_meas = self.reading.q
+        fingers = None if self.fingers is None else self.fingers.targets()
         if self.torque_mode:
-            return JointTargets(q=q_meas.copy(), torques=self.torques.copy())
+            return JointTargets(q=q_meas.copy(), torques=self.torques.copy(), fingers=fingers)
         self._step += 1
         if self._step > self._max_cycles_without_dsp and (self.dq_ref.any() or self._dq_from.any()):
             self.stop()
@@ -86,10 +105,12 @@ class RobotCore:
         fraction = min(1.0, (self._step - 0.5) / self._cycles_per_dsp)  # the ramp's mean over this exchange
         q_ref = self.q_ref + (self._dq_from + (self.dq_ref - self._dq_from) * fraction) * self._cycle
         self.q_ref = q_meas + clip(q_ref - q_meas, _TRACKING_BOUNDS[0], _TRACKING_BOUNDS[1])
-        return JointTargets(q=self.q_ref.copy())
+        return JointTargets(q=self.q_ref.copy(), fingers=fingers)
 
     def observe(self, reading: JointReading) -> None:
         self.reading = reading
+        if self.fingers is not None and reading.fingers is not None:
+            self.fingers.observe(reading.fingers)
         if self.torque_mode and not np.any(reading.mode == 1):
             # the actuators dropped back to position mode (their 250 ms torque timeout): follow them
             self.torque_mode = False
@@ -112,15 +133,16 @@ class RobotCore:
     def dsp_cycle(self, command: Optional[RobotCommand]) -> Optional[Refusal]:
         """Apply ``command`` (if any) and run the DSP on the latest reading; why the command was refused, if it
         was (the arm then behaves as if it had not come)."""
-        dq_ref, refusal = self.dsp_plan(command, self.reading)
-        self.take_plan(dq_ref)
+        plan, refusal = self.dsp_plan(command, self.reading)
+        self.take_plan(plan)
         return refusal
 
-    def dsp_plan(self, command: Optional[RobotCommand], reading: JointReading) -> tuple[np.ndarray,
-                                                                                          Optional[Refusal]]:
+    def dsp_plan(self, command: Optional[RobotCommand], reading: JointReading) -> tuple[Plan, Optional[Refusal]]:
         """The DSP's part of a cycle (it touches only the DSP): apply ``command``, run the DSP on ``reading``;
-        the joint velocities it decided, and why the command was refused, if it was."""
+        what it decided, and why the command was refused, if it was (its finger part too: a command is taken or
+        refused whole)."""
         refusal = None
+        fingers = None
         if self._held:
             self._held = False
             self.dsp.joints_held()
@@ -131,19 +153,35 @@ class RobotCore:
             if self.torque_mode:
                 refusal = Refusal("torque_control", "low-level torque control is active")
             else:
-                try:
-                    self.dsp.submit(command)
-                except CommandRefused as exc:
-                    refusal = Refusal("convention", str(exc))
-        return np.asarray(self.dsp.cycle(reading), dtype=float), refusal
+                refusal = self._finger_refusal(command)
+                if refusal is None:
+                    try:
+                        self.dsp.submit(command)
+                        fingers = command.fingers
+                    except CommandRefused as exc:
+                        refusal = Refusal("convention", str(exc))
+        return Plan(np.asarray(self.dsp.cycle(reading), dtype=float), fingers), refusal
 
-    def take_plan(self, dq_ref: np.ndarray) -> None:
-        """The DSP's new joint velocities: the next bus cycles ramp to them."""
+    def _finger_refusal(self, command: RobotCommand) -> Optional[Refusal]:
+        if command.fingers is None:
+            return None
+        if self.fingers is None:
+            return Refusal("fingers", "a finger command, and this arm reports no fingers")
+        try:
+            self.fingers.check(command.fingers)
+        except FingerRefused as exc:
+            return Refusal("fingers", str(exc))
+        return None
+
+    def take_plan(self, plan: Plan) -> None:
+        """The DSP's new joint velocities (the next bus cycles ramp to them) and finger command."""
+        if plan.fingers is not None and self.fingers is not None:
+            self.fingers.submit(plan.fingers)
         if self.torque_mode:
             return
         fraction = min(1.0, self._step / self._cycles_per_dsp)  # where the last ramp got to
         self._dq_from = self._dq_from + (self.dq_ref - self._dq_from) * fraction
-        self.dq_ref = dq_ref
+        self.dq_ref = plan.dq_ref
         self._step = 0
 
     # ------------------------------------------------------------------ low-level torque control

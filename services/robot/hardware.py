@@ -114,6 +114,8 @@ class JointReading:
     #: the end effector's pose (4×4, base frame) as the arm itself reports it (Kinova's DSP through the SDK, the
     #: simulator's physics), when it does: an RS-485 bus carries joints only
     arm_pose: Optional[np.ndarray] = None
+    #: the hand's fingers, where the hardware has them (None: it reports none)
+    fingers: Optional["FingerReading"] = None
 
     def __post_init__(self) -> None:
         n = len(self.q)
@@ -129,14 +131,26 @@ class JointReading:
 
 
 @dataclass
+class FingerReading:
+    """The hand's fingers at one bus cycle, a second actuator group beside the joints: each finger's proximal angle
+    (rad, 0 open), its rate (rad/s) and its actuator's current (A)."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+    current_a: np.ndarray
+
+
+@dataclass
 class JointTargets:
     """One bus cycle's command, model units: position targets; in torque mode ``torques`` (model sign, N·m, on
     top of whatever gravity the actuators add themselves: none on an RS-485 bus, where the host's gravity is in
     ``torques``; see :attr:`RobotHardware.actuators_compensate_gravity`) with ``q`` the actuators' safety reference
-    (where the joints are)."""
+    (where the joints are). ``fingers``: each finger's angle target (rad), where the hardware has fingers; the
+    fingers take position targets only, in torque mode too."""
 
     q: np.ndarray
     torques: Optional[np.ndarray] = None
+    fingers: Optional[np.ndarray] = None
 
 
 def physical_targets(targets: JointTargets, arm: ArmDescription) -> tuple[np.ndarray, np.ndarray]:

@@ -359,9 +359,9 @@ class RobotNode(RobotServiceHooks, Service):
             if stale is not None:  # fresh on arrival, aged past the bound waiting for its tick
                 self._refuse_command(stale)
                 taken = None
-        dq_ref, refusal = self.core.dsp_plan(taken[0] if taken is not None else None, reading)
+        plan, refusal = self.core.dsp_plan(taken[0] if taken is not None else None, reading)
         with self._core_lock:
-            self.core.take_plan(dq_ref)
+            self.core.take_plan(plan)
         self._applied = None
         if taken is not None:
             command, recv_ns = taken
@@ -394,4 +394,5 @@ class RobotNode(RobotServiceHooks, Service):
         self.state_pub.put(robot_state(
             self.header("state", stamp_ns=stamp_ns), self.arm, reading, self.kin, self.core.dsp,
             link_faults=self.driver.link.faults, refused=self._recent_refusal.for_next_state(), applied=self._applied,
-            timing=self.meters.timing(), arm_check=self.commissioning.state))
+            timing=self.meters.timing(), arm_check=self.commissioning.state,
+            finger_targets=None if self.core.fingers is None else self.core.fingers.target))

@@ -9,6 +9,7 @@ import pytest
 
 from services.model.kinematics import ArmKinematics
 from services.robot.arm_driver import JointDriver, LinkHealth, NodeLoop
+from services.robot.core import Plan
 from services.robot.dsp import DSPConfig
 from services.robot.hardware import DEFAULT_TIMING, DSP_CYCLE_NS, BusTiming, HardwareError, JointReading
 from services.robot.torque_setup import TorqueSetup
@@ -106,7 +107,7 @@ def test_failed_exchanges_are_counted_said_and_hold_the_reference_after_the_actu
     seconds = Seconds()
     joints = driver(ScriptedJoints([0, "nack", "timeout", "timeout", 0]), missed_clock=seconds)
     core = joints.core
-    core.take_plan(np.full(ARM.n_joints, 0.1))
+    core.take_plan(Plan(np.full(ARM.n_joints, 0.1)))
     joints.cycle()
     assert joints.link.consecutive_errors == 0 and not joints.link.faults
     joints.cycle()  # one lost exchange: a missed cycle, the reference goes on
@@ -124,7 +125,7 @@ def test_failed_exchanges_are_counted_said_and_hold_the_reference_after_the_actu
 
 def test_a_dsp_too_late_holds_the_joints_and_is_counted_once_per_cycle_held():
     joints = driver(ScriptedJoints([0] * 30))
-    joints.core.take_plan(np.full(ARM.n_joints, 0.1))
+    joints.core.take_plan(Plan(np.full(ARM.n_joints, 0.1)))
     ticks(joints, 30)  # no DSP cycle at all: after two DSP periods the joints hold
     assert joints.loop.counters.get("dsp.stale_holds") == joints.core.dsp_stale_cycles == 1
 

@@ -8,7 +8,7 @@ import pytest
 from protocol import messages as m
 from protocol.conventions import AngularConvention, Frame
 from services.robot.dsp import DSPConfig, KinovaDSP
-from services.robot.core import RobotCore
+from services.robot.core import Plan, RobotCore
 from services.robot.hardware import CYCLES_PER_DSP, BusTiming, HardwareError, JointReading
 from services.robot.rs485_bus import BusConfig
 from services.robot_gateway.link import LinkHardware
@@ -96,7 +96,7 @@ def test_the_core_ramps_to_the_dsps_velocities_over_one_tick_and_holds_after_two
     reading = JointReading(q=ARM.home.copy(), dq=np.zeros(ARM.n_joints), tau=np.zeros(ARM.n_joints))
     core = RobotCore(KinovaDSP(DSPConfig(), ArmKinematics(ARM)), reading, timing)
     dq = np.full(ARM.n_joints, 0.1)
-    core.take_plan(dq)
+    core.take_plan(Plan(dq))
     positions = [core.targets().q[0] for _ in range(timing.cycles_per_dsp)]
     steps = np.diff([ARM.home[0], *positions])
     assert steps[-1] == pytest.approx(0.1 * timing.period_s * (1 - 0.5 / timing.cycles_per_dsp))
