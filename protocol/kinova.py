@@ -270,9 +270,22 @@ class AngularInfo(Message):
 
 
 class FingersPosition(Message):
+    """Kinova's finger units (0 open, about 6800 closed: services/model/hands), units/s in velocity mode, A in
+    GetAngularCurrent; the fingers a hand does not have read 0."""
+
     Finger1: float = 0.0
     Finger2: float = 0.0
     Finger3: float = 0.0
+
+    def as_list(self) -> list[float]:
+        return [self.Finger1, self.Finger2, self.Finger3]
+
+    @classmethod
+    def from_list(cls, values) -> "FingersPosition":
+        values = [float(v) for v in values]
+        if len(values) > 3:
+            raise ValueError(f"FingersPosition takes at most 3 values, got {len(values)}")
+        return cls(**{f"Finger{i + 1}": v for i, v in enumerate(values)})
 
 
 class AngularPosition(Message):
@@ -453,6 +466,7 @@ API_FUNCTIONS: dict[str, tuple[type | None, type]] = {
     "GetAngularVelocity": (None, AngularPositionReply),
     "GetAngularForce": (None, AngularPositionReply),
     "GetAngularCommand": (None, AngularPositionReply),
+    "GetAngularCurrent": (None, AngularPositionReply),
     "GetCartesianPosition": (None, CartesianPositionReply),
     "GetCartesianCommand": (None, CartesianPositionReply),
     "SetProtectionZone": (ZoneList, ApiReply),

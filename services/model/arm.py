@@ -172,6 +172,11 @@ class _Finger(msgspec.Struct, forbid_unknown_fields=True):
     bus_address: int
 
 
+class _Origin(msgspec.Struct, forbid_unknown_fields=True):
+    xyz: tuple[Number, Number, Number]
+    rpy: tuple[Number, Number, Number]
+
+
 class _Hand(msgspec.Struct, forbid_unknown_fields=True):
     name: str
     title: str
@@ -179,6 +184,15 @@ class _Hand(msgspec.Struct, forbid_unknown_fields=True):
     closed_units: float
     closed_deg: float
     closing_time_s: float
+    end_effector_in_hand_link: _Origin
+    finger_origins_in_hand_link: list[_Origin]
+    proximal_length_m: float
+    distal_offset_m: tuple[float, float, float]
+    distal_length_m: float
+    link_radius_m: float
+    proximal_mass_kg: float
+    distal_mass_kg: float
+    grip_force_n: float
 
 
 class _File(msgspec.Struct, forbid_unknown_fields=True):
@@ -248,8 +262,23 @@ class HandDescription:
     closed_angle: float
     #: full travel, open to closed, at the fingers' top speed (s)
     closing_time_s: float
+    #: each finger's hinge in the end effector's frame (4×4: the hinge turns about its z, the finger along its x)
+    finger_origins: tuple[np.ndarray, ...]
+    #: a finger's links: the proximal's length, the distal's origin on it and length, their radius (m), masses (kg)
+    proximal_length_m: float
+    distal_offset_m: tuple[float, float, float]
+    distal_length_m: float
+    link_radius_m: float
+    proximal_mass_kg: float
+    distal_mass_kg: float
+    #: the three fingers' normal forces together on an object held at the pinch (N)
+    grip_force_n: float
     #: the file it was read from
     path: Path
+
+    @property
+    def finger_mass_kg(self) -> float:
+        return self.proximal_mass_kg + self.distal_mass_kg
 
     @property
     def n_fingers(self) -> int:
@@ -703,10 +732,32 @@ def _hand(path: Path, name: Optional[str]) -> Optional[HandDescription]:
         raise ArmError(f"{path}: the fingers' names must differ")
     if not (hand.closed_units > 0 and 0 < hand.closed_deg < 180 and hand.closing_time_s > 0):
         raise ArmError(f"{path}: hand: closed_units and closing_time_s must be positive, closed_deg within 0..180")
+    if len(hand.finger_origins_in_hand_link) != len(hand.fingers):
+        raise ArmError(f"{path}: {len(hand.fingers)} fingers, {len(hand.finger_origins_in_hand_link)} origins")
+    sizes = (hand.proximal_length_m, hand.distal_length_m, hand.link_radius_m, hand.proximal_mass_kg,
+             hand.distal_mass_kg, hand.grip_force_n)
+    if not all(math.isfinite(v) and v > 0 for v in sizes):
+        raise ArmError(f"{path}: the fingers' lengths, radius, masses and grip force must be positive")
+
+    def origin(o: _Origin) -> np.ndarray:
+        try:
+            xyz, rpy = [evaluate(v, {}) for v in o.xyz], [evaluate(v, {}) for v in o.rpy]
+        except ArmError as exc:
+            raise ArmError(f"{path}: {exc}") from None
+        T = _rpy(*rpy)
+        T[:3, 3] = xyz
+        return T
+
+    ee_from_hand_link = np.linalg.inv(origin(hand.end_effector_in_hand_link))
     return HandDescription(name=hand.name, title=hand.title, finger_names=tuple(f.name for f in hand.fingers),
                            bus_addresses=tuple(f.bus_address for f in hand.fingers),
                            closed_units=float(hand.closed_units), closed_angle=math.radians(hand.closed_deg),
-                           closing_time_s=float(hand.closing_time_s), path=path)
+                           closing_time_s=float(hand.closing_time_s),
+                           finger_origins=tuple(ee_from_hand_link @ origin(o) for o in hand.finger_origins_in_hand_link),
+                           proximal_length_m=hand.proximal_length_m, distal_offset_m=tuple(hand.distal_offset_m),
+                           distal_length_m=hand.distal_length_m, link_radius_m=hand.link_radius_m,
+                           proximal_mass_kg=hand.proximal_mass_kg, distal_mass_kg=hand.distal_mass_kg,
+                           grip_force_n=hand.grip_force_n, path=path)
 
 
 # ------------------------------------------------------------------------------------------------ helpers

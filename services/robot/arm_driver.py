@@ -129,6 +129,21 @@ class CoreView:
     def q_ref(self) -> np.ndarray:
         return self.core.q_ref.copy()
 
+    @property
+    def current_a(self) -> np.ndarray:
+        return self.core.reading.current_a
+
+    @property
+    def fingers(self):
+        return self.core.reading.fingers
+
+    @property
+    def finger_targets(self) -> Optional[np.ndarray]:
+        return None if self.core.fingers is None else self.core.fingers.target.copy()
+
+    def command_fingers(self, command) -> Optional[str]:
+        return self.core.queue_fingers(command)
+
     def ee_pose(self) -> np.ndarray:
         """GetCartesianPosition: the arm's own report where it gives one, else the description's kinematics."""
         reading = self.core.reading

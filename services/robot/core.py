@@ -86,9 +86,10 @@ class RobotCore:
         self.torque_mode = False
         self.torques = np.zeros(self.n_joints)
         #: the hand's fingers (None: the hardware reports none)
-        hand = dsp.arm.hand
-        self.fingers = (FingerGroup(hand, reading.fingers, timing)
-                        if hand is not None and reading.fingers is not None else None)
+        hand = None if reading.fingers is None else dsp.arm.hand
+        self.fingers = None if hand is None else FingerGroup(hand, reading.fingers, timing)
+        #: a finger command from the Kinova API (a trajectory point's hand part), for the next DSP cycle
+        self._queued_fingers: Optional[FingerCommand] = None
 
     # ------------------------------------------------------------------ the bus cycle
     def targets(self) -> JointTargets:
@@ -142,7 +143,7 @@ class RobotCore:
         what it decided, and why the command was refused, if it was (its finger part too: a command is taken or
         refused whole)."""
         refusal = None
-        fingers = None
+        fingers, self._queued_fingers = self._queued_fingers, None
         if self._held:
             self._held = False
             self.dsp.joints_held()
@@ -157,10 +158,23 @@ class RobotCore:
                 if refusal is None:
                     try:
                         self.dsp.submit(command)
-                        fingers = command.fingers
+                        fingers = command.fingers or fingers
                     except CommandRefused as exc:
                         refusal = Refusal("convention", str(exc))
         return Plan(np.asarray(self.dsp.cycle(reading), dtype=float), fingers), refusal
+
+    def queue_fingers(self, command: FingerCommand) -> Optional[str]:
+        """A finger command from the Kinova API, taken at the next DSP cycle (the thread that runs the DSP calls
+        this between its cycles); why not, if it does not fit the hand. A robot command's own finger part in that
+        cycle is newer and wins."""
+        if self.fingers is None:
+            return "this arm reports no fingers"
+        try:
+            self.fingers.check(command)
+        except FingerRefused as exc:
+            return str(exc)
+        self._queued_fingers = command
+        return None
 
     def _finger_refusal(self, command: RobotCommand) -> Optional[Refusal]:
         if command.fingers is None:

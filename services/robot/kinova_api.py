@@ -7,6 +7,7 @@ from typing import Callable, Optional, Protocol
 import numpy as np
 
 from protocol import kinova
+from protocol.messages import FingerCommand, FingerMode
 from services.model import frames
 from services.robot.dsp import CommandRefused, KinovaDSP
 from services.robot.torque_setup import TORQUE_SETUP_SETTERS, TorqueSetup, configure, joint_of_address
@@ -28,7 +29,21 @@ class RobotView(Protocol):
     @property
     def q_ref(self) -> np.ndarray: ...
 
+    #: the actuators' currents (A, model sign)
+    @property
+    def current_a(self) -> np.ndarray: ...
+
+    #: the fingers as measured, and the targets they hold (None: the robot reports no fingers)
+    @property
+    def fingers(self): ...
+
+    @property
+    def finger_targets(self) -> Optional[np.ndarray]: ...
+
     def ee_pose(self) -> np.ndarray: ...
+
+    def command_fingers(self, command: FingerCommand) -> Optional[str]:
+        """Take a finger command with the next DSP cycle; why not, if it cannot."""
 
 
 class SensorZeroing(Protocol):
@@ -69,10 +84,36 @@ class KinovaApi:
         return kinova.ApiReply()
 
     def _SendBasicTrajectory(self, point: kinova.TrajectoryPoint):
-        code = self.dsp.send_basic_trajectory(point)
-        message = "" if code == kinova.ErrorCode.NO_ERROR_KINOVA else "point refused (FIFO full, target outside " \
-                                                                       "the joint limits, or unsupported type)"
-        return kinova.ApiReply(code=int(code), message=message)
+        """The point to the DSP and its hand part to the fingers: HAND_NOMOVEMENT leaves them, POSITION_MODE sets
+        their targets, VELOCITY_MODE their rates for a cycle, in every point type, as Kinova's arm does. So
+        UserPosition::InitStruct()'s point (POSITION_MODE, fingers at 0) opens the hand here as on the real arm."""
+        position = point.Position
+        hand = None
+        if position.HandMode not in (kinova.HAND_MODE.HAND_NOMOVEMENT, kinova.HAND_MODE.POSITION_MODE,
+                                     kinova.HAND_MODE.VELOCITY_MODE):
+            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=(
+                f"HandMode {position.HandMode.name} in a trajectory point: the fingers take HAND_NOMOVEMENT, "
+                "POSITION_MODE or VELOCITY_MODE"))
+        if position.HandMode is not kinova.HAND_MODE.HAND_NOMOVEMENT:
+            hand = self.arm.hand
+            if hand is None or self.robot.fingers is None:
+                return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                       message=f"HandMode {position.HandMode.name}, and this arm reports no fingers")
+        if position.Type != kinova.POSITION_TYPE.NOMOVEMENT_POSITION:
+            code = self.dsp.send_basic_trajectory(point)
+            if code != kinova.ErrorCode.NO_ERROR_KINOVA:
+                return kinova.ApiReply(code=int(code), message="point refused (FIFO full, target outside the joint "
+                                                                "limits, or unsupported type)")
+        elif hand is None:
+            return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM),
+                                   message="a point of type NOMOVEMENT_POSITION with no hand part moves nothing")
+        if hand is not None:
+            values = hand.units_to_angle(position.Fingers.as_list()[:hand.n_fingers])
+            mode = FingerMode.POSITION if position.HandMode is kinova.HAND_MODE.POSITION_MODE else FingerMode.VELOCITY
+            problem = self.robot.command_fingers(FingerCommand(mode=mode, values=values.tolist()))
+            if problem:
+                return kinova.ApiReply(code=int(kinova.ErrorCode.ERROR_INVALID_PARAM), message=problem)
+        return kinova.ApiReply()
 
     def _EraseAllTrajectories(self, _):
         self.dsp.erase_all_trajectories()
@@ -83,31 +124,48 @@ class KinovaApi:
         return kinova.TrajectoryFIFOReply(result=kinova.TrajectoryFIFO(
             TrajectoryCount=n, UsedPercentage=100.0 * n / kinova.TRAJECTORY_FIFO_SIZE))
 
-    def _angular(self, values_deg) -> kinova.AngularPositionReply:
+    def _angular(self, values_deg, fingers=None) -> kinova.AngularPositionReply:
         return kinova.AngularPositionReply(result=kinova.AngularPosition(
-            Actuators=kinova.AngularInfo.from_list(values_deg)))
+            Actuators=kinova.AngularInfo.from_list(values_deg), Fingers=self._fingers(fingers)))
+
+    @staticmethod
+    def _fingers(values) -> kinova.FingersPosition:
+        return kinova.FingersPosition() if values is None else kinova.FingersPosition.from_list(values)
+
+    def _finger_units(self, which: str):
+        """The fingers' angles (``position``), rates (``velocity``) or targets (``target``) in Kinova's finger units
+        (None: no fingers reported)."""
+        fingers, hand = self.robot.fingers, self.arm.hand
+        if fingers is None or hand is None:
+            return None
+        values = self.robot.finger_targets if which == "target" else getattr(fingers, which)
+        return None if values is None else hand.angle_to_units(values)
 
     def _GetAngularPosition(self, _):
-        return self._angular(self.arm.model_to_physical_deg(self.robot.q))
+        return self._angular(self.arm.model_to_physical_deg(self.robot.q), self._finger_units("position"))
 
     def _GetAngularVelocity(self, _):
-        return self._angular(self.arm.model_rate_to_physical(self.robot.dq))
+        return self._angular(self.arm.model_rate_to_physical(self.robot.dq), self._finger_units("velocity"))
 
     def _GetAngularForce(self, _):
         return self._angular(self.arm.sign * self.robot.tau)
 
     def _GetAngularCommand(self, _):
-        return self._angular(self.arm.model_to_physical_deg(self.robot.q_ref))
+        return self._angular(self.arm.model_to_physical_deg(self.robot.q_ref), self._finger_units("target"))
 
-    def _cartesian(self, T) -> kinova.CartesianPositionReply:
+    def _GetAngularCurrent(self, _):
+        fingers = self.robot.fingers
+        return self._angular(self.arm.sign * self.robot.current_a, None if fingers is None else fingers.current_a)
+
+    def _cartesian(self, T, fingers=None) -> kinova.CartesianPositionReply:
         return kinova.CartesianPositionReply(result=kinova.CartesianPosition(Coordinates=kinova.CartesianInfo(
-            **frames.kinova_pose(T[:3, :3], T[:3, 3]))))
+            **frames.kinova_pose(T[:3, :3], T[:3, 3])), Fingers=self._fingers(fingers)))
 
     def _GetCartesianPosition(self, _):
-        return self._cartesian(self.robot.ee_pose())
+        return self._cartesian(self.robot.ee_pose(), self._finger_units("position"))
 
     def _GetCartesianCommand(self, _):
-        return self._cartesian(self.arm.dh_forward_kinematics(self.robot.q_ref))
+        return self._cartesian(self.arm.dh_forward_kinematics(self.robot.q_ref), self._finger_units("target"))
 
     def _SetProtectionZone(self, zones: kinova.ZoneList):
         try:

@@ -208,6 +208,7 @@ _GETTERS = {
     "GetAngularVelocity": (AngularPosition, kinova.AngularPosition),
     "GetAngularForce": (AngularPosition, kinova.AngularPosition),
     "GetAngularCommand": (AngularPosition, kinova.AngularPosition),
+    "GetAngularCurrent": (AngularPosition, kinova.AngularPosition),
     "GetCartesianPosition": (CartesianPosition, kinova.CartesianPosition),
     "GetCartesianCommand": (CartesianPosition, kinova.CartesianPosition),
     "GetGlobalTrajectoryInfo": (TrajectoryFIFO, kinova.TrajectoryFIFO),

@@ -13,8 +13,8 @@ import numpy as np
 
 from protocol import rs485 as r
 from services.model.arm import ArmDescription
-from services.robot.hardware import (DEFAULT_TIMING, ActuatorValues, HardwareError, JointReading, JointTargets,
-                                     physical_targets, reading_from_physical)
+from services.robot.hardware import (DEFAULT_TIMING, ActuatorValues, FingerReading, HardwareError, JointReading,
+                                     JointTargets, physical_targets, reading_from_physical)
 from services.robot_sim.sim import Simulation
 from services.runtime.arrays import constant
 
@@ -57,13 +57,26 @@ class SimulatedHardware:
         """The joints now, without a cycle (at start)."""
         reading = reading_from_values(self.sim.firmware.values(self.sim.time_ns), self.sim.arm, self.epoch_ns)
         reading.arm_pose = self.sim.ee_pose()
+        reading.fingers = self._fingers()
         return reading
+
+    def _fingers(self) -> Optional[FingerReading]:
+        """The fingers' values now, through float32 as a bus frame carries them (None: no hand)."""
+        fingers = self.sim.fingers
+        if fingers is None:
+            return None
+        values = fingers.reading()
+        position, velocity, current = float32((values.position, values.velocity, values.current_a))
+        return FingerReading(position=position, velocity=velocity, current_a=current)
 
     def exchange(self, targets: JointTargets) -> JointReading:
         position_deg, torque_nm = float32(physical_targets(targets, self.sim.arm))  # as a 0x14 carries them
         firmware = self.sim.firmware
         firmware.command_all(position_deg, torque_nm)
+        if targets.fingers is not None and self.sim.fingers is not None:
+            self.sim.fingers.command(float32(targets.fingers))
         values = self.sim.begin_cycle()
+        fingers = self._fingers()
         # the physical arm's own report, whatever its description says (MuJoCo's last kinematics: a physics step,
         # 1 ms, behind a moving arm, as a real arm's report lags its joints)
         arm_pose = self.sim.ee_pose()
@@ -73,6 +86,7 @@ class SimulatedHardware:
         self.sim.end_cycle()
         reading = reading_from_values(values, self.sim.arm, self.epoch_ns)
         reading.arm_pose = arm_pose
+        reading.fingers = fingers
         return reading
 
     def enter_torque_mode(self, expected_torques: np.ndarray) -> None:

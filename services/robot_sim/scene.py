@@ -185,6 +185,8 @@ class ObjectKind(str, enum.Enum):
     CUP = "cup"
     #: a plain grey box (an occluder: a hand, a sheet of paper)
     BOX = "box"
+    #: a plain ball, ``size_m[0]`` across (what the grip is measured on: dm_control's kinova_test.py)
+    SPHERE = "sphere"
 
 
 class SceneObject(ConfigStruct):
@@ -197,7 +199,7 @@ class SceneObject(ConfigStruct):
     #: one of the two: in the robot base frame, or in the camera frame at the initial configuration
     pose_in_base: Optional[PoseConfig] = None
     pose_in_camera: Optional[PoseConfig] = None
-    #: a plane's face (width, height) and a box's size (x, y, z), m
+    #: a plane's face (width, height), a box's size (x, y, z), a ball's diameter (the first), m
     size_m: tuple[float, float, float] = (0.16, 0.12, 0.004)
     cup: CupShape = msgspec.field(default_factory=CupShape)
     texture: Optional[str] = None
@@ -207,6 +209,8 @@ class SceneObject(ConfigStruct):
     #: in the scene from ... to (s of simulated time; null: from the start, to the end)
     arrives_at_s: Optional[float] = None
     leaves_at_s: Optional[float] = None
+    #: the fingers touch it (a mocap body still: it does not move when they push it); false: it is seen only
+    solid: bool = False
 
     def __post_init__(self) -> None:
         if not (1 <= len(self.name) <= 32 and self.name.replace("_", "").isalnum()):
@@ -330,6 +334,8 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
     spec = arm.mujoco_spec()
     _set_options(spec, cfg)
     _add_arm(spec, arm)
+    if arm.hand is not None:
+        _add_hand(spec, arm)
     _add_light_and_floor(spec, cfg)
     _add_target(spec, cfg, arm)
     for obj in cfg.objects:
@@ -375,6 +381,86 @@ def _add_arm(spec: mujoco.MjSpec, arm: ArmDescription) -> None:
 
     for geom in spec.geoms:  # (the arm's alone: nothing else is in the scene yet)
         geom.rgba = [0.15, 0.15, 0.17, 1.0]
+
+
+#: the collision bits of what the fingers touch: a finger's geoms collide with a solid object's, never with each other,
+#: the arm or the scene's visual geometry (contype 0)
+FINGER_CONTACT = 2
+#: a finger's contacts: MuJoCo's elliptic friction cone with torsional friction (condim 4, as dm_control's
+#: jaco_hand.xml gives its fingers), MuJoCo's default sliding friction (dm_control sets none)
+FINGER_CONDIM = 4
+#: each finger actuator's servo: stiff enough that a finger blocked on an object reaches its force limit within a
+#: degree of where it stopped (mfvs's choice, as a geared finger motor's position loop is; the real one's gains are
+#: not public), critically damped for the finger's inertia about its hinge
+FINGER_FULL_FORCE_WITHIN = math.radians(1.0)
+#: the reflected inertia of a finger's motor at its hinge (kg·m²): mfvs's choice, of the order of the finger's own
+#: (about 1e-4 kg·m²), so the servo's bandwidth stays within what the 1 ms physics step integrates
+FINGER_ARMATURE = 2e-4
+
+
+def finger_names(arm: ArmDescription) -> list[tuple[str, str, str]]:
+    """Each finger's (body, hinge joint, motor) names in the scene's model."""
+    return [(f"{name}_proximal", f"{name}_hinge", f"{name}_motor") for name in arm.hand.finger_names]
+
+
+def finger_torque_limit_nm(arm: ArmDescription) -> float:
+    """The most torque a finger's motor gives (N·m): its share of the grip (a third) at the pinch, where the distal
+    link holds an object, half-way along it from the hinge (:func:`pinch_lever_m`)."""
+    hand = arm.hand
+    return hand.grip_force_n / hand.n_fingers * pinch_lever_m(arm)
+
+
+def pinch_lever_m(arm: ArmDescription) -> float:
+    """How far from its hinge a finger holds an object at the pinch: to the middle of its distal link (m)."""
+    hand = arm.hand
+    x, y, z = hand.distal_offset_m
+    return math.hypot(x + hand.distal_length_m / 2.0, y, z)
+
+
+def _add_hand(spec: mujoco.MjSpec, arm: ArmDescription) -> None:
+    """The hand's fingers on the end effector: per finger a proximal body on an actuated hinge at its origin, its
+    distal link rigid on it, capsules along the finger's x; a position servo on each hinge, its force limited to the
+    finger's share of the grip. The palm keeps what the fingers leave of the last link's mass (inertia scaled with
+    it), so the arm weighs what its description says."""
+    hand = arm.hand
+    palm = spec.body(arm.link_names[-1])
+    share = 1.0 - hand.n_fingers * hand.finger_mass_kg / palm.mass
+    if share <= 0.0:
+        raise ValueError(f"the {hand.name}'s fingers weigh more than the {arm.name}'s last link")
+    palm.mass = palm.mass * share
+    palm.inertia = [float(v) * share for v in palm.inertia]
+    ee = spec.body(EE_LINK)
+    torque = finger_torque_limit_nm(arm)
+    radius = hand.link_radius_m
+    # the finger about its hinge, as a servo sees it: the two links' masses at their centres, plus the motor
+    lever_proximal = hand.proximal_length_m / 2.0
+    lever_distal = pinch_lever_m(arm)
+    inertia = (hand.proximal_mass_kg * lever_proximal ** 2 + hand.distal_mass_kg * lever_distal ** 2
+               + FINGER_ARMATURE)
+    kp = torque / FINGER_FULL_FORCE_WITHIN
+    kv = 2.0 * math.sqrt(kp * inertia)
+    for T, (body_name, joint_name, motor_name) in zip(hand.finger_origins, finger_names(arm)):
+        proximal = ee.add_body(name=body_name, pos=T[:3, 3].tolist(),
+                               quat=frames.matrix_to_quat_wxyz(T[:3, :3]).tolist())
+        proximal.add_joint(name=joint_name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0.0, 0.0, 1.0],
+                           range=[0.0, hand.closed_angle], limited=mujoco.mjtLimited.mjLIMITED_TRUE,
+                           armature=FINGER_ARMATURE)
+        proximal.add_geom(name=f"{body_name}_link", type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                          fromto=[0.0, 0.0, 0.0, hand.proximal_length_m, 0.0, 0.0], size=[radius, 0.0, 0.0],
+                          mass=hand.proximal_mass_kg, contype=FINGER_CONTACT, conaffinity=0, condim=FINGER_CONDIM,
+                          rgba=[0.15, 0.15, 0.17, 1.0])
+        distal = proximal.add_body(name=body_name.replace("_proximal", "_distal"), pos=list(hand.distal_offset_m))
+        distal.add_geom(name=body_name.replace("_proximal", "_distal_link"), type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+                        fromto=[0.0, 0.0, 0.0, hand.distal_length_m, 0.0, 0.0], size=[radius, 0.0, 0.0],
+                        mass=hand.distal_mass_kg, contype=FINGER_CONTACT, conaffinity=0, condim=FINGER_CONDIM,
+                        rgba=[0.15, 0.15, 0.17, 1.0])
+        motor = spec.add_actuator(name=motor_name, target=joint_name)
+        motor.trntype = mujoco.mjtTrn.mjTRN_JOINT
+        motor.set_to_position(kp=kp, kv=kv)
+        motor.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        motor.forcerange = [-torque, torque]
+        motor.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        motor.ctrlrange = [0.0, hand.closed_angle]
 
 
 def _add_light_and_floor(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
@@ -504,9 +590,15 @@ def _add_object(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription, obj:
         _textured_plane(spec, body, name, obj.size_m, obj.texture, obj.texture_seed)
     elif obj.kind == ObjectKind.CUP:
         _textured_cup(spec, body, name, obj.cup, obj.texture, obj.texture_seed)
+    elif obj.kind == ObjectKind.SPHERE:
+        body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[obj.size_m[0] / 2, 0.0, 0.0],
+                      rgba=[0.55, 0.5, 0.45, 1.0], contype=0, conaffinity=0)
     else:
         body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in obj.size_m],
                       rgba=[0.55, 0.5, 0.45, 1.0], contype=0, conaffinity=0)
+    if obj.solid:
+        for geom in body.geoms:
+            geom.conaffinity = FINGER_CONTACT
 
 
 def _add_camera(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:

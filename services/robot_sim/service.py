@@ -345,9 +345,13 @@ class ArmOnBusService(Service):
             return RS485Bus(cfg.bus, self.counters)
         firmware = self.sim.firmware
 
-        def angles() -> list[float]:  # what Kinova's high-level API reads before RS-485 is activated (no fingers)
+        fingers, hand = self.sim.fingers, self.arm.hand
+
+        def angles() -> list[float]:  # what Kinova's high-level API reads before RS-485 is activated
             joints = [firmware.position_deg(i) for i in range(self.arm.n_joints)]
-            return joints + [0.0] * (usb_base.ANGULAR_ACTUATORS - len(joints) + usb_base.ANGULAR_FINGERS)
+            units = [] if fingers is None else hand.angle_to_units(fingers.position).tolist()
+            return (joints + [0.0] * (usb_base.ANGULAR_ACTUATORS - len(joints))
+                    + units + [0.0] * (usb_base.ANGULAR_FINGERS - len(units)))
 
         return usb_base.UsbBaseBus(cfg.bus.channel, model=self.arm.name, counters=self.counters,
                                    device_type=self.arm.robot_type, angular_position=angles)

@@ -22,6 +22,7 @@ from services.runtime.metrics import Counters
 from services.robot.hardware import CYCLE_NS, ActuatorValues
 from services.robot_sim import scene as scene_mod
 from services.robot_sim.imaging import expose
+from services.robot_sim.finger_firmware import FingerFirmware
 from services.robot_sim.firmware import ActuatorConfig, ActuatorFirmware
 
 
@@ -54,9 +55,14 @@ class Simulation:
         self.n = self.arm.n_joints
         self.model = scene_mod.build_model(self.scene, self.arm)
         self.data = mujoco.MjData(self.model)
-        if self.model.nv != self.n:
-            raise ValueError(f"the model must have exactly {self.n} dofs, it has {self.model.nv}")
+        #: the hand's fingers: their hinges follow the arm's joints in MuJoCo's coordinates
+        self.n_fingers = 0 if self.arm.hand is None else self.arm.hand.n_fingers
+        if self.model.nv != self.n + self.n_fingers:
+            raise ValueError(f"the model must have exactly {self.n} joints' and {self.n_fingers} fingers' dofs, it has "
+                             f"{self.model.nv}")
         self.firmware = ActuatorFirmware(self.model, self.data, self.arm, actuators, counters)
+        #: the hand's finger actuators (None: the arm carries no hand)
+        self.fingers = FingerFirmware(self.model, self.data, self.arm) if self.n_fingers else None
         self.physics_dt_ns = int(round(self.model.opt.timestep * 1e9))
         self.cycle_ns = CYCLE_NS
         if self.cycle_ns % self.physics_dt_ns:
@@ -96,6 +102,8 @@ class Simulation:
         mujoco.mj_forward(self.model, self.data)
         self.firmware.now_s = 0.0
         self.firmware.hold_all()
+        if self.fingers is not None:
+            self.fingers.hold_all()
         self.next_frame_ns = 0
         self.frame_count = 0
 
@@ -140,6 +148,8 @@ class Simulation:
         """The cycle boundary: the actuators take the commands of the cycle before; returns what they report for
         this cycle (its stamp is the boundary's time)."""
         self.firmware.begin_cycle(self.time_ns * 1e-9)
+        if self.fingers is not None:
+            self.fingers.begin_cycle()
         if self._history is not None:
             d = self.data
             self._history.append((self.time_ns, d.qpos.copy(), d.mocap_pos.copy(), d.mocap_quat.copy()))
@@ -169,8 +179,11 @@ class Simulation:
     def step_physics(self, steps: int = 1) -> None:
         """Physics only: the actuators set their torques each step, the target moves."""
         moving = bool(self._target_velocity.any())
+        fingers = self.fingers
         for _ in range(steps):
             self.firmware.apply(self.time_ns * 1e-9)
+            if fingers is not None:
+                fingers.apply()
             mujoco.mj_step(self.model, self.data)
             self.time_ns += self.physics_dt_ns
             if moving:

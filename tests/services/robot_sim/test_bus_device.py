@@ -255,9 +255,9 @@ def test_on_its_bus_the_arm_adds_no_gravity_in_torque_mode_as_the_api_mode_s_act
         rig.cycle(1)
     fell = float(ARM.model_to_physical_deg(rig.sim.q)[3]) - start
     api = SimulatedHardware(Simulation(render=False))
-    reading = api.read()
-    for _ in range(50):
-        reading = api.exchange(JointTargets(q=reading.q))
+    start_reading = reading = api.read()
+    for _ in range(50):  # holding where it starts
+        reading = api.exchange(JointTargets(q=start_reading.q))
     api.enter_torque_mode(ArmKinematics(ARM).gravity(reading.q))
     held = reading.q
     for _ in range(50):

@@ -17,9 +17,9 @@ def in_torque_mode(name: str):
     counters = Counters()
     sim = Simulation(render=False, arm=arm, counters=counters)
     hardware = SimulatedHardware(sim)
-    reading = hardware.read()
+    start = reading = hardware.read()
     for _ in range(100):  # 0.2 s holding where it starts: the motors carry the arm's weight
-        reading = hardware.exchange(JointTargets(q=reading.q))
+        reading = hardware.exchange(JointTargets(q=start.q))
     hardware.enter_torque_mode(ArmKinematics(arm).gravity(reading.q))
     return arm, sim, hardware, counters, reading
 

@@ -88,7 +88,7 @@ def test_moving_target_moves_at_its_velocity():
 
 def test_torque_limits_are_the_actuators():
     model = build_model(SceneConfig(), ARM)
-    assert model.actuator_ctrlrange[:, 1].tolist() == ARM.max_torque.tolist()
+    assert model.actuator_ctrlrange[: ARM.n_joints, 1].tolist() == ARM.max_torque.tolist()  # (the fingers follow)
     assert model.opt.timestep <= 0.001
 
 
@@ -111,7 +111,8 @@ def test_scene_config_validation():
 @pytest.mark.parametrize("name", ["j2s7s300", "j2n6s300"])
 def test_the_emulated_arm_is_its_description_heavier_where_its_emulation_says_and_with_friction(name, rng):
     """The simulated arm's gravity is Pinocchio's of the description with the links scaled as the description's
-    emulation section says (the model the controllers use is wrong by exactly that, on purpose); its joints carry
+    emulation section says (the model the controllers use is wrong by exactly that, on purpose), the last link's
+    mass split between the palm, where the description has it, and the fingers, where they are (open); its joints carry
     a fraction of the actuators' smallest backdriving torque as Coulomb friction (which the firmware applies in
     torque mode only: test_firmware.py), and its motors their peak torques."""
     import mujoco
@@ -126,6 +127,18 @@ def test_the_emulated_arm_is_its_description_heavier_where_its_emulation_says_an
     for i, scale in enumerate(arm.true_link_mass_scale, start=1):
         true_model.inertias[i] = pin.Inertia(true_model.inertias[i].mass * scale, true_model.inertias[i].lever,
                                              true_model.inertias[i].inertia * scale)
+    last = true_model.inertias[arm.n_joints]
+    hand = arm.hand
+    palm_mass = last.mass - hand.n_fingers * hand.finger_mass_kg
+    ee_in_last = true_model.frames[true_model.getFrameId("end_effector")].placement.homogeneous
+    moved = pin.Inertia(palm_mass, last.lever, last.inertia * (palm_mass / last.mass))
+    for T in hand.finger_origins:  # each finger's two links as point masses at their centres (gravity needs no more)
+        distal = np.array(hand.distal_offset_m) + [hand.distal_length_m / 2, 0.0, 0.0]
+        for mass, centre in ((hand.proximal_mass_kg, [hand.proximal_length_m / 2, 0.0, 0.0]),
+                             (hand.distal_mass_kg, distal)):
+            at = (ee_in_last @ T @ np.array([*centre, 1.0]))[:3]
+            moved = moved + pin.Inertia(mass, at, np.zeros((3, 3)))
+    true_model.inertias[arm.n_joints] = moved
     true_data, nominal = true_model.createData(), ArmKinematics(arm)
     n = arm.n_joints
     differs = False
@@ -140,7 +153,7 @@ def test_the_emulated_arm_is_its_description_heavier_where_its_emulation_says_an
     assert sim.model.dof_frictionloss[:n].tolist() == pytest.approx(
         [arm.torque_mode_friction_fraction * j.spec.backdriving_torque_nm[0] for j in arm.joints])
     assert 0.0 < arm.torque_mode_friction_fraction < 1.0
-    assert sim.model.actuator_ctrlrange[:, 1].tolist() == [j.spec.peak_torque_nm for j in arm.joints]
+    assert sim.model.actuator_ctrlrange[:n, 1].tolist() == [j.spec.peak_torque_nm for j in arm.joints]
 
 
 def random_q_for(arm, rng):

@@ -37,7 +37,8 @@ def test_a_scene_that_asks_for_nothing_new_compiles_to_the_same_model():
                                                                    mujoco.mjtObj.mjOBJ_JOINT: base.njnt,
                                                                    mujoco.mjtObj.mjOBJ_ACTUATOR: base.nu}[kind])]
         assert all(mujoco.mj_name2id(more, kind, n) == i for i, n in enumerate(names))
-    assert more.nv == base.nv == ARM.n_joints  # objects are mocap bodies: no degrees of freedom
+    # objects are mocap bodies: no degrees of freedom beside the arm's joints and the fingers' hinges
+    assert more.nv == base.nv == ARM.n_joints + ARM.hand.n_fingers
 
 
 def test_the_procedural_print_is_the_same_from_the_same_seed_and_rich_in_keypoints():

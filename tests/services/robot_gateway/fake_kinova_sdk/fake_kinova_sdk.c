@@ -161,6 +161,12 @@ int API(GetAngularForce)(AngularPosition *out) {
     out->Actuators.Actuator2 = -12.5f;
     return code;
 }
+int API(GetAngularCurrent)(AngularPosition *out) {
+    int code = angular(out, NULL);
+    out->Actuators.Actuator2 = 1.25f;
+    out->Fingers.Finger1 = 0.5f;
+    return code;
+}
 static int cartesian(CartesianPosition *out) {
     if (!initialized) return ERROR_API_NOT_INITIALIZED;
     memset(out, 0, sizeof *out);

@@ -1,0 +1,84 @@
+"""The KG-3's finger actuators, emulated on the MuJoCo fingers (services/robot_sim/scene.py: ``_add_hand``): what
+each does with the targets its bus brings, one bus cycle (2 ms) at a time on the arm's timeline, beside the arm's
+actuators (:mod:`services.robot_sim.firmware`) and on the same boundaries.
+
+Per finger: a target received during a cycle is taken at the next boundary (the newest wins); the finger's reference
+moves toward it at the finger's top speed (the hand's full travel in its closing time) and holds there; a position
+servo on the hinge follows the reference, its force limited to the finger's share of the grip, so a finger blocked
+on an object squeezes it with that force for as long as its target lies beyond the object. No target keeps the last
+one: nothing but a new target moves a finger. Each finger reports its angle, its rate and a current proportional to
+the force its motor gives (:data:`FINGER_CURRENT_AT_FULL_FORCE_A`).
+
+Where it departs from the real hand (whose firmware is not public): the reference's constant speed and the servo's
+stiffness are mfvs's choices; the KG-3's fingers are driven through a worm gear and lead screw, which hold their
+position unpowered; the emulated ones hold it by their servo.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import mujoco
+import numpy as np
+
+from services.model.arm import ArmDescription
+from services.robot.hardware import FingerReading
+from services.robot_sim import scene as scene_mod
+
+#: the current a finger's motor draws at its full force (A): mfvs's choice (Kinova's ``Finger`` struct has a
+#: MaxCurrent, but no public value); the grasp detector judges currents against this, not against a bare number
+FINGER_CURRENT_AT_FULL_FORCE_A = 1.0
+
+
+class FingerFirmware:
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, arm: ArmDescription) -> None:
+        if arm.hand is None:
+            raise ValueError(f"the {arm.name} carries no hand")
+        self.hand = arm.hand
+        self.model, self.data = model, data
+        names = scene_mod.finger_names(arm)
+        self._qpos = np.array([model.joint(joint).qposadr[0] for _, joint, _ in names])
+        self._dof = np.array([model.joint(joint).dofadr[0] for _, joint, _ in names])
+        self._actuators = np.array([model.actuator(motor).id for _, _, motor in names])
+        self.full_force_nm = scene_mod.finger_torque_limit_nm(arm)
+        #: how far a reference moves in one physics step (rad)
+        self._step = self.hand.max_speed * model.opt.timestep
+        n = self.hand.n_fingers
+        #: the target taken (rad), where the reference is now (rad), and the newest target of the cycle not yet taken
+        self.target = np.zeros(n)
+        self.reference = np.zeros(n)
+        self.pending: Optional[np.ndarray] = None
+        self.hold_all()
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.data.qpos[self._qpos].copy()
+
+    def hold_all(self) -> None:
+        """Every finger holding where it is (at start and after a reset)."""
+        self.target = self.hand.clip(self.position)
+        self.reference = self.target.copy()
+        self.pending = None
+        self.data.ctrl[self._actuators] = self.reference
+
+    def command(self, targets_rad) -> None:
+        """The fingers' targets (rad, 0 open), taken at the next boundary."""
+        self.pending = self.hand.clip(np.asarray(targets_rad, dtype=float))
+
+    def begin_cycle(self) -> None:
+        """A cycle boundary: the newest target of the cycle that ended is taken."""
+        if self.pending is not None:
+            self.target, self.pending = self.pending, None
+
+    def apply(self) -> None:
+        """The reference one physics step further toward the targets, as the servos' setpoints (every step)."""
+        step = self._step
+        self.reference = self.reference + np.clip(self.target - self.reference, -step, step)
+        self.data.ctrl[self._actuators] = self.reference
+
+    def force_fraction(self) -> np.ndarray:
+        """How much of its full force each finger's motor gives now (signed: positive closing)."""
+        return self.data.actuator_force[self._actuators] / self.full_force_nm
+
+    def reading(self) -> FingerReading:
+        return FingerReading(position=self.position, velocity=self.data.qvel[self._dof].copy(),
+                             current_a=self.force_fraction() * FINGER_CURRENT_AT_FULL_FORCE_A)
