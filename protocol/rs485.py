@@ -47,7 +47,12 @@ class Command(enum.IntEnum):
     SEND_ACTUAL_POSITION = 0x02
     START_SERVO = 0x03
     STOP_SERVO = 0x04
+    #: host → a finger actuator (0x16-0x18): float[0] = float[1] = the finger's target in Kinova's finger units
+    #: (abr/abr_jaco2's jaco2_rs485.cpp sends them so); Kinova's header: "position command"
     GET_POSITION_COMMAND = 0x10
+    #: its reply, Kinova's header: "actual position and current consumption"; the float layout is not public: mfvs
+    #: gives it 0x02's (float[0] current A, float[1] position in finger units, float[2] velocity in units/s,
+    #: float[3] 0), where abr_jaco2 reads a joint's position
     SEND_POSITION_CURRENT = 0x11
     #: the PID bypass (Kinova's header): float[0] = float[1] = the value, -1..1, with Kp, Ki, Kd set to 0 first
     FEEDTHROUGH = 0x09

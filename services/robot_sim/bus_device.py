@@ -26,6 +26,12 @@ it the frames and sends what it returns, and decides when cycles end (:mod:`serv
   (0x24/0x25) and 0x200 are not emulated (``NACK``).
 * ``CLEAR_FAULT_FLAG`` (0x33), ``START_SERVO``/``STOP_SERVO`` → ``ACK`` (0x3F), uint32[0] the command acknowledged
   (drake-jaco-driver reads it there); other commands → ``NACK``.
+* The hand's finger actuators (the hand file's addresses, 0x16-0x18): ``GET_POSITION_COMMAND`` (0x10), float[0] =
+  float[1] = the target in Kinova's finger units (abr/abr_jaco2 sends them so), taken at the next boundary →
+  ``SEND_POSITION_CURRENT`` (0x11) with the cycle's values in 0x02's layout [current A, position in units,
+  velocity in units/s, 0] (the layout is not public: our choice, where abr_jaco2 reads a position);
+  ``GET_ACTUAL_POSITION`` (0x01) → 0x02 in the same layout. A target that is not finite, or whose halves differ,
+  is refused with a COMMAND report; anything else to a finger → ``NACK``.
 * Faults are reported with ``REPORT_ERROR`` (0x30) once (the firmware latches them).
 * Torque mode adds no gravity compensation: driven over RS-485 the base's DSP is bypassed (kinova.md), and the
   host sends the arm's gravity with its torques (as abr/abr_jaco2 does), whatever ``actuators.gravity_compensation``
@@ -64,6 +70,10 @@ class ActuatorBusDevice:
         self.values: ActuatorValues = self.firmware.values(sim.time_ns)
         self._deferred: list[int] = []
         self._commanded: set[int] = set()
+        #: the finger actuators by address (none without a hand), and their values at the cycle's boundary
+        hand = sim.arm.hand if sim.fingers is not None else None
+        self.finger_index = {} if hand is None else {a: i for i, a in enumerate(hand.bus_addresses)}
+        self.finger_values = None if sim.fingers is None else sim.fingers.reading()
 
     # ------------------------------------------------------------------ batches (the hot path)
     def receive_batch(self, batch: np.ndarray) -> np.ndarray:
@@ -118,7 +128,8 @@ class ActuatorBusDevice:
         """The replies to one message (none when it is not for an actuator, or deferred to the boundary)."""
         i = self.index.get(message.destination)
         if i is None:
-            return []  # for someone else (or the host)
+            finger = self.finger_index.get(message.destination)
+            return [] if finger is None else self._finger(finger, message)  # for someone else (or the host)
         if message.command is not r.Command.POSITION_AND_TORQUE_COMMAND:  # those are counted as a batch
             self.counters.inc(f"bus.rx.{message.command.name.lower()}")
         address = message.destination
@@ -148,6 +159,27 @@ class ActuatorBusDevice:
         self.counters.inc("bus.unsupported")
         return [r.RS485Message(r.Command.NACK, address, r.HOST_ADDRESS)]
 
+    def _finger(self, finger: int, message: r.RS485Message) -> list[r.RS485Message]:
+        """A message to finger actuator ``finger``."""
+        self.counters.inc(f"bus.rx.finger.{message.command.name.lower()}")
+        address, hand, command = message.destination, self.sim.arm.hand, message.command
+        if command is r.Command.GET_POSITION_COMMAND:
+            first, second = message.floats[:2]
+            if not (np.isfinite(first) and first == second):
+                self.counters.inc("bus.rejected_payloads")
+                return [r.report_error(r.ActuatorError.COMMAND, address)]
+            self.sim.fingers.command_one(finger, float(hand.units_to_angle(first)))
+            reply = r.Command.SEND_POSITION_CURRENT
+        elif command is r.Command.GET_ACTUAL_POSITION:
+            reply = r.Command.SEND_ACTUAL_POSITION
+        else:
+            self.counters.inc("bus.unsupported")
+            return [r.RS485Message(r.Command.NACK, address, r.HOST_ADDRESS)]
+        v = self.finger_values
+        return [r.RS485Message.with_floats(reply, address, r.HOST_ADDRESS, [
+            float(v.current_a[finger]), float(hand.angle_to_units(v.position[finger])),
+            float(hand.angle_to_units(v.velocity[finger])), 0.0])]
+
     @property
     def batch_complete(self) -> bool:
         """Every actuator has a 0x14 for the next boundary (lockstep ends a cycle on this)."""
@@ -160,6 +192,8 @@ class ActuatorBusDevice:
         Physics is the caller's (``sim.end_cycle()``), so that a camera frame can be taken at the boundary
         first."""
         self.values = self.sim.begin_cycle()
+        if self.sim.fingers is not None:
+            self.finger_values = self.sim.fingers.reading()
         self._commanded.clear()
         reports = []
         for address, error in self.firmware.reports:

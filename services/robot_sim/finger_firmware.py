@@ -64,6 +64,12 @@ class FingerFirmware:
         """The fingers' targets (rad, 0 open), taken at the next boundary."""
         self.pending = self.hand.clip(np.asarray(targets_rad, dtype=float))
 
+    def command_one(self, finger: int, target_rad: float) -> None:
+        """One finger's target (a bus message to its actuator), taken at the next boundary with the others'."""
+        pending = self.target.copy() if self.pending is None else self.pending.copy()
+        pending[finger] = float(self.hand.clip(target_rad))
+        self.pending = pending
+
     def begin_cycle(self) -> None:
         """A cycle boundary: the newest target of the cycle that ended is taken."""
         if self.pending is not None:

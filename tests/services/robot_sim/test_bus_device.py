@@ -427,3 +427,29 @@ def test_the_torque_safety_configuration_is_acknowledged_and_limits_the_torque(r
     assert rig.firmware.by_address[0x12].torque_nm == pytest.approx(5.0)
     (refused,) = rig.request(r.torque_config_safety(10 * float(ARM.max_torque[2]), 0x12))
     assert refused.command is r.Command.NACK
+
+
+def test_the_finger_actuators_at_0x16_0x18_take_a_position_command_and_answer_its_position_and_current(rig):
+    """abr/abr_jaco2's finger message (0x10 to 0x16-0x18, float[0] = float[1] = the target in finger units) closes
+    the fingers; each answers 0x11 [current, position in units, velocity in units/s, 0] with the cycle's values."""
+    hand = ARM.hand
+    first = rig.request(r.RS485Message.with_floats(r.Command.GET_POSITION_COMMAND, r.HOST_ADDRESS, 0x16,
+                                                   [3400.0, 3400.0, 0.0, 0.0]))
+    assert [(m.command, m.source) for m in first] == [(r.Command.SEND_POSITION_CURRENT, 0x16)]
+    assert first[0].floats[1] == pytest.approx(0.0, abs=1.0)  # the cycle it came in: still open
+    for address in (0x17, 0x18):
+        rig.host.send(r.RS485Message.with_floats(r.Command.GET_POSITION_COMMAND, r.HOST_ADDRESS, address,
+                                                 [3400.0, 3400.0, 0.0, 0.0]))
+    rig.cycle(600)  # 1.2 s: half the travel takes 0.6 s
+    replies = [rig.request(r.RS485Message(r.Command.GET_ACTUAL_POSITION, r.HOST_ADDRESS, a))[0]
+               for a in hand.bus_addresses]
+    assert all(m.command is r.Command.SEND_ACTUAL_POSITION for m in replies)
+    assert [m.floats[1] for m in replies] == pytest.approx([3400.0] * 3, abs=64.0)  # kinova-ros's tolerance
+    assert np.allclose(rig.sim.fingers.position, hand.units_to_angle(3400.0), atol=1e-3)
+    # halves that differ, or a NaN, are refused with a report; another command is not a finger's
+    refused = rig.request(r.RS485Message.with_floats(r.Command.GET_POSITION_COMMAND, r.HOST_ADDRESS, 0x17,
+                                                     [100.0, 200.0, 0.0, 0.0]))
+    assert r.parse_report_error(refused[0]) is r.ActuatorError.COMMAND
+    nack = rig.request(r.RS485Message(r.Command.POSITION_AND_TORQUE_COMMAND, r.HOST_ADDRESS, 0x18))
+    assert nack[0].command is r.Command.NACK
+    assert np.allclose(rig.sim.fingers.target, hand.units_to_angle(3400.0))
