@@ -470,41 +470,6 @@ SourceName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_\-]{0,31}(/[a-z
 SERVO_SOURCE = "controller/servo"
 
 
-class Twist(Message):
-    """A velocity screw with its declared convention. In the mixed frame the linear part is in the base frame and
-    ``angular`` says how ``rotational`` is to be read (see :mod:`protocol.conventions`). As a desired command, its
-    ``source`` (in a robot command, the source safety approved it from)."""
-
-    header: Header
-    frame: Frame
-    angular: AngularConvention
-    linear: Vec3
-    rotational: Vec3
-    source: SourceName = SERVO_SOURCE
-
-
-class JointVelocity(Message):
-    """Desired joint velocities in rad/s, one per joint of the robot's arm, model order and sign
-    (services.model.arm), and their source."""
-
-    header: Header
-    velocities: JointVector
-    source: SourceName = SERVO_SOURCE
-
-
-class CommandMode(str, enum.Enum):
-    #: hold still: the robot decelerates to rest within its limits
-    STOP = "stop"
-    #: stop now: the robot brakes at its emergency decelerations (the safety service's latched e-stop)
-    EMERGENCY_STOP = "emergency_stop"
-    CARTESIAN_VELOCITY = "cartesian_velocity"
-    JOINT_VELOCITY = "joint_velocity"
-
-
-#: the modes in which a robot command moves the arm (the others stop it)
-MOTION_MODES = frozenset({CommandMode.CARTESIAN_VELOCITY, CommandMode.JOINT_VELOCITY})
-
-
 class FingerMode(str, enum.Enum):
     """How a finger command's values are read (Kinova's HAND_MODE: POSITION_MODE, VELOCITY_MODE)."""
 
@@ -521,6 +486,46 @@ class FingerCommand(Message):
 
     mode: FingerMode
     values: FingerVector
+
+
+class Twist(Message):
+    """A velocity screw with its declared convention. In the mixed frame the linear part is in the base frame and
+    ``angular`` says how ``rotational`` is to be read (see :mod:`protocol.conventions`). As a desired command, its
+    ``source`` (in a robot command, the source safety approved it from)."""
+
+    header: Header
+    frame: Frame
+    angular: AngularConvention
+    linear: Vec3
+    rotational: Vec3
+    source: SourceName = SERVO_SOURCE
+    #: as a desired command, the hand's part that goes with it (safety forwards it in the robot command with the
+    #: approved motion, never by itself); inside a robot command none (the command's own ``fingers`` is the part)
+    fingers: Optional[FingerCommand] = None
+
+
+class JointVelocity(Message):
+    """Desired joint velocities in rad/s, one per joint of the robot's arm, model order and sign
+    (services.model.arm), and their source."""
+
+    header: Header
+    velocities: JointVector
+    source: SourceName = SERVO_SOURCE
+    #: the hand's part that goes with it, as a desired twist's
+    fingers: Optional[FingerCommand] = None
+
+
+class CommandMode(str, enum.Enum):
+    #: hold still: the robot decelerates to rest within its limits
+    STOP = "stop"
+    #: stop now: the robot brakes at its emergency decelerations (the safety service's latched e-stop)
+    EMERGENCY_STOP = "emergency_stop"
+    CARTESIAN_VELOCITY = "cartesian_velocity"
+    JOINT_VELOCITY = "joint_velocity"
+
+
+#: the modes in which a robot command moves the arm (the others stop it)
+MOTION_MODES = frozenset({CommandMode.CARTESIAN_VELOCITY, CommandMode.JOINT_VELOCITY})
 
 
 class RobotCommand(Message):
@@ -543,6 +548,8 @@ class RobotCommand(Message):
             raise ValueError("mode joint_velocity needs joint_velocities")
         if self.mode is CommandMode.EMERGENCY_STOP and self.fingers is not None:
             raise ValueError("an emergency stop carries no finger command: the fingers hold their targets")
+        if self.twist is not None and self.twist.fingers is not None:
+            raise ValueError("a robot command's hand part is its own fingers field, not its twist's")
 
 
 class ControllerState(str, enum.Enum):

@@ -50,6 +50,8 @@ class HeldCommand:
         #: the key it came on (a Keys attribute), and the source it names
         self.key = "desired_twist" if twist is not None else "desired_joint_velocity"
         self.source_name = twist.source if twist is not None else joint.source
+        #: the hand's part that goes with it (None: the fingers keep their targets)
+        self.fingers = twist.fingers if twist is not None else joint.fingers
 
     @property
     def source(self) -> Header:
@@ -332,11 +334,26 @@ class SafetyCore:
         state = self._fresh_state(now_ns, state)
         if state is None:
             return None, "robot_state: no fresh robot state to check the command against"
+        problem = self._finger_problem(held, state)
+        if problem is not None:
+            return None, problem
         decision = held.check(self.checker, state, self.dt)
         if decision.refused:
             self.active_limits = list(decision.limits)
             return None, decision.refusal
         return decision, None
+
+    def _finger_problem(self, held: HeldCommand, state: RobotState) -> Optional[str]:
+        """Why a command's hand part cannot go to the robot (the command is then refused whole), or None."""
+        fingers = held.fingers
+        if fingers is None:
+            return None
+        hand = self.arm.hand
+        if hand is None or state.fingers is None:
+            return f"fingers: a finger command, and the {self.arm.name}'s robot reports no fingers"
+        if len(fingers.values) != hand.n_fingers:
+            return f"fingers: the {hand.name} has {hand.n_fingers} fingers, the command {len(fingers.values)} values"
+        return None
 
     def input_problem(self, header: Header, now_ns: int) -> Optional[str]:
         """Why a desired command may not move the arm now (liveliness, freshness both ways, convention), or None."""
@@ -389,7 +406,8 @@ class SafetyCore:
         return self._send(Decision(refusal=self.last_refusal or "stop"), None)
 
     def _send(self, decision: Decision, held: Optional[HeldCommand], stamp_ns: Optional[int] = None) -> Send:
-        """The robot command for a decision: its motion, or a stop (an emergency stop when latched)."""
+        """The robot command for a decision: its motion with its hand part, or a stop (an emergency stop when
+        latched), which never carries one: safety never moves a finger by itself, and so never opens the hand."""
         header = Header()  # the service fills it (sequence, stamp, source and trace)
         if self.estop_latched:
             command = RobotCommand(header=header, mode=CommandMode.EMERGENCY_STOP, reason=self.estop_reason[:256])
@@ -403,11 +421,12 @@ class SafetyCore:
             twist = Twist(header=header, frame=Frame.MIXED, angular=self.limits.robot_convention,
                           linear=tuple(decision.twist[:3]), rotational=tuple(decision.twist[3:]),
                           source=held.source_name)
-            command = RobotCommand(header=header, mode=CommandMode.CARTESIAN_VELOCITY, twist=twist)
+            command = RobotCommand(header=header, mode=CommandMode.CARTESIAN_VELOCITY, twist=twist,
+                                   fingers=held.fingers)
             state = SafetyState.LIMITING if decision.limits else SafetyState.OK
         else:
             command = RobotCommand(header=header, mode=CommandMode.JOINT_VELOCITY,
-                                   joint_velocities=decision.joint_velocities.tolist())
+                                   joint_velocities=decision.joint_velocities.tolist(), fingers=held.fingers)
             state = SafetyState.LIMITING if decision.limits else SafetyState.OK
         self.safety_state = state
         self.active_limits = list(decision.limits)

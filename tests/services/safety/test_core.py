@@ -319,3 +319,58 @@ def test_sources_are_declared_once_on_keys_that_exist():
         SourceRegistry([CommandSource(name="a", keys=["robot_command"], drives=["twist"])])
     with pytest.raises(ValueError, match="must be 1-32"):
         CommandSource(name="Jog Pad", keys=["desired_twist"], drives=["twist"])
+
+
+# ------------------------------------------------------------------------------------------------ the hand
+def hand_state(stamp_ns, fingers=True) -> m.RobotState:
+    s = state(stamp_ns)
+    if not fingers:
+        return s
+    return m.RobotState(**{f: getattr(s, f) for f in s.__struct_fields__ if f != "fingers"},
+                        fingers=m.FingerState(position=[0.1] * 3, velocity=[0.0] * 3, current_a=[0.0] * 3,
+                                              target=[0.1] * 3))
+
+
+def twist_with_fingers(stamp_ns, values, mode=m.FingerMode.POSITION) -> HeldCommand:
+    header = m.Header(stamp_ns=stamp_ns, source_stamp_ns=stamp_ns)
+    return HeldCommand(m.Twist(header=header, frame=Frame.MIXED, angular=AngularConvention.SEED000,
+                               linear=(0.0, 0.0, 0.0), rotational=(0.0, 0.0, 0.0),
+                               fingers=m.FingerCommand(mode=mode, values=values)), None, stamp_ns)
+
+
+def test_a_commands_hand_part_goes_with_its_approved_motion_and_with_every_resend_while_it_is_fresh():
+    safety = core()
+    safety.state(hand_state(10 * S), 10 * S)
+    approved = sends(safety.desired(twist_with_fingers(10 * S, [1.2] * 3), 10 * S + 5_000_000))
+    assert approved[0].mode is m.CommandMode.CARTESIAN_VELOCITY
+    assert approved[0].fingers == m.FingerCommand(mode=m.FingerMode.POSITION, values=[1.2] * 3)
+    assert approved[0].twist.fingers is None  # the robot command's own field carries it
+    assert sends(safety.cycle(10 * S + 50_000_000))[0].fingers is not None
+    stale = sends(safety.cycle(10 * S + 150_000_000))
+    assert stale[0].mode is m.CommandMode.STOP and stale[0].fingers is None  # the fingers keep their targets
+
+
+def test_safety_never_moves_a_finger_by_itself_an_estop_or_a_refusal_carries_no_hand_part():
+    safety = core()
+    safety.state(hand_state(10 * S), 10 * S)
+    safety.desired(twist_with_fingers(10 * S, [1.2] * 3), 10 * S + 5_000_000)
+    engaged = sends(safety.estop(m.EStop(header=m.Header(), operator="caregiver")))
+    assert [(c.mode, c.fingers) for c in engaged] == [(m.CommandMode.EMERGENCY_STOP, None)]
+    while_latched = safety.desired(twist_with_fingers(10 * S + 20_000_000, [0.0] * 3), 10 * S + 25_000_000)
+    assert all(c.fingers is None for c in sends(while_latched))  # opening the hand refused like any motion
+    safety.estop(m.EStop(header=m.Header(), operator="caregiver", reset=True))
+    assert all(c.fingers is None for c in sends(safety.cycle(10 * S + 30_000_000)))
+    gone = safety.liveliness("controller", False)
+    assert all(c.fingers is None for c in sends(gone))
+
+
+def test_a_hand_part_that_does_not_fit_refuses_the_whole_command():
+    safety = core()
+    safety.state(hand_state(10 * S), 10 * S)
+    wrong = safety.desired(twist_with_fingers(10 * S, [1.0, 1.0]), 10 * S + 5_000_000)
+    assert refusals(wrong) == ["fingers: the kg3 has 3 fingers, the command 2 values"]
+    assert [(c.mode, c.fingers) for c in sends(wrong)] == [(m.CommandMode.STOP, None)]
+    safety = core()
+    safety.state(hand_state(10 * S, fingers=False), 10 * S)  # a robot that reports no fingers (the RS-485 link)
+    none = safety.desired(twist_with_fingers(10 * S, [1.0] * 3), 10 * S + 5_000_000)
+    assert refusals(none) == ["fingers: a finger command, and the j2s7s300's robot reports no fingers"]
