@@ -63,9 +63,12 @@ class FakePipeline:
     """Plays vision and controller: alive under both names, and for every camera frame publishes the desired
     twist ``twist_for(capture_ns)`` (mixed, seed000) stamped at the capture, as the controller would."""
 
-    def __init__(self, session, twist_for, convention=AngularConvention.SEED000, frame=Frame.MIXED):
+    def __init__(self, session, twist_for, convention=AngularConvention.SEED000, frame=Frame.MIXED,
+                 fingers_for=lambda capture_ns: None):
         self.session = session
         self.twist_for = twist_for
+        #: the hand's part each twist carries (a FingerCommand, or None)
+        self.fingers_for = fingers_for
         self.convention = convention
         self.frame = frame
         self.enabled = True
@@ -81,7 +84,7 @@ class FakePipeline:
         linear, rotational = self.twist_for(capture)
         header = m.Header(stamp_ns=capture, source_stamp_ns=capture)
         twist = m.Twist(header=header, frame=self.frame, angular=self.convention, linear=tuple(map(float, linear)),
-                        rotational=tuple(map(float, rotational)))
+                        rotational=tuple(map(float, rotational)), fingers=self.fingers_for(capture))
         self.publisher.put(m.encode(twist))
         self.sent += 1
 

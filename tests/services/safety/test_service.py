@@ -216,3 +216,24 @@ def test_mfvs_estop_command_engages_and_resets(router):
     out = subprocess.run([mfvs, "estop", "--connect", router.endpoint, "--timeout", "1"], capture_output=True,
                          text=True, timeout=60)
     assert out.returncode == 1 and "no safety service confirmed" in out.stderr
+
+
+def test_a_desired_commands_hand_part_closes_the_fingers_and_they_stay_closed_when_the_commands_stop(harness):
+    """Over the router, in lockstep: the stand-in controller's zero twists carry a finger target; the robot's states
+    show the fingers closing on it. Once the commands stop (safety then sends stops) and after an e-stop, the
+    fingers stay where they were sent: nothing but a finger command moves them."""
+    closed = 1.2
+    h = harness(fingers_for=lambda capture: m.FingerCommand(mode=m.FingerMode.POSITION, values=[closed] * 3),
+                frame_timeout_s=0.2)  # (once the stand-in falls silent, each frame waits this for its answer)
+    assert wait_for(lambda: len(h["states"]) >= 150, timeout=60)  # 1.5 s: the travel takes about 1 s
+    fingers = h["states"].last().fingers
+    assert fingers is not None and np.allclose(fingers.target, closed) and np.allclose(fingers.position, closed,
+                                                                                        atol=1e-3)
+    h["pipeline"].enabled = False
+    seen = len(h["states"])
+    assert wait_for(lambda: len(h["states"]) >= seen + 50, timeout=60)
+    assert np.allclose(h["states"].last().fingers.position, closed, atol=1e-3)
+    h["client"].put(KEYS.estop, m.encode(m.EStop(header=m.Header(), operator="test", reason="hold")))
+    seen = len(h["states"])
+    assert wait_for(lambda: len(h["states"]) >= seen + 50, timeout=60)
+    assert np.allclose(h["states"].last().fingers.position, closed, atol=1e-3)
