@@ -51,11 +51,11 @@ import numpy as np
 
 from protocol import kinova
 from protocol.conventions import AngularConvention
-from protocol.messages import CommandMode, ControlMode, MotionLimits, RobotCommand
+from protocol.messages import CommandMode, ControlMode, FingerMode, MotionLimits, RobotCommand
 from services.model import frames
 from services.model.arm import ArmDescription
 from services.robot.dsp import CommandRefused, DSPConfig, DSPStatus, motion_limits
-from services.robot.hardware import JointReading
+from services.robot.hardware import FingerReading, JointReading
 from services.runtime.config import ConfigStruct
 from services.runtime.service import StartupError
 
@@ -672,14 +672,24 @@ class SdkArm:
         return self._pose
 
     def read(self) -> JointReading:
-        """Read the arm (4 SDK calls); raises SdkError when one fails."""
+        """Read the arm (4 SDK calls, 5 with a hand: its fingers' currents); raises SdkError when one fails."""
         n, arm = self.arm.n_joints, self.arm  # AngularInfo carries 7 actuators: an arm with fewer reads 0 beyond
-        angles = self.sdk.checked("GetAngularPosition").Actuators.as_list()[:n]
-        rates = self.sdk.checked("GetAngularVelocity").Actuators.as_list()[:n]
+        position = self.sdk.checked("GetAngularPosition")
+        velocity = self.sdk.checked("GetAngularVelocity")
         forces = self.sdk.checked("GetAngularForce").Actuators.as_list()[:n]
         c = self.sdk.checked("GetCartesianPosition").Coordinates
+        angles, rates = position.Actuators.as_list()[:n], velocity.Actuators.as_list()[:n]
+        fingers = None
+        hand = arm.hand
+        if hand is not None:  # Kinova's finger units; the currents in A (GetAngularCurrent)
+            k = hand.n_fingers
+            current = self.sdk.checked("GetAngularCurrent")
+            fingers = FingerReading(position=hand.units_to_angle(position.Fingers.as_list()[:k]),
+                                    velocity=hand.units_to_angle(velocity.Fingers.as_list()[:k]),
+                                    current_a=np.asarray(current.Fingers.as_list()[:k], dtype=float))
         self._state = JointReading(q=arm.physical_deg_to_model(angles), dq=arm.physical_rate_to_model(rates),
-                                   tau=arm.sign * np.asarray(forces, dtype=float), stamp_ns=time.time_ns())
+                                   tau=arm.sign * np.asarray(forces, dtype=float), stamp_ns=time.time_ns(),
+                                   fingers=fingers)
         self._pose = frames.homogeneous(frames.euler_xyz_to_matrix([c.ThetaX, c.ThetaY, c.ThetaZ]),
                                         [c.X, c.Y, c.Z])
         self._state.arm_pose = self._pose  # Kinova's DSP's own kinematics: what the commissioning check compares
@@ -727,6 +737,11 @@ class SdkArm:
             point = velocity_point(kinova.POSITION_TYPE.ANGULAR_VELOCITY,
                                    angular_dps=self.arm.model_rate_to_physical(command.joint_velocities))
             self.status.mode, self.status.emergency_stop = ControlMode.ANGULAR_VELOCITY, False
+        if command.fingers is not None and self.arm.hand is not None:  # (without: HAND_NOMOVEMENT, they hold)
+            hand = self.arm.hand
+            point.Position.HandMode = (kinova.HAND_MODE.POSITION_MODE if command.fingers.mode is FingerMode.POSITION
+                                       else kinova.HAND_MODE.VELOCITY_MODE)
+            point.Position.Fingers = kinova.FingersPosition.from_list(hand.angle_to_units(command.fingers.values))
         self._check("SendBasicTrajectory", self.sdk.send_basic_trajectory(point))
         return np.zeros(self.arm.n_joints)
 

@@ -305,6 +305,33 @@ def test_the_gateway_drives_the_arm_through_the_sdk(gateway, fake):
     assert wait_for(lambda: service.counters.get("rejected.lowlevel_command") == 1)
 
 
+def test_the_fingers_go_through_the_sdk_as_a_trajectory_points_hand_part_and_come_back_in_the_state(gateway, fake):
+    """A robot command's finger part rides on that cycle's point (HandMode and Fingers in Kinova's units); a
+    command without one sends HAND_NOMOVEMENT (the fingers hold); the state carries the arm's own finger report
+    (GetAngularPosition's Fingers, GetAngularCurrent's currents)."""
+    client, service = gateway
+    states = Recorder(client, KEYS.robot_state, m.RobotState)
+    assert wait_for(lambda: len(states) > 5)
+    hand = ARM.hand
+    twist = m.Twist(header=m.Header(), frame=Frame.MIXED, angular=AngularConvention.SEED000,
+                    linear=(0.0, 0.0, 0.0), rotational=(0.0, 0.0, 0.0))
+    target = float(hand.units_to_angle(3400.0))
+    before = fake.FakeCount(b"points")
+    client.put(KEYS.robot_command, command(m.CommandMode.CARTESIAN_VELOCITY, twist=twist,
+                                           fingers=m.FingerCommand(mode=m.FingerMode.POSITION, values=[target] * 3)))
+    assert wait_for(lambda: fake.FakeCount(b"points") > before)
+    point = last_point(fake)
+    assert point.Position.HandMode == kinova.HAND_MODE.POSITION_MODE
+    assert point.Position.Fingers.as_list() == pytest.approx([3400.0] * 3, abs=0.01)
+    assert wait_for(lambda: states.last().fingers is not None and states.last().fingers.position
+                    == pytest.approx([target] * 3, abs=1e-6))
+    assert states.last().fingers.current_a == pytest.approx([0.5, 0.0, 0.0])  # the fake's GetAngularCurrent
+    before = fake.FakeCount(b"points")
+    client.put(KEYS.robot_command, command(m.CommandMode.CARTESIAN_VELOCITY, twist=twist))
+    assert wait_for(lambda: fake.FakeCount(b"points") > before)
+    assert last_point(fake).Position.HandMode == kinova.HAND_MODE.HAND_NOMOVEMENT
+
+
 def test_a_failing_start_stops_the_gateway_before_it_reaches_the_router(library, fake, free_port):
     """No router listens at the configured endpoint: the gateway still says first what is wrong with the arm."""
     fake.FakeInitCode(1015)

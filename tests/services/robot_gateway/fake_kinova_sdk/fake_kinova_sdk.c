@@ -54,6 +54,8 @@ static char fail_function[40];
 static int home_delay_ms = 0;
 static float angles[7] = {270.0f, 170.0f, 0.0f, 80.0f, 0.0f, 220.0f, 0.0f};
 static float rates[7] = {0};
+/* the pretend hand: a POSITION_MODE point puts its fingers at their targets (finger units) at once */
+static FingersPosition fingers = {0};
 static CartesianInfo pose = {0.2f, -0.3f, 0.5f, 1.6f, 0.1f, -0.2f};
 static TrajectoryPoint last_point;
 static int points = 0, erased = 0, homed = 0, homing = 0;
@@ -115,6 +117,7 @@ int API(SendBasicTrajectory)(TrajectoryPoint point) {
     if (points == 0) record("SendBasicTrajectory");  /* the first only: the loop sends one every cycle */
     last_point = point;
     points++;
+    if (point.Position.HandMode == 1) fingers = point.Position.Fingers;  /* POSITION_MODE */
     float *v = &point.Position.Actuators.Actuator1;
     for (int i = 0; i < 7; i++) {
         rates[i] = point.Position.Type == ANGULAR_VELOCITY ? v[i] : 0.0f;
@@ -154,7 +157,11 @@ static int angular(AngularPosition *out, const float *values) {
     return NO_ERROR_KINOVA;
 }
 int API(GetAngularCommand)(AngularPosition *out) { return angular(out, angles); }
-int API(GetAngularPosition)(AngularPosition *out) { return angular(out, angles); }
+int API(GetAngularPosition)(AngularPosition *out) {
+    int code = angular(out, angles);
+    out->Fingers = fingers;
+    return code;
+}
 int API(GetAngularVelocity)(AngularPosition *out) { return angular(out, rates); }
 int API(GetAngularForce)(AngularPosition *out) {
     int code = angular(out, NULL);
@@ -203,6 +210,7 @@ void FakeReset(void) {
     initialized = 0; init_code = NO_ERROR_KINOVA; fail_code = 0; home_delay_ms = 0;
     points = erased = homed = homing = 0; calls[0] = 0;
     memset(torque_setup, 0, sizeof torque_setup);
+    memset(&fingers, 0, sizeof fingers);
     memset(&active, 0, sizeof active);
     memset(devices, 0, sizeof devices);
     device_count = 1;
