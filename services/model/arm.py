@@ -488,7 +488,11 @@ class ArmDescription:
             d = self.dh_d[i]
             length = max(math.hypot(d, self.dh_a[i]), _MIN_SEGMENT)
             link = self.link_names[i]
-            parts.append(f'<link name="{link}">{_inertial(spec.link_mass_kg, length, d / 2, _LINK_RADIUS, self.dh_a[i] / 2)}'
+            if i == self.n_joints - 1 and self.hand is not None:
+                inertial = _composite_inertial(self.palm_inertia(), self.finger_masses_in_last_link())
+            else:
+                inertial = _inertial(spec.link_mass_kg, length, d / 2, _LINK_RADIUS, self.dh_a[i] / 2)
+            parts.append(f'<link name="{link}">{inertial}'
                          f'{_segment_geometry(d, self.dh_a[i])}</link>')
             if i == 0:
                 origin = '<origin xyz="0 0 0" rpy="0 0 0"/>'
@@ -510,6 +514,32 @@ class ArmDescription:
         )
         parts.append("</robot>")
         return "\n".join(parts)
+
+    def palm_inertia(self, mass_kg: Optional[float] = None) -> tuple[float, np.ndarray, np.ndarray]:
+        """The last link's body without the hand's fingers (all of it for an arm without a hand): (mass, centre of
+        mass, inertia about it) in the link's frame, the solid cylinder of :func:`_inertial`. ``mass_kg``: another
+        mass for the same body (the emulated arm's truth)."""
+        i = self.n_joints - 1
+        d, a = self.dh_d[i], self.dh_a[i]
+        mass = self.joints[i].link_mass_kg - (self.hand.n_fingers * self.hand.finger_mass_kg if self.hand else 0.0)
+        mass = mass if mass_kg is None else mass_kg
+        length = max(math.hypot(d, a), _MIN_SEGMENT)
+        ixx, izz = _cylinder(mass, length, _LINK_RADIUS)
+        pitch = math.atan2(a / 2, d / 2) if a else 0.0
+        R = _rpy(0.0, pitch, 0.0)[:3, :3]
+        return mass, np.array([a / 2, 0.0, d / 2]), R @ np.diag([ixx, ixx, izz]) @ R.T
+
+    def finger_masses_in_last_link(self) -> list[tuple[float, np.ndarray]]:
+        """Each finger link's mass at its centre, in the last link's frame, the fingers open (what the arm's chain
+        carries of the hand besides its palm; the fingers' own inertia about their centres, about 1e-6 kg·m², is
+        left out)."""
+        hand = self.hand
+        i = self.n_joints - 1
+        ee_in_last = _translation(self.dh_a[i], self.dh_d[i]) @ _rpy(self.dh_alpha[i], 0.0, 0.0)
+        centres = ((hand.proximal_mass_kg, [hand.proximal_length_m / 2, 0.0, 0.0]),
+                   (hand.distal_mass_kg, np.array(hand.distal_offset_m) + [hand.distal_length_m / 2, 0.0, 0.0]))
+        return [(mass, (ee_in_last @ T @ np.array([*centre, 1.0]))[:3])
+                for T in hand.finger_origins for mass, centre in centres]
 
     def urdf(self) -> str:
         """The arm as URDF text: base_link → (base rotation) link_0 → joint_1 … joint_n → end_effector.
@@ -783,6 +813,33 @@ def _rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
 def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
     ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
     return np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d], [0, 0, 0, 1]])
+
+
+def _cylinder(mass: float, length: float, radius: float) -> tuple[float, float]:
+    """A solid cylinder's moments of inertia about its centre: across its axis, and about it."""
+    return mass * (3 * radius * radius + length * length) / 12.0, mass * radius * radius / 2.0
+
+
+def _translation(x: float, z: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3], T[2, 3] = x, z
+    return T
+
+
+def _composite_inertial(body: tuple[float, np.ndarray, np.ndarray], points: list[tuple[float, np.ndarray]]) -> str:
+    """One URDF inertial for a body (mass, centre, inertia about it) and point masses rigid on it (parallel axes)."""
+    mass, centre, inertia = body
+    total = mass + sum(m for m, _ in points)
+    com = (mass * centre + sum(m * c for m, c in points)) / total
+
+    def shifted(m: float, at: np.ndarray) -> np.ndarray:
+        r = at - com
+        return m * (float(r @ r) * np.eye(3) - np.outer(r, r))
+
+    I = inertia + shifted(mass, centre) + sum((shifted(m, c) for m, c in points), np.zeros((3, 3)))
+    return (f'<inertial><origin xyz="{" ".join(_f(v) for v in com)}" rpy="0 0 0"/><mass value="{_f(total)}"/>'
+            f'<inertia ixx="{_f(I[0, 0])}" ixy="{_f(I[0, 1])}" ixz="{_f(I[0, 2])}" iyy="{_f(I[1, 1])}" '
+            f'iyz="{_f(I[1, 2])}" izz="{_f(I[2, 2])}"/></inertial>')
 
 
 def _inertial(mass: float, length: float, z_com: float, radius: float, x_com: float = 0.0) -> str:

@@ -423,12 +423,22 @@ def _add_hand(spec: mujoco.MjSpec, arm: ArmDescription) -> None:
     finger's share of the grip. The palm keeps what the fingers leave of the last link's mass (inertia scaled with
     it), so the arm weighs what its description says."""
     hand = arm.hand
+    # the description's last link carries the fingers' masses where they are, open (the controllers' model,
+    # arm.py); here they are bodies of their own, and the palm is what the emulated arm's truth leaves of it
     palm = spec.body(arm.link_names[-1])
-    share = 1.0 - hand.n_fingers * hand.finger_mass_kg / palm.mass
-    if share <= 0.0:
+    truth = arm.joints[-1].link_mass_kg * float(arm.true_link_mass_scale[-1])
+    palm_mass = truth - hand.n_fingers * hand.finger_mass_kg
+    if palm_mass <= 0.0:
         raise ValueError(f"the {hand.name}'s fingers weigh more than the {arm.name}'s last link")
-    palm.mass = palm.mass * share
-    palm.inertia = [float(v) * share for v in palm.inertia]
+    mass, centre, inertia = arm.palm_inertia(palm_mass)
+    moments, axes = np.linalg.eigh(inertia)
+    if np.linalg.det(axes) < 0:
+        axes[:, 0] = -axes[:, 0]
+    palm.mass = float(mass)
+    palm.ipos = centre.tolist()
+    palm.iquat = frames.matrix_to_quat_wxyz(axes).tolist()
+    palm.inertia = moments.tolist()
+    palm.fullinertia = [math.nan] * 6  # (the principal moments and axes above are the body's inertia)
     ee = spec.body(EE_LINK)
     torque = finger_torque_limit_nm(arm)
     radius = hand.link_radius_m

@@ -199,3 +199,26 @@ def test_get_angular_current_gives_the_fingers_current_at_their_full_force_on_a_
     current = api.call("GetAngularCurrent", None).result
     assert np.allclose(current.Fingers.as_list(), FINGER_CURRENT_AT_FULL_FORCE_A, rtol=0.02)
     assert current.Actuators.as_list()[1] != 0.0  # the joints' currents beside them (joint 2 carries the arm)
+
+
+@pytest.mark.parametrize("arm_name", ARMS)
+def test_the_controllers_model_carries_the_hands_mass_where_the_fingers_are(arm_name, rng):
+    """The description's last link is the palm with the fingers' masses rigid on it, open (arm.py): Pinocchio's
+    gravity is the emulated arm's, the fingers open, wherever the arm is, once the emulation's deliberate mass
+    errors are taken away (every link at its description's mass)."""
+    import pinocchio as pin
+
+    arm = load_arm(arm_name)
+    exact = dataclasses.replace(arm, true_link_mass_scale=np.ones(arm.n_joints))
+    sim = Simulation(arm=exact, render=False)
+    model = arm.load_pinocchio().model
+    data = model.createData()
+    lower, upper = arm.model_limits()
+    for _ in range(10):
+        q = np.where(np.isfinite(lower), rng.uniform(np.maximum(lower, -3.0), np.minimum(upper, 3.0)),
+                     rng.uniform(-3.0, 3.0, arm.n_joints))
+        sim.data.qpos[:] = 0.0
+        sim.data.qpos[:arm.n_joints] = q
+        mujoco.mj_forward(sim.model, sim.data)
+        assert np.allclose(sim.data.qfrc_bias[:arm.n_joints], pin.computeGeneralizedGravity(model, data, q),
+                           atol=1e-9)

@@ -112,7 +112,7 @@ def test_scene_config_validation():
 def test_the_emulated_arm_is_its_description_heavier_where_its_emulation_says_and_with_friction(name, rng):
     """The simulated arm's gravity is Pinocchio's of the description with the links scaled as the description's
     emulation section says (the model the controllers use is wrong by exactly that, on purpose), the last link's
-    mass split between the palm, where the description has it, and the fingers, where they are (open); its joints carry
+    mass split between the palm and the fingers (open), where the description has them; its joints carry
     a fraction of the actuators' smallest backdriving torque as Coulomb friction (which the firmware applies in
     torque mode only: test_firmware.py), and its motors their peak torques."""
     import mujoco
@@ -127,18 +127,14 @@ def test_the_emulated_arm_is_its_description_heavier_where_its_emulation_says_an
     for i, scale in enumerate(arm.true_link_mass_scale, start=1):
         true_model.inertias[i] = pin.Inertia(true_model.inertias[i].mass * scale, true_model.inertias[i].lever,
                                              true_model.inertias[i].inertia * scale)
-    last = true_model.inertias[arm.n_joints]
+    # the last link: the palm as the truth weighs it, and the fingers (open) where the description has them
     hand = arm.hand
-    palm_mass = last.mass - hand.n_fingers * hand.finger_mass_kg
-    ee_in_last = true_model.frames[true_model.getFrameId("end_effector")].placement.homogeneous
-    moved = pin.Inertia(palm_mass, last.lever, last.inertia * (palm_mass / last.mass))
-    for T in hand.finger_origins:  # each finger's two links as point masses at their centres (gravity needs no more)
-        distal = np.array(hand.distal_offset_m) + [hand.distal_length_m / 2, 0.0, 0.0]
-        for mass, centre in ((hand.proximal_mass_kg, [hand.proximal_length_m / 2, 0.0, 0.0]),
-                             (hand.distal_mass_kg, distal)):
-            at = (ee_in_last @ T @ np.array([*centre, 1.0]))[:3]
-            moved = moved + pin.Inertia(mass, at, np.zeros((3, 3)))
-    true_model.inertias[arm.n_joints] = moved
+    palm_mass = arm.joints[-1].link_mass_kg * arm.true_link_mass_scale[-1] - hand.n_fingers * hand.finger_mass_kg
+    mass, centre, inertia = arm.palm_inertia(palm_mass)
+    last = pin.Inertia(mass, centre, inertia)
+    for finger_mass, at in arm.finger_masses_in_last_link():  # point masses: gravity needs no more
+        last = last + pin.Inertia(finger_mass, at, np.zeros((3, 3)))
+    true_model.inertias[arm.n_joints] = last
     true_data, nominal = true_model.createData(), ArmKinematics(arm)
     n = arm.n_joints
     differs = False
