@@ -369,7 +369,8 @@ def _add_arm(spec: mujoco.MjSpec, arm: ArmDescription) -> None:
         if scale != 1.0:
             body = spec.body(link)
             body.mass = body.mass * float(scale)
-            body.inertia = [float(v) * float(scale) for v in body.inertia]
+            # (the URDF's inertia is the body's full inertia: MuJoCo compiles that, not the principal moments)
+            body.fullinertia = [float(v) * float(scale) for v in body.fullinertia]
         spec.joint(arm.joints[i].name).frictionloss = float(arm.true_friction_nm[i])
 
     for i, joint_spec in enumerate(arm.joints):

@@ -305,3 +305,20 @@ def test_the_renderer_holds_no_shadow_map_and_a_scene_buffer_its_size_for_the_sa
     sim.model.vis.quality.shadowsize = 0
     sim.close()
     assert frames[0].any() and np.array_equal(frames[0], frames[1])
+
+
+def test_a_link_the_emulation_makes_heavier_has_its_inertia_scaled_with_its_mass():
+    """(arm.true_link_mass_scale: the URDF gives MuJoCo each link's full inertia, which is what must be scaled.)"""
+    import dataclasses
+
+    from services.model.arm import load_arm
+
+    arm = load_arm("j2s7s300")
+    scale = np.ones(arm.n_joints)
+    scale[2] = 1.5
+    heavier = dataclasses.replace(arm, hand=None, true_link_mass_scale=scale)
+    bare = arm.load_mujoco()
+    model = build_model(SceneConfig(), heavier)
+    assert model.body("link_3").mass[0] == pytest.approx(1.5 * bare.body("link_3").mass[0])
+    assert model.body("link_3").inertia == pytest.approx(1.5 * bare.body("link_3").inertia)
+    assert model.body("link_2").inertia == pytest.approx(bare.body("link_2").inertia)
