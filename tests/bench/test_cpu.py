@@ -11,8 +11,11 @@ from bench.cpu import mapping_name, mappings_mb, process_tree, pss_mb, resident_
 def test_proportional_memory_divides_what_processes_share():
     """A child that maps the same interpreter and libraries as this process: its RSS counts them whole, its PSS
     only its share (the sum of both PSS is at most the sum of both RSS, and each is positive)."""
-    child = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    child = subprocess.Popen([sys.executable, "-c", "import sys; print('up', flush=True); sys.stdin.read()"],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE)
     try:
+        # measured once the interpreter is up: before, a slow host shows the bare fork (a page, shared by nobody)
+        assert child.stdout.readline() == b"up\n"
         me, mine_and_child = os.getpid(), (os.getpid(), child.pid)
         assert 0 < pss_mb(child.pid) < rss_mb(child.pid)
         assert 0 < sum(pss_mb(p) for p in mine_and_child) <= sum(rss_mb(p) for p in mine_and_child)
