@@ -2,6 +2,7 @@
 the stack's realtime threads more than the quota says, and a limit made within a slowed run nested in it."""
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -55,3 +56,4 @@ def test_a_limit_made_inside_a_slowed_run_nests_in_its_group():
     path, realtime, quota = out.stdout.split()
     assert path.endswith("/mfvs-test-outer/mfvs-test-inner")
     assert (int(realtime), int(quota)) == (int(0.2 * PERIOD_US), max(1000, int(0.2 * PERIOD_US)))
+    assert not Path(path).parent.exists()  # the run's group is gone with it
