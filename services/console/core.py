@@ -311,6 +311,22 @@ def joints_shown(state: m.RobotState, arm: Optional[ArmDescription]) -> list[dic
             for joint, deg in zip(arm.joints, physical)]
 
 
+def fingers_shown(state: m.RobotState, arm: Optional[ArmDescription]) -> list[dict]:
+    """Each finger as the page shows it (none where the robot reports none): its angle and the target it holds, in
+    degrees of its travel (0 open), in Kinova's finger units where this host describes the hand, and its current."""
+    fingers = state.fingers
+    if fingers is None:
+        return []
+    hand = arm.hand if arm is not None else None
+    names = hand.finger_names if hand is not None and hand.n_fingers == len(fingers.position) else \
+        tuple(f"F{i + 1}" for i in range(len(fingers.position)))
+    return [{"label": name, "deg": round(math.degrees(position), 1), "target_deg": round(math.degrees(target), 1),
+             "units": None if hand is None else round(float(hand.angle_to_units(position))),
+             "closed_deg": None if hand is None else round(math.degrees(hand.closed_angle), 1),
+             "current_a": round(current, 3)}
+            for name, position, target, current in zip(names, fingers.position, fingers.target, fingers.current_a)]
+
+
 # ------------------------------------------------------------------------------------------------ the model
 
 #: how long safety's last status counts as what it says now (it reports at 10 Hz)
@@ -551,6 +567,11 @@ class ConsoleModel:
             return []
         return joints_shown(self.state, self.arm.description if self.arm is not None else None)
 
+    def fingers(self) -> list[dict]:
+        if self.state is None:
+            return []
+        return fingers_shown(self.state, self.arm.description if self.arm is not None else None)
+
     def arm_shown(self) -> Optional[dict]:
         """The arm the robot declares, as the page names it, and which angles the joints are shown in."""
         if self.arm is None:
@@ -587,7 +608,7 @@ class ConsoleModel:
             "speed": {**self.speed.relative(), "now": self.speed_now,
                       "limit": limits.linear_speed_mps if limits is not None else None,
                       "joint_ratio": self.joint_speed_ratio},
-            "arm": self.arm_shown(), "joints": self.joints(), "paths": self.paths(), "image": image,
+            "arm": self.arm_shown(), "joints": self.joints(), "fingers": self.fingers(), "paths": self.paths(), "image": image,
             "health": sorted(({k: v for k, v in h.items() if k != "since"} for h in self.health.values()),
                              key=lambda h: h["name"]),
             "events": [{"at_s": e.at_s, "source": e.source, "level": e.level, "text": e.text}

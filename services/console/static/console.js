@@ -232,6 +232,7 @@ function renderStatus(status) {
   }
   renderArm(status.arm);
   renderJoints(status.joints);
+  renderFingers(status.fingers || []);
   renderHealth(status.health);
   renderEvents(status.events);
   const counts = Object.entries(status.console.errors).filter(([k]) => k.startsWith("refused."));
@@ -330,6 +331,13 @@ function renderJoints(joints) {
       track.title = `${joint.lower_deg.toFixed(0)}° … ${joint.upper_deg.toFixed(0)}°`;
     }
   });
+}
+
+// the hand's fingers (none where the robot reports none): where each is, the target it holds, its current
+function renderFingers(fingers) {
+  const box = $("fingers");
+  box.textContent = fingers.map((f) => `${f.label} ${f.deg.toFixed(1)}° → ${f.target_deg.toFixed(1)}°` +
+    (f.units === null ? "" : ` (${f.units} units)`) + ` ${f.current_a.toFixed(2)} A`).join(" · ");
 }
 
 function renderHealth(services) {

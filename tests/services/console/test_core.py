@@ -325,3 +325,19 @@ def test_a_halved_frame_is_the_area_average_at_half_its_size_for_every_encoding(
         expected = pixels.reshape(24, 2, 32, 2, channels).astype(float).mean(axis=(1, 3))
         got = np.frombuffer(small.data, dtype=np.uint8).reshape(24, 32, channels)
         assert np.abs(got - expected).max() <= 0.5 + 1e-9
+
+
+def test_the_fingers_are_shown_where_the_robot_reports_them_with_the_targets_they_hold():
+    import msgspec
+
+    model = ConsoleModel()
+    model.on_state(state(0.0), now=0.0)
+    assert model.snapshot(0.0)["fingers"] == []  # a robot that reports none (the RS-485 link)
+    closed = SEVEN.hand.closed_angle
+    held = m.FingerState(position=[closed / 2] * 3, velocity=[0.0] * 3, current_a=[1.0, 0.5, 0.25],
+                         target=[closed] * 3)
+    model.on_state(msgspec.structs.replace(state(0.01), fingers=held), now=0.01)
+    fingers = model.snapshot(0.01)["fingers"]
+    assert [f["label"] for f in fingers] == list(SEVEN.hand.finger_names)
+    assert [(f["deg"], f["target_deg"], f["units"], f["closed_deg"]) for f in fingers] == [(40.0, 80.0, 3400, 80.0)] * 3
+    assert [f["current_a"] for f in fingers] == [1.0, 0.5, 0.25]

@@ -235,6 +235,10 @@ def shows_the_arm_the_robot_declares(driver, arm, states) -> None:
             assert title.startswith("continuous"), title
         else:
             assert title == f"{joint.lower_deg:.0f}° … {joint.upper_deg:.0f}°", title
+    # the emulated arm reports its hand: each finger where it is and the target it holds
+    assert wait_for(lambda: all(name in text(driver, "fingers") for name in arm.hand.finger_names), timeout=15), \
+        text(driver, "fingers")
+    assert "units" in text(driver, "fingers") and " A" in text(driver, "fingers")
 
 
 def test_with_a_token_nothing_is_shown_and_every_action_is_refused_without_it(sim_stack, artefacts):
