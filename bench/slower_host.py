@@ -148,9 +148,6 @@ def main(argv: list[str] | None = None) -> int:
             parent.write_text(str(os.getpid()))
         except OSError:
             pass
-        # gone with the run: a group left behind keeps its realtime budget from its siblings (a later slowed run,
-        # this suite's own test of the budget)
-        remove_cgroup(group)
         remove_cgroup(group)
 
 

@@ -563,14 +563,14 @@ class ConsoleModel:
         return Situation(estop_engaged=self.safety.state is m.SafetyState.ESTOP)
 
     def joints(self) -> list[dict]:
-        if self.state is None:
-            return []
-        return joints_shown(self.state, self.arm.description if self.arm is not None else None)
+        return [] if self.state is None else joints_shown(self.state, self._description())
 
     def fingers(self) -> list[dict]:
-        if self.state is None:
-            return []
-        return fingers_shown(self.state, self.arm.description if self.arm is not None else None)
+        return [] if self.state is None else fingers_shown(self.state, self._description())
+
+    def _description(self) -> Optional[ArmDescription]:
+        """The robot's arm as this host describes it (None: no arm declared, or not described here)."""
+        return self.arm.description if self.arm is not None else None
 
     def arm_shown(self) -> Optional[dict]:
         """The arm the robot declares, as the page names it, and which angles the joints are shown in."""
@@ -608,7 +608,8 @@ class ConsoleModel:
             "speed": {**self.speed.relative(), "now": self.speed_now,
                       "limit": limits.linear_speed_mps if limits is not None else None,
                       "joint_ratio": self.joint_speed_ratio},
-            "arm": self.arm_shown(), "joints": self.joints(), "fingers": self.fingers(), "paths": self.paths(), "image": image,
+            "arm": self.arm_shown(), "joints": self.joints(), "fingers": self.fingers(), "paths": self.paths(),
+            "image": image,
             "health": sorted(({k: v for k, v in h.items() if k != "since"} for h in self.health.values()),
                              key=lambda h: h["name"]),
             "events": [{"at_s": e.at_s, "source": e.source, "level": e.level, "text": e.text}

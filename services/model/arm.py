@@ -845,8 +845,7 @@ def _composite_inertial(body: tuple[float, np.ndarray, np.ndarray], points: list
 def _inertial(mass: float, length: float, z_com: float, radius: float, x_com: float = 0.0) -> str:
     """A solid cylinder's inertia about its centre of mass at (x_com, 0, z_com), its axis from the link's origin
     through that centre (z when x_com is 0)."""
-    ixx = mass * (3 * radius * radius + length * length) / 12.0
-    izz = mass * radius * radius / 2.0
+    ixx, izz = _cylinder(mass, length, radius)
     pitch = math.atan2(x_com, z_com) if x_com else 0.0
     return (
         f'<inertial><origin xyz="{_f(x_com)} 0 {_f(z_com)}" rpy="0 {_f(pitch)} 0"/><mass value="{_f(mass)}"/>'

@@ -167,24 +167,23 @@ class RobotCore:
         """A finger command from the Kinova API, taken at the next DSP cycle (the thread that runs the DSP calls
         this between its cycles); why not, if it does not fit the hand. A robot command's own finger part in that
         cycle is newer and wins."""
+        problem = self._finger_problem(command)
+        if problem is None:
+            self._queued_fingers = command
+        return problem
+
+    def _finger_refusal(self, command: RobotCommand) -> Optional[Refusal]:
+        problem = None if command.fingers is None else self._finger_problem(command.fingers)
+        return None if problem is None else Refusal("fingers", problem)
+
+    def _finger_problem(self, command: FingerCommand) -> Optional[str]:
+        """Why the hand cannot take ``command``, or None."""
         if self.fingers is None:
-            return "this arm reports no fingers"
+            return "a finger command, and this arm reports no fingers"
         try:
             self.fingers.check(command)
         except FingerRefused as exc:
             return str(exc)
-        self._queued_fingers = command
-        return None
-
-    def _finger_refusal(self, command: RobotCommand) -> Optional[Refusal]:
-        if command.fingers is None:
-            return None
-        if self.fingers is None:
-            return Refusal("fingers", "a finger command, and this arm reports no fingers")
-        try:
-            self.fingers.check(command.fingers)
-        except FingerRefused as exc:
-            return Refusal("fingers", str(exc))
         return None
 
     def take_plan(self, plan: Plan) -> None:
