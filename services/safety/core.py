@@ -257,7 +257,7 @@ class SafetyCore:
         if self.estop_latched:
             refused = self._refuse(f"estop: latched ({self.estop_reason})")
             return [refused, self._send(Decision(refusal=self.last_refusal), candidate)]  # the frame's answer
-        declared, why = self.registry.admit(candidate.source_name, candidate.key)
+        declared, why = self.registry.admit(candidate.source_name, candidate.key, candidate.fingers is not None)
         if declared is not None:
             why = self.claim.refusal(declared, candidate.source_name, holding=self.held is not None) or ""
         if why:  # not a command for the arm now: refused, and the source in control (if any) keeps it

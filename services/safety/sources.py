@@ -28,6 +28,8 @@ class Drives(str, enum.Enum):
     TWIST = "twist"
     #: the joints, by joint velocities (``desired_joint_velocity``)
     JOINT_VELOCITY = "joint_velocity"
+    #: the hand's fingers, by the ``fingers`` part of either command (a task's grasp and release)
+    FINGERS = "fingers"
 
 
 class Freshness(str, enum.Enum):
@@ -69,9 +71,9 @@ KEY_DRIVES = {"desired_twist": Drives.TWIST, "desired_joint_velocity": Drives.JO
 
 
 def default_sources() -> list[CommandSource]:
-    """The controller: the visual servo and its task's phases, from images."""
+    """The controller: the visual servo and its task's phases (a grasp's fingers among them), from images."""
     return [CommandSource(name="controller", keys=["desired_twist", "desired_joint_velocity"],
-                          drives=[Drives.TWIST, Drives.JOINT_VELOCITY], priority=10, freshness=Freshness.IMAGE,
+                          drives=[Drives.TWIST, Drives.JOINT_VELOCITY, Drives.FINGERS], priority=10, freshness=Freshness.IMAGE,
                           identity="controller")]
 
 
@@ -91,8 +93,9 @@ class SourceRegistry:
                 raise ValueError(f"command source {source.name!r}: unknown keys {unknown}; known: {sorted(KEY_DRIVES)}")
         self.sources = {s.name: s for s in sources}
 
-    def admit(self, source: str, key: str) -> tuple[Optional[CommandSource], str]:
-        """(the declared source, "") for a command naming ``source`` on ``key``, or (None, why not)."""
+    def admit(self, source: str, key: str, fingers: bool = False) -> tuple[Optional[CommandSource], str]:
+        """(the declared source, "") for a command naming ``source`` on ``key`` (``fingers``: carrying a finger
+        part), or (None, why not)."""
         declared = self.sources.get(declared_name(source))
         if declared is None:
             return None, f"source: {source!r} is not a declared command source ({', '.join(self.sources)})"
@@ -100,6 +103,8 @@ class SourceRegistry:
             return None, f"source: {declared.name} may not command on {key}"
         if KEY_DRIVES[key] not in declared.drives:
             return None, f"source: {declared.name} may not drive {KEY_DRIVES[key].value}"
+        if fingers and Drives.FINGERS not in declared.drives:
+            return None, f"source: {declared.name} may not drive {Drives.FINGERS.value}"
         return declared, ""
 
 

@@ -374,3 +374,16 @@ def test_a_hand_part_that_does_not_fit_refuses_the_whole_command():
     safety.state(hand_state(10 * S, fingers=False), 10 * S)  # a robot that reports no fingers (the RS-485 link)
     none = safety.desired(twist_with_fingers(10 * S, [1.0] * 3), 10 * S + 5_000_000)
     assert refusals(none) == ["fingers: a finger command, and the j2s7s300's robot reports no fingers"]
+
+
+def test_a_source_not_declared_to_drive_the_fingers_has_a_command_with_a_hand_part_refused():
+    from services.safety.sources import CommandSource
+
+    safety = SafetyCore(SafetyLimits(), upstream=["vision", "controller"], robots=["robot_sim"], rate_hz=100.0,
+                        lockstep=False, sources=[CommandSource(name="controller", keys=["desired_twist"], drives=["twist"])])
+    for name in ("vision", "controller", "robot_sim"):
+        safety.liveliness(name, True)
+    safety.state(hand_state(10 * S), 10 * S)
+    refused = safety.desired(twist_with_fingers(10 * S, [1.2] * 3), 10 * S + 5_000_000)
+    assert refusals(refused) == ["source: controller may not drive fingers"]
+    assert all(c.fingers is None for c in sends(refused))
