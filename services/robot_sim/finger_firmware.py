@@ -9,12 +9,18 @@ on an object squeezes it with that force for as long as its target lies beyond t
 one: nothing but a new target moves a finger. Each finger reports its angle, its rate and a current proportional to
 the force its motor gives (:data:`FINGER_CURRENT_AT_FULL_FORCE_A`).
 
-Where it departs from the real hand (whose firmware is not public): the reference's constant speed and the servo's
-stiffness are mfvs's choices; the KG-3's fingers are driven through a worm gear and lead screw, which hold their
-position unpowered; the emulated ones hold it by their servo.
+The KG-3's fingers are driven through a worm gear and lead screw, which an external force cannot turn: a finger
+opens only when its motor opens it. Emulated as a ratchet on each hinge (:data:`FINGER_HOLDING_FACTOR`): a stiff,
+damped spring holds the finger from being pushed open past the most closed position it reached (never beyond where
+its motor is), less the gear's backlash. Without it, two fingers' force on an object pushed the third (the thumb,
+alone on its side) open, and the object slid out of the hand.
+
+Where it departs from the real hand (whose firmware is not public): the reference's constant speed, the servo's
+stiffness, the gear's holding torque and its backlash are mfvs's choices.
 """
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import mujoco
@@ -27,6 +33,12 @@ from services.robot_sim import scene as scene_mod
 #: the current a finger's motor draws at its full force (A): mfvs's choice (Kinova's ``Finger`` struct has a
 #: MaxCurrent, but no public value); the grasp detector judges currents against this, not against a bare number
 FINGER_CURRENT_AT_FULL_FORCE_A = 1.0
+#: the worm gear's holding torque, as a multiple of the motor's full torque (mfvs's choice: a self-locking gear holds
+#: well beyond what drives it; above this an external force does push the finger open, as a gear would slip)
+FINGER_HOLDING_FACTOR = 4.0
+#: the gear's backlash (rad): how far a finger gives before the gear holds it (mfvs's choice, half a degree: a small
+#: worm gear's play). A finger resting open sags by less than this against its stop, so the gear leaves it alone
+GEAR_BACKLASH = math.radians(0.5)
 
 
 class FingerFirmware:
@@ -47,6 +59,14 @@ class FingerFirmware:
         self.target = np.zeros(n)
         self.reference = np.zeros(n)
         self.pending: Optional[np.ndarray] = None
+        #: the gear's ratchet: the most closed each finger has been since its motor last opened it (rad), its
+        #: stiffness (the servo's) and its torque limit
+        self.locked = np.zeros(n)
+        self._lock_stiffness = self.full_force_nm / scene_mod.FINGER_FULL_FORCE_WITHIN
+        #: ... damped as the servo is (its kv: MuJoCo's position actuator keeps −kv as its third bias parameter), or
+        #: the one-sided spring bounces a blocked finger
+        self._lock_damping = -model.actuator_biasprm[self._actuators, 2]
+        self._holding_nm = FINGER_HOLDING_FACTOR * self.full_force_nm
         self.hold_all()
 
     @property
@@ -57,8 +77,10 @@ class FingerFirmware:
         """Every finger holding where it is (at start and after a reset)."""
         self.target = self.hand.clip(self.position)
         self.reference = self.target.copy()
+        self.locked = self.position
         self.pending = None
         self.data.ctrl[self._actuators] = self.reference
+        self.data.qfrc_applied[self._dof] = 0.0
 
     def command(self, targets_rad) -> None:
         """The fingers' targets (rad, 0 open), taken at the next boundary."""
@@ -80,6 +102,19 @@ class FingerFirmware:
         step = self._step
         self.reference = self.reference + np.clip(self.target - self.reference, -step, step)
         self.data.ctrl[self._actuators] = self.reference
+        self.data.qfrc_applied[self._dof] = self._gear_torque(self.position, self.data.qvel[self._dof])
+
+    def _gear_torque(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """The worm gear's torque on each hinge (closing positive): none while the finger closes or its motor opens
+        it; against being pushed open (below where it reached and its motor is) past the backlash, a damped spring back to the most closed position, within the
+        holding torque."""
+        # the gear holds what the finger reached, never beyond where its motor is (the reference): opening, the motor
+        # takes the hold down with it
+        self.locked = np.minimum(np.maximum(self.locked, q), self.reference)
+        give = self.locked - GEAR_BACKLASH - q
+        pushed_open = give > 0.0
+        torque = self._lock_stiffness * give - self._lock_damping * dq
+        return np.where(pushed_open, np.clip(torque, 0.0, self._holding_nm), 0.0)
 
     def force_fraction(self) -> np.ndarray:
         """How much of its full force each finger's motor gives now (signed: positive closing)."""

@@ -191,8 +191,10 @@ class ObjectKind(str, enum.Enum):
 
 class SceneObject(ConfigStruct):
     """One of the scene's other objects: clutter beside the target, an occluder that crosses the view, an object
-    that takes the target's place. A mocap body: it moves as told (``velocity_mps`` from its pose, within its
-    ``present_s``) and nothing pushes it."""
+    that takes the target's place, a thing to grasp. Without a mass, a mocap body: it moves as told
+    (``velocity_mps`` from its pose, within ``arrives_at_s`` .. ``leaves_at_s``) and nothing pushes it. With a mass
+    (``mass_kg``), a free body: it falls, rests on the table, and moves as the fingers and what else it touches push
+    it (it is then where its pose puts it at time 0, and nothing else moves it)."""
 
     name: str
     kind: ObjectKind = ObjectKind.PLANE
@@ -209,8 +211,14 @@ class SceneObject(ConfigStruct):
     #: in the scene from ... to (s of simulated time; null: from the start, to the end)
     arrives_at_s: Optional[float] = None
     leaves_at_s: Optional[float] = None
-    #: the fingers touch it (a mocap body still: it does not move when they push it); false: it is seen only
+    #: a mocap body the fingers and free objects touch (it does not move when they push it); false: it is seen only.
+    #: A free object (``mass_kg``) is always solid
     solid: bool = False
+    #: its mass (kg): a free body; null: a mocap body
+    mass_kg: Optional[float] = None
+    #: a free object's sliding friction coefficient, which its contacts with the fingers and the table use (it takes
+    #: precedence over theirs): MuJoCo's default 1.0 (rubber finger pads on a dry mug); a wet glass is nearer 0.1
+    friction: float = 1.0
 
     def __post_init__(self) -> None:
         if not (1 <= len(self.name) <= 32 and self.name.replace("_", "").isalnum()):
@@ -219,6 +227,40 @@ class SceneObject(ConfigStruct):
             raise ValueError(f"scene object {self.name}: give pose_in_base or pose_in_camera, exactly one")
         if not all(0.001 <= side <= 2.0 for side in self.size_m):
             raise ValueError(f"scene object {self.name}: size_m within 0.001..2 m")
+        if self.mass_kg is not None:
+            if not (math.isfinite(self.mass_kg) and 0.001 <= self.mass_kg <= 5.0):
+                raise ValueError(f"scene object {self.name}: mass_kg within 0.001..5 kg")
+            if any(self.velocity_mps) or self.arrives_at_s is not None or self.leaves_at_s is not None:
+                raise ValueError(f"scene object {self.name}: a free object (mass_kg) moves only as it is pushed: no "
+                                 "velocity_mps, arrives_at_s or leaves_at_s")
+        if not (math.isfinite(self.friction) and 0.01 <= self.friction <= 2.0):
+            raise ValueError(f"scene object {self.name}: friction within 0.01..2")
+
+    @property
+    def free(self) -> bool:
+        """A free body (it has a mass), not a mocap one."""
+        return self.mass_kg is not None
+
+
+class TableConfig(ConfigStruct):
+    """A table the arm is mounted beside, for objects to stand on: a slab whose top is at ``top_z_m`` in the base
+    frame. Its top at the base's height by default (our choice: a wheelchair-mounted JACO-2's base sits about at a
+    table's height, Kinova's wheelchair mounting kit); the floor is then a table's height below it."""
+
+    top_z_m: float = 0.0
+    #: the top's centre (x, y) in the base frame and its size (m): our choice, a 1.2 × 0.8 m table in front of the arm
+    centre_xy_m: tuple[float, float] = (0.55, 0.0)
+    size_xy_m: tuple[float, float] = (0.8, 1.2)
+    thickness_m: float = 0.03
+    #: the floor this far below the top (m): a table's height (EN 1729 / common 0.72 m)
+    height_m: float = 0.72
+
+    def __post_init__(self) -> None:
+        if not all(0.05 <= v <= 3.0 for v in self.size_xy_m):
+            raise ValueError("table size_xy_m within 0.05..3 m a side")
+        if not (-1.0 <= self.top_z_m <= 1.0 and 0.005 <= self.thickness_m <= 0.2
+                and self.thickness_m < self.height_m <= 1.5):
+            raise ValueError("table top_z_m within -1..1 m, thickness_m 0.005..0.2 m, height_m above it up to 1.5 m")
 
 
 class LightConfig(ConfigStruct):
@@ -249,6 +291,8 @@ class SceneConfig(ConfigStruct):
     light: LightConfig = msgspec.field(default_factory=LightConfig)
     timestep_s: float = 0.001
     floor: bool = True
+    #: a table for objects to stand on (none by default: the floor at the base's height, which nothing touches)
+    table: Optional[TableConfig] = None
 
     def __post_init__(self) -> None:
         if not 1e-4 <= self.timestep_s <= 0.001:
@@ -258,6 +302,18 @@ class SceneConfig(ConfigStruct):
         """The scene against the arm it holds (its initial angles). Raises ValueError."""
         if self.initial_joints_deg is not None:
             check_joints_deg(arm, self.initial_joints_deg, "initial_joints_deg")
+        names = [obj.name for obj in self.objects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"scene objects named twice: {sorted({n for n in names if names.count(n) > 1})}")
+
+    @property
+    def floor_z_m(self) -> float:
+        """Where the floor is (base frame, m): at the base's height, or a table's height below the table's top."""
+        return 0.0 if self.table is None else self.table.top_z_m - self.table.height_m
+
+    @property
+    def free_objects(self) -> list[SceneObject]:
+        return [obj for obj in self.objects if obj.free]
 
     def start_deg(self, arm: ArmDescription) -> list[float]:
         """Where the arm starts (physical deg): ``initial_joints_deg``, or the arm's home."""
@@ -337,6 +393,8 @@ def build_model(cfg: SceneConfig, arm: ArmDescription) -> mujoco.MjModel:
     if arm.hand is not None:
         _add_hand(spec, arm)
     _add_light_and_floor(spec, cfg)
+    if cfg.table is not None:
+        _add_table(spec, cfg.table)
     _add_target(spec, cfg, arm)
     for obj in cfg.objects:
         _add_object(spec, cfg, arm, obj)
@@ -348,6 +406,13 @@ def _set_options(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     """The physics step and integrator, and the offscreen rendering's buffers and light."""
     spec.option.timestep = cfg.timestep_s
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    if cfg.free_objects:
+        # what a grasp needs of MuJoCo's contacts (its documentation's advice for grasping, which dm_control's
+        # manipulation tasks follow): elliptic friction cones, their friction stiffer than the normal by IMPRATIO,
+        # or a held object creeps down through soft friction. Only where a free object can be held: the tag
+        # scenes have no contacts and stay as they were
+        spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
+        spec.option.impratio = IMPRATIO
     cam = cfg.camera
     spec.visual.global_.offwidth = max(cam.width, 640)
     spec.visual.global_.offheight = max(cam.height, 480)
@@ -359,6 +424,11 @@ def _set_options(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
     spec.visual.quality.shadowsize = 0
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
     spec.visual.headlight.diffuse = [0.4, 0.4, 0.4]
+
+
+#: the ratio of frictional to normal constraint impedance of a grasp's contacts (MuJoCo's documentation, "impratio":
+#: values above 1 for grasping, to prevent slip; dm_control's manipulation tasks use 10)
+IMPRATIO = 10.0
 
 
 def _add_arm(spec: mujoco.MjSpec, arm: ArmDescription) -> None:
@@ -384,9 +454,14 @@ def _add_arm(spec: mujoco.MjSpec, arm: ArmDescription) -> None:
         geom.rgba = [0.15, 0.15, 0.17, 1.0]
 
 
-#: the collision bits of what the fingers touch: a finger's geoms collide with a solid object's, never with each other,
-#: the arm or the scene's visual geometry (contype 0)
+#: the collision classes (MuJoCo's contype/conaffinity bits): a finger's geoms collide with solid objects and the
+#: table, never with each other, the arm or the scene's visual geometry (contype 0); a free object's with the
+#: fingers, the table, the floor, solid objects and other free objects
 FINGER_CONTACT = 2
+OBJECT_CONTACT = 4
+#: a free object's geoms' contact priority: its friction is what its contacts use (MuJoCo otherwise takes the larger
+#: of the pair's, so a slippery object would grip as the finger pads do)
+OBJECT_CONTACT_PRIORITY = 1
 #: a finger's contacts: MuJoCo's elliptic friction cone with torsional friction (condim 4, as dm_control's
 #: jaco_hand.xml gives its fingers), MuJoCo's default sliding friction (dm_control sets none)
 FINGER_CONDIM = 4
@@ -397,6 +472,18 @@ FINGER_FULL_FORCE_WITHIN = math.radians(1.0)
 #: the reflected inertia of a finger's motor at its hinge (kg·m²): mfvs's choice, of the order of the finger's own
 #: (about 1e-4 kg·m²), so the servo's bandwidth stays within what the 1 ms physics step integrates
 FINGER_ARMATURE = 2e-4
+
+
+#: the palm's face: a disc across the hand (m; mfvs's choice, no public drawing: the KG-3's palm is about as wide as
+#: the ring of its finger hinges, 3 cm from the axis), just ahead of the hinges
+PALM_RADIUS_M = 0.035
+PALM_DEPTH_M = 0.02
+PALM_AHEAD_OF_HINGES_M = 0.005
+
+
+def _palm_face_z(arm: ArmDescription) -> float:
+    """Where the palm's face is along the end effector's z (its approach axis, m): just ahead of the finger hinges."""
+    return max(float(T[2, 3]) for T in arm.hand.finger_origins) + PALM_AHEAD_OF_HINGES_M
 
 
 def finger_names(arm: ArmDescription) -> list[tuple[str, str, str]]:
@@ -441,6 +528,10 @@ def _add_hand(spec: mujoco.MjSpec, arm: ArmDescription) -> None:
     palm.inertia = moments.tolist()
     palm.fullinertia = [math.nan] * 6  # (the principal moments and axes above are the body's inertia)
     ee = spec.body(EE_LINK)
+    # the palm's face, what a power grasp presses an object against (massless: the palm's mass is the link's)
+    ee.add_geom(name="palm", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[PALM_RADIUS_M, PALM_DEPTH_M / 2, 0.0],
+                pos=[0.0, 0.0, _palm_face_z(arm) - PALM_DEPTH_M / 2], density=0.0, contype=FINGER_CONTACT,
+                conaffinity=0, condim=FINGER_CONDIM, rgba=[0.15, 0.15, 0.17, 1.0])
     torque = finger_torque_limit_nm(arm)
     radius = hand.link_radius_m
     # the finger about its hinge, as a servo sees it: the two links' masses at their centres, plus the motor
@@ -487,8 +578,24 @@ def _add_light_and_floor(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:
         # a 640x480 frame cost on llvmpipe in a running stack (15 % of a core at 30 Hz). The detector needs no
         # background texture; the floor's grey is the checker's mean brightness.
         spec.add_material(name="floor", rgba=FLOOR_RGBA, reflectance=0.0)
-        world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.05], material="floor",
-                       contype=0, conaffinity=0)
+        floor = world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.05],
+                               material="floor", contype=0, conaffinity=0)
+        if cfg.floor_z_m != 0.0:
+            floor.pos = [0.0, 0.0, cfg.floor_z_m]
+        if cfg.free_objects:  # what falls off the table lands on it
+            floor.conaffinity = OBJECT_CONTACT
+
+
+#: the table's colour (a light wood laminate; the tag and the objects stand out on it)
+TABLE_RGBA = [0.62, 0.52, 0.40, 1.0]
+
+
+def _add_table(spec: mujoco.MjSpec, table: TableConfig) -> None:
+    """The table: a static slab, its top at ``top_z_m``, that the fingers and free objects touch."""
+    half = [table.size_xy_m[0] / 2, table.size_xy_m[1] / 2, table.thickness_m / 2]
+    spec.worldbody.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_BOX, size=half, rgba=TABLE_RGBA,
+                            pos=[*table.centre_xy_m, table.top_z_m - table.thickness_m / 2],
+                            contype=OBJECT_CONTACT, conaffinity=FINGER_CONTACT | OBJECT_CONTACT)
 
 
 def _add_target(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription) -> None:
@@ -497,8 +604,7 @@ def _add_target(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription) -> N
     Raises ValueError for a target below the floor."""
     if cfg.target.kind != TargetKind.TAG:
         T_bt = target_in_base(cfg, arm)
-        if cfg.floor and T_bt[2, 3] < 0.0:
-            raise ValueError(f"the target's centre is {-T_bt[2, 3]:.3f} m below the floor; move it or disable the floor")
+        _above_floor(cfg, T_bt)
         body = spec.worldbody.add_body(name=TAG_BODY, mocap=True, pos=T_bt[:3, 3].tolist(),
                                        quat=frames.matrix_to_quat_wxyz(T_bt[:3, :3]).tolist())
         t = cfg.target
@@ -520,13 +626,18 @@ def _add_target(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription) -> N
     spec.add_material(name="tag", textures=["", "tag"], texrepeat=[1, 1], texuniform=False, specular=0.0,
                       shininess=0.0, reflectance=0.0)
     T_bt = target_in_base(cfg, arm)
-    if cfg.floor and T_bt[2, 3] < 0.0:
-        raise ValueError(f"the target's centre is {-T_bt[2, 3]:.3f} m below the floor; move it or disable the floor")
+    _above_floor(cfg, T_bt)
     target = spec.worldbody.add_body(name=TAG_BODY, mocap=True, pos=T_bt[:3, 3].tolist(),
                                      quat=frames.matrix_to_quat_wxyz(T_bt[:3, :3]).tolist())
     thickness = 0.002
     target.add_geom(name="tag", type=mujoco.mjtGeom.mjGEOM_BOX, size=[half_x, half_y, thickness / 2],
                     pos=[0.0, 0.0, -thickness / 2], material="tag", contype=0, conaffinity=0)
+
+
+def _above_floor(cfg: SceneConfig, T_bt: np.ndarray) -> None:
+    below = cfg.floor_z_m - T_bt[2, 3]
+    if cfg.floor and below > 0.0:
+        raise ValueError(f"the target's centre is {below:.3f} m below the floor; move it or disable the floor")
 
 
 def _material(spec: mujoco.MjSpec, name: str, texture_path: Optional[str], seed: int, aspect: float = 1.0) -> str:
@@ -591,12 +702,17 @@ def _textured_cup(spec: mujoco.MjSpec, body, name: str, cup: CupShape, texture_p
                           contype=0, conaffinity=0)
 
 
+def object_body(obj: SceneObject) -> str:
+    """A scene object's body in the model."""
+    return f"object_{obj.name}"
+
+
 def _add_object(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription, obj: SceneObject) -> None:
-    """One of the scene's other objects, a mocap body at its initial pose."""
+    """One of the scene's other objects at its initial pose: a mocap body, or a free one (:func:`_make_free`)."""
     T = object_in_base(cfg, arm, obj)
-    body = spec.worldbody.add_body(name=f"object_{obj.name}", mocap=True, pos=T[:3, 3].tolist(),
+    name = object_body(obj)
+    body = spec.worldbody.add_body(name=name, mocap=not obj.free, pos=T[:3, 3].tolist(),
                                    quat=frames.matrix_to_quat_wxyz(T[:3, :3]).tolist())
-    name = f"object_{obj.name}"
     if obj.kind == ObjectKind.PLANE:
         _textured_plane(spec, body, name, obj.size_m, obj.texture, obj.texture_seed)
     elif obj.kind == ObjectKind.CUP:
@@ -607,9 +723,34 @@ def _add_object(spec: mujoco.MjSpec, cfg: SceneConfig, arm: ArmDescription, obj:
     else:
         body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in obj.size_m],
                       rgba=[0.55, 0.5, 0.45, 1.0], contype=0, conaffinity=0)
-    if obj.solid:
+    if obj.free:
+        _make_free(spec, body, obj)
+    elif obj.solid:
         for geom in body.geoms:
-            geom.conaffinity = FINGER_CONTACT
+            geom.conaffinity = FINGER_CONTACT | OBJECT_CONTACT
+
+
+def _make_free(spec: mujoco.MjSpec, body, obj: SceneObject) -> None:
+    """A free object: a free joint, its look massless, and one collision shape carrying its whole mass (a uniform
+    solid, mfvs's choice: a mug's mass is in its wall and base, which moves its inertia, not its contacts) with its
+    friction. A cup's shape is its wall's cylinder (the handle touches nothing); a plane's its slab."""
+    body.add_freejoint(name=f"{object_body(obj)}_free")
+    for geom in body.geoms:
+        geom.density = 0.0
+    friction = [obj.friction, 0.005, 0.0001]  # (torsional and rolling: MuJoCo's defaults)
+    common = dict(mass=obj.mass_kg, contype=OBJECT_CONTACT, conaffinity=FINGER_CONTACT | OBJECT_CONTACT,
+                  condim=FINGER_CONDIM, friction=friction, priority=OBJECT_CONTACT_PRIORITY, group=3,
+                  rgba=[0.0, 0.0, 0.0, 0.0])
+    name = f"{object_body(obj)}_shape"
+    if obj.kind == ObjectKind.CUP:
+        body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[obj.cup.radius_m, obj.cup.height_m / 2, 0.0],
+                      quat=frames.matrix_to_quat_wxyz(frames.rot_x(math.pi / 2)).tolist(), **common)
+    elif obj.kind == ObjectKind.SPHERE:
+        body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[obj.size_m[0] / 2, 0.0, 0.0], **common)
+    else:
+        depth = obj.size_m[2]
+        pos = [0.0, 0.0, -depth / 2] if obj.kind == ObjectKind.PLANE else [0.0, 0.0, 0.0]
+        body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=[s / 2 for s in obj.size_m], pos=pos, **common)
 
 
 def _add_camera(spec: mujoco.MjSpec, cfg: SceneConfig) -> None:

@@ -55,11 +55,15 @@ class Simulation:
         self.n = self.arm.n_joints
         self.model = scene_mod.build_model(self.scene, self.arm)
         self.data = mujoco.MjData(self.model)
-        #: the hand's fingers: their hinges follow the arm's joints in MuJoCo's coordinates
+        #: the hand's fingers: their hinges follow the arm's joints in MuJoCo's coordinates, the free objects' six
+        #: each after them
         self.n_fingers = 0 if self.arm.hand is None else self.arm.hand.n_fingers
-        if self.model.nv != self.n + self.n_fingers:
-            raise ValueError(f"the model must have exactly {self.n} joints' and {self.n_fingers} fingers' dofs, it has "
-                             f"{self.model.nv}")
+        free = self.scene.free_objects
+        if self.model.nv != self.n + self.n_fingers + 6 * len(free):
+            raise ValueError(f"the model must have exactly {self.n} joints', {self.n_fingers} fingers' and "
+                             f"{len(free)} free objects' dofs, it has {self.model.nv}")
+        #: each free object's body (its pose is where it is now: :meth:`object_pose`)
+        self._free_bodies = {obj.name: self.model.body(scene_mod.object_body(obj)).id for obj in free}
         self.firmware = ActuatorFirmware(self.model, self.data, self.arm, actuators, counters)
         #: the hand's finger actuators (None: the arm carries no hand)
         self.fingers = FingerFirmware(self.model, self.data, self.arm) if self.n_fingers else None
@@ -76,10 +80,10 @@ class Simulation:
         self._target_start = self.data.mocap_pos[self._mocap].copy()
         self._target_velocity = np.asarray(self.scene.target.velocity_mps, dtype=float)
         #: the scene's other objects (and the target, when it leaves): where each is at a time, and when it is there
-        self._scheduled = [_Mover(self.model.body(f"object_{obj.name}").mocapid[0],
+        self._scheduled = [_Mover(self.model.body(scene_mod.object_body(obj)).mocapid[0],
                                   scene_mod.object_in_base(self.scene, self.arm, obj)[:3, 3],
                                   np.asarray(obj.velocity_mps, dtype=float), obj.arrives_at_s, obj.leaves_at_s)
-                           for obj in self.scene.objects]
+                           for obj in self.scene.objects if not obj.free]
         self._ee_body = self.model.body(EE_LINK).id
         self._camera_id = self.model.camera(scene_mod.CAMERA_NAME).id
         self._renderer = None
@@ -136,6 +140,11 @@ class Simulation:
     def target_pose(self) -> np.ndarray:
         return frames.homogeneous(frames.quat_wxyz_to_matrix(self.data.mocap_quat[self._mocap]),
                                   self.data.mocap_pos[self._mocap])
+
+    def object_pose(self, name: str) -> np.ndarray:
+        """Where a free object is now (base frame): MuJoCo's truth, for what measures a grasp."""
+        body = self._free_bodies[name]
+        return frames.homogeneous(self.data.xmat[body].reshape(3, 3), self.data.xpos[body])
 
     def set_target_pose(self, T: np.ndarray) -> None:
         self.data.mocap_pos[self._mocap] = T[:3, 3]

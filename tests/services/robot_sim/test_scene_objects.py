@@ -37,8 +37,53 @@ def test_a_scene_that_asks_for_nothing_new_compiles_to_the_same_model():
                                                                    mujoco.mjtObj.mjOBJ_JOINT: base.njnt,
                                                                    mujoco.mjtObj.mjOBJ_ACTUATOR: base.nu}[kind])]
         assert all(mujoco.mj_name2id(more, kind, n) == i for i, n in enumerate(names))
-    # objects are mocap bodies: no degrees of freedom beside the arm's joints and the fingers' hinges
+    # objects without a mass are mocap bodies: no degrees of freedom beside the arm's joints and the fingers' hinges
     assert more.nv == base.nv == ARM.n_joints + ARM.hand.n_fingers
+    # and the contact options a grasp needs are the free objects' alone
+    assert base.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL and base.opt.impratio == 1.0
+
+
+def cup_on_the_table(name="cup", xy=(0.5, 0.1), mass_kg=0.35, friction=1.0) -> SceneObject:
+    height = scene_mod.CupShape().height_m
+    return SceneObject(name=name, kind="cup", mass_kg=mass_kg, friction=friction,
+                       pose_in_base=PoseConfig(xyz=(*xy, height / 2 + 0.002), rpy_deg=(90.0, 0.0, 0.0)))
+
+
+def test_a_free_object_falls_onto_the_table_and_rests_there_and_off_it_lands_on_the_floor():
+    table = scene_mod.TableConfig()
+    off_the_table = (table.centre_xy_m[0] - table.size_xy_m[0] / 2 - 0.2, 0.0)
+    scene = SceneConfig(table=table, objects=[cup_on_the_table(), cup_on_the_table("falling", off_the_table)])
+    sim = Simulation(scene, arm=ARM, render=False)
+    assert sim.model.nv == ARM.n_joints + ARM.hand.n_fingers + 2 * 6  # a free joint each, after the fingers
+    assert sim.model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC and sim.model.opt.impratio == scene_mod.IMPRATIO
+    for _ in range(250):  # 0.5 s
+        sim.cycle()
+    cup = sim.object_pose("cup")
+    assert cup[2, 3] == pytest.approx(scene_mod.CupShape().height_m / 2, abs=1e-3)  # on the top, upright
+    assert cup[:3, 1] @ [0.0, 0.0, 1.0] > 0.999
+    assert np.linalg.norm(cup[:2, 3] - [0.5, 0.1]) < 1e-3
+    assert sim.object_pose("falling")[2, 3] < scene.floor_z_m + 0.1  # past the table's edge: down on the floor
+    assert scene.floor_z_m == pytest.approx(-table.height_m)
+
+
+def test_a_free_objects_mass_is_its_shapes_alone_and_its_friction_is_what_its_contacts_use():
+    sim = Simulation(SceneConfig(table=scene_mod.TableConfig(), objects=[cup_on_the_table(mass_kg=0.35, friction=0.2)]),
+                     arm=ARM, render=False)
+    body = sim.model.body("object_cup")
+    assert body.mass[0] == pytest.approx(0.35)  # the print and the handle weigh nothing
+    shape = sim.model.geom("object_cup_shape")
+    assert shape.friction[0] == pytest.approx(0.2) and shape.priority[0] > sim.model.geom("table").priority[0]
+
+
+def test_free_objects_are_refused_what_only_a_mocap_body_can_do():
+    with pytest.raises(ValueError, match="moves only as it is pushed"):
+        SceneObject(name="cup", mass_kg=0.3, velocity_mps=(0.1, 0.0, 0.0), pose_in_camera=AHEAD)
+    with pytest.raises(ValueError, match="mass_kg within"):
+        SceneObject(name="cup", mass_kg=float("nan"), pose_in_camera=AHEAD)
+    with pytest.raises(ValueError, match="friction within"):
+        SceneObject(name="cup", mass_kg=0.3, friction=0.0, pose_in_camera=AHEAD)
+    with pytest.raises(ValueError, match="named twice"):
+        SceneConfig(objects=[cup_on_the_table(), cup_on_the_table()]).check(ARM)
 
 
 def test_the_procedural_print_is_the_same_from_the_same_seed_and_rich_in_keypoints():
