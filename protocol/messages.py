@@ -718,6 +718,16 @@ class ArmCheckState(str, enum.Enum):
     WAIVED = "waived"
 
 
+class GraspVerdict(str, enum.Enum):
+    """What the hand holds, by its fingers' positions and currents (services/model/grasp.py)."""
+
+    MOVING = "moving"
+    REACHED = "reached"
+    GRASPED = "grasped"
+    EMPTY = "empty"
+    SLIPPING = "slipping"
+
+
 class FingerState(Message):
     """The hand's fingers as the robot measures them, one value per finger: proximal angle (rad, 0 open), its rate
     (rad/s), the finger actuator's current (A) and the target it holds (rad)."""

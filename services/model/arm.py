@@ -193,6 +193,7 @@ class _Hand(msgspec.Struct, forbid_unknown_fields=True):
     proximal_mass_kg: float
     distal_mass_kg: float
     grip_force_n: float
+    full_force_current_a: float
 
 
 class _File(msgspec.Struct, forbid_unknown_fields=True):
@@ -273,6 +274,8 @@ class HandDescription:
     distal_mass_kg: float
     #: the three fingers' normal forces together on an object held at the pinch (N)
     grip_force_n: float
+    #: the current a finger's motor draws at its full force (A): what a grasp detector judges currents against
+    full_force_current_a: float
     #: the file it was read from
     path: Path
 
@@ -765,9 +768,10 @@ def _hand(path: Path, name: Optional[str]) -> Optional[HandDescription]:
     if len(hand.finger_origins_in_hand_link) != len(hand.fingers):
         raise ArmError(f"{path}: {len(hand.fingers)} fingers, {len(hand.finger_origins_in_hand_link)} origins")
     sizes = (hand.proximal_length_m, hand.distal_length_m, hand.link_radius_m, hand.proximal_mass_kg,
-             hand.distal_mass_kg, hand.grip_force_n)
+             hand.distal_mass_kg, hand.grip_force_n, hand.full_force_current_a)
     if not all(math.isfinite(v) and v > 0 for v in sizes):
-        raise ArmError(f"{path}: the fingers' lengths, radius, masses and grip force must be positive")
+        raise ArmError(f"{path}: the fingers' lengths, radius, masses, grip force and full-force current must be "
+                       "positive")
 
     def origin(o: _Origin) -> np.ndarray:
         try:
@@ -787,7 +791,8 @@ def _hand(path: Path, name: Optional[str]) -> Optional[HandDescription]:
                            proximal_length_m=hand.proximal_length_m, distal_offset_m=tuple(hand.distal_offset_m),
                            distal_length_m=hand.distal_length_m, link_radius_m=hand.link_radius_m,
                            proximal_mass_kg=hand.proximal_mass_kg, distal_mass_kg=hand.distal_mass_kg,
-                           grip_force_n=hand.grip_force_n, path=path)
+                           grip_force_n=hand.grip_force_n, full_force_current_a=hand.full_force_current_a,
+                           path=path)
 
 
 # ------------------------------------------------------------------------------------------------ helpers

@@ -7,7 +7,7 @@ moves toward it at the finger's top speed (the hand's full travel in its closing
 servo on the hinge follows the reference, its force limited to the finger's share of the grip, so a finger blocked
 on an object squeezes it with that force for as long as its target lies beyond the object. No target keeps the last
 one: nothing but a new target moves a finger. Each finger reports its angle, its rate and a current proportional to
-the force its motor gives (:data:`FINGER_CURRENT_AT_FULL_FORCE_A`).
+the force its motor gives (the hand file's ``full_force_current_a`` at its full force).
 
 The KG-3's fingers are driven through a worm gear and lead screw, which an external force cannot turn: a finger
 opens only when its motor opens it. Emulated as a ratchet on each hinge (:data:`FINGER_HOLDING_FACTOR`): a stiff,
@@ -30,9 +30,6 @@ from services.model.arm import ArmDescription
 from services.robot.hardware import FingerReading
 from services.robot_sim import scene as scene_mod
 
-#: the current a finger's motor draws at its full force (A): mfvs's choice (Kinova's ``Finger`` struct has a
-#: MaxCurrent, but no public value); the grasp detector judges currents against this, not against a bare number
-FINGER_CURRENT_AT_FULL_FORCE_A = 1.0
 #: the worm gear's holding torque, as a multiple of the motor's full torque (mfvs's choice: a self-locking gear holds
 #: well beyond what drives it; above this an external force does push the finger open, as a gear would slip)
 FINGER_HOLDING_FACTOR = 4.0
@@ -122,4 +119,4 @@ class FingerFirmware:
 
     def reading(self) -> FingerReading:
         return FingerReading(position=self.position, velocity=self.data.qvel[self._dof].copy(),
-                             current_a=self.force_fraction() * FINGER_CURRENT_AT_FULL_FORCE_A)
+                             current_a=self.force_fraction() * self.hand.full_force_current_a)

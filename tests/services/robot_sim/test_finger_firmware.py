@@ -18,7 +18,6 @@ from services.robot.core import RobotCore
 from services.robot.dsp import DSPConfig, KinovaDSP
 from services.robot.hardware import CYCLES_PER_DSP
 from services.robot_sim import scene as sc
-from services.robot_sim.finger_firmware import FINGER_CURRENT_AT_FULL_FORCE_A
 from services.robot_sim.hardware import SimulatedHardware
 from services.robot_sim.sim import Simulation
 
@@ -95,7 +94,7 @@ def test_blocked_on_a_ball_at_the_pinch_the_fingers_squeeze_it_with_the_data_she
     assert grip_n(sim) == pytest.approx(arm.hand.grip_force_n, rel=0.10)
     last = readings[-1].fingers
     assert np.all(last.position < 0.9 * arm.hand.closed_angle)  # stopped on the ball, short of closed
-    assert np.allclose(last.current_a, FINGER_CURRENT_AT_FULL_FORCE_A, rtol=0.02)  # each at its full force
+    assert np.allclose(last.current_a, arm.hand.full_force_current_a, rtol=0.02)  # each at its full force
 
 
 def test_the_grip_holds_through_an_emergency_stop_stops_and_silence():
@@ -197,7 +196,7 @@ def test_get_angular_current_gives_the_fingers_current_at_their_full_force_on_a_
     api.call("SendBasicTrajectory", point(arm, kinova.HAND_MODE.POSITION_MODE, [arm.hand.closed_units] * 3))
     run(hardware, core, 1000)
     current = api.call("GetAngularCurrent", None).result
-    assert np.allclose(current.Fingers.as_list(), FINGER_CURRENT_AT_FULL_FORCE_A, rtol=0.02)
+    assert np.allclose(current.Fingers.as_list(), arm.hand.full_force_current_a, rtol=0.02)
     assert current.Actuators.as_list()[1] != 0.0  # the joints' currents beside them (joint 2 carries the arm)
 
 
