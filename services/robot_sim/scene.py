@@ -168,6 +168,10 @@ class TargetConfig(ConfigStruct):
     #: the target leaves the scene at this time (s of simulated time; null: never): an object that takes its place
     #: (``objects``) is then what the camera sees
     leaves_at_s: Optional[float] = None
+    #: the target stuck on a free object of the scene (its name): a tag card on a cup, a print on a box. It then
+    #: goes where the object goes (placed, pushed, grasped, lifted), at ``pose_in_object`` in the object's frame
+    on_object: Optional[str] = None
+    pose_in_object: Optional[PoseConfig] = None
 
     def __post_init__(self) -> None:
         if not all(0.02 <= side <= 1.0 for side in self.plane_m):
@@ -178,6 +182,12 @@ class TargetConfig(ConfigStruct):
             raise ValueError("target size_m must be within 0.005..1 m")
         if self.pose_in_base is not None and self.pose_in_camera is not None:
             raise ValueError("give the target pose_in_base or pose_in_camera, not both")
+        if (self.on_object is None) != (self.pose_in_object is None):
+            raise ValueError("a target on an object needs both on_object and pose_in_object")
+        if self.on_object is not None and (self.pose_in_base is not None or self.pose_in_camera is not None
+                                           or any(self.velocity_mps) or self.leaves_at_s is not None):
+            raise ValueError("a target on an object is where the object is: no pose_in_base, pose_in_camera, "
+                             "velocity_mps or leaves_at_s")
 
 
 class ObjectKind(str, enum.Enum):
@@ -305,6 +315,14 @@ class SceneConfig(ConfigStruct):
         names = [obj.name for obj in self.objects]
         if len(set(names)) != len(names):
             raise ValueError(f"scene objects named twice: {sorted({n for n in names if names.count(n) > 1})}")
+        carrier = self.target.on_object
+        if carrier is not None and carrier not in {obj.name for obj in self.free_objects}:
+            raise ValueError(f"the target is on object {carrier!r}, which is not a free object of the scene "
+                             f"(free objects: {', '.join(obj.name for obj in self.free_objects) or 'none'})")
+
+    def carrier(self) -> Optional[SceneObject]:
+        """The free object the target is stuck on (None: the target is where its pose puts it)."""
+        return next((obj for obj in self.objects if obj.name == self.target.on_object), None)
 
     @property
     def floor_z_m(self) -> float:
@@ -338,7 +356,11 @@ def camera_in_ee(cfg: SceneConfig) -> np.ndarray:
 
 
 def target_in_base(cfg: SceneConfig, arm: ArmDescription) -> np.ndarray:
-    """The target's initial pose in the base frame (resolving pose_in_camera at ``arm``'s initial configuration)."""
+    """The target's initial pose in the base frame (resolving pose_in_camera at ``arm``'s initial configuration; on
+    an object, where the object starts)."""
+    carrier = cfg.carrier()
+    if carrier is not None:
+        return object_in_base(cfg, arm, carrier) @ cfg.target.pose_in_object.matrix()
     return _in_base(cfg, arm, cfg.target.pose_in_base, cfg.target.pose_in_camera or default_target_in_camera())
 
 

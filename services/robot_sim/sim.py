@@ -62,8 +62,9 @@ class Simulation:
         if self.model.nv != self.n + self.n_fingers + 6 * len(free):
             raise ValueError(f"the model must have exactly {self.n} joints', {self.n_fingers} fingers' and "
                              f"{len(free)} free objects' dofs, it has {self.model.nv}")
-        #: each free object's body (its pose is where it is now: :meth:`object_pose`)
-        self._free_bodies = {obj.name: self.model.body(scene_mod.object_body(obj)).id for obj in free}
+        #: each free object's free joint's coordinates in qpos (where it is now: :meth:`object_pose`)
+        self._free_qpos = {obj.name: int(self.model.joint(f"{scene_mod.object_body(obj)}_free").qposadr[0])
+                           for obj in free}
         self.firmware = ActuatorFirmware(self.model, self.data, self.arm, actuators, counters)
         #: the hand's finger actuators (None: the arm carries no hand)
         self.fingers = FingerFirmware(self.model, self.data, self.arm) if self.n_fingers else None
@@ -84,6 +85,11 @@ class Simulation:
                                   scene_mod.object_in_base(self.scene, self.arm, obj)[:3, 3],
                                   np.asarray(obj.velocity_mps, dtype=float), obj.arrives_at_s, obj.leaves_at_s)
                            for obj in self.scene.objects if not obj.free]
+        #: the target stuck on a free object: that object's free joint's coordinates, and where on it the target is
+        carrier = self.scene.carrier()
+        self._carrier: Optional[tuple[int, np.ndarray]] = None
+        if carrier is not None:
+            self._carrier = (self._free_qpos[carrier.name], self.scene.target.pose_in_object.matrix())
         self._ee_body = self.model.body(EE_LINK).id
         self._camera_id = self.model.camera(scene_mod.CAMERA_NAME).id
         self._renderer = None
@@ -103,6 +109,8 @@ class Simulation:
         self.data.mocap_pos[self._mocap] = self._target_start
         self.time_ns = 0
         self._place_scheduled()
+        if self._carrier is not None:
+            self._follow_carrier()
         mujoco.mj_forward(self.model, self.data)
         self.firmware.now_s = 0.0
         self.firmware.hold_all()
@@ -143,10 +151,17 @@ class Simulation:
 
     def object_pose(self, name: str) -> np.ndarray:
         """Where a free object is now (base frame): MuJoCo's truth, for what measures a grasp."""
-        body = self._free_bodies[name]
-        return frames.homogeneous(self.data.xmat[body].reshape(3, 3), self.data.xpos[body])
+        return self._free_pose(self._free_qpos[name])
+
+    def _free_pose(self, address: int) -> np.ndarray:
+        """A free joint's pose from its coordinates (position, then orientation): current after a step, where the
+        bodies' poses are the step's start's."""
+        coordinates = self.data.qpos[address:address + 7]
+        return frames.homogeneous(frames.quat_wxyz_to_matrix(coordinates[3:]), coordinates[:3])
 
     def set_target_pose(self, T: np.ndarray) -> None:
+        if self._carrier is not None:
+            raise ValueError("the target is on an object: it goes where the object goes")
         self.data.mocap_pos[self._mocap] = T[:3, 3]
         self.data.mocap_quat[self._mocap] = frames.matrix_to_quat_wxyz(T[:3, :3])
         self._target_start = self.data.mocap_pos[self._mocap] - self._target_velocity * (self.time_ns * 1e-9)
@@ -199,6 +214,8 @@ class Simulation:
                 self.data.mocap_pos[self._mocap] = self._target_start + self._target_velocity * (self.time_ns * 1e-9)
             if self._scheduled or self.scene.target.leaves_at_s is not None:
                 self._place_scheduled()
+            if self._carrier is not None:
+                self._follow_carrier()
 
     def _place_scheduled(self) -> None:
         """The scene's other objects where they are now, and out of the scene (far below the floor) when they are
@@ -209,6 +226,13 @@ class Simulation:
         leaves = self.scene.target.leaves_at_s
         if leaves is not None and t >= leaves:
             self.data.mocap_pos[self._mocap] = OUT_OF_SCENE
+
+    def _follow_carrier(self) -> None:
+        """The target where its object is now (the object's free joint: its position, then its orientation)."""
+        address, in_object = self._carrier
+        T = self._free_pose(address) @ in_object
+        self.data.mocap_pos[self._mocap] = T[:3, 3]
+        self.data.mocap_quat[self._mocap] = frames.matrix_to_quat_wxyz(T[:3, :3])
 
     def frame_due(self) -> bool:
         return self.time_ns >= self.next_frame_ns

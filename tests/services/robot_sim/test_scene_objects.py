@@ -188,3 +188,22 @@ def test_a_markerless_target_is_blurred_by_its_motion_through_the_webcam(kind):
     finally:
         renderer.close()
         sim.close()
+
+
+def test_a_target_stuck_on_a_free_object_goes_where_the_object_goes():
+    radius = scene_mod.CupShape().radius_m
+    card = PoseConfig(xyz=(0.0, 0.0, radius + 0.001), rpy_deg=(0.0, 0.0, 0.0))
+    scene = SceneConfig(table=scene_mod.TableConfig(), objects=[cup_on_the_table()],
+                        target=TargetConfig(size_m=0.03, on_object="cup", pose_in_object=card))
+    sim = Simulation(scene, arm=ARM, render=False)
+    assert np.allclose(sim.target_pose(), sim.object_pose("cup") @ card.matrix())
+    for _ in range(100):  # it falls the 2 mm it stood above the table; the card with it
+        sim.cycle()
+    assert np.allclose(sim.target_pose(), sim.object_pose("cup") @ card.matrix(), atol=1e-9)
+    with pytest.raises(ValueError, match="goes where the object goes"):
+        sim.set_target_pose(np.eye(4))
+    with pytest.raises(ValueError, match="not a free object"):
+        SceneConfig(objects=[SceneObject(name="cup", pose_in_camera=AHEAD)],
+                    target=TargetConfig(on_object="cup", pose_in_object=card)).check(ARM)
+    with pytest.raises(ValueError, match="needs both"):
+        TargetConfig(on_object="cup")
