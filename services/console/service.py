@@ -22,6 +22,7 @@ from services.controller.task_client import TaskUnavailable, call_task
 from services.safety.estop_sender import EStopSender
 from services.controller.task_client import describe_task
 from services.observe.foxglove_view import jpeg, pixels
+from services.vision.taught import write_goal_bytes
 from services.runtime.service import Service, ServiceConfig, query_health
 from services.runtime.threads import start_thread
 from services.runtime.ports import Port, Ports
@@ -230,10 +231,8 @@ class ConsoleService(Service):
                            confirm=lambda _: True, say=said)  # (confirmed on the page: decide() checked it)
         except TeachFailed as exc:
             return False, str(exc)
-        folder = Path(self.config.goals_dir).expanduser()
-        folder.mkdir(parents=True, exist_ok=True)
-        path = folder / f"{result.goal}.mfvsgoal"
-        path.write_bytes(result.file)
+        path = Path(self.config.goals_dir).expanduser() / f"{result.goal}.mfvsgoal"
+        write_goal_bytes(result.file, path)  # (atomically: the page's reader, or a person's, never sees half of it)
         with self.lock:
             self.model.on_taught(result.goal, result.digest, str(path), time.time())
         return True, (f"taught {result.goal} ({result.digest}): {result.keypoints} keypoints, "

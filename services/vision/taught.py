@@ -211,7 +211,11 @@ def read_goal(path: str | Path) -> tuple[TaughtGoal, bytes]:
 
 def write_goal(goal: TaughtGoalFile, path: str | Path) -> str:
     """Write the file (atomically: a reader never sees half of it); its digest."""
-    payload = encode_goal(goal)
+    return write_goal_bytes(encode_goal(goal), path)
+
+
+def write_goal_bytes(payload: bytes, path: str | Path) -> str:
+    """Write a taught goal's file from its bytes (atomically: a reader never sees half of it); its digest."""
     decode_goal(payload, "the goal written")  # what is written is readable: the same checks as a reader's
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
