@@ -147,6 +147,11 @@ class Keys:
     def lowlevel_state(self) -> str:
         return self._k("robot/lowlevel/state")
 
+    @property
+    def sim_objects(self) -> str:
+        """Where the simulator's free objects are (its truth, for what measures a grasp; a real arm has none)."""
+        return self._k("sim/objects")
+
     # time
     @property
     def clock(self) -> str:

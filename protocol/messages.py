@@ -26,7 +26,8 @@ from protocol.conventions import AngularConvention, Frame
 #: 5: Features of N points (ids, weights, pixels; one view per front end: tag, keypoints), the target's lost status
 #: (target_lost), desired commands naming their source, SafetyStatus.in_control.
 #: 6: the hand's fingers, a second actuator group: RobotCommand.fingers, RobotState.fingers.
-SCHEMA_VERSION = 6
+#: 7: the grasp task: TaskPlan grasp and release, TaskStatus.grasp (the hand's verdict); SimObjects.
+SCHEMA_VERSION = 7
 
 #: The most joints an arm has (the Kinova API's AngularInfo: Actuator1..7). A joint vector on the wire has the
 #: robot's arm's length (RobotState.arm: 6 for the j2n6s300, 7 for the j2s7s300); each reader checks it against the
@@ -587,6 +588,11 @@ class TaskPlan(str, enum.Enum):
     #: move the end effector by ``move_m`` (in ``move_frame``) from where it is, holding its orientation; then the
     #: task ends (teach's depth probe: a few centimetres sideways and back)
     MOVE = "move"
+    #: reach, grasp and lift: the visual servo to the pre-grasp view until converged, the approach along the tool's
+    #: axis, the fingers closed until the hand holds something, the lift, and the hold until a release
+    GRASP = "grasp"
+    #: open the hand: a grasp task's hold ends in it, or, with no task running, the hand opens where it is
+    RELEASE = "release"
 
 
 class MoveFrame(str, enum.Enum):
@@ -616,6 +622,31 @@ class TaskRequest(Message):
     move_frame: MoveFrame = MoveFrame.CAMERA
 
 
+class ObjectPose(Message):
+    """One of the simulator's free objects where it is (base frame)."""
+
+    name: Annotated[str, msgspec.Meta(min_length=1, max_length=32)]
+    pose: Pose
+
+
+class SimObjects(Message):
+    """The simulator's free objects at a DSP tick (its truth: what a grasp experiment measures the lift and the slip
+    by). Stamped with the tick."""
+
+    header: Header
+    objects: Annotated[list[ObjectPose], msgspec.Meta(max_length=64)]
+
+
+class GraspVerdict(str, enum.Enum):
+    """What the hand holds, by its fingers' positions and currents (services/model/grasp.py)."""
+
+    MOVING = "moving"
+    REACHED = "reached"
+    GRASPED = "grasped"
+    EMPTY = "empty"
+    SLIPPING = "slipping"
+
+
 class TaskStatus(Message):
     """The controller's answer to every task query: whether the request was done, and the task as it now is."""
 
@@ -634,6 +665,8 @@ class TaskStatus(Message):
     plan: TaskPlan = TaskPlan.SERVO
     phase: Annotated[str, msgspec.Meta(max_length=32)] = ""
     outcome: Annotated[str, msgspec.Meta(max_length=256)] = ""
+    #: what the hand holds by its fingers (services/model/grasp.py), while a task drives the hand (None otherwise)
+    grasp: Optional[GraspVerdict] = None
 
 
 class ControllerStatus(Message):
@@ -716,16 +749,6 @@ class ArmCheckState(str, enum.Enum):
     FAILED = "failed"
     #: not checked, by a setting (a simulated arm, which is its description; an arm the check cannot see)
     WAIVED = "waived"
-
-
-class GraspVerdict(str, enum.Enum):
-    """What the hand holds, by its fingers' positions and currents (services/model/grasp.py)."""
-
-    MOVING = "moving"
-    REACHED = "reached"
-    GRASPED = "grasped"
-    EMPTY = "empty"
-    SLIPPING = "slipping"
 
 
 class FingerState(Message):

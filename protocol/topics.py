@@ -42,6 +42,7 @@ def topics(keys: Keys) -> list[Topic]:
         Topic(keys.lowlevel_command, m.TorqueCommand, "a low-level client (torque_controller)", control_path=True),
         Topic(keys.lowlevel_state, m.LowLevelState, "robot_sim or robot_gateway", control_path=True),
         Topic(keys.clock, m.SimClock, "robot_sim"),
+        Topic(keys.sim_objects, m.SimObjects, "robot_sim, where its scene has free objects"),
         # one key per service (a wildcard here); each service also answers a query on its own
         Topic(keys.health_all, m.ServiceHealth, "every service, 1 Hz"),
     ]

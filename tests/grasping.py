@@ -24,6 +24,8 @@ SIDE_GRASP = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]
 PLACE_XY = (0.5, -0.1)
 AHEAD_M = 0.03
 LIFT_M, LIFT_SPEED = 0.10, 0.05
+#: the table, its top at the base's height (the hand's grasp is what these measure, anywhere the arm reaches it)
+TABLE = sc.TableConfig(top_z_m=0.0, centre_xy_m=(0.55, 0.0))
 
 
 def grasp_scene(arm, obj: sc.SceneObject, centre_z: float):
@@ -31,7 +33,7 @@ def grasp_scene(arm, obj: sc.SceneObject, centre_z: float):
     p = np.array([*PLACE_XY, centre_z]) - AHEAD_M * SIDE_GRASP[:, 2]
     q, ok = inverse_kinematics(kin, arm.home, SIDE_GRASP, p)
     assert ok and arm.within_limits(q)
-    scene = sc.SceneConfig(objects=[obj] if obj is not None else [], table=sc.TableConfig(),
+    scene = sc.SceneConfig(objects=[obj] if obj is not None else [], table=TABLE,
                            initial_joints_deg=[float(v) for v in arm.model_to_physical_deg(q)])
     sim = Simulation(scene, arm=arm, render=False)
     hardware = SimulatedHardware(sim)

@@ -176,8 +176,8 @@ def _add_servo_commands(sub) -> None:
                                                    "table3, part-a, part-b, part-c, part-d; Muñoz 2018: constraints; "
                                                    "JACO thesis: torque-control; Nelson 1995: tracking-region) and "
                                                    "report it beside the paper")
-    experiment.add_argument("name", help="table3, part-a, part-b, part-c, part-d, constraints, torque-control or "
-                                         "tracking-region")
+    experiment.add_argument("name", help="table3, part-a, part-b, part-c, part-d, constraints, torque-control, "
+                                         "tracking-region, markerless or grasp")
     experiment.add_argument("--scenario", default=None,
                             help="the same comparison from this scenario's start and goal (Sensors 2022: its law and "
                                  "gains are replaced by the experiment's; constraints: its constraints are the "
@@ -195,14 +195,20 @@ def _add_servo_commands(sub) -> None:
                                  "same speeds), without the runs that check the thesis's observations")
     experiment.add_argument("--runs", default=None, metavar="LABEL,...",
                             help="torque-control: only these runs (their labels, e.g. jt-pid,joint-velocity)")
-    experiment.add_argument("--object", default="plane", choices=("plane", "cup"),
-                            help="markerless: the object taught and servoed to (a textured box face, or a cup)")
+    experiment.add_argument("--object", default=None, choices=("plane", "cup", "box", "slippery", "none"),
+                            help="markerless: the object taught and servoed to (plane: a textured box face, the "
+                                 "default; cup); grasp: the object grasped (cup, the default; box; slippery: the "
+                                 "box wet; none: the tag card alone, nothing to hold)")
+    experiment.add_argument("--placements", type=int, default=None, metavar="N",
+                            help="grasp: N seeded placements of the object on the table (default 10)")
     experiment.add_argument("--texture", default=None, metavar="FILE",
                             help="markerless: an image printed on the object (default: the procedural print)")
-    experiment.add_argument("--perturb", action="append", default=None, metavar="lighting|occlusion|swap|clutter|webcam",
+    experiment.add_argument("--perturb", action="append", default=None,
+                            metavar="lighting|occlusion|swap|clutter|webcam|estop",
                             help="markerless: the servo lit otherwise than the teach, an occluder crossing the "
                                  "object, the object swapped for another, objects of a like print beside it, or a "
-                                 "webcam's noise, blur and JPEG (may be given more than once)")
+                                 "webcam's noise, blur and JPEG (may be given more than once); grasp: an "
+                                 "emergency stop 1 s into the hold")
     add_jobs_option(experiment)
     add_processes_option(experiment)
     add_arm_option(experiment, default=None, what="the scenario's; torque-control: j2n6s300")
@@ -250,7 +256,12 @@ def _add_operator_commands(sub) -> None:
 
     task = sub.add_parser("task", help="start, stop or show the servo task (the stack comes up idle: the arm "
                                        "moves only while a task runs)")
-    task.add_argument("action", choices=["start", "stop", "status"])
+    task.add_argument("action", choices=["start", "stop", "status", "release"],
+                      help="release: open the hand (a grasp task's hold ends in it; with no task, the hand opens "
+                           "where it is)")
+    task.add_argument("--grasp", action="store_true",
+                      help="start: reach, grasp and lift (servo to the pre-grasp view, approach along the tool's "
+                           "axis, close the fingers until the hand holds it, lift, hold until released)")
     task.add_argument("--operator", default="mfvs-cli", help="who is asking (logged, and kept in the task status)")
     task.add_argument("--reason", default="", help="why (logged)")
     task.add_argument("--json", action="store_true", help="print the task status as one JSON object")

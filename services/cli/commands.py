@@ -211,8 +211,13 @@ def cmd_task(args: argparse.Namespace) -> int:
         print(f"task {args.action}: cannot reach the router at {args.connect} ({exc}); is the stack up? "
               f"(--connect ENDPOINT, --zenoh-config FILE)", file=sys.stderr)
         return 2
-    function = {"start": m.START_TASK, "stop": m.STOP_TASK, "status": m.GET_TASK}[args.action]
-    request = None if function == m.GET_TASK else m.TaskRequest(operator=args.operator, reason=args.reason)
+    function = {"start": m.START_TASK, "release": m.START_TASK, "stop": m.STOP_TASK, "status": m.GET_TASK}[args.action]
+    if args.grasp and args.action != "start":
+        print("task: --grasp is for task start", file=sys.stderr)
+        session.close()
+        return 2
+    plan = m.TaskPlan.RELEASE if args.action == "release" else m.TaskPlan.GRASP if args.grasp else m.TaskPlan.SERVO
+    request = None if function == m.GET_TASK else m.TaskRequest(operator=args.operator, reason=args.reason, plan=plan)
     if args.goal is not None:
         if args.action != "start":
             print("task: --goal is for task start", file=sys.stderr)
@@ -440,7 +445,7 @@ def cmd_experiment(args: argparse.Namespace) -> int:
 #: the options of ``mfvs experiment`` that some experiments take and others not (each runner declares its own:
 #: services.experiments.registry.RUNNERS)
 EXPERIMENT_OPTIONS = ("scenario", "random_starts", "seed", "quick", "runs", "jobs", "processes", "object", "texture",
-                      "perturb")
+                      "perturb", "placements")
 
 
 def servo_experiment(args: argparse.Namespace) -> int:
@@ -492,8 +497,8 @@ def markerless_experiment(args: argparse.Namespace) -> int:
               f"{row.get('tag', {}).get('iterations', '–')}){extra}{swap}", file=stream, flush=True)
 
     try:
-        output = run_markerless(args.object, args.texture, count, args.seed, args.arm, perturb, args.out, args.jobs,
-                                progress, Path(args.scenario) if args.scenario else None)
+        output = run_markerless(args.object or "plane", args.texture, count, args.seed, args.arm, perturb, args.out,
+                                args.jobs, progress, Path(args.scenario) if args.scenario else None)
     except (ConfigError, ValueError) as exc:
         print(f"mfvs experiment: {exc}", file=sys.stderr)
         return 2
@@ -506,6 +511,52 @@ def markerless_experiment(args: argparse.Namespace) -> int:
           f"iterations over the tag's, median {s['iterations_over_tag']['median']}")
     if output["report"]:
         print(f"report: {output['report']}")
+    return 0
+
+
+def grasp_experiment(args: argparse.Namespace) -> int:
+    """``mfvs experiment grasp``: reach, grasp and lift an object from seeded placements on the table
+    (services.experiments.grasp)."""
+    from services.experiments import grasp
+    from services.runtime.config import ConfigError
+    from services.servo.scenario import load_scenario
+
+    if not jobs_or_exit("experiment", args.jobs):
+        return 2
+    if args.arm is not None and arm_or_exit("experiment", args.arm) is None:
+        return 2
+    kind = args.object or "cup"
+    perturb = [p for group in (args.perturb or []) for p in group.split(",") if p]
+    problems = []
+    if kind not in grasp.OBJECTS:
+        problems.append(f"grasp takes --object {', '.join(grasp.OBJECTS)}, not {kind}")
+    if len(perturb) > 1 or any(p not in grasp.PERTURBATIONS for p in perturb):
+        problems.append(f"grasp takes one --perturb of {', '.join(grasp.PERTURBATIONS)}")
+    count = args.placements if args.placements is not None else 10
+    if count < 1:
+        problems.append("--placements must be at least 1")
+    if problems:
+        print(f"mfvs experiment: {'; '.join(problems)}", file=sys.stderr)
+        return 2
+    stream = sys.stderr if args.json else sys.stdout
+
+    def progress(row: dict) -> None:
+        print(f"  {row['label']:12s} {row.get('status', ''):8s} verdict {row.get('verdict')}  lifted "
+              f"{row.get('lifted_m')} m  slip {row.get('slip_mm')} mm  dropped {row.get('dropped')}"
+              f"{'  ' + row['failure'] if row.get('failure') else ''}", file=stream, flush=True)
+
+    try:
+        base = load_scenario(args.scenario) if args.scenario else None
+        output = grasp.run(args.arm, kind, count, args.seed, perturb[0] if perturb else None, args.jobs, args.out,
+                           base, progress)
+    except (ConfigError, ValueError) as exc:
+        print(f"mfvs experiment: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(output), flush=True)
+        return 0
+    print(f"grasp ({output['arm']}, {kind}{', ' + output['perturb'] if output['perturb'] else ''}): "
+          f"{json.dumps(output['summary'])}")
     return 0
 
 

@@ -16,6 +16,8 @@ from protocol.conventions import AngularConvention
 from protocol.messages import (
     USABLE_FEATURE_STATUSES,
     ArmCheckState,
+    GraspVerdict,
+    TaskPlan,
     ControllerState,
     Features,
     FeatureStatus,
@@ -27,7 +29,8 @@ from protocol.messages import (
 from services.controller import ibvs
 from services.controller.law import ConstraintAbort, LawOutput, ServoInput
 from services.controller.laws import JOINT_LAWS, make_law
-from services.controller.phases import MovePhase, ServoPhase, phases_for, twist_from_move
+from services.controller.phases import (HandPhase, MovePhase, ServoPhase, phases_for, release_phases,
+                                       twist_from_move)
 from services.controller.task import Task
 from services.model import frames, saturation
 from services.model.point_features import per_point_rms
@@ -98,9 +101,12 @@ class ControllerCore:
             if wrong:
                 return self.task.status(False, wrong)
         was_running = self.task.running
+        if was_running and request.plan is TaskPlan.RELEASE:
+            return self._release(request)
         if not was_running:
             try:
-                phases = phases_for(request, self.config.move)
+                phases = phases_for(request, self.config.move, self.config.grasp,
+                                    self.arm.hand if self.arm is not None else None)
             except ValueError as exc:
                 return self.task.status(False, str(exc))
         reply = self.task.start(request, now_ns, phases if not was_running else None)
@@ -108,6 +114,13 @@ class ControllerCore:
             self._reset_law()
             self.iteration = 0
         return reply
+
+    def _release(self, request: TaskRequest) -> TaskStatus:
+        """A release while a task runs: what is left of it becomes the hand opening (a grasp task's hold ends so)."""
+        if self.arm is None or self.arm.hand is None:
+            return self.task.status(False, "a release needs a hand, and the arm carries none")
+        self.task.replace_rest(release_phases(self.arm.hand, self.config.grasp), request)
+        return self.task.status(True, f"task {self.task.count}: releasing")
 
     def stop_task(self, request: TaskRequest) -> TaskStatus:
         reply = self.task.stop(request)
@@ -141,6 +154,8 @@ class ControllerCore:
         phase = self.task.phase
         if isinstance(phase, MovePhase):
             return self._move(phase, features, state, camera_in_ee, now_ns)
+        if isinstance(phase, HandPhase):
+            return self._hand(phase, features, state, camera_in_ee, now_ns)
         if features.status not in USABLE_FEATURE_STATUSES:
             kind = ControllerState.STALE_INPUT if features.status is FeatureStatus.STALE else ControllerState.TARGET_LOST
             return zero(kind, f"features {features.status.value}: {features.detail}", reset=True)
@@ -150,8 +165,13 @@ class ControllerCore:
 
         self.iteration += 1
         rms = per_point_rms(features.error, features.point_weights())
-        if rms < cfg.convergence_error_rms:
-            return Step(ControllerState.CONVERGED, self.iteration, error_rms=rms, phase=ServoPhase.name)
+        threshold = getattr(phase, "error_rms", None) or cfg.convergence_error_rms
+        if rms < threshold:
+            detail = ""
+            if getattr(phase, "until_converged", False):  # a grasp's reach: on to the approach
+                self._reset_law()
+                detail = "task done" if self.task.advance() else "phase done: converged"
+            return Step(ControllerState.CONVERGED, self.iteration, detail, error_rms=rms, phase=ServoPhase.name)
         points, depths = np.array(features.points), np.array(features.depths)
         if cfg.latency_compensation and capture_state is not None and capture_state is not state:
             points, depths = self.features_now(points, depths, capture_state.q, state.q, camera_in_ee)
@@ -214,6 +234,11 @@ class ControllerCore:
         problem = self._inputs_problem(features.header, state, camera_in_ee, now_ns)
         if problem is not None:
             return zero(*problem)
+        if phase.detector is not None:  # the hand watched as the arm moves it (a lift)
+            slipping = self._watch_hand(phase.detector, state)
+            if slipping:
+                self.task.fail(slipping)
+                return zero(ControllerState.IDLE, f"task failed: {slipping}")
         self.iteration += 1
         kin = self.law.kin
         q = np.asarray(state.q, dtype=float)
@@ -238,6 +263,48 @@ class ControllerCore:
                              cfg.control.robot_convention)
         return Step(ControllerState.CONVERGING, self.iteration, f"{move.remaining_m * 1e3:.1f} mm to go",
                     output=output, saturated=saturated, phase=phase.name)
+
+    def _watch_hand(self, detector, state: RobotState) -> str:
+        """The grasp detector fed this state's fingers; why the task cannot go on (the object slipping), or ""."""
+        if state.fingers is None:
+            return "the robot reports no fingers"
+        verdict = detector.observe(state.header.stamp_ns * 1e-9, state.fingers)
+        self.task.grasp = verdict
+        if verdict is GraspVerdict.SLIPPING:
+            return "the object is slipping out of the hand"
+        return ""
+
+    def _hand(self, phase: HandPhase, features: Features, state: Optional[RobotState],
+              camera_in_ee: Optional[np.ndarray], now_ns: int) -> Step:
+        """A frame of a hand phase: the arm still, the fingers as the phase asks, judged on the robot's fingers
+        (the features only pace it and date its command, as a move's)."""
+        def zero(kind: ControllerState, detail: str = "", _reset: bool = False) -> Step:
+            return Step(kind, self.iteration, detail, phase=phase.name)
+
+        if features.status is FeatureStatus.STALE:
+            return zero(ControllerState.STALE_INPUT, f"features stale: {features.detail}")
+        problem = self._inputs_problem(features.header, state, camera_in_ee, now_ns)
+        if problem is not None:
+            return zero(*problem)
+        if phase.started_s is None and phase.fresh_detector:
+            phase.detector.reset()
+        why = self._watch_hand(phase.detector, state)
+        if why:
+            self.task.fail(why)
+            return zero(ControllerState.IDLE, f"task failed: {why}")
+        self.iteration += 1
+        hand_step = phase.step(state.header.stamp_ns * 1e-9)
+        if hand_step.failure:
+            self.task.fail(hand_step.failure)
+            return zero(ControllerState.IDLE, f"task failed: {hand_step.failure}")
+        detail = hand_step.detail
+        if hand_step.done:
+            detail = f"{'task done' if self.task.advance() else 'phase done'}: {hand_step.detail}"
+        if self.joint_output:
+            output = LawOutput(joint_velocities=np.zeros(self.arm.n_joints), fingers=hand_step.fingers)
+        else:
+            output = LawOutput(twist=np.zeros(6), fingers=hand_step.fingers)
+        return Step(ControllerState.CONVERGING, self.iteration, detail, output=output, phase=phase.name)
 
     def features_now(self, points: np.ndarray, depths: np.ndarray, q_capture, q_now, camera_in_ee: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray]:

@@ -13,6 +13,7 @@ import msgspec
 import numpy as np
 
 from protocol.conventions import AngularConvention, DepthSource, ErrorRateSource
+from protocol.messages import FingerCommand
 from services.controller import ibvs
 from services.model import frames
 from services.model.kinematics import ArmKinematics
@@ -109,6 +110,9 @@ class LawOutput:
     camera_twist: Optional[np.ndarray] = None
     gain: float = 0.0
     notes: dict = field(default_factory=dict)
+    #: the hand's part of the command (a task's grasp or release: services/controller/phases.py); None: the fingers
+    #: keep their targets
+    fingers: Optional[FingerCommand] = None
 
 
 class Law:

@@ -43,7 +43,7 @@ from services.runtime.state_history import StateHistory
 from services.controller.core import ControllerCore
 from services.controller.law import LawConfig, LawOutput
 from services.controller.laws import LAW_NAMES
-from services.controller.phases import MoveConfig, ServoPhase
+from services.controller.phases import GraspConfig, MoveConfig, ServoPhase
 from services.runtime.ports import Port, Ports
 
 
@@ -71,8 +71,10 @@ class ControllerConfig(ServiceConfig):
     max_condition_number: float = 1e5
     #: law-specific options (e.g. the smc or manipulability parameters)
     options: dict = msgspec.field(default_factory=dict)
-    #: how a task's move phase moves (teach's depth probe; services/controller/phases.py)
+    #: how a task's move phase moves (teach's depth probe, a grasp's approach and lift; services/controller/phases.py)
     move: MoveConfig = msgspec.field(default_factory=MoveConfig)
+    #: how a grasp task reaches, grasps and lifts, and its grasp detector's thresholds
+    grasp: GraspConfig = msgspec.field(default_factory=GraspConfig)
 
     def __post_init__(self) -> None:
         if self.law not in LAW_NAMES:
@@ -245,11 +247,13 @@ class ControllerService(Service):
         if self.core.joint_output:
             if output is not None or self.core.arm is not None:  # a zero needs the arm's joints (none: no output)
                 dq = output.joint_velocities if output is not None else np.zeros(self.core.arm.n_joints)
-                message = JointVelocity(header=header, velocities=dq.tolist(), source=self._source(status))
+                message = JointVelocity(header=header, velocities=dq.tolist(), source=self._source(status),
+                                        fingers=output.fingers if output is not None else None)
         else:
             twist = output.twist if output is not None else np.zeros(6)
             message = Twist(header=header, frame=Frame.MIXED, angular=self.config.control.robot_convention,
-                            linear=tuple(twist[:3]), rotational=tuple(twist[3:]), source=self._source(status))
+                            linear=tuple(twist[:3]), rotational=tuple(twist[3:]), source=self._source(status),
+                            fingers=output.fingers if output is not None else None)
         if message is not None:
             self.output_pub.put(message)
         self.status_pub.put(status)

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Optional
 
-from protocol.messages import TaskPlan, TaskRequest, TaskState, TaskStatus
+from protocol.messages import GraspVerdict, TaskPlan, TaskRequest, TaskState, TaskStatus
 
 
 @dataclass
@@ -29,6 +29,8 @@ class Task:
     index: int = 0
     #: how the last task ended: done, stopped, failed: why ("" while one runs)
     outcome: str = ""
+    #: what the hand holds, by the grasp detector, since the task's phases first watched it (None: they do not)
+    grasp: Optional[GraspVerdict] = None
 
     @property
     def running(self) -> bool:
@@ -46,7 +48,13 @@ class Task:
         self.state, self.count, self.started_ns = TaskState.RUNNING, self.count + 1, now_ns
         self.by, self.reason = request.operator, request.reason
         self.plan, self.phases, self.index, self.outcome = request.plan, list(phases or []), 0, ""
+        self.grasp = None
         return self.status(True, f"task {self.count} started")
+
+    def replace_rest(self, phases: list, request: TaskRequest) -> None:
+        """The running task goes on with ``phases`` instead of what was left of its own (a release during a hold)."""
+        self.phases = self.phases[: self.index] + list(phases)
+        self.by, self.reason = request.operator, request.reason
 
     def stop(self, request: TaskRequest) -> TaskStatus:
         if not self.running:
@@ -71,4 +79,4 @@ class Task:
         phase = self.phase
         return TaskStatus(ok=ok, state=self.state, message=message[:256], task=self.count,
                           started_ns=self.started_ns, by=self.by, reason=self.reason[:256], plan=self.plan,
-                          phase=phase.name if phase is not None else "", outcome=self.outcome)
+                          phase=phase.name if phase is not None else "", outcome=self.outcome, grasp=self.grasp)

@@ -39,4 +39,8 @@ def stop_task(session, keys: Keys, operator: str, reason: str = "", timeout_s: f
 def describe_task(status: m.TaskStatus) -> str:
     """The controller's answer to a task request in a sentence (`mfvs task`, the console)."""
     by = f", by {status.by}" + (f": {status.reason}" if status.reason else "") if status.by else ""
-    return f"task {status.state.value} (task {status.task}{by}){': ' + status.message if status.message else ''}"
+    doing = f", {status.plan.value}" + (f" in {status.phase}" if status.phase else "") if status.state is m.TaskState.RUNNING else ""
+    hand = f", the hand {status.grasp.value}" if status.grasp is not None else ""
+    ended = f", last {status.outcome}" if status.outcome and status.state is not m.TaskState.RUNNING else ""
+    return (f"task {status.state.value} (task {status.task}{by}{doing}{hand}{ended})"
+            f"{': ' + status.message if status.message else ''}")

@@ -58,6 +58,8 @@ def _runners() -> dict[str, ExperimentRunner]:
     runners["markerless"] = ExperimentRunner("markerless", "services.cli.commands:markerless_experiment",
                                              ("scenario", "random_starts", "seed", "jobs", "object", "texture",
                                               "perturb"))
+    runners["grasp"] = ExperimentRunner("grasp", "services.cli.commands:grasp_experiment",
+                                        ("scenario", "placements", "seed", "jobs", "object", "perturb"))
     return runners
 
 

@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from protocol.conventions import AngularConvention
+from protocol.messages import Pose
 from services.runtime.config import ConfigStruct
 
 #: |cos(pitch)| below this makes B(Γ) numerically singular (pitch within ≈0.06° of ±90°).
@@ -343,3 +344,9 @@ class PoseConfig(ConfigStruct):
     def matrix(self) -> np.ndarray:
         """The 4×4 homogeneous transform."""
         return pose_from_xyz_rpy_deg(self.xyz, self.rpy_deg)
+
+
+def pose_message(R: np.ndarray, t) -> Pose:
+    """A rotation and a translation as the wire's Pose (position, unit quaternion w, x, y, z)."""
+    return Pose(xyz=tuple(float(v) for v in np.asarray(t, dtype=float).ravel()),
+                quat_wxyz=tuple(matrix_to_quat_wxyz(R)))

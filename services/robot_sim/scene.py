@@ -254,12 +254,14 @@ class SceneObject(ConfigStruct):
 
 class TableConfig(ConfigStruct):
     """A table the arm is mounted beside, for objects to stand on: a slab whose top is at ``top_z_m`` in the base
-    frame. Its top at the base's height by default (our choice: a wheelchair-mounted JACO-2's base sits about at a
-    table's height, Kinova's wheelchair mounting kit); the floor is then a table's height below it."""
+    frame; the floor a table's height below it. By default (our choice) a wheelchair user's table: a JACO-2 on a
+    wheelchair's frame has its base about at the seat's height (ISO 7176-7's seat heights are about 0.5 m), a table's
+    top is 0.72 m from the floor, so the top is 0.2 m above the base."""
 
-    top_z_m: float = 0.0
-    #: the top's centre (x, y) in the base frame and its size (m): our choice, a 1.2 × 0.8 m table in front of the arm
-    centre_xy_m: tuple[float, float] = (0.55, 0.0)
+    top_z_m: float = 0.2
+    #: the top's centre (x, y) in the base frame and its size (m): our choice, a 0.8 × 1.2 m table in front of the
+    #: arm, its near edge 0.2 m ahead of the base
+    centre_xy_m: tuple[float, float] = (0.6, 0.0)
     size_xy_m: tuple[float, float] = (0.8, 1.2)
     thickness_m: float = 0.03
     #: the floor this far below the top (m): a table's height (EN 1729 / common 0.72 m)

@@ -30,7 +30,8 @@ import msgspec
 import zenoh
 
 from protocol.conventions import LOCKSTEP_EPOCH_NS, ClockMode
-from protocol.messages import CameraInfo, Image, RobotState, SimClock, encode
+from protocol.messages import CameraInfo, Image, ObjectPose, RobotState, SimClock, SimObjects, encode
+from services.model import frames
 from services.robot.arm_check import ArmCheckConfig
 from services.robot.rs485_bus import BusConfig, RS485Bus
 from services.runtime.ports import Port, Ports
@@ -81,10 +82,10 @@ class RobotSimConfig(RobotNodeConfig):
 
 
 #: what the simulation's outputs use (:class:`_SimulationOutputs`): the clock, the camera (published and its info
-#: answered), and the robot's state, whose trace places the camera's trigger (``trigger_offset_ms: auto``)
+#: answered), where the free objects are, and the robot's state, whose trace places the camera's trigger (``trigger_offset_ms: auto``)
 SIMULATION_PORTS = Ports(consumes=(Port("robot_state", RobotState),),
                          produces=(Port("clock", SimClock), Port("camera_image", Image),
-                                   Port("camera_info", CameraInfo)),
+                                   Port("camera_info", CameraInfo), Port("sim_objects", SimObjects)),
                          answers=(Port("camera_info"),))
 
 
@@ -119,6 +120,7 @@ class _SimulationOutputs:
     def declare(self) -> None:
         service, keys = self.service, self.service.keys
         self.clock_pub = service.publisher(keys.clock, "clock")
+        self.objects_pub = service.publisher(keys.sim_objects, "objects") if self.sim.free_objects else None
         if not self.renders:
             return
         self.image_pub = service.publisher(keys.camera_image, "image")
@@ -202,6 +204,10 @@ class _SimulationOutputs:
                 self.camera.deliver(taken, timeout_s=10.0)
         self.clock_pub.put(SimClock(header=self.service.header("clock", stamp_ns=tick_ns), sim_time_ns=tick_ns,
                                     mode=ClockMode(self.config.clock).value, frame_stamp_ns=frame_stamp or 0))
+        if self.objects_pub is not None:
+            self.objects_pub.put(SimObjects(header=self.service.header("objects", stamp_ns=tick_ns), objects=[
+                ObjectPose(name=name, pose=frames.pose_message(T[:3, :3], T[:3, 3]))
+                for name, T in ((n, self.sim.object_pose(n)) for n in self.sim.free_objects)]))
         self._camera_info_now_and_then()
         return frame_stamp
 

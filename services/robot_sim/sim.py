@@ -149,6 +149,11 @@ class Simulation:
         return frames.homogeneous(frames.quat_wxyz_to_matrix(self.data.mocap_quat[self._mocap]),
                                   self.data.mocap_pos[self._mocap])
 
+    @property
+    def free_objects(self) -> list[str]:
+        """The free objects' names, in the scene's order."""
+        return list(self._free_qpos)
+
     def object_pose(self, name: str) -> np.ndarray:
         """Where a free object is now (base frame): MuJoCo's truth, for what measures a grasp."""
         return self._free_pose(self._free_qpos[name])

@@ -10,11 +10,12 @@ import msgspec
 from protocol.conventions import ClockMode, DepthSource
 from services.controller.law import Gains, LawConfig
 from services.controller.laws import LAW_NAMES
+from services.controller.phases import GraspConfig
 from services.controller.service import ControllerConfig
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.robot.dsp import DSPConfig, for_arm
-from services.robot_sim.scene import (CameraConfig, LightConfig, SceneConfig, SceneObject, TargetConfig,
-                                      check_joints_deg)
+from services.robot_sim.scene import (CameraConfig, LightConfig, SceneConfig, SceneObject, TableConfig,
+                                      TargetConfig, check_joints_deg)
 from services.robot_sim.service import RobotSimConfig
 from services.runtime.config import ConfigError, ConfigStruct, load_config
 from services.safety.service import SafetyConfig
@@ -93,6 +94,11 @@ class Scenario(ConfigStruct):
     #: the scene's other objects (clutter, an occluder, a swap) and its light, as robot_sim's scene has them
     objects: list[SceneObject] = msgspec.field(default_factory=list)
     light: LightConfig = msgspec.field(default_factory=LightConfig)
+    #: a table for objects to stand on (robot_sim's scene's)
+    table: Optional[TableConfig] = None
+    #: how a grasp task (``mfvs task start --grasp``, ``mfvs experiment grasp``) reaches, grasps and lifts (the
+    #: controller's)
+    grasp: GraspConfig = msgspec.field(default_factory=GraspConfig)
 
     def __post_init__(self) -> None:
         if self.law not in LAW_NAMES:
@@ -129,13 +135,14 @@ def stack_config(scenario: Scenario) -> StackConfig:
     convention = s.robot.dsp.angular_convention
     robot = RobotSimConfig(arm=s.robot.arm, scene=SceneConfig(initial_joints_deg=s.robot.initial_joints_deg,
                                                               camera=s.camera, target=s.target,
-                                                              objects=list(s.objects), light=s.light), dsp=s.robot.dsp)
+                                                              objects=list(s.objects), light=s.light,
+                                                              table=s.table), dsp=s.robot.dsp)
     vision = VisionConfig(tag=TagConfig(family=s.target.family, id=s.target.id, size_m=s.target.size_m,
                                         layout=s.target.layout), goal=s.goal)
     control = LawConfig(gains=s.gains, depth=s.depth, target_motion=any(s.target.velocity_mps),
                         robot_convention=convention)
     controller = ControllerConfig(arm=s.robot.arm, law=s.law, control=control,
-                                  convergence_error_rms=s.convergence.rms, options=law_options(s))
+                                  convergence_error_rms=s.convergence.rms, options=law_options(s), grasp=s.grasp)
     safety = SafetyConfig(arm=s.robot.arm)
     safety.limits.robot_convention = convention
     safety.limits.zones = list(s.robot.dsp.zones)  # the arm's protection zones are the site's: safety guards them too

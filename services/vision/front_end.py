@@ -14,7 +14,7 @@ from typing import Optional, Protocol, Union
 
 import numpy as np
 
-from protocol.messages import FeatureStatus, FrontEnd, KeypointView, Pose, TagView
+from protocol.messages import FeatureStatus, FrontEnd, KeypointView, TagView
 from services.model import frames
 from services.model.point_features import feature_error, per_point_rms
 from services.vision import features as F
@@ -101,10 +101,6 @@ class FrontEndProtocol(Protocol):
     def measure(self, gray: np.ndarray, camera: Camera, goal: Goal) -> Seen: ...
 
 
-def pose_message(R: np.ndarray, t: np.ndarray) -> Pose:
-    return Pose(xyz=tuple(np.asarray(t, dtype=float).ravel()), quat_wxyz=tuple(frames.matrix_to_quat_wxyz(R)))
-
-
 #: the tag's corner ids, in its detection order
 TAG_CORNER_IDS = np.arange(4)
 
@@ -133,5 +129,5 @@ class TagFrontEnd:
         if m.points is not None:
             seen.points, seen.depths, seen.pixels = m.points, m.depths, m.corners_px
             seen.ids, seen.weights = TAG_CORNER_IDS, np.ones(4)
-            seen.view = TagView(id=self.tag.id, pose_in_camera=pose_message(*m.pose))
+            seen.view = TagView(id=self.tag.id, pose_in_camera=frames.pose_message(*m.pose))
         return seen

@@ -107,3 +107,92 @@ def test_a_stale_image_stops_a_move_like_a_servo():
     old = m.Features(header=m.Header(stamp_ns=t, source_stamp_ns=t - 400_000_000), status=m.FeatureStatus.TARGET_LOST)
     step = core.step(old, state(ARM.home, np.zeros(7), t), CAMERA_IN_EE, t)
     assert step.kind is m.ControllerState.STALE_INPUT and step.output is None and core.task.running
+
+
+# ------------------------------------------------------------------------------------------------ the hand's phases
+from services.controller.phases import GraspConfig, GraspPhase, HoldPhase, phases_for  # noqa: E402
+from services.model.grasp import GraspDetector  # noqa: E402
+
+HAND = ARM.hand
+
+
+def hand_state(stamp_ns, position, current, target):
+    n = HAND.n_fingers
+    fingers = m.FingerState(position=[position] * n if np.isscalar(position) else list(position), velocity=[0.0] * n,
+                            current_a=[current] * n if np.isscalar(current) else list(current), target=[target] * n)
+    s = state(ARM.home, np.zeros(7), stamp_ns)
+    return m.RobotState(**{f: getattr(s, f) for f in s.__struct_fields__ if f != "fingers"}, fingers=fingers)
+
+
+def hand_core(phases):
+    core = ControllerCore(ControllerConfig(arm="j2s7s300", law="adaptive-pd-mixed"))
+    core.task.start(m.TaskRequest(operator="test", plan=m.TaskPlan.GRASP), 0, phases)
+    return core
+
+
+def test_a_grasp_plan_is_reach_approach_grasp_lift_hold_and_needs_a_hand():
+    plan = phases_for(m.TaskRequest(operator="t", plan=m.TaskPlan.GRASP), MoveConfig(), GraspConfig(), HAND)
+    assert [p.name for p in plan] == ["servo", "approach", "grasp", "lift", "hold"]
+    assert plan[0].until_converged and plan[1].frame is m.MoveFrame.TOOL and plan[3].frame is m.MoveFrame.BASE
+    assert plan[1].config.speed_mps == GraspConfig().speed_mps
+    assert plan[2].detector is plan[3].detector is plan[4].detector  # one detector watches the grasp, lift and hold
+    assert [p.name for p in phases_for(m.TaskRequest(operator="t", plan=m.TaskPlan.RELEASE), MoveConfig(),
+                                       GraspConfig(), HAND)] == ["release"]
+    with pytest.raises(ValueError, match="needs a hand"):
+        phases_for(m.TaskRequest(operator="t", plan=m.TaskPlan.GRASP), MoveConfig(), GraspConfig(), None)
+
+
+def test_the_grasp_phase_closes_the_hand_with_the_arm_still_until_it_holds_then_the_hold_sends_no_finger_part():
+    detector = GraspDetector(HAND)
+    core = hand_core([GraspPhase(detector, 1.0), HoldPhase(detector)])
+    closed = HAND.closed_angle
+    t = 10_000_000_000
+    steps = []
+    for k in range(12):  # 0.4 s at the frames' rate, the fingers stopped on an object, pushing
+        steps.append(core.step(lost_features(t), hand_state(t, 0.7, 1.0, closed), CAMERA_IN_EE, t))
+        t += PERIOD_NS
+    first = steps[0]
+    assert first.phase == "grasp" and first.kind is m.ControllerState.CONVERGING
+    assert np.all(first.output.twist == 0.0) and first.output.fingers.values == [closed] * 3
+    done = next(s for s in steps if "phase done" in s.detail)
+    assert "the hand holds it" in done.detail and core.task.grasp is m.GraspVerdict.GRASPED
+    after = steps[-1]
+    assert after.phase == "hold" and after.output.fingers is None and np.all(after.output.twist == 0.0)
+    # the object leaves the hand: the fingers close on, the current goes: the task fails, with no finger part
+    gone = core.step(lost_features(t), hand_state(t, closed, 0.0, closed), CAMERA_IN_EE, t)
+    assert "slipping" in gone.detail and gone.output is None and not core.task.running
+    assert core.task.status().grasp is m.GraspVerdict.SLIPPING and "slipping" in core.task.outcome
+
+
+def test_a_grasp_on_nothing_fails_as_empty_and_a_release_opens_the_hand():
+    detector = GraspDetector(HAND)
+    core = hand_core([GraspPhase(detector, 1.0), HoldPhase(detector)])
+    closed, t = HAND.closed_angle, 10_000_000_000
+    for _ in range(12):
+        step = core.step(lost_features(t), hand_state(t, closed, 0.0, closed), CAMERA_IN_EE, t)
+        t += PERIOD_NS
+        if not core.task.running:
+            break
+    assert "closed on nothing" in core.task.outcome and step.output is None
+    reply = core.start_task(m.TaskRequest(operator="person", plan=m.TaskPlan.RELEASE), t)
+    assert reply.ok and reply.phase == "release"
+    step = core.step(lost_features(t), hand_state(t, closed, 0.0, closed), CAMERA_IN_EE, t)
+    assert step.output.fingers.values == [0.0] * 3  # only a release opens the hand
+    for _ in range(12):
+        t += PERIOD_NS
+        step = core.step(lost_features(t), hand_state(t, 0.0, 0.0, 0.0), CAMERA_IN_EE, t)
+    assert core.task.outcome == "done"
+
+
+def test_a_release_during_the_hold_replaces_what_is_left_of_the_grasp_task():
+    detector = GraspDetector(HAND)
+    core = hand_core([GraspPhase(detector, 1.0), HoldPhase(detector)])
+    closed, t = HAND.closed_angle, 10_000_000_000
+    for _ in range(12):
+        core.step(lost_features(t), hand_state(t, 0.7, 1.0, closed), CAMERA_IN_EE, t)
+        t += PERIOD_NS
+    assert core.task.phase.name == "hold"
+    reply = core.start_task(m.TaskRequest(operator="person", reason="done drinking", plan=m.TaskPlan.RELEASE), t)
+    assert reply.ok and "releasing" in reply.message and reply.task == 1 and reply.phase == "release"
+    step = core.step(lost_features(t), hand_state(t, 0.7, 1.0, closed), CAMERA_IN_EE, t)
+    assert step.phase == "release" and step.output.fingers.values == [0.0] * 3

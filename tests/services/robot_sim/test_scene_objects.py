@@ -44,9 +44,9 @@ def test_a_scene_that_asks_for_nothing_new_compiles_to_the_same_model():
 
 
 def cup_on_the_table(name="cup", xy=(0.5, 0.1), mass_kg=0.35, friction=1.0) -> SceneObject:
-    height = scene_mod.CupShape().height_m
+    height, top = scene_mod.CupShape().height_m, scene_mod.TableConfig().top_z_m
     return SceneObject(name=name, kind="cup", mass_kg=mass_kg, friction=friction,
-                       pose_in_base=PoseConfig(xyz=(*xy, height / 2 + 0.002), rpy_deg=(90.0, 0.0, 0.0)))
+                       pose_in_base=PoseConfig(xyz=(*xy, top + height / 2 + 0.002), rpy_deg=(90.0, 0.0, 0.0)))
 
 
 def test_a_free_object_falls_onto_the_table_and_rests_there_and_off_it_lands_on_the_floor():
@@ -59,11 +59,11 @@ def test_a_free_object_falls_onto_the_table_and_rests_there_and_off_it_lands_on_
     for _ in range(250):  # 0.5 s
         sim.cycle()
     cup = sim.object_pose("cup")
-    assert cup[2, 3] == pytest.approx(scene_mod.CupShape().height_m / 2, abs=1e-3)  # on the top, upright
+    assert cup[2, 3] == pytest.approx(table.top_z_m + scene_mod.CupShape().height_m / 2, abs=1e-3)  # on it, upright
     assert cup[:3, 1] @ [0.0, 0.0, 1.0] > 0.999
     assert np.linalg.norm(cup[:2, 3] - [0.5, 0.1]) < 1e-3
     assert sim.object_pose("falling")[2, 3] < scene.floor_z_m + 0.1  # past the table's edge: down on the floor
-    assert scene.floor_z_m == pytest.approx(-table.height_m)
+    assert scene.floor_z_m == pytest.approx(table.top_z_m - table.height_m)
 
 
 def test_a_free_objects_mass_is_its_shapes_alone_and_its_friction_is_what_its_contacts_use():
