@@ -5,7 +5,8 @@ adapters that decode, lock, count and send):
   puts it, each corner's recent path), the feature error over time, the arm's speed against its limit, each joint
   against its range (the arm's description, as the robot declares its arm), the task, the e-stop, each service's health, the last refusals and warnings;
 * what a person may ask, and who (:func:`parse_page_message`, :class:`Access`, :func:`decide`): start and stop
-  the task, engage and release the e-stop, and nothing else; the token beyond loopback, the page's own origin
+  the task, teach a view, start a grasp and open the hand (confirmed), engage and release the e-stop, and nothing
+  else; the token beyond loopback, the page's own origin
   only; which request goes to the stack and which is refused, the refusal's reason (a counter's name) with a
   sentence for the page;
 * a camera frame's wire format to the page (:func:`frame_packet`), and how finely frames are sent while the pages
@@ -53,6 +54,10 @@ class Action(str, enum.Enum):
     #: teach the current view as the goal (services/vision/teach_client.py): the arm moves the camera a few
     #: centimetres and back, once the person confirmed on the page
     TEACH = "teach"
+    #: a grasp task: reach the taught view, grasp, lift and hold (services/controller/phases.py)
+    GRASP = "grasp"
+    #: open the hand (a grasp task's hold ends in it), once the person confirmed on the page: what it holds falls
+    OPEN_HAND = "open_hand"
 
 
 #: the longest message the page sends (a request is a few hundred bytes)
@@ -236,9 +241,12 @@ def decide(request: ActionMessage, access: Access, situation: Situation) -> Comm
         raise Refused("token", "no valid token with the request: the console does nothing without it")
     operator, reason = request.operator.strip(), request.reason.strip()
     action = request.action
-    if action is Action.TASK_START:
+    if action in (Action.TASK_START, Action.GRASP, Action.OPEN_HAND):
+        if action is Action.OPEN_HAND and not request.confirm:
+            raise Refused("unconfirmed", "opening the hand drops what it holds: it needs a confirmation on the page")
         if not operator:
-            raise Refused("operator", "say who starts the task (the operator's name)")
+            raise Refused("operator", f"say who {'opens the hand' if action is Action.OPEN_HAND else 'starts the task'}"
+                                      " (the operator's name)")
         if situation.estop_engaged is None:
             raise Refused("safety_silent", "safety is not reporting: no task starts without it")
         if situation.estop_engaged:
@@ -589,7 +597,9 @@ class ConsoleModel:
             "last_refusal": self.safety.last_refusal, "age_s": round(now - self.safety_at, 2)}
         task = None if self.task is None else {
             "state": self.task.state.value, "task": self.task.task, "by": self.task.by, "reason": self.task.reason,
-            "message": self.task.message, "known": self.task_known}
+            "message": self.task.message, "known": self.task_known, "plan": self.task.plan.value,
+            "phase": self.task.phase, "outcome": self.task.outcome,
+            "grasp": None if self.task.grasp is None else self.task.grasp.value}
         controller = None if self.controller is None else {
             "law": self.controller.law, "status": self.controller.status.value,
             "iteration": self.controller.iteration, "error_norm": self.controller.error_norm,

@@ -36,6 +36,13 @@ def halved(image: m.Image) -> m.Image:
     return m.Image(header=image.header, width=width, height=height, encoding=image.encoding, data=small.tobytes())
 
 
+
+#: the page's task requests: the controller's function and the task's plan
+TASK_ACTIONS = {Action.TASK_START: (m.START_TASK, m.TaskPlan.SERVO),
+                Action.TASK_STOP: (m.STOP_TASK, m.TaskPlan.SERVO),
+                Action.GRASP: (m.START_TASK, m.TaskPlan.GRASP),
+                Action.OPEN_HAND: (m.START_TASK, m.TaskPlan.RELEASE)}
+
 class ConsoleConfig(ServiceConfig):
     #: the page's JPEG quality (the viewer's copy; vision gets the raw frame)
     jpeg_quality: int = 80
@@ -246,11 +253,11 @@ class ConsoleService(Service):
                             + (f" ({command.reason})" if command.reason else ""), time.time())
         if command.action is Action.TEACH:
             return self._teach(command)
-        if command.action in (Action.TASK_START, Action.TASK_STOP):
-            function = m.START_TASK if command.action is Action.TASK_START else m.STOP_TASK
+        if command.action in TASK_ACTIONS:
+            function, plan = TASK_ACTIONS[command.action]
             try:
                 status = call_task(self.session, self.keys, function,
-                                   m.TaskRequest(operator=command.operator, reason=command.reason),
+                                   m.TaskRequest(operator=command.operator, reason=command.reason, plan=plan),
                                    self.config.action_timeout_s)
             except TaskUnavailable as exc:
                 return False, f"{exc} (is the controller up? may this identity ask it?)"

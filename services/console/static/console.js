@@ -215,7 +215,10 @@ function renderStatus(status) {
   const task = status.task, controller = status.controller;
   if (task) {
     const by = task.by ? `, by ${task.by}${task.reason ? ": " + task.reason : ""}` : "";
-    $("task-state").textContent = `${task.state} (task ${task.task}${by})`;
+    const doing = task.state === "running" ? `, ${task.plan}${task.phase ? " in " + task.phase : ""}` : "";
+    const hand = task.grasp ? `, the hand ${task.grasp}` : "";
+    const ended = task.state !== "running" && task.outcome ? `, last ${task.outcome}` : "";
+    $("task-state").textContent = `${task.state} (task ${task.task}${by}${doing}${hand}${ended})`;
   } else {
     $("task-state").textContent = "unknown (no controller answers)";
   }
@@ -435,6 +438,10 @@ window.addEventListener("DOMContentLoaded", () => {
   $("estop").addEventListener("click", () => act("estop_engage"));
   $("start").addEventListener("click", () => act("task_start"));
   $("stop").addEventListener("click", () => act("task_stop"));
+  $("grasp").addEventListener("click", () => act("grasp"));
+  $("open-hand").addEventListener("click", () => $("confirm-open-hand").showModal());
+  $("open-hand-cancel").addEventListener("click", () => { $("confirm-open-hand").close(); say("The hand stays closed.", "info"); });
+  $("open-hand-confirm").addEventListener("click", () => { $("confirm-open-hand").close(); act("open_hand", { confirm: true }); });
   $("release").hidden = true;
   $("release").addEventListener("click", () => $("confirm-release").showModal());
   $("release-cancel").addEventListener("click", () => { $("confirm-release").close(); say("Release cancelled: the e-stop stays engaged.", "info"); });

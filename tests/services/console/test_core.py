@@ -88,6 +88,11 @@ FREE, ENGAGED, SILENT = Situation(False), Situation(True), Situation(None)
     (action("estop_release", confirm=True), ENGAGED, "operator"),
     (action("estop_release", operator="alice", confirm=True), FREE, "not_engaged"),
     (action("estop_release", operator="alice", confirm=True), SILENT, "safety_silent"),
+    (action("grasp", operator=""), FREE, "operator"),
+    (action("grasp", operator="alice"), ENGAGED, "estop_engaged"),
+    (action("open_hand", operator="alice"), FREE, "unconfirmed"),
+    (action("open_hand", confirm=True), FREE, "operator"),
+    (action("open_hand", operator="alice", confirm=True), SILENT, "safety_silent"),
 ])
 def test_requests_the_rules_refuse(request_, situation, reason):
     assert refused(lambda: decide(request_, Access("127.0.0.1"), situation)) == reason
@@ -102,6 +107,16 @@ def test_requests_that_go_out_and_stopping_never_waits_for_a_name():
     assert decide(action("estop_engage"), loopback, SILENT).action is Action.ESTOP_ENGAGE  # in doubt: sent
     release = decide(action("estop_release", operator="bob", confirm=True, reason="clear"), loopback, ENGAGED)
     assert (release.action, release.operator, release.reason) == (Action.ESTOP_RELEASE, "bob", "clear")
+    assert decide(action("grasp", operator="alice", reason="my cup"), loopback, FREE).action is Action.GRASP
+    assert decide(action("open_hand", operator="alice", confirm=True), loopback, FREE).action is Action.OPEN_HAND
+
+
+def test_the_page_asks_the_controller_for_the_plan_each_task_action_names():
+    from services.console.service import TASK_ACTIONS
+
+    assert TASK_ACTIONS[Action.GRASP] == (m.START_TASK, m.TaskPlan.GRASP)
+    assert TASK_ACTIONS[Action.OPEN_HAND] == (m.START_TASK, m.TaskPlan.RELEASE)
+    assert set(TASK_ACTIONS) | {Action.ESTOP_ENGAGE, Action.ESTOP_RELEASE, Action.TEACH} == set(Action)
 
 
 def test_beyond_loopback_every_action_needs_the_token():
@@ -341,3 +356,15 @@ def test_the_fingers_are_shown_where_the_robot_reports_them_with_the_targets_the
     assert [f["label"] for f in fingers] == list(SEVEN.hand.finger_names)
     assert [(f["deg"], f["target_deg"], f["units"], f["closed_deg"]) for f in fingers] == [(40.0, 80.0, 3400, 80.0)] * 3
     assert [f["current_a"] for f in fingers] == [1.0, 0.5, 0.25]
+
+
+def test_the_page_shows_the_tasks_plan_its_phase_and_what_the_hand_holds():
+    model = ConsoleModel()
+    model.on_task(m.TaskStatus(ok=True, state=m.TaskState.RUNNING, task=3, by="alice", plan=m.TaskPlan.GRASP,
+                               phase="lift", grasp=m.GraspVerdict.GRASPED), 1.0)
+    task = model.snapshot(1.0)["task"]
+    assert (task["plan"], task["phase"], task["grasp"]) == ("grasp", "lift", "grasped")
+    model.on_task(m.TaskStatus(ok=True, state=m.TaskState.IDLE, task=3, outcome="failed: the object is slipping",
+                               grasp=m.GraspVerdict.SLIPPING), 2.0)
+    task = model.snapshot(2.0)["task"]
+    assert task["outcome"].startswith("failed") and task["grasp"] == "slipping"
