@@ -39,7 +39,9 @@ def stop_task(session, keys: Keys, operator: str, reason: str = "", timeout_s: f
 def describe_task(status: m.TaskStatus) -> str:
     """The controller's answer to a task request in a sentence (`mfvs task`, the console)."""
     by = f", by {status.by}" + (f": {status.reason}" if status.reason else "") if status.by else ""
-    doing = f", {status.plan.value}" + (f" in {status.phase}" if status.phase else "") if status.state is m.TaskState.RUNNING else ""
+    # a servo task says nothing more (its one phase is the servo); another plan says itself and the phase it is in
+    running_other = status.state is m.TaskState.RUNNING and status.plan is not m.TaskPlan.SERVO
+    doing = f", {status.plan.value}" + (f" in {status.phase}" if status.phase else "") if running_other else ""
     hand = f", the hand {status.grasp.value}" if status.grasp is not None else ""
     ended = f", last {status.outcome}" if status.outcome and status.state is not m.TaskState.RUNNING else ""
     return (f"task {status.state.value} (task {status.task}{by}{doing}{hand}{ended})"
