@@ -226,19 +226,16 @@ class ControllerCore:
         a move stops as a servo does when the image path stops)."""
         cfg = self.config
 
-        def zero(kind: ControllerState, detail: str = "", _reset: bool = False) -> Step:
+        def zero(kind: ControllerState, detail: str = "") -> Step:
             return Step(kind, self.iteration, detail, phase=phase.name)
 
-        if features.status is FeatureStatus.STALE:
-            return zero(ControllerState.STALE_INPUT, f"features stale: {features.detail}")
-        problem = self._inputs_problem(features.header, state, camera_in_ee, now_ns)
-        if problem is not None:
-            return zero(*problem)
+        held = self._paced_problem(phase, features, state, camera_in_ee, now_ns)
+        if held is not None:
+            return held
         if phase.detector is not None:  # the hand watched as the arm moves it (a lift)
             slipping = self._watch_hand(phase.detector, state)
             if slipping:
-                self.task.fail(slipping)
-                return zero(ControllerState.IDLE, f"task failed: {slipping}")
+                return self._failed(phase, slipping)
         self.iteration += 1
         kin = self.law.kin
         q = np.asarray(state.q, dtype=float)
@@ -248,8 +245,7 @@ class ControllerCore:
             phase.begin(R_be, p, camera_in_ee, t_s)
         move = phase.step(R_be, p, float(np.linalg.norm((J_base @ np.asarray(state.dq))[:3])), t_s)
         if move.failure:
-            self.task.fail(move.failure)
-            return zero(ControllerState.IDLE, f"task failed: {move.failure}")
+            return self._failed(phase, move.failure)
         if move.done:
             detail = "task done" if self.task.advance() else "phase done"
             return zero(ControllerState.IDLE if not self.task.running else ControllerState.CONVERGING,
@@ -263,6 +259,24 @@ class ControllerCore:
                              cfg.control.robot_convention)
         return Step(ControllerState.CONVERGING, self.iteration, f"{move.remaining_m * 1e3:.1f} mm to go",
                     output=output, saturated=saturated, phase=phase.name)
+
+    def _paced_problem(self, phase, features: Features, state: Optional[RobotState],
+                       camera_in_ee: Optional[np.ndarray], now_ns: int) -> Optional[Step]:
+        """The zero step of a phase paced by the frames but driven by the arm's state (a move, a hand phase) when
+        this frame may not drive it (stale features, the inputs' problems), or None."""
+        if features.status is FeatureStatus.STALE:
+            return Step(ControllerState.STALE_INPUT, self.iteration, f"features stale: {features.detail}",
+                        phase=phase.name)
+        problem = self._inputs_problem(features.header, state, camera_in_ee, now_ns)
+        if problem is not None:
+            kind, detail, _ = problem
+            return Step(kind, self.iteration, detail, phase=phase.name)
+        return None
+
+    def _failed(self, phase, why: str) -> Step:
+        """The task ends here, saying why (the zero step: no motion, no finger part)."""
+        self.task.fail(why)
+        return Step(ControllerState.IDLE, self.iteration, f"task failed: {why}", phase=phase.name)
 
     def _watch_hand(self, detector, state: RobotState) -> str:
         """The grasp detector fed this state's fingers; why the task cannot go on (the object slipping), or ""."""
@@ -278,25 +292,18 @@ class ControllerCore:
               camera_in_ee: Optional[np.ndarray], now_ns: int) -> Step:
         """A frame of a hand phase: the arm still, the fingers as the phase asks, judged on the robot's fingers
         (the features only pace it and date its command, as a move's)."""
-        def zero(kind: ControllerState, detail: str = "", _reset: bool = False) -> Step:
-            return Step(kind, self.iteration, detail, phase=phase.name)
-
-        if features.status is FeatureStatus.STALE:
-            return zero(ControllerState.STALE_INPUT, f"features stale: {features.detail}")
-        problem = self._inputs_problem(features.header, state, camera_in_ee, now_ns)
-        if problem is not None:
-            return zero(*problem)
+        held = self._paced_problem(phase, features, state, camera_in_ee, now_ns)
+        if held is not None:
+            return held
         if phase.started_s is None and phase.fresh_detector:
             phase.detector.reset()
         why = self._watch_hand(phase.detector, state)
         if why:
-            self.task.fail(why)
-            return zero(ControllerState.IDLE, f"task failed: {why}")
+            return self._failed(phase, why)
         self.iteration += 1
         hand_step = phase.step(state.header.stamp_ns * 1e-9)
         if hand_step.failure:
-            self.task.fail(hand_step.failure)
-            return zero(ControllerState.IDLE, f"task failed: {hand_step.failure}")
+            return self._failed(phase, hand_step.failure)
         detail = hand_step.detail
         if hand_step.done:
             detail = f"{'task done' if self.task.advance() else 'phase done'}: {hand_step.detail}"
