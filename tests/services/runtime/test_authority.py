@@ -64,6 +64,13 @@ def run_intruders(endpoint, config_files) -> None:
         assert intruder.returncode == 0 and "sent" in stdout, stderr
 
 
+#: a test whose rule the tls deployment enforces exactly as the acl one (the same role table; only how the router
+#: learns the identity differs, which test_each_identity_writes_exactly_its_own_keys, test_unauthenticated_clients_
+#: cannot_join and test_only_safety_can_command_the_robot check on both): on tls in the slow run only
+ACL_ONLY_IN_QUICK_RUN = pytest.mark.parametrize(
+    "deployment", ["acl", pytest.param("tls", marks=pytest.mark.slow)], indirect=True)
+
+
 def session_as(deployment, service):
     return open_session(ZenohConfig(connect=[deployment.endpoint], config_file=str(deployment.client_configs[service])))
 
@@ -116,6 +123,7 @@ def api_call(session, function):
     return [m.decode(r.ok.payload.to_bytes(), kinova.API_FUNCTIONS[function][1]) for r in replies]
 
 
+@ACL_ONLY_IN_QUICK_RUN
 def test_only_safety_changes_the_robot_through_its_api(deployment, robot):
     """Everyone may read the arm through the Kinova API; moving it, or changing its zones and limits, is
     safety's alone (the router drops the other identities' queries)."""
@@ -131,6 +139,7 @@ def test_only_safety_changes_the_robot_through_its_api(deployment, robot):
     safety.close()
 
 
+@ACL_ONLY_IN_QUICK_RUN
 def test_only_the_operator_starts_and_stops_the_task(deployment):
     """The stack moves only for a started task, and only the operator identity may start or stop it (the router
     drops the others' requests: no reply); everyone may read it."""
@@ -161,6 +170,7 @@ def test_only_the_operator_starts_and_stops_the_task(deployment):
         controller.stop()
 
 
+@ACL_ONLY_IN_QUICK_RUN
 def test_only_the_torque_controller_identity_commands_torques(deployment, robot):
     """Low-level torque commands bypass safety: only the identity given to a tested torque controller may send
     them, and make the torque-mode setup before (Table 5.1's functions; safety may too, as it may every function
@@ -196,6 +206,7 @@ def test_only_the_torque_controller_identity_commands_torques(deployment, robot)
     assert wait_for(lambda: not robot.lowlevel.active, timeout=2)  # released 250 ms after the last command
 
 
+@ACL_ONLY_IN_QUICK_RUN
 def test_only_robots_publish_robot_state(deployment):
     safety = session_as(deployment, "safety")
     states = Recorder(safety, KEYS.robot_state, m.RobotState)
@@ -217,6 +228,7 @@ def test_only_robots_publish_robot_state(deployment):
     safety.close()
 
 
+@ACL_ONLY_IN_QUICK_RUN
 def test_other_traffic_flows_for_every_service(deployment):
     vision = session_as(deployment, "vision")
     controller = session_as(deployment, "controller")
@@ -263,6 +275,7 @@ WILDCARD_FORMS = ["mfvs/jaco/robot/*", "mfvs/jaco/robot/**", "mfvs/jaco/robot/co
                   "mfvs/**/command", "**"]
 
 
+@ACL_ONLY_IN_QUICK_RUN
 def test_no_wildcard_reaches_the_robot_for_an_identity_that_may_not_command(deployment, robot):
     """Zenoh's access control applies a rule to a key expression included in the rule's: the per-identity allow
     lists include no wildcard form of a protected key, so the router drops them (as it drops the literal key). One
@@ -397,6 +410,7 @@ def test_with_a_camera_identity_the_camera_keys_are_its_alone_and_the_operator_m
         queryable  # kept declared until here
 
 
+@ACL_ONLY_IN_QUICK_RUN
 def test_the_console_acts_as_the_operator_and_says_how_it_is_doing_in_its_own_name(deployment):
     """`mfvs console` with the operator's config: alive and answering health as ``console`` (so `mfvs status`
     lists it); its e-stop is the operator's; the operator's identity announces no other service."""
