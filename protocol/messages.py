@@ -27,7 +27,8 @@ from protocol.conventions import AngularConvention, Frame
 #: (target_lost), desired commands naming their source, SafetyStatus.in_control.
 #: 6: the hand's fingers, a second actuator group: RobotCommand.fingers, RobotState.fingers.
 #: 7: the grasp task: TaskPlan grasp and release, TaskStatus.grasp (the hand's verdict); SimObjects.
-SCHEMA_VERSION = 7
+#: 8: contact detection: RobotState.contact (the robot's momentum observer, its residuals and its contacts).
+SCHEMA_VERSION = 8
 
 #: The most joints an arm has (the Kinova API's AngularInfo: Actuator1..7). A joint vector on the wire has the
 #: robot's arm's length (RobotState.arm: 6 for the j2n6s300, 7 for the j2s7s300); each reader checks it against the
@@ -765,6 +766,44 @@ class FingerState(Message):
         _same_length(self, "position", "velocity", "current_a", "target")
 
 
+class ContactState(Message):
+    """The robot's contact monitor (the generalized-momentum observer on its joint torques, docs/contact.md) over
+    the DSP cycle a state reports: each joint's residual (N·m, the newest sample's) and threshold, the largest
+    |residual|/threshold of the cycle's samples (at or above 1: a contact), the joint its isolation named then
+    (1-based; 0: none), the rate the observer runs at, and counts since the robot started: the contacts detected
+    (a reader latches on a rise, whatever states it missed) and the observer's restarts after gaps in the
+    readings."""
+
+    residual_nm: JointVector
+    threshold_nm: JointVector
+    ratio: Annotated[float, msgspec.Meta(ge=0.0)]
+    joint: Annotated[int, msgspec.Meta(ge=0, le=MAX_JOINTS)]
+    rate_hz: Positive
+    contacts: NonNegInt = 0
+    restarts: NonNegInt = 0
+    #: the last contact's joint, residual and threshold (N·m), as it was detected (0, 0.0, 0.0 before any)
+    last_joint: Annotated[int, msgspec.Meta(ge=0, le=MAX_JOINTS)] = 0
+    last_residual_nm: float = 0.0
+    last_threshold_nm: Annotated[float, msgspec.Meta(ge=0.0)] = 0.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _same_length(self, "residual_nm", "threshold_nm")
+        if any(not t > 0.0 for t in self.threshold_nm):
+            raise ValueError("threshold_nm: every threshold must be positive")
+        if self.joint > len(self.residual_nm) or self.last_joint > len(self.residual_nm):
+            raise ValueError(f"joint {max(self.joint, self.last_joint)} beyond the arm's {len(self.residual_nm)}")
+
+    def last_contact(self) -> str:
+        """The last contact in a line (the robot's log, safety's protective stop, the status)."""
+        return contact_line(self.last_joint, self.last_residual_nm, self.last_threshold_nm)
+
+
+def contact_line(joint: int, residual_nm: float, threshold_nm: float) -> str:
+    """How a contact is said wherever it is said: which joint, its residual, its threshold."""
+    return f"contact at joint {joint}: residual {residual_nm:+.2f} N·m beyond its {threshold_nm:.2f} N·m threshold"
+
+
 class RobotState(Message):
     header: Header
     #: the arm the robot runs (its description's name and fingerprint): every reader takes the joint count and the
@@ -795,10 +834,14 @@ class RobotState(Message):
     arm_check: ArmCheckState = ArmCheckState.NEVER
     #: the hand's fingers (None: the arm has no hand, or its hardware does not report one)
     fingers: Optional[FingerState] = None
+    #: the contact monitor (None: the robot runs none)
+    contact: Optional[ContactState] = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
         _same_length(self, "q", "dq", "tau")
+        if self.contact is not None and len(self.contact.residual_nm) != len(self.q):
+            raise ValueError(f"contact has {len(self.contact.residual_nm)} joints, q {len(self.q)}")
         if self.limits is not None and len(self.limits.joint_speed_rps) != len(self.q):
             raise ValueError(f"limits.joint_speed_rps has {len(self.limits.joint_speed_rps)} joints, q {len(self.q)}")
 

@@ -84,6 +84,7 @@ from services.robot.api_queries import ApiQueries
 from services.robot.arm_driver import ArmDriver, JointDriver, NodeLoop
 from services.robot.command_inbox import CommandInbox
 from services.robot.commissioning import Commissioning
+from services.robot.contact_watch import ContactWatch
 from services.robot.core import RobotCore
 from services.robot.dsp_worker import DspWorker
 from services.robot.hardware import CYCLE_S, DEFAULT_TIMING, JointReading
@@ -150,6 +151,9 @@ class RobotNode(RobotServiceHooks, Service):
         #: the header of the command the last DSP cycle applied, and a refused one, both said in the states
         self._applied: Optional[Header] = None
         self._recent_refusal = RecentRefusal()
+        #: the contact monitor (on_start, where the config enables it): fed by the loop, read by the states
+        self.contact_watch: Optional[ContactWatch] = None
+        self._contact_lock = threading.Lock()
 
         # the threads
         self._thread: Optional[threading.Thread] = None
@@ -204,6 +208,8 @@ class RobotNode(RobotServiceHooks, Service):
             self.bus_timing = self.driver.timing
             self.cycle_s = self.bus_timing.period_s
             self.core = self.driver.core
+            if self.config.contact.enabled:
+                self.contact_watch = ContactWatch(self.arm, self.config.contact, self.cycle_s, self.config.dsp.cycle_s)
             keys = self.keys
             self.state_pub = self.publisher(keys.robot_state, "state")
             self.lowlevel_pub = self.publisher(keys.lowlevel_state, "lowlevel_state")
@@ -300,6 +306,8 @@ class RobotNode(RobotServiceHooks, Service):
             if self.lowlevel is not None:
                 self._lowlevel_step()
         tick_ns = self.driver.cycle()
+        if self.contact_watch is not None:
+            self._watch_contact(tick_ns is not None)
         if self.lowlevel is not None and self.lowlevel_pub.matching:
             self._publish_lowlevel()
         if tick_ns is None:
@@ -309,6 +317,22 @@ class RobotNode(RobotServiceHooks, Service):
             self.dsp_worker.hand_over(tick_ns, reading, exchange_due=self._slot_start + self.cycle_s)
         else:
             self.driver.run_dsp(lambda: self.dsp_tick(tick_ns, reading))
+
+    def _watch_contact(self, at_dsp_tick: bool) -> None:
+        """The cycle's reading to the contact monitor; a contact it starts is counted and logged (safety, seeing it
+        in the next state, stops the arm)."""
+        with self._contact_lock:
+            started = self.contact_watch.observe(self.core.reading, at_dsp_tick, time.monotonic_ns())
+            line = self.contact_watch.last_contact() if started is not None else ""
+        if line:
+            self.counters.inc("contact.detected")
+            self.log.warning("%s", line)
+
+    def _contact_for_state(self):
+        if self.contact_watch is None:
+            return None
+        with self._contact_lock:
+            return self.contact_watch.for_state()
 
     def _lowlevel_step(self) -> None:
         """Engage, apply, hold or release low-level torque control (services.robot.lowlevel)."""
@@ -395,4 +419,5 @@ class RobotNode(RobotServiceHooks, Service):
             self.header("state", stamp_ns=stamp_ns), self.arm, reading, self.kin, self.core.dsp,
             link_faults=self.driver.link.faults, refused=self._recent_refusal.for_next_state(), applied=self._applied,
             timing=self.meters.timing(), arm_check=self.commissioning.state,
-            finger_targets=None if self.core.fingers is None else self.core.fingers.target))
+            finger_targets=None if self.core.fingers is None else self.core.fingers.target,
+            contact=self._contact_for_state()))

@@ -8,6 +8,7 @@ import msgspec
 from services.model.arm import DEFAULT_ARM, load_arm
 from services.robot import arm_check
 from services.robot.admission import AdmissionConfig
+from services.robot.contact_watch import ContactConfig
 from services.robot.dsp import DSPConfig, for_arm
 from services.robot.hardware import CYCLE_S
 from services.robot.lockstep_gate import LockstepConfig
@@ -34,6 +35,8 @@ class RobotNodeConfig(ServiceConfig):
     lowlevel: LowLevelConfig = msgspec.field(default_factory=LowLevelConfig)
     #: the commissioning check's verdict: kept where, or waived (services.robot.arm_check)
     arm_check: arm_check.ArmCheckConfig = msgspec.field(default_factory=arm_check.ArmCheckConfig)
+    #: the contact monitor on the joints' torques (services.robot.contact_watch, docs/contact.md)
+    contact: ContactConfig = msgspec.field(default_factory=ContactConfig)
     #: after this many consecutive failed exchanges the node reports itself unhealthy and refuses motion
     max_bus_errors: int = 5
     #: realtime: SCHED_FIFO priority of the robot's process where the OS grants it (0: normal scheduling), above

@@ -13,7 +13,7 @@ from typing import Optional
 
 import numpy as np
 
-from protocol.messages import (ActuatorMode, ArmCheckState, FingerState, Header, KinovaPose, LoopTiming, LowLevelState,
+from protocol.messages import (ActuatorMode, ArmCheckState, ContactState, FingerState, Header, KinovaPose, LoopTiming, LowLevelState,
                                RobotState)
 from services.model import frames
 from services.model.arm import ArmDescription
@@ -55,13 +55,15 @@ def kinova_pose(T: np.ndarray) -> KinovaPose:
 
 def robot_state(header: Header, arm: ArmDescription, reading: JointReading, kinematics: ArmKinematics, dsp: KinovaDSP,
                 *, link_faults: list[str], refused: str, applied: Optional[Header], timing: LoopTiming,
-                arm_check: ArmCheckState, finger_targets: Optional[np.ndarray] = None) -> RobotState:
+                arm_check: ArmCheckState, finger_targets: Optional[np.ndarray] = None,
+                contact: Optional[ContactState] = None) -> RobotState:
     """The state of the tick whose reading is ``reading``. ``link_faults``: what the last failed exchange with the
     arm said (none once it answers again); ``refused``: the reason of a command refused lately ('' for none);
     ``applied``: the header of the command the last DSP cycle applied, the robot's hop appended. ``dsp``: what
     interprets the commands (the emulated Kinova DSP, or an arm's own through the SDK, which offers the same status,
     queue and limits); ``kinematics``: the publishing thread's own (ArmKinematics keeps a workspace);
-    ``finger_targets``: the targets the fingers hold, where the reading has fingers."""
+    ``finger_targets``: the targets the fingers hold, where the reading has fingers; ``contact``: the contact
+    monitor's view of the cycle (services.robot.contact_watch), where it runs."""
     R, p = kinematics.pose(reading.q)
     status = dsp.status
     faults = list(status.active_limits) + link_faults + reading.faults()
@@ -75,7 +77,7 @@ def robot_state(header: Header, arm: ArmDescription, reading: JointReading, kine
         watchdog_tripped=status.watchdog_tripped, angular_convention=dsp.config.angular_convention,
         applied_command=applied, timing=timing, limits=dsp.motion_limits(),
         arm_pose=kinova_pose(reading.arm_pose) if reading.arm_pose is not None else None,
-        arm_check=arm_check, fingers=finger_state(reading, finger_targets),
+        arm_check=arm_check, fingers=finger_state(reading, finger_targets), contact=contact,
     )
 
 

@@ -128,6 +128,8 @@ class SafetyCore:
         self._tick_answers: dict[int, Send] = {}
         self._frame_answers: dict[int, Send] = {}
         self.estop_latched = False
+        #: the robot's count of contacts in the last state seen (None: no state with a contact monitor yet)
+        self.contacts_seen: Optional[int] = None
         self.estop_reason = ""
         self.alive: set[str] = set()
         self.last_refusal = ""
@@ -209,6 +211,7 @@ class SafetyCore:
         overspeed = self.monitor.observe(state.q, state.dq, stamp, declared_limits(state, arm))
         if overspeed is not None:
             out += self._protective_stop(overspeed)
+        out += self._contact(state)
         if self.lockstep:
             # the tick's answer first, then the commands derived from its frame, whichever reached safety first:
             # the order in which they arrive depends on the host (each subscriber has its own thread), and each
@@ -309,9 +312,22 @@ class SafetyCore:
         return [self._send(Decision(refusal=reason), None)]
 
     # ------------------------------------------------------------------ checks of the moment
-    def _protective_stop(self, reason: str) -> list[Action]:
-        """Latched like the e-stop (and released the same way): the arm does something it was not told to."""
-        out: list[Action] = [Count("overspeed.trips")]
+    def _contact(self, state: RobotState) -> list[Action]:
+        """A contact the robot's monitor detected since the last state safety saw (its count rose): a protective
+        stop that names it. The first state sets where the count starts (a contact before safety ran was not in
+        its charge)."""
+        contact = state.contact
+        if contact is None:
+            return []
+        seen, self.contacts_seen = self.contacts_seen, contact.contacts
+        if seen is None or contact.contacts <= seen:
+            return []
+        return self._protective_stop(contact.last_contact(), counter="contact.stops")
+
+    def _protective_stop(self, reason: str, counter: str = "overspeed.trips") -> list[Action]:
+        """Latched like the e-stop (and released the same way): the arm does something it was not told to, or
+        touched something."""
+        out: list[Action] = [Count(counter)]
         self._forget_answers()
         if not self.estop_latched:
             out.append(self._refuse(f"protective_stop: {reason}"))

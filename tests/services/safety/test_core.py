@@ -128,6 +128,40 @@ def test_measured_overspeed_latches_a_protective_stop():
     assert [c.mode for c in sends(actions)] == [m.CommandMode.EMERGENCY_STOP]
 
 
+def with_contacts(stamp_ns, contacts, last=(0, 0.0, 0.0)) -> m.RobotState:
+    out = state(stamp_ns)
+    out.contact = m.ContactState(residual_nm=[0.0] * 7, threshold_nm=[2.0] * 7, ratio=0.5, joint=0, rate_hz=500.0,
+                                 contacts=contacts, last_joint=last[0], last_residual_nm=last[1],
+                                 last_threshold_nm=last[2])
+    return out
+
+
+def test_a_contact_the_robot_detected_latches_a_protective_stop_that_names_it_and_only_a_reset_releases_it():
+    safety = core()
+    # contacts before safety saw the robot are not its charge: the first state sets where the count starts
+    assert not refusals(safety.state(with_contacts(10 * S, 2), 10 * S)) and not safety.estop_latched
+    safety.desired(twist(10 * S), 10 * S)
+    assert safety.held is not None
+    quiet = safety.state(with_contacts(10 * S + 10_000_000, 2), 10 * S + 10_000_000)
+    assert not safety.estop_latched and not [a for a in quiet if isinstance(a, Count)]
+    # a state missed, the next one's count two higher: one stop, naming the last contact
+    touched = safety.state(with_contacts(10 * S + 30_000_000, 4, (3, -5.25, 3.2)), 10 * S + 30_000_000)
+    assert safety.estop_latched and safety.held is None
+    assert [a.name for a in touched if isinstance(a, Count)] == ["contact.stops"]
+    assert refusals(touched) == ["protective_stop: contact at joint 3: residual -5.25 N·m beyond its 3.20 N·m "
+                                 "threshold"]
+    assert [c.mode for c in sends(touched)] == [m.CommandMode.EMERGENCY_STOP]
+    assert all(c.fingers is None for c in sends(touched))  # the hand is never opened by it
+    # it holds while the robot says the same count; an operator's reset releases it as an e-stop's
+    later = safety.desired(twist(10 * S + 40_000_000), 10 * S + 40_000_000)
+    assert refusals(later)[0].startswith("estop: latched (protective stop: contact at joint 3")
+    safety.state(with_contacts(10 * S + 50_000_000, 4), 10 * S + 50_000_000)
+    safety.estop(m.EStop(header=m.Header(), reset=True, operator="alice"))
+    assert not safety.estop_latched
+    assert sends(safety.desired(twist(10 * S + 60_000_000), 10 * S + 60_000_000))[0].mode is \
+        m.CommandMode.CARTESIAN_VELOCITY
+
+
 def test_lockstep_checks_a_command_against_its_frame_s_state_and_answers_every_tick():
     safety = core(lockstep=True)
     frame = 10 * S
