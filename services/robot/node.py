@@ -253,7 +253,11 @@ class RobotNode(RobotServiceHooks, Service):
             return False, "robot loop stopped"
         if self.driver.link.failing(self.config.max_bus_errors):
             return False, f"hardware failing: {self.driver.link.faults[:1]}"
-        return True, self.meters.health_detail(self.arm_summary(), self.torque_setup_summary())
+        detail = self.meters.health_detail(self.arm_summary(), self.torque_setup_summary())
+        if self.contact_watch is not None:
+            with self._contact_lock:
+                detail += f"; {self.contact_watch.summary()}"
+        return True, detail
 
     # ------------------------------------------------------------------ the loop thread
     def _run(self) -> None:

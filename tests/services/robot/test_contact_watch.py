@@ -41,6 +41,9 @@ def test_a_contact_is_counted_once_at_its_rise_and_each_state_says_the_cycle_and
     assert released.joint == 0 and released.contacts == 1 and released.last_joint == 3
     assert any(watch.observe(reading(k * 2_000_000, push), False, 0) is not None for k in range(80, 100))
     assert watch.for_state().contacts == 2
+    summary = watch.summary()  # what the robot's health says (mfvs status)
+    assert summary.startswith("contact: contacts=2 peak_ratio=") and "at 500 Hz restarts=0 last: contact at joint 3" \
+        in summary and float(summary.split("peak_ratio=")[1].split()[0]) > 1.0
 
 
 def test_a_reading_seen_before_is_not_taken_twice_and_the_dsp_rate_takes_only_the_ticks():

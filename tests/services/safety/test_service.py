@@ -11,6 +11,7 @@ from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode
 from services.runtime.transport import open_session
 from services.model.zones import BoxZone, SphereZone
+from services.robot.contact_watch import ContactConfig
 from services.robot.node import LockstepConfig
 from services.robot_sim.service import RobotSimConfig, RobotSimService
 from services.safety.checks import SafetyLimits
@@ -24,7 +25,7 @@ def harness(router):
     started = {}
 
     def start(limits: SafetyLimits | None = None, twist_for=lambda t: ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
-              frame_timeout_s: float = 2.0, **pipe):
+              frame_timeout_s: float = 2.0, contact: bool = False, **pipe):
         client = open_session(router.client_config())
         safety = SafetyService(SafetyConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config(),
                                             limits=limits or SafetyLimits()))
@@ -34,7 +35,8 @@ def harness(router):
         status = Recorder(client, KEYS.safety_status, m.SafetyStatus)
         time.sleep(0.3)
         robot = RobotSimService(RobotSimConfig(clock=ClockMode.LOCKSTEP, zenoh=router.client_config(),
-                                               lockstep=LockstepConfig(frame_timeout_s=frame_timeout_s)))
+                                               lockstep=LockstepConfig(frame_timeout_s=frame_timeout_s),
+                                               contact=ContactConfig(enabled=contact)))
         robot.start()
         started.update(client=client, safety=safety, pipeline=pipeline, robot=robot, states=states, status=status)
         return started
@@ -240,12 +242,12 @@ def test_a_desired_commands_hand_part_closes_the_fingers_and_they_stay_closed_wh
 
 
 def test_a_push_on_the_moving_arm_is_a_contact_the_robot_names_and_safety_stops_the_arm_for(harness):
-    """robot_sim's contact monitor (on as shipped) on its own torque sensors, the arm moving at 5 cm/s: quiet
+    """robot_sim's contact monitor (off as shipped, docs/contact.md) on its own torque sensors, the arm moving at 5 cm/s: quiet
     until a 57 N push on the wrist's link (MuJoCo's applied force, standing in for a body in the arm's way), then a
     contact in the states, a protective stop that names it, and the arm held."""
     import mujoco
 
-    h = harness(twist_for=lambda t: ((0.05, 0.0, 0.0), (0.0, 0.0, 0.0)))
+    h = harness(twist_for=lambda t: ((0.05, 0.0, 0.0), (0.0, 0.0, 0.0)), contact=True)
     assert wait_for(lambda: len(h["states"]) >= 100, timeout=60)
     quiet = h["states"].last().contact
     assert quiet is not None and quiet.contacts == 0 and quiet.rate_hz == pytest.approx(500.0)
