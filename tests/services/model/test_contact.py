@@ -10,7 +10,8 @@ import pytest
 
 from services.model.arm import load_arm
 from services.model.contact import (GAIN_TIMES_PERIOD, ContactMonitor, Uncertainty, contact_thresholds,
-                                    filtered_noise_sigma, isolated_joint, model_error_bound)
+                                    filtered_noise_sigma, generalized_momentum,
+                                    generalized_momentum_by_rnea, isolated_joint, model_error_bound)
 from services.model.dynamics import DynamicsModel
 from services.model.kinematics import ArmKinematics
 from services.robot.core import RobotCore
@@ -91,6 +92,17 @@ def test_the_thresholds_add_what_the_sources_give_and_grow_with_the_uncertainty(
     with_payload = model_error_bound(arm, Uncertainty(payload_kg=0.5))
     assert np.all(heavier[:5] > terms.model_nm[:5]) and np.all(with_payload[1:3] > terms.model_nm[1:3])
     assert np.array_equal(model_error_bound(arm, Uncertainty()), terms.model_nm)  # seeded
+
+
+def test_the_momentum_by_inverse_dynamics_is_the_momentum_by_the_mass_matrix():
+    arm = load_arm("j2s7s300")
+    dynamics = DynamicsModel(arm, rotor_inertia=True)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        q, dq = arm.home + rng.uniform(-1, 1, arm.n_joints), rng.uniform(-1, 1, arm.n_joints)
+        at_rest = pin.rnea(dynamics.model, dynamics.data, q, np.zeros(arm.n_joints), dq).copy()
+        assert np.allclose(generalized_momentum_by_rnea(at_rest, dynamics.gravity(q)),
+                           generalized_momentum(dynamics.mass(q), dq), atol=1e-12)
 
 
 def test_isolation_names_the_most_distal_joint_out_of_its_band():
