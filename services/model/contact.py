@@ -211,22 +211,15 @@ class ContactMonitor:
         self._model, self._data = self._dynamics.model, self._dynamics.data
         self._damping = self._dynamics.friction
         self._zero = np.zeros(arm.n_joints)
+        # the observer's state, set at its first reading (and after a gap): p(0), ∫(β + r), r, and β at the last
+        # reading
         self._initial: Optional[np.ndarray] = None
-        self._integral = np.zeros(arm.n_joints)
-        self._residual = np.zeros(arm.n_joints)
+        self._integral = self._residual = self._beta = np.zeros(arm.n_joints)
         self._last_stamp_s = 0.0
         #: the observer restarted after a gap (or a step back) in the readings' stamps
         self.restarts = 0
         #: samples taken
         self.samples = 0
-
-    @property
-    def residual(self) -> np.ndarray:
-        return self._residual.copy()
-
-    def restart(self) -> None:
-        """Start again at the next reading (after a gap, or once a contact was dealt with)."""
-        self._initial = None
 
     def update(self, q, dq, tau, stamp_s: float) -> ContactSample:
         """One reading (model units; its stamp on the arm's timeline, s)."""

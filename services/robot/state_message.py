@@ -13,8 +13,8 @@ from typing import Optional
 
 import numpy as np
 
-from protocol.messages import (ActuatorMode, ArmCheckState, ContactState, FingerState, Header, KinovaPose, LoopTiming, LowLevelState,
-                               RobotState)
+from protocol.messages import (ActuatorMode, ArmCheckState, ContactState, FingerState, Header, KinovaPose, LoopTiming,
+                               LowLevelState, RobotState)
 from services.model import frames
 from services.model.arm import ArmDescription
 from services.model.kinematics import ArmKinematics

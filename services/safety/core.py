@@ -128,9 +128,9 @@ class SafetyCore:
         self._tick_answers: dict[int, Send] = {}
         self._frame_answers: dict[int, Send] = {}
         self.estop_latched = False
+        self.estop_reason = ""
         #: the robot's count of contacts in the last state seen (None: no state with a contact monitor yet)
         self.contacts_seen: Optional[int] = None
-        self.estop_reason = ""
         self.alive: set[str] = set()
         self.last_refusal = ""
         self.active_limits: list[str] = []
