@@ -315,11 +315,14 @@ class SafetyCore:
     def _contact(self, state: RobotState) -> list[Action]:
         """A contact the robot's monitor detected since the last state safety saw (its count rose): a protective
         stop that names it. The first state sets where the count starts (a contact before safety ran was not in
-        its charge)."""
+        its charge); a count lower than the last seen is a robot that started again, counting from 0 while safety
+        ran: each of its contacts is."""
         contact = state.contact
         if contact is None:
             return []
         seen, self.contacts_seen = self.contacts_seen, contact.contacts
+        if seen is not None and contact.contacts < seen:
+            seen = 0
         if seen is None or contact.contacts <= seen:
             return []
         return self._protective_stop(contact.last_contact(), counter="contact.stops")

@@ -162,6 +162,20 @@ def test_a_contact_the_robot_detected_latches_a_protective_stop_that_names_it_an
         m.CommandMode.CARTESIAN_VELOCITY
 
 
+def test_a_robot_that_started_again_counts_from_zero_and_its_first_contact_still_stops_the_arm():
+    safety = core()
+    safety.state(with_contacts(10 * S, 3), 10 * S)
+    restarted = safety.state(with_contacts(10 * S + 10_000_000, 0), 10 * S + 10_000_000)
+    assert not safety.estop_latched and not [a for a in restarted if isinstance(a, Count)]
+    touched = safety.state(with_contacts(10 * S + 20_000_000, 1, (2, 4.5, 4.4)), 10 * S + 20_000_000)
+    assert safety.estop_latched and [a.name for a in touched if isinstance(a, Count)] == ["contact.stops"]
+    # a restart whose first state already counts one: that contact happened while safety ran
+    again = core()
+    again.state(with_contacts(10 * S, 3), 10 * S)
+    again.state(with_contacts(10 * S + 10_000_000, 1, (2, 4.5, 4.4)), 10 * S + 10_000_000)
+    assert again.estop_latched and "contact at joint 2" in again.estop_reason
+
+
 def test_lockstep_checks_a_command_against_its_frame_s_state_and_answers_every_tick():
     safety = core(lockstep=True)
     frame = 10 * S
