@@ -32,6 +32,10 @@ class SafetyLimits(ConfigStruct):
     state_budget_s: float = 0.1
     #: an input stamped further ahead of safety's clock than this is refused (clock skew between hosts, no more)
     future_skew_s: float = 0.05
+    #: a device-derived command (a joystick's) whose device was last heard longer ago than this is stale: the device
+    #: froze or went (our choice: 2.5 command budgets, so that one late device report does not stop the arm, and a
+    #: device gone is noticed within a quarter second)
+    device_budget_s: float = 0.25
     #: the speed and acceleration limits are the robot's own, as it declares them in its state
     #: (``RobotState.limits``); a value set here is a stricter site limit (it never loosens the robot's)
     max_linear_speed_mps: Optional[float] = None
@@ -56,7 +60,8 @@ class SafetyLimits(ConfigStruct):
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=lambda: ZoneFilterConfig(margin_m=0.02))
 
     def __post_init__(self) -> None:
-        for name in ("command_budget_s", "image_budget_s", "state_budget_s", "future_skew_s", "joint_horizon_s",
+        for name in ("command_budget_s", "image_budget_s", "state_budget_s", "future_skew_s", "device_budget_s",
+                     "joint_horizon_s",
                      "measured_overspeed_s", *SITE_LIMITS):
             value = getattr(self, name)
             if value is not None and not (value > 0 and math.isfinite(value)):
@@ -125,11 +130,13 @@ class CommandChecker:
 
     # ------------------------------------------------------------------ twists
     def check_twist(self, frame: Frame, angular: AngularConvention, twist, q, dt: float,
-                    robot: MotionLimits) -> Decision:
-        """``robot``: the limits the robot declares (:func:`services.model.limits.declared`)."""
+                    robot: MotionLimits, also_accepted: tuple[AngularConvention, ...] = ()) -> Decision:
+        """``robot``: the limits the robot declares (:func:`services.model.limits.declared`). A twist is taken in the
+        robot's convention, or in one of ``also_accepted`` (a command type that defines its own: a jog's ω about the
+        hand's axes), and what goes to the robot is in the robot's."""
         lim = self.limits
         robot = effective_limits(lim, robot)
-        if frame is not Frame.MIXED or angular is not lim.robot_convention:
+        if frame is not Frame.MIXED or (angular is not lim.robot_convention and angular not in also_accepted):
             return Decision(refusal=f"convention: the robot takes mixed twists with '{lim.robot_convention.value}' "
                                     f"angular velocity, this one is {frame.value}/{angular.value}",
                             limits=["convention"])
@@ -170,7 +177,7 @@ class CommandChecker:
             decision.limits.append("joint_speed")
         scale = min(scale, self._joint_limit_scale(q, dq * scale, decision) * scale)
         base *= scale
-        decision.twist = frames.mixed_from_base_twist(base, R, angular)
+        decision.twist = frames.mixed_from_base_twist(base, R, lim.robot_convention)
         self.last_twist_base = base
         self.last_dq = J_pinv @ base
         return decision

@@ -37,7 +37,7 @@ from services.model.kinematics import ArmKinematics
 from services.model.limits import declared as declared_limits
 from services.runtime.state_history import StateHistory
 from services.safety.checks import CommandChecker, Decision, MotionMonitor, SafetyLimits
-from services.safety.sources import Claim, CommandSource, SourceRegistry, default_sources
+from services.safety.sources import Claim, CommandSource, Freshness, SourceRegistry, default_sources
 
 
 class HeldCommand:
@@ -131,6 +131,8 @@ class SafetyCore:
         self.estop_reason = ""
         #: the robot's count of contacts in the last state seen (None: no state with a contact monitor yet)
         self.contacts_seen: Optional[int] = None
+        #: device-derived sources: the last sequence number taken from each (by its full name, e.g. jog/pad)
+        self.device_seq: dict[str, int] = {}
         self.alive: set[str] = set()
         self.last_refusal = ""
         self.active_limits: list[str] = []
@@ -159,7 +161,8 @@ class SafetyCore:
             return []
         self.alive.discard(name)
         self._forget_answers()
-        if name in self.upstream and self.held is not None:
+        held = self.held
+        if name in self.upstream and held is not None and self.registry.freshness(held.source_name) is Freshness.IMAGE:
             self.held = None
             return [self._refuse(f"liveliness: {name} is gone"), self._stop_now()]
         return []
@@ -243,6 +246,10 @@ class SafetyCore:
         """A desired twist or joint velocity from the controller: approved and held, or refused with a stop that
         answers its frame."""
         state = None
+        if self.lockstep and self.registry.freshness(candidate.source_name) is Freshness.DEVICE:
+            # a person's device runs on wall time, which a lockstep run does not follow: it cannot wait for a tick
+            return [self._refuse(f"freshness: {candidate.source_name} is a device's source, and this is a lockstep "
+                                 "run (a person's device runs on wall time)")]
         if self.lockstep:  # checked against the state of the tick its frame was captured at
             frame = candidate.source.source_stamp_ns
             if frame in self._frame_answers:
@@ -262,7 +269,8 @@ class SafetyCore:
             return [refused, self._send(Decision(refusal=self.last_refusal), candidate)]  # the frame's answer
         declared, why = self.registry.admit(candidate.source_name, candidate.key, candidate.fingers is not None)
         if declared is not None:
-            why = self.claim.refusal(declared, candidate.source_name, holding=self.held is not None) or ""
+            why = (self._sequence_problem(declared, candidate)
+                   or self.claim.refusal(declared, candidate.source_name, holding=self.held is not None) or "")
         if why:  # not a command for the arm now: refused, and the source in control (if any) keeps it
             refused = self._refuse(why)
             return [refused] if self.held is not None else [refused, self._send(Decision(refusal=why), candidate)]
@@ -299,7 +307,7 @@ class SafetyCore:
         reach the robot fresh on an image older than the budget; it becomes the stop that refuses it instead."""
         if send.held is None or send.command.mode not in MOTION_MODES:
             return [send]
-        problem = self.input_problem(send.held.source, now_ns)
+        problem = self.input_problem(send.held, now_ns)
         if problem is None:
             return [send]
         if self.held is send.held:
@@ -344,7 +352,7 @@ class SafetyCore:
                   state: Optional[RobotState] = None) -> tuple[Optional[Decision], Optional[str]]:
         """(decision, None) when the command may go to the robot now, else (None, reason). ``state``: the robot
         state to check against (default: the latest)."""
-        reason = self.input_problem(held.source, now_ns)
+        reason = self.input_problem(held, now_ns)
         if reason is not None:
             return None, reason
         if self.checker is None:  # no state from an arm these checks are for
@@ -374,8 +382,66 @@ class SafetyCore:
             return f"fingers: the {hand.name} has {hand.n_fingers} fingers, the command {len(fingers.values)} values"
         return None
 
-    def input_problem(self, header: Header, now_ns: int) -> Optional[str]:
-        """Why a desired command may not move the arm now (liveliness, freshness both ways, convention), or None."""
+    def _sequence_problem(self, declared: CommandSource, candidate: HeldCommand) -> Optional[str]:
+        """A device-derived command's sequence number must rise from the last taken from its source (a repeated or
+        reordered one is not the person's latest input); why not, or None. Taken: it is the last."""
+        if declared.freshness is not Freshness.DEVICE:
+            return None
+        seq, last = candidate.source.seq, self.device_seq.get(candidate.source_name)
+        if last is not None and seq <= last:
+            return f"sequence: {candidate.source_name}'s command {seq} is not after its last, {last}"
+        self.device_seq[candidate.source_name] = seq
+        return None
+
+    def input_problem(self, held: HeldCommand, now_ns: int) -> Optional[str]:
+        """Why a desired command may not move the arm now (its source's freshness rule, both ways; the robot's
+        liveliness and convention), or None."""
+        header = held.source
+        if self.registry.freshness(held.source_name) is Freshness.DEVICE:
+            problem = self._device_problem(header, now_ns)
+        else:
+            problem = self._image_problem(header, now_ns)
+        if problem is not None:
+            return problem
+        state = self.robot_state
+        lim = self.limits
+        if state is not None and state.angular_convention is not lim.robot_convention:
+            return (f"convention: the robot reads '{state.angular_convention.value}', safety is configured for "
+                    f"'{lim.robot_convention.value}'")
+        return None
+
+    def _future_problem(self, header: Header, now_ns: int) -> Optional[str]:
+        """An input stamped (or its source stamped) further ahead of safety's clock than the skew allows."""
+        lim = self.limits
+        ahead = max(header.stamp_ns, header.source_stamp_ns) - now_ns
+        if ahead * 1e-9 > lim.future_skew_s:
+            return (f"freshness: stamped {ahead * 1e-6:.0f} ms in the future (skew at most "
+                    f"{lim.future_skew_s * 1e3:.0f} ms)")
+        return None
+
+    def _device_problem(self, header: Header, now_ns: int) -> Optional[str]:
+        """Freshness of a device-derived command: the command within its budget, its device heard within its own
+        (``source_stamp_ns``), a robot alive. No image, so no image path's service is needed."""
+        lim = self.limits
+        if not any(name in self.alive for name in self.robots):
+            return "liveliness: no robot alive"
+        problem = self._future_problem(header, now_ns)
+        if problem is not None:
+            return problem
+        age = (now_ns - header.stamp_ns) * 1e-9
+        if age > lim.command_budget_s:
+            return f"freshness: command is {age * 1e3:.0f} ms old (budget {lim.command_budget_s * 1e3:.0f} ms)"
+        if header.source_stamp_ns == 0:
+            return "freshness: command does not say when its device was last heard"
+        device_age = (now_ns - header.source_stamp_ns) * 1e-9
+        if device_age > lim.device_budget_s:
+            return (f"freshness: its device was last heard {device_age * 1e3:.0f} ms ago (budget "
+                    f"{lim.device_budget_s * 1e3:.0f} ms: frozen or gone)")
+        return None
+
+    def _image_problem(self, header: Header, now_ns: int) -> Optional[str]:
+        """Freshness of an image-derived command: the services on the image's path and a robot alive, the command
+        and its image within their budgets."""
         lim = self.limits
         alive = self.alive
         if self.lockstep:
@@ -391,10 +457,10 @@ class SafetyCore:
             return f"liveliness: {', '.join(missing)} not alive"
         if not any(name in alive for name in self.robots):
             return "liveliness: no robot alive"
+        problem = self._future_problem(header, now_ns)
+        if problem is not None:
+            return problem
         age = (now_ns - header.stamp_ns) * 1e-9
-        if -age > lim.future_skew_s or -(now_ns - header.source_stamp_ns) * 1e-9 > lim.future_skew_s:
-            return (f"freshness: stamped {max(-age, (header.source_stamp_ns - now_ns) * 1e-9) * 1e3:.0f} ms in the "
-                    f"future (skew at most {lim.future_skew_s * 1e3:.0f} ms)")
         if age > lim.command_budget_s:
             return f"freshness: command is {age * 1e3:.0f} ms old (budget {lim.command_budget_s * 1e3:.0f} ms)"
         if header.source_stamp_ns == 0:
@@ -403,10 +469,6 @@ class SafetyCore:
         if image_age > lim.image_budget_s:
             return (f"freshness: image is {image_age * 1e3:.0f} ms old "
                     f"(budget {lim.image_budget_s * 1e3:.0f} ms)")
-        state = self.robot_state
-        if state is not None and state.angular_convention is not lim.robot_convention:
-            return (f"convention: the robot reads '{state.angular_convention.value}', safety is configured for "
-                    f"'{lim.robot_convention.value}'")
         return None
 
     def _fresh_state(self, now_ns: int, state: Optional[RobotState] = None) -> Optional[RobotState]:

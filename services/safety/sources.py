@@ -33,11 +33,17 @@ class Drives(str, enum.Enum):
 
 
 class Freshness(str, enum.Enum):
-    """How a source's commands are judged fresh. ``image``: derived from a camera image, whose capture stamp the
-    command carries (``source_stamp_ns``): the command and its image within their budgets, the services on the
-    image's path alive (``SafetyCore.input_problem``)."""
+    """How a source's commands are judged fresh (``SafetyCore.input_problem``).
+
+    ``image``: derived from a camera image, whose capture stamp the command carries (``source_stamp_ns``): the
+    command and its image within their budgets, the services on the image's path (safety's ``upstream``) alive.
+    ``device``: made from a person's input device (a joystick): the command within its budget, the device heard
+    within its own (``source_stamp_ns``: when the source last had proof that the device is there, docs/contracts.md),
+    each command's sequence number above the last; no service upstream is needed, and none of the image path's
+    losses stops it. A person's device runs on wall time: never in a lockstep run."""
 
     IMAGE = "image"
+    DEVICE = "device"
 
 
 #: a source's name, as commands give it before the slash
@@ -62,6 +68,7 @@ class CommandSource(ConfigStruct):
         if not SOURCE_NAME.match(self.name):
             raise ValueError(f"command source name {self.name!r} must be 1-32 of a-z, 0-9, _ and -, starting with "
                              "a letter")
+        self.freshness = Freshness(self.freshness)  # compared by identity; a config file's string made the enum
         if not self.keys or not self.drives:
             raise ValueError(f"command source {self.name!r} needs the keys its commands come on and what they drive")
 
@@ -92,6 +99,12 @@ class SourceRegistry:
             if unknown:
                 raise ValueError(f"command source {source.name!r}: unknown keys {unknown}; known: {sorted(KEY_DRIVES)}")
         self.sources = {s.name: s for s in sources}
+
+    def freshness(self, source: str) -> Freshness:
+        """The freshness rule of the declared source a command names (image for an undeclared one: it is refused
+        before its freshness matters)."""
+        declared = self.sources.get(declared_name(source))
+        return Freshness.IMAGE if declared is None else declared.freshness
 
     def admit(self, source: str, key: str, fingers: bool = False) -> tuple[Optional[CommandSource], str]:
         """(the declared source, "") for a command naming ``source`` on ``key`` (``fingers``: carrying a finger

@@ -435,3 +435,70 @@ def test_a_source_not_declared_to_drive_the_fingers_has_a_command_with_a_hand_pa
     refused = safety.desired(twist_with_fingers(10 * S, [1.2] * 3), 10 * S + 5_000_000)
     assert refusals(refused) == ["source: controller may not drive fingers"]
     assert all(c.fingers is None for c in sends(refused))
+
+
+# ------------------------------------------------------------------ device-derived sources (a person's joystick)
+def device_sourced(stamp_ns, seq, device_ns=None, linear=(0.0, 0.03, 0.0), source="person/stick") -> HeldCommand:
+    header = m.Header(seq=seq, stamp_ns=stamp_ns, source_stamp_ns=stamp_ns if device_ns is None else device_ns)
+    return HeldCommand(m.Twist(header=header, frame=Frame.MIXED, angular=AngularConvention.SEED000, linear=linear,
+                               rotational=(0.0, 0.0, 0.0), source=source), None, stamp_ns)
+
+
+def with_device_source(lockstep=False) -> SafetyCore:
+    """The controller (image-derived, priority 10) and a person's device (device-derived, priority 20)."""
+    from services.safety.sources import CommandSource, default_sources
+
+    safety = SafetyCore(SafetyLimits(), upstream=["vision", "controller"], robots=["robot_sim"], rate_hz=100.0,
+                        lockstep=lockstep, sources=default_sources() + [CommandSource(
+                            name="person", keys=["desired_twist"], drives=["twist"], priority=20,
+                            freshness="device")])
+    safety.liveliness("robot_sim", True)
+    safety.state(state(10 * S), 10 * S)
+    return safety
+
+
+def test_a_device_derived_command_needs_no_image_path_only_its_budget_and_a_device_heard_lately():
+    safety = with_device_source()  # neither vision nor the controller is alive: a joystick needs neither
+    t = 10 * S
+    moved = safety.desired(device_sourced(t, seq=1), t + 2_000_000)
+    assert [c.mode for c in sends(moved)] == [m.CommandMode.CARTESIAN_VELOCITY] and safety.in_control == "person/stick"
+    stale = safety.cycle(t + 120_000_000)  # no command for 120 ms: budget 100 ms
+    assert refusals(stale) == ["freshness: command is 120 ms old (budget 100 ms)"] and safety.held is None
+    frozen = safety.desired(device_sourced(t + 300_000_000, seq=2, device_ns=t), t + 300_000_000)
+    assert refusals(frozen) == ["freshness: its device was last heard 300 ms ago (budget 250 ms: frozen or gone)"]
+    assert [c.mode for c in sends(frozen)] == [m.CommandMode.STOP]
+    unheard = safety.desired(device_sourced(t + 310_000_000, seq=3, device_ns=0), t + 310_000_000)
+    assert refusals(unheard) == ["freshness: command does not say when its device was last heard"]
+
+
+def test_a_device_derived_command_must_come_after_the_last_one_taken_from_its_device():
+    safety = with_device_source()
+    t = 10 * S
+    safety.state(state(t + 10_000_000), t + 10_000_000)
+    assert sends(safety.desired(device_sourced(t + 10_000_000, seq=7), t + 10_000_000))[0].mode is \
+        m.CommandMode.CARTESIAN_VELOCITY
+    replayed = safety.desired(device_sourced(t + 20_000_000, seq=7), t + 20_000_000)
+    assert refusals(replayed) == ["sequence: person/stick's command 7 is not after its last, 7"]
+    # not the person's latest input: refused, and the latest (seq 7, still fresh) keeps its motion
+    assert sends(replayed) == [] and safety.held.source.seq == 7
+    assert sends(safety.desired(device_sourced(t + 30_000_000, seq=8), t + 30_000_000))[0].mode is \
+        m.CommandMode.CARTESIAN_VELOCITY
+    # another device of the same source counts its own sequence
+    other = safety.desired(device_sourced(t + 40_000_000, seq=1, source="person/console"), t + 40_000_000)
+    assert refusals(other) == [] and safety.in_control == "person/console"
+
+
+def test_losing_the_image_path_does_not_stop_a_device_in_control_and_lockstep_runs_refuse_devices():
+    safety = with_device_source()
+    t = 10 * S
+    for name in ("vision", "controller"):
+        safety.liveliness(name, True)
+    safety.desired(device_sourced(t, seq=1), t)
+    assert safety.liveliness("vision", False) == [] and safety.in_control == "person/stick"
+    assert safety.liveliness("robot_sim", False) == [] and safety.cycle(t + 10_000_000)[0].reason == \
+        "liveliness: no robot alive"
+    lockstep = with_device_source(lockstep=True)
+    refused = lockstep.desired(device_sourced(t, seq=1), t)
+    assert refusals(refused) == ["freshness: person/stick is a device's source, and this is a lockstep run (a "
+                                 "person's device runs on wall time)"]
+    assert lockstep.waiting == []
