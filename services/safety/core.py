@@ -419,18 +419,27 @@ class SafetyCore:
                     f"{lim.future_skew_s * 1e3:.0f} ms)")
         return None
 
-    def _device_problem(self, header: Header, now_ns: int) -> Optional[str]:
-        """Freshness of a device-derived command: the command within its budget, its device heard within its own
-        (``source_stamp_ns``), a robot alive. No image, so no image path's service is needed."""
-        lim = self.limits
-        if not any(name in self.alive for name in self.robots):
+    def _command_problem(self, header: Header, now_ns: int, alive: set[str]) -> Optional[str]:
+        """What every source's command needs, whatever its freshness rule: a robot among ``alive``, the command
+        not stamped in the future and within its budget."""
+        if not any(name in alive for name in self.robots):
             return "liveliness: no robot alive"
         problem = self._future_problem(header, now_ns)
         if problem is not None:
             return problem
         age = (now_ns - header.stamp_ns) * 1e-9
-        if age > lim.command_budget_s:
-            return f"freshness: command is {age * 1e3:.0f} ms old (budget {lim.command_budget_s * 1e3:.0f} ms)"
+        if age > self.limits.command_budget_s:
+            return (f"freshness: command is {age * 1e3:.0f} ms old (budget "
+                    f"{self.limits.command_budget_s * 1e3:.0f} ms)")
+        return None
+
+    def _device_problem(self, header: Header, now_ns: int) -> Optional[str]:
+        """Freshness of a device-derived command: the command within its budget, its device heard within its own
+        (``source_stamp_ns``), a robot alive. No image, so no image path's service is needed."""
+        lim = self.limits
+        problem = self._command_problem(header, now_ns, self.alive)
+        if problem is not None:
+            return problem
         if header.source_stamp_ns == 0:
             return "freshness: command does not say when its device was last heard"
         device_age = (now_ns - header.source_stamp_ns) * 1e-9
@@ -455,14 +464,9 @@ class SafetyCore:
         missing = [name for name in self.upstream if name not in alive]
         if missing:
             return f"liveliness: {', '.join(missing)} not alive"
-        if not any(name in alive for name in self.robots):
-            return "liveliness: no robot alive"
-        problem = self._future_problem(header, now_ns)
+        problem = self._command_problem(header, now_ns, alive)
         if problem is not None:
             return problem
-        age = (now_ns - header.stamp_ns) * 1e-9
-        if age > lim.command_budget_s:
-            return f"freshness: command is {age * 1e3:.0f} ms old (budget {lim.command_budget_s * 1e3:.0f} ms)"
         if header.source_stamp_ns == 0:
             return "freshness: command does not say which image it derives from"
         image_age = (now_ns - header.source_stamp_ns) * 1e-9
