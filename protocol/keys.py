@@ -105,6 +105,12 @@ class Keys:
         moves only for a started task."""
         return self._k(f"controller/api/{_check_chunk('function name', function)}")
 
+    # jog (a person's stick: services/jog)
+    @property
+    def desired_jog(self) -> str:
+        """A person's jog requests (protocol.messages.Jog); safety takes them from the jog identity only."""
+        return self._k("jog/request")
+
     # safety
     @property
     def robot_command(self) -> str:

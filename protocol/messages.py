@@ -28,7 +28,7 @@ from protocol.conventions import AngularConvention, Frame
 #: 6: the hand's fingers, a second actuator group: RobotCommand.fingers, RobotState.fingers.
 #: 7: the grasp task: TaskPlan grasp and release, TaskStatus.grasp (the hand's verdict); SimObjects.
 #: 8: contact detection: RobotState.contact (the robot's momentum observer, its residuals and its contacts).
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 
 #: The most joints an arm has (the Kinova API's AngularInfo: Actuator1..7). A joint vector on the wire has the
 #: robot's arm's length (RobotState.arm: 6 for the j2n6s300, 7 for the j2s7s300); each reader checks it against the
@@ -472,6 +472,11 @@ SourceName = Annotated[str, msgspec.Meta(pattern=r"^[a-z][a-z0-9_\-]{0,31}(/[a-z
 SERVO_SOURCE = "controller/servo"
 
 
+def declared_source(source: str) -> str:
+    """The declared command source a command's ``source`` names (``controller/probe`` → ``controller``)."""
+    return source.split("/", 1)[0]
+
+
 class FingerMode(str, enum.Enum):
     """How a finger command's values are read (Kinova's HAND_MODE: POSITION_MODE, VELOCITY_MODE)."""
 
@@ -515,6 +520,62 @@ class JointVelocity(Message):
     source: SourceName = SERVO_SOURCE
     #: the hand's part that goes with it, as a desired twist's
     fingers: Optional[FingerCommand] = None
+
+
+#: the person's joystick: what a jog's commands are unless they say otherwise (``jog/<device>``)
+JOG_SOURCE = "jog/stick"
+#: the largest speed a jog may ask, each axis (m/s, rad/s): the wire's bound, far above any arm's (safety limits
+#: what the arm is given; services/jog/jog.yaml says what a stick asks)
+MAX_JOG_SPEED = 2.0
+JogComponent = Annotated[float, msgspec.Meta(ge=-MAX_JOG_SPEED, le=MAX_JOG_SPEED)]
+JogVec3 = tuple[JogComponent, JogComponent, JogComponent]
+
+
+class JogMode(str, enum.Enum):
+    """What the stick moves, as Kinova's joystick modes do (its mode lists: translation, wrist, fingers)."""
+
+    #: the hand along the base's X, Y, Z (the mixed frame's linear part)
+    TRANSLATION = "translation"
+    #: the hand about its own axes (the mixed frame's rotation, ω in the end-effector frame)
+    WRIST = "wrist"
+    #: the fingers, closing (positive) or opening, all at one rate or each its own
+    FINGERS = "fingers"
+
+
+#: Kinova's joystick speed levels (its speed ×2 / ÷2 buttons): 1 the slowest
+JOG_SPEED_LEVELS = (1, 2, 3)
+
+
+class Jog(Message):
+    """A person's velocity request from a stick (``Keys.desired_jog``): stamped and sequenced by its sender
+    (``header.seq`` rises with every message; ``header.source_stamp_ns``: when the device was last heard, which a
+    frozen or unplugged device stops moving on), in the mixed frame: ``linear`` along the base's axes (m/s),
+    ``angular`` about the hand's own (ω, rad/s), ``finger_rate`` every finger's (rad/s, positive closes, as
+    Kinova's stick moves the fingers together). Only the
+    motion of its ``mode`` may be non-zero; with the dead-man not held it asks for rest, whatever its axes.
+    Safety limits it as any command (services/safety) and moves the arm only while the dead-man is held."""
+
+    header: Header
+    mode: JogMode
+    deadman: bool
+    speed_level: Annotated[int, msgspec.Meta(ge=1, le=len(JOG_SPEED_LEVELS))] = 1
+    source: SourceName = JOG_SOURCE
+    linear: JogVec3 = (0.0, 0.0, 0.0)
+    angular: JogVec3 = (0.0, 0.0, 0.0)
+    finger_rate: JogComponent = 0.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        moving = {JogMode.TRANSLATION: any(self.linear), JogMode.WRIST: any(self.angular),
+                  JogMode.FINGERS: self.finger_rate != 0.0}
+        others = [mode.value for mode, moves in moving.items() if moves and mode is not self.mode]
+        if others:
+            raise ValueError(f"a {self.mode.value} jog moves only its own mode's part, this one also {others}")
+
+    @property
+    def at_rest(self) -> bool:
+        """It asks for no motion (its dead-man released, or its axes centred)."""
+        return not self.deadman or not (any(self.linear) or any(self.angular) or self.finger_rate != 0.0)
 
 
 class CommandMode(str, enum.Enum):
@@ -568,17 +629,22 @@ class ControllerState(str, enum.Enum):
     #: the robot runs another arm than this controller was started for (or one it has no description of): zero
     #: output, until it is restarted for that arm
     WRONG_ARM = "wrong_arm"
+    #: the person took control (safety says another source is in control): the task waits, zero output, until it
+    #: is resumed (``resume_task``)
+    PAUSED = "paused"
 
 
 class TaskState(str, enum.Enum):
     IDLE = "idle"
     RUNNING = "running"
+    #: started, and waiting: another source (the person's stick) took control; only a resume goes on with it
+    PAUSED = "paused"
 
 
-#: the controller's task functions (``Keys.controller_api``): start and stop take a TaskRequest, get_task nothing;
-#: each answers a TaskStatus
-START_TASK, STOP_TASK, GET_TASK = "start_task", "stop_task", "get_task"
-TASK_FUNCTIONS = (START_TASK, STOP_TASK, GET_TASK)
+#: the controller's task functions (``Keys.controller_api``): start, stop and resume take a TaskRequest, get_task
+#: nothing; each answers a TaskStatus
+START_TASK, STOP_TASK, GET_TASK, RESUME_TASK = "start_task", "stop_task", "get_task", "resume_task"
+TASK_FUNCTIONS = (START_TASK, STOP_TASK, GET_TASK, RESUME_TASK)
 
 
 class TaskPlan(str, enum.Enum):

@@ -107,6 +107,8 @@ QUIET_INPUTS = {
                                                                               [-0.1, 0.1]], depth_m=0.3),
     m.JointVelocity: m.JointVelocity(header=m.Header(seq=1, stamp_ns=1), velocities=[0.0] * ARM.n_joints),
     m.TorqueCommand: m.TorqueCommand(header=m.Header(seq=1, stamp_ns=1), torques=[0.0] * ARM.n_joints),
+    m.Jog: m.Jog(header=m.Header(seq=1, stamp_ns=1, source_stamp_ns=1), mode=m.JogMode.TRANSLATION, deadman=True,
+                 linear=(0.0, 0.05, 0.0)),
 }
 
 

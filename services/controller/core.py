@@ -23,8 +23,10 @@ from protocol.messages import (
     FeatureStatus,
     MotionLimits,
     RobotState,
+    SERVO_SOURCE,
     TaskRequest,
     TaskStatus,
+    declared_source,
 )
 from services.controller import ibvs
 from services.controller.law import ConstraintAbort, LawOutput, ServoInput
@@ -127,6 +129,23 @@ class ControllerCore:
         self._reset_law()
         return reply
 
+    def resume_task(self, request: TaskRequest) -> TaskStatus:
+        reply = self.task.resume(request)
+        if reply.ok:
+            self._reset_law()
+        return reply
+
+    def observe_control(self, in_control: str) -> Optional[str]:
+        """Safety says who is in control (``SafetyStatus.in_control``): another source than this controller (the
+        person's stick) pauses a running task. Why it paused, or None."""
+        if not in_control or declared_source(in_control) == declared_source(SERVO_SOURCE):
+            return None
+        why = f"{in_control} took control"
+        if not self.task.pause(why):
+            return None
+        self._reset_law()
+        return why
+
     def _reset_law(self) -> None:
         if self.law is not None:
             self.law.reset()
@@ -149,6 +168,9 @@ class ControllerCore:
             wrong = self.take_arm(state)
             if wrong:
                 return zero(ControllerState.WRONG_ARM, wrong, reset=True)
+        if self.task.paused:
+            return zero(ControllerState.PAUSED, f"task {self.task.count} paused: {self.task.reason} "
+                                                "(mfvs task resume)")
         if not self.task.running:
             return zero(ControllerState.IDLE, "no task running (mfvs task start)")
         phase = self.task.phase
@@ -243,6 +265,8 @@ class ControllerCore:
         t_s = now_ns * 1e-9
         if phase.target_p is None:
             phase.begin(R_be, p, camera_in_ee, t_s)
+        elif phase.started_s is None:  # resumed after a pause: the rest of the way from here
+            phase.resume_at(p, t_s)
         move = phase.step(R_be, p, float(np.linalg.norm((J_base @ np.asarray(state.dq))[:3])), t_s)
         if move.failure:
             return self._failed(phase, move.failure)

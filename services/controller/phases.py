@@ -140,6 +140,9 @@ class ServoPhase:
         #: converged below this per-point RMS error (None: the controller's threshold)
         self.error_rms = error_rms
 
+    def restart(self) -> None:
+        """A resumed servo goes on from the view it has (the core resets the law's memory)."""
+
 
 @dataclass
 class HandStep:
@@ -166,6 +169,10 @@ class HandPhase:
         self.detector = detector
         self.hand = detector.hand
         self.started_s: Optional[float] = None
+
+    def restart(self) -> None:
+        """Resumed after a pause: its time allowed starts again (a fresh detector, where it has one)."""
+        self.started_s = None
 
     def step(self, t_s: float) -> HandStep:
         """A frame of the phase at ``t_s`` (the state's stamp, s), on the detector's verdict now."""
@@ -243,17 +250,20 @@ class MovePhase:
     driven_by = "state"
 
     def __init__(self, displacement_m, frame: MoveFrame, config: MoveConfig, name: str = "move",
-                 detector: Optional[GraspDetector] = None) -> None:
+                 detector: Optional[GraspDetector] = None, needs_previous: bool = False) -> None:
         #: what the phase is called (a grasp's approach and lift are moves); the grasp detector that watches the
         #: hand while it moves (a lift), if any
         self.name = name
         self.detector = detector
+        #: its displacement is meant from where the previous phase ended (a grasp's approach, from the converged
+        #: pre-grasp view): resumed after a pause, the task goes back to that phase (services.controller.task)
+        self.needs_previous = needs_previous
         self.displacement = np.asarray(displacement_m, dtype=float).reshape(3)
         self.frame = MoveFrame(frame)
         self.config = config
         self.target_p: Optional[np.ndarray] = None
         self.target_R: Optional[np.ndarray] = None
-        self.started_s = 0.0
+        self.started_s: Optional[float] = 0.0
         self.allowed_s = 0.0
 
     def begin(self, R_be: np.ndarray, p: np.ndarray, camera_in_ee: np.ndarray, t_s: float) -> None:
@@ -268,6 +278,19 @@ class MovePhase:
         self.started_s = t_s
         cfg = self.config
         self.allowed_s = cfg.time_factor * float(np.linalg.norm(offset)) / cfg.speed_mps + cfg.grace_s
+
+    def restart(self) -> None:
+        """Resumed after a pause: toward the same target (a lift to where it was going), its time allowed anew from
+        where the arm is then; a move that needs its previous phase is begun anew after it."""
+        if self.needs_previous:
+            self.target_p = self.target_R = None
+        self.started_s = None
+
+    def resume_at(self, p: np.ndarray, t_s: float) -> None:
+        """The time allowed for what is left of the way, from ``p`` at ``t_s``."""
+        cfg = self.config
+        self.started_s = t_s
+        self.allowed_s = cfg.time_factor * float(np.linalg.norm(self.target_p - p)) / cfg.speed_mps + cfg.grace_s
 
     def step(self, R_be: np.ndarray, p: np.ndarray, ee_speed_mps: float, t_s: float) -> MoveStep:
         cfg = self.config
@@ -302,7 +325,7 @@ def phases_for(request: TaskRequest, move: MoveConfig, grasp: Optional[GraspConf
         detector = GraspDetector(hand, grasp.detector)  # one for the grasp, the lift and the hold
         moving = grasp.move(move)
         return [ServoPhase(until_converged=True, error_rms=grasp.reach_error_rms),
-                MovePhase((0.0, 0.0, grasp.approach_m), MoveFrame.TOOL, moving, name="approach"),
+                MovePhase((0.0, 0.0, grasp.approach_m), MoveFrame.TOOL, moving, name="approach", needs_previous=True),
                 GraspPhase(detector, grasp.grasp_grace_s),
                 MovePhase((0.0, 0.0, grasp.lift_m), MoveFrame.BASE, moving, name="lift", detector=detector),
                 HoldPhase(detector)]

@@ -30,6 +30,7 @@ from protocol.messages import (
     JointVelocity,
     ProtocolError,
     RobotState,
+    SafetyStatus,
     TaskRequest,
     Twist,
     encode,
@@ -86,7 +87,7 @@ class ControllerConfig(ServiceConfig):
 class ControllerService(Service):
     name = "controller"
     PORTS = Ports(consumes=(Port("robot_state", RobotState), Port("camera_info", CameraInfo),
-                            Port("features", Features)),
+                            Port("features", Features), Port("safety_status", SafetyStatus)),
                   produces=(Port("desired_twist", Twist), Port("desired_joint_velocity", JointVelocity),
                             Port("controller_status", ControllerStatus)),
                   answers=(Port("controller_api"),))
@@ -122,6 +123,7 @@ class ControllerService(Service):
         self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state", sim_stamped=True)
         self.subscribe(keys.camera_info, CameraInfo, self._on_camera_info, "camera_info")
         self.subscribe(keys.features, Features, self._on_features, "features")
+        self.subscribe(keys.safety_status, SafetyStatus, self._on_safety_status, "safety_status")
         for function in messages.TASK_FUNCTIONS:
             self.queryable(keys.controller_api(function), self._on_task_query)
 
@@ -154,6 +156,19 @@ class ControllerService(Service):
         self._log_task(reply, request)
         return reply
 
+    def resume_task(self, request: TaskRequest) -> messages.TaskStatus:
+        with self._iteration_lock:
+            reply = self.core.resume_task(request)
+        self._log_task(reply, request)
+        return reply
+
+    def _on_safety_status(self, status: SafetyStatus, _recv_ns: int) -> None:
+        with self._iteration_lock:
+            why = self.core.observe_control(status.in_control)
+        if why is not None:
+            self.counters.inc("task.paused")
+            self.log.warning("task %d paused: %s (mfvs task resume goes on with it)", self.core.task.count, why)
+
     def _log_task(self, reply: messages.TaskStatus, request: TaskRequest) -> None:
         why = f": {request.reason}" if request.reason else ""
         self.log.info("task: %s (%s%s)", reply.message, request.operator, why)
@@ -165,6 +180,8 @@ class ControllerService(Service):
                 reply = self.start_task(query_argument(query, function, TaskRequest))
             elif function == messages.STOP_TASK:
                 reply = self.stop_task(query_argument(query, function, TaskRequest))
+            elif function == messages.RESUME_TASK:
+                reply = self.resume_task(query_argument(query, function, TaskRequest))
             else:
                 query_argument(query, function, None)
                 with self._iteration_lock:

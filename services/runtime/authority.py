@@ -33,7 +33,8 @@ from protocol import messages as m
 from protocol.keys import Keys
 from services.paths import DEPLOY
 
-DEFAULT_SERVICES = ("safety", "robot_sim", "robot_gateway", "torque_controller", "vision", "controller", "operator")
+DEFAULT_SERVICES = ("safety", "robot_sim", "robot_gateway", "torque_controller", "vision", "controller", "operator",
+                    "jog")
 
 #: every message kind zenoh's access control knows; the allow rule must list them all under default deny
 _ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
@@ -69,6 +70,8 @@ def writes(keys: Keys, services=DEFAULT_SERVICES) -> dict[str, list[str]]:
         "torque_controller": [keys.lowlevel_command],
         # the person (and their tools): the e-stop and its reset, and the goal (which vision validates)
         "operator": [keys.estop, keys.vision_goal],
+        # the person's stick (`mfvs jog`): its requests, which safety takes from this identity's source alone
+        "jog": [keys.desired_jog],
     }
 
 
@@ -93,7 +96,9 @@ def queries(keys: Keys) -> dict[str, list[str]]:
             # the person starts and stops the servo task (the stack comes up idle), and runs the commissioning check
             # (the robot moves itself for it, at their confirmation)
             "operator": [keys.vision_api("set_goal"), keys.vision_api("teach"), keys.controller_api(m.START_TASK),
-                         keys.controller_api(m.STOP_TASK), keys.robot_check_arm],
+                         keys.controller_api(m.STOP_TASK), keys.controller_api(m.RESUME_TASK), keys.robot_check_arm],
+            # the person goes on with a task their stick paused, by one of its buttons
+            "jog": [keys.controller_api(m.RESUME_TASK)],
             # the torque-mode setup (the JACO thesis's Table 5.1) is made by the client that commands the torques
             "torque_controller": sorted(keys.robot_api(f) for f in kinova.TORQUE_SETUP_FUNCTIONS)}
 

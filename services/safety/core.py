@@ -20,11 +20,14 @@ from typing import Optional, Union
 
 import numpy as np
 
-from protocol.conventions import Frame
+from protocol.conventions import AngularConvention, Frame
 from protocol.messages import (
     CommandMode,
     EStop,
+    FingerCommand,
+    FingerMode,
     Header,
+    Jog,
     JointVelocity,
     MOTION_MODES,
     RobotCommand,
@@ -37,21 +40,51 @@ from services.model.kinematics import ArmKinematics
 from services.model.limits import declared as declared_limits
 from services.runtime.state_history import StateHistory
 from services.safety.checks import CommandChecker, Decision, MotionMonitor, SafetyLimits
-from services.safety.sources import Claim, CommandSource, Freshness, SourceRegistry, default_sources
+from services.safety.sources import Claim, CommandSource, Freshness, SourceRegistry, declared_name, default_sources
 
 
 class HeldCommand:
-    """A desired command as its source sent it, the key it came on, and when it arrived."""
+    """A desired command as its source sent it, the key it came on, and when it arrived.
 
-    def __init__(self, twist: Optional[Twist], joint: Optional[JointVelocity], recv_ns: int) -> None:
+    ``engaged``: whether its source asks to move at all (a jog's dead-man held; always for the controller's).
+    ``conventions``: angular conventions its command type defines beside the robot's (a jog's ω)."""
+
+    def __init__(self, twist: Optional[Twist], joint: Optional[JointVelocity], recv_ns: int, key: str = "",
+                 engaged: bool = True, conventions: tuple[AngularConvention, ...] = ()) -> None:
         self.twist = twist
         self.joint = joint
         self.recv_ns = recv_ns
         #: the key it came on (a Keys attribute), and the source it names
-        self.key = "desired_twist" if twist is not None else "desired_joint_velocity"
+        self.key = key or ("desired_twist" if twist is not None else "desired_joint_velocity")
         self.source_name = twist.source if twist is not None else joint.source
         #: the hand's part that goes with it (None: the fingers keep their targets)
         self.fingers = twist.fingers if twist is not None else joint.fingers
+        self.engaged = engaged
+        self.conventions = conventions
+
+    @classmethod
+    def from_jog(cls, jog: Jog, recv_ns: int, n_fingers: Optional[int]) -> "HeldCommand":
+        """A person's jog as the mixed twist it asks for (ω about the hand's own axes), with every finger at its
+        finger rate (``n_fingers``: the robot's hand's, None before a state declared it: a finger rate is then
+        refused by the finger check, not guessed)."""
+        fingers = None
+        if jog.finger_rate != 0.0 and jog.deadman:
+            fingers = FingerCommand(mode=FingerMode.VELOCITY, values=[jog.finger_rate] * (n_fingers or 1))
+        twist = Twist(header=jog.header, frame=Frame.MIXED, angular=AngularConvention.OMEGA, linear=jog.linear,
+                      rotational=jog.angular, source=jog.source, fingers=fingers)
+        return cls(twist, None, recv_ns, key="desired_jog", engaged=jog.deadman,
+                   conventions=(AngularConvention.OMEGA,))
+
+    @property
+    def at_rest(self) -> bool:
+        """It asks for no motion: its source not engaged, or every velocity zero and no finger part."""
+        if not self.engaged:
+            return True
+        if self.fingers is not None:
+            return False
+        if self.twist is not None:
+            return not (any(self.twist.linear) or any(self.twist.rotational))
+        return not any(self.joint.velocities)
 
     @property
     def source(self) -> Header:
@@ -62,7 +95,8 @@ class HeldCommand:
         q, robot = np.asarray(state.q, dtype=float), declared_limits(state, checker.kin.arm)
         if self.twist is not None:
             t = self.twist
-            return checker.check_twist(t.frame, t.angular, (*t.linear, *t.rotational), q, dt, robot)
+            return checker.check_twist(t.frame, t.angular, (*t.linear, *t.rotational), q, dt, robot,
+                                       also_accepted=self.conventions)
         return checker.check_joint_velocity(self.joint.velocities, q, dt, robot)
 
 
@@ -167,6 +201,12 @@ class SafetyCore:
             return [self._refuse(f"liveliness: {name} is gone"), self._stop_now()]
         return []
 
+    def jog(self, jog: Jog, recv_ns: int, now_ns: int) -> list[Action]:
+        """A person's jog request: a desired command of its source like any other, taken while its dead-man is
+        held (:meth:`desired`)."""
+        hand = self.arm.hand if self.arm is not None else None
+        return self.desired(HeldCommand.from_jog(jog, recv_ns, hand.n_fingers if hand is not None else None), now_ns)
+
     def state(self, state: RobotState, now_ns: int) -> list[Action]:
         """A robot state; in lockstep ``now_ns`` is its stamp, and it is answered (then the commands that waited for
         it); a state answered before, with what was last sent at its tick."""
@@ -269,8 +309,14 @@ class SafetyCore:
             return [refused, self._send(Decision(refusal=self.last_refusal), candidate)]  # the frame's answer
         declared, why = self.registry.admit(candidate.source_name, candidate.key, candidate.fingers is not None)
         if declared is not None:
-            why = (self._sequence_problem(declared, candidate)
-                   or self.claim.refusal(declared, candidate.source_name, holding=self.held is not None) or "")
+            why = self._sequence_problem(declared, candidate) or ""
+        if declared is not None and not why and not candidate.engaged:
+            return self._disengaged(declared, candidate)
+        if declared is not None and not why:
+            why = self.claim.refusal(declared, candidate.source_name, holding=self.held is not None,
+                                     at_rest=candidate.at_rest) or ""
+            if why and candidate.at_rest:  # a source waiting at rest while another is in control: no refusal
+                return [Count("claims.waiting")]
         if why:  # not a command for the arm now: refused, and the source in control (if any) keeps it
             refused = self._refuse(why)
             return [refused] if self.held is not None else [refused, self._send(Decision(refusal=why), candidate)]
@@ -286,6 +332,16 @@ class SafetyCore:
         self.held = None
         # the stop carries the refused command's source: it is the pipeline's answer to that frame
         return [self._refuse(reason), self._send(Decision(refusal=reason), candidate)]
+
+    def _disengaged(self, declared: CommandSource, candidate: HeldCommand) -> list[Action]:
+        """A source that does not ask to move (a jog whose dead-man is released): if it is in control, the arm
+        stops now and it lets go; otherwise it changes nothing (a person's stick at rest while the servo runs)."""
+        held = self.held
+        if held is None or declared_name(held.source_name) != declared.name:
+            return [Count("released.idle")]
+        self.held = None
+        why = f"deadman: {candidate.source_name} released"
+        return [Count("released.stops"), self._refuse(why), self._send(Decision(refusal=why), candidate)]
 
     def cycle(self, now_ns: int, stamp_ns: Optional[int] = None, state: Optional[RobotState] = None) -> list[Action]:
         """One control cycle: resend the held command if it is still fresh and allowed, else stop."""

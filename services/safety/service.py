@@ -28,7 +28,7 @@ import msgspec
 import zenoh
 
 from protocol.conventions import ClockMode
-from protocol.messages import EStop, JointVelocity, RobotCommand, RobotState, SafetyStatus, Twist
+from protocol.messages import EStop, Jog, JointVelocity, RobotCommand, RobotState, SafetyStatus, Twist
 from protocol.keys import PIPELINE_SERVICES, last_chunk
 from services.runtime.pacing import request_realtime
 from services.model.arm import check_arm_name
@@ -68,7 +68,8 @@ class SafetyConfig(ServiceConfig):
 class SafetyService(Service):
     name = "safety"
     PORTS = Ports(consumes=(Port("robot_state", RobotState), Port("desired_twist", Twist),
-                            Port("desired_joint_velocity", JointVelocity), Port("estop", EStop)),
+                            Port("desired_joint_velocity", JointVelocity), Port("desired_jog", Jog),
+                            Port("estop", EStop)),
                   produces=(Port("robot_command", RobotCommand), Port("safety_status", SafetyStatus)))
     follows_sim_clock = False  # it answers the robot's ticks itself and sets its clock from them
 
@@ -93,6 +94,7 @@ class SafetyService(Service):
         self.subscribe(keys.robot_state, RobotState, self._on_state, "robot_state", sim_stamped=True)
         self.subscribe(keys.desired_twist, Twist, self._on_twist, "twist")
         self.subscribe(keys.desired_joint_velocity, JointVelocity, self._on_joint_velocity, "joint_velocity")
+        self.subscribe(keys.desired_jog, Jog, self._on_jog, "jog")
         self.subscribe(keys.estop, EStop, self._on_estop, "estop")
         self._declared.append(self.session.liveliness().declare_subscriber(
             keys.liveliness_all, self._on_liveliness, history=True))
@@ -148,12 +150,24 @@ class SafetyService(Service):
         with self.lock:
             self._carry_out(self.core.desired(HeldCommand(None, command, recv_ns), self.clock.now_ns()))
 
+    def _on_jog(self, jog: Jog, recv_ns: int) -> None:
+        with self.lock:
+            self._carry_out(self.core.jog(jog, recv_ns, self.clock.now_ns()))
+
     def _cycle(self) -> None:
         with self.lock:
             self._carry_out(self.core.cycle(self.clock.now_ns()))
 
     # ------------------------------------------------------------------ output
     def _carry_out(self, actions: list[Action]) -> None:
+        """Carries out the core's actions; a change of who is in control is said at once (the controller pauses
+        its task on it, and a touch of the stick may be shorter than a status period). Called under the lock."""
+        before = self.core.in_control
+        self._do(actions)
+        if self.core.in_control != before and hasattr(self, "status_pub"):
+            self.status_pub.put(self._status_locked())
+
+    def _do(self, actions: list[Action]) -> None:
         for action in actions:
             if isinstance(action, Send):
                 now = self.clock.now_ns() if action.stamp_ns is None else action.stamp_ns
@@ -161,7 +175,7 @@ class SafetyService(Service):
                     if isinstance(leaving, Send):
                         self._publish(leaving, now)
                     else:
-                        self._carry_out([leaving])
+                        self._do([leaving])
             elif isinstance(action, Refused):
                 self.counters.inc(f"refused.{action.kind}")
                 self.limited_log.warning(f"refuse:{action.kind}", "safety: stop: %s", action.reason)
@@ -214,7 +228,10 @@ class SafetyService(Service):
 
     def status_message(self) -> SafetyStatus:
         with self.lock:
-            core = self.core
-            return SafetyStatus(header=self.header("status"), state=core.safety_state,
-                                active_limits=list(core.active_limits)[:32], last_refusal=core.last_refusal[:256],
-                                counters=self.counters.snapshot(), in_control=core.in_control)
+            return self._status_locked()
+
+    def _status_locked(self) -> SafetyStatus:
+        core = self.core
+        return SafetyStatus(header=self.header("status"), state=core.safety_state,
+                            active_limits=list(core.active_limits)[:32], last_refusal=core.last_refusal[:256],
+                            counters=self.counters.snapshot(), in_control=core.in_control)

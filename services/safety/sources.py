@@ -11,6 +11,9 @@ One source is in control at a time (:class:`Claim`): the one whose command safet
 only with a higher priority, or once the holder has let go (its command refused, stale or stopped: safety holds
 nothing of it any more); each change is counted and said in ``SafetyStatus.in_control``. A lower or equal priority
 source's command while another holds is refused, naming the holder: it is not a stop of the holder's motion.
+A source that was displaced by a higher priority (the servo, by the person's stick) takes control again only with a
+command at rest: the person letting go of the stick never hands the arm back to a motion they interrupted; the
+controller pauses its task when it hears that another source is in control, and only a resume moves it on.
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ import enum
 import re
 from typing import Optional
 
+from protocol.messages import declared_source as declared_name
 from services.runtime.config import ConfigStruct
 
 
@@ -74,19 +78,18 @@ class CommandSource(ConfigStruct):
 
 
 #: what each command key carries
-KEY_DRIVES = {"desired_twist": Drives.TWIST, "desired_joint_velocity": Drives.JOINT_VELOCITY}
+KEY_DRIVES = {"desired_twist": Drives.TWIST, "desired_joint_velocity": Drives.JOINT_VELOCITY,
+              "desired_jog": Drives.TWIST}
 
 
 def default_sources() -> list[CommandSource]:
-    """The controller: the visual servo and its task's phases (a grasp's fingers among them), from images."""
+    """The controller: the visual servo and its task's phases (a grasp's fingers among them), from images; the
+    person's stick (services/jog): the hand and the fingers, from a device, above the servo."""
     return [CommandSource(name="controller", keys=["desired_twist", "desired_joint_velocity"],
-                          drives=[Drives.TWIST, Drives.JOINT_VELOCITY, Drives.FINGERS], priority=10, freshness=Freshness.IMAGE,
-                          identity="controller")]
-
-
-def declared_name(source: str) -> str:
-    """The declared source a command's ``source`` names (``controller/probe`` → ``controller``)."""
-    return source.split("/", 1)[0]
+                          drives=[Drives.TWIST, Drives.JOINT_VELOCITY, Drives.FINGERS], priority=10,
+                          freshness=Freshness.IMAGE, identity="controller"),
+            CommandSource(name="jog", keys=["desired_jog"], drives=[Drives.TWIST, Drives.FINGERS], priority=20,
+                          freshness=Freshness.DEVICE, identity="jog")]
 
 
 class SourceRegistry:
@@ -130,19 +133,26 @@ class Claim:
         self._priority = 0
         #: how many times control changed hands (not counting a source letting go)
         self.switches = 0
+        #: declared sources a higher priority took control from, and who: each retakes control only at rest
+        self.displaced: dict[str, str] = {}
 
-    def refusal(self, candidate: CommandSource, source: str, holding: bool) -> Optional[str]:
+    def refusal(self, candidate: CommandSource, source: str, holding: bool, at_rest: bool = False) -> Optional[str]:
         """Why ``source`` (of ``candidate``) may not take control now, or None. ``holding``: safety holds the
-        holder's command (a holder that let go holds nothing)."""
-        if not holding or not self.holder or declared_name(self.holder) == candidate.name:
-            return None
-        if candidate.priority > self._priority:
-            return None
-        return f"claim: {self.holder} is in control (priority {self._priority} ≥ {candidate.priority})"
+        holder's command (a holder that let go holds nothing); ``at_rest``: the command asks for no motion."""
+        if holding and self.holder and declared_name(self.holder) != candidate.name \
+                and candidate.priority <= self._priority:
+            return f"claim: {self.holder} is in control (priority {self._priority} ≥ {candidate.priority})"
+        if candidate.name in self.displaced and not at_rest and declared_name(self.holder) != candidate.name:
+            return (f"claim: {candidate.name} was displaced by {self.displaced[candidate.name]} and takes control "
+                    "again only from rest (its task pauses)")
+        return None
 
     def take(self, candidate: CommandSource, source: str) -> bool:
         """``source`` is in control now; whether control changed hands."""
         changed = bool(self.holder) and declared_name(self.holder) != candidate.name
+        if changed and candidate.priority > self._priority:
+            self.displaced[declared_name(self.holder)] = source
+        self.displaced.pop(candidate.name, None)
         self.switches += changed
         self.holder, self._priority = source, candidate.priority
         return changed

@@ -328,7 +328,7 @@ def test_a_command_from_an_undeclared_source_is_refused_before_any_check_and_mov
     safety = core()
     safety.state(state(10 * S), 10 * S)
     out = safety.desired(sourced(10 * S, "intruder"), 10 * S)
-    assert refusals(out) == ["source: 'intruder' is not a declared command source (controller)"]
+    assert refusals(out) == ["source: 'intruder' is not a declared command source (controller, jog)"]
     assert [c.mode for c in sends(out)] == [m.CommandMode.STOP] and safety.in_control == ""
     joint = HeldCommand(None, m.JointVelocity(header=m.Header(stamp_ns=10 * S, source_stamp_ns=10 * S),
                                               velocities=[0.0] * 7, source="helper"), 10 * S)
@@ -349,13 +349,20 @@ def test_a_higher_priority_source_takes_control_and_a_lower_one_is_refused_witho
     assert refusals(refused) == ["claim: helper/hold is in control (priority 20 ≥ 10)"]
     assert sends(refused) == [] and safety.in_control == "helper/hold"  # the holder's motion goes on
     assert sends(safety.cycle(t + 30_000_000))[0].twist.linear[1] > 0
-    # the holder lets go (its command goes stale): the controller takes control again, no switch counted as a
-    # take-over (nobody held it)
+    # the holder lets go (its command goes stale): the displaced controller takes control again only from rest
+    # (its task pauses when it hears who took control: the person letting go never resumes what they interrupted),
+    # no switch counted as a take-over (nobody held it)
     safety.cycle(t + 200_000_000)
     assert safety.in_control == ""
     safety.state(state(t + 200_000_000), t + 200_000_000)
-    safety.desired(sourced(t + 210_000_000, "controller/servo"), t + 210_000_000)
+    refused = safety.desired(sourced(t + 210_000_000, "controller/servo"), t + 210_000_000)
+    assert refusals(refused) == ["claim: controller was displaced by helper/hold and takes control again only from "
+                                 "rest (its task pauses)"]
+    assert [c.mode for c in sends(refused)] == [m.CommandMode.STOP] and safety.in_control == ""
+    safety.desired(sourced(t + 220_000_000, "controller/servo", linear=(0.0, 0.0, 0.0)), t + 220_000_000)
     assert safety.in_control == "controller/servo" and safety.claim.switches == 1
+    moving = safety.desired(sourced(t + 230_000_000, "controller/servo"), t + 230_000_000)
+    assert sends(moving)[-1].twist.linear[0] > 0
 
 
 def test_sources_are_declared_once_on_keys_that_exist():
