@@ -196,3 +196,46 @@ def test_a_release_during_the_hold_replaces_what_is_left_of_the_grasp_task():
     assert reply.ok and "releasing" in reply.message and reply.task == 1 and reply.phase == "release"
     step = core.step(lost_features(t), hand_state(t, 0.7, 1.0, closed), CAMERA_IN_EE, t)
     assert step.phase == "release" and step.output.fingers.values == [0.0] * 3
+
+
+# ------------------------------------------------------------------------------------------------ pause and resume
+def test_another_source_in_control_pauses_the_task_and_only_a_resume_goes_on_from_where_the_arm_is():
+    core = ControllerCore(ControllerConfig(arm="j2s7s300"))
+    core.start_task(m.TaskRequest(operator="test", plan=m.TaskPlan.MOVE, move_m=(0.0, 0.0, 0.05),
+                                  move_frame=m.MoveFrame.BASE), 0)
+    q0 = ARM.home.copy()
+    t = 10_000_000_000
+    assert core.step(lost_features(t), state(q0, np.zeros(7), t), CAMERA_IN_EE, t).output is not None
+    assert core.observe_control("controller/move") is None and core.task.running  # itself: nothing
+    assert core.observe_control("jog/stick") == "jog/stick took control" and core.task.paused
+    paused = core.step(lost_features(t + PERIOD_NS), state(q0, np.zeros(7), t + PERIOD_NS), CAMERA_IN_EE,
+                       t + PERIOD_NS)
+    assert paused.kind is m.ControllerState.PAUSED and paused.output is None and "mfvs task resume" in paused.detail
+    assert core.task.status().state is m.TaskState.PAUSED and core.task.status().phase == "move"
+    # the person let go (someone else, or nobody, in control): still paused
+    assert core.observe_control("") is None and core.task.paused
+    refused = core.start_task(m.TaskRequest(operator="test"), t)
+    assert not refused.ok and "paused" in refused.message
+    # the person drove the arm 3 cm sideways; the resumed move goes to the target it had, in the time the rest takes
+    R, p = KIN.pose(q0)
+    J = KIN.jacobian_base(q0)
+    q_driven = q0 + np.linalg.pinv(J) @ np.array([0.0, 0.03, 0.0, 0.0, 0.0, 0.0])
+    resumed = core.resume_task(m.TaskRequest(operator="test", reason="button"))
+    assert resumed.ok and resumed.state is m.TaskState.RUNNING and "resumed at its move phase" in resumed.message
+    q, step, _ = run_move(core, q_driven)
+    assert core.task.outcome == "done", step.detail
+    assert np.linalg.norm(KIN.pose(q)[1] - (p + np.array([0.0, 0.0, 0.05]))) < 1e-3
+
+
+def test_a_grasp_paused_during_its_approach_resumes_from_the_reach_and_a_stop_ends_a_paused_task():
+    plan = phases_for(m.TaskRequest(operator="t", plan=m.TaskPlan.GRASP), MoveConfig(), GraspConfig(), HAND)
+    core = hand_core(plan)
+    core.task.index = 1  # converged: approaching
+    plan[1].target_p = np.zeros(3)
+    assert core.observe_control("jog/stick") is not None
+    reply = core.resume_task(m.TaskRequest(operator="test"))
+    assert reply.ok and core.task.phase is plan[0] and "resumed at its servo phase" in reply.message
+    assert plan[1].target_p is None  # begun anew from the pre-grasp view the reach converges to
+    core.observe_control("jog/stick")
+    assert core.stop_task(m.TaskRequest(operator="test")).state is m.TaskState.IDLE and core.task.outcome == "stopped"
+    assert not core.resume_task(m.TaskRequest(operator="test")).ok

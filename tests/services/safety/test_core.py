@@ -509,3 +509,104 @@ def test_losing_the_image_path_does_not_stop_a_device_in_control_and_lockstep_ru
     assert refusals(refused) == ["freshness: person/stick is a device's source, and this is a lockstep run (a "
                                  "person's device runs on wall time)"]
     assert lockstep.waiting == []
+
+
+# ------------------------------------------------------------------ a person's jog (services/jog)
+def jog(stamp_ns, seq, deadman=True, mode=m.JogMode.TRANSLATION, linear=(0.0, 0.0, 0.0), angular=(0.0, 0.0, 0.0),
+        finger_rate=0.0, device_ns=None) -> m.Jog:
+    return m.Jog(header=m.Header(seq=seq, stamp_ns=stamp_ns, source_stamp_ns=stamp_ns if device_ns is None
+                                 else device_ns), mode=mode, deadman=deadman, linear=linear, angular=angular,
+                 finger_rate=finger_rate)
+
+
+def jogging(lockstep=False) -> SafetyCore:
+    """Safety as shipped (the controller and the jog), a JACO-2 with its hand, every service alive."""
+    safety = core(lockstep)
+    safety.state(hand_state(10 * S), 10 * S)
+    return safety
+
+
+def test_a_jog_moves_the_hand_along_the_base_and_turns_it_about_its_own_axes_only_while_its_deadman_is_held():
+    safety = jogging()
+    t = 10 * S
+    moved = sends(safety.jog(jog(t, 1, linear=(0.0, 0.03, 0.0)), t, t))
+    assert [c.mode for c in moved] == [m.CommandMode.CARTESIAN_VELOCITY] and safety.in_control == "jog/stick"
+    assert moved[0].twist.angular is SafetyLimits().robot_convention and moved[0].twist.linear[1] > 0
+    assert moved[0].twist.linear[0] == 0.0 and moved[0].twist.linear[2] == 0.0  # its direction kept
+    released = safety.jog(jog(t + 10_000_000, 2, deadman=False, linear=(0.0, 0.03, 0.0)), t + 10_000_000,
+                          t + 10_000_000)
+    assert refusals(released) == ["deadman: jog/stick released"]
+    assert [c.mode for c in sends(released)] == [m.CommandMode.STOP] and safety.held is None
+    assert Count("released.stops") in released
+    # released and not in control: nothing happens, nothing is refused
+    assert safety.jog(jog(t + 20_000_000, 3, deadman=False), t + 20_000_000, t + 20_000_000) == \
+        [Count("released.idle")]
+    # ω about the hand's own z: at the home pose the hand's z is not the base's, and what the robot gets turns the
+    # hand about its own z
+    wrist = sends(safety.jog(jog(t + 30_000_000, 4, mode=m.JogMode.WRIST, angular=(0.0, 0.0, 0.2)),
+                             t + 30_000_000, t + 30_000_000))[0]
+    from services.model import frames
+
+    R, _ = ArmKinematics(ARM).pose(ARM.home)
+    omega_ee = frames.omega_ee_from_angular(np.array(wrist.twist.rotational), R, SafetyLimits().robot_convention)
+    assert omega_ee[2] > 0 and abs(omega_ee[0]) < 1e-9 and abs(omega_ee[1]) < 1e-9
+
+
+def test_a_jog_in_fingers_mode_moves_every_finger_at_its_rate_and_its_release_leaves_them_where_they_are():
+    safety = jogging()
+    t = 10 * S
+    closing = sends(safety.jog(jog(t, 1, mode=m.JogMode.FINGERS, finger_rate=0.5), t, t))[0]
+    assert closing.fingers == m.FingerCommand(mode=m.FingerMode.VELOCITY, values=[0.5] * ARM.hand.n_fingers)
+    assert not any(closing.twist.linear) and not any(closing.twist.rotational)
+    released = sends(safety.jog(jog(t + 10_000_000, 2, deadman=False, mode=m.JogMode.FINGERS, finger_rate=0.5),
+                                t + 10_000_000, t + 10_000_000))
+    assert [c.fingers for c in released] == [None]
+
+
+def test_a_jog_takes_control_from_the_servo_which_retakes_it_only_from_rest():
+    safety = jogging()
+    t = 10 * S
+    safety.desired(twist(t), t)
+    assert safety.in_control == "controller/servo"
+    safety.jog(jog(t + 10_000_000, 1), t + 10_000_000, t + 10_000_000)  # a touch: the dead-man, the stick centred
+    assert safety.in_control == "jog/stick" and safety.claim.switches == 1
+    assert not any(sends(safety.cycle(t + 20_000_000))[0].twist.linear)  # the servo's motion does not go on
+    waiting = safety.desired(twist(t + 30_000_000, linear=(0.0, 0.0, 0.0)), t + 30_000_000)
+    assert waiting == [Count("claims.waiting")]  # at rest, waiting: no refusal
+    assert refusals(safety.desired(twist(t + 40_000_000), t + 40_000_000)) == [
+        "claim: jog/stick is in control (priority 20 ≥ 10)"]
+    safety.jog(jog(t + 50_000_000, 2, deadman=False), t + 50_000_000, t + 50_000_000)  # let go
+    refused = safety.desired(twist(t + 60_000_000), t + 60_000_000)
+    assert refusals(refused) == ["claim: controller was displaced by jog/stick and takes control again only from "
+                                 "rest (its task pauses)"]
+    assert [c.mode for c in sends(refused)] == [m.CommandMode.STOP]
+    safety.desired(twist(t + 70_000_000, linear=(0.0, 0.0, 0.0)), t + 70_000_000)
+    assert safety.in_control == "controller/servo"
+
+
+def test_a_stale_or_frozen_jog_stops_and_one_from_another_source_name_or_in_lockstep_moves_nothing():
+    safety = jogging()
+    t = 10 * S
+    safety.jog(jog(t, 1, linear=(0.03, 0.0, 0.0)), t, t)
+    stale = safety.cycle(t + 110_000_000)
+    assert refusals(stale) == ["freshness: command is 110 ms old (budget 100 ms)"] and safety.held is None
+    safety.state(hand_state(t + 200_000_000), t + 200_000_000)
+    frozen = safety.jog(jog(t + 300_000_000, 2, linear=(0.03, 0.0, 0.0), device_ns=t), t + 300_000_000,
+                        t + 300_000_000)
+    assert [c.mode for c in sends(frozen)] == [m.CommandMode.STOP] and refusals(frozen)[0].startswith(
+        "freshness: its device was last heard 300 ms ago")
+    forged = m.Jog(header=m.Header(seq=3, stamp_ns=t + 300_000_000, source_stamp_ns=t + 300_000_000),
+                   mode=m.JogMode.TRANSLATION, deadman=True, linear=(0.03, 0.0, 0.0), source="controller/servo")
+    assert refusals(safety.jog(forged, t + 300_000_000, t + 300_000_000)) == [
+        "source: controller may not command on desired_jog"]
+    lockstep = jogging(lockstep=True)
+    assert refusals(lockstep.jog(jog(t, 1, linear=(0.03, 0.0, 0.0)), t, t))[0].startswith(
+        "freshness: jog/stick is a device's source, and this is a lockstep run")
+
+
+def test_a_jog_message_moves_only_its_own_modes_part():
+    with pytest.raises(ValueError, match="a translation jog moves only its own mode's part"):
+        jog(1, 1, linear=(0.1, 0.0, 0.0), angular=(0.0, 0.1, 0.0))
+    assert jog(1, 1, deadman=False, linear=(0.1, 0.0, 0.0)).at_rest
+    with pytest.raises(m.ProtocolError, match="linear"):  # beyond the wire's bound
+        m.decode(m.encode(jog(1, 1, linear=(3.0, 0.0, 0.0))), m.Jog)
