@@ -100,6 +100,7 @@ SERVICES = {
     "services.calibration": {"services.camera", "services.robot_sim"},  # the camera's files; the simulated rig
     # the task and the e-stop as `mfvs task` and `mfvs estop` reach them; the frames `mfvs view` names
     "services.ros2_bridge": {"services.controller", "services.safety", "services.observe"},
+    "services.jog": {"services.controller"},         # the stick's resume button asks the controller's task
 }
 
 #: the orchestration's folders (what starts, runs and reports the services) and the others each is built on; any of

@@ -7,6 +7,7 @@ import pytest
 from services.runtime.config import load_config, read_yaml
 from services.camera.service import CameraConfig
 from services.controller.service import ControllerConfig
+from services.jog.config import JogConfig
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig
 from services.ros2_bridge.service import Ros2BridgeConfig
@@ -16,7 +17,7 @@ from tests.helpers import REPO
 
 SHIPPED = {
     "robot_sim": RobotSimConfig, "vision": VisionConfig, "controller": ControllerConfig, "safety": SafetyConfig,
-    "robot_gateway": GatewayConfig, "camera": CameraConfig, "ros2_bridge": Ros2BridgeConfig,
+    "robot_gateway": GatewayConfig, "camera": CameraConfig, "ros2_bridge": Ros2BridgeConfig, "jog": JogConfig,
 }
 
 

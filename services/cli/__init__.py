@@ -18,6 +18,7 @@ from services.cli.commands import (
     cmd_down,
     cmd_estop,
     cmd_experiment,
+    cmd_jog,
     cmd_model,
     cmd_restart,
     cmd_router,
@@ -256,9 +257,9 @@ def _add_operator_commands(sub) -> None:
 
     task = sub.add_parser("task", help="start, stop or show the servo task (the stack comes up idle: the arm "
                                        "moves only while a task runs)")
-    task.add_argument("action", choices=["start", "stop", "status", "release"],
+    task.add_argument("action", choices=["start", "stop", "status", "release", "resume"],
                       help="release: open the hand (a grasp task's hold ends in it; with no task, the hand opens "
-                           "where it is)")
+                           "where it is); resume: go on with a task the person's stick paused, from where the arm is")
     task.add_argument("--grasp", action="store_true",
                       help="start: reach, grasp and lift (servo to the pre-grasp view, approach along the tool's "
                            "axis, close the fingers until the hand holds it, lift, hold until released)")
@@ -270,6 +271,21 @@ def _add_operator_commands(sub) -> None:
                            "resolution or arm differ from the stack's)")
     add_connection_options(task)
     task.set_defaults(func=cmd_task)
+
+    jog = sub.add_parser("jog", help="drive the arm with a stick in the mixed frame, as Kinova's joystick: a "
+                                     "Linux gamepad (--device) or a scripted one (--script); it moves only while "
+                                     "its dead-man is held, and pauses a running task")
+    jog.add_argument("--script", default=None, metavar="FILE",
+                     help="replay a scripted stick (YAML: rate_hz, steps of for_s, mode, axes, deadman; "
+                          "services/jog/script.py)")
+    jog.add_argument("--device", default=None, metavar="PATH", help="a gamepad's /dev/input/eventN (python-evdev)")
+    jog.add_argument("--config", default=None, metavar="FILE",
+                     help="speeds, dead band, spasm filter, the gamepad's map (default services/jog/jog.yaml's)")
+    jog.add_argument("--source", default=None, metavar="jog/NAME", help="the source its requests name "
+                                                                         "(default jog/stick)")
+    jog.add_argument("--json", action="store_true", help="print what was sent as one JSON object")
+    add_connection_options(jog)
+    jog.set_defaults(func=cmd_jog)
 
     teach = sub.add_parser("teach", help="teach the current view as a goal (no marker): the arm moves the camera a "
                                          "few centimetres sideways and back to measure the object's depth, once "

@@ -211,7 +211,8 @@ def cmd_task(args: argparse.Namespace) -> int:
         print(f"task {args.action}: cannot reach the router at {args.connect} ({exc}); is the stack up? "
               f"(--connect ENDPOINT, --zenoh-config FILE)", file=sys.stderr)
         return 2
-    function = {"start": m.START_TASK, "release": m.START_TASK, "stop": m.STOP_TASK, "status": m.GET_TASK}[args.action]
+    function = {"start": m.START_TASK, "release": m.START_TASK, "stop": m.STOP_TASK, "status": m.GET_TASK,
+                "resume": m.RESUME_TASK}[args.action]
     if args.grasp and args.action != "start":
         print("task: --grasp is for task start", file=sys.stderr)
         session.close()
@@ -238,6 +239,95 @@ def cmd_task(args: argparse.Namespace) -> int:
     else:
         print(describe_task(status))
     return 0 if status.ok else 1
+
+
+def cmd_jog(args: argparse.Namespace) -> int:
+    """Drive the arm with a stick: a scripted one (--script FILE) or a Linux gamepad (--device PATH), streamed to
+    safety as jog requests (it moves the arm only while the dead-man is held; the person's stick pauses a running
+    task)."""
+    import threading
+
+    from protocol.keys import Keys
+    from services.jog.client import run_stick
+    from services.jog.config import JogConfig
+    from services.jog.evdev_input import DeviceError
+    from services.jog.script import load_script
+    from services.jog.sender import script_reader
+    from services.runtime.config import load_config
+
+    if (args.script is None) == (args.device is None):
+        print("jog: give one of --script FILE or --device PATH", file=sys.stderr)
+        return 2
+    try:
+        config = load_config(args.config, JogConfig)
+        if args.source is not None:
+            config = JogConfig(**{**{f: getattr(config, f) for f in config.__struct_fields__}, "source": args.source})
+        reader = None
+        if args.script is not None:
+            script = load_script(args.script)
+            read, rate_hz, what = script_reader(script), script.rate_hz, f"script {args.script} " \
+                                                                             f"({script.duration_s:.1f} s)"
+        else:
+            reader, read = _device_reader(args.device, config)
+            rate_hz, what = config.rate_hz, f"device {args.device}"
+    except (ValueError, DeviceError) as exc:  # a bad file or source, a device that cannot be read: nothing sent
+        print(f"jog: {exc}", file=sys.stderr)
+        return 2
+    try:
+        session = operator_session(args)
+    except Exception as exc:
+        if reader is not None:
+            reader.stop()
+        print(f"jog: cannot reach the router at {args.connect} ({exc}); is the stack up? (--connect ENDPOINT, "
+              "--zenoh-config FILE: the jog identity's)", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    if not args.json:
+        print(f"jog: {what} as {config.source} at {rate_hz:g} Hz (Ctrl-C stops)", file=sys.stderr)
+    try:
+        report, replies = run_stick(session, Keys(args.robot_id), config, read, rate_hz, stop=stop)
+    except KeyboardInterrupt:
+        stop.set()
+        report, replies = None, []
+    finally:
+        session.close()
+        if reader is not None:
+            reader.stop()
+    if report is None:
+        return 130
+    gone = getattr(read, "gone", "")
+    summary = {"sent": report.sent, "missed_slots": report.missed, "resumes": report.resumes,
+               "resume_replies": replies, "last_seq": report.last.header.seq if report.last else 0,
+               "device_gone": gone}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"jog: sent {report.sent} requests, {report.missed} slots missed (a late host), {report.resumes} "
+              f"resume presses{': ' + '; '.join(replies) if replies else ''}{'; ' + gone if gone else ''}")
+    return 1 if gone else 0
+
+
+def _device_reader(path: str, config):
+    """(the device's reader thread, the stick read at each slot) for an evdev device; DeviceError when it cannot
+    be read."""
+    from services.jog.evdev_input import DeviceReader, open_device, stick_of
+    from services.jog.sender import Reading
+
+    device = open_device(path)
+    reader = DeviceReader(device, stick_of(device, config.gamepad, config.speed_level)).start()
+    heard_budget_s = 0.1  # the reader waits at most 20 ms at a time: 100 ms unheard is a thread that hangs
+
+    def read(_t_s: float):
+        with reader.lock:
+            if reader.gone:
+                read.gone = reader.gone
+                return None  # run_stick says released once, and the stream ends
+            stick = reader.stick.input()
+            resume = reader.stick.take_resume()
+        return Reading(stick, heard=reader.heard_within(heard_budget_s), resume=resume)
+
+    read.gone = ""
+    return reader, read
 
 
 def _give_goal(session, keys, path: str, timeout_s: float) -> bool:
