@@ -1,6 +1,8 @@
 """Arm kinematics through Pinocchio: an immutable model shared by all, a mutable workspace per user."""
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 import pinocchio as pin
 
@@ -93,8 +95,26 @@ def inverse_kinematics(kin: ArmKinematics, q0, target_R: np.ndarray, target_p: n
     at (``target_R``, ``target_p``) in the base frame, from ``q0``: damped Gauss-Newton on the pose's error in the
     tool's own frame (Pinocchio's closed-loop inverse kinematics, its log₆ error and the frame's local Jacobian,
     Jlog₆ applied), the joints kept within their limits; (q, whether it arrived within the tolerances). A redundant
-    arm ends near ``q0``: each step is the least-norm one."""
+    arm ends near ``q0``: each step is the least-norm one. Where full steps do not arrive (a step near a singular
+    configuration can throw the joints far: the j2n6s300's side grasp from its home spun a continuous joint past
+    -4000°), it starts again from ``q0`` with each step at most :data:`IK_RETRY_STEP_RAD` long; what arrives with full
+    steps is found as before."""
     tool = np.eye(4) if tool is None else np.asarray(tool, dtype=float)
+    q, ok = _gauss_newton(kin, q0, target_R, target_p, tool, tolerance_m, tolerance_rad, damping, max_iterations)
+    if ok:
+        return q, ok
+    return _gauss_newton(kin, q0, target_R, target_p, tool, tolerance_m, tolerance_rad, damping,
+                         4 * max_iterations, max_step=IK_RETRY_STEP_RAD)
+
+
+#: the longest joint step of the inverse kinematics' second try (rad): our choice, small beside a joint's range and
+#: large enough to cross it in a few dozen steps
+IK_RETRY_STEP_RAD = 0.1
+
+
+def _gauss_newton(kin: ArmKinematics, q0, target_R, target_p, tool: np.ndarray, tolerance_m: float,
+                  tolerance_rad: float, damping: float, max_iterations: int,
+                  max_step: Optional[float] = None) -> tuple[np.ndarray, bool]:
     goal = pin.SE3(np.asarray(target_R, dtype=float), np.asarray(target_p, dtype=float))
     ee_in_tool = pin.SE3(tool[:3, :3], tool[:3, 3]).inverse()
     lower, upper = kin.arm.model_limits()
@@ -110,5 +130,9 @@ def inverse_kinematics(kin: ArmKinematics, q0, target_R: np.ndarray, target_p: n
         J_ee = pin.getFrameJacobian(kin.model, kin.data, kin.ee_frame_id, pin.LOCAL)
         J = pin.Jlog6(tool_now.inverse() * goal) @ ee_in_tool.action @ J_ee
         step = J.T @ np.linalg.solve(J @ J.T + damping * np.eye(6), error)
+        if max_step is not None:
+            longest = float(np.max(np.abs(step)))
+            if longest > max_step:
+                step = step * (max_step / longest)
         q = np.clip(q + step, np.where(np.isfinite(lower), lower, -np.inf), np.where(np.isfinite(upper), upper, np.inf))
     return q, False
