@@ -18,6 +18,7 @@ from services.model import frames, saturation
 from services.model.limits import stricter
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics
+from services.model.singularity import SingularityBounds, singularity_scale
 from services.model.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
 
@@ -58,6 +59,9 @@ class SafetyLimits(ConfigStruct):
     #: workspace zones the end effector must not enter (base frame)
     zones: list[Zone] = msgspec.field(default_factory=lambda: [default_base_zone()])
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=lambda: ZoneFilterConfig(margin_m=0.02))
+    #: a twist toward a singularity slowed from, and stopped at, these condition numbers (any source's; a joint
+    #: velocity command has no inverse to blow up near one, and is not slowed, as in MoveIt Servo)
+    singularity: SingularityBounds = msgspec.field(default_factory=SingularityBounds)
 
     def __post_init__(self) -> None:
         for name in ("command_budget_s", "image_budget_s", "state_budget_s", "future_skew_s", "device_budget_s",
@@ -147,6 +151,14 @@ class CommandChecker:
         except frames.EulerSingularityError as exc:
             return Decision(refusal=f"orientation: {exc}", limits=["euler_singularity"])
         decision = Decision()
+
+        # near a singularity: a motion toward it slowed, and stopped before it (its direction kept); away from it,
+        # not (services/model/singularity.py: MoveIt Servo's rule). Before the acceleration limit, which then brakes
+        # to what is left
+        near = singularity_scale(self.kin, q, J, base, lim.singularity)
+        if near.factor < 1.0:
+            base = base * near.factor
+            decision.limits.append("singularity" if near.factor > 0.0 else "singularity_stop")
 
         # speeds: the whole twist by one factor (its direction kept), or refused
         limited, ratio = saturation.limit_twist(base, robot.linear_speed_mps, robot.angular_speed_rps)
