@@ -16,9 +16,14 @@ the bounds mean the same on arms of other sizes; it is the matrix whose smallest
 singularity measure (services/robot/dsp.py), so both judge one thing (κ ≈ 2/measure on both JACO-2s: σ_max stays
 within 1.7-2.0). The bounds are ours, not MoveIt's 17 and 30 (its defaults), checked on both arms: the j2n6s300
 stands at κ 17.8 at its home pose and 16-22 across its ordinary workspace, so 17 would slow the 6-DoF arm wherever it
-works; safety slows from 30 (the DSP's self-motion starts pushing a redundant arm away at measure 0.06, κ ≈ 30) and
-stops a motion toward the singularity at 60 (measure ≈ 0.033), before the DSP's damped least squares (measure 0.02,
-κ ≈ 95), where the arm no longer moves as commanded.
+works, and seed 000's Part B (a large rotation about the optical axis) takes the servo through κ 48 on the j2s7s300
+and 49 on the j2n6s300 (the identity bench's logs), which the arm makes as commanded: slowed there, Part B took 273
+iterations instead of 115. So safety slows a motion toward a singularity only from κ 50 (measure ≈ 0.04), above what
+the seed's experiments reach, and stops it at 80 (measure ≈ 0.025): near the workspace's edge κ grows steeply, and
+from a stop at 90 the arm's braking (its acceleration limits) could not keep a reach at 0.1 m/s out of the
+singularity (the j2n6s300 went through to κ 10⁴); from 80 it stops at 80, and from the jog's top speed (0.2 m/s) at
+83, both before the emulated DSP's damped least squares (measure 0.02, κ ≈ 95), where the arm would no longer move
+as commanded.
 """
 from __future__ import annotations
 
@@ -33,9 +38,9 @@ from services.runtime.config import ConfigStruct
 
 class SingularityBounds(ConfigStruct):
     #: a motion toward a singularity is slowed from this condition number of the normalized Jacobian ...
-    slow_from: float = 30.0
+    slow_from: float = 50.0
     #: ... linearly to a stop here (the module's docstring says why these)
-    stop_at: float = 60.0
+    stop_at: float = 80.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.slow_from) and math.isfinite(self.stop_at) and 1.0 <= self.slow_from < self.stop_at):

@@ -110,9 +110,10 @@ def test_a_jog_toward_a_singularity_is_slowed_and_stopped_before_it_and_driving_
     assert np.all(speeds[1:][band[1:]] <= np.maximum(allowed[:-1][band[1:]], 0.0) * full * 1.05 + 1e-3)
     assert conditions.max() < bounds.stop_at * 1.01 and speeds[-1] < 1e-3
     assert any("singularity" in limits for _, _, limits in log)
-    # the person drives back out: at once, and at full speed once the arm has accelerated
+    # the person drives back out: at once, never slowed by the rule (near the singularity the joints' speed limit
+    # may still bound the hand's speed a little, as anywhere the arm needs fast joints)
     out, _ = drive(arm_name, q, back, seconds=1.0)
-    assert max(s for _, s, _ in out) == pytest.approx(full, rel=0.02)
+    assert max(s for _, s, _ in out) > 0.8 * full
     assert not any(name.startswith("singularity") for _, _, limits in out for name in limits)
 
 
