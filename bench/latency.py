@@ -2,7 +2,9 @@
 read off the per-hop trace every robot command carries. The stack runs in realtime as separate processes
 (`mfvs up`), on a free loopback port.
 
-``python -m bench.latency [--json] [--seconds S] [--profiles sim,gateway] [--arm NAME] [--set SERVICE:KEY=VALUE]``
+``python -m bench.latency [--json] [--seconds S] [--profiles sim,gateway] [--arm NAME] [--set SERVICE:KEY=VALUE]
+[--source servo|jog]`` (jog: a person's stick's path from its request, and the arm's stop times after a release and
+after the stream stops)
 or ``mfvs bench latency``. ``--json`` prints the first profile's ``{"arm", "e2e_ms": {p50, p99, max, n}, "hops":
 {name: {p50, p99, max, n}}, "start": {"e2e_ms": ...}, ...}`` and every profile's under ``"profiles"``; e2e counts each
 frame once, at the first robot cycle that applies a command derived from it. ``start`` is the task's first second
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import time
 
@@ -42,8 +45,10 @@ def stats(values_ms: list[float]) -> dict:
 START_S = 1.0
 
 
-def analyse(states: list[m.RobotState]) -> dict:
-    """e2e and hop latencies from robot states whose applied command derives from an image."""
+def analyse(states: list[m.RobotState], origin: str = "capture") -> dict:
+    """e2e and hop latencies from robot states whose applied command derives from an image (``origin`` capture), or
+    from a person's stick (``request``: a jog's source stamp is when its device was last heard, each request's own
+    time when the device is read at every slot)."""
     first: dict[int, m.Header] = {}
     for state in states:
         applied = state.applied_command
@@ -57,7 +62,7 @@ def analyse(states: list[m.RobotState]) -> dict:
         if names[-1] not in ROBOT_SERVICES:
             continue
         e2e.append((trace[-1].pub_ns - capture) / 1e6)
-        previous_name, previous_pub = "capture", capture
+        previous_name, previous_pub = origin, capture
         for hop in trace:
             hops.setdefault(f"{previous_name}→{hop.service}", []).append((hop.recv_ns - previous_pub) / 1e6)
             hops.setdefault(hop.service, []).append((hop.pub_ns - hop.recv_ns) / 1e6)
@@ -104,8 +109,74 @@ def run(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None
     return result
 
 
+#: the stick's to-and-fro during the jog window: along the base's Y at the slowest level, the dead-man held
+JOG_SWEEP_S = 2.0
+
+
+def run_jog(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | None = None,
+            arm: str = DEFAULT_ARM) -> dict:
+    """The person's path: a scripted stick (services/jog) streamed at 50 Hz to the stack with no task, from its request
+    to the robot applying it; then how long the arm takes to come to rest after a release and after the stream
+    stops (``stops``: s, each from the request that ended it to the first state at rest)."""
+    import threading
+
+    from services.jog.client import run_stick
+    from services.jog.config import JogConfig
+    from services.jog.script import script_from_mapping
+    from services.jog.sender import script_reader
+
+    stack = with_overrides(profile_on_arm(profile, arm), list(overrides or []))
+    sweep = [{"for_s": JOG_SWEEP_S / 2, "mode": "translation", "axes": [0, 1, 0], "deadman": True},
+             {"for_s": JOG_SWEEP_S / 2, "axes": [0, -1, 0], "deadman": True}]
+    n = max(1, math.ceil((START_S + seconds) / JOG_SWEEP_S))
+    steps = sweep * n + [{"for_s": 1.0, "deadman": False}] + sweep[:1] + [
+        {"for_s": 1.0, "axes": [0, -1, 0], "deadman": True, "device": "silent"}]
+    script = script_from_mapping({"rate_hz": 50, "speed_level": 1, "steps": steps})
+    with servoing_stack(stack, "bench latency", start_task=False) as endpoint:
+        session = open_session(ZenohConfig(connect=[endpoint]))
+        states: list[m.RobotState] = []
+        jogs: list[m.Jog] = []
+        session.declare_subscriber(Keys().robot_state,
+                                   lambda s: states.append(m.decode(s.payload.to_bytes(), m.RobotState)))
+        session.declare_subscriber(Keys().desired_jog, lambda s: jogs.append(m.decode(s.payload.to_bytes(), m.Jog)))
+        time.sleep(0.5)
+        sender = threading.Thread(target=run_stick, args=(session, Keys(), JogConfig(), script_reader(script), 50.0))
+        sender.start()
+        sender.join(timeout=script.duration_s + 30)
+        time.sleep(1.0)
+        session.close()
+    t0 = jogs[0].header.stamp_ns
+    released = next(j for j in jogs if not j.deadman)  # the sweeps hold the dead-man throughout
+    window_start, window_end = t0 + int(START_S * 1e9), released.header.stamp_ns
+    applied_in = [s for s in states if window_start <= s.header.stamp_ns <= window_end]
+    result = analyse(applied_in, origin="request")
+    result["start"] = analyse([s for s in states if t0 <= s.header.stamp_ns < window_start], origin="request")
+    last_before_silence = max((j for j in jogs if j.deadman and j.header.stamp_ns > released.header.stamp_ns),
+                              key=lambda j: j.header.stamp_ns)
+    result["stops"] = {"released_s": _rest_after(states, released.header.stamp_ns),
+                       "stale_s": _rest_after(states, last_before_silence.header.stamp_ns)}
+    result.update(seconds=seconds, profile=profile, target="jog", camera_trigger=None,
+                  arm=measured_arm(arm, {state.arm for state in states}))
+    return result
+
+
+def _rest_after(states: list[m.RobotState], from_ns: int) -> float | None:
+    """Seconds from ``from_ns`` to the first state at rest (the hand under 2 mm/s) after it."""
+    from services.model.arm import load_arm
+    from services.model.kinematics import ArmKinematics
+
+    kin = None
+    for state in states:
+        if state.header.stamp_ns < from_ns:
+            continue
+        kin = kin or ArmKinematics(load_arm(state.arm))
+        if kin.ee_speed(state.q, state.dq) < 2e-3:
+            return round((state.header.stamp_ns - from_ns) * 1e-9, 4)
+    return None
+
+
 def run_profiles(seconds: float, profiles: list[str], overrides: list[str], arm: str = DEFAULT_ARM,
-                 target: str = "tag") -> dict:
+                 target: str = "tag", source: str = "servo") -> dict:
     """The first profile's figures at the top (the format of one), each profile's under ``profiles``. An override
     goes to the profiles that have its service."""
     names = {profile: {s.name for s in load_profile(profile, 0, 0).services} for profile in profiles}
@@ -115,19 +186,26 @@ def run_profiles(seconds: float, profiles: list[str], overrides: list[str], arm:
                              f"({', '.join(sorted(set().union(*names.values())))})")
     results = {}
     for profile in profiles:
-        results[profile] = run(seconds, profile, [o for o in overrides if o.partition(":")[0] in names[profile]],
-                               arm, target)
+        mine = [o for o in overrides if o.partition(":")[0] in names[profile]]
+        results[profile] = run_jog(seconds, profile, mine, arm) if source == "jog" else run(seconds, profile, mine,
+                                                                                             arm, target)
     return {**results[profiles[0]], "profiles": results}
 
 
 def print_result(result: dict) -> None:
     e = result["e2e_ms"]
-    print(f"{result['profile']} ({result['arm']}, {result.get('target', 'tag')}): end to end (capture → applied): "
+    path = "request → applied" if result.get("target") == "jog" else "capture → applied"
+    print(f"{result['profile']} ({result['arm']}, {result.get('target', 'tag')}): end to end ({path}): "
           f"p50 {e['p50']} ms, p99 {e['p99']} ms, "
           f"max {e['max']} ms ({e['n']} frames)")
     for name, h in result["hops"].items():
         print(f"  {name:24s} p50 {h['p50']:8.3f} ms  p99 {h['p99']:8.3f} ms  max {h['max']:8.3f} ms")
-    print(f"  at the end: {result['camera_trigger']}")
+    if result.get("stops"):
+        stops = result["stops"]
+        print(f"  at rest after the dead-man's release: {stops['released_s']} s; after the stream stopped: "
+              f"{stops['stale_s']} s")
+    else:
+        print(f"  at the end: {result['camera_trigger']}")
     s = result["start"]["e2e_ms"]
     print(f"  the task's first second: p50 {s['p50']} ms, p99 {s['p99']} ms, max {s['max']} ms ({s['n']} frames)")
 
@@ -144,6 +222,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--target", default="tag", choices=TARGETS,
                         help="tag (default), or a markerless object (plane, cup) taught where it stands and servoed "
                              "to with the keypoint front end")
+    parser.add_argument("--source", default="servo", choices=("servo", "jog"),
+                        help="servo (default): the visual servo's path from the image; jog: a person's stick's, from "
+                             "its request (a scripted stick, no task), and its stop times")
     add_arm_option(parser)
     args = parser.parse_args(argv)
     if unknown_arm(parser, args):
@@ -153,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown or not profiles:
         parser.error(f"--profiles takes sim and/or gateway, not {', '.join(unknown) or 'nothing'}")
     try:
-        result = run_profiles(args.seconds, profiles, args.set, args.arm, args.target)
+        result = run_profiles(args.seconds, profiles, args.set, args.arm, args.target, args.source)
     except ValueError as exc:
         parser.error(str(exc))
     if args.json:

@@ -527,6 +527,8 @@ class ConsoleModel:
             self._say("safety", level, f"state {status.state.value}", now)
         if status.last_refusal and (previous is None or previous.last_refusal != status.last_refusal):
             self._say("safety", "warning", f"refused: {status.last_refusal}", now)
+        if previous is not None and previous.in_control != status.in_control:
+            self._say("safety", "info", f"in control: {status.in_control or 'nobody'}", now)
 
     def on_estop(self, estop: m.EStop, now: float) -> None:
         level, text = _level(estop_line(estop))
@@ -539,7 +541,7 @@ class ConsoleModel:
             return
         if previous is None or (previous.state, previous.task) != (task.state, task.task):
             who = f" by {task.by}" + (f": {task.reason}" if task.reason else "") if task.by else ""
-            verb = "running" if task.state is m.TaskState.RUNNING else "idle"
+            verb = task.state.value
             self.note("task", "info", f"task {task.task} {verb}{who}", now)
 
     def on_taught(self, goal: str, digest: str, path: str, now: float) -> None:

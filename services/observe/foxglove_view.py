@@ -244,6 +244,8 @@ def safety_line(status: m.SafetyStatus) -> tuple[fm.LogLevel, str]:
     text = status.state.value
     if status.active_limits:
         text += f" (limits: {', '.join(status.active_limits)})"
+    if status.in_control:
+        text += f"; in control: {status.in_control}"
     if status.last_refusal:
         text += f"; last refusal: {status.last_refusal}"
     return level, text

@@ -113,11 +113,13 @@ class SafetyService(Service):
     def check_health(self) -> tuple[bool, str]:
         alive = self._thread is not None and self._thread.is_alive()
         core = self.core
+        with self.lock:
+            control = f"in control: {core.in_control or 'nobody'}"
         if core.monitor is None:
             arm = core.wrong_arm or "no robot state has declared its arm yet"
-            return alive, f"state={core.safety_state.value} estop={core.estop_latched} arm: {arm}"
+            return alive, f"state={core.safety_state.value} estop={core.estop_latched} {control}; arm: {arm}"
         peaks = " ".join(f"peak_{name}={ratio:.2f}" for name, ratio in core.monitor.peak_ratio.items())
-        return alive, (f"state={core.safety_state.value} estop={core.estop_latched} arm={core.arm.name} "
+        return alive, (f"state={core.safety_state.value} estop={core.estop_latched} {control}; arm={core.arm.name} "
                        f"alive={sorted(core.alive)} measured speeds/limits: {peaks}")
 
     # ------------------------------------------------------------------ inputs: decoded, then the core decides

@@ -207,6 +207,44 @@ def test_only_the_torque_controller_identity_commands_torques(deployment, robot)
 
 
 @ACL_ONLY_IN_QUICK_RUN
+def test_only_the_jog_identity_moves_the_arm_with_a_stick(deployment, robot):
+    """Behind the authority router, with safety as shipped: a stick's requests from any identity but the jog's
+    reach nobody and move nothing; the jog identity's move the arm (the stick's source is safety's only by the
+    router's word: safety cannot tell who published)."""
+    from services.safety.service import SafetyConfig, SafetyService
+
+    safety = SafetyService(SafetyConfig(zenoh=ZenohConfig(connect=[deployment.endpoint],
+                                                          config_file=str(deployment.client_configs["safety"]))))
+    safety.start()
+    watcher = session_as(deployment, "safety")
+    states = Recorder(watcher, KEYS.robot_state, m.RobotState)
+    try:
+        assert wait_for(lambda: len(states) > 5)
+
+        def push(identity, seconds=0.6):
+            session = session_as(deployment, identity)
+            time.sleep(0.2)
+            start = time.time_ns()
+            for i in range(int(seconds * 50)):
+                now = time.time_ns()
+                session.put(KEYS.desired_jog, m.encode(m.Jog(
+                    header=m.Header(seq=start // 1000 + i, stamp_ns=now, source_stamp_ns=now),
+                    mode=m.JogMode.TRANSLATION, deadman=True, linear=(0.0, 0.05, 0.0))))
+                time.sleep(0.02)
+            session.close()
+
+        q0 = np.array(states.last().q)
+        for identity in ("operator", "controller", "vision", "torque_controller"):
+            push(identity)
+        assert "jog" not in safety.rates.snapshot() and np.abs(np.array(states.last().q) - q0).max() < 1e-6
+        push("jog")
+        assert wait_for(lambda: np.abs(np.array(states.last().q) - q0).max() > 1e-3, timeout=5)
+    finally:
+        states.close()
+        watcher.close()
+        safety.stop()
+
+
 def test_only_robots_publish_robot_state(deployment):
     safety = session_as(deployment, "safety")
     states = Recorder(safety, KEYS.robot_state, m.RobotState)
@@ -294,7 +332,7 @@ def test_no_wildcard_reaches_the_robot_for_an_identity_that_may_not_command(depl
 def concrete_keys() -> list[str]:
     k = KEYS
     return [k.camera_image, k.camera_info, k.features, k.vision_goal, k.desired_twist, k.desired_joint_velocity,
-            k.controller_status, k.robot_command, k.safety_status, k.estop, k.robot_state, k.lowlevel_command,
+            k.desired_jog, k.controller_status, k.robot_command, k.safety_status, k.estop, k.robot_state, k.lowlevel_command,
             k.lowlevel_state, k.clock] + [k.health(s) for s in (*DEFAULT_SERVICES, "console")]
 
 
@@ -333,7 +371,7 @@ def test_each_identity_writes_exactly_its_own_keys(deployment):
     for identity, keys in table.items():
         for key in keys:
             writers.setdefault(key, []).append(identity)
-    for key in (KEYS.camera_image, KEYS.features, KEYS.desired_twist, KEYS.desired_joint_velocity,
+    for key in (KEYS.camera_image, KEYS.features, KEYS.desired_twist, KEYS.desired_joint_velocity, KEYS.desired_jog,
                 KEYS.robot_command, KEYS.lowlevel_command):  # the keys that can cause motion: one writer each
         assert len(writers[key]) == 1, (key, writers[key])
     sub.undeclare()
