@@ -36,6 +36,10 @@ def add_parser(sub, add_connection_options, stack_connection) -> None:
                                                              "certificate for the console")
     console.add_argument("--goals-dir", default="~/.local/share/mfvs/goals",
                          help="where the goals taught from the page are kept (default ~/.local/share/mfvs/goals)")
+    console.add_argument("--jog-zenoh-config", default=None, metavar="FILE",
+                         help="the jog identity's zenoh client config: the page's stick and gamepad send jog requests "
+                              "as it (behind authority the operator may not; without authority the console's own "
+                              "session sends them and this is not needed)")
     add_connection_options(console)
     console.set_defaults(func=lambda args: run(args, stack_connection))
 
@@ -95,8 +99,11 @@ def run(args: argparse.Namespace, stack_connection) -> int:
     except (OSError, ValueError) as exc:
         return _fail(f"cannot use the certificate {certificate[0]}: {exc}")
     setup_logging("info")
+    from services.console.jog import ConsoleJogConfig
+
     config = ConsoleConfig(robot_id=args.robot_id, action_timeout_s=args.timeout, goals_dir=args.goals_dir,
-                           zenoh=ZenohConfig(connect=[args.connect], config_file=args.zenoh_config))
+                           zenoh=ZenohConfig(connect=[args.connect], config_file=args.zenoh_config),
+                           jog=ConsoleJogConfig(zenoh_config=args.jog_zenoh_config))
     try:
         service = ConsoleService(config).start()
     except ConfigError as exc:

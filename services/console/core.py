@@ -29,6 +29,7 @@ import msgspec
 import numpy as np
 
 from protocol import messages as m
+from services.console.jog import JogSnapshot
 from services.model.arm import ArmDescription, declared_arm
 from services.model.limits import declared as declared_limits
 from services.observe.foxglove_view import controller_line, estop_line, normalized_to_pixels, safety_line
@@ -58,6 +59,8 @@ class Action(str, enum.Enum):
     GRASP = "grasp"
     #: open the hand (a grasp task's hold ends in it), once the person confirmed on the page: what it holds falls
     OPEN_HAND = "open_hand"
+    #: go on with a task the person's stick paused (the controller's resume_task, as `mfvs task resume`)
+    TASK_RESUME = "task_resume"
 
 
 #: the longest message the page sends (a request is a few hundred bytes)
@@ -96,7 +99,7 @@ class DrawnMessage(msgspec.Struct, tag="drawn", tag_field="type", forbid_unknown
     seq: Annotated[int, msgspec.Meta(ge=0)] = 0
 
 
-PageMessage = Union[AuthMessage, ActionMessage, DrawnMessage]
+PageMessage = Union[AuthMessage, ActionMessage, DrawnMessage, JogSnapshot]
 _page_decoder = msgspec.json.Decoder(PageMessage)
 
 
@@ -108,6 +111,14 @@ class Refused(Exception):
         super().__init__(message)
         self.reason = reason
         self.message = message
+
+
+def _is_jog(data: str) -> bool:
+    try:
+        raw = json.loads(data)
+    except ValueError:
+        return False
+    return isinstance(raw, dict) and raw.get("type") == "jog"
 
 
 def parse_page_message(data: Union[str, bytes]) -> PageMessage:
@@ -124,6 +135,8 @@ def parse_page_message(data: Union[str, bytes]) -> PageMessage:
         if "$.action" in str(exc):
             raise Refused("unknown_action", f"no such action ({exc}): the console takes "
                                             f"{', '.join(a.value for a in Action)}") from None
+        if _is_jog(data):
+            raise Refused("jog_malformed", f"not a stick's snapshot the console takes: {exc}") from None
         raise Refused("malformed", f"not a request the console takes: {exc}") from None
     except msgspec.DecodeError as exc:
         raise Refused("malformed", f"not JSON: {exc}") from None
@@ -229,6 +242,9 @@ class Command:
     name: str = ""
 
 
+_WHO = {Action.OPEN_HAND: "opens the hand", Action.TASK_RESUME: "resumes the task"}
+_WHO.update({a: "starts the task" for a in (Action.TASK_START, Action.GRASP)})
+
 #: who a stop is from when the page does not say: a stop never waits for a name
 ANONYMOUS = "console"
 
@@ -241,12 +257,11 @@ def decide(request: ActionMessage, access: Access, situation: Situation) -> Comm
         raise Refused("token", "no valid token with the request: the console does nothing without it")
     operator, reason = request.operator.strip(), request.reason.strip()
     action = request.action
-    if action in (Action.TASK_START, Action.GRASP, Action.OPEN_HAND):
+    if action in (Action.TASK_START, Action.GRASP, Action.OPEN_HAND, Action.TASK_RESUME):
         if action is Action.OPEN_HAND and not request.confirm:
             raise Refused("unconfirmed", "opening the hand drops what it holds: it needs a confirmation on the page")
         if not operator:
-            raise Refused("operator", f"say who {'opens the hand' if action is Action.OPEN_HAND else 'starts the task'}"
-                                      " (the operator's name)")
+            raise Refused("operator", f"say who {_WHO[action]} (the operator's name)")
         if situation.estop_engaged is None:
             raise Refused("safety_silent", "safety is not reporting: no task starts without it")
         if situation.estop_engaged:
@@ -417,6 +432,10 @@ class ConsoleModel:
     # -------------------------------------------------------------- the log
     def note(self, source: str, level: str, text: str, now: float) -> None:
         self.events.append(Event(now, source, level, text))
+
+    def note_once(self, source: str, level: str, text: str, now: float) -> None:
+        """A line, unless the same was said within REPEAT_S (a refusal that comes with every snapshot)."""
+        self._say(source, level, text, now)
 
     def _say(self, source: str, level: str, text: str, now: float) -> None:
         """A line, unless the source said the same within REPEAT_S (a fault that comes and goes with every state, a
@@ -596,7 +615,8 @@ class ConsoleModel:
         situation = self.situation(now)
         safety = None if self.safety is None else {
             "state": self.safety.state.value, "active_limits": list(self.safety.active_limits),
-            "last_refusal": self.safety.last_refusal, "age_s": round(now - self.safety_at, 2)}
+            "last_refusal": self.safety.last_refusal, "age_s": round(now - self.safety_at, 2),
+            "in_control": self.safety.in_control}
         task = None if self.task is None else {
             "state": self.task.state.value, "task": self.task.task, "by": self.task.by, "reason": self.task.reason,
             "message": self.task.message, "known": self.task_known, "plan": self.task.plan.value,

@@ -17,7 +17,12 @@ import numpy as np
 
 from protocol import messages as m
 from protocol.conventions import ClockMode
+import msgspec
+
 from services.console.core import Action, Command, ConsoleModel, FrameSize, frame_packet
+from services.console.jog import ConsoleJog, ConsoleJogConfig, JogRefused, JogSnapshot
+from services.runtime.pacing import CyclePacer
+from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session, publisher_options
 from services.controller.task_client import TaskUnavailable, call_task
 from services.safety.estop_sender import EStopSender
 from services.controller.task_client import describe_task
@@ -41,7 +46,13 @@ def halved(image: m.Image) -> m.Image:
 TASK_ACTIONS = {Action.TASK_START: (m.START_TASK, m.TaskPlan.SERVO),
                 Action.TASK_STOP: (m.STOP_TASK, m.TaskPlan.SERVO),
                 Action.GRASP: (m.START_TASK, m.TaskPlan.GRASP),
-                Action.OPEN_HAND: (m.START_TASK, m.TaskPlan.RELEASE)}
+                Action.OPEN_HAND: (m.START_TASK, m.TaskPlan.RELEASE),
+                Action.TASK_RESUME: (m.RESUME_TASK, m.TaskPlan.SERVO)}
+
+#: why the page's stick is off when the console runs behind authority with no jog identity's config
+JOG_NEEDS_IDENTITY = ("the console runs as the operator, who may not put on jog/request behind authority: start it "
+                      "with --jog-zenoh-config FILE (the jog identity's client config, written by `mfvs authority "
+                      "init`) to drive the arm from this page")
 
 class ConsoleConfig(ServiceConfig):
     #: the page's JPEG quality (the viewer's copy; vision gets the raw frame)
@@ -52,13 +63,17 @@ class ConsoleConfig(ServiceConfig):
     goals_dir: str = "~/.local/share/mfvs/goals"
     #: how often each service's health and the task are asked (s)
     poll_period_s: float = 1.0
+    #: the page's stick and gamepad (services/console/jog.py)
+    jog: ConsoleJogConfig = msgspec.field(default_factory=ConsoleJogConfig)
 
 
 class ConsoleService(Service):
     name = "console"
     PORTS = Ports(consumes=(Port("camera_image", m.Image), Port("camera_info", m.CameraInfo),
                             Port("features", m.Features), Port("robot_state", m.RobotState), Port("controller_status", m.ControllerStatus),
-                            Port("safety_status", m.SafetyStatus), Port("estop", m.EStop), Port("clock", m.SimClock)))
+                            Port("safety_status", m.SafetyStatus), Port("estop", m.EStop), Port("clock", m.SimClock)),
+                  # the page's stick: on the jog identity's session where one is given (behind authority)
+                  produces=(Port("desired_jog", m.Jog),))
 
     def __init__(self, config: Optional[ConsoleConfig] = None, **kwargs) -> None:
         super().__init__(config or ConsoleConfig(), **kwargs)
@@ -84,6 +99,11 @@ class ConsoleService(Service):
         self.encode_s = 0.0
         #: whole frames, or halved while the pages are behind (written by the web side's loop, read by the encoder)
         self.frame_size = FrameSize()
+        #: the page's stick (its own lock: the web side's loop offers snapshots, the stream's thread sends)
+        self.jog = ConsoleJog(self.config.jog, enabled=False, why="the console is starting")
+        self.jog_lock = threading.Lock()
+        self._jog_session = None
+        self._jog_publisher: Optional[GuardedPublisher] = None
 
     # ------------------------------------------------------------------ lifecycle
     def on_start(self) -> None:
@@ -99,16 +119,98 @@ class ConsoleService(Service):
         self.subscribe(k.estop, m.EStop, self._locked(self.model.on_estop), "estop")
         self.subscribe(k.clock, m.SimClock, self._on_clock, "sim_clock")
         self._estop = EStopSender.for_service(self)
+        self._start_jog()
         self._threads = [start_thread(self._encode_frames, "console-jpeg"),
                          start_thread(self._poll, "console-poll")]
+        if self._jog_publisher is not None:
+            self._threads.append(start_thread(self._stream_jog, "console-jog"))
 
     def on_stop(self) -> None:
         with self._image_arrived:
             self._image_arrived.notify_all()
         for thread in self._threads:
             thread.join(timeout=5.0)
+        self._stop_jog()
         if self._estop is not None:
             self._estop.close()
+
+    # ------------------------------------------------------------------ the page's stick
+    def _start_jog(self) -> None:
+        """The stick's publisher: on the jog identity's session where its config is given, on the console's own
+        where there is no authority (no zenoh config file); behind authority with no jog config, none (the page's
+        stick is off and says why)."""
+        config = self.config.jog
+        if config.zenoh_config:
+            self._jog_session = open_session(ZenohConfig(connect=list(self.config.zenoh.connect),
+                                                         config_file=config.zenoh_config))
+            session, how = self._jog_session, f"as the jog identity ({config.zenoh_config})"
+        elif self.config.zenoh.config_file:
+            self.jog = ConsoleJog(config, enabled=False, why=JOG_NEEDS_IDENTITY)
+            return
+        else:
+            session, how = self.session, "on the console's own session (no access control)"
+        key = self.keys.desired_jog
+        self._jog_publisher = GuardedPublisher.declare(session, key, **publisher_options(key))
+        self.jog = ConsoleJog(config, enabled=True, why=how)
+
+    def _stream_jog(self) -> None:
+        """One request per slot while a page's snapshot is fresh (services/console/jog.py's rules), on an absolute
+        schedule: a slot the host was late for is skipped and counted, never sent late."""
+        pacer = CyclePacer(1.0 / self.config.jog.rate_hz, catch_up_cycles=0)
+        while not self.stop_requested:
+            slot = pacer.wait()
+            if slot.missed:
+                self.counters.inc("jog.missed_slots", slot.missed)
+            with self.jog_lock:
+                stale_before = self.jog.counts.stale
+                message = self.jog.tick(time.time_ns())
+                stale = self.jog.counts.stale > stale_before
+            if message is not None:
+                self._put_jog(message)
+                if stale:
+                    self.counters.inc("jog.stale")
+
+    def _put_jog(self, message: m.Jog) -> None:
+        try:
+            self._jog_publisher.put(m.encode(message))
+            self.rates.tick("jog.sent")
+        except Exception as exc:  # the jog session closing, or refused: counted, the stream goes on
+            self.counters.inc("errors.jog")
+            self.limited_log.warning("jog", "console: could not send a jog request: %s", exc)
+
+    def _stop_jog(self) -> None:
+        if self._jog_publisher is not None:
+            with self.jog_lock:
+                released = self.jog.release(time.time_ns())
+            if released is not None:
+                self._put_jog(released)
+            self._jog_publisher.undeclare()
+            self._jog_publisher = None
+        if self._jog_session is not None:
+            self._jog_session.close()
+            self._jog_session = None
+
+    def jog_snapshot(self, page: int, snapshot: JogSnapshot) -> None:
+        """A page's stick (the web side, from its loop): taken, or JogRefused (counted by the caller's refusal)."""
+        with self.jog_lock:
+            self.jog.offer(page, snapshot, time.time_ns())
+
+    def jog_page_gone(self, page: int) -> None:
+        with self.jog_lock:
+            self.jog.page_gone(page)
+
+    def jog_status(self) -> dict:
+        with self.jog_lock:
+            return self.jog.status(time.time_ns())
+
+    def jog_refused(self, refusal: JogRefused) -> None:
+        """A snapshot not taken: counted each time, logged and shown in the page's log at most once per 10 s (they
+        come 50 a second)."""
+        self.counters.inc(f"refused.{refusal.reason}")
+        self.limited_log.warning(f"refused:{refusal.reason}", "console: stick refused (%s): %s", refusal.reason,
+                                 refusal.message)
+        with self.lock:
+            self.model.note_once("console", "warning", f"stick refused: {refusal.message}", time.time())
 
     def check_health(self) -> tuple[bool, str]:
         rates = self.rates.snapshot()

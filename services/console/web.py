@@ -25,6 +25,7 @@ from aiohttp import WSMsgType, web
 
 from services.console.core import (MAX_PAGE_MESSAGE_BYTES, Access, ActionMessage, AuthMessage, DrawnMessage, Refused,
                                    decide, parse_page_message)
+from services.console.jog import JogRefused, JogSnapshot
 from services.console.service import ConsoleService
 
 STATIC = Path(__file__).resolve().parent / "static"
@@ -38,6 +39,8 @@ MAX_UNREAD_ANSWERS = 64
 #: a page that has not said it drew its frame this long after it was sent is sent the newest anyway (a page that
 #: lost one without saying so must not go dark for good); counted as frames.unacknowledged (s)
 DRAW_TIMEOUT_S = 5.0
+#: a page is told of its stick's refusals (50 snapshots a second) at most this often per reason (s)
+JOG_REFUSAL_TELL_S = 1.0
 
 _HEADERS = {
     # the page's own files and its own WebSocket, nothing else; never framed by another site (a framed console could
@@ -55,8 +58,12 @@ _HEADERS = {
 class Page:
     """One open page: its WebSocket, whether it gave the token, and what is waiting to be sent to it."""
 
-    def __init__(self, ws: web.WebSocketResponse, authenticated: bool) -> None:
+    def __init__(self, ws: web.WebSocketResponse, authenticated: bool, number: int = 0) -> None:
         self.ws = ws
+        #: the console's number for this page (its stick's holder is named by it)
+        self.number = number
+        #: when the page was last told of a refusal of its stick's, by reason (monotonic s)
+        self.jog_told: dict[str, float] = {}
         self.authenticated = authenticated
         self.answers: deque[str] = deque(maxlen=MAX_UNREAD_ANSWERS)
         #: the newest frame, overlay and status not yet sent (each replaces the one before)
@@ -130,6 +137,7 @@ class ConsoleWeb:
         #: the kinds of request being carried out now (each in a worker thread)
         self._in_flight: set = set()
         self.port = 0
+        self._pages_opened = 0
 
     @property
     def scheme(self) -> str:
@@ -190,14 +198,17 @@ class ConsoleWeb:
         if not ws.can_prepare(request).ok:
             return web.Response(status=400, text="this is the console's stream: open / in a browser\n")
         await ws.prepare(request)
-        page = Page(ws, authenticated=not self.access.token_required)
+        self._pages_opened += 1
+        page = Page(ws, authenticated=not self.access.token_required, number=self._pages_opened)
         self.pages.add(page)
         self.service.counters.inc("pages.opened")
         self._count_watchers()
         pump = asyncio.create_task(page.pump(self.service))
         page.tell({"type": "hello", "robot_id": self.service.config.robot_id,
                    "token_required": self.access.token_required, "authenticated": page.authenticated,
-                   "actions": ["task_start", "task_stop", "estop_engage", "estop_release", "teach"]})
+                   "actions": ["task_start", "task_stop", "estop_engage", "estop_release", "teach", "grasp",
+                               "open_hand", "task_resume"],
+                   "page": page.number, "jog": self.service.jog_status()})
         try:
             async for message in ws:
                 if message.type == WSMsgType.TEXT:
@@ -208,6 +219,7 @@ class ConsoleWeb:
                     self._refuse("malformed", f"the page's stream failed: {ws.exception()}")
         finally:
             self.pages.discard(page)
+            self.service.jog_page_gone(page.number)  # a page that held the stick lets go at once
             self._count_watchers()
             pump.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -239,6 +251,9 @@ class ConsoleWeb:
             page.newest.pop("frame", None)
             self._count_watchers()
             return
+        if isinstance(message, JogSnapshot):
+            self._on_jog(page, message)
+            return
         if isinstance(message, AuthMessage):
             if not self.access.token_ok(message.token):
                 self._refuse("token", "wrong token: nothing is shown or done without the right one", page)
@@ -261,6 +276,19 @@ class ConsoleWeb:
         self._in_flight.add(command.action)
         self._tasks.append(asyncio.create_task(self._carry_out(page, message.id, command)))
         self._tasks = [t for t in self._tasks if not t.done()]
+
+    def _on_jog(self, page: Page, snapshot: JogSnapshot) -> None:
+        try:
+            if not page.authenticated:
+                raise JogRefused("token", "this page has not given the token: its stick moves nothing")
+            self.service.jog_snapshot(page.number, snapshot)
+        except JogRefused as refusal:
+            self.service.jog_refused(refusal)
+            now = time.monotonic()
+            if now - page.jog_told.get(refusal.reason, -1e9) >= JOG_REFUSAL_TELL_S:
+                page.jog_told[refusal.reason] = now
+                page.tell({"type": "refused", "id": None, "reason": refusal.reason, "message": refusal.message,
+                           "jog": True})
 
     async def _carry_out(self, page: Page, request_id: int, command) -> None:
         try:
@@ -290,6 +318,7 @@ class ConsoleWeb:
             with self.service.lock:
                 snapshot = self.service.model.snapshot(time.time())
             snapshot["console"] = {"errors": self.service.counters.snapshot(), "wall_stamps": self.service.wall_stamps}
+            snapshot["jog"] = self.service.jog_status()
             self._offer("status", json.dumps(snapshot))
 
 

@@ -49,10 +49,13 @@ class JogStamper:
         self.seq = 0
         self.heard_ns = 0
 
-    def message(self, motion: JogMotion, heard: bool) -> Jog:
-        now = self.now_ns()
+    def message(self, motion: JogMotion, heard: bool, now_ns: Optional[int] = None,
+                heard_ns: Optional[int] = None) -> Jog:
+        """The next request: stamped ``now_ns`` (default: the stamper's clock now); ``heard``: the device was heard,
+        at ``heard_ns`` when that is known (a page's snapshot's arrival), else now."""
+        now = self.now_ns() if now_ns is None else now_ns
         if heard:
-            self.heard_ns = now
+            self.heard_ns = now if heard_ns is None else heard_ns
         self.seq += 1
         return Jog(header=Header(seq=self.seq, stamp_ns=now, source_stamp_ns=self.heard_ns), mode=motion.mode,
                    deadman=motion.deadman, speed_level=motion.speed_level, source=self.source, linear=motion.linear,
