@@ -16,7 +16,14 @@ const page = {
   backoffMs: 500, nextId: 0, region: null, bitmap: null, frameHeader: null, decoding: false, pendingFrame: null,
   overlays: [], status: null,
 };
-window.mfvsConsole = { stats, page };
+// the person's stick (the on-screen one, or a gamepad through the Gamepad API), sent as snapshots to the console,
+// which maps them into jog requests (services/console/jog.py)
+const jog = {
+  enabled: false, why: "waiting for the console", number: null, seq: 0, mode: "translation", level: 1,
+  pointers: new Map(), axes: [0, 0, 0], input: "none", active: false, pad: null, padButtons: [], sent: 0,
+  lastStatus: null,
+};
+window.mfvsConsole = { stats, page, jog };
 
 function wallNowMs() { return performance.timeOrigin + performance.now(); }
 
@@ -59,6 +66,8 @@ function onText(message) {
   switch (message.type) {
     case "hello":
       $("robot").textContent = message.robot_id;
+      jog.number = message.page;
+      if (message.jog) renderJogStatus(message.jog, null);
       page.tokenRequired = message.token_required;
       page.authenticated = message.authenticated;
       if (page.tokenRequired && !page.authenticated) {
@@ -82,6 +91,7 @@ function onText(message) {
       break;
     case "refused":
       stats.refusals.push(message);
+      if (message.jog) { $("jog-state").textContent = "stick refused: " + message.message; break; }
       say("Refused: " + message.message, "error");
       if (message.reason === "token") { page.token = ""; sessionStorage.removeItem("mfvs-token"); askToken(); }
       break;
@@ -233,6 +243,7 @@ function renderStatus(status) {
     $("speed-text").textContent = `${speed.now.toFixed(3)} m/s of ${speed.limit.toFixed(3)} m/s limit ` +
       `(${Math.round(100 * speed.now / speed.limit)} %)${joint}`;
   }
+  if (status.jog) renderJogStatus(status.jog, status.safety);
   renderArm(status.arm);
   renderJoints(status.joints);
   renderFingers(status.fingers || []);
@@ -428,6 +439,153 @@ function watchRegion() {
   });
 }
 
+// ------------------------------------------------------------------------------------------- the stick
+const MODES = ["translation", "wrist", "fingers"];
+const LEVELS = [1, 2, 3];
+// our map of a standard-mapping gamepad (the W3C Gamepad spec's "standard" layout), mirroring `mfvs jog`'s evdev map:
+// the left stick's Y and X and the right stick's Y are the three axes (up and left positive: the browser's Y axes
+// point down), the left bumper is the dead-man, A (the bottom face button) cycles the modes, the right bumper and
+// X (the left face button) step the speed level up and down, Start resumes a paused task
+const PAD = { deadman: 4, mode: 0, faster: 5, slower: 2, resume: 9 };
+const JOG_PERIOD_MS = 20;  // 50 snapshots a second while the stick is held or a pad is connected (ours)
+
+function clamp(v) { return Math.max(-1, Math.min(1, v)); }
+
+function watchStick() {
+  for (const [id, kind] of [["jog-pad", "xy"], ["jog-z", "z"]]) {
+    const area = $(id);
+    const place = (event) => {
+      const r = area.getBoundingClientRect();
+      const dx = (event.clientX - (r.left + r.width / 2)) / (r.width / 2);
+      const dy = (event.clientY - (r.top + r.height / 2)) / (r.height / 2);
+      jog.pointers.set(event.pointerId, kind === "xy" ? { kind, x: clamp(dx), y: clamp(dy) } : { kind, y: clamp(dy) });
+    };
+    area.addEventListener("pointerdown", (event) => {
+      if (!jog.enabled) return;
+      event.preventDefault();
+      area.setPointerCapture(event.pointerId);
+      place(event);
+      jogTick();  // at once: the dead-man held
+    });
+    area.addEventListener("pointermove", (event) => { if (jog.pointers.has(event.pointerId)) place(event); });
+    const letGo = (event) => {  // the pointer up (or lost): the dead-man released
+      if (!jog.pointers.delete(event.pointerId)) return;
+      jogTick();
+    };
+    for (const kind of ["pointerup", "pointercancel", "lostpointercapture"]) area.addEventListener(kind, letGo);
+  }
+}
+
+function stickAxes() {
+  const axes = [0, 0, 0];
+  for (const p of jog.pointers.values()) {
+    if (p.kind === "xy") {
+      const length = Math.hypot(p.x, p.y), scale = length > 1 ? 1 / length : 1;  // inside the pad's circle
+      axes[0] = -p.y * scale; axes[1] = -p.x * scale;  // up: +X, left: +Y
+    } else {
+      axes[2] = -p.y;  // up: +Z
+    }
+  }
+  return axes;
+}
+
+function readGamepad() {
+  const pads = navigator.getGamepads ? Array.from(navigator.getGamepads() || []) : [];
+  return pads.find((p) => p && p.connected && p.mapping === "standard") || null;
+}
+
+function pressed(pad, index) {
+  const b = pad.buttons[index];
+  return Boolean(b && (b.pressed || b.value > 0.5));
+}
+
+function padButtons(pad) {
+  // a press (not a hold) steps the mode or the level, or resumes
+  const was = jog.padButtons;
+  const now = pad.buttons.map((_, i) => pressed(pad, i));
+  const edge = (i) => now[i] && !was[i];
+  if (edge(PAD.mode)) setMode(MODES[(MODES.indexOf(jog.mode) + 1) % MODES.length]);
+  if (edge(PAD.faster)) setLevel(jog.level + 1);
+  if (edge(PAD.slower)) setLevel(jog.level - 1);
+  if (edge(PAD.resume)) act("task_resume");
+  jog.padButtons = now;
+}
+
+function jogTick() {
+  const pad = readGamepad();
+  if (pad) padButtons(pad); else jog.padButtons = [];
+  let snapshot = null;
+  const base = { type: "jog", mode: jog.mode, speed_level: jog.level };
+  if (jog.pointers.size) {
+    snapshot = { ...base, input: "stick", axes: stickAxes(), deadman: true };
+  } else if (pad) {
+    const a = pad.axes;
+    snapshot = { ...base, input: "gamepad", axes: [-(a[1] || 0), -(a[0] || 0), -(a[3] || 0)].map(clamp),
+                 deadman: pressed(pad, PAD.deadman),
+                 gamepad: { connected: pad.connected, timestamp: pad.timestamp, id: pad.id.slice(0, 128),
+                            mapping: pad.mapping } };
+  }
+  jog.pad = pad;
+  if (snapshot && jog.enabled && !document.hidden) {
+    jog.input = snapshot.input;
+    jog.axes = snapshot.axes;
+    jog.deadman = snapshot.deadman;
+    jog.active = true;
+    sendJog(snapshot);
+  } else if (jog.active) {  // nothing held and no pad (or the tab hidden): one released snapshot, then silence
+    jog.active = false;
+    jog.deadman = false;
+    jog.axes = [0, 0, 0];
+    sendJog({ ...base, input: jog.input === "gamepad" ? "gamepad" : "stick", axes: [0, 0, 0], deadman: false,
+              ...(jog.input === "gamepad" ? { gamepad: { connected: Boolean(pad), timestamp: pad ? pad.timestamp : null,
+                                                          id: pad ? pad.id.slice(0, 128) : "", mapping: "standard" } } : {}) });
+    jog.input = "none";
+  }
+  renderStick();
+}
+
+function sendJog(snapshot) {
+  snapshot.seq = ++jog.seq;
+  if (send(snapshot)) jog.sent += 1;
+}
+
+function setMode(mode) { jog.mode = mode; renderStick(); }
+function setLevel(level) { jog.level = Math.max(LEVELS[0], Math.min(LEVELS[LEVELS.length - 1], level)); renderStick(); }
+
+function renderStick() {
+  const held = { xy: false, z: false };
+  for (const p of jog.pointers.values()) held[p.kind] = true;
+  $("jog-pad").classList.toggle("held", held.xy);
+  $("jog-z").classList.toggle("held", held.z);
+  for (const id of ["jog-pad", "jog-z"]) $(id).classList.toggle("off", !jog.enabled);
+  const axes = jog.pointers.size ? stickAxes() : [0, 0, 0];
+  $("jog-knob").style.left = `${50 - 50 * axes[1]}%`;
+  $("jog-knob").style.top = `${50 - 50 * axes[0]}%`;
+  $("jog-z-knob").style.top = `${50 - 50 * axes[2]}%`;
+  for (const mode of MODES) $(`jog-${mode}`).classList.toggle("on", jog.mode === mode);
+  $("jog-level").textContent = String(jog.level);
+  const input = jog.input === "stick" ? "the on-screen stick"
+    : jog.input === "gamepad" ? `gamepad ${jog.pad ? jog.pad.id : ""}` : jog.pad ? `gamepad ${jog.pad.id} (idle)` : "none";
+  $("jog-state").textContent = `input: ${input} · ${jog.mode} · speed level ${jog.level} of ${LEVELS.length} · ` +
+    `dead-man ${jog.active && jog.deadman ? "HELD" : "released"}`;
+}
+
+function renderJogStatus(status, safety) {
+  jog.enabled = status.enabled;
+  jog.why = status.why;
+  jog.lastStatus = status;
+  const why = $("jog-why");
+  why.hidden = status.enabled;
+  why.textContent = status.enabled ? "" : `The stick is off: ${status.why}`;
+  for (const id of ["jog-translation", "jog-wrist", "jog-fingers", "jog-slower", "jog-faster"]) $(id).disabled = !status.enabled;
+  if (!status.enabled) jog.pointers.clear();
+  const holder = status.page === null || !status.fresh ? "" : status.page === jog.number ? " · this page drives"
+    : " · another page drives";
+  const control = safety ? (safety.in_control || "nobody (the arm is at rest or stopping)") : "unknown (safety silent)";
+  $("jog-control").textContent = `in control: ${control}${holder}`;
+  renderStick();
+}
+
 window.addEventListener("DOMContentLoaded", () => {
   $("operator").value = localStorage.getItem("mfvs-operator") || "";
   watchRegion();
@@ -436,6 +594,14 @@ window.addEventListener("DOMContentLoaded", () => {
   $("teach-confirm").addEventListener("click", () => { $("confirm-teach").close(); act("teach", { confirm: true }); });
   $("region-clear").addEventListener("click", () => { page.region = null; $("teach-state").textContent = "no box: the whole view will be taught"; });
   $("estop").addEventListener("click", () => act("estop_engage"));
+  watchStick();
+  for (const mode of MODES) $(`jog-${mode}`).addEventListener("click", () => setMode(mode));
+  $("jog-slower").addEventListener("click", () => setLevel(jog.level - 1));
+  $("jog-faster").addEventListener("click", () => setLevel(jog.level + 1));
+  $("resume").addEventListener("click", () => act("task_resume"));
+  // a hidden tab lets go at once (its timers slow to once a second: the console would release it anyway)
+  document.addEventListener("visibilitychange", () => { if (document.hidden) { jog.pointers.clear(); jogTick(); } });
+  setInterval(jogTick, JOG_PERIOD_MS);
   $("start").addEventListener("click", () => act("task_start"));
   $("stop").addEventListener("click", () => act("task_stop"));
   $("grasp").addEventListener("click", () => act("grasp"));
