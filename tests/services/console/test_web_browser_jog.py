@@ -143,3 +143,48 @@ def test_a_gamepad_and_the_on_screen_stick_in_the_browser_become_jog_requests_an
         finally:
             jogs.close()
             session.close()
+
+
+def test_behind_authority_the_stick_is_off_without_the_jog_identity_and_drives_as_it_with_its_config(tmp_path):
+    """`mfvs authority init`'s deployment (user/password, access control on the router): the console as the
+    operator alone has its stick off, says why on the page, and refuses a snapshot sent anyway; given the jog
+    identity's config (--jog-zenoh-config) the pad's requests go through the router's access control as jog's."""
+    from selenium.webdriver.common.by import By
+
+    from services.runtime.authority import write_deployment
+    from services.runtime.transport import ZenohConfig, free_loopback_port
+
+    deployment = write_deployment(tmp_path / "authority", port=free_loopback_port())
+    operator, jog = (str(deployment.client_configs[name]) for name in ("operator", "jog"))
+    with Router(port=None, config_file=deployment.router_config):
+        session = open_session(ZenohConfig(connect=[deployment.endpoint],
+                                           config_file=str(deployment.client_configs["safety"])))
+        jogs = Recorder(session, KEYS.desired_jog, m.Jog)
+        try:
+            with Browser(1280, 1000) as driver:
+                driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument", {"source": SCRIPTED_PAD})
+                with ConsoleProcess(deployment.endpoint, "--zenoh-config", operator) as console:
+                    driver.get(console.url)
+                    why = driver.find_element(By.ID, "jog-why")
+                    assert wait_for(lambda: why.is_displayed() and "--jog-zenoh-config" in why.text, timeout=10)
+                    assert "off" in driver.find_element(By.ID, "jog-pad").get_attribute("class")
+                    set_pad(driver, axes=(0, -1, 0, 0), pressed=[LEFT_BUMPER])
+                    driver.execute_script("""window.mfvsConsole.page.ws.send(JSON.stringify({type: "jog", seq: 1,
+                        input: "stick", axes: [1, 0, 0], deadman: true, mode: "translation", speed_level: 1}))""")
+                    assert wait_for(lambda: "jog_disabled" in [r["reason"] for r in driver.execute_script(
+                        "return window.mfvsConsole.stats.refusals")], timeout=5)
+                    assert quiet(jogs, 0.5) == 0 and len(jogs) == 0
+                with ConsoleProcess(deployment.endpoint, "--zenoh-config", operator,
+                                    "--jog-zenoh-config", jog) as console:
+                    driver.get(console.url)
+                    assert wait_for(lambda: driver.execute_script("return window.mfvsConsole.jog.enabled"),
+                                    timeout=10)
+                    assert not driver.find_element(By.ID, "jog-why").is_displayed()
+                    set_pad(driver, axes=(0, -1, 0, 0), pressed=[LEFT_BUMPER])
+                    moving = wait_for_jog(jogs, 0, lambda j: j.deadman and j.linear[0] > 0)
+                    assert moving.source == "jog/console"
+                    set_pad(driver, axes=(0, -1, 0, 0), pressed=[])
+                    assert wait_for_jog(jogs, len(jogs), lambda j: not j.deadman).at_rest
+        finally:
+            jogs.close()
+            session.close()
