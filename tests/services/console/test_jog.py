@@ -186,3 +186,25 @@ def test_the_requests_are_valid_jog_messages_on_the_wire():
     message = jog.tick(T0 + MS)
     decoded = m.decode(m.encode(message), m.Jog)
     assert decoded == message and all(math.isfinite(v) for v in decoded.linear)
+
+
+def test_the_page_is_told_who_is_in_control_as_safety_says():
+    from services.console.core import ConsoleModel
+
+    model = ConsoleModel()
+    model.on_safety(m.SafetyStatus(header=m.Header(), state=m.SafetyState.OK, in_control="jog/console"), 1.0)
+    assert model.snapshot(1.1)["safety"]["in_control"] == "jog/console"
+
+
+def test_a_resume_from_the_page_says_who_and_needs_safety_reporting():
+    from services.console.core import Access, Action, ActionMessage, Situation, decide
+
+    access = Access(listen="127.0.0.1")
+    with pytest.raises(Refused) as nameless:
+        decide(ActionMessage(action=Action.TASK_RESUME), access, Situation(estop_engaged=False))
+    assert nameless.value.reason == "operator" and "resumes the task" in nameless.value.message
+    with pytest.raises(Refused) as silent:
+        decide(ActionMessage(action=Action.TASK_RESUME, operator="ann"), access, Situation(estop_engaged=None))
+    assert silent.value.reason == "safety_silent"
+    assert decide(ActionMessage(action=Action.TASK_RESUME, operator="ann"), access,
+                  Situation(estop_engaged=False)).action is Action.TASK_RESUME
