@@ -24,12 +24,13 @@ gamepad is connected, and one released snapshot when neither is. The console sen
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Annotated, Optional
 
 import msgspec
 
 from protocol.messages import JOG_SPEED_LEVELS, Jog, JogMode
+from services.jog.config import check_stream
 from services.jog.mapping import JogMapping, JogMotion, StickInput, StickMapper
 from services.jog.sender import JogStamper
 from services.runtime.config import ConfigStruct
@@ -55,10 +56,7 @@ class ConsoleJogConfig(ConfigStruct):
     mapping: JogMapping = msgspec.field(default_factory=JogMapping)
 
     def __post_init__(self) -> None:
-        if not self.source.startswith("jog/"):
-            raise ValueError(f"jog.source {self.source!r}: a jog's source is jog/<device>")
-        if not (math.isfinite(self.rate_hz) and 10.0 <= self.rate_hz <= 200.0):
-            raise ValueError("jog.rate_hz must be within 10..200 (safety stops a jog unheard for 100 ms)")
+        check_stream(self.source, self.rate_hz, "jog.")
         if not (math.isfinite(self.page_budget_s) and 0.02 <= self.page_budget_s <= 0.1):
             raise ValueError("jog.page_budget_s must be within 0.02..0.1 s (safety's command budget)")
 
@@ -144,7 +142,6 @@ class JogCounts:
     #: the stream went silent on a stale snapshot (one released request each time)
     stale: int = 0
     released_on_close: int = 0
-    by_reason: dict = field(default_factory=dict)
 
 
 class ConsoleJog:

@@ -11,6 +11,14 @@ from services.jog.mapping import JogMapping
 from services.runtime.config import ConfigStruct
 
 
+def check_stream(source: str, rate_hz: float, where: str = "") -> None:
+    """A stick's stream's source and rate, or ValueError (``where``: the keys' prefix, e.g. ``jog.``)."""
+    if not source.startswith("jog/"):
+        raise ValueError(f"{where}source {source!r}: a jog's source is jog/<device>")
+    if not (math.isfinite(rate_hz) and 10.0 <= rate_hz <= 200.0):
+        raise ValueError(f"{where}rate_hz must be within 10..200 (safety stops a jog unheard for 100 ms)")
+
+
 class JogConfig(ConfigStruct):
     #: the commands' source: jog/<device> (safety's sources declare jog; each device counts its own sequence)
     source: SourceName = JOG_SOURCE
@@ -24,9 +32,6 @@ class JogConfig(ConfigStruct):
     gamepad: GamepadMap = msgspec.field(default_factory=GamepadMap)
 
     def __post_init__(self) -> None:
-        if not self.source.startswith("jog/"):
-            raise ValueError(f"source {self.source!r}: a jog's source is jog/<device>")
-        if not (math.isfinite(self.rate_hz) and 10.0 <= self.rate_hz <= 200.0):
-            raise ValueError("rate_hz must be within 10..200 (safety stops a jog unheard for 100 ms)")
+        check_stream(self.source, self.rate_hz)
         if self.speed_level not in JOG_SPEED_LEVELS:
             raise ValueError(f"speed_level must be one of {JOG_SPEED_LEVELS}")
