@@ -118,8 +118,8 @@ class ConsoleService(Service):
         self.subscribe(k.safety_status, m.SafetyStatus, self._locked(self.model.on_safety), "safety_status")
         self.subscribe(k.estop, m.EStop, self._locked(self.model.on_estop), "estop")
         self.subscribe(k.clock, m.SimClock, self._on_clock, "sim_clock")
+        self._start_jog()  # before the e-stop's sender process: a jog config that fails leaves nothing running
         self._estop = EStopSender.for_service(self)
-        self._start_jog()
         self._threads = [start_thread(self._encode_frames, "console-jpeg"),
                          start_thread(self._poll, "console-poll")]
         if self._jog_publisher is not None:
@@ -150,7 +150,11 @@ class ConsoleService(Service):
         else:
             session, how = self.session, "on the console's own session (no access control)"
         key = self.keys.desired_jog
-        self._jog_publisher = GuardedPublisher.declare(session, key, **publisher_options(key))
+        try:
+            self._jog_publisher = GuardedPublisher.declare(session, key, **publisher_options(key))
+        except Exception:
+            self._stop_jog()
+            raise
         self.jog = ConsoleJog(config, enabled=True, why=how)
 
     def _stream_jog(self) -> None:
