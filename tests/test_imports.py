@@ -95,8 +95,9 @@ SERVICES = {
     "services.observe": set(),
     "services.tools": set(),
     "services.torque_controller": {"services.controller", "services.robot"},  # the torque laws; the bus cycle
-    # the task, the e-stop, the frames, the teach
-    "services.console": {"services.controller", "services.safety", "services.observe", "services.vision"},
+    # the task, the e-stop, the frames, the teach, the person's stick (its mapping and stamps)
+    "services.console": {"services.controller", "services.safety", "services.observe", "services.vision",
+                         "services.jog"},
     "services.calibration": {"services.camera", "services.robot_sim"},  # the camera's files; the simulated rig
     # the task and the e-stop as `mfvs task` and `mfvs estop` reach them; the frames `mfvs view` names
     "services.ros2_bridge": {"services.controller", "services.safety", "services.observe"},
