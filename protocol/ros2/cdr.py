@@ -10,8 +10,8 @@ fields, with no alignment of its own; a message without fields carries one uint8
 
 A message here is a frozen dataclass (``Image``, ``JointState``, ...) whose fields have the ROS field names, in
 the ROS order. Values: Python ints and floats for primitives; ``str`` for strings; ``bytes`` for ``uint8[]``
-(Image.data); a float64 numpy array for ``float64[]`` and ``float64[N]`` (decoded arrays are read-only views of the
-payload, no copy); a tuple for sequences of strings or messages. Two messages are equal when every field is (arrays
+(Image.data); a numpy array for ``float64[]`` and ``float64[N]`` (float64), ``float32[]`` (float32) and ``int32[]``
+(int32) (decoded arrays are read-only views of the payload, no copy); a tuple for sequences of strings or messages. Two messages are equal when every field is (arrays
 element by element).
 
 Decoding is tolerant where ROS's serializer differs from the rule and strict everywhere else: fewer than 8 bytes
@@ -22,6 +22,7 @@ padding bytes are never read (the same serializer leaves stale bytes in them); a
 from __future__ import annotations
 
 import dataclasses
+import math
 import struct
 from dataclasses import dataclass, field
 from typing import ClassVar, TypeVar
@@ -60,9 +61,11 @@ class _Primitive:
             if not isinstance(value, (bool, np.bool_)):
                 raise CdrError(f"{where}: a bool is needed, got {value!r}")
             return bool(value)
-        if self.name == "float64":
+        if self.name in ("float64", "float32"):
             if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
                 raise CdrError(f"{where}: a float is needed, got {value!r}")
+            if self.name == "float32" and math.isfinite(value) and not math.isfinite(np.float32(value)):
+                raise CdrError(f"{where}: {value} is beyond float32's range")
             return float(value)
         if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
             raise CdrError(f"{where}: an integer is needed, got {value!r}")
@@ -76,6 +79,10 @@ UINT32 = _Primitive("uint32", "<I", 0, 2**32 - 1)
 UINT8 = _Primitive("uint8", "<B", 0, 255)
 BOOL = _Primitive("bool", "<?", 0, 1)
 FLOAT64 = _Primitive("float64", "<d", float("-inf"), float("inf"))
+FLOAT32 = _Primitive("float32", "<f", float("-inf"), float("inf"))
+
+#: the primitives whose sequences are numpy arrays, and each one's little-endian dtype
+_ARRAY_DTYPES = {FLOAT64: "<f8", FLOAT32: "<f4", INT32: "<i4"}
 
 
 class _StringKind:
@@ -123,8 +130,21 @@ class Message:
     __hash__ = None  # mutable arrays inside: not hashable
 
 
-def _float64_array(values, length: int | None = None) -> np.ndarray:
-    array = np.asarray(values, dtype=np.float64)
+def _float64_array(values, length: int | None = None, dtype=np.float64) -> np.ndarray:
+    array = np.asarray(values)
+    if array.dtype.kind not in "biuf" or array.dtype.kind == "b":
+        raise CdrError(f"numbers are needed, got {array.dtype} values")
+    if np.dtype(dtype).kind == "i":
+        if array.dtype.kind == "f" and not np.array_equal(array, np.trunc(array)):
+            raise CdrError("integers are needed, got fractions")
+        info = np.iinfo(dtype)
+        if array.size and (array.min() < info.min or array.max() > info.max):
+            raise CdrError(f"a value beyond {np.dtype(dtype).name}'s range [{info.min}, {info.max}]")
+    elif np.dtype(dtype) == np.float32 and array.size:
+        wide = array.astype(np.float64)
+        if np.any(np.isfinite(wide) & (np.abs(wide) > np.finfo(np.float32).max)):
+            raise CdrError("a value beyond float32's range")
+    array = array.astype(dtype)
     if array.ndim != 1 or (length is not None and array.shape[0] != length):
         want = f"{length} values" if length is not None else "a flat sequence"
         raise CdrError(f"{want} are needed, got shape {array.shape}")
@@ -133,6 +153,14 @@ def _float64_array(values, length: int | None = None) -> np.ndarray:
 
 def _empty_floats() -> np.ndarray:
     return np.zeros(0)
+
+
+def _empty_float32() -> np.ndarray:
+    return np.zeros(0, dtype=np.float32)
+
+
+def _empty_int32() -> np.ndarray:
+    return np.zeros(0, dtype=np.int32)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -263,6 +291,30 @@ class PoseStamped(Message):
 
 
 @dataclass(frozen=True, eq=False)
+class Twist(Message):
+    ROS_TYPE = "geometry_msgs/msg/Twist"
+    linear: Vector3 = ros_field(Vector3, default_factory=Vector3)
+    angular: Vector3 = ros_field(Vector3, default_factory=Vector3)
+
+
+@dataclass(frozen=True, eq=False)
+class TwistStamped(Message):
+    """A velocity (MoveIt Servo's input): m/s and rad/s in the frame its header names."""
+    ROS_TYPE = "geometry_msgs/msg/TwistStamped"
+    header: Header = ros_field(Header, default_factory=Header)
+    twist: Twist = ros_field(Twist, default_factory=Twist)
+
+
+@dataclass(frozen=True, eq=False)
+class Joy(Message):
+    """A joystick as the ROS ``joy`` driver reports it: every axis in [-1, 1], every button 0 or 1."""
+    ROS_TYPE = "sensor_msgs/msg/Joy"
+    header: Header = ros_field(Header, default_factory=Header)
+    axes: np.ndarray = ros_field(Sequence(FLOAT32), default_factory=_empty_float32)
+    buttons: np.ndarray = ros_field(Sequence(INT32), default_factory=_empty_int32)
+
+
+@dataclass(frozen=True, eq=False)
 class String(Message):
     """std_msgs/String: the robot description (the URDF) is published as one."""
     ROS_TYPE = "std_msgs/msg/String"
@@ -316,8 +368,8 @@ class TriggerResponse(Message):
 #: every message type of this module by its ROS 2 name
 MESSAGE_TYPES: dict[str, type[Message]] = {cls.ROS_TYPE: cls for cls in (
     Time, Header, Image, RegionOfInterest, CameraInfo, JointState, Vector3, Point, Quaternion, Transform,
-    TransformStamped, TFMessage, Pose, PoseStamped, String, KeyValue, DiagnosticStatus, DiagnosticArray,
-    TriggerRequest, TriggerResponse)}
+    TransformStamped, TFMessage, Pose, PoseStamped, Twist, TwistStamped, Joy, String, KeyValue, DiagnosticStatus,
+    DiagnosticArray, TriggerRequest, TriggerResponse)}
 
 
 def _fields(message_type: type[Message]):
@@ -392,12 +444,13 @@ class _Writer:
                 raise CdrError(f"{where}: bytes are needed for uint8[], got {type(values).__name__}")
             self.primitive(UINT32, len(values), where)
             self.buffer += values
-        elif element is FLOAT64:
-            array = self._floats(values, None, where)
+        elif element in _ARRAY_DTYPES:
+            dtype = _ARRAY_DTYPES[element]
+            array = self._floats(values, None, where, dtype)
             self.primitive(UINT32, array.shape[0], where)
             if array.shape[0]:
-                self.align(8)
-                self.buffer += array.astype("<f8", copy=False).tobytes()
+                self.align(element.size)
+                self.buffer += array.astype(dtype, copy=False).tobytes()
         else:
             if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
                 raise CdrError(f"{where}: a sequence is needed, got {type(values).__name__}")
@@ -412,9 +465,9 @@ class _Writer:
             self.value(kind, getattr(message, name), f"{where}.{name}")
 
     @staticmethod
-    def _floats(values, length: int | None, where: str) -> np.ndarray:
+    def _floats(values, length: int | None, where: str, dtype="<f8") -> np.ndarray:
         try:
-            return _float64_array(values, length)
+            return _float64_array(values, length, np.dtype(dtype).newbyteorder("="))
         except (CdrError, TypeError, ValueError) as error:
             raise CdrError(f"{where}: {error}") from None
 
@@ -496,18 +549,19 @@ class _Reader:
             return self.sequence(kind.element, where)
         return self.message(kind, where)
 
-    def floats(self, count: int, where: str) -> np.ndarray:
-        chunk = self.take(8 * count, where)
-        return np.frombuffer(chunk, dtype="<f8", count=count)
+    def floats(self, count: int, where: str, dtype: str = "<f8") -> np.ndarray:
+        size = np.dtype(dtype).itemsize
+        chunk = self.take(size * count, where)
+        return np.frombuffer(chunk, dtype=dtype, count=count)
 
     def sequence(self, element, where: str):
         if element is UINT8:
             return bytes(self.take(self.count(1, where), where))
-        if element is FLOAT64:
-            count = self.count(8, where)
+        if element in _ARRAY_DTYPES:
+            count = self.count(element.size, where)
             if count:
-                self.align(8)
-            return self.floats(count, where)
+                self.align(element.size)
+            return self.floats(count, where, _ARRAY_DTYPES[element])
         count = self.count(_smallest_size(element), where)
         return tuple(self.value(element, f"{where}[{index}]") for index in range(count))
 

@@ -5,7 +5,7 @@ every rmw_zenoh key of the type (keys.py), so a hash that is wrong by one bit hi
 values come from, all recorded in tests/protocol/ros2/fixtures/fixtures.json by make_fixtures.py beside it:
 
 - "package": the type description the ROS 2 Jazzy interface package ships, share/<pkg>/<msg|srv>/<Name>.json
-  (ros-jazzy-* wheels: common_interfaces 5.3.6, builtin_interfaces and rcl_interfaces 2.0.3, std_srvs 5.3.6),
+  (ros-jazzy-* wheels: common_interfaces 5.3.6 (sensor_msgs, geometry_msgs among them), builtin_interfaces and rcl_interfaces 2.0.3, std_srvs 5.3.6),
   written by rosidl_generator_type_description: the value rosidl compiles into the type support rmw_zenoh reads;
 - "rosbags": rosbags 0.11.9's REP-2011 hasher over its type stores; for every message type here its Jazzy, Kilted
   and Lyrical stores give the same hash, equal to the package's where the package was at hand.
@@ -53,6 +53,12 @@ TRIGGER = RosType("std_srvs/srv/Trigger",
 # package (geometry_msgs/msg/PoseStamped.json) = rosbags
 POSE_STAMPED = RosType("geometry_msgs/msg/PoseStamped",
                        "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8")
+# package (sensor_msgs/msg/Joy.json) = rosbags: what the ROS joy driver publishes
+JOY = RosType("sensor_msgs/msg/Joy",
+              "RIHS01_0d356c79cad3401e35ffeb75a96a96e08be3ef896b8b83841d73e890989372c5")
+# package (geometry_msgs/msg/TwistStamped.json) = rosbags: MoveIt Servo's Cartesian input
+TWIST_STAMPED = RosType("geometry_msgs/msg/TwistStamped",
+                        "RIHS01_5f0fcd4f81d5d06ad9b4c4c63e3ea51b82d6ae4d0558f1d475229b1121db6f64")
 
 # Nested in the above: never a topic's type here, kept to check the codec's types against (test_types.py).
 # package (<pkg>/msg/<Name>.json) = rosbags, each
@@ -68,6 +74,8 @@ QUATERNION = RosType("geometry_msgs/msg/Quaternion",
                      "RIHS01_8a765f66778c8ff7c8ab94afcc590a2ed5325a1d9a076ffff38fbce36f458684")
 POINT = RosType("geometry_msgs/msg/Point",
                 "RIHS01_6963084842a9b04494d6b2941d11444708d892da2f4b09843b9c43f42a7f6881")
+TWIST = RosType("geometry_msgs/msg/Twist",
+                "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a")
 POSE = RosType("geometry_msgs/msg/Pose",
                "RIHS01_d501954e9476cea2996984e812054b68026ae0bfae789d9a10b23daf35cc90fa")
 TRANSFORM = RosType("geometry_msgs/msg/Transform",

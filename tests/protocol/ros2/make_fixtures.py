@@ -90,6 +90,19 @@ SAMPLES = {
         "header": {"stamp": STAMP, "frame_id": "tag36h11_0"},
         "pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.3},
                  "orientation": {"x": 1.0, "y": 0.0, "z": 0.0, "w": 0.0}}}),
+    # a stick as the ROS joy driver sends one (its frame_id "joy", joy.cpp), an odd count of axes before the
+    # buttons; and one a driver sends while no device is open (empty axes and buttons)
+    "joy": ("sensor_msgs/msg/Joy", {
+        "header": {"stamp": STAMP, "frame_id": "joy"}, "axes": [-0.0, 0.5, -1.0, 0.25, 1.0, -0.125, 0.0],
+        "buttons": [0, 0, 0, 0, 1, 0, 0, 1, 0, 0, 0]}),
+    "joy_empty": ("sensor_msgs/msg/Joy", {"header": {"stamp": STAMP, "frame_id": ""}, "axes": [], "buttons": []}),
+    # MoveIt Servo's input: a translation in the base frame, a turn in the hand's frame
+    "twist_stamped": ("geometry_msgs/msg/TwistStamped", {
+        "header": BASE_HEADER, "twist": {"linear": {"x": 0.05, "y": -0.1, "z": 0.025},
+                                         "angular": {"x": 0.0, "y": 0.0, "z": 0.0}}}),
+    "twist_stamped_hand": ("geometry_msgs/msg/TwistStamped", {
+        "header": {"stamp": STAMP, "frame_id": "end_effector"},
+        "twist": {"linear": {"x": 0.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.3, "y": -0.2, "z": 0.1}}}),
     "robot_description": ("std_msgs/msg/String", {
         "data": '<robot name="j2n6s300"><link name="base_link"/><!-- 270° wrist --></robot>'}),
     "string_empty": ("std_msgs/msg/String", {"data": ""}),
@@ -107,7 +120,7 @@ SAMPLES = {
 HASHED_TYPES = sorted({ros_type for ros_type, _ in SAMPLES.values() if "_Re" not in ros_type} | {
     "std_srvs/srv/Trigger", "sensor_msgs/msg/RegionOfInterest", "geometry_msgs/msg/Transform",
     "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion", "geometry_msgs/msg/Pose",
-    "geometry_msgs/msg/Point", "diagnostic_msgs/msg/DiagnosticStatus", "diagnostic_msgs/msg/KeyValue",
+    "geometry_msgs/msg/Point", "geometry_msgs/msg/Twist", "diagnostic_msgs/msg/DiagnosticStatus", "diagnostic_msgs/msg/KeyValue",
     "rcl_interfaces/msg/Log", "rcl_interfaces/msg/ParameterEvent"})
 
 #: the liveliness tokens whose GIDs the tests check: rmw_zenoh's design document's examples (docs/design.md at
@@ -196,7 +209,7 @@ def rosbags_message(typestore, ros_type: str, values: dict):
             elif base in ("uint8", "octet"):
                 value = np.frombuffer(bytes.fromhex(value), dtype=np.uint8)
             else:
-                value = np.array(value, dtype=np.float64)
+                value = np.array(value, dtype={"float32": np.float32, "int32": np.int32}.get(base, np.float64))
         arguments.append(value)
     return cls(*arguments)
 

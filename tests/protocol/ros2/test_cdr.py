@@ -61,7 +61,8 @@ REAL_SERIALIZER = sorted(name for name, entry in SAMPLES.items() if "rclpy" in e
 def test_every_type_of_the_codec_has_a_fixture_made_by_ros_tooling():
     published_or_accepted = {"sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "sensor_msgs/msg/JointState",
                              "tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped",
-                             "geometry_msgs/msg/PoseStamped", "std_msgs/msg/String",
+                             "geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TwistStamped",
+                             "sensor_msgs/msg/Joy", "std_msgs/msg/String",
                              "diagnostic_msgs/msg/DiagnosticArray", "std_srvs/srv/Trigger_Request",
                              "std_srvs/srv/Trigger_Response", "builtin_interfaces/msg/Time", "std_msgs/msg/Header"}
     assert published_or_accepted <= {entry["type"] for entry in SAMPLES.values()}
@@ -107,6 +108,12 @@ def test_decoded_values_have_the_documented_python_types():
     assert joints.name[0] == "j2n6s300_joint_1" and isinstance(joints.name, tuple) and joints.effort.shape == (0,)
     text = cdr.deserialize((FIXTURES / SAMPLES["robot_description"]["rclpy"]).read_bytes(), cdr.String)
     assert "270°" in text.data
+    joy = cdr.deserialize((FIXTURES / SAMPLES["joy"]["rclpy"]).read_bytes(), cdr.Joy)
+    assert joy.axes.dtype == np.float32 and joy.buttons.dtype == np.int32 and joy.header.frame_id == "joy"
+    assert list(joy.axes[1:4]) == [0.5, -1.0, 0.25] and list(np.flatnonzero(joy.buttons)) == [4, 7]
+    assert np.signbit(joy.axes[0])  # -0.0 kept as sent
+    twist = cdr.deserialize((FIXTURES / SAMPLES["twist_stamped_hand"]["rosbags"]).read_bytes(), cdr.TwistStamped)
+    assert (twist.header.frame_id, twist.twist.angular.x, twist.twist.linear.z) == ("end_effector", 0.3, 0.0)
 
 
 def test_messages_compare_by_value_arrays_included():
@@ -137,12 +144,16 @@ transforms = st.builds(cdr.TransformStamped, headers, names, st.builds(cdr.Trans
 tf_messages = st.builds(cdr.TFMessage, st.lists(transforms, max_size=3).map(tuple))
 poses = st.builds(cdr.PoseStamped, headers,
                   st.builds(cdr.Pose, st.builds(cdr.Point, floats, floats, floats), quaternions))
+float32s = st.floats(allow_nan=False, width=32)
+joys = st.builds(cdr.Joy, headers, st.lists(float32s, max_size=9).map(lambda v: np.array(v, dtype=np.float32)),
+                 st.lists(st.integers(-2**31, 2**31 - 1), max_size=13).map(lambda v: np.array(v, dtype=np.int32)))
+twists = st.builds(cdr.TwistStamped, headers, st.builds(cdr.Twist, vectors, vectors))
 key_values = st.builds(cdr.KeyValue, names, names)
 statuses = st.builds(cdr.DiagnosticStatus, st.integers(0, 3), names, names, names,
                      st.lists(key_values, max_size=3).map(tuple))
 diagnostics = st.builds(cdr.DiagnosticArray, headers, st.lists(statuses, max_size=3).map(tuple))
 any_message = st.one_of(
-    times, headers, images, camera_infos, joint_states, transforms, tf_messages, poses,
+    times, headers, images, camera_infos, joint_states, transforms, tf_messages, poses, joys, twists,
     st.builds(cdr.String, names), diagnostics, st.just(cdr.TriggerRequest()),
     st.builds(cdr.TriggerResponse, st.booleans(), names))
 
@@ -269,6 +280,11 @@ def test_values_that_cannot_be_encoded_are_refused_by_name():
         (cdr.TFMessage(transforms=(cdr.Transform(),)), "TFMessage.transforms[0]"),
         (cdr.TriggerResponse(success=1), "TriggerResponse.success"),
         (cdr.Vector3(x="1"), "Vector3.x"),
+        (cdr.Joy(axes=[1e39]), "Joy.axes"),
+        (cdr.Joy(buttons=[2**31]), "Joy.buttons"),
+        (cdr.Joy(buttons=[0.5]), "Joy.buttons"),
+        (cdr.Joy(axes=["a"]), "Joy.axes"),
+        (cdr.TwistStamped(twist=cdr.Vector3()), "TwistStamped.twist"),
     ]
     for message, where in bad:
         with pytest.raises(cdr.CdrError, match=where.replace(".", r"\.").replace("[", r"\[").replace("]", r"\]")):

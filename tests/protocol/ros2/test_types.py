@@ -13,7 +13,7 @@ CONSTANTS = sorted(types.BY_NAME.values(), key=lambda ros_type: ros_type.name)
 
 
 def test_every_constant_is_a_rihs01_hash_and_has_a_fixture():
-    assert len(CONSTANTS) == 19
+    assert len(CONSTANTS) == 22
     for ros_type in CONSTANTS:
         assert re.fullmatch(r"RIHS01_[0-9a-f]{64}", ros_type.rihs01), ros_type
         assert ros_type.name in HASHES, ros_type.name
