@@ -49,13 +49,14 @@ class JogStamper:
         self.seq = 0
         self.heard_ns = 0
 
-    def message(self, motion: JogMotion, heard: bool, now_ns: Optional[int] = None,
+    def message(self, motion: JogMotion, heard: bool, *, now_ns: Optional[int] = None,
                 heard_ns: Optional[int] = None) -> Jog:
-        """The next request: stamped ``now_ns`` (default: the stamper's clock now); ``heard``: the device was heard,
-        at ``heard_ns`` when that is known (a page's snapshot's arrival), else now."""
+        """The next request. ``now_ns``: its stamp (default: the clock's now); ``heard_ns``, with ``heard``: when
+        the device was heard, if not now (a relay's device stamps its own messages; such a stamp never takes the
+        last one back)."""
         now = self.now_ns() if now_ns is None else now_ns
         if heard:
-            self.heard_ns = now if heard_ns is None else heard_ns
+            self.heard_ns = now if heard_ns is None else max(self.heard_ns, heard_ns)
         self.seq += 1
         return Jog(header=Header(seq=self.seq, stamp_ns=now, source_stamp_ns=self.heard_ns), mode=motion.mode,
                    deadman=motion.deadman, speed_level=motion.speed_level, source=self.source, linear=motion.linear,

@@ -12,16 +12,21 @@ import math
 from dataclasses import dataclass, field
 from typing import Optional
 
+import msgspec
 import numpy as np
 
 from protocol import messages as m
+from protocol.messages import JOG_SPEED_LEVELS, JogMode
 from protocol.ros2 import cdr, keys as ros_keys, types as ros_types
 from protocol.ros2.attachment import Attachment, AttachmentError, decode as decode_attachment
 from protocol.ros2.gid import entity_gid
 from protocol.ros2.keys import Distro, Durability, EntityKind, Qos, Reliability
+from services.jog.mapping import MODE_CYCLE, JogMapping, JogMotion, JogSpeeds, StickInput, StickMapper
+from services.jog.sender import JogStamper
 from services.model import frames
 from services.model.arm import BASE_LINK, EE_LINK, ArmDescription
 from services.observe.foxglove_view import CAMERA_FRAME, TAG_FRAME, target_pose
+from services.runtime.config import ConfigStruct
 
 #: what ROS 2 calls mfvs's image encodings (sensor_msgs/image_encodings.hpp spells the same three the same way)
 ROS_ENCODINGS = {m.ImageEncoding.RGB8: "rgb8", m.ImageEncoding.BGR8: "bgr8", m.ImageEncoding.MONO8: "mono8"}
@@ -57,9 +62,13 @@ START_TASK = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/start_task", ros_types.TR
 STOP_TASK = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/stop_task", ros_types.TRIGGER, _RELIABLE_10)
 ESTOP = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/estop", ros_types.TRIGGER, _RELIABLE_10)
 GOAL_POSE = Endpoint(EntityKind.SUBSCRIPTION, "mfvs/goal_pose", ros_types.POSE_STAMPED, _RELIABLE_10)
+#: a person's stick, as jog requests: the ROS joy driver's topic and QoS (joy.cpp: "joy", depth 10, reliable), and
+#: MoveIt Servo's Cartesian input (its cartesian_command_in_topic "~/delta_twist_cmds", depth 10: servo_node.cpp)
+JOY = Endpoint(EntityKind.SUBSCRIPTION, "joy", ros_types.JOY, _RELIABLE_10)
+DELTA_TWIST = Endpoint(EntityKind.SUBSCRIPTION, "~/delta_twist_cmds", ros_types.TWIST_STAMPED, _RELIABLE_10)
 
 ENDPOINTS = (IMAGE, CAMERA_INFO, JOINT_STATES, TF, TF_STATIC, ROBOT_DESCRIPTION, DIAGNOSTICS, START_TASK, STOP_TASK,
-             ESTOP, GOAL_POSE)
+             ESTOP, GOAL_POSE, JOY, DELTA_TWIST)
 
 
 @dataclass(frozen=True)
@@ -360,3 +369,229 @@ def goal_pose(payload: bytes, limits: GoalLimits = GoalLimits()) -> m.Pose:
                                      f"{limits.min_distance_m:g} to {limits.max_distance_m:g} m from it")
     quat = tuple(v / norm for v in (o.w, o.x, o.y, o.z))
     return m.Pose(xyz=(p.x, p.y, p.z), quat_wxyz=quat)
+
+
+# ------------------------------------------------------------------------------------------------ a stick from ROS 2
+#: the sources the bridge's jog requests carry (safety counts each one's sequence on its own)
+JOY_SOURCE = "jog/ros-joy"
+TWIST_SOURCE = "jog/ros-twist"
+
+
+class JoyAxis(ConfigStruct):
+    #: the axis's index in sensor_msgs/Joy's ``axes``
+    index: int
+    #: its sign flipped
+    invert: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.index, bool) or not 0 <= self.index < 64:
+            raise ValueError(f"axis index {self.index}: 0..63")
+
+
+#: no button for this role
+NO_BUTTON = -1
+
+
+class JoyMap(ConfigStruct):
+    """Which of a sensor_msgs/Joy's axes and buttons do what: the ROS joy driver's (joy_node's) indices. The
+    defaults are ours, for an Xbox 360 pad under the joy driver, the same roles as `mfvs jog`'s gamepad map: the
+    left stick's vertical (1) and horizontal (0) and the right stick's vertical (4) are the three axes (the driver
+    already makes up and left positive: joy.cpp), LB (4) the dead-man, A (0) the mode, RB (5) and X (2) the speed
+    level up and down. MoveIt Servo's xbox360_wired.yaml and joystick_to_servo.yaml name the same indices for this
+    pad (axes 1, 0, 4; LB 4, RB 5, X 2, B 1)."""
+
+    axes: list[JoyAxis] = msgspec.field(default_factory=lambda: [JoyAxis(index=1), JoyAxis(index=0),
+                                                                 JoyAxis(index=4)])
+    #: held: the arm may move (teleop_twist_joy's enable_button); released: it stops at once
+    deadman: int = 4
+    #: each press: translation -> wrist -> fingers (-1: none, the mode stays translation)
+    mode: int = 0
+    #: each press: one speed level up, down (-1: none)
+    speed_up: int = 5
+    speed_down: int = 2
+
+    def __post_init__(self) -> None:
+        if len(self.axes) != 3:
+            raise ValueError("joy.axes: the stick's three (translation X, Y, Z; wrist about x, y, z)")
+        if isinstance(self.deadman, bool) or not 0 <= self.deadman < 128:
+            raise ValueError(f"joy.deadman {self.deadman}: a button index 0..127 (a jog always has a dead-man)")
+        roles = {"mode": self.mode, "speed_up": self.speed_up, "speed_down": self.speed_down}
+        for role, index in roles.items():
+            if isinstance(index, bool) or not NO_BUTTON <= index < 128:
+                raise ValueError(f"joy.{role} {index}: a button index 0..127, or -1 for none")
+        used = [self.deadman] + [index for index in roles.values() if index != NO_BUTTON]
+        if len(set(used)) != len(used):
+            raise ValueError(f"joy: one button for two roles ({used})")
+
+    @property
+    def axes_needed(self) -> int:
+        return 1 + max(axis.index for axis in self.axes)
+
+    @property
+    def buttons_needed(self) -> int:
+        return 1 + max(self.deadman, self.mode, self.speed_up, self.speed_down)
+
+
+class RosJogConfig(ConfigStruct):
+    """How the bridge turns a ROS stick (sensor_msgs/Joy) and a ROS velocity (geometry_msgs/TwistStamped) into a
+    person's jog requests (docs/ros2.md, "A stick from ROS 2")."""
+
+    #: where a Joy stream's speed level starts (1..3): the slowest, as `mfvs jog`'s, for a person's first touch
+    speed_level: int = JOG_SPEED_LEVELS[0]
+    #: the dead band 0.05, ours: the joy driver has already taken its own (its ``deadzone``, 0.05 by default) and
+    #: rescaled, so the two together leave a stick still within 0.0975 of its centre, `mfvs jog`'s 0.1
+    mapping: JogMapping = msgspec.field(default_factory=lambda: JogMapping(dead_band=0.05))
+    joy: JoyMap = msgspec.field(default_factory=JoyMap)
+    #: a ROS message's header stamp is taken as when its device was heard if it is within this of the bridge's
+    #: clock (s); otherwise the receipt is (and counted): 0.05, ours, safety's own future_skew_s
+    stamp_skew_s: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.speed_level not in JOG_SPEED_LEVELS:
+            raise ValueError(f"jog.speed_level must be one of {JOG_SPEED_LEVELS}")
+        if not (math.isfinite(self.stamp_skew_s) and 0.0 <= self.stamp_skew_s <= 0.2):
+            raise ValueError("jog.stamp_skew_s must be within 0..0.2 s (safety's device budget is 0.25 s)")
+
+
+def ros_time_ns(stamp: cdr.Time, what: str) -> int:
+    if not 0 <= stamp.nanosec < 1_000_000_000:
+        raise InputError("stamp", f"a {what} stamped with nanosec {stamp.nanosec}: 0..999999999")
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def device_heard_ns(stamp_ns: int, receipt_ns: int, skew_s: float) -> tuple[int, bool]:
+    """When a ROS message's device was heard, and whether its own stamp says so: the stamp when it lies within
+    ``skew_s`` of the receipt (never after the receipt: a stamp ahead of the bridge's clock counts as the receipt),
+    else the receipt (a publisher whose clock is off, or an unstamped message: its stamps say nothing the bridge
+    can use, and taken as they are they would make safety refuse every request, or accept stale ones)."""
+    skew_ns = int(skew_s * 1e9)
+    if abs(stamp_ns - receipt_ns) <= skew_ns:
+        return min(stamp_ns, receipt_ns), True
+    return receipt_ns, False
+
+
+class JoyStick:
+    """A sensor_msgs/Joy stream as a stick: each message checked and read through a :class:`JoyMap` (its axes, its
+    dead-man), the mode and speed buttons stepping on a press (a button going from 0 to 1; the first message only
+    sets what is held)."""
+
+    def __init__(self, joy_map: JoyMap, speed_level: int) -> None:
+        self.map = joy_map
+        self.mode_index = 0
+        self.speed_level = speed_level
+        self._held: Optional[np.ndarray] = None
+
+    def read(self, joy: cdr.Joy) -> StickInput:
+        cfg = self.map
+        axes, buttons = joy.axes, joy.buttons
+        if len(axes) < cfg.axes_needed or len(buttons) < cfg.buttons_needed:
+            raise InputError("size", f"a Joy of {len(axes)} axes and {len(buttons)} buttons: the map needs "
+                                     f"{cfg.axes_needed} axes and {cfg.buttons_needed} buttons (ros2_bridge.yaml "
+                                     "jog.joy)")
+        if not np.all(np.isfinite(axes)):
+            raise InputError("not_finite", f"a Joy with NaN or infinite axes: {list(axes)[:16]}")
+        if np.any(np.abs(axes) > 1.0):
+            raise InputError("range", f"a Joy axis beyond [-1, 1]: {list(axes)[:16]}")
+        if np.any((buttons != 0) & (buttons != 1)):
+            raise InputError("button", f"a Joy button neither 0 nor 1: {list(buttons)[:32]}")
+        pressed = buttons.astype(bool)
+        if self._held is not None and len(self._held) == len(pressed):
+            def press(index: int) -> bool:
+                return index != NO_BUTTON and bool(pressed[index]) and not self._held[index]
+            if press(cfg.mode):
+                self.mode_index = (self.mode_index + 1) % len(MODE_CYCLE)
+            if press(cfg.speed_up):
+                self.speed_level = min(self.speed_level + 1, JOG_SPEED_LEVELS[-1])
+            if press(cfg.speed_down):
+                self.speed_level = max(self.speed_level - 1, JOG_SPEED_LEVELS[0])
+        self._held = pressed
+        values = tuple(float(-axes[a.index] if a.invert else axes[a.index]) for a in cfg.axes)
+        return StickInput(axes=values, mode=MODE_CYCLE[self.mode_index], speed_level=self.speed_level,
+                          deadman=bool(pressed[cfg.deadman]))
+
+
+def twist_motion(twist: cdr.TwistStamped, speeds: JogSpeeds, base_frame: str = BASE_LINK,
+                 hand_frame: str = EE_LINK) -> JogMotion:
+    """The jog a geometry_msgs/TwistStamped asks for. A jog moves one mode at a time in the mixed frame (Kinova's
+    stick): ``linear`` along the base's axes, frame_id the base's (``base_link``): a translation; ``angular`` about the
+    hand's own axes, frame_id the hand's (``end_effector``): a wrist turn. A twist that does both, or states one in
+    the other's frame, is refused rather than converted (a conversion would rest on the last arm state the bridge
+    heard, which it only follows while a ROS tool reads /tf). An all-zero twist is a release (the dead-man let go:
+    teleop_twist_joy sends one when its enable button is released); any other is a held dead-man, MoveIt Servo's
+    way: a velocity stream is the request while it flows, and its staleness (safety's 100 ms) the release. Faster
+    than the stick's full speed of its mode (``speeds``): refused."""
+    header = twist.header
+    linear = (twist.twist.linear.x, twist.twist.linear.y, twist.twist.linear.z)
+    angular = (twist.twist.angular.x, twist.twist.angular.y, twist.twist.angular.z)
+    if not all(math.isfinite(v) for v in linear + angular):
+        raise InputError("not_finite", f"a twist with NaN or infinity: linear {linear}, angular {angular}")
+    frame = header.frame_id
+    if frame not in (base_frame, hand_frame):
+        raise InputError("frame", f"a twist's frame_id is {base_frame!r} (linear, along the base's axes) or "
+                                  f"{hand_frame!r} (angular, about the hand's), got {frame[:64]!r}")
+    moves, turns = any(linear), any(angular)
+    top = JOG_SPEED_LEVELS[-1]
+    if not moves and not turns:
+        return JogMotion(JogMode.TRANSLATION if frame == base_frame else JogMode.WRIST, top, deadman=False)
+    if moves and turns:
+        raise InputError("mixed", "a twist both moving and turning: a jog is one mode at a time; send linear in "
+                                  f"{base_frame!r} or angular in {hand_frame!r}")
+    if moves and frame != base_frame:
+        raise InputError("frame", f"linear velocity in {frame!r}: a jog moves along the base's axes, frame_id "
+                                  f"{base_frame!r}")
+    if turns and frame != hand_frame:
+        raise InputError("frame", f"angular velocity in {frame!r}: a jog turns about the hand's own axes, frame_id "
+                                  f"{hand_frame!r}")
+    values, limit = (linear, speeds.linear_mps) if moves else (angular, speeds.angular_rps)
+    if max(abs(v) for v in values) > limit:
+        raise InputError("speed", f"a twist of {values}: {'m/s' if moves else 'rad/s'} up to {limit:g} per axis "
+                                  "(ros2_bridge.yaml jog.mapping.speeds)")
+    values = tuple(float(v) for v in values)
+    if moves:
+        return JogMotion(JogMode.TRANSLATION, top, True, linear=values)
+    return JogMotion(JogMode.WRIST, top, True, angular=values)
+
+
+@dataclass
+class Relayed:
+    """A jog request made of a ROS message, and whether that message's own stamp was used (False: the receipt)."""
+    jog: m.Jog
+    stamp_used: bool
+
+
+class JogRelay:
+    """ROS 2 sticks and velocities as a person's jog requests, each sequenced per source (``jog/ros-joy``,
+    ``jog/ros-twist``) and stamped: ``header.stamp_ns`` the receipt (the bridge's clock), ``source_stamp_ns`` when the
+    device was heard (:func:`device_heard_ns`). Pure: the caller gives the times. Not thread-safe: one caller at a
+    time."""
+
+    def __init__(self, config: RosJogConfig, base_frame: str = BASE_LINK, hand_frame: str = EE_LINK) -> None:
+        self.config = config
+        self.base_frame, self.hand_frame = base_frame, hand_frame
+        self.stick = JoyStick(config.joy, config.speed_level)
+        self.mapper = StickMapper(config.mapping)
+        self.joy_stamper = JogStamper(JOY_SOURCE)
+        self.twist_stamper = JogStamper(TWIST_SOURCE)
+
+    def joy(self, payload: bytes, receipt_ns: int, monotonic_s: float) -> Relayed:
+        """A sensor_msgs/Joy's CDR as a jog request (``monotonic_s``: the spasm filter's time)."""
+        try:
+            joy = cdr.deserialize(payload, cdr.Joy)
+        except cdr.CdrError as exc:
+            raise InputError("cdr", str(exc)) from None
+        stamp_ns = ros_time_ns(joy.header.stamp, "Joy")
+        stick = self.stick.read(joy)
+        heard_ns, used = device_heard_ns(stamp_ns, receipt_ns, self.config.stamp_skew_s)
+        motion = self.mapper(stick, monotonic_s)
+        return Relayed(self.joy_stamper.message(motion, True, now_ns=receipt_ns, heard_ns=heard_ns), used)
+
+    def twist(self, payload: bytes, receipt_ns: int) -> Relayed:
+        """A geometry_msgs/TwistStamped's CDR as a jog request (:func:`twist_motion`)."""
+        try:
+            twist = cdr.deserialize(payload, cdr.TwistStamped)
+        except cdr.CdrError as exc:
+            raise InputError("cdr", str(exc)) from None
+        stamp_ns = ros_time_ns(twist.header.stamp, "TwistStamped")
+        motion = twist_motion(twist, self.config.mapping.speeds, self.base_frame, self.hand_frame)
+        heard_ns, used = device_heard_ns(stamp_ns, receipt_ns, self.config.stamp_skew_s)
+        return Relayed(self.twist_stamper.message(motion, True, now_ns=receipt_ns, heard_ns=heard_ns), used)
