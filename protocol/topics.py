@@ -34,8 +34,8 @@ def topics(keys: Keys) -> list[Topic]:
         Topic(keys.vision_goal, m.VisionGoal, "operator"),
         Topic(keys.desired_twist, m.Twist, "controller", control_path=True),
         Topic(keys.desired_joint_velocity, m.JointVelocity, "controller", control_path=True),
-        Topic(keys.desired_jog, m.Jog, "jog (a person's stick: mfvs jog, or the console's stick as the jog identity)",
-              control_path=True),
+        Topic(keys.desired_jog, m.Jog, "jog (a person's stick: mfvs jog, the console's stick as the jog identity, or a "
+              "ROS 2 one relayed by ros2_bridge)", control_path=True),
         Topic(keys.controller_status, m.ControllerStatus, "controller"),
         Topic(keys.robot_command, m.RobotCommand, "safety", control_path=True),
         Topic(keys.safety_status, m.SafetyStatus, "safety"),

@@ -6,9 +6,11 @@ local: a late subscriber gets the last one).
 
 Its inputs from ROS 2 go where `mfvs task`, `mfvs estop` and a goal from the operator go, as the identity of its
 zenoh config (the operator's, behind authority): the controller's task queries, safety's e-stop key (engage only:
-releasing it stays a person's explicit `mfvs estop --reset`), vision's set_goal query. It declares no publisher on a
-key the robot acts on (its PORTS produce nothing). Its e-stop goes out from a realtime process of its own, as the
-console's (services/safety/estop_sender.py)."""
+releasing it stays a person's explicit `mfvs estop --reset`), vision's set_goal query. Its e-stop goes out from a
+realtime process of its own, as the console's (services/safety/estop_sender.py). A ROS stick (sensor_msgs/Joy on
+``joy``) and a ROS velocity (geometry_msgs/TwistStamped on ``~/delta_twist_cmds``) go out as a person's jog requests
+on jog/request, the one key it produces, which safety takes only while their dead-man is held; behind authority
+only the jog identity may put there, so they go out on a session of that identity's (``jog_zenoh``)."""
 from __future__ import annotations
 
 import itertools
@@ -17,6 +19,7 @@ import threading
 import time
 from typing import Callable, Optional
 
+import msgspec
 import zenoh
 import zenoh.ext
 
@@ -32,7 +35,7 @@ from services.ros2_bridge.core import Endpoint, InputError
 from services.runtime.ports import Port, Ports
 from services.runtime.service import Service, ServiceConfig
 from services.runtime.threads import start_thread
-from services.runtime.transport import GuardedPublisher
+from services.runtime.transport import GuardedPublisher, ZenohConfig, open_session, publisher_options
 from services.safety.estop_sender import EStopSender
 
 #: how often a transient-local publisher says its last sequence number, when it changed (rmw_zenoh's
@@ -61,6 +64,11 @@ class Ros2BridgeConfig(ServiceConfig):
     #: a goal pose's camera is this near the tag at least, this far at most (m)
     goal_min_distance_m: float = 0.05
     goal_max_distance_m: float = 2.0
+    #: a ROS stick and velocity as jog requests (services/ros2_bridge/core.py RosJogConfig, docs/ros2.md)
+    jog: core.RosJogConfig = msgspec.field(default_factory=core.RosJogConfig)
+    #: the zenoh client of the jog identity, whose session alone puts the jog requests (behind authority only it
+    #: may: services/runtime/authority.py); null: the bridge's own session (no access control)
+    jog_zenoh: Optional[ZenohConfig] = None
 
     def __post_init__(self) -> None:
         try:
@@ -137,7 +145,8 @@ class Ros2BridgeService(Service):
     PORTS = Ports(consumes=(Port("camera_image", m.Image), Port("camera_info", m.CameraInfo),
                             Port("robot_state", m.RobotState), Port("features", m.Features),
                             Port("controller_status", m.ControllerStatus), Port("safety_status", m.SafetyStatus),
-                            Port("health_all", m.ServiceHealth)))
+                            Port("health_all", m.ServiceHealth)),
+                  produces=(Port("desired_jog", m.Jog),))
 
     def __init__(self, config: Optional[Ros2BridgeConfig] = None, **kwargs) -> None:
         super().__init__(config or Ros2BridgeConfig(), **kwargs)
@@ -152,6 +161,10 @@ class Ros2BridgeService(Service):
         self._watch = core.SubscriberWatch(self.config.domain_id)
         self._goal_limits = core.GoalLimits(self.config.goal_min_distance_m, self.config.goal_max_distance_m)
         self._estop: Optional[EStopSender] = None
+        self._relay = core.JogRelay(self.config.jog)
+        self._relay_lock = threading.Lock()  # the relay's stick and sequences: one ROS message at a time
+        self._jog_session = None  # the jog identity's, when the config gives one
+        self._jog_publisher: Optional[GuardedPublisher] = None
         self._workers: list[_Worker] = []
         self._threads: list[threading.Thread] = []
 
@@ -177,6 +190,7 @@ class Ros2BridgeService(Service):
                 graph.endpoints[endpoint].key, self._guarded("service", self._service(worker, act)), complete=True))
         self._declared.append(self.session.declare_subscriber(graph.endpoints[core.GOAL_POSE].key,
                                                               self._guarded("goal", self._on_goal)))
+        self._start_jog(graph)
         k = self.keys
         self.subscribe(k.camera_image, m.Image, self._on_image, "image")
         self.subscribe(k.camera_info, m.CameraInfo, self._on_camera_info, "camera_info")
@@ -214,7 +228,27 @@ class Ros2BridgeService(Service):
                                                                 sporadic_heartbeat=HEARTBEAT_PERIOD_S),
             publisher_detection=True)
 
+    def _start_jog(self, graph: core.NodeGraph) -> None:
+        """The jog requests' publisher (on the jog identity's session when one is configured), then the two ROS
+        subscriptions that feed it."""
+        assert self.session is not None
+        key = self.keys.desired_jog
+        self._check_port("produces", key, m.Jog)
+        if self.config.jog_zenoh is not None:
+            self._jog_session = open_session(self.config.jog_zenoh)
+        session = self._jog_session or self.session
+        self._jog_publisher = GuardedPublisher.declare(session, key, **publisher_options(key))
+        if self._jog_session is None:
+            self._declared.append(self._jog_publisher)
+        self._declared.append(self.session.declare_subscriber(graph.endpoints[core.JOY].key,
+                                                              self._guarded("joy", self._on_joy)))
+        self._declared.append(self.session.declare_subscriber(graph.endpoints[core.DELTA_TWIST].key,
+                                                              self._guarded("twist", self._on_twist)))
+
     def on_stop(self) -> None:
+        if self._jog_session is not None:  # its own: closed here (a put after this is dropped by its guard)
+            self._jog_publisher.undeclare()
+            self._jog_session.close()
         for worker in self._workers:
             worker.join()
         for thread in self._threads:
@@ -400,6 +434,32 @@ class Ros2BridgeService(Service):
             return
         if not self._task_worker.submit(lambda: self._set_goal(goal)):
             self.counters.inc("rejected.ros.goal.busy")
+
+    def _on_joy(self, sample: zenoh.Sample) -> None:
+        self._relay_jog(sample, "joy", lambda payload, now_ns: self._relay.joy(payload, now_ns, time.monotonic()))
+
+    def _on_twist(self, sample: zenoh.Sample) -> None:
+        self._relay_jog(sample, "twist", self._relay.twist)
+
+    def _relay_jog(self, sample: zenoh.Sample, what: str, relay: Callable[[bytes, int], core.Relayed]) -> None:
+        """A ROS stick's or velocity's sample as a jog request, stamped at its receipt; refused (counted, logged at a
+        limited rate, nothing sent) when it is no ROS publisher's or not one a jog can be."""
+        try:
+            core.request_attachment(sample.attachment.to_bytes() if sample.attachment is not None else None)
+            with self._relay_lock:
+                relayed = relay(sample.payload.to_bytes(), self.clock.now_ns())
+                # sent under the lock: two samples must not leave in the other order of their sequence numbers
+                sent = self._jog_publisher is not None and self._jog_publisher.put(m.encode(relayed.jog))
+        except InputError as exc:
+            self._rejected(exc, what)
+            return
+        if not relayed.stamp_used:
+            self.counters.inc(f"ros.{what}.stamp_not_used")
+            self.limited_log.warning(f"ros:{what}:stamp", "ros2_bridge: a ROS %s unstamped or stamped more than %g s "
+                                     "off the bridge's clock: its device counts as heard at its receipt", what,
+                                     self.config.jog.stamp_skew_s)
+        if sent:
+            self.rates.tick(f"jog.{what}")
 
     def _set_goal(self, goal: m.VisionGoal) -> None:
         """The goal to vision through its set_goal query (the operator's, as `mfvs` sends one), whose answer says

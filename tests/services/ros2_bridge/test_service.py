@@ -147,13 +147,14 @@ def trigger(session, key: str, sequence: int, gid: bytes, timeout: float = 15.0)
 
 # ------------------------------------------------------------------------------------ the tests
 def test_nothing_the_bridge_declares_is_a_key_the_robot_acts_on():
-    """Its declared outputs on the stack are none (health aside), and every ROS 2 key starts with the domain's
-    number, whatever the namespace: none is, or overlaps, an mfvs key (``mfvs/...``)."""
+    """Its one declared output on the stack (health aside) is a person's jog request, which safety takes only while
+    its dead-man is held; and every ROS 2 key starts with the domain's number, whatever the namespace: none is, or
+    overlaps, an mfvs key (``mfvs/...``)."""
     from protocol.ros2.keys import Distro
     from services.ros2_bridge import core
     from services.ros2_bridge.service import Ros2BridgeService
 
-    assert Ros2BridgeService.PORTS.produces == ()
+    assert [(p.key, p.message_type) for p in Ros2BridgeService.PORTS.produces] == [("desired_jog", m.Jog)]
     for namespace in ("/", "/mfvs/jaco/robot", "/mfvs"):
         graph = core.NodeGraph.build(0, namespace, "command", Distro.JAZZY, "1")
         for declared in graph.endpoints.values():
