@@ -459,6 +459,7 @@ class Ros2BridgeService(Service):
                                      "off the bridge's clock: its device counts as heard at its receipt", what,
                                      self.config.jog.stamp_skew_s)
         if sent:
+            self.counters.inc(f"jog.{what}")
             self.rates.tick(f"jog.{what}")
 
     def _set_goal(self, goal: m.VisionGoal) -> None:

@@ -544,3 +544,56 @@ def test_with_a_ros2_domain_the_ros2_nodes_and_the_bridge_speak_ros_2_and_nothin
             ros.close()
             bridge.stop()
             robot.stop()
+
+
+def test_a_ros_2_stick_reaches_jog_request_only_through_the_jog_identitys_session(tmp_path):
+    """The bridge runs as the operator, who may not put on jog/request (one writer per motion key: the jog
+    identity). A sensor_msgs/Joy from a ROS 2 node (the ros2 identity) through a bridge with no ``jog_zenoh``: the
+    router drops its jog request; through one given the jog identity's client config: safety hears it."""
+    import struct
+
+    from services.ros2_bridge import core
+    from services.ros2_bridge.service import Ros2BridgeConfig, Ros2BridgeService
+    from services.runtime.authority import ROS2_IDENTITY
+
+    port = free_loopback_port()
+    deployment = write_deployment(tmp_path / "authority", port=port, ros2_domains=(0,))
+    as_ = lambda name: ZenohConfig(connect=[deployment.endpoint],  # noqa: E731
+                                   config_file=str(deployment.client_configs[name]))
+    axes, buttons = [0.0, 0.8] + [0.0] * 6, [0, 0, 0, 0, 1] + [0] * 6  # left stick up, LB held
+
+    def joy() -> bytes:
+        now = time.time_ns()
+        head = b"\x00\x01\x00\x00" + struct.pack("<iII", now // 10**9, now % 10**9, 4) + b"joy\x00"
+        return head + struct.pack("<I8fI11i", 8, *axes, 11, *buttons)
+
+    with Router(port=port, config_file=deployment.router_config):
+        ros = open_session(as_(ROS2_IDENTITY))
+        safety = session_as(deployment, "safety")
+        jogs = Recorder(safety, KEYS.desired_jog, m.Jog)
+        try:
+            for jog_zenoh, heard in ((None, False), (as_("jog"), True)):
+                bridge = Ros2BridgeService(Ros2BridgeConfig(zenoh=as_("operator"), jog_zenoh=jog_zenoh)).start()
+                try:
+                    key = bridge.graph.endpoints[core.JOY].key
+                    assert wait_for(lambda: any("/MS/" in str(r.ok.key_expr) and "%joy/" in str(r.ok.key_expr)
+                                                for r in ros.liveliness().get("@ros2_lv/0/**", timeout=2.0) if r.ok),
+                                    timeout=15)
+                    for sequence in range(1, 6):
+                        ros.put(key, joy(), attachment=struct.pack("<qq", sequence, time.time_ns()) + b"\x10"
+                                + bytes(16))
+                        time.sleep(0.02)
+                    # the bridge made all five requests either way (the router decides who hears them)
+                    assert wait_for(lambda: bridge.counters.get("jog.joy") == 5, timeout=5), bridge.counters.snapshot()
+                    if heard:
+                        assert wait_for(lambda: len(jogs) == 5, timeout=5), len(jogs)
+                        assert all(j.deadman and j.source == "jog/ros-joy" for j in jogs.snapshot())
+                    else:
+                        time.sleep(1.0)
+                        assert len(jogs) == 0
+                finally:
+                    bridge.stop()
+        finally:
+            jogs.close()
+            safety.close()
+            ros.close()
