@@ -75,6 +75,8 @@ def bridge(router, request):
 def test_a_ros_joy_stream_becomes_jog_requests_with_the_dead_man_and_bad_input_sends_nothing(bridge):
     service, session, keys = bridge
     jogs = Recorder(session, KEYS.desired_jog, m.Jog)
+    # (a zenoh publisher drops what no subscriber it knows of matches: wait until the jog publisher knows this one)
+    assert wait_for(lambda: service._jog_publisher.matching, timeout=5)
     joy_key, twist_key = keys["/joy"], keys["/mfvs/delta_twist_cmds"]
     # both subscriptions as joy_node publishes and MoveIt Servo subscribes: reliable, volatile, keep last 10
     assert keys["/joy qos"] == keys["/mfvs/delta_twist_cmds qos"] == "::,10:,:,:,,"

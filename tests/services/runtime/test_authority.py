@@ -579,6 +579,8 @@ def test_a_ros_2_stick_reaches_jog_request_only_through_the_jog_identitys_sessio
                     assert wait_for(lambda: any("/MS/" in str(r.ok.key_expr) and "%joy/" in str(r.ok.key_expr)
                                                 for r in ros.liveliness().get("@ros2_lv/0/**", timeout=2.0) if r.ok),
                                     timeout=15)
+                    if heard:  # (a publisher drops what no subscriber it knows of matches)
+                        assert wait_for(lambda: bridge._jog_publisher.matching, timeout=5)
                     for sequence in range(1, 6):
                         ros.put(key, joy(), attachment=struct.pack("<qq", sequence, time.time_ns()) + b"\x10"
                                 + bytes(16))
