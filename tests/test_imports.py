@@ -99,8 +99,9 @@ SERVICES = {
     "services.console": {"services.controller", "services.safety", "services.observe", "services.vision",
                          "services.jog"},
     "services.calibration": {"services.camera", "services.robot_sim"},  # the camera's files; the simulated rig
-    # the task and the e-stop as `mfvs task` and `mfvs estop` reach them; the frames `mfvs view` names
-    "services.ros2_bridge": {"services.controller", "services.safety", "services.observe"},
+    # the task and the e-stop as `mfvs task` and `mfvs estop` reach them; the frames `mfvs view` names; a ROS 2
+    # stick's mapping and stamps
+    "services.ros2_bridge": {"services.controller", "services.safety", "services.observe", "services.jog"},
     "services.jog": {"services.controller"},         # the stick's resume button asks the controller's task
 }
 
