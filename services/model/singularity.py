@@ -8,7 +8,7 @@ out.
 What differs from MoveIt Servo, and why. *Toward*: MoveIt Servo takes the left singular vector of σ_min, resolves its
 sign by a small step ahead along it (the step that makes κ grow points toward), and calls a motion toward when its
 dot product with that vector is positive. A motion at an angle to that vector can still raise κ: a wrist jog on the
-j2n6s300 that the dot product called *away* drove κ from 32 to 144 (tests/services/safety/test_singularity.py).
+j2n6s300 that the dot product called *away* drove κ from 32 to 144 (tests/services/model/test_singularity.py).
 Here the motion itself is looked a small step ahead (:func:`raises_condition`): toward when κ grows along it. *κ*:
 taken of :func:`~services.model.kinematics.normalized_jacobian` (the
 linear rows over the arm's reach), not of J in m and rad, so that translation and rotation compare in one unit and
@@ -57,8 +57,10 @@ class SingularityScale:
     toward: bool
 
 
-#: the look-ahead step along the singular vector, in normalized task units (MoveIt Servo's: the vector over 100)
-LOOK_AHEAD = 0.01
+#: the look-ahead: the joints moved along the command's resolved joint motion until the one that moves most has turned
+#: this far (rad): small enough that κ changes smoothly over it even next to a singularity, where a step of fixed
+#: task-space length (MoveIt Servo's: the vector over 100) turns the joints far enough to jump past it
+LOOK_AHEAD_RAD = 1e-3
 
 
 def condition_number(J_normalized: np.ndarray) -> float:
@@ -70,10 +72,11 @@ def condition_number(J_normalized: np.ndarray) -> float:
 def raises_condition(kin: ArmKinematics, q, J_normalized: np.ndarray, motion: np.ndarray, condition: float) -> bool:
     """Whether a small step of ``motion`` (normalized task units: linear over the reach, then angular) from ``q``,
     resolved by the pseudo-inverse as the arm resolves it, makes κ grow."""
-    norm = float(np.linalg.norm(motion))
-    if norm == 0.0:
+    dq = np.linalg.pinv(J_normalized) @ motion
+    largest = float(np.max(np.abs(dq)))
+    if largest == 0.0:
         return False
-    step = np.linalg.pinv(J_normalized) @ (motion * (LOOK_AHEAD / norm))
+    step = dq * (LOOK_AHEAD_RAD / largest)
     ahead = condition_number(normalized_jacobian(kin.jacobian_base(np.asarray(q, dtype=float) + step),
                                                  kin.characteristic_length_m))
     return ahead > condition
