@@ -60,6 +60,8 @@ DIAGNOSTICS = Endpoint(EntityKind.PUBLISHER, "/diagnostics", ros_types.DIAGNOSTI
 #: what it accepts: the task and the e-stop as services, the goal as a topic
 START_TASK = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/start_task", ros_types.TRIGGER, _RELIABLE_10)
 STOP_TASK = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/stop_task", ros_types.TRIGGER, _RELIABLE_10)
+#: goes on with a task the person's stick paused (the controller's resume_task, as `mfvs task resume`)
+RESUME_TASK = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/resume_task", ros_types.TRIGGER, _RELIABLE_10)
 ESTOP = Endpoint(EntityKind.SERVICE_SERVER, "mfvs/estop", ros_types.TRIGGER, _RELIABLE_10)
 GOAL_POSE = Endpoint(EntityKind.SUBSCRIPTION, "mfvs/goal_pose", ros_types.POSE_STAMPED, _RELIABLE_10)
 #: a person's stick, as jog requests: the ROS joy driver's topic and QoS (joy.cpp: "joy", depth 10, reliable), and
@@ -68,7 +70,7 @@ JOY = Endpoint(EntityKind.SUBSCRIPTION, "joy", ros_types.JOY, _RELIABLE_10)
 DELTA_TWIST = Endpoint(EntityKind.SUBSCRIPTION, "~/delta_twist_cmds", ros_types.TWIST_STAMPED, _RELIABLE_10)
 
 ENDPOINTS = (IMAGE, CAMERA_INFO, JOINT_STATES, TF, TF_STATIC, ROBOT_DESCRIPTION, DIAGNOSTICS, START_TASK, STOP_TASK,
-             ESTOP, GOAL_POSE, JOY, DELTA_TWIST)
+             RESUME_TASK, ESTOP, GOAL_POSE, JOY, DELTA_TWIST)
 
 
 @dataclass(frozen=True)
@@ -397,8 +399,8 @@ class JoyMap(ConfigStruct):
     defaults are ours, for an Xbox 360 pad under the joy driver, the same roles as `mfvs jog`'s gamepad map: the
     left stick's vertical (1) and horizontal (0) and the right stick's vertical (4) are the three axes (the driver
     already makes up and left positive: joy.cpp), LB (4) the dead-man, A (0) the mode, RB (5) and X (2) the speed
-    level up and down. MoveIt Servo's xbox360_wired.yaml and joystick_to_servo.yaml name the same indices for this
-    pad (axes 1, 0, 4; LB 4, RB 5, X 2, B 1)."""
+    level up and down, Start (7) resumes a paused task. MoveIt Servo's xbox360_wired.yaml and joystick_to_servo.yaml
+    name the same indices for this pad (axes 1, 0, 4; LB 4, RB 5, X 2, B 1, START 7)."""
 
     axes: list[JoyAxis] = msgspec.field(default_factory=lambda: [JoyAxis(index=1), JoyAxis(index=0),
                                                                  JoyAxis(index=4)])
@@ -409,13 +411,15 @@ class JoyMap(ConfigStruct):
     #: each press: one speed level up, down (-1: none)
     speed_up: int = 5
     speed_down: int = 2
+    #: each press: the controller's resume_task, a task the stick paused goes on (-1: none)
+    resume: int = 7
 
     def __post_init__(self) -> None:
         if len(self.axes) != 3:
             raise ValueError("joy.axes: the stick's three (translation X, Y, Z; wrist about x, y, z)")
         if isinstance(self.deadman, bool) or not 0 <= self.deadman < 128:
             raise ValueError(f"joy.deadman {self.deadman}: a button index 0..127 (a jog always has a dead-man)")
-        roles = {"mode": self.mode, "speed_up": self.speed_up, "speed_down": self.speed_down}
+        roles = {"mode": self.mode, "speed_up": self.speed_up, "speed_down": self.speed_down, "resume": self.resume}
         for role, index in roles.items():
             if isinstance(index, bool) or not NO_BUTTON <= index < 128:
                 raise ValueError(f"joy.{role} {index}: a button index 0..127, or -1 for none")
@@ -429,7 +433,7 @@ class JoyMap(ConfigStruct):
 
     @property
     def buttons_needed(self) -> int:
-        return 1 + max(self.deadman, self.mode, self.speed_up, self.speed_down)
+        return 1 + max(self.deadman, self.mode, self.speed_up, self.speed_down, self.resume)
 
 
 class RosJogConfig(ConfigStruct):
@@ -473,13 +477,15 @@ def device_heard_ns(stamp_ns: int, receipt_ns: int, skew_s: float) -> tuple[int,
 class JoyStick:
     """A sensor_msgs/Joy stream as a stick: each message checked and read through a :class:`JoyMap` (its axes, its
     dead-man), the mode and speed buttons stepping on a press (a button going from 0 to 1; the first message only
-    sets what is held)."""
+    sets what is held), the resume button's press kept in :attr:`resume_pressed` for the message that made it."""
 
     def __init__(self, joy_map: JoyMap, speed_level: int) -> None:
         self.map = joy_map
         self.mode_index = 0
         self.speed_level = speed_level
         self._held: Optional[np.ndarray] = None
+        #: whether the last message read pressed the resume button
+        self.resume_pressed = False
 
     def read(self, joy: cdr.Joy) -> StickInput:
         cfg = self.map
@@ -495,6 +501,7 @@ class JoyStick:
         if np.any((buttons != 0) & (buttons != 1)):
             raise InputError("button", f"a Joy button neither 0 nor 1: {list(buttons)[:32]}")
         pressed = buttons.astype(bool)
+        self.resume_pressed = False
         if self._held is not None and len(self._held) == len(pressed):
             def press(index: int) -> bool:
                 return index != NO_BUTTON and bool(pressed[index]) and not self._held[index]
@@ -504,6 +511,7 @@ class JoyStick:
                 self.speed_level = min(self.speed_level + 1, JOG_SPEED_LEVELS[-1])
             if press(cfg.speed_down):
                 self.speed_level = max(self.speed_level - 1, JOG_SPEED_LEVELS[0])
+            self.resume_pressed = press(cfg.resume)
         self._held = pressed
         values = tuple(float(-axes[a.index] if a.invert else axes[a.index]) for a in cfg.axes)
         return StickInput(axes=values, mode=MODE_CYCLE[self.mode_index], speed_level=self.speed_level,
@@ -554,9 +562,11 @@ def twist_motion(twist: cdr.TwistStamped, speeds: JogSpeeds, base_frame: str = B
 
 @dataclass
 class Relayed:
-    """A jog request made of a ROS message, and whether that message's own stamp was used (False: the receipt)."""
+    """A jog request made of a ROS message, whether that message's own stamp was used (False: the receipt), and
+    whether it pressed the stick's resume button."""
     jog: m.Jog
     stamp_used: bool
+    resume: bool = False
 
 
 class JogRelay:
@@ -583,7 +593,8 @@ class JogRelay:
         stick = self.stick.read(joy)
         heard_ns, used = device_heard_ns(stamp_ns, receipt_ns, self.config.stamp_skew_s)
         motion = self.mapper(stick, monotonic_s)
-        return Relayed(self.joy_stamper.message(motion, True, now_ns=receipt_ns, heard_ns=heard_ns), used)
+        return Relayed(self.joy_stamper.message(motion, True, now_ns=receipt_ns, heard_ns=heard_ns), used,
+                       resume=self.stick.resume_pressed)
 
     def twist(self, payload: bytes, receipt_ns: int) -> Relayed:
         """A geometry_msgs/TwistStamped's CDR as a jog request (:func:`twist_motion`)."""

@@ -185,6 +185,7 @@ class Ros2BridgeService(Service):
                 self._declared.append(self._publishers[endpoint])
         for endpoint, worker, act in ((core.START_TASK, self._task_worker, self._start_task),
                                       (core.STOP_TASK, self._task_worker, self._stop_task),
+                                      (core.RESUME_TASK, self._task_worker, self._resume_task),
                                       (core.ESTOP, self._estop_worker, self._engage_estop)):
             self._declared.append(self.session.declare_queryable(
                 graph.endpoints[endpoint].key, self._guarded("service", self._service(worker, act)), complete=True))
@@ -400,10 +401,10 @@ class Ros2BridgeService(Service):
                 query.reply_err("busy: earlier calls are still waiting for the stack")
         return on_query
 
-    def _task(self, function: str, why: str) -> tuple[bool, str]:
+    def _task(self, function: str, why: str, session=None) -> tuple[bool, str]:
         self.counters.inc(f"actions.{function}")
         try:
-            status = call_task(self.session, self.keys, function,
+            status = call_task(session or self.session, self.keys, function,
                                m.TaskRequest(operator=self.config.operator, reason=why),
                                self.config.action_timeout_s)
         except TaskUnavailable as exc:
@@ -415,6 +416,16 @@ class Ros2BridgeService(Service):
 
     def _stop_task(self) -> tuple[bool, str]:
         return self._task(m.STOP_TASK, "ROS 2 service stop_task")
+
+    def _resume_task(self) -> tuple[bool, str]:
+        return self._task(m.RESUME_TASK, "ROS 2 service resume_task")
+
+    def _resume_from_stick(self) -> None:
+        """The ROS stick's resume button: asked on the jog identity's session when there is one (behind authority
+        the jog identity may resume a task; the bridge's own may too), its answer logged."""
+        ok, said = self._task(m.RESUME_TASK, "the ROS 2 stick's resume button", self._jog_session)
+        self.counters.inc("jog.resume." + ("done" if ok else "refused"))
+        (self.log.info if ok else self.log.warning)("ros2_bridge: the stick's resume button: %s", said)
 
     def _engage_estop(self) -> tuple[bool, str]:
         self.counters.inc("actions.estop")
@@ -461,6 +472,8 @@ class Ros2BridgeService(Service):
         if sent:
             self.counters.inc(f"jog.{what}")
             self.rates.tick(f"jog.{what}")
+        if relayed.resume and not self._task_worker.submit(self._resume_from_stick):
+            self.counters.inc("rejected.ros.joy.resume_busy")
 
     def _set_goal(self, goal: m.VisionGoal) -> None:
         """The goal to vision through its set_goal query (the operator's, as `mfvs` sends one), whose answer says

@@ -85,7 +85,7 @@ def test_the_twist_fixtures_become_a_translation_and_a_wrist_turn():
 def test_a_joy_with_no_device_open_is_refused_by_its_size():
     relay = core.JogRelay(RosJogConfig())
     text = refused("size", relay.joy, (FIXTURES / SAMPLES["joy_empty"]["rclpy"]).read_bytes(), NOW, 0.0)
-    assert "0 axes and 0 buttons" in text and "5 axes and 6 buttons" in text
+    assert "0 axes and 0 buttons" in text and "5 axes and 8 buttons" in text
 
 
 # ------------------------------------------------------------------------------------------ the joy map
@@ -116,6 +116,22 @@ def test_the_dead_man_mode_and_speed_buttons_step_on_a_press_only():
     assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
 
 
+def test_the_resume_button_asks_once_per_press_and_moves_nothing():
+    relay = core.JogRelay(RosJogConfig())
+    assert not relay.joy(joy(pressed=(7,)), NOW, 0.0).resume  # held in the first message: not a press
+    assert not relay.joy(joy(), NOW + 1, 0.01).resume
+    pressed = relay.joy(joy(pressed=(7,)), NOW + 2, 0.02)
+    assert pressed.resume and not pressed.jog.deadman and pressed.jog.at_rest  # Start alone: a resume, no motion
+    assert not relay.joy(joy(pressed=(7,)), NOW + 3, 0.03).resume  # still held: no second ask
+    assert not relay.joy(joy(pressed=(4,)), NOW + 4, 0.04).resume
+    assert relay.joy(joy(pressed=(4, 7)), NOW + 5, 0.05).resume  # pressed again with the dead-man held
+    without = core.JogRelay(RosJogConfig(joy=core.JoyMap(resume=-1)))
+    without.joy(joy(), NOW, 0.0)
+    assert not without.joy(joy(pressed=(7,)), NOW + 1, 0.01).resume
+    with pytest.raises(ValueError, match="one button for two roles"):
+        core.JoyMap(resume=4)
+
+
 def test_a_button_held_in_the_first_message_is_not_a_press():
     relay = core.JogRelay(RosJogConfig())
     assert relay.joy(joy(pressed=(4, 0, 5)), NOW, 0.0).jog.mode is JogMode.TRANSLATION
@@ -125,7 +141,7 @@ def test_a_button_held_in_the_first_message_is_not_a_press():
 def test_a_custom_map_reads_its_own_axes_signs_and_buttons():
     cfg = RosJogConfig(speed_level=3, mapping=NO_FILTER.mapping,
                        joy=JoyMap(axes=[JoyAxis(index=3, invert=True), JoyAxis(index=0), JoyAxis(index=1)],
-                                  deadman=1, mode=-1, speed_up=-1, speed_down=-1))
+                                  deadman=1, mode=-1, speed_up=-1, speed_down=-1, resume=-1))
     relay = core.JogRelay(cfg)
     jog = relay.joy(joy((0.0, 0.0, 0.0, 1.0), pressed=(1,), buttons=2), NOW, 0.0).jog
     assert jog.deadman and jog.linear == pytest.approx((-0.2, 0.0, 0.0))

@@ -13,7 +13,8 @@ from protocol import messages as m
 from protocol.messages import JogMode
 from services.ros2_bridge.service import Ros2BridgeConfig, Ros2BridgeService
 from services.runtime.transport import open_session
-from tests.services.ros2_bridge.test_service import attachment, data_key, token_parts
+from services.controller.service import ControllerConfig, ControllerService
+from tests.services.ros2_bridge.test_service import attachment, data_key, token_parts, trigger
 from tests.stack import KEYS, Recorder, wait_for
 
 FIXTURES = Path(__file__).resolve().parents[2] / "protocol" / "ros2" / "fixtures"
@@ -39,11 +40,12 @@ def twist_cdr(frame: str, linear, angular, stamp_ns: int) -> bytes:
     return out + bytes(-(len(out) - 4) % 8) + struct.pack("<6d", *linear, *angular)
 
 
-def pad(up: float, lb: bool, a: bool = False):
-    """An Xbox 360 pad as the joy driver reports it: 8 axes (left stick 0, 1; right 3, 4), 11 buttons (A 0, LB 4)."""
+def pad(up: float, lb: bool, a: bool = False, start: bool = False):
+    """An Xbox 360 pad as the joy driver reports it: 8 axes (left stick 0, 1; right 3, 4), 11 buttons (A 0, LB 4,
+    Start 7)."""
     axes = [0.0, up, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     buttons = [0] * 11
-    buttons[4], buttons[0] = int(lb), int(a)
+    buttons[4], buttons[0], buttons[7] = int(lb), int(a), int(start)
     return axes, buttons
 
 
@@ -61,10 +63,10 @@ def bridge(router, request):
             for reply in session.liveliness().get("@ros2_lv/0/**", timeout=2.0):
                 if reply.ok is not None:
                     parts = token_parts(str(reply.ok.key_expr))
-                    if parts["kind"] == "MS":
+                    if parts["kind"] in ("MS", "SS"):
                         keys[parts["topic"]] = data_key(parts)
                         keys[parts["topic"] + " qos"] = parts["qos"]
-            return {"/joy", "/mfvs/delta_twist_cmds"} <= set(keys)
+            return {"/joy", "/mfvs/delta_twist_cmds", "/mfvs/resume_task"} <= set(keys)
         assert wait_for(found, timeout=15, period=0.2), keys
         yield service, session, keys
     finally:
@@ -141,3 +143,30 @@ def test_a_ros_joy_stream_becomes_jog_requests_with_the_dead_man_and_bad_input_s
     time.sleep(0.3)
     assert len(jogs) == 17
     assert not any(k.startswith("errors.ros") for k in service.counters.snapshot())
+
+
+def test_the_sticks_resume_button_and_the_resume_service_ask_the_real_controller(bridge, router):
+    """Start on the pad (a press: not held in the message before) and the resume_task Trigger each reach the
+    controller's resume_task and carry its answer: an idle controller has no task paused, so both say so; the jog
+    request of the press moves nothing (no dead-man)."""
+    service, session, keys = bridge
+    controller = ControllerService(ControllerConfig(zenoh=router.client_config()))
+    controller.start()
+    try:
+        jogs = Recorder(session, KEYS.desired_jog, m.Jog)
+        assert wait_for(lambda: service._jog_publisher.matching, timeout=5)
+        session.put(keys["/joy"], joy_cdr(*pad(0.0, lb=False), time.time_ns()), attachment=attachment(1, GID))
+        session.put(keys["/joy"], joy_cdr(*pad(0.0, lb=False, start=True), time.time_ns()),
+                    attachment=attachment(2, GID))
+        assert wait_for(lambda: service.counters.get("jog.resume.refused") == 1, timeout=10), \
+            service.counters.snapshot()
+        assert service.counters.get("actions.resume_task") == 1
+        assert wait_for(lambda: len(jogs) == 2, timeout=5)
+        assert not any(j.deadman for j in jogs.snapshot())
+        session.put(keys["/joy"], joy_cdr(*pad(0.0, lb=False, start=True), time.time_ns()),
+                    attachment=attachment(3, GID))  # still held: not asked again
+        success, message, _ = trigger(session, keys["/mfvs/resume_task"], 1, GID)
+        assert not success and "no task paused" in message, message
+        assert service.counters.get("actions.resume_task") == 2 and service.counters.get("jog.resume.refused") == 1
+    finally:
+        controller.stop()
