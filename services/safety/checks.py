@@ -18,7 +18,7 @@ from services.model import frames, saturation
 from services.model.limits import stricter
 from services.runtime.config import ConfigStruct
 from services.model.kinematics import ArmKinematics
-from services.model.singularity import SingularityBounds, singularity_scale
+from services.model.singularity import Braking, SingularityBounds, singularity_scale
 from services.model.zones import Zone, ZoneFilterConfig, default_base_zone, filter_velocity
 
 
@@ -155,7 +155,9 @@ class CommandChecker:
         # near a singularity: a motion toward it slowed, and stopped before it (its direction kept); away from it,
         # not (services/model/singularity.py: MoveIt Servo's rule). Before the acceleration limit, which then brakes
         # to what is left
-        near = singularity_scale(self.kin, q, J, base, lim.singularity)
+        near = singularity_scale(self.kin, q, J, base, lim.singularity,
+                                 Braking(robot.linear_accel_mps2, robot.angular_accel_rps2, robot.joint_accel_rps2,
+                                         lim.singularity.braking_lag_s))
         if near.factor < 1.0:
             base = base * near.factor
             decision.limits.append("singularity" if near.factor > 0.0 else "singularity_stop")

@@ -7,7 +7,8 @@ from protocol import messages as m
 from services.model import frames
 from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics, normalized_jacobian
-from services.model.singularity import SingularityBounds, condition_number, raises_condition, singularity_scale
+from services.model.singularity import (Braking, SingularityBounds, angle_to_bound, braking_scale, condition_gradient,
+                                        condition_number, raises_condition, singularity_scale)
 from services.safety.checks import SafetyLimits
 from services.safety.core import SafetyCore, Send
 from tests.helpers import ARM_DECLARED
@@ -142,3 +143,49 @@ def test_the_rule_slows_only_what_raises_the_condition_and_ramps_linearly_betwee
     assert singularity_scale(kin, q, J, np.zeros(6), bounds).factor == 1.0
     with pytest.raises(ValueError):
         SingularityBounds(slow_from=40.0, stop_at=30.0)
+
+
+def test_the_angle_left_follows_one_over_the_distance_and_never_overestimates_it():
+    # κ = c/d: from κ and its gradient the angle left to the bound is exact
+    c, d, bound = 2.0, 0.05, 80.0
+    condition, gradient = c / d, c / d**2
+    assert angle_to_bound(condition, gradient, bound) == pytest.approx(d - c / bound)
+    # a straight line through the gradient would leave more (bound/κ times as much)
+    assert angle_to_bound(condition, gradient, bound) < (bound - condition) / gradient
+    assert angle_to_bound(bound, gradient, bound) == 0.0 and angle_to_bound(90.0, gradient, bound) == 0.0
+    assert angle_to_bound(condition, 0.0, bound) == float("inf")
+
+
+def test_the_braking_scale_stops_the_motion_within_the_angle_left():
+    omega, T, lag = 0.5, 0.2, 0.03
+    for left in (1e-4, 1e-3, 0.01, 0.02):
+        s = braking_scale(omega, T, lag, left)
+        assert 0.0 < s <= 1.0
+        travelled = s * omega * lag + s * omega * s * T / 2.0  # on at s·ω for the lag, then a ramp to 0 in s·T
+        assert travelled == pytest.approx(left) or (s == 1.0 and travelled < left)
+    assert braking_scale(omega, T, lag, 0.0) == 0.0
+    assert braking_scale(omega, T, lag, 10.0) == 1.0
+    assert braking_scale(omega, 0.0, lag, 1e-3) == pytest.approx(1e-3 / (omega * lag))
+
+
+def test_near_the_bound_the_braking_rule_slows_more_than_the_ramp_and_the_joints_limit_binds():
+    arm = load_arm("j2n6s300")
+    kin = ArmKinematics(arm)
+    q = wrist_start(arm, 4, -172.0)
+    R, _, J = kin.pose_and_jacobian(q)
+    Jn = normalized_jacobian(J, kin.characteristic_length_m)
+    condition = condition_number(Jn)
+    twist = np.concatenate([np.zeros(3), -J[3:, 4] * 0.3 / np.linalg.norm(J[3:, 4])])
+    bounds = SingularityBounds(slow_from=condition * 0.99, stop_at=condition * 1.1)
+    ramp = singularity_scale(kin, q, J, twist, bounds)
+    gradient = condition_gradient(kin, q, Jn, twist, condition)
+    assert gradient > 0.0
+    braking = Braking(linear_mps2=0.64, angular_rps2=2.75, joint_rps2=np.radians(200.0), lag_s=0.03)
+    braked = singularity_scale(kin, q, J, twist, bounds, braking)
+    assert braked.toward and 0.0 < braked.factor < ramp.factor
+    dq = np.linalg.pinv(J) @ twist
+    assert braking.time_to_stop(twist, dq) == pytest.approx(np.max(np.abs(dq)) / np.radians(200.0))
+    # far from the bound, braking takes nothing off the ramp
+    gentle = SingularityBounds(slow_from=condition * 0.5, stop_at=condition * 50)
+    assert singularity_scale(kin, q, J, twist, gentle, braking).factor == singularity_scale(kin, q, J, twist,
+                                                                                            gentle).factor
