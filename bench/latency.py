@@ -155,9 +155,47 @@ def run_jog(seconds: float = 10.0, profile: str = "sim", overrides: list[str] | 
                               key=lambda j: j.header.stamp_ns)
     result["stops"] = {"released_s": _rest_after(states, released.header.stamp_ns),
                        "stale_s": _rest_after(states, last_before_silence.header.stamp_ns)}
+    result["direction"] = _direction_errors([j for j in jogs if j.header.stamp_ns < window_end], states)
     result.update(seconds=seconds, profile=profile, target="jog", camera_trigger=None,
                   arm=measured_arm(arm, {state.arm for state in states}))
     return result
+
+
+#: s: a sweep's motion is judged from this long after its first request (the spasm filter's ramp and the arm's
+#: acceleration) to its last
+JOG_SETTLE_S = 0.5
+
+
+def _direction_errors(jogs: list[m.Jog], states: list[m.RobotState]) -> dict:
+    """How far the hand's measured base-frame velocity points from what each held sweep asked (the distance between
+    the unit directions: 0.05 is about 2.9°), in each sweep's steady part; and the hand's turning meanwhile."""
+    from services.model.arm import load_arm
+    from services.model.kinematics import ArmKinematics
+
+    sweeps: list[list[m.Jog]] = []
+    for jog in jogs:
+        if not jog.deadman or not any(jog.linear):
+            continue
+        if sweeps and np.sign(sweeps[-1][-1].linear).tolist() == np.sign(jog.linear).tolist():
+            sweeps[-1].append(jog)
+        else:
+            sweeps.append([jog])
+    errors, turning, kin = [], [], None
+    for sweep in sweeps:
+        asked = np.array(sweep[0].linear) / np.linalg.norm(sweep[0].linear)
+        begin, end = sweep[0].header.stamp_ns + int(JOG_SETTLE_S * 1e9), sweep[-1].header.stamp_ns
+        for state in states:
+            if begin <= state.header.stamp_ns <= end:
+                kin = kin or ArmKinematics(load_arm(state.arm))
+                R, _, J = kin.pose_and_jacobian(np.array(state.q))
+                twist = J @ np.array(state.dq)
+                if np.linalg.norm(twist[:3]) > 0.0:
+                    errors.append(float(np.linalg.norm(twist[:3] / np.linalg.norm(twist[:3]) - asked)))
+                    turning.append(float(np.linalg.norm(twist[3:])))
+    if not errors:
+        return {"states": 0}
+    return {"states": len(errors), "sweeps": len(sweeps), "p50": round(float(np.median(errors)), 4),
+            "max": round(max(errors), 4), "turning_max_rps": round(max(turning), 4)}
 
 
 def _rest_after(states: list[m.RobotState], from_ns: int) -> float | None:
@@ -200,6 +238,10 @@ def print_result(result: dict) -> None:
           f"max {e['max']} ms ({e['n']} frames)")
     for name, h in result["hops"].items():
         print(f"  {name:24s} p50 {h['p50']:8.3f} ms  p99 {h['p99']:8.3f} ms  max {h['max']:8.3f} ms")
+    if result.get("direction", {}).get("states"):
+        d = result["direction"]
+        print(f"  the hand's direction against the stick's ({d['sweeps']} sweeps, {d['states']} states in their steady "
+              f"parts): p50 {d['p50']}, max {d['max']} (0.05 ≈ 2.9°); turning at most {d['turning_max_rps']} rad/s")
     if result.get("stops"):
         stops = result["stops"]
         print(f"  at rest after the dead-man's release: {stops['released_s']} s; after the stream stopped: "
