@@ -104,6 +104,8 @@ class Recording:
         return heard[-1].state if heard else None
 
 
+@pytest.mark.slow  # the CI's time: the profile across hosts is tests/deploy/profiles/test_multi_host.py's, the page's
+# e-stop test_web_browser.py's; this one joins the two
 def test_on_the_multi_host_profile_the_console_on_the_operators_computer_shows_the_arm_and_its_e_stop_stops_it(
         tmp_path):
     """The camera's frames, the arm's states and the e-stop cross the network: robot_sim and the router on one

@@ -170,3 +170,62 @@ def test_the_sticks_resume_button_and_the_resume_service_ask_the_real_controller
         assert service.counters.get("actions.resume_task") == 2 and service.counters.get("jog.resume.refused") == 1
     finally:
         controller.stop()
+
+
+def test_a_ros_stick_drives_the_simulated_arm_along_the_base_and_its_release_stops_it(router):
+    """End to end: the joy driver's messages through the bridge, safety and the simulated arm in realtime. LB held
+    and the left stick up move the hand along the base's +X; LB let go, it comes to rest."""
+    import numpy as np
+
+    from protocol.conventions import ClockMode
+    from services.model.arm import load_arm
+    from services.model.kinematics import ArmKinematics
+    from services.robot_sim.scene import CameraConfig, SceneConfig
+    from services.robot_sim.service import RobotSimConfig, RobotSimService
+    from services.safety.service import SafetyConfig, SafetyService
+
+    safety = SafetyService(SafetyConfig(zenoh=router.client_config()))
+    robot = RobotSimService(RobotSimConfig(arm="j2n6s300", zenoh=router.client_config(), clock=ClockMode.REALTIME,
+                                           scene=SceneConfig(camera=CameraConfig(enabled=False))))
+    service = Ros2BridgeService(Ros2BridgeConfig(zenoh=router.client_config(), diagnostics_period_s=5.0))
+    session = open_session(router.client_config())
+    kin = ArmKinematics(load_arm("j2n6s300"))
+    states = Recorder(session, KEYS.robot_state, m.RobotState)
+    for started in (safety, robot, service):
+        started.start()
+    try:
+        keys = {}
+
+        def found() -> bool:
+            for reply in session.liveliness().get("@ros2_lv/0/**", timeout=2.0):
+                if reply.ok is not None:
+                    parts = token_parts(str(reply.ok.key_expr))
+                    if parts["kind"] == "MS":
+                        keys[parts["topic"]] = data_key(parts)
+            return "/joy" in keys
+        assert wait_for(found, timeout=15, period=0.2) and wait_for(lambda: len(states) > 20, timeout=30)
+        assert wait_for(lambda: service._jog_publisher.matching, timeout=5)
+        start = kin.pose(np.array(states.last().q))[1]
+        sequence = 0
+
+        def joy_for(seconds: float, up: float, lb: bool) -> None:
+            nonlocal sequence
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:  # the joy driver's 20 Hz autorepeat, a little faster
+                sequence += 1
+                session.put(keys["/joy"], joy_cdr(*pad(up, lb=lb), time.time_ns()), attachment=attachment(sequence, GID))
+                time.sleep(0.02)
+
+        joy_for(0.3, 0.0, lb=False)
+        joy_for(2.0, 1.0, lb=True)  # level 1: a quarter of 0.2 m/s, ramped in by the spasm filter
+        moved = kin.pose(np.array(states.last().q))[1] - start
+        joy_for(0.6, 1.0, lb=False)  # LB let go, the stick still up
+        assert moved[0] > 0.02 and np.linalg.norm(moved[1:]) < 0.2 * moved[0], moved
+        last = states.last()
+        assert kin.ee_speed(last.q, last.dq) < 2e-3  # at rest
+        assert safety.counters.get("released.stops") >= 1
+    finally:
+        for started in (service, robot, safety):
+            started.stop()
+        states.close()
+        session.close()
