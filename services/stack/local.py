@@ -65,15 +65,23 @@ class StackLogs:
         self._removal()
 
 
+#: s: how long the host's link waits for the arm's replies in lockstep, where the arm's cycle comes when its thread
+#: is next scheduled and a late reply changes nothing (a starved host's pause, not the bus's 50 ms)
+LOCKSTEP_LINK_TIMEOUT_S = 2.0
+
+
 @contextlib.contextmanager
-def simulated_link(bus: BusConfig | None = None, timeout_s: float = 0.05, settle_s: float = 0.05,
+def simulated_link(bus: BusConfig | None = None, timeout_s: float | None = None, settle_s: float = 0.05,
                    lockstep: bool = False, arm: ArmDescription | None = None):
     """A simulated arm's actuators answering on a bus (robot_sim's ArmOnBus, in a thread) and the host's link to
     them, as ``(arm, link)``: the gateway's view of the arm without zenoh, for tests and benchmarks. By default the
     bus is a fresh in-process channel (``mfvs_local``). ``lockstep``: the arm runs one cycle per command batch
     from the host, so that what the host does is exactly repeatable (two realtime loops in one interpreter share
     its lock, which no deployment does: realtime behaviour is measured with the arm in its own process). ``arm``: the
-    arm simulated (default: the default arm)."""
+    arm simulated (default: the default arm). ``timeout_s``: the link's wait for replies (default: the bus's 50 ms
+    in realtime, :data:`LOCKSTEP_LINK_TIMEOUT_S` in lockstep)."""
+    if timeout_s is None:
+        timeout_s = LOCKSTEP_LINK_TIMEOUT_S if lockstep else 0.05
     arm = arm or load_arm()
     bus = bus or BusConfig(interface="mfvs_local", channel=f"simulated-link-{os.getpid()}-{next(_rig_channels)}")
     # the arm's loop and the host's in one process: the GIL must change hands well within a bus cycle
