@@ -125,15 +125,19 @@ def test_a_redundant_arm_takes_its_wrist_round_its_singularity_and_is_never_driv
     assert conditions.max() < SingularityBounds().stop_at
 
 
-def test_the_rule_slows_only_what_raises_the_condition_and_ramps_linearly_between_its_bounds():
-    arm = load_arm("j2n6s300")
-    kin = ArmKinematics(arm)
-    q = wrist_start(arm, 4, -160.0)
-    R, _, J = kin.pose_and_jacobian(q)
+def wrist_toward_its_singularity(degrees: float):
+    """The j2n6s300 with its 5th joint at ``degrees``, and a wrist twist (base frame) that joint alone would make
+    turning toward its singular angle: (kinematics, q, J, the normalized J, κ, the twist)."""
+    kin = ArmKinematics(load_arm("j2n6s300"))
+    q = wrist_start(kin.arm, 4, degrees)
+    _, _, J = kin.pose_and_jacobian(q)
     Jn = normalized_jacobian(J, kin.characteristic_length_m)
-    condition = condition_number(Jn)
-    omega = J[3:, 4] * -1.0  # the 5th joint turning toward its singular angle
-    twist = np.concatenate([np.zeros(3), omega])
+    omega = J[3:, 4] * -1.0
+    return kin, q, J, Jn, condition_number(Jn), np.concatenate([np.zeros(3), omega / np.linalg.norm(omega)])
+
+
+def test_the_rule_slows_only_what_raises_the_condition_and_ramps_linearly_between_its_bounds():
+    kin, q, J, Jn, condition, twist = wrist_toward_its_singularity(-160.0)
     assert raises_condition(kin, q, Jn, twist, condition) and not raises_condition(kin, q, Jn, -twist, condition)
     bounds = SingularityBounds(slow_from=condition / 2, stop_at=condition * 2)
     near = singularity_scale(kin, q, J, twist, bounds)
@@ -169,13 +173,8 @@ def test_the_braking_scale_stops_the_motion_within_the_angle_left():
 
 
 def test_near_the_bound_the_braking_rule_slows_more_than_the_ramp_and_the_joints_limit_binds():
-    arm = load_arm("j2n6s300")
-    kin = ArmKinematics(arm)
-    q = wrist_start(arm, 4, -172.0)
-    R, _, J = kin.pose_and_jacobian(q)
-    Jn = normalized_jacobian(J, kin.characteristic_length_m)
-    condition = condition_number(Jn)
-    twist = np.concatenate([np.zeros(3), -J[3:, 4] * 0.3 / np.linalg.norm(J[3:, 4])])
+    kin, q, J, Jn, condition, twist = wrist_toward_its_singularity(-172.0)
+    twist = twist * 0.3
     bounds = SingularityBounds(slow_from=condition * 0.99, stop_at=condition * 1.1)
     ramp = singularity_scale(kin, q, J, twist, bounds)
     gradient = condition_gradient(kin, q, Jn, twist, condition)

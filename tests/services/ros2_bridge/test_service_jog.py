@@ -49,6 +49,23 @@ def pad(up: float, lb: bool, a: bool = False, start: bool = False):
     return axes, buttons
 
 
+def bridge_endpoints(session, wanted: set) -> dict:
+    """The bridge's subscriptions and services by their ROS names: each one's data key, and its QoS as ``NAME qos``,
+    read off its liveliness tokens once all of ``wanted`` are declared."""
+    keys = {}
+
+    def found() -> bool:
+        for reply in session.liveliness().get("@ros2_lv/0/**", timeout=2.0):
+            if reply.ok is not None:
+                parts = token_parts(str(reply.ok.key_expr))
+                if parts["kind"] in ("MS", "SS"):
+                    keys[parts["topic"]] = data_key(parts)
+                    keys[parts["topic"] + " qos"] = parts["qos"]
+        return wanted <= set(keys)
+    assert wait_for(found, timeout=15, period=0.2), keys
+    return keys
+
+
 @pytest.fixture(params=["own session", "jog identity's session"])
 def bridge(router, request):
     jog_zenoh = router.client_config() if request.param != "own session" else None
@@ -57,17 +74,7 @@ def bridge(router, request):
     session = open_session(router.client_config())
     service.start()
     try:
-        keys = {}
-
-        def found() -> bool:
-            for reply in session.liveliness().get("@ros2_lv/0/**", timeout=2.0):
-                if reply.ok is not None:
-                    parts = token_parts(str(reply.ok.key_expr))
-                    if parts["kind"] in ("MS", "SS"):
-                        keys[parts["topic"]] = data_key(parts)
-                        keys[parts["topic"] + " qos"] = parts["qos"]
-            return {"/joy", "/mfvs/delta_twist_cmds", "/mfvs/resume_task"} <= set(keys)
-        assert wait_for(found, timeout=15, period=0.2), keys
+        keys = bridge_endpoints(session, {"/joy", "/mfvs/delta_twist_cmds", "/mfvs/resume_task"})
         yield service, session, keys
     finally:
         service.stop()
@@ -194,16 +201,8 @@ def test_a_ros_stick_drives_the_simulated_arm_along_the_base_and_its_release_sto
     for started in (safety, robot, service):
         started.start()
     try:
-        keys = {}
-
-        def found() -> bool:
-            for reply in session.liveliness().get("@ros2_lv/0/**", timeout=2.0):
-                if reply.ok is not None:
-                    parts = token_parts(str(reply.ok.key_expr))
-                    if parts["kind"] == "MS":
-                        keys[parts["topic"]] = data_key(parts)
-            return "/joy" in keys
-        assert wait_for(found, timeout=15, period=0.2) and wait_for(lambda: len(states) > 20, timeout=30)
+        keys = bridge_endpoints(session, {"/joy"})
+        assert wait_for(lambda: len(states) > 20, timeout=30)
         assert wait_for(lambda: service._jog_publisher.matching, timeout=5)
         start = kin.pose(np.array(states.last().q))[1]
         sequence = 0
