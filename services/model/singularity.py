@@ -19,7 +19,8 @@ stands at κ 17.8 at its home pose and 16-22 across its ordinary workspace, so 1
 works, and seed 000's Part B (a large rotation about the optical axis) takes the servo through κ 48 on the j2s7s300
 and 49 on the j2n6s300 (the identity bench's logs), which the arm makes as commanded: slowed there, Part B took 273
 iterations instead of 115. So safety slows a motion toward a singularity only from κ 50 (measure ≈ 0.04), above what
-the seed's experiments reach, and stops it at 80 (measure ≈ 0.025): near the workspace's edge κ grows steeply, and
+the seed's fixed starts reach (its random starts go further, into the hundreds; the visual servo's twists are left to
+the robot's DSP: services/safety/sources.py NearSingularity), and stops it at 80 (measure ≈ 0.025): near the workspace's edge κ grows steeply, and
 from a stop at 90 the arm's braking (its acceleration limits) could not keep a reach at 0.1 m/s out of the
 singularity (the j2n6s300 went through to κ 10⁴); from 80 it stops at 80, and from the jog's top speed (0.2 m/s) at
 83, both before the emulated DSP's damped least squares (measure 0.02, κ ≈ 95), where the arm would no longer move

@@ -59,8 +59,9 @@ class SafetyLimits(ConfigStruct):
     #: workspace zones the end effector must not enter (base frame)
     zones: list[Zone] = msgspec.field(default_factory=lambda: [default_base_zone()])
     zone_filter: ZoneFilterConfig = msgspec.field(default_factory=lambda: ZoneFilterConfig(margin_m=0.02))
-    #: a twist toward a singularity slowed from, and stopped at, these condition numbers (any source's; a joint
-    #: velocity command has no inverse to blow up near one, and is not slowed, as in MoveIt Servo)
+    #: a twist toward a singularity slowed from, and stopped at, these condition numbers (a source's declared
+    #: ``singularity: stop``, services/safety/sources.py; a joint velocity command has no inverse to blow up near
+    #: one, and is not slowed, as in MoveIt Servo)
     singularity: SingularityBounds = msgspec.field(default_factory=SingularityBounds)
 
     def __post_init__(self) -> None:
@@ -134,10 +135,12 @@ class CommandChecker:
 
     # ------------------------------------------------------------------ twists
     def check_twist(self, frame: Frame, angular: AngularConvention, twist, q, dt: float,
-                    robot: MotionLimits, also_accepted: tuple[AngularConvention, ...] = ()) -> Decision:
+                    robot: MotionLimits, also_accepted: tuple[AngularConvention, ...] = (),
+                    near_singularity: bool = True) -> Decision:
         """``robot``: the limits the robot declares (:func:`services.model.limits.declared`). A twist is taken in the
         robot's convention, or in one of ``also_accepted`` (a command type that defines its own: a jog's ω about the
-        hand's axes), and what goes to the robot is in the robot's."""
+        hand's axes), and what goes to the robot is in the robot's. ``near_singularity``: a twist toward a
+        singularity slowed and stopped before it (its source's rule, services/safety/sources.py NearSingularity)."""
         lim = self.limits
         robot = effective_limits(lim, robot)
         if frame is not Frame.MIXED or (angular is not lim.robot_convention and angular not in also_accepted):
@@ -157,8 +160,8 @@ class CommandChecker:
         # to what is left
         near = singularity_scale(self.kin, q, J, base, lim.singularity,
                                  Braking(robot.linear_accel_mps2, robot.angular_accel_rps2, robot.joint_accel_rps2,
-                                         lim.singularity.braking_lag_s))
-        if near.factor < 1.0:
+                                         lim.singularity.braking_lag_s)) if near_singularity else None
+        if near is not None and near.factor < 1.0:
             base = base * near.factor
             decision.limits.append("singularity" if near.factor > 0.0 else "singularity_stop")
 

@@ -90,13 +90,14 @@ class HeldCommand:
     def source(self) -> Header:
         return self.twist.header if self.twist is not None else self.joint.header
 
-    def check(self, checker: CommandChecker, state: RobotState, dt: float) -> Decision:
-        """Check the command against the robot's ``state``: its joint angles and the limits it declares."""
+    def check(self, checker: CommandChecker, state: RobotState, dt: float, near_singularity: bool = True) -> Decision:
+        """Check the command against the robot's ``state``: its joint angles and the limits it declares
+        (``near_singularity``: its source's twists slowed and stopped before a singularity)."""
         q, robot = np.asarray(state.q, dtype=float), declared_limits(state, checker.kin.arm)
         if self.twist is not None:
             t = self.twist
             return checker.check_twist(t.frame, t.angular, (*t.linear, *t.rotational), q, dt, robot,
-                                       also_accepted=self.conventions)
+                                       also_accepted=self.conventions, near_singularity=near_singularity)
         return checker.check_joint_velocity(self.joint.velocities, q, dt, robot)
 
 
@@ -420,7 +421,7 @@ class SafetyCore:
         problem = self._finger_problem(held, state)
         if problem is not None:
             return None, problem
-        decision = held.check(self.checker, state, self.dt)
+        decision = held.check(self.checker, state, self.dt, self.registry.stops_near_singularity(held.source_name))
         if decision.refused:
             self.active_limits = list(decision.limits)
             return None, decision.refusal

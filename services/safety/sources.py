@@ -50,6 +50,21 @@ class Freshness(str, enum.Enum):
     DEVICE = "device"
 
 
+class NearSingularity(str, enum.Enum):
+    """What safety does with a source's twist toward a singularity (services/model/singularity.py).
+
+    ``stop``: slowed from ``limits.singularity.slow_from`` and stopped before ``stop_at``, no faster than the arm
+    can still brake from (MoveIt Servo's rule, and ours): for a person's stick, open loop, who drives into a
+    singularity and then away from it. ``robot``: left to the robot's own handling, as the seed papers' JACO-2 ran
+    (its DSP's damped least squares, services/robot/dsp.py): for a closed loop such as the visual servo, whose
+    command does not change while the arm stands, so that a stop would hold it at the bound for good. Measured on
+    seed 000's markerless random starts (seed 7, the cup, 26 starts): with ``stop`` the servo stood at the bound on
+    2 of the 26 and the tag's servo on 2 others, each for its 1000 iterations; with ``robot`` all 26 converge."""
+
+    STOP = "stop"
+    ROBOT = "robot"
+
+
 #: a source's name, as commands give it before the slash
 SOURCE_NAME = re.compile(r"^[a-z][a-z0-9_\-]{0,31}$")
 
@@ -64,6 +79,8 @@ class CommandSource(ConfigStruct):
     #: a higher priority takes control from a lower one (the person's joystick above the servo)
     priority: int = 0
     freshness: Freshness = Freshness.IMAGE
+    #: its twists toward a singularity: stopped before it by safety, or left to the robot (:class:`NearSingularity`)
+    singularity: NearSingularity = NearSingularity.STOP
     #: the identity the deployment's access control lets publish on its keys (docs/security.md); said here so that
     #: `mfvs status` shows who a source is; the router enforces it
     identity: Optional[str] = None
@@ -73,6 +90,7 @@ class CommandSource(ConfigStruct):
             raise ValueError(f"command source name {self.name!r} must be 1-32 of a-z, 0-9, _ and -, starting with "
                              "a letter")
         self.freshness = Freshness(self.freshness)  # compared by identity; a config file's string made the enum
+        self.singularity = NearSingularity(self.singularity)
         if not self.keys or not self.drives:
             raise ValueError(f"command source {self.name!r} needs the keys its commands come on and what they drive")
 
@@ -87,7 +105,7 @@ def default_sources() -> list[CommandSource]:
     person's stick (services/jog): the hand and the fingers, from a device, above the servo."""
     return [CommandSource(name="controller", keys=["desired_twist", "desired_joint_velocity"],
                           drives=[Drives.TWIST, Drives.JOINT_VELOCITY, Drives.FINGERS], priority=10,
-                          freshness=Freshness.IMAGE, identity="controller"),
+                          freshness=Freshness.IMAGE, singularity=NearSingularity.ROBOT, identity="controller"),
             CommandSource(name="jog", keys=["desired_jog"], drives=[Drives.TWIST, Drives.FINGERS], priority=20,
                           freshness=Freshness.DEVICE, identity="jog")]
 
@@ -108,6 +126,12 @@ class SourceRegistry:
         before its freshness matters)."""
         declared = self.sources.get(declared_name(source))
         return Freshness.IMAGE if declared is None else declared.freshness
+
+    def stops_near_singularity(self, source: str) -> bool:
+        """Whether safety slows and stops the declared source's twists toward a singularity (:class:`NearSingularity`;
+        an undeclared one is refused before it matters)."""
+        declared = self.sources.get(declared_name(source))
+        return declared is None or declared.singularity is NearSingularity.STOP
 
     def admit(self, source: str, key: str, fingers: bool = False) -> tuple[Optional[CommandSource], str]:
         """(the declared source, "") for a command naming ``source`` on ``key`` (``fingers``: carrying a finger

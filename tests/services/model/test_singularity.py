@@ -9,7 +9,10 @@ from services.model.arm import load_arm
 from services.model.kinematics import ArmKinematics, normalized_jacobian
 from services.model.singularity import (Braking, SingularityBounds, angle_to_bound, braking_scale, condition_gradient,
                                         condition_number, raises_condition, singularity_scale)
-from services.safety.checks import SafetyLimits
+from protocol.conventions import AngularConvention, Frame
+from services.model.limits import arm_limits
+from services.safety.checks import CommandChecker, SafetyLimits
+from services.safety.sources import SourceRegistry, default_sources
 from services.safety.core import SafetyCore, Send
 from tests.helpers import ARM_DECLARED
 
@@ -188,3 +191,22 @@ def test_near_the_bound_the_braking_rule_slows_more_than_the_ramp_and_the_joints
     gentle = SingularityBounds(slow_from=condition * 0.5, stop_at=condition * 50)
     assert singularity_scale(kin, q, J, twist, gentle, braking).factor == singularity_scale(kin, q, J, twist,
                                                                                             gentle).factor
+
+
+def test_the_servos_twists_are_left_to_the_robot_near_a_singularity_and_a_persons_are_stopped():
+    """Each source's rule (services/safety/sources.py NearSingularity): the visual servo, a closed loop that a stop
+    would hold at the bound, is left to the robot's DSP as the seed papers' arm ran; the person's stick is stopped."""
+    registry = SourceRegistry(default_sources())
+    assert not registry.stops_near_singularity("controller/servo")
+    assert registry.stops_near_singularity("jog/stick") and registry.stops_near_singularity("jog/ros-joy")
+    kin, q, J, _, condition, twist = wrist_toward_its_singularity(-178.0)
+    assert condition > SingularityBounds().stop_at
+    R, _ = kin.pose(q)
+    mixed = frames.mixed_from_base_twist(twist * 0.3, R, AngularConvention.OMEGA)
+    checker = CommandChecker(SafetyLimits(robot_convention=AngularConvention.OMEGA), kin)
+    robot = arm_limits(kin.arm)
+    stopped = checker.check_twist(Frame.MIXED, AngularConvention.OMEGA, mixed, q, 0.01, robot)
+    assert "singularity_stop" in stopped.limits and not np.any(stopped.twist)
+    checker.reset_motion()
+    left = checker.check_twist(Frame.MIXED, AngularConvention.OMEGA, mixed, q, 0.01, robot, near_singularity=False)
+    assert not any(name.startswith("singularity") for name in left.limits) and np.any(left.twist)
