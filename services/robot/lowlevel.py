@@ -28,6 +28,7 @@ Time is the caller's monotonic wall clock: low-level control runs in realtime on
 """
 from __future__ import annotations
 
+import copy
 import enum
 import threading
 from typing import Callable, Optional, Protocol
@@ -128,10 +129,13 @@ class LowLevelControl:
             return Outcome.IDLE, ""
         command, received = latest
         age = now_s - received
+        # one setup for the whole cycle: the Kinova API's worker replaces its fields (each setter one field, a new
+        # value, never changed in place) while this loop runs, and a cycle must not apply half of two setups
+        setup = copy.copy(self.setup)
         if self.joints.torque_mode and age <= self.config.release_s:
-            fast = over_safety_speed(self.setup, dq)
+            fast = over_safety_speed(setup, dq)
             if fast:
-                return self._safety_stop(latest, fast, q, dq)
+                return self._safety_stop(latest, fast, q, dq, setup)
         outcome = Outcome.APPLIED
         if not self.joints.torque_mode:
             if age > self.config.watchdog_s:  # an old command does not start torque control
@@ -157,9 +161,9 @@ class LowLevelControl:
         if age > self.config.watchdog_s:
             self._hold(q)
             return Outcome.WATCHDOG, f"command {age * 1e3:.1f} ms old"
-        torques = np.asarray(command.torques, dtype=float) + damping_torque(self.setup, dq)
+        torques = np.asarray(command.torques, dtype=float) + damping_torque(setup, dq)
         self.joints.set_torques(torques + self._gravity_to_add(
-            q, arm_gravity=arm_compensates_gravity(self.setup), client_on_top=command.gravity_compensation))
+            q, arm_gravity=arm_compensates_gravity(setup), client_on_top=command.gravity_compensation))
         return outcome, ""
 
     def _hold(self, q: np.ndarray) -> None:
@@ -184,8 +188,8 @@ class LowLevelControl:
         switched = self.joints.set_gravity_compensation(arm_gravity)
         return arm_gravity or not switched
 
-    def _safety_stop(self, latest, fast: list[int], q, dq) -> tuple[Outcome, str]:
-        threshold = np.degrees(safety_speed_threshold(self.setup))
+    def _safety_stop(self, latest, fast: list[int], q, dq, setup: TorqueSetup) -> tuple[Outcome, str]:
+        threshold = np.degrees(safety_speed_threshold(setup))
         detail = ", ".join(f"joint {i + 1} at {abs(np.degrees(dq[i])):.0f}°/s (threshold {threshold[i]:.0f}°/s)"
                            for i in fast)
         with self._lock:  # a command that came meanwhile is refused too: the client has not paused

@@ -10,7 +10,7 @@ from protocol import kinova
 from protocol import messages as m
 from protocol.conventions import AngularConvention, ClockMode, Frame
 from services.robot.lowlevel import LowLevelConfig, LowLevelControl, Outcome
-from services.robot.torque_setup import TorqueSetup, table_5_1
+from services.robot.torque_setup import TorqueSetup, configure, table_5_1
 from services.runtime.transport import open_session
 from services.robot_gateway.service import GatewayConfig
 from services.robot_sim.service import RobotSimConfig, robot_sim_service
@@ -515,3 +515,24 @@ def test_a_joint_faster_than_the_torque_safety_factor_allows_returns_the_arm_to_
     assert speeds and max(speeds) < 3 * ARM.max_speed_dps[6]  # stopped soon after the threshold, not at will
     time.sleep(0.3)  # the arm holds: the last joint comes to rest under the DSP
     assert abs(np.degrees(low.last().dq[6])) < 5.0
+
+
+def test_a_cycle_applies_the_setup_it_started_with_when_the_api_changes_it_meanwhile():
+    """The Kinova API's worker sets Table 5.1's functions while the 500 Hz loop runs: a change that lands in the
+    middle of a cycle (here while the joints enter torque mode) is the next cycle's, not half of this one's."""
+    setup = undamped()
+    moving = np.full(7, 0.5)
+
+    class ChangedMeanwhile(FakeJoints):
+        def enter_torque_mode(self):
+            super().enter_torque_mode()
+            assert configure(setup, "SetTorqueActuatorDamping", kinova.CommandArray(values=[2.0] * 7)) == ""
+
+    joints = ChangedMeanwhile()
+    control = LowLevelControl(LowLevelConfig(), joints, gravity=lambda q: np.zeros(7), setup=setup)
+    control.receive(torque_command([1.0] * 7), 0.0)
+    control.step(0.001, STILL, moving)
+    assert np.allclose(joints.torques, 1.0)  # the damping this cycle started with: none
+    control.receive(torque_command([1.0] * 7), 0.002)
+    control.step(0.003, STILL, moving)
+    assert np.allclose(joints.torques, 1.0 - 2.0 * 0.5)  # the next cycle takes the new damping
