@@ -122,8 +122,9 @@ def test_a_scripted_stick_moves_the_arm_in_the_mixed_frame_and_it_stops_on_relea
         """The motion in the steady part of a step (after the spasm filter's ramp and the arm's acceleration, before
         the next step's request reaches the arm), and whether the host kept time in it. A host too starved to keep
         the requests, the commands or the arm's states fresh has safety or the arm stop (by design: lateness never
-        becomes motion): then a stopped or braking arm, which has no direction to judge, is left out (the states
-        below 30 % of the step's speed) and the speed is not judged."""
+        becomes motion): then the arm's braking and its acceleration again after each such stop (its settling, a
+        state under 30 % of the step's speed: a stopped arm has no direction) are left out, and the speed is not
+        judged."""
         first, last = stamp[id(held[0])], stamp[id(held[-1])]
         late = [t for t in stops if first < t <= last]
         window = [(t, v, w) for t, v, w in moving if first + settle_s <= t <= last - end_s]
@@ -132,7 +133,8 @@ def test_a_scripted_stick_moves_the_arm_in_the_mixed_frame_and_it_stops_on_relea
         if not kept_time:
             print(f"the host was late: {len(late)} stops in a held step, safety {h['safety'].counters.snapshot()}, "
                   f"the arm refused {h['robot'].counters.get('refused.stale')} stale commands")
-            window = [(t, v, w) for t, v, w in window if speed_of(v, w) >= 0.3 * full_speed]
+            window = [(t, v, w) for t, v, w in window if speed_of(v, w) >= 0.3 * full_speed
+                      and not any(stop <= t <= stop + settle_s for stop in late)]
         return window, kept_time
 
     # translation: the hand along the base's axes, in the commanded direction within 5 %
@@ -146,7 +148,8 @@ def test_a_scripted_stick_moves_the_arm_in_the_mixed_frame_and_it_stops_on_relea
         assert np.mean([np.linalg.norm(v) for _, v, _ in steady]) == pytest.approx(full, rel=0.1)
     # wrist: the hand about its own axes, the commanded direction within 5 %, the hand's position still
     commanded = apply_dead_band(WRIST, 0.1)
-    turning_steady, _ = during(turning, lambda v, w: np.linalg.norm(w), 0.5 * 0.6 * np.linalg.norm(commanded))
+    turning_steady, turning_kept_time = during(turning, lambda v, w: np.linalg.norm(w),
+                                               0.5 * 0.6 * np.linalg.norm(commanded))
     for _, v, w in turning_steady:
         assert direction_error(w, commanded) < 0.05, (w, commanded)
         assert np.linalg.norm(v) < 0.01
@@ -172,7 +175,9 @@ def test_a_scripted_stick_moves_the_arm_in_the_mixed_frame_and_it_stops_on_relea
     assert frozen, "no request from a frozen device"
     rest_after(frozen[0].header.source_stamp_ns * 1e-9, 0.25 + braking_s + slack_s)  # unheard for 250 ms: frozen
     counters = h["safety"].counters
-    assert counters.get("released.stops") >= 2 and counters.get("refused.freshness") >= 2
+    assert counters.get("refused.freshness") >= 2
+    if kept_time and turning_kept_time:  # a late host's stop may come first: the release then stops nothing
+        assert counters.get("released.stops") >= 2
 
 
 def straight_out(kin, q):
