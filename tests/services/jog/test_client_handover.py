@@ -41,10 +41,10 @@ def test_a_touch_of_the_stick_pauses_the_servo_task_and_a_resume_goes_on_with_it
         assert started.returncode == 0, started.stdout + started.stderr
         assert wait_for(lambda: "in control: controller/servo" in safety_detail(env), timeout=20)
         jogs = Recorder(session, Keys().desired_jog, m.Jog)
-        # the person touches the stick and lifts the hand 4 cm (level 1: 5 cm/s), then lets go
+        # the person touches the stick and lifts the hand (level 1: 5 cm/s for 1.2 s), then lets go
         script = tmp_path / "touch.yaml"
         script.write_text(yaml.safe_dump({"rate_hz": 50, "speed_level": 1, "steps": [
-            {"for_s": 0.8, "mode": "translation", "axes": [0, 0, 1.0], "deadman": True},
+            {"for_s": 1.2, "mode": "translation", "axes": [0, 0, 1.0], "deadman": True},
             {"for_s": 0.4, "deadman": False}]}))
         jog = mfvs("jog", "--script", str(script), "--json", env=env)
         assert jog.returncode == 0, jog.stderr
@@ -58,9 +58,11 @@ def test_a_touch_of_the_stick_pauses_the_servo_task_and_a_resume_goes_on_with_it
         assert len(q) > 20 and np.abs(q - q[0]).max() < 2e-3, np.abs(q - q[0]).max()
         assert "paused" in mfvs("status", env=env).stdout
         touched_ns = jogs.snapshot()[0].header.stamp_ns
-        before_z = next(s.pose.Z for s in states.snapshot() if s.header.stamp_ns >= touched_ns)
+        # from the lowest the hand went after the touch: the servo's motion, up to 0.2 m/s in any direction, is
+        # braked at the arm's deceleration before the lift begins
+        lowest_z = min(s.pose.Z for s in states.snapshot() if s.header.stamp_ns >= touched_ns)
         lifted_z = states.last().pose.Z
-        assert lifted_z - before_z > 0.02, (before_z, lifted_z)  # the person's lift, which the paused servo kept
+        assert lifted_z - lowest_z > 0.02, (lowest_z, lifted_z)  # the person's lift, which the paused servo kept
         resumed = mfvs("task", "resume", "--operator", "alice", env=env)
         assert resumed.returncode == 0 and "resumed at its servo phase" in resumed.stdout, resumed.stdout
         assert wait_for(lambda: "in control: controller/servo" in safety_detail(env), timeout=10)
