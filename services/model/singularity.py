@@ -20,11 +20,11 @@ works, and seed 000's Part B (a large rotation about the optical axis) takes the
 and 49 on the j2n6s300 (the identity bench's logs), which the arm makes as commanded: slowed there, Part B took 273
 iterations instead of 115. So safety slows a motion toward a singularity only from κ 50 (measure ≈ 0.04), above what
 the seed's fixed starts reach (its random starts go further, into the hundreds; the visual servo's twists are left to
-the robot's DSP: services/safety/sources.py NearSingularity), and stops it at 80 (measure ≈ 0.025): near the workspace's edge κ grows steeply, and
-from a stop at 90 the arm's braking (its acceleration limits) could not keep a reach at 0.1 m/s out of the
-singularity (the j2n6s300 went through to κ 10⁴); from 80 it stops at 80, and from the jog's top speed (0.2 m/s) at
-83, both before the emulated DSP's damped least squares (measure 0.02, κ ≈ 95), where the arm would no longer move
-as commanded.
+the robot's DSP: services/safety/sources.py NearSingularity), and stops it at 80 (measure ≈ 0.025): near the
+workspace's edge κ grows steeply, and from a stop at 90 the arm's braking (its acceleration limits) could not keep a
+reach at 0.1 m/s out of the singularity (the j2n6s300 went through to κ 10⁴); from 80 it stops at 80, and from the
+jog's top speed (0.2 m/s) at 83, both before the emulated DSP's damped least squares (measure 0.02, κ ≈ 95), where
+the arm would no longer move as commanded.
 
 *Braking*, which MoveIt Servo leaves to the robot. Those figures are for an arm that follows the commands exactly.
 The arm follows a cycle late and brakes at its acceleration limits, and near the workspace's edge a millimetre
@@ -89,7 +89,11 @@ def condition_gradient(kin: ArmKinematics, q, J_normalized: np.ndarray, motion: 
     """How fast κ grows along ``motion`` (normalized task units: linear over the reach, then angular) from ``q``,
     resolved by the pseudo-inverse as the arm resolves it: per radian of the joint that turns most, over the
     look-ahead step (0 for no motion; negative: κ falls)."""
-    dq = np.linalg.pinv(J_normalized) @ motion
+    return _gradient_along(kin, q, np.linalg.pinv(J_normalized) @ motion, condition)
+
+
+def _gradient_along(kin: ArmKinematics, q, dq: np.ndarray, condition: float) -> float:
+    """:func:`condition_gradient` along the joint motion ``dq`` the task motion resolves to."""
     largest = float(np.max(np.abs(dq)))
     if largest == 0.0:
         return 0.0
@@ -167,14 +171,14 @@ def singularity_scale(kin: ArmKinematics, q, J_base: np.ndarray, twist_base: np.
     twist_base = np.asarray(twist_base, dtype=float)
     motion = twist_base.copy()
     motion[:3] /= length  # in the normalized Jacobian's task units
-    gradient = condition_gradient(kin, q, Jn, motion, condition)
+    dq = np.linalg.pinv(Jn) @ motion  # the joints' motion, the same as J_base's pseudo-inverse gives the twist
+    gradient = _gradient_along(kin, q, dq, condition)
     if gradient <= 0.0:
         return SingularityScale(1.0, condition, False)
     if condition >= bounds.stop_at:
         return SingularityScale(0.0, condition, True)
     factor = 1.0 - (condition - bounds.slow_from) / (bounds.stop_at - bounds.slow_from)
     if braking is not None:
-        dq = np.linalg.pinv(J_base) @ twist_base
         factor = min(factor, braking_scale(float(np.max(np.abs(dq))), braking.time_to_stop(twist_base, dq),
                                            braking.lag_s,
                                            angle_to_bound(condition, gradient, bounds.stop_at)))
