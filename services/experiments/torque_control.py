@@ -189,14 +189,19 @@ def task_errors(arm: ArmDescription, arrays: dict) -> tuple[np.ndarray, np.ndarr
     return np.array(position), np.array(orientation)
 
 
+def emulated_arm_missed(robot_counters: Optional[dict]) -> int:
+    """How many of its own 2 ms cycles the emulated arm missed in a run (its ``cycles.missed``)."""
+    return (robot_counters or {}).get("cycles.missed") or 0
+
+
 def kept_time(timing: dict, robot_counters: Optional[dict] = None) -> bool:
     """Whether a run's controller answered its cycles as a 500 Hz loop must (MAX_MISSED_FRACTION), and the emulated
     arm kept its own 2 ms cycles (none missed: a real arm's loop never stalls, the emulation's does on a starved host,
     and a stall of 0.1 s then made the joint-velocity law's high-gain loop command 2.3 times its peak torque for
     0.41 s when the arm came back; stalls of 10-40 ms, each its arm's cycles late but none missed, did not saturate
     it): otherwise its figures are the host's lateness as much as the controller's."""
-    robot_missed = (robot_counters or {}).get("cycles.missed") or 0
-    return timing["missed"] <= MAX_MISSED_FRACTION * max(1, timing["received"]) and robot_missed == 0
+    return (timing["missed"] <= MAX_MISSED_FRACTION * max(1, timing["received"])
+            and emulated_arm_missed(robot_counters) == 0)
 
 
 def run_row(spec: TorqueRunSpec, result: dict, arm: ArmDescription, quick: bool) -> dict:
@@ -662,10 +667,9 @@ def _run_section(row: dict, mine: list[dict]) -> list[str]:
               f"{row['timing']['unseen']}) of {row['timing']['answered']} | {_f(row['robot_watchdog'])} | "
               f"{_f(row['safety_stops'])} | {row['status']}{': ' + row['failure'] if row['failure'] else ''} |", ""]
     if not row["host_kept_time"]:
-        robot_missed = (row.get("robot_counters") or {}).get("cycles.missed") or 0
         lines += [f"**This host did not keep the loop's time**: the controller missed {row['missed_cycles']} of "
                   f"{row['timing']['received']} cycles (at most {MAX_MISSED_FRACTION:.0%} keep it), the emulated "
-                  f"arm {robot_missed} of its own (none keep it): these figures are the host's lateness as much as "
+                  f"arm {emulated_arm_missed(row.get('robot_counters'))} of its own (none keep it): these figures are the host's lateness as much as "
                   "the controller's (run it with fewer processes beside it)", ""]
     if row.get("faults"):
         lines += ["The robot reported: " + "; ".join(f"{fault} ({count} states)"
